@@ -1,0 +1,89 @@
+"""The five systems of the paper and a registry for user-defined ones.
+
+>>> from neural_estimator.scenarios import make_scenario
+>>> s = make_scenario("lorenz96", obs_noise_std=0.5)
+
+A user registers a system of their own with :func:`register_scenario` (see the README's "Your own
+scenario" section); every tool (simulate, evaluate, train, the nodes) then accepts its name.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from neural_estimator.scenarios.base import (
+    Scenario,
+    ScenarioError,
+    complex_step_jacobian,
+    parse_assignments,
+    psd_sqrt,
+)
+
+# name -> "module:Class" for the built-ins (imported on first use) or a Scenario subclass.
+_REGISTRY: dict[str, Any] = {
+    "ballistic": "neural_estimator.scenarios.ballistic:Ballistic",
+    "bearings": "neural_estimator.scenarios.bearings:Bearings",
+    "lorenz96": "neural_estimator.scenarios.lorenz96:Lorenz96",
+    "nlink": "neural_estimator.scenarios.nlink:NLinkPendulum",
+    "quadrotor": "neural_estimator.scenarios.quadrotor:PlanarQuadrotor",
+}
+
+BUILTIN_SCENARIOS = tuple(_REGISTRY)
+
+
+def register_scenario(cls: type[Scenario], name: str | None = None, *, replace: bool = False) -> type[Scenario]:
+    """Register a :class:`Scenario` subclass under ``name`` (default ``cls.name``).
+
+    Usable as a decorator. Re-registering a name is an error unless ``replace=True``.
+    """
+    key = name or cls.name
+    if not (isinstance(cls, type) and issubclass(cls, Scenario)):
+        raise ScenarioError(f"register_scenario expects a Scenario subclass, got {cls!r}")
+    if key in _REGISTRY and not replace and _REGISTRY[key] is not cls:
+        raise ScenarioError(f"a scenario named {key!r} is already registered")
+    _REGISTRY[key] = cls
+    return cls
+
+
+def scenario_names() -> list[str]:
+    """Names of every registered scenario."""
+    return list(_REGISTRY)
+
+
+def scenario_class(name: str) -> type[Scenario]:
+    """The class registered as ``name``; an unknown name is an error listing the valid ones."""
+    try:
+        entry = _REGISTRY[name]
+    except KeyError:
+        raise ScenarioError(f"unknown scenario {name!r}; choose one of: {', '.join(_REGISTRY)}") from None
+    if isinstance(entry, str):
+        module, _, attr = entry.partition(":")
+        entry = getattr(importlib.import_module(module), attr)
+        _REGISTRY[name] = entry
+    return entry
+
+
+def make_scenario(name: str, **overrides: Any) -> Scenario:
+    """An instance of the scenario ``name`` with constants ``overrides`` applied."""
+    return scenario_class(name)(**overrides)
+
+
+def scenario_from_description(desc: dict[str, Any]) -> Scenario:
+    """Rebuild a scenario from :meth:`Scenario.describe` output (as stored in files)."""
+    return make_scenario(desc["scenario"], **desc.get("config", {}))
+
+
+__all__ = [
+    "BUILTIN_SCENARIOS",
+    "Scenario",
+    "ScenarioError",
+    "complex_step_jacobian",
+    "make_scenario",
+    "parse_assignments",
+    "psd_sqrt",
+    "register_scenario",
+    "scenario_class",
+    "scenario_from_description",
+    "scenario_names",
+]

@@ -1,0 +1,306 @@
+"""The scenario contract: a discrete-time nonlinear state-space system with Gaussian noise.
+
+A scenario is the paper's Eq. (1),
+
+    x_{k+1} = f(x_k, u_k) + w_k,   w_k ~ N(0, Q)
+    y_k     = h(x_k) + v_k,        v_k ~ N(0, R),   R = noise_scale^2 * R_0
+
+with a prior x_0 ~ N(m0, P0) and, where the system has controls, an open-loop control policy.
+
+Timing convention (used by the simulator, every estimator, the nodes and the bags):
+    x_k is the state at step k, u_k the control applied from k to k+1, y_k = h(x_k) + v_k.
+    At step k an estimator receives z_k = (y_k, u_{k-1}) with u_{-1} = 0, and returns
+    x_hat_k computed from y_0..y_k and u_0..u_{k-1}. Filters update the prior with y_0 at k = 0;
+    for k >= 1 they predict with u_{k-1}, then update with y_k. Neural models read [y_k, u_{k-1}].
+
+Every method here is batched over any leading axes: ``x`` is (..., dx), ``u`` is (..., du),
+``y`` is (..., dy); Jacobians are (..., rows, cols). Everything is float64.
+
+Constants live in one frozen dataclass per scenario (its ``Config``). Every constant can be
+overridden (``make_scenario("lorenz96", obs_noise_std=1.0)`` or ``--set obs_noise_std=1.0``) and is
+recorded, through :meth:`Scenario.describe`, in every file the tools write.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from neural_estimator.angles import weighted_mean, wrap_components
+
+
+class ScenarioError(ValueError):
+    """A scenario name, constant or input that cannot be used; the message names the problem."""
+
+
+def psd_sqrt(cov: np.ndarray) -> np.ndarray:
+    """A square root L with L L^T = cov for a symmetric positive semi-definite matrix.
+
+    Cholesky where it succeeds; otherwise the symmetric eigen-decomposition with negative round-off
+    eigenvalues clipped to zero (a singular Q, for example a noise-free velocity, is legitimate).
+    """
+    cov = np.asarray(cov, dtype=np.float64)
+    try:
+        return np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
+        if vals.min() < -1e-9 * max(1.0, abs(vals.max())):
+            raise ScenarioError(f"covariance is not positive semi-definite (eigenvalue {vals.min():.3g})")
+        return vecs * np.sqrt(np.clip(vals, 0.0, None))
+
+
+def complex_step_jacobian(fn, x: np.ndarray, *args, h: float = 1e-30) -> np.ndarray:
+    """Jacobian of ``fn(x, *args)`` with respect to ``x`` by the complex step.
+
+    d fn / d x_j = Im(fn(x + i h e_j)) / h, exact to machine precision for functions that are real
+    analytic and written with complex-safe operations (no abs, min, atan2 on the perturbed path).
+    All dx perturbations are evaluated in one batched call.
+
+    Args:
+        fn: batched function (..., n) -> (..., m).
+        x: (..., n) point.
+
+    Returns:
+        (..., m, n) Jacobian.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    n = x.shape[-1]
+    xp = np.repeat(x[..., None, :], n, axis=-2).astype(np.complex128)  # (..., n, n): row j perturbs x_j
+    xp[..., np.arange(n), np.arange(n)] += 1j * h
+    args_b = [np.asarray(a)[..., None, :] if np.ndim(a) else a for a in args]
+    out = fn(xp, *args_b)  # (..., n, m)
+    return np.swapaxes(out.imag / h, -1, -2)
+
+
+class Scenario(ABC):
+    """Base class of the five systems and of user scenarios.
+
+    Subclasses set the class attributes below, define a frozen ``Config`` dataclass (which must
+    have ``dt``, ``horizon`` and ``noise_scale`` fields), and implement :meth:`f`, :meth:`h`,
+    :meth:`process_cov`, :meth:`obs_cov_nominal`, :meth:`prior`. They may override the Jacobians
+    (default: complex step), :meth:`sample_initial` and :meth:`sample_controls`.
+    """
+
+    name: ClassVar[str]
+    Config: ClassVar[type]
+    state_names: ClassVar[tuple[str, ...]]
+    state_units: ClassVar[tuple[str, ...]]
+    obs_names: ClassVar[tuple[str, ...]]
+    obs_units: ClassVar[tuple[str, ...]]
+    control_names: ClassVar[tuple[str, ...]] = ()
+    control_units: ClassVar[tuple[str, ...]] = ()
+    angle_states: ClassVar[tuple[int, ...]] = ()  # wrapped in errors, circular means, filter updates
+    angle_obs: ClassVar[tuple[int, ...]] = ()  # wrapped in innovations
+
+    def __init__(self, config: Any = None, **overrides: Any) -> None:
+        cfg = config if config is not None else self.Config()
+        if overrides:
+            cfg = replace_config(cfg, overrides, scenario=self.name)
+        self.config = cfg
+        self._validate()
+
+    # ---- dimensions and timing -------------------------------------------------------------
+    @property
+    def dx(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def dy(self) -> int:
+        return len(self.obs_names)
+
+    @property
+    def du(self) -> int:
+        return len(self.control_names)
+
+    @property
+    def dt(self) -> float:
+        """Sampling period in seconds (or the scenario's time unit)."""
+        return float(self.config.dt)
+
+    @property
+    def horizon(self) -> int:
+        """Default number of steps of a trajectory."""
+        return int(self.config.horizon)
+
+    # ---- the model -------------------------------------------------------------------------
+    @abstractmethod
+    def f(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Noise-free transition x_{k+1} = f(x_k, u_k); (..., dx), (..., du) -> (..., dx)."""
+
+    @abstractmethod
+    def h(self, x: np.ndarray) -> np.ndarray:
+        """Noise-free observation h(x_k); (..., dx) -> (..., dy)."""
+
+    def jac_f(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """d f / d x at (x, u); (..., dx, dx). Default: complex step."""
+        return complex_step_jacobian(self.f, x, u)
+
+    def jac_h(self, x: np.ndarray) -> np.ndarray:
+        """d h / d x at x; (..., dy, dx). Default: complex step."""
+        return complex_step_jacobian(self.h, x)
+
+    @abstractmethod
+    def process_cov(self) -> np.ndarray:
+        """Q, the (dx, dx) covariance of w_k."""
+
+    @abstractmethod
+    def obs_cov_nominal(self) -> np.ndarray:
+        """R_0, the (dy, dy) covariance of v_k at noise_scale = 1."""
+
+    def obs_cov(self) -> np.ndarray:
+        """R = noise_scale^2 R_0: the observation noise the simulator draws and filters are told."""
+        return float(self.config.noise_scale) ** 2 * self.obs_cov_nominal()
+
+    @abstractmethod
+    def prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """(m0, P0): mean (dx,) and covariance (dx, dx) of x_0, given to the model-based filters."""
+
+    # ---- sampling ----------------------------------------------------------------------------
+    def sample_initial(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """n true initial states (n, dx). Default: draws from the prior N(m0, P0)."""
+        m0, p0 = self.prior()
+        return m0 + rng.standard_normal((n, self.dx)) @ psd_sqrt(p0).T
+
+    def sample_controls(self, rng: np.random.Generator, n: int, horizon: int) -> np.ndarray:
+        """Open-loop controls (n, horizon, du); u[:, k] acts from step k to k+1. Default: none."""
+        return np.zeros((n, horizon, self.du))
+
+    # ---- residuals and means that respect angles -----------------------------------------------
+    def state_residual(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """a - b with angular state components wrapped to (-pi, pi]."""
+        return wrap_components(np.asarray(a) - np.asarray(b), self.angle_states)
+
+    def obs_residual(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """a - b with angular observation components wrapped (innovations)."""
+        return wrap_components(np.asarray(a) - np.asarray(b), self.angle_obs)
+
+    def state_mean(self, points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Mean over the member axis (-2) of (..., N, dx) points, circular for angles."""
+        return weighted_mean(points, weights, self.angle_states)
+
+    def obs_mean(self, points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Mean over the member axis (-2) of (..., N, dy) predicted observations."""
+        return weighted_mean(points, weights, self.angle_obs)
+
+    def normalize_state(self, x: np.ndarray) -> np.ndarray:
+        """Wrap the angular components of a state (after an additive update)."""
+        return wrap_components(x, self.angle_states)
+
+    # ---- description ---------------------------------------------------------------------------
+    def describe(self) -> dict[str, Any]:
+        """Everything that defines this scenario instance, JSON-serialisable (recorded in files)."""
+        return {
+            "scenario": self.name,
+            "config": config_to_dict(self.config),
+            "state_names": list(self.state_names),
+            "state_units": list(self.state_units),
+            "obs_names": list(self.obs_names),
+            "obs_units": list(self.obs_units),
+            "control_names": list(self.control_names),
+            "control_units": list(self.control_units),
+            "angle_states": list(self.angle_states),
+            "angle_obs": list(self.angle_obs),
+            "dt": self.dt,
+        }
+
+    def _validate(self) -> None:
+        for field in ("dt", "horizon", "noise_scale"):
+            if not hasattr(self.config, field):
+                raise ScenarioError(f"scenario {self.name!r}: its Config needs a {field!r} field")
+        if not float(self.config.dt) > 0:
+            raise ScenarioError(f"scenario {self.name!r}: dt must be positive, got {self.config.dt}")
+        if int(self.config.horizon) < 1:
+            raise ScenarioError(f"scenario {self.name!r}: horizon must be >= 1, got {self.config.horizon}")
+        if not float(self.config.noise_scale) >= 0:
+            raise ScenarioError(f"scenario {self.name!r}: noise_scale must be >= 0, got {self.config.noise_scale}")
+        m0, p0 = self.prior()
+        if np.shape(m0) != (self.dx,) or np.shape(p0) != (self.dx, self.dx):
+            raise ScenarioError(f"scenario {self.name!r}: prior must be ({self.dx},) and ({self.dx}, {self.dx})")
+        for label, cov, n in (("Q", self.process_cov(), self.dx), ("R", self.obs_cov_nominal(), self.dy)):
+            if np.shape(cov) != (n, n):
+                raise ScenarioError(f"scenario {self.name!r}: {label} must be ({n}, {n}), got {np.shape(cov)}")
+        psd_sqrt(p0)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.config})"
+
+
+# ---- configs ------------------------------------------------------------------------------------
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """A config dataclass as plain JSON types (tuples become lists)."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        out[f.name] = json.loads(json.dumps(_jsonable(v)))
+    return out
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, tuple):
+        return [_jsonable(e) for e in v]
+    return v
+
+
+def _coerce(value: Any, default: Any, name: str, scenario: str) -> Any:
+    """Convert ``value`` (often a command-line string) to the type of the field's default."""
+    if isinstance(value, str) and not isinstance(default, str):
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise ScenarioError(f"scenario {scenario!r}: cannot parse {name}={value!r}: {exc.msg}") from None
+    try:
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if isinstance(default, int):
+            if float(value) != int(value):
+                raise TypeError
+            return int(value)
+        if isinstance(default, float):
+            return float(value)
+        if isinstance(default, tuple):
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.shape != np.asarray(default).shape:
+                raise TypeError
+            return _to_tuple(arr)
+    except (TypeError, ValueError):
+        raise ScenarioError(
+            f"scenario {scenario!r}: {name} must be like {default!r}, got {value!r}"
+        ) from None
+    return value
+
+
+def _to_tuple(arr: np.ndarray) -> Any:
+    return tuple(_to_tuple(a) for a in arr) if arr.ndim else float(arr)
+
+
+def replace_config(cfg: Any, overrides: Mapping[str, Any], scenario: str = "") -> Any:
+    """A copy of ``cfg`` with ``overrides`` applied; unknown names are an error listing valid ones."""
+    fields = {f.name: f for f in dataclasses.fields(cfg)}
+    changes = {}
+    for name, value in overrides.items():
+        if name not in fields:
+            raise ScenarioError(
+                f"scenario {scenario!r} has no constant {name!r}; valid: {', '.join(sorted(fields))}"
+            )
+        changes[name] = _coerce(value, getattr(cfg, name), name, scenario)
+    return dataclasses.replace(cfg, **changes)
+
+
+def parse_assignments(items: Sequence[str] | None) -> dict[str, str]:
+    """Parse ``["name=value", ...]`` (the ``--set`` flag) into a dict of strings."""
+    out: dict[str, str] = {}
+    for item in items or ():
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ScenarioError(f"--set expects name=value, got {item!r}")
+        out[name.strip()] = value.strip()
+    return out

@@ -1,0 +1,32 @@
+"""ament_python package; also installs with pip (``pip install -e .``) and exposes ``neural-estimator``."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "neural_estimator"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(include=["neural_estimator", "neural_estimator.*", "sim_nodes", "sim_nodes.*"]),
+    package_data={"neural_estimator": ["zoo/*/*.safetensors", "zoo/*/*.json"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
+        (f"share/{package_name}", ["package.xml"]),
+        (f"share/{package_name}/params", glob("params/*.yaml")),
+        (f"share/{package_name}/bags", glob("bags/*.mcap")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="neural_estimator maintainers",
+    maintainer_email="maintainers@neural-estimator.dev",
+    description="Model-free neural state estimators beside model-based nonlinear filters, on ROS 2.",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "neural-estimator = neural_estimator.cli:main",
+        ],
+    },
+)
