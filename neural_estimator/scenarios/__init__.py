@@ -10,6 +10,7 @@ scenario" section); every tool (simulate, evaluate, train, the nodes) then accep
 from __future__ import annotations
 
 import importlib
+import inspect
 from typing import Any
 
 from neural_estimator.scenarios.base import (
@@ -40,10 +41,20 @@ def register_scenario(cls: type[Scenario], name: str | None = None, *, replace: 
     key = name or cls.name
     if not (isinstance(cls, type) and issubclass(cls, Scenario)):
         raise ScenarioError(f"register_scenario expects a Scenario subclass, got {cls!r}")
-    if key in _REGISTRY and not replace and _REGISTRY[key] is not cls:
+    if key in _REGISTRY and not replace and not _same_definition(_REGISTRY[key], cls):
         raise ScenarioError(f"a scenario named {key!r} is already registered")
     _REGISTRY[key] = cls
     return cls
+
+
+def _same_definition(a: Any, b: type) -> bool:
+    """True when ``a`` is ``b`` or the same class defined in the same file (a plugin loaded twice)."""
+    if a is b:
+        return True
+    try:
+        return isinstance(a, type) and a.__qualname__ == b.__qualname__ and inspect.getfile(a) == inspect.getfile(b)
+    except TypeError:
+        return False
 
 
 def scenario_names() -> list[str]:

@@ -1,0 +1,138 @@
+"""The ``.npz`` dataset and estimate file format.
+
+A dataset file holds
+
+    x     (N, T, dx) float64   true states
+    y     (N, T, dy) float64   noisy observations
+    u     (N, T, du) float64   controls, u[:, k] acts from step k to k+1 (du may be 0)
+    meta  0-d unicode array    JSON: scenario and every constant, seed, names, units, horizon
+
+An estimate file adds
+
+    x_hat (N, T, dx) float64   estimates (NaN/inf where a method diverged)
+    P_hat (N, T, dx, dx)       optional covariances
+    and ``meta["method"]`` naming the method.
+
+Files are written deterministically (fixed zip timestamps), so the same data give the same bytes,
+and read with ``allow_pickle=False``: loading a file can never run code.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neural_estimator.data.simulate import Trajectories
+
+_FIXED_TIME = (1980, 1, 1, 0, 0, 0)
+
+
+class DataError(ValueError):
+    """A dataset or estimate file that cannot be used; the message names the file and the problem."""
+
+
+def save_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> Path:
+    """Write ``arrays`` and ``meta`` (as JSON) to ``path`` byte-for-byte reproducibly."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    items = dict(arrays)
+    items["meta"] = np.array(json.dumps(meta, sort_keys=True, allow_nan=True))
+    tmp = path.with_name(path.name + ".tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name in sorted(items):
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asarray(items[name]), allow_pickle=False)
+            info = zipfile.ZipInfo(name + ".npy", date_time=_FIXED_TIME)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, buf.getvalue())
+    tmp.replace(path)  # never leave a half-written file under the final name
+    return path
+
+
+def save_trajectories(path: str | Path, data: Trajectories) -> Path:
+    """Write a dataset file."""
+    return save_npz(path, {"x": data.x, "y": data.y, "u": data.u}, data.meta)
+
+
+def save_estimates(
+    path: str | Path,
+    data: Trajectories,
+    x_hat: np.ndarray,
+    method: str,
+    P_hat: np.ndarray | None = None,
+    extra_meta: dict[str, Any] | None = None,
+) -> Path:
+    """Write an estimate file: the dataset plus ``x_hat`` (and ``P_hat``) of ``method``."""
+    if x_hat.shape != data.x.shape:
+        raise DataError(f"{path}: x_hat has shape {x_hat.shape}, the states have {data.x.shape}")
+    arrays = {"x": data.x, "y": data.y, "u": data.u, "x_hat": x_hat}
+    if P_hat is not None:
+        arrays["P_hat"] = P_hat
+    meta = dict(data.meta, method=method, **(extra_meta or {}))
+    return save_npz(path, arrays, meta)
+
+
+def load_npz(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read a file written by :func:`save_npz`: (arrays, meta). Errors name the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise DataError(f"{path}: not a readable .npz file ({exc})") from None
+    if "meta" not in arrays:
+        raise DataError(f"{path}: missing 'meta' (not written by neural-estimator?)")
+    try:
+        meta = json.loads(str(arrays.pop("meta")))
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{path}: 'meta' is not valid JSON ({exc.msg})") from None
+    return arrays, meta
+
+
+def load_trajectories(path: str | Path, *, allow_nonfinite_estimates: bool = True) -> tuple[Trajectories, dict[str, np.ndarray]]:
+    """Read and validate a dataset or estimate file.
+
+    Returns:
+        (trajectories, extras) where extras holds ``x_hat`` / ``P_hat`` when present.
+
+    Raises:
+        DataError: missing arrays, inconsistent shapes, or NaN/inf in x, y or u.
+    """
+    arrays, meta = load_npz(path)
+    for key in ("x", "y", "u"):
+        if key not in arrays:
+            raise DataError(f"{path}: missing array {key!r} (has {sorted(arrays)})")
+    x, y, u = (np.asarray(arrays[k], dtype=np.float64) for k in ("x", "y", "u"))
+    for key, a in (("x", x), ("y", y), ("u", u)):
+        if a.ndim != 3:
+            raise DataError(f"{path}: {key!r} must be 3-D (N, T, dim), got shape {a.shape}")
+        if a.shape[:2] != x.shape[:2]:
+            raise DataError(f"{path}: {key!r} has shape {a.shape} but x has {x.shape}: N and T must agree")
+        bad = ~np.isfinite(a)
+        if bad.any():
+            n_bad = int(bad.any(axis=(1, 2)).sum())
+            raise DataError(f"{path}: {key!r} contains NaN or inf in {n_bad} trajectories (first: {int(np.argmax(bad.any(axis=(1, 2))))})")
+    names = meta.get("state_names")
+    if names is not None and len(names) != x.shape[2]:
+        raise DataError(f"{path}: x has {x.shape[2]} state components but meta names {len(names)}")
+    extras = {}
+    if "x_hat" in arrays:
+        xh = np.asarray(arrays["x_hat"], dtype=np.float64)
+        if xh.shape != x.shape:
+            raise DataError(f"{path}: x_hat has shape {xh.shape}, x has {x.shape}")
+        if not allow_nonfinite_estimates and not np.all(np.isfinite(xh)):
+            raise DataError(f"{path}: x_hat contains NaN or inf")
+        extras["x_hat"] = xh
+    if "P_hat" in arrays:
+        P = np.asarray(arrays["P_hat"], dtype=np.float64)
+        if P.shape != x.shape + (x.shape[2],):
+            raise DataError(f"{path}: P_hat has shape {P.shape}, expected {x.shape + (x.shape[2],)}")
+        extras["P_hat"] = P
+    return Trajectories(x, y, u, meta), extras

@@ -1,0 +1,184 @@
+"""The paper's data protocol as reusable functions.
+
+Paper, "Neural Estimators and Training": "The default training setting uses a data-to-parameter
+ratio of approximately 20:1. With about 100,000 parameters, this corresponds to 20,000 trajectories
+of length 100, or 2,000,000 observed timesteps. We also train under 10:1, 5:1, and 1:1 ratios ...
+Training samples are random length-100 sub-trajectories extracted from longer trajectories of
+length 500. Each training dataset has an independent validation set of 8,000 trajectories for
+early stopping." "Evaluation Protocol": "Each scenario uses three independent evaluation datasets
+with 8,000 trajectories each. The default evaluation horizon is 500" (planar quadrotor 200).
+
+Seed streams: every dataset is drawn from ``SeedSequence([seed, role, index])`` with role
+0 = training, 1 = validation, 2 = evaluation, so the sets are independent of each other, of their
+sizes and of the order they are made in, and reproducible from (scenario constants, seed, role,
+index, count, horizon).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from neural_estimator.data.io import load_trajectories, save_trajectories
+from neural_estimator.data.simulate import Trajectories, simulate
+from neural_estimator.scenarios import Scenario
+
+ROLES = {"train": 0, "val": 1, "eval": 2}
+DATA_RATIOS = (20, 10, 5, 1)
+NOMINAL_PARAMETERS = 100_000  # the paper's budget; sizes every architecture's training set alike
+TRAIN_TRAJECTORY_LENGTH = 500
+WINDOW_LENGTH = 100
+WARMUP_STEPS = 10
+VALIDATION_TRAJECTORIES = 8_000
+EVALUATION_TRAJECTORIES = 8_000
+EVALUATION_SETS = 3
+
+
+def seed_stream(seed: int, role: str, index: int = 0) -> np.random.SeedSequence:
+    """The SeedSequence of dataset ``index`` of ``role`` ('train', 'val' or 'eval')."""
+    if role not in ROLES:
+        raise ValueError(f"unknown dataset role {role!r}; choose one of: {', '.join(ROLES)}")
+    return np.random.SeedSequence([int(seed), ROLES[role], int(index)])
+
+
+def training_timesteps(ratio: float, parameters: int = NOMINAL_PARAMETERS) -> int:
+    """Observed timesteps of a training set: ratio x parameters (20:1 x 100k = 2,000,000)."""
+    if ratio <= 0:
+        raise ValueError(f"data-to-parameter ratio must be positive, got {ratio}")
+    return int(round(ratio * parameters))
+
+
+def training_trajectories(
+    ratio: float, parameters: int = NOMINAL_PARAMETERS, length: int = TRAIN_TRAJECTORY_LENGTH
+) -> int:
+    """Length-``length`` trajectories holding :func:`training_timesteps` (20:1 -> 4,000 of 500)."""
+    return max(1, math.ceil(training_timesteps(ratio, parameters) / length))
+
+
+def windows_per_epoch(ratio: float, parameters: int = NOMINAL_PARAMETERS, window: int = WINDOW_LENGTH) -> int:
+    """Windows sampled per epoch so an epoch sees the set's timesteps once (20:1 -> 20,000 of 100)."""
+    return max(1, math.ceil(training_timesteps(ratio, parameters) / window))
+
+
+def window_weights(length: int, window: int) -> np.ndarray:
+    """Per-timestep loss weights: the inverse of each timestep's sampling frequency.
+
+    A window start s is uniform on {0, ..., S-1} with S = T - L + 1, so timestep t is covered by
+    c_t = min(t, S-1) - max(0, t-L+1) + 1 windows. The weight is
+
+        w_t = S L / (T c_t),
+
+    the inverse frequency scaled so that a uniformly random timestep of a random window has
+    expected weight one (sum_t c_t w_t / S = L), keeping the loss on the unweighted scale.
+
+    Args:
+        length: trajectory length T.
+        window: window length L (<= T).
+
+    Returns:
+        (T,) float64 weights. For T = 5, L = 3: c = [1, 2, 3, 2, 1], w = 9/5 / c.
+    """
+    T, L = int(length), int(window)
+    if not 1 <= L <= T:
+        raise ValueError(f"window length must be in [1, {T}], got {L}")
+    S = T - L + 1
+    t = np.arange(T)
+    counts = np.minimum(t, S - 1) - np.maximum(0, t - L + 1) + 1
+    return S * L / (T * counts.astype(np.float64))
+
+
+def warmup_mask(window: int, warmup: int = WARMUP_STEPS) -> np.ndarray:
+    """(L,) bool: False for the first ``warmup`` steps of a window (ignored in the training loss)."""
+    mask = np.ones(int(window), dtype=bool)
+    mask[: int(warmup)] = False
+    return mask
+
+
+class ChunkSampler:
+    """Random length-L windows of length-T trajectories with their loss weights.
+
+    Each draw picks a trajectory uniformly and a start uniformly in [0, T - L]. ``weights`` of a
+    window are :func:`window_weights` at its timesteps times the warm-up mask.
+    """
+
+    def __init__(self, n_trajectories: int, length: int, window: int = WINDOW_LENGTH, warmup: int = WARMUP_STEPS):
+        self.n, self.length, self.window = int(n_trajectories), int(length), int(window)
+        self.weights = window_weights(self.length, self.window)
+        self.mask = warmup_mask(self.window, warmup)
+
+    def sample(self, rng: np.random.Generator, batch: int) -> tuple[np.ndarray, np.ndarray]:
+        """(trajectory indices (batch,), window starts (batch,))."""
+        idx = rng.integers(0, self.n, size=batch)
+        start = rng.integers(0, self.length - self.window + 1, size=batch)
+        return idx, start
+
+    def gather(self, arrays: list[np.ndarray], idx: np.ndarray, start: np.ndarray) -> list[np.ndarray]:
+        """Cut the windows out of (N, T, ...) arrays: each result is (batch, L, ...)."""
+        cols = start[:, None] + np.arange(self.window)[None, :]
+        return [a[idx[:, None], cols] for a in arrays]
+
+    def loss_weights(self, start: np.ndarray) -> np.ndarray:
+        """(batch, L) per-timestep loss weights: inverse sampling frequency x warm-up mask."""
+        cols = start[:, None] + np.arange(self.window)[None, :]
+        return self.weights[cols] * self.mask[None, :]
+
+
+# ---- datasets with an on-disk cache --------------------------------------------------------------
+def default_cache_dir() -> Path:
+    """``$NEURAL_ESTIMATOR_CACHE`` or ``~/.cache/neural_estimator``."""
+    return Path(os.environ.get("NEURAL_ESTIMATOR_CACHE", Path.home() / ".cache" / "neural_estimator"))
+
+
+def dataset(
+    scenario: Scenario,
+    role: str,
+    index: int,
+    n: int,
+    horizon: int | None = None,
+    seed: int = 0,
+    cache_dir: str | Path | None | bool = None,
+) -> Trajectories:
+    """Dataset ``index`` of ``role``: simulated once, then read from the cache.
+
+    The cache key hashes every input that defines the data (scenario description with all
+    constants, role, index, n, horizon, seed); ``cache_dir=False`` disables the cache.
+    """
+    T = scenario.horizon if horizon is None else int(horizon)
+    if cache_dir is False:
+        return _make(scenario, role, index, n, T, seed)
+    key = json.dumps({"s": scenario.describe(), "r": role, "i": int(index), "n": int(n), "T": T, "seed": int(seed)}, sort_keys=True)
+    digest = hashlib.sha256(key.encode()).hexdigest()[:16]
+    path = Path(cache_dir or default_cache_dir()) / "datasets" / f"{scenario.name}-{role}{index}-{n}x{T}-s{seed}-{digest}.npz"
+    if path.is_file():
+        data, _ = load_trajectories(path)
+        return data
+    data = _make(scenario, role, index, n, T, seed)
+    save_trajectories(path, data)
+    return data
+
+
+def _make(scenario: Scenario, role: str, index: int, n: int, T: int, seed: int) -> Trajectories:
+    data = simulate(scenario, n, T, seed_stream(seed, role, index))
+    data.meta.update(role=role, index=int(index), seed=int(seed))
+    return data
+
+
+def training_set(scenario, ratio=20, seed=0, index=0, parameters=NOMINAL_PARAMETERS, trajectories=None, cache_dir=None):
+    """Training set ``index``: length-500 trajectories sized by the data-to-parameter ratio."""
+    n = trajectories or training_trajectories(ratio, parameters)
+    return dataset(scenario, "train", index, n, TRAIN_TRAJECTORY_LENGTH, seed, cache_dir)
+
+
+def validation_set(scenario, seed=0, index=0, trajectories=VALIDATION_TRAJECTORIES, horizon=None, cache_dir=None):
+    """The validation set of training set ``index`` (8,000 trajectories by default)."""
+    return dataset(scenario, "val", index, trajectories, horizon or TRAIN_TRAJECTORY_LENGTH, seed, cache_dir)
+
+
+def evaluation_sets(scenario, seed=0, trajectories=EVALUATION_TRAJECTORIES, horizon=None, sets=EVALUATION_SETS, cache_dir=None):
+    """The three independent evaluation sets at the scenario's horizon."""
+    return [dataset(scenario, "eval", j, trajectories, horizon, seed, cache_dir) for j in range(sets)]

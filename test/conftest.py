@@ -1,0 +1,24 @@
+"""Shared fixtures: the example user scenario (a linear-Gaussian oscillator) is registered here."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load_example():
+    spec = importlib.util.spec_from_file_location("custom_scenario_example", ROOT / "examples" / "custom_scenario.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+EXAMPLE = _load_example()
+
+
+@pytest.fixture
+def oscillator():
+    """The README's custom scenario: linear-Gaussian, so the Kalman filter is exact."""
+    return EXAMPLE.Oscillator()
