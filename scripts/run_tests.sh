@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# The README's test command: installs what is missing into .venv, then runs the whole test suite.
+# Extra arguments go to pytest (e.g. scripts/run_tests.sh -k metrics).
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$root/scripts/bootstrap.sh"
+cd "$root"
+# Each test file gets its own ROS domain inside the tests; keep this run off any user's graph.
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-77}"
+export MPLBACKEND=Agg
+exec "$root/.venv/bin/python" -m pytest -q test "$@"
