@@ -1,0 +1,727 @@
+"""Evaluation metrics of the paper (Section "Evaluation Metrics", Appendix "Full Evaluation Metrics").
+
+Paper, Section "Evaluation Metrics":
+
+    "We report RMSE over time, aggregate RMSE, NRMSE, MAE, MedAE, area under the RMSE-time curve
+    (AUC), drift ratio, outlier ratio, and inference throughput."
+
+and Appendix "Full Evaluation Metrics":
+
+    "Each entry is reported as median ± interquartile range unless otherwise indicated. The column
+    'Full RMSE' denotes RMSE computed before trajectory-level outlier removal, while 'RMSE' denotes
+    the main aggregate RMSE after applying the outlier rule described in Section [Methodology]."
+
+Throughput is measured elsewhere (it is a property of the implementation, not of the estimates).
+
+Shapes, one convention everywhere:
+    x_true, x_hat   (N, T, dx)       N trajectories, T timesteps, dx state components
+    e               (N, T, dx)       estimation errors x_hat - x_true, angles wrapped to (-pi, pi]
+    P_hat           (N, T, dx, dx)   estimated error covariances (optional)
+    M               (N,)             trajectory-level MSE
+    rmse_t          (T,)             RMSE-time curve
+
+Every timestep is evaluated (no warm-up is dropped): the paper's "effective trajectory length" T is
+the full evaluation horizon.
+
+Definitions where the paper is silent (each is documented again where it is computed):
+
+- Kept trajectories: those not flagged by the outlier rule. Diverged trajectories (any non-finite
+  estimate, or a squared error that overflows) are always flagged. RMSE, NRMSE, MAE, MedAE, AUC,
+  drift ratio, the RMSE-time curve, NEES and coverage use the kept trajectories only; Full RMSE uses
+  all trajectories and is inf as soon as one diverged.
+- NRMSE: errors divided, per state component d, by the spread s_d of the true state (population
+  standard deviation of x_true[..., d] over all trajectories and all timesteps), then the RMSE of
+  these normalised errors over the kept trajectories. The spread depends on the data set only, so
+  every method evaluated on one data set is normalised by the same numbers. The paper does not
+  define NRMSE; its tables fit this definition: the Lorenz-96 rows have NRMSE ~ RMSE / 3.6 (UKF
+  0.048 -> 0.013; 3.6 is the climatological standard deviation of L96 with F = 8), and in the
+  ballistic rows RMSE and NRMSE are of the same size (UKF 0.626 vs 0.607), as they are when every
+  component is normalised by its own spread.
+- AUC: the trapezoid rule on the RMSE-time curve with a unit timestep,
+  sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2 (0 for T = 1). The paper's AUC is about T times its
+  RMSE (ballistic UKF: 303.9 for T = 500 and RMSE 0.626), so the timestep is one step, not seconds.
+- Outlier ratio: the share of all N trajectories flagged by the rule, diverged ones included; the
+  diverged share is also reported on its own.
+- When every trajectory diverged: error metrics and AUC are inf, drift, outlier ratio and coverage are
+  NaN (the paper's "N/A"), ``all_diverged`` is True. Nothing raises.
+
+References: Iglewicz & Hoaglin (1993), "How to Detect and Handle Outliers" (MAD z-score and its
+MeanAD fallback); Bar-Shalom, Li & Kirubarajan (2001), "Estimation with Applications to Tracking
+and Navigation", Sec. 5.4 (NEES and its chi-square test).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from neural_estimator.angles import wrap_components
+
+OUTLIER_Z = 6.0  # the paper's threshold: "A trajectory is an outlier if z_n > 6."
+MAD_SCALE = 1.4826  # paper: z_n = |u_n - median| / (1.4826 MAD); 1/Phi^-1(3/4), MAD -> sigma
+MEANAD_SCALE = 1.253314  # sqrt(pi/2): mean absolute deviation -> sigma (fallback when MAD = 0)
+COVERAGE_LEVEL = 0.95
+_TINY = np.finfo(np.float64).tiny  # floor of M_n before the log: log(0) would be -inf
+_NEES_CHUNK = 1 << 16  # (n, t) pairs per batched Cholesky, bounds the temporaries
+
+# Scalar metrics of a report, in table order. Keys are used by summarize, format_table and to_json.
+SCALAR_METRICS = (
+    "rmse",
+    "full_rmse",
+    "nrmse",
+    "mae",
+    "medae",
+    "auc",
+    "outlier_ratio",
+    "drift_ratio",
+    "diverged_ratio",
+    "nees",
+    "coverage95",
+)
+
+
+class MetricsError(ValueError):
+    """Inputs the metrics cannot be computed from (shapes, non-finite ground truth, bad spread)."""
+
+
+# ---- errors and per-trajectory quantities ---------------------------------------------------------
+
+
+def errors(x_true: np.ndarray, x_hat: np.ndarray, angle_states: Sequence[int] = ()) -> np.ndarray:
+    """Estimation errors e = x_hat - x_true with the angle components wrapped to (-pi, pi].
+
+    An angle error of 2 pi - 0.1 is an error of -0.1. Non-finite estimates give non-finite errors
+    (NaN or inf) without warnings; they mark the trajectory as diverged downstream.
+
+    Args:
+        x_true: (N, T, dx) true states, finite.
+        x_hat: (N, T, dx) estimates; may hold NaN or inf.
+        angle_states: components of the last axis that are angles.
+
+    Returns:
+        (N, T, dx) float64 errors.
+    """
+    x_true, x_hat = _check_pair(x_true, x_hat)
+    with np.errstate(invalid="ignore", over="ignore"):
+        return wrap_components(x_hat - x_true, tuple(angle_states))  # (N, T, dx)
+
+
+def diverged_mask(x_hat: np.ndarray) -> np.ndarray:
+    """(N,) True for trajectories with any non-finite estimate (NaN or +-inf) at any step."""
+    x_hat = np.asarray(x_hat)
+    if x_hat.ndim != 3:
+        raise MetricsError(f"x_hat must be (N, T, dx), got shape {x_hat.shape}")
+    return ~np.isfinite(x_hat).all(axis=(1, 2))
+
+
+def trajectory_mse(e: np.ndarray) -> np.ndarray:
+    """Trajectory-level MSE, the paper's M_n: M_n = (1 / (T dx)) sum_t sum_d e_{n,t,d}^2.
+
+    Args:
+        e: (N, T, dx) errors.
+
+    Returns:
+        (N,) M_n; inf or NaN for diverged trajectories (overflow gives inf, no warning).
+    """
+    e = _check_errors(e)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.mean(e * e, axis=(1, 2))
+
+
+def rmse_over_time(e: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """RMSE-time curve: RMSE_t = sqrt( (1 / (|K| dx)) sum_{n in K} sum_d e_{n,t,d}^2 ).
+
+    Args:
+        e: (N, T, dx) errors.
+        mask: (N,) bool, True for the trajectories K to average over (default: all).
+
+    Returns:
+        (T,) RMSE_t; NaN everywhere if the mask selects no trajectory.
+    """
+    e = _check_errors(e)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != e.shape[:1]:
+            raise MetricsError(f"mask must be ({e.shape[0]},), got {mask.shape}")
+        e = e[mask]
+    if e.shape[0] == 0:
+        return np.full(e.shape[1], np.nan)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.sqrt(np.mean(e * e, axis=(0, 2)))  # (T,)
+
+
+# ---- outlier rule -----------------------------------------------------------------------------------
+
+
+def robust_zscores(M: np.ndarray) -> np.ndarray:
+    """The paper's robust z-score of each trajectory's log-MSE.
+
+    Paper, Section "Evaluation Metrics":
+
+        "To prevent rare catastrophic failures from dominating aggregate metrics, we detect
+        trajectory-level outliers on log-MSE values using a robust z-score based on the median
+        absolute deviation (MAD). Let M_n be the trajectory-level MSE for trajectory n, and define
+
+            u_n = log M_n,
+            u~  = median{u_1, ..., u_N},
+            MAD = median{|u_1 - u~|, ..., |u_N - u~|}.
+
+        The robust z-score is
+
+            z_n = |u_n - u~| / (1.4826 MAD)."
+
+    Choices where the paper is silent:
+
+    - Non-finite M_n (diverged trajectories) get z_n = inf and are left out of the median and the
+      MAD, which are taken over the finite M_n only. A diverged trajectory has no log-MSE to rank,
+      and letting it in would move the median (the paper's EnKF rows are "N/A" for this reason).
+    - M_n = 0 (an exact estimate) is floored at the smallest positive float before the log, so u_n
+      stays finite; under the two-sided rule a perfect trajectory among imperfect ones is an
+      outlier on the low side, as the formula says.
+    - MAD = 0 (more than half of the u_n equal): the modified z-score's standard fallback
+      (Iglewicz & Hoaglin 1993) replaces 1.4826 MAD by 1.253314 MeanAD, with
+      MeanAD = mean{|u_n - u~|} and 1.253314 = sqrt(pi / 2) the factor that makes MeanAD estimate
+      a normal standard deviation, as 1.4826 does for the MAD. If MeanAD = 0 as well, all finite
+      u_n are equal and every finite z_n is 0: there is no spread, so nothing is outlying.
+
+    Args:
+        M: (N,) trajectory-level MSE.
+
+    Returns:
+        (N,) z_n >= 0, inf for non-finite M_n.
+    """
+    M = np.asarray(M, dtype=np.float64)
+    if M.ndim != 1:
+        raise MetricsError(f"M must be (N,), got shape {M.shape}")
+    finite = np.isfinite(M)
+    z = np.full(M.shape, np.inf)
+    if not finite.any():
+        return z
+    u = np.log(np.maximum(M[finite], _TINY))  # (N_finite,)
+    dev = np.abs(u - np.median(u))
+    mad = np.median(dev)
+    scale = MAD_SCALE * mad if mad > 0 else MEANAD_SCALE * dev.mean()
+    z[finite] = dev / scale if scale > 0 else 0.0
+    return z
+
+
+def outlier_mask(M: np.ndarray, threshold: float = OUTLIER_Z) -> np.ndarray:
+    """(N,) True for the paper's trajectory-level outliers.
+
+    Paper: "A trajectory is an outlier if z_n > 6. We report the outlier ratio over all
+    trajectories. Main RMSE and NRMSE exclude detected outliers, while full metrics with outlier
+    statistics are reported in the Appendix."
+
+    z_n is :func:`robust_zscores` (u_n = log M_n, median, MAD, z_n = |u_n - u~| / (1.4826 MAD)).
+    Non-finite M_n (diverged trajectories) are always flagged; see :func:`robust_zscores` for
+    MAD = 0.
+
+    Args:
+        M: (N,) trajectory-level MSE.
+        threshold: the z-score above which a trajectory is an outlier (paper: 6).
+    """
+    return robust_zscores(M) > threshold
+
+
+# ---- curve summaries ---------------------------------------------------------------------------------
+
+
+def drift_ratio(rmse_t: np.ndarray) -> float:
+    """Mean RMSE over the last quarter divided by the mean over the first quarter.
+
+    Paper: "To measure long-horizon error accumulation, we compute a drift ratio from the RMSE-time
+    curve. Let T be the effective trajectory length and RMSE_t the per-timestep RMSE. We divide the
+    trajectory into quarters and compare the mean RMSE in the final quarter to that in the first
+    quarter. With q = max(1, floor(T/4)),
+
+        drift_ratio = ( (1/q) sum_{t=T-q+1}^{T} RMSE_t ) / ( (1/q) sum_{t=1}^{q} RMSE_t )."
+
+    A zero denominator gives inf (or NaN when the numerator is 0 too), without warnings.
+
+    Args:
+        rmse_t: (T,) RMSE-time curve, T >= 1.
+    """
+    rmse_t = _check_curve(rmse_t)
+    q = max(1, rmse_t.shape[0] // 4)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(np.float64(rmse_t[-q:].mean()) / np.float64(rmse_t[:q].mean()))
+
+
+def auc(rmse_t: np.ndarray) -> float:
+    """Area under the RMSE-time curve: trapezoid rule with a unit timestep.
+
+    AUC = sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2 = sum_t RMSE_t - (RMSE_1 + RMSE_T) / 2,
+    0 for T = 1. The unit is "RMSE x steps", which matches the paper's tables (AUC ~ T x RMSE).
+
+    Args:
+        rmse_t: (T,) RMSE-time curve, T >= 1.
+    """
+    rmse_t = _check_curve(rmse_t)
+    return float(np.sum(0.5 * (rmse_t[1:] + rmse_t[:-1])))
+
+
+def state_spread(x_true: np.ndarray) -> np.ndarray:
+    """Per-component spread of the true state, the NRMSE normaliser.
+
+    s_d = population standard deviation of x_true[n, t, d] over all trajectories n and times t.
+    Angle components are taken as stored, in (-pi, pi].
+
+    Args:
+        x_true: (N, T, dx) true states.
+
+    Returns:
+        (dx,) s_d.
+    """
+    x_true = np.asarray(x_true, dtype=np.float64)
+    if x_true.ndim != 3:
+        raise MetricsError(f"x_true must be (N, T, dx), got shape {x_true.shape}")
+    return x_true.std(axis=(0, 1))
+
+
+def nees(e: np.ndarray, P_hat: np.ndarray) -> np.ndarray:
+    """Normalised estimation error squared, eps_{n,t} = e_{n,t}^T P_{n,t}^{-1} e_{n,t}.
+
+    Computed as ||L^{-1} e||^2 with P = L L^T (Cholesky of the symmetrised P), never with an
+    inverse. For a consistent estimator with Gaussian errors eps ~ chi^2(dx), so its mean is dx.
+    A covariance that is not finite and positive definite gives eps = inf (an estimator that
+    reports such a covariance makes no consistent claim about its error).
+
+    Args:
+        e: (N, T, dx) errors.
+        P_hat: (N, T, dx, dx) estimated error covariances.
+
+    Returns:
+        (N, T) NEES values.
+    """
+    e = _check_errors(e)
+    P_hat = np.asarray(P_hat, dtype=np.float64)
+    n, t, dx = e.shape
+    if P_hat.shape != (n, t, dx, dx):
+        raise MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P_hat.shape}")
+    e_flat = e.reshape(n * t, dx)  # (K, dx)
+    P_flat = P_hat.reshape(n * t, dx, dx)  # (K, dx, dx)
+    out = np.full(n * t, np.inf)
+    for start in range(0, n * t, _NEES_CHUNK):
+        sl = slice(start, start + _NEES_CHUNK)
+        out[sl] = _nees_chunk(e_flat[sl], P_flat[sl])
+    return out.reshape(n, t)
+
+
+def _nees_chunk(e: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """NEES of (K, dx) errors under (K, dx, dx) covariances; inf where P is unusable."""
+    res = np.full(e.shape[0], np.inf)
+    ok = np.isfinite(P).all(axis=(1, 2)) & np.isfinite(e).all(axis=1)
+    if not ok.any():
+        return res
+    P_ok = 0.5 * (P[ok] + np.swapaxes(P[ok], -1, -2))
+    e_ok = e[ok]
+    try:
+        L = np.linalg.cholesky(P_ok)  # (K', dx, dx)
+        res[ok] = _whitened_sq(L, e_ok)
+    except np.linalg.LinAlgError:
+        # Some matrix is not positive definite: find which, one at a time (rare, slow path).
+        vals = np.full(e_ok.shape[0], np.inf)
+        for k in range(e_ok.shape[0]):
+            try:
+                L = np.linalg.cholesky(P_ok[k])
+            except np.linalg.LinAlgError:
+                continue
+            vals[k] = _whitened_sq(L[None], e_ok[k][None])[0]
+        res[ok] = vals
+    return res
+
+
+def _whitened_sq(L: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """||L^{-1} e||^2 for (K, dx, dx) lower-triangular L and (K, dx) e."""
+    w = np.linalg.solve(L, e[..., None])[..., 0]  # (K, dx)
+    return np.sum(w * w, axis=-1)
+
+
+# ---- one evaluation ---------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MetricReport:
+    """Metrics of one method on one evaluation set. See the module docstring for definitions.
+
+    Scalars are plain Python floats; inf marks divergence, NaN an unavailable statistic.
+    """
+
+    rmse: float  # sqrt(mean e^2) over kept trajectories, all t, d
+    full_rmse: float  # same over all trajectories; inf if any diverged
+    nrmse: float  # RMSE of e_d / s_d over kept trajectories
+    mae: float  # mean |e| over kept trajectories, all t, d
+    medae: float  # median |e| over kept trajectories, all t, d
+    auc: float  # trapezoid area under rmse_t, unit timestep
+    drift_ratio: float  # last-quarter / first-quarter mean of rmse_t
+    outlier_ratio: float  # flagged (diverged included) / N
+    diverged_ratio: float  # diverged / N
+    n_trajectories: int
+    n_outliers: int  # diverged included
+    n_diverged: int
+    all_diverged: bool
+    rmse_t: np.ndarray  # (T,) RMSE-time curve over kept trajectories
+    spread: np.ndarray  # (dx,) NRMSE normaliser s_d
+    outlier_idx: np.ndarray  # (n_outliers,) trajectory indices, diverged included
+    diverged_idx: np.ndarray  # (n_diverged,) trajectory indices
+    nees: float | None = None  # mean e^T P^-1 e over kept trajectories, all t (when P_hat given)
+    coverage95: float | None = None  # share of kept (n, t) with NEES <= chi2_{dx}(0.95)
+
+    def scalars(self) -> dict[str, float]:
+        """The scalar metrics of :data:`SCALAR_METRICS` that this report has (NEES only with P_hat)."""
+        return {k: getattr(self, k) for k in SCALAR_METRICS if getattr(self, k) is not None}
+
+
+def compute_metrics(
+    x_true: np.ndarray,
+    x_hat: np.ndarray,
+    angle_states: Sequence[int] = (),
+    spread: np.ndarray | float | None = None,
+    P_hat: np.ndarray | None = None,
+    diverged: np.ndarray | None = None,
+    threshold: float = OUTLIER_Z,
+) -> MetricReport:
+    """All metrics of one method on one evaluation set.
+
+    With e the errors (angles wrapped), M_n the trajectory MSE, K the kept trajectories (not
+    flagged by :func:`outlier_mask`; diverged ones are always flagged) and |K| their number:
+
+        RMSE      = sqrt( (1 / (|K| T dx)) sum_{n in K, t, d} e_{n,t,d}^2 )
+        Full RMSE = sqrt( (1 / (N T dx))   sum_{n, t, d}       e_{n,t,d}^2 ),  inf if any diverged
+        NRMSE     = sqrt( (1 / (|K| T dx)) sum_{n in K, t, d} (e_{n,t,d} / s_d)^2 )
+        MAE       = mean   { |e_{n,t,d}| : n in K }
+        MedAE     = median { |e_{n,t,d}| : n in K }
+        RMSE_t    = sqrt( (1 / (|K| dx)) sum_{n in K, d} e_{n,t,d}^2 )
+        AUC       = sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2
+        drift     = mean(RMSE_{T-q+1..T}) / mean(RMSE_{1..q}),  q = max(1, floor(T/4))
+        NEES      = mean { e^T P^{-1} e : n in K, all t },  ~dx for a consistent estimator
+        95%       = share of kept (n, t) with e^T P^{-1} e <= chi2_{dx}^{-1}(0.95)
+
+    s_d is :func:`state_spread` of ``x_true`` unless ``spread`` is given. Every timestep counts.
+
+    Args:
+        x_true: (N, T, dx) true states, finite.
+        x_hat: (N, T, dx) estimates; NaN or inf marks a diverged trajectory.
+        angle_states: components that are angles (errors wrapped to (-pi, pi]).
+        spread: (dx,) or scalar NRMSE normaliser, positive; default :func:`state_spread`.
+        P_hat: (N, T, dx, dx) estimated covariances, for NEES and coverage.
+        diverged: (N,) extra divergence flags (e.g. ``Estimates.diverged``), OR-ed with the
+            non-finite test; a flagged trajectory is excluded like any diverged one.
+        threshold: the outlier z-score threshold (paper: 6).
+
+    Returns:
+        A :class:`MetricReport`. If every trajectory diverged: RMSE, NRMSE, MAE, MedAE, AUC, the
+        curve and NEES are inf, drift ratio, outlier ratio and coverage are NaN, ``all_diverged``.
+
+    Raises:
+        MetricsError: wrong shapes, non-finite ground truth, or a spread that is not positive.
+    """
+    x_true, x_hat = _check_pair(x_true, x_hat)
+    n, t, dx = x_true.shape
+    if not np.isfinite(x_true).all():
+        raise MetricsError("x_true holds non-finite values; ground truth must be finite")
+    s = _resolve_spread(x_true, spread)  # (dx,)
+
+    e = errors(x_true, x_hat, angle_states)  # (N, T, dx)
+    with np.errstate(over="ignore", invalid="ignore"):
+        sq = e * e  # (N, T, dx)
+        Md = sq.mean(axis=1)  # (N, dx) per-trajectory, per-component MSE
+    M = Md.mean(axis=1)  # (N,) the paper's M_n
+    div = diverged_mask(x_hat) | ~np.isfinite(M)  # overflowing squared errors are divergence too
+    if diverged is not None:
+        extra = np.asarray(diverged, dtype=bool)
+        if extra.shape != (n,):
+            raise MetricsError(f"diverged must be ({n},), got {extra.shape}")
+        div = div | extra
+    M_rule = np.where(div, np.inf, M)  # diverged -> non-finite -> always flagged
+    out = outlier_mask(M_rule, threshold)  # (N,)
+    kept = ~out
+    n_div = int(div.sum())
+    full_rmse = math.inf if n_div else float(np.sqrt(M.mean()))
+    common = dict(
+        full_rmse=full_rmse,
+        diverged_ratio=n_div / n,
+        n_trajectories=n,
+        n_outliers=int(out.sum()),
+        n_diverged=n_div,
+        all_diverged=n_div == n,
+        spread=s,
+        outlier_idx=np.flatnonzero(out),
+        diverged_idx=np.flatnonzero(div),
+    )
+
+    if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
+        has_p = P_hat is not None
+        return MetricReport(
+            rmse=math.inf,
+            nrmse=math.inf,
+            mae=math.inf,
+            medae=math.inf,
+            auc=math.inf,
+            drift_ratio=math.nan,
+            outlier_ratio=math.nan,
+            rmse_t=np.full(t, np.inf),
+            nees=math.inf if has_p else None,
+            coverage95=math.nan if has_p else None,
+            **common,
+        )
+
+    msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories
+    abs_e = np.abs(e[kept])  # (|K|, T, dx)
+    rmse_t = np.sqrt(sq[kept].mean(axis=(0, 2)))  # (T,)
+    nees_mean = coverage = None
+    if P_hat is not None:
+        P_hat = np.asarray(P_hat, dtype=np.float64)
+        if P_hat.shape != (n, t, dx, dx):
+            raise MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P_hat.shape}")
+        eps = nees(e[kept], P_hat[kept])  # (|K|, T)
+        nees_mean = float(eps.mean())
+        coverage = float(np.mean(eps <= chi2.ppf(COVERAGE_LEVEL, dx)))
+    return MetricReport(
+        rmse=float(np.sqrt(msd.mean())),
+        nrmse=float(np.sqrt(np.mean(msd / s**2))),
+        mae=float(abs_e.mean()),
+        medae=float(np.median(abs_e)),
+        auc=auc(rmse_t),
+        drift_ratio=drift_ratio(rmse_t),
+        outlier_ratio=int(out.sum()) / n,
+        rmse_t=rmse_t,
+        nees=nees_mean,
+        coverage95=coverage,
+        **common,
+    )
+
+
+# ---- across runs ------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Stat:
+    """Median and interquartile range of one metric across runs (evaluation sets x instances)."""
+
+    median: float
+    iqr: float  # q75 - q25
+    n: int  # values that were available (NaN left out)
+    max: float  # largest value (shows a divergence that the median hides)
+
+
+def median_iqr(values: Iterable[float]) -> tuple[float, float]:
+    """(median, q75 - q25) of ``values``, safe with inf; NaN values are left out.
+
+    Quantiles use linear interpolation between order statistics (numpy's default method), written
+    so that inf stays inf: [1, 2, inf] has median 2 and IQR inf, [inf, inf] has median inf and
+    IQR 0. With no value left the result is (NaN, NaN).
+    """
+    v = np.sort(np.array([_as_float(x) for x in values], dtype=np.float64))
+    v = v[~np.isnan(v)]
+    if v.size == 0:
+        return math.nan, math.nan
+    q25, med, q75 = (_quantile(v, p) for p in (0.25, 0.5, 0.75))
+    return med, (0.0 if q75 == q25 else q75 - q25)
+
+
+def summarize(reports: Iterable[MetricReport | Mapping[str, Any]]) -> dict[str, Stat]:
+    """Median and IQR of each scalar metric across runs, the paper's "median ± IQR".
+
+    Args:
+        reports: :class:`MetricReport` objects, or mappings of metric name to value such as the
+            output of :func:`to_json` ("inf" strings and None are read back as inf and NaN).
+
+    Returns:
+        {metric: Stat} for each metric of :data:`SCALAR_METRICS` present in at least one report.
+    """
+    rows = [r.scalars() if isinstance(r, MetricReport) else r for r in reports]
+    out: dict[str, Stat] = {}
+    for key in SCALAR_METRICS:
+        vals = [_as_float(r[key]) for r in rows if key in r]
+        if not vals:
+            continue
+        med, iqr = median_iqr(vals)
+        avail = [x for x in vals if not math.isnan(x)]
+        out[key] = Stat(median=med, iqr=iqr, n=len(avail), max=max(avail) if avail else math.nan)
+    return out
+
+
+# ---- output -------------------------------------------------------------------------------------------
+
+# (metric key, header, decimals, show IQR). The paper prints Out. and Drift without "± IQR".
+_COLUMNS = (
+    ("rmse", "RMSE", 3, True),
+    ("full_rmse", "Full RMSE", 3, True),
+    ("nrmse", "NRMSE", 3, True),
+    ("mae", "MAE", 3, True),
+    ("medae", "MedAE", 3, True),
+    ("auc", "AUC", 1, True),
+    ("outlier_ratio", "Out.", 3, False),
+    ("drift_ratio", "Drift", 3, False),
+)
+_OPTIONAL_COLUMNS = (
+    ("diverged_ratio", "Div.", 3, False),
+    ("nees", "NEES", 3, True),
+    ("coverage95", "95%", 3, True),
+)
+
+
+def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", iqr_everywhere: bool = False) -> str:
+    """The paper's extended-metrics table, one row per method.
+
+    Columns RMSE, Full RMSE, NRMSE, MAE, MedAE, AUC, Out., Drift as in the appendix tables, then
+    Div. when some run of some method diverged, and NEES / 95% when some method has them.
+    Cells are "median±IQR" with 3 decimals (AUC 1); Out., Drift and Div. show the median only, as
+    the paper does, unless ``iqr_everywhere``. An infinite median prints "inf" (the paper's
+    infinity), NaN prints "N/A". The csv format is for machines: one numeric column per median and
+    per IQR (``rmse``, ``rmse_iqr``, ...), full precision, "inf" and "nan" as Python prints them.
+
+    Args:
+        rows: {method: summary}; a summary maps metric keys to :class:`Stat`, (median, iqr) or a
+            plain number (IQR 0), e.g. the output of :func:`summarize` or ``report.scalars()``.
+        fmt: "markdown", "text" or "csv".
+        iqr_everywhere: also print the IQR for Out., Drift and Div.
+    """
+    if fmt not in ("markdown", "text", "csv"):
+        raise MetricsError(f"fmt must be 'markdown', 'text' or 'csv', got {fmt!r}")
+    stats = {m: {k: _as_stat(v) for k, v in s.items()} for m, s in rows.items()}
+    cols = list(_COLUMNS)
+    if any(s["diverged_ratio"].max > 0 for s in stats.values() if "diverged_ratio" in s):
+        cols.append(_OPTIONAL_COLUMNS[0])
+    cols += [c for c in _OPTIONAL_COLUMNS[1:] if any(c[0] in s for s in stats.values())]
+
+    if fmt == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["method"] + [h for key, *_ in cols for h in (key, key + "_iqr")])
+        for method, s in stats.items():
+            cells = [method]
+            for key, *_ in cols:
+                st = s.get(key)
+                cells += [repr(st.median), repr(st.iqr)] if st else ["", ""]
+            w.writerow(cells)
+        return buf.getvalue()
+
+    header = ["Method"] + [h for _, h, _, _ in cols]
+    body = []
+    for method, s in stats.items():
+        cells = [method]
+        for key, _, dec, show_iqr in cols:
+            cells.append(_cell(s.get(key), dec, show_iqr or iqr_everywhere))
+        body.append(cells)
+    if fmt == "markdown":
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * len(cols)) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in body]
+        return "\n".join(lines) + "\n"
+    widths = [max(len(r[i]) for r in [header] + body) for i in range(len(header))]
+
+    def aligned(r: list[str]) -> str:  # method name left, numbers right
+        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
+
+    return "\n".join(aligned(r) for r in [header] + body) + "\n"
+
+
+def to_json(obj: Any) -> Any:
+    """A JSON-ready copy of a :class:`MetricReport`, :class:`Stat`, summary or nested container.
+
+    Arrays become lists, numpy scalars Python scalars. JSON has no infinity, and divergence must
+    survive the round trip, so inf is written as the string "inf" ("-inf") and NaN (an unavailable
+    statistic, the paper's "N/A") as null. Report fields that were not computed (NEES and coverage
+    without ``P_hat``) are left out, so null always means NaN. :func:`summarize` reads both back.
+    """
+    if isinstance(obj, (MetricReport, Stat)):  # fields that were not computed (None) are left out
+        fields = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
+        return {k: to_json(v) for k, v in fields if v is not None}
+    if isinstance(obj, Mapping):
+        return {str(k): to_json(v) for k, v in obj.items()}
+    if isinstance(obj, np.ndarray):
+        return to_json(obj.tolist())
+    if isinstance(obj, (list, tuple)):
+        return [to_json(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return to_json(obj.item())
+    if isinstance(obj, float):
+        if math.isnan(obj):
+            return None
+        if math.isinf(obj):
+            return "inf" if obj > 0 else "-inf"
+    return obj
+
+
+# ---- helpers ------------------------------------------------------------------------------------------
+
+
+def _check_pair(x_true, x_hat) -> tuple[np.ndarray, np.ndarray]:
+    x_true = np.asarray(x_true, dtype=np.float64)
+    x_hat = np.asarray(x_hat, dtype=np.float64)
+    if x_true.ndim != 3 or x_true.shape != x_hat.shape:
+        raise MetricsError(f"x_true and x_hat must both be (N, T, dx); got {x_true.shape} and {x_hat.shape}")
+    if 0 in x_true.shape:
+        raise MetricsError(f"empty input of shape {x_true.shape}")
+    return x_true, x_hat
+
+
+def _check_errors(e) -> np.ndarray:
+    e = np.asarray(e, dtype=np.float64)
+    if e.ndim != 3:
+        raise MetricsError(f"errors must be (N, T, dx), got shape {e.shape}")
+    return e
+
+
+def _check_curve(rmse_t) -> np.ndarray:
+    rmse_t = np.asarray(rmse_t, dtype=np.float64)
+    if rmse_t.ndim != 1 or rmse_t.shape[0] == 0:
+        raise MetricsError(f"rmse_t must be (T,) with T >= 1, got shape {rmse_t.shape}")
+    return rmse_t
+
+
+def _resolve_spread(x_true: np.ndarray, spread) -> np.ndarray:
+    dx = x_true.shape[-1]
+    s = state_spread(x_true) if spread is None else np.broadcast_to(np.asarray(spread, dtype=np.float64), (dx,))
+    bad = ~(np.isfinite(s) & (s > 0))
+    if bad.any():
+        where = "given spread" if spread is not None else "true state (pass spread= explicitly)"
+        raise MetricsError(f"NRMSE spread must be positive and finite; components {np.flatnonzero(bad).tolist()} of the {where}")
+    return np.array(s)
+
+
+def _quantile(v: np.ndarray, p: float) -> float:
+    """Linear-interpolation quantile of sorted, NaN-free ``v``; inf-safe."""
+    h = (v.size - 1) * p
+    lo, hi = math.floor(h), math.ceil(h)
+    a, b, w = float(v[lo]), float(v[hi]), h - lo
+    if w == 0 or a == b:
+        return a
+    return a + w * (b - a)
+
+
+def _as_float(x) -> float:
+    """Metric value as float: None -> NaN, "inf"/"-inf"/"nan" strings as floats."""
+    if x is None:
+        return math.nan
+    return float(x)
+
+
+def _as_stat(v) -> Stat:
+    if isinstance(v, Stat):
+        return v
+    if isinstance(v, (tuple, list)):
+        med, iqr = _as_float(v[0]), _as_float(v[1])
+        return Stat(median=med, iqr=iqr, n=1, max=med)
+    x = _as_float(v)
+    return Stat(median=x, iqr=0.0, n=1, max=x)
+
+
+def _cell(st: Stat | None, decimals: int, show_iqr: bool) -> str:
+    if st is None or math.isnan(st.median):
+        return "N/A"
+    if math.isinf(st.median):
+        return "inf" if st.median > 0 else "-inf"
+    med = f"{st.median:.{decimals}f}"
+    if not show_iqr or math.isnan(st.iqr):
+        return med
+    iqr = "inf" if math.isinf(st.iqr) else f"{st.iqr:.{decimals}f}"
+    return f"{med}±{iqr}"

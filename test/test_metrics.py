@@ -1,0 +1,366 @@
+"""Metrics against hand-computed answers on tiny crafted inputs (paper, "Evaluation Metrics")."""
+
+import csv
+import io
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from neural_estimator.metrics import (
+    MAD_SCALE,
+    MEANAD_SCALE,
+    MetricReport,
+    MetricsError,
+    Stat,
+    auc,
+    compute_metrics,
+    diverged_mask,
+    drift_ratio,
+    errors,
+    format_table,
+    median_iqr,
+    nees,
+    outlier_mask,
+    rmse_over_time,
+    robust_zscores,
+    state_spread,
+    summarize,
+    to_json,
+    trajectory_mse,
+)
+
+TOL = dict(rtol=1e-12, atol=1e-12)  # exact arithmetic up to round-off
+
+
+def _from_errors(e, offset=0.0):
+    """(x_true, x_hat) with x_hat - x_true = e exactly (offset keeps x_true non-constant)."""
+    e = np.asarray(e, dtype=np.float64)
+    x_true = offset + np.arange(e.size, dtype=np.float64).reshape(e.shape) % 4.0  # small integers
+    return x_true, x_true + e
+
+
+# The main crafted set: N=3, T=4, dx=1. Trajectory MSEs M = [1, 2, 11/4]; no outliers
+# (u = [0, ln 2, ln 2.75], median ln 2, MAD = ln 1.375, largest z = ln 2 / (1.4826 ln 1.375) = 1.47).
+E3 = np.array([[1.0, 1.0, 1.0, 1.0], [2.0, 0.0, -2.0, 0.0], [0.0, 1.0, 3.0, -1.0]])[..., None]  # (3, 4, 1)
+
+
+# ---- errors, curves, per-trajectory quantities --------------------------------------------------------
+
+
+def test_errors_wrap_angle_components_only():
+    x_true = np.zeros((1, 3, 2))
+    x_hat = np.array([[[2 * np.pi - 0.1, 2 * np.pi - 0.1], [np.pi, np.pi], [-np.pi, 3.0]]])
+    e = errors(x_true, x_hat, angle_states=(0,))
+    np.testing.assert_allclose(e[0, 0], [-0.1, 2 * np.pi - 0.1], **TOL)  # 2 pi - 0.1 counts as -0.1
+    assert e[0, 1, 0] == pytest.approx(np.pi) and e[0, 2, 0] == pytest.approx(np.pi)  # (-pi, pi]
+    assert e[0, 2, 1] == 3.0
+
+
+def test_rmse_over_time_and_trajectory_mse_by_hand():
+    e = np.array([[[1, 1], [2, 0], [0, 0]], [[1, 1], [0, 2], [3, 1]]], dtype=float)  # (2, 3, 2)
+    # t0: (1+1+1+1)/4 = 1, t1: (4+0+0+4)/4 = 2, t2: (0+0+9+1)/4 = 2.5
+    np.testing.assert_allclose(rmse_over_time(e), np.sqrt([1.0, 2.0, 2.5]), **TOL)
+    np.testing.assert_allclose(rmse_over_time(e, mask=np.array([True, False])), [1.0, np.sqrt(2.0), 0.0], **TOL)
+    assert np.isnan(rmse_over_time(e, mask=np.array([False, False]))).all()
+    np.testing.assert_allclose(trajectory_mse(e), [6 / 6, 16 / 6], **TOL)
+
+
+def test_diverged_mask():
+    x = np.zeros((4, 3, 2))
+    x[1, 2, 0] = np.nan
+    x[3, 0, 1] = -np.inf
+    np.testing.assert_array_equal(diverged_mask(x), [False, True, False, True])
+
+
+def test_auc_trapezoid_unit_step():
+    assert auc(np.array([1.0, 2.0, 3.0, 4.0])) == pytest.approx(1.5 + 2.5 + 3.5)
+    assert auc(np.array([2.0, 0.0])) == pytest.approx(1.0)
+    assert auc(np.array([5.0])) == 0.0  # a single point has no area
+
+
+def test_drift_ratio_quarters():
+    # T = 8: q = 2, (7 + 8)/2 / ((1 + 2)/2) = 5
+    assert drift_ratio(np.arange(1.0, 9.0)) == pytest.approx(5.0)
+    # T = 3: floor(3/4) = 0, so q = max(1, 0) = 1: last / first = 6 / 2
+    assert drift_ratio(np.array([2.0, 5.0, 6.0])) == pytest.approx(3.0)
+    # T = 9: q = 2 (the middle point is in neither quarter): (8 + 9)/(1 + 2)
+    assert drift_ratio(np.arange(1.0, 10.0)) == pytest.approx(17 / 3)
+    assert drift_ratio(np.array([4.0])) == 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert drift_ratio(np.array([0.0, 1.0])) == math.inf
+        assert math.isnan(drift_ratio(np.array([0.0, 0.0])))
+
+
+# ---- outlier rule -------------------------------------------------------------------------------------
+
+# u sorted: -1 -1 0 0 0 1 1 A B; median 0; deviations 1 1 0 0 0 1 1 A B -> MAD = 1.
+U_OUT = np.array([-1.0, -1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 6.01 * MAD_SCALE, 5.99 * MAD_SCALE])
+
+
+def test_outlier_rule_one_above_one_just_below_six():
+    M = np.exp(U_OUT)
+    z = robust_zscores(M)
+    np.testing.assert_allclose(z, np.abs(U_OUT) / MAD_SCALE, rtol=1e-9)
+    assert z[7] == pytest.approx(6.01) and z[8] == pytest.approx(5.99)
+    np.testing.assert_array_equal(np.flatnonzero(outlier_mask(M)), [7])
+    np.testing.assert_array_equal(np.flatnonzero(outlier_mask(M, threshold=5.9)), [7, 8])
+
+
+def test_outlier_rule_through_compute_metrics():
+    M = np.exp(U_OUT)  # trajectories with constant error sqrt(M_n) have trajectory MSE M_n
+    e = np.broadcast_to(np.sqrt(M)[:, None, None], (9, 5, 2))
+    r = compute_metrics(*_from_errors(e), spread=1.0)
+    np.testing.assert_array_equal(r.outlier_idx, [7])
+    assert r.n_outliers == 1 and r.outlier_ratio == pytest.approx(1 / 9) and r.n_diverged == 0
+    kept = np.delete(M, 7)
+    assert r.rmse == pytest.approx(np.sqrt(kept.mean()))
+    assert r.full_rmse == pytest.approx(np.sqrt(M.mean()))
+    assert r.full_rmse > r.rmse
+
+
+def test_outlier_rule_mad_zero_falls_back_to_mean_absolute_deviation():
+    # N = 10, nine equal u and one at a: MAD = 0, MeanAD = |a|/10, z = 10 / 1.253314 = 7.98 > 6
+    u = np.r_[np.zeros(9), 2.0]
+    z = robust_zscores(np.exp(u))
+    assert z[-1] == pytest.approx(10 / MEANAD_SCALE) and np.all(z[:-1] == 0.0)
+    np.testing.assert_array_equal(np.flatnonzero(outlier_mask(np.exp(u))), [9])
+    # N = 6: z = 6 / 1.253314 = 4.79 <= 6, too few trajectories to call one extreme
+    u6 = np.r_[np.zeros(5), 2.0]
+    assert robust_zscores(np.exp(u6))[-1] == pytest.approx(6 / MEANAD_SCALE)
+    assert not outlier_mask(np.exp(u6)).any()
+    # all equal: no spread, nothing outlying
+    assert not outlier_mask(np.full(5, 3.0)).any()
+
+
+def test_outlier_rule_nonfinite_always_flagged_and_left_out_of_median():
+    M = np.exp(U_OUT[:7])  # median 0, MAD 1 among the finite ones
+    M_div = np.r_[M, np.inf, np.nan]
+    z = robust_zscores(M_div)
+    np.testing.assert_allclose(z[:7], np.abs(U_OUT[:7]) / MAD_SCALE, rtol=1e-9)  # unchanged by inf/NaN
+    assert np.all(np.isinf(z[7:]))
+    np.testing.assert_array_equal(np.flatnonzero(outlier_mask(M_div)), [7, 8])
+    assert outlier_mask(np.array([np.nan, np.inf])).all()
+
+
+# ---- compute_metrics ----------------------------------------------------------------------------------
+
+
+def test_compute_metrics_by_hand():
+    r = compute_metrics(*_from_errors(E3), spread=2.0)
+    # squared errors per t: t0 (1,4,0), t1 (1,0,1), t2 (1,4,9), t3 (1,0,1)
+    curve = np.sqrt([5 / 3, 2 / 3, 14 / 3, 2 / 3])
+    np.testing.assert_allclose(r.rmse_t, curve, **TOL)
+    assert r.rmse == pytest.approx(np.sqrt(23 / 12))  # (4 + 8 + 11) / 12
+    assert r.full_rmse == pytest.approx(np.sqrt(23 / 12))
+    assert r.nrmse == pytest.approx(np.sqrt(23 / 12) / 2.0)
+    assert r.mae == pytest.approx(13 / 12)  # |e| sums 4 + 4 + 5
+    assert r.medae == pytest.approx(1.0)  # sorted |e|: 0 0 0 1 1 1 | 1 1 1 2 2 3
+    assert r.auc == pytest.approx(0.5 * curve[0] + curve[1] + curve[2] + 0.5 * curve[3])
+    assert r.drift_ratio == pytest.approx(np.sqrt(2 / 5))  # T = 4, q = 1: RMSE_4 / RMSE_1
+    assert r.outlier_ratio == 0.0 and r.diverged_ratio == 0.0 and not r.all_diverged
+    assert r.n_trajectories == 3 and r.outlier_idx.size == 0 and r.diverged_idx.size == 0
+    assert r.nees is None and r.coverage95 is None
+    assert set(r.scalars()) == {"rmse", "full_rmse", "nrmse", "mae", "medae", "auc", "outlier_ratio", "drift_ratio", "diverged_ratio"}
+
+
+def test_compute_metrics_drift_on_growing_curve_t8():
+    t = np.arange(1.0, 9.0)
+    e = np.broadcast_to(t[None, :, None], (4, 8, 1))  # every trajectory has RMSE_t = t
+    r = compute_metrics(*_from_errors(e), spread=1.0)
+    np.testing.assert_allclose(r.rmse_t, t, **TOL)
+    assert r.drift_ratio == pytest.approx(5.0)  # q = 2
+    assert r.auc == pytest.approx(0.5 * 1 + (2 + 3 + 4 + 5 + 6 + 7) + 0.5 * 8)
+    assert r.n_outliers == 0  # equal M_n: MAD = MeanAD = 0, nothing flagged
+
+
+def test_angle_wrapping_in_metrics():
+    x_true = np.zeros((3, 4, 2))
+    x_true[..., 1] = np.arange(12.0).reshape(3, 4)
+    x_hat = x_true.copy()
+    x_hat[..., 0] += 2 * np.pi - 0.1  # angle error 2 pi - 0.1 is really -0.1
+    wrapped = compute_metrics(x_true, x_hat, angle_states=(0,), spread=1.0)
+    raw = compute_metrics(x_true, x_hat, spread=1.0)
+    assert wrapped.rmse == pytest.approx(0.1 / np.sqrt(2))  # errors (-0.1, 0) in every step
+    assert wrapped.mae == pytest.approx(0.05)
+    assert raw.rmse == pytest.approx((2 * np.pi - 0.1) / np.sqrt(2))
+
+
+def test_nrmse_with_known_spread():
+    base = np.array([[1.0, -1.0], [-1.0, 1.0]])  # mean 0, population std 1
+    x_true = np.stack([base, 3.0 * base], axis=-1)  # (2, 2, 2), spreads (1, 3)
+    np.testing.assert_allclose(state_spread(x_true), [1.0, 3.0], **TOL)
+    x_hat = x_true + np.array([0.5, 1.5])  # normalised errors (0.5, 0.5) everywhere
+    r = compute_metrics(x_true, x_hat)
+    assert r.nrmse == pytest.approx(0.5)
+    assert r.rmse == pytest.approx(np.sqrt((0.25 + 2.25) / 2))
+    np.testing.assert_allclose(r.spread, [1.0, 3.0], **TOL)
+    assert compute_metrics(x_true, x_hat, spread=[0.5, 1.5]).nrmse == pytest.approx(1.0)
+    with pytest.raises(MetricsError, match="spread"):
+        compute_metrics(np.zeros((2, 3, 1)), np.ones((2, 3, 1)))  # constant truth, no spread given
+    with pytest.raises(MetricsError, match="spread"):
+        compute_metrics(x_true, x_hat, spread=[1.0, 0.0])
+
+
+def test_diverged_trajectories_reported_excluded_no_crash():
+    e = np.ones((5, 4, 2))
+    e[2] = 2.0  # M = [1, ., 4, ., 1]
+    x_true, x_hat = _from_errors(e)
+    x_hat[1, 2, 0] = np.nan
+    x_hat[3] = 1e200  # finite estimate whose squared error overflows: diverged too
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning from NaN, inf or overflow
+        r = compute_metrics(x_true, x_hat, spread=1.0)
+    np.testing.assert_array_equal(r.diverged_idx, [1, 3])
+    np.testing.assert_array_equal(r.outlier_idx, [1, 3])  # diverged are always flagged
+    assert r.n_diverged == 2 and r.diverged_ratio == pytest.approx(0.4) and r.outlier_ratio == pytest.approx(0.4)
+    assert r.full_rmse == math.inf and not r.all_diverged
+    # kept M = [1, 4, 1]: MAD = 0, z = 3 / 1.253314 < 6, all three kept
+    assert r.rmse == pytest.approx(np.sqrt(2.0))
+    assert np.isfinite(r.rmse_t).all() and np.isfinite(r.auc) and np.isfinite(r.drift_ratio)
+
+
+def test_extra_divergence_flags_exclude_trajectory():
+    r = compute_metrics(*_from_errors(E3), spread=2.0, diverged=np.array([False, False, True]))
+    np.testing.assert_array_equal(r.diverged_idx, [2])
+    assert r.rmse == pytest.approx(np.sqrt((4 + 8) / 8)) and r.full_rmse == math.inf
+
+
+def test_all_diverged_is_explicit():
+    x_true = np.arange(24.0).reshape(3, 4, 2)
+    x_hat = np.full_like(x_true, np.nan)
+    P = np.broadcast_to(np.eye(2), (3, 4, 2, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = compute_metrics(x_true, x_hat, P_hat=P)
+    assert r.all_diverged and r.n_diverged == 3 and r.diverged_ratio == 1.0
+    for k in ("rmse", "full_rmse", "nrmse", "mae", "medae", "auc", "nees"):
+        assert getattr(r, k) == math.inf, k
+    for k in ("drift_ratio", "outlier_ratio", "coverage95"):
+        assert math.isnan(getattr(r, k)), k
+    assert np.isinf(r.rmse_t).all() and r.rmse_t.shape == (4,)
+    table = format_table({"EnKF": r.scalars()})
+    row = table.splitlines()[2]
+    assert "| EnKF | inf | inf | inf | inf | inf | inf | N/A | N/A | 1.000 |" in row
+    payload = json.dumps(to_json(r), allow_nan=False)  # strict JSON
+    back = json.loads(payload)
+    assert back["rmse"] == "inf" and back["drift_ratio"] is None and back["all_diverged"] is True
+
+
+def test_bad_inputs_raise_own_error():
+    with pytest.raises(MetricsError):
+        compute_metrics(np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(MetricsError):
+        compute_metrics(np.zeros((2, 3, 1)), np.zeros((2, 4, 1)))
+    x_true = np.arange(6.0).reshape(2, 3, 1)
+    x_true[0, 0, 0] = np.nan
+    with pytest.raises(MetricsError, match="ground truth"):
+        compute_metrics(x_true, np.zeros((2, 3, 1)))
+
+
+# ---- NEES and coverage ----------------------------------------------------------------------------------
+
+
+def test_nees_by_hand():
+    e = np.array([[[2.0, 1.0], [1.0, 0.0], [1.0, 1.0]]])  # (1, 3, 2)
+    P = np.array([[[[4.0, 0.0], [0.0, 1.0]], [[2.0, 1.0], [1.0, 2.0]], [[1.0, 2.0], [2.0, 1.0]]]])
+    eps = nees(e, P)
+    # diag(4, 1): 4/4 + 1/1 = 2; [[2,1],[1,2]]^-1 = [[2,-1],[-1,2]]/3: 2/3; indefinite: inf
+    np.testing.assert_allclose(eps[0, :2], [2.0, 2.0 / 3.0], **TOL)
+    assert eps[0, 2] == math.inf
+
+
+def test_nees_mean_is_dx_and_coverage_95_for_gaussian_errors():
+    rng = np.random.default_rng(0)
+    n, t, dx = 200, 50, 3
+    A = rng.standard_normal((n, t, dx, dx))
+    P = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(dx)  # a different SPD covariance at every (n, t)
+    e = (np.linalg.cholesky(P) @ rng.standard_normal((n, t, dx, 1)))[..., 0]  # e ~ N(0, P)
+    x_true, x_hat = _from_errors(e)
+    r = compute_metrics(x_true, x_hat, spread=1.0, P_hat=P)
+    assert r.n_outliers == 0  # every sample enters the averages below
+    # NEES ~ chi2(3): mean 3, variance 6. Over K = 10,000 independent samples the mean has standard
+    # deviation sqrt(6 / K) = 0.0245; 5 sigma = 0.12. Coverage is a binomial share with standard
+    # deviation sqrt(0.95 * 0.05 / K) = 0.0022; 5 sigma = 0.011. (The seed is fixed, so this is
+    # deterministic; the tolerances say how far a correct implementation can land from the truth.)
+    assert abs(r.nees - dx) < 0.12
+    assert abs(r.coverage95 - 0.95) < 0.011
+    # an estimator that reports 4x too large a covariance is caught: NEES ~ dx / 4
+    r_over = compute_metrics(x_true, x_hat, spread=1.0, P_hat=4.0 * P)
+    assert abs(r_over.nees - dx / 4) < 0.12 / 4 and r_over.coverage95 > 0.99
+
+
+# ---- median / IQR, summaries, tables, JSON --------------------------------------------------------------
+
+
+def test_median_iqr():
+    assert median_iqr([1.0, 2.0, 3.0, 4.0]) == pytest.approx((2.5, 1.5))  # q25 1.75, q75 3.25
+    v = np.random.default_rng(1).standard_normal(11)
+    med, iqr = median_iqr(v)
+    assert med == pytest.approx(np.median(v)) and iqr == pytest.approx(np.subtract(*np.percentile(v, [75, 25])))
+    assert median_iqr([1.0, 2.0, math.inf]) == (2.0, math.inf)  # q25 = 1.5, q75 = inf
+    assert median_iqr([math.inf] * 3) == (math.inf, 0.0)
+    assert median_iqr([math.nan, 1.0, 3.0]) == pytest.approx((2.0, 1.0))  # NaN left out
+    assert all(math.isnan(x) for x in median_iqr([math.nan]))
+    assert median_iqr(["inf", None, 1.0, 2.0]) == (2.0, math.inf)  # JSON spellings read back
+
+
+def _three_reports():
+    reps = []
+    for scale in (1.0, 2.0, 4.0):
+        reps.append(compute_metrics(*_from_errors(scale * E3), spread=2.0))
+    return reps
+
+
+def test_summarize_median_iqr_across_runs_and_json_round_trip():
+    reps = _three_reports()
+    s = summarize(reps)
+    base = np.sqrt(23 / 12)
+    # RMSE scales with the error: values base * (1, 2, 4): median 2 base, IQR 3 base - 1.5 base
+    assert s["rmse"].median == pytest.approx(2 * base) and s["rmse"].iqr == pytest.approx(1.5 * base)
+    assert s["drift_ratio"].iqr == pytest.approx(0.0)  # scale-free
+    assert s["rmse"].n == 3 and s["rmse"].max == pytest.approx(4 * base)
+    assert "nees" not in s
+    from_json = summarize(json.loads(json.dumps(to_json(r))) for r in reps)
+    assert from_json == s
+
+
+def test_format_table_paper_columns_and_cells():
+    good = summarize(_three_reports())
+    bad = {"rmse": Stat(math.inf, math.nan, 3, math.inf), "full_rmse": (math.inf, 0.0), "outlier_ratio": math.nan, "diverged_ratio": 1.0}
+    md = format_table({"UKF": good, "EnKF": bad})
+    lines = md.splitlines()
+    assert lines[0] == "| Method | RMSE | Full RMSE | NRMSE | MAE | MedAE | AUC | Out. | Drift | Div. |"
+    base = np.sqrt(23 / 12)
+    ukf = lines[2].split(" | ")
+    assert ukf[1] == f"{2 * base:.3f}±{1.5 * base:.3f}"
+    assert ukf[6].count(".") == 2 and len(ukf[6].split("±")[0].split(".")[1]) == 1  # AUC: 1 decimal
+    assert ukf[7] == "0.000" and "±" not in ukf[8]  # Out., Drift: median only, as in the paper
+    assert lines[3].startswith("| EnKF | inf | inf | N/A |")
+    # Div. only when someone diverged; NEES / 95% only when someone has them
+    assert "Div." not in format_table({"UKF": good})
+    with_p = {"KF": {"rmse": 1.0, "nees": (2.9, 0.1), "coverage95": (0.95, 0.01)}}
+    assert format_table(with_p).splitlines()[0].endswith("| NEES | 95% |")
+    text = format_table({"UKF": good}, fmt="text").splitlines()
+    assert text[0].split()[:3] == ["Method", "RMSE", "Full"] and text[1].startswith("UKF")
+    rows = list(csv.DictReader(io.StringIO(format_table({"UKF": good, "EnKF": bad}, fmt="csv"))))
+    assert float(rows[0]["rmse"]) == pytest.approx(2 * base) and rows[1]["rmse"] == "inf"
+    with pytest.raises(MetricsError):
+        format_table({"UKF": good}, fmt="latex")
+
+
+def test_to_json_plain_types():
+    r = compute_metrics(*_from_errors(E3), spread=2.0, P_hat=np.broadcast_to(np.eye(1), (3, 4, 1, 1)))
+    out = to_json(r)
+    assert isinstance(r, MetricReport)
+    payload = json.dumps(out, allow_nan=False)
+    back = json.loads(payload)
+    assert back["rmse_t"] == pytest.approx(list(np.sqrt([5 / 3, 2 / 3, 14 / 3, 2 / 3])))
+    assert back["outlier_idx"] == [] and back["spread"] == [2.0]
+    assert back["nees"] == pytest.approx(23 / 12)  # P = I: NEES = mean e^2
+    assert type(back["n_trajectories"]) is int
+    assert "nees" not in to_json(compute_metrics(*_from_errors(E3), spread=2.0))  # not computed: absent
+    assert to_json({"a": np.float32(-np.inf), "b": np.array([np.nan, 1.0])}) == {"a": "-inf", "b": [None, 1.0]}
