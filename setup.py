@@ -27,6 +27,8 @@ setup(
     entry_points={
         "console_scripts": [
             "neural-estimator = neural_estimator.cli:main",
+            # the minimal `ros2 run` for pip environments; hands over to a real ros2 when installed
+            "ros2 = neural_estimator.ros2_shim:main",
         ],
     },
 )

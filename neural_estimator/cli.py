@@ -21,6 +21,8 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 from neural_estimator.scenarios import ScenarioError, make_scenario, parse_assignments, scenario_names
 
 EXIT_BAD_INPUT = 2
@@ -101,8 +103,157 @@ def _cmd_scenarios(args) -> int:
     return 0
 
 
+# ---- metrics ------------------------------------------------------------------------------------
+def _add_metrics(sub) -> None:
+    p = sub.add_parser("metrics", help="the paper's table from a truth file and estimate files (or an MCAP bag)")
+    p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="an estimate .npz (x and x_hat), or a truth .npz followed by estimate .npz files, or an .mcap bag")
+    p.add_argument("--json", action="store_true", help="print JSON (RMSE-over-time curves, outlier and diverged indices)")
+    p.add_argument("--out", help="also write the table: .csv, .md or .json by extension")
+    p.set_defaults(func=_cmd_metrics)
+
+
+def _estimates_from_files(files: list[str]):
+    """(truth Trajectories, {method: (x_hat, P_hat or None)}, angle_states) from npz files or a bag."""
+    from neural_estimator.data import DataError, load_trajectories
+
+    if len(files) == 1 and files[0].endswith(".mcap"):
+        from neural_estimator.bags import load_bag_dataset
+
+        return load_bag_dataset(files[0])
+    truth, extras = load_trajectories(files[0])
+    estimates = {}
+    if "x_hat" in extras:
+        estimates[truth.meta.get("method", Path(files[0]).stem)] = (extras["x_hat"], extras.get("P_hat"))
+    for f in files[1:]:
+        other, ex = load_trajectories(f)
+        if "x_hat" not in ex:
+            raise DataError(f"{f}: no 'x_hat' array: not an estimate file")
+        if other.x.shape != truth.x.shape or not np.array_equal(other.x, truth.x):
+            raise DataError(f"{f}: its states differ from {files[0]}'s: estimates of another dataset")
+        name = other.meta.get("method", Path(f).stem)
+        estimates[name if name not in estimates else f"{name}:{Path(f).stem}"] = (ex["x_hat"], ex.get("P_hat"))
+    if not estimates:
+        raise DataError(f"{files[0]}: no 'x_hat' array and no estimate files given")
+    return truth, estimates, tuple(truth.meta.get("angle_states", ()))
+
+
+def _cmd_metrics(args) -> int:
+    from neural_estimator import metrics as M
+
+    truth, estimates, angles = _estimates_from_files(args.files)
+    reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
+    rows = {m: r.scalars() for m, r in reports.items()}
+    if args.json:
+        print(json.dumps(M.to_json({"scenario": truth.meta.get("scenario"), "methods": reports}), indent=1))
+    else:
+        print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps")
+        print(M.format_table(rows, fmt="text"), end="")
+    if args.out:
+        _write_table(args.out, rows, {m: M.to_json(r) for m, r in reports.items()})
+    return 0
+
+
+def _write_table(path: str, rows, json_obj) -> None:
+    from neural_estimator import metrics as M
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix == ".csv":
+        out.write_text(M.format_table(rows, fmt="csv"))
+    elif out.suffix == ".json":
+        out.write_text(json.dumps(json_obj, indent=1))
+    else:
+        out.write_text(M.format_table(rows, fmt="markdown"))
+    print(f"wrote {out}")
+
+
+# ---- evaluate -----------------------------------------------------------------------------------
+def _add_evaluate(sub) -> None:
+    p = sub.add_parser("evaluate", help="run methods on the evaluation sets; print the paper's table")
+    _common(p)
+    p.add_argument("--methods", default="ekf,ukf,enkf,pf", help="comma-separated (ekf ukf enkf pf gru lstm gpt2 filterformer mamba mamba2)")
+    p.add_argument("--trajectories", type=int, default=8000, help="per evaluation set (paper: 8000)")
+    p.add_argument("--horizon", type=int, help="steps (default: the scenario's; paper: 500, quadrotor 200)")
+    p.add_argument("--sets", type=int, default=3, help="independent evaluation sets (paper: 3)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the evaluation sets' streams")
+    p.add_argument("--checkpoint", action="append", metavar="METHOD=DIR[,DIR...]",
+                   help="checkpoints of a neural method (each one instance); default: the shipped model")
+    p.add_argument("--option", action="append", metavar="METHOD.NAME=VALUE",
+                   help="filter hyperparameter, e.g. pf.n_particles=2048 (repeatable)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-cache", action="store_true", help="do not cache the evaluation sets on disk")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    p.add_argument("--out", help="directory for table.md, table.csv, results.json and rmse_over_time.png")
+    p.set_defaults(func=_cmd_evaluate)
+
+
+def _parse_checkpoints(items: list[str] | None) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for item in items or ():
+        method, sep, paths = item.partition("=")
+        if not sep or not paths:
+            raise CliError(f"--checkpoint expects METHOD=DIR[,DIR...], got {item!r}")
+        out.setdefault(method.strip().lower(), []).extend(p for p in paths.split(",") if p)
+    return out
+
+
+def _parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        method, dot, name = key.partition(".")
+        if not sep or not dot or not name:
+            raise CliError(f"--option expects METHOD.NAME=VALUE, got {item!r}")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            parsed = value
+        out.setdefault(method.strip().lower(), {})[name.strip()] = parsed
+    return out
+
+
+def _cmd_evaluate(args) -> int:
+    from neural_estimator.estimators import check_method
+    from neural_estimator.evaluation import evaluate, results_json, results_table
+    from neural_estimator.plots import plot_rmse_over_time
+
+    scenario = scenario_from_args(args)
+    methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
+    if not methods:
+        raise CliError("--methods is empty")
+    checkpoints = _parse_checkpoints(args.checkpoint)
+    for m in checkpoints:
+        check_method(m)
+    results = evaluate(
+        scenario, methods, trajectories=args.trajectories, horizon=args.horizon, seed=args.seed, sets=args.sets,
+        checkpoints=checkpoints, options=_parse_options(args.option), device=args.device,
+        cache_dir=False if args.no_cache else None, progress=not args.quiet,
+    )
+    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed)
+    if args.json:
+        print(json.dumps(results_json(scenario, results, **info), indent=1))
+    else:
+        print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps "
+              f"(median ± IQR over runs)")
+        print(results_table(results, fmt="text"), end="")
+        print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" for m, r in results.items()))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "table.md").write_text(results_table(results, fmt="markdown"))
+        (out / "table.csv").write_text(results_table(results, fmt="csv"))
+        (out / "results.json").write_text(json.dumps(results_json(scenario, results, **info), indent=1))
+        plot_rmse_over_time({m: [rep.rmse_t for rep in r.reports] for m, r in results.items()},
+                            out / "rmse_over_time.png", title=scenario.name, dt=scenario.dt)
+        print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
+    return 0
+
+
 # Verbs are added to this list as their modules land; each is (adder).
-_VERBS: list[Callable] = [_add_simulate, _add_scenarios]
+_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_scenarios]
 
 
 def build_parser() -> argparse.ArgumentParser:

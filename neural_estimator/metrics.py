@@ -387,6 +387,7 @@ def compute_metrics(
     P_hat: np.ndarray | None = None,
     diverged: np.ndarray | None = None,
     threshold: float = OUTLIER_Z,
+    nees_values: np.ndarray | None = None,
 ) -> MetricReport:
     """All metrics of one method on one evaluation set.
 
@@ -415,6 +416,8 @@ def compute_metrics(
         diverged: (N,) extra divergence flags (e.g. ``Estimates.diverged``), OR-ed with the
             non-finite test; a flagged trajectory is excluded like any diverged one.
         threshold: the outlier z-score threshold (paper: 6).
+        nees_values: (N, T) precomputed e^T P^-1 e (see :func:`nees`), instead of ``P_hat``: lets a
+            caller evaluate chunk by chunk without holding (N, T, dx, dx) covariances.
 
     Returns:
         A :class:`MetricReport`. If every trajectory diverged: RMSE, NRMSE, MAE, MedAE, AUC, the
@@ -458,7 +461,7 @@ def compute_metrics(
     )
 
     if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
-        has_p = P_hat is not None
+        has_p = P_hat is not None or nees_values is not None
         return MetricReport(
             rmse=math.inf,
             nrmse=math.inf,
@@ -481,7 +484,12 @@ def compute_metrics(
         P_hat = np.asarray(P_hat, dtype=np.float64)
         if P_hat.shape != (n, t, dx, dx):
             raise MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P_hat.shape}")
-        eps = nees(e[kept], P_hat[kept])  # (|K|, T)
+        nees_values = nees(e, P_hat) if nees_values is None else nees_values
+    if nees_values is not None:
+        nees_values = np.asarray(nees_values, dtype=np.float64)
+        if nees_values.shape != (n, t):
+            raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
+        eps = nees_values[kept]  # (|K|, T)
         nees_mean = float(eps.mean())
         coverage = float(np.mean(eps <= chi2.ppf(COVERAGE_LEVEL, dx)))
     return MetricReport(

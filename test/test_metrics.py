@@ -364,3 +364,21 @@ def test_to_json_plain_types():
     assert type(back["n_trajectories"]) is int
     assert "nees" not in to_json(compute_metrics(*_from_errors(E3), spread=2.0))  # not computed: absent
     assert to_json({"a": np.float32(-np.inf), "b": np.array([np.nan, 1.0])}) == {"a": "-inf", "b": [None, 1.0]}
+
+
+def test_precomputed_nees_values_equal_p_hat_path():
+    from neural_estimator import metrics as M
+
+    """Evaluation computes NEES chunk by chunk; passing those values must equal passing P_hat."""
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((6, 5, 2))
+    xh = x + 0.3 * rng.standard_normal((6, 5, 2))
+    P = np.broadcast_to(np.diag([0.09, 0.2]), (6, 5, 2, 2)).copy()
+    xh[4] = np.nan  # diverged: must be excluded either way
+    from_p = M.compute_metrics(x, xh, P_hat=P)
+    vals = M.nees(M.errors(x, xh), P)
+    from_vals = M.compute_metrics(x, xh, nees_values=vals)
+    assert from_p.nees == from_vals.nees and from_p.coverage95 == from_vals.coverage95
+    assert np.isfinite(from_p.nees)
+    with pytest.raises(M.MetricsError, match="nees_values must be"):
+        M.compute_metrics(x, xh, nees_values=vals[:, :3])

@@ -1,0 +1,56 @@
+"""Figures: the RMSE-over-time curves of the paper's appendix (median with an IQR band)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+
+def plot_rmse_over_time(
+    curves: Mapping[str, Sequence[np.ndarray]],
+    path: str | Path,
+    title: str = "",
+    dt: float | None = None,
+    logy: bool = True,
+) -> Path:
+    """Write a PNG of RMSE_t per method: the median over runs, with the interquartile range shaded.
+
+    Args:
+        curves: {method: [rmse_t (T,) for each run]} (one run gives a plain line).
+        path: output PNG.
+        title: figure title (e.g. the scenario).
+        dt: sampling period; when given the x axis is time in seconds instead of steps.
+        logy: logarithmic RMSE axis (methods differ by orders of magnitude in some scenarios).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    for method, runs in curves.items():
+        R = np.asarray([np.asarray(r, dtype=float) for r in runs])  # (runs, T)
+        if R.size == 0:
+            continue
+        t = np.arange(R.shape[1]) * (dt if dt else 1.0)
+        with np.errstate(invalid="ignore"):
+            med = np.nanmedian(R, axis=0)
+            lo, hi = np.nanpercentile(R, 25, axis=0), np.nanpercentile(R, 75, axis=0)
+        (line,) = ax.plot(t, med, label=method, lw=1.4)
+        if R.shape[0] > 1:
+            ax.fill_between(t, lo, hi, color=line.get_color(), alpha=0.2, lw=0)
+    ax.set_xlabel("time [s]" if dt else "step")
+    ax.set_ylabel("RMSE")
+    if logy:
+        ax.set_yscale("log")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(ncol=2, fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -1,0 +1,92 @@
+"""The smallest ``ros2 run``: lets the README's commands work the same in a pip virtual environment.
+
+pip installs of ROS 2 (the ros-jazzy-* wheels) have no ``ros2`` command line. This module is
+installed as ``ros2`` in the virtual environment and understands
+
+    ros2 run <package> <executable> [args ...]      (e.g. --ros-args -p method:=mamba)
+    ros2 pkg executables [<package>]
+
+Whenever a real ``ros2`` is on PATH (a ROS 2 install has been sourced), every call is handed to it
+unchanged, so on a real Jazzy install nothing here is used. Executables are looked up in the
+package's install prefix (``<prefix>/lib/<package>/<executable>``, found through
+AMENT_PREFIX_PATH, as colcon installs them) and then beside this script (pip's ``bin/``).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from pathlib import Path
+
+USAGE = (
+    "usage: ros2 run <package> <executable> [args ...]\n"
+    "       ros2 pkg executables [<package>]\n"
+    "(this is neural_estimator's minimal ros2 for pip environments; source a ROS 2 install for the full CLI)"
+)
+
+
+def _real_ros2() -> str | None:
+    """A ``ros2`` on PATH that is not this shim."""
+    me = Path(sys.argv[0]).resolve() if sys.argv and sys.argv[0] else None
+    for d in os.environ.get("PATH", "").split(os.pathsep):
+        cand = Path(d) / "ros2"
+        if cand.is_file() and os.access(cand, os.X_OK) and cand.resolve() != me:
+            try:
+                head = cand.read_bytes()[:4096]
+            except OSError:
+                continue
+            if b"neural_estimator.ros2_shim" not in head:
+                return str(cand)
+    return None
+
+
+def _package_executables(package: str) -> dict[str, str]:
+    """{executable name: path} of ``package`` from ament prefixes, then console scripts beside us."""
+    found: dict[str, str] = {}
+    for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
+        lib = Path(prefix) / "lib" / package
+        if lib.is_dir():
+            for f in sorted(lib.iterdir()):
+                if f.is_file() and os.access(f, os.X_OK):
+                    found.setdefault(f.name, str(f))
+    if package == "neural_estimator":
+        from importlib import metadata
+
+        bindir = Path(sys.argv[0]).resolve().parent if sys.argv and sys.argv[0] else Path(sys.prefix) / "bin"
+        try:
+            eps = metadata.distribution("neural_estimator").entry_points
+        except metadata.PackageNotFoundError:
+            eps = []
+        for ep in eps:
+            if ep.group == "console_scripts" and ep.name not in ("ros2",):
+                path = bindir / ep.name
+                if path.exists() or shutil.which(ep.name):
+                    found.setdefault(ep.name, str(path if path.exists() else shutil.which(ep.name)))
+    return found
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    real = _real_ros2()
+    if real:
+        os.execv(real, [real, *argv])
+    if len(argv) >= 3 and argv[0] == "run":
+        package, exe, rest = argv[1], argv[2], argv[3:]
+        exes = _package_executables(package)
+        if exe not in exes:
+            known = ", ".join(sorted(exes)) or "none found"
+            print(f"ros2 run: no executable {exe!r} in package {package!r} (executables: {known})", file=sys.stderr)
+            return 1
+        os.execv(exes[exe], [exes[exe], *rest])
+    if len(argv) >= 2 and argv[:2] == ["pkg", "executables"]:
+        for package in argv[2:] or ["neural_estimator"]:
+            for name in sorted(_package_executables(package)):
+                print(f"{package} {name}")
+        return 0
+    print(USAGE, file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
