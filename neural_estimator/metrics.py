@@ -67,6 +67,7 @@ from neural_estimator.angles import wrap_components
 OUTLIER_Z = 6.0  # the paper's threshold: "A trajectory is an outlier if z_n > 6."
 MAD_SCALE = 1.4826  # paper: z_n = |u_n - median| / (1.4826 MAD); 1/Phi^-1(3/4), MAD -> sigma
 MEANAD_SCALE = 1.253314  # sqrt(pi/2): mean absolute deviation -> sigma (fallback when MAD = 0)
+LOG_SCALE_FLOOR = 1e-9  # robust scales below this (log space) are round-off, not spread
 COVERAGE_LEVEL = 0.95
 _TINY = np.finfo(np.float64).tiny  # floor of M_n before the log: log(0) would be -inf
 _NEES_CHUNK = 1 << 16  # (n, t) pairs per batched Cholesky, bounds the temporaries
@@ -190,6 +191,10 @@ def robust_zscores(M: np.ndarray) -> np.ndarray:
       MeanAD = mean{|u_n - u~|} and 1.253314 = sqrt(pi / 2) the factor that makes MeanAD estimate
       a normal standard deviation, as 1.4826 does for the MAD. If MeanAD = 0 as well, all finite
       u_n are equal and every finite z_n is 0: there is no spread, so nothing is outlying.
+    - The robust scale is floored at LOG_SCALE_FLOOR = 1e-9 in log space (a relative MSE
+      difference of one part in 10^9). Without the floor, trajectories whose MSEs agree up to
+      floating-point round-off (identical errors computed as (x + e) - x) have a MAD of ~1e-16 and
+      round-off alone would be flagged as outliers.
 
     Args:
         M: (N,) trajectory-level MSE.
@@ -207,8 +212,8 @@ def robust_zscores(M: np.ndarray) -> np.ndarray:
     u = np.log(np.maximum(M[finite], _TINY))  # (N_finite,)
     dev = np.abs(u - np.median(u))
     mad = np.median(dev)
-    scale = MAD_SCALE * mad if mad > 0 else MEANAD_SCALE * dev.mean()
-    z[finite] = dev / scale if scale > 0 else 0.0
+    scale = MAD_SCALE * mad if mad > LOG_SCALE_FLOOR else MEANAD_SCALE * dev.mean()
+    z[finite] = dev / scale if scale > LOG_SCALE_FLOOR else 0.0
     return z
 
 

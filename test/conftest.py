@@ -1,6 +1,7 @@
 """Shared fixtures: the example user scenario (a linear-Gaussian oscillator) is registered here."""
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _load_example():
     spec = importlib.util.spec_from_file_location("custom_scenario_example", ROOT / "examples" / "custom_scenario.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # so the class's source file is known (plugins loaded twice are the same)
     spec.loader.exec_module(module)
     return module
 

@@ -382,3 +382,12 @@ def test_precomputed_nees_values_equal_p_hat_path():
     assert np.isfinite(from_p.nees)
     with pytest.raises(M.MetricsError, match="nees_values must be"):
         M.compute_metrics(x, xh, nees_values=vals[:, :3])
+
+
+def test_round_off_is_not_an_outlier():
+    """Identical errors computed as (x + e) - x differ by round-off; none may be flagged."""
+    from neural_estimator import metrics as M
+
+    x = np.random.default_rng(0).standard_normal((50, 8, 2)) * 1e3
+    report = M.compute_metrics(x, x + 0.5)
+    assert report.n_outliers == 0
