@@ -1,0 +1,17 @@
+"""MCAP bags in the rosbag2 layout, and the message layout of every stream (no rclpy here).
+
+- :mod:`~neural_estimator.bags.messages`: topics, names and the array <-> CDR conversions.
+- :class:`BagWriter` / :class:`BagReader`: one ``.mcap`` file, written as rosbag2 writes it, read
+  back even when the recording was cut short.
+- :func:`bag_to_arrays` / :func:`arrays_to_bag`: a recorded run as arrays keyed by (trajectory,
+  step), and sample bags from simulated data.
+"""
+
+from neural_estimator.bags.errors import BagError, BagWarning, MessageError
+from neural_estimator.bags.reader import BagDamage, BagReader, Connection
+from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, Qos
+
+__all__ = [
+    "BagDamage", "BagError", "BagReader", "BagWarning", "BagWriter", "Connection", "LATCHED_QOS",
+    "MessageError", "Qos", "STREAM_QOS",
+]

@@ -1,0 +1,286 @@
+"""A run as arrays <-> a bag: the dataset view of the streams of :mod:`~neural_estimator.bags.messages`.
+
+:func:`bag_to_arrays` gathers every vector message of a bag by its in-band identity (trajectory,
+step), whatever order the messages were recorded in, into (N, T, .) arrays; cells without a message
+are NaN and counted. :func:`arrays_to_bag` writes simulated data (and optionally estimates) as the
+simulator and estimator nodes would publish them: the sample bags in ``bags/`` are made this way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neural_estimator.bags import messages as M
+from neural_estimator.bags.errors import BagError, MessageError
+from neural_estimator.bags.reader import BagReader
+from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, LATCHED_QOS, STREAM_QOS, BagWriter
+
+
+@dataclasses.dataclass
+class RunArrays:
+    """The streams of one recorded run, keyed by (trajectory, step).
+
+    Rows are the trajectory indices in ``trajectories`` (sorted); column k is step k. Cells that no
+    message filled are NaN (stamps: -1).
+    """
+
+    description: dict[str, Any]  # scenario.describe() plus "run" (seed, trajectories, horizon, ...)
+    trajectories: np.ndarray  # (N,) trajectory indices
+    x: np.ndarray  # (N, T, dx) ground truth x_k
+    y: np.ndarray  # (N, T, dy) observations y_k
+    u_prev: np.ndarray  # (N, T, du) u_{k-1} as the observations carry it (0 at k = 0)
+    stamps: np.ndarray  # (N, T) int64 observation stamps (ns)
+    x_hat: dict[str, np.ndarray]  # {method: (N, T, dx)}
+    P_hat: dict[str, np.ndarray]  # {method: (N, T, dx, dx)} where published
+    received: dict[str, int]  # valid messages per stream ("observation", "estimates/ukf", ...)
+    missing: dict[str, int]  # (trajectory, step) cells without a message, per stream
+    duplicates: dict[str, int]  # messages repeating a cell already filled (the last one is kept)
+    rejected: dict[str, int]  # messages that did not fit the layout (wrong names, malformed)
+    status: list[dict[str, Any]]  # run_status messages in order
+
+    @property
+    def scenario(self):
+        """The scenario, rebuilt from the recorded description."""
+        from neural_estimator.scenarios import scenario_from_description
+
+        return scenario_from_description(self.description)
+
+    @property
+    def methods(self) -> list[str]:
+        return sorted(self.x_hat)
+
+    @property
+    def u(self) -> np.ndarray:
+        """(N, T, du) controls u_k in dataset convention: u[:, k] = u_prev[:, k + 1].
+
+        The last control of a trajectory is never sent (no estimator uses it) and is 0 here.
+        """
+        u = np.zeros_like(self.u_prev)
+        u[:, :-1] = self.u_prev[:, 1:]
+        return u
+
+    @property
+    def complete(self) -> bool:
+        """True when the run announced its end (run_status "complete")."""
+        return any(s.get("status") == M.STATUS_COMPLETE for s in self.status)
+
+
+def _stream_key(role: M.TopicRole) -> str:
+    if role.kind == "estimate":
+        return M.estimate_topic(role.method)
+    if role.kind == "covariance":
+        return M.covariance_topic(role.method)
+    return role.kind
+
+
+def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mapping[str, Any] | None = None) -> RunArrays:
+    """Read a recorded run into arrays.
+
+    Args:
+        path: the ``.mcap`` bag (a damaged one is recovered as far as possible, see
+            :class:`~neural_estimator.bags.reader.BagReader`).
+        namespace: the namespace the streams were published in.
+        description: the scenario description to use when the bag has no ``scenario`` message.
+
+    Raises:
+        BagError: no scenario description, or a stream topic holding a different message type.
+    """
+    with BagReader(path) as bag:
+        roles = {}
+        for topic, conn in bag.topics.items():
+            role = M.topic_role(topic, namespace)
+            if role is None:
+                continue
+            want = M.STRING if role.kind in (M.SCENARIO, M.RUN_STATUS) else M.JOINT_STATE
+            if conn.msgtype != want:
+                raise BagError(f"{path}: topic {topic!r} holds {conn.msgtype}, expected {want}")
+            roles[topic] = role
+        if not any(r.kind == M.OBSERVATION for r in roles.values()) and not any(
+            r.kind == M.GROUND_TRUTH for r in roles.values()
+        ):
+            raise BagError(
+                f"{path}: no {M.resolve_topic(M.OBSERVATION, namespace)} or "
+                f"{M.resolve_topic(M.GROUND_TRUTH, namespace)} topic (topics: {', '.join(sorted(bag.topics)) or 'none'})"
+            )
+
+        desc: dict[str, Any] | None = dict(description) if description is not None else None
+        status: list[dict[str, Any]] = []
+        cells: dict[str, dict[tuple[int, int], tuple[int, np.ndarray]]] = {}
+        received: dict[str, int] = {}
+        duplicates: dict[str, int] = {}
+        rejected: dict[str, int] = {}
+        pending: list[tuple[str, M.Vector]] = []
+        for conn, _, raw in bag.messages(list(roles)):
+            role = roles[conn.topic]
+            key = _stream_key(role)
+            try:
+                if role.kind == M.SCENARIO:
+                    if description is None:
+                        desc = M.decode_scenario(raw)
+                    continue
+                if role.kind == M.RUN_STATUS:
+                    status.append(M.decode_run_status(raw))
+                    continue
+                pending.append((key, M.decode_vector(raw)))
+            except MessageError:
+                rejected[key] = rejected.get(key, 0) + 1
+    if desc is None:
+        raise BagError(f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message; pass description= to read it")
+
+    dx, dy = len(desc["state_names"]), len(desc["obs_names"])
+    du = len(desc.get("control_names", ()))
+    expected = {
+        M.OBSERVATION: M.observation_labels(desc),
+        M.GROUND_TRUTH: M.state_labels(desc),
+    }
+    state_names, cov_names = M.state_labels(desc), M.covariance_labels(dx)
+    for key, vec in pending:
+        if key.startswith(M.ESTIMATES + "/"):
+            names = cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else state_names
+        else:
+            names = expected[key]
+        if vec.names != tuple(names):
+            rejected[key] = rejected.get(key, 0) + 1
+            continue
+        store = cells.setdefault(key, {})
+        cell = (vec.trajectory, vec.step)
+        if cell in store:
+            duplicates[key] = duplicates.get(key, 0) + 1
+        store[cell] = (vec.stamp_ns, vec.values)
+        received[key] = received.get(key, 0) + 1
+
+    run = desc.get("run", {})
+    # Rows: every trajectory announced by the run (so that a wholly lost one counts as missing)
+    # and every one that was received.
+    announced = range(int(run.get("trajectories", 0) or 0))
+    traj_ids = sorted({n for store in cells.values() for n, _ in store} | set(announced))
+    horizon = max([k + 1 for store in cells.values() for _, k in store] + [int(run.get("horizon", 0) or 0)])
+    N, T = len(traj_ids), horizon
+    row = {n: i for i, n in enumerate(traj_ids)}
+
+    def fill(key: str, width: int) -> np.ndarray:
+        out = np.full((N, T, width), np.nan)
+        for (n, k), (_, v) in cells.get(key, {}).items():
+            out[row[n], k] = v
+        return out
+
+    obs = fill(M.OBSERVATION, dy + du)
+    stamps = np.full((N, T), -1, dtype=np.int64)
+    for (n, k), (s, _) in cells.get(M.OBSERVATION, {}).items():
+        stamps[row[n], k] = s
+    x_hat, P_hat = {}, {}
+    for key in cells:
+        if not key.startswith(M.ESTIMATES + "/"):
+            continue
+        method = key.split("/")[1]
+        if key.endswith("/" + M.COVARIANCE_SUFFIX):
+            P_hat[method] = fill(key, dx * dx).reshape(N, T, dx, dx)
+        else:
+            x_hat[method] = fill(key, dx)
+    total = N * T
+    streams = set(cells) | {M.OBSERVATION, M.GROUND_TRUTH}
+    return RunArrays(
+        description=desc,
+        trajectories=np.asarray(traj_ids, dtype=np.int64),
+        x=fill(M.GROUND_TRUTH, dx),
+        y=obs[..., :dy],
+        u_prev=obs[..., dy:],
+        stamps=stamps,
+        x_hat=x_hat,
+        P_hat=P_hat,
+        received={k: received.get(k, 0) for k in sorted(streams)},
+        missing={k: total - len(cells.get(k, {})) for k in sorted(streams)},
+        duplicates=duplicates,
+        rejected=rejected,
+        status=status,
+    )
+
+
+def arrays_to_bag(
+    path: str | Path,
+    scenario: Any,
+    x: np.ndarray,
+    y: np.ndarray,
+    u: np.ndarray | None = None,
+    *,
+    estimates: Mapping[str, np.ndarray] | None = None,
+    covariances: Mapping[str, np.ndarray] | None = None,
+    start_ns: int = 0,
+    namespace: str = "/",
+    run_info: Mapping[str, Any] | None = None,
+    overwrite: bool = False,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> Path:
+    """Write simulated arrays as a bag of this package's streams.
+
+    Messages are written in the order the simulator publishes them (per step: observation, ground
+    truth, then estimates), log time = header stamp = ``start_ns + (n T + k) dt``.
+
+    Args:
+        path: output ``.mcap``.
+        scenario: the :class:`~neural_estimator.scenarios.Scenario` the data come from.
+        x, y, u: (N, T, dx), (N, T, dy), (N, T, du) in dataset convention (u[:, k] = u_k).
+        estimates: {method: (N, T, dx)} estimates to add as ``estimates/<method>``.
+        covariances: {method: (N, T, dx, dx)} to add as ``estimates/<method>/covariance``.
+        start_ns: stamp of step 0 of trajectory 0.
+        namespace: namespace of the topics.
+        run_info: extra entries of the scenario message's ``"run"`` (e.g. ``seed``).
+        overwrite: replace an existing file.
+        chunk_size: uncompressed bytes per chunk of the file.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    N, T = x.shape[:2]
+    if x.shape != (N, T, scenario.dx) or y.shape != (N, T, scenario.dy):
+        raise BagError(
+            f"x and y must be (N, T, {scenario.dx}) and (N, T, {scenario.dy}) for {scenario.name}, "
+            f"got {x.shape} and {y.shape}"
+        )
+    u = np.zeros((N, T, scenario.du)) if u is None else np.asarray(u, dtype=np.float64)
+    if u.shape != (N, T, scenario.du):
+        raise BagError(f"u must be {(N, T, scenario.du)}, got {u.shape}")
+    estimates = dict(estimates or {})
+    covariances = dict(covariances or {})
+    for m, a in estimates.items():
+        if np.shape(a) != x.shape:
+            raise BagError(f"estimates[{m!r}] must be {x.shape}, got {np.shape(a)}")
+    for m, a in covariances.items():
+        if np.shape(a) != (N, T, scenario.dx, scenario.dx):
+            raise BagError(f"covariances[{m!r}] must be {(N, T, scenario.dx, scenario.dx)}, got {np.shape(a)}")
+    period = M.dt_ns(scenario.dt)
+    topic = lambda rel: M.resolve_topic(rel, namespace)  # noqa: E731
+    state_names, obs_names = M.state_labels(scenario), M.observation_labels(scenario)
+    cov_names = M.covariance_labels(scenario.dx)
+    info = {"trajectories": N, "horizon": T, "messages": N * T}
+    with BagWriter(path, overwrite=overwrite, chunk_size=chunk_size) as bag:
+        bag.add_topic(topic(M.SCENARIO), M.STRING, qos=[LATCHED_QOS])
+        bag.add_topic(topic(M.RUN_STATUS), M.STRING, qos=[LATCHED_QOS])
+        bag.add_topic(topic(M.OBSERVATION), M.JOINT_STATE, qos=[STREAM_QOS])
+        bag.add_topic(topic(M.GROUND_TRUTH), M.JOINT_STATE, qos=[STREAM_QOS])
+        for m in estimates:
+            bag.add_topic(topic(M.estimate_topic(m)), M.JOINT_STATE, qos=[STREAM_QOS])
+        for m in covariances:
+            bag.add_topic(topic(M.covariance_topic(m)), M.JOINT_STATE, qos=[STREAM_QOS])
+        run = {"start_ns": int(start_ns), "dt_ns": period, "rate_hz": None, **info, **dict(run_info or {})}
+        bag.write(topic(M.SCENARIO), start_ns, M.encode_scenario(scenario.describe(), **run))
+        bag.write(topic(M.RUN_STATUS), start_ns, M.encode_run_status(M.STATUS_STARTED, **info))
+        stamp = start_ns
+        for n in range(N):
+            for k in range(T):
+                stamp = M.step_stamp_ns(start_ns, n * T + k, period)
+                u_prev = u[n, k - 1] if k else np.zeros(scenario.du)
+                bag.write(topic(M.OBSERVATION), stamp, M.encode_vector(stamp, scenario.name, n, k, obs_names,
+                                                                       np.concatenate([y[n, k], u_prev])))
+                bag.write(topic(M.GROUND_TRUTH), stamp, M.encode_vector(stamp, scenario.name, n, k, state_names, x[n, k]))
+                for m, a in estimates.items():
+                    bag.write(topic(M.estimate_topic(m)), stamp, M.encode_vector(stamp, m, n, k, state_names, a[n, k]))
+                for m, a in covariances.items():
+                    bag.write(topic(M.covariance_topic(m)), stamp,
+                              M.encode_vector(stamp, m, n, k, cov_names, np.asarray(a[n, k]).reshape(-1)))
+        bag.write(topic(M.RUN_STATUS), stamp, M.encode_run_status(M.STATUS_COMPLETE, **info))
+    return Path(path)

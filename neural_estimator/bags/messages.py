@@ -1,0 +1,341 @@
+"""The message layout of every stream, live on ROS 2 topics and in MCAP bags.
+
+Only standard common_interfaces types are used, so ``ros2 topic echo``, rosbag2, Foxglove and
+PlotJuggler read every stream without this package. CDR bytes are produced and parsed with the
+rosbags type store of ROS 2 Jazzy (no rclpy here): the nodes publish these bytes as they are
+(``Publisher.publish(bytes)``) and record what they receive from raw subscriptions, so a live
+stream, a recorded bag and an offline replay carry identical bytes.
+
+Vector streams: ``sensor_msgs/msg/JointState``
+-----------------------------------------------
+Topic names are relative (``observation``), so that nodes can be namespaced and remapped; bags
+store the resolved absolute name (``/observation``, ``/robot1/observation``).
+
+=================================  ====================  =================================================
+topic                              header.frame_id       name[2:] (values in position[2:])
+=================================  ====================  =================================================
+``observation``                    scenario name         ``scenario.obs_names`` (y_k), then
+                                                         ``u_prev/<control name>`` (u_{k-1}, zeros at k=0)
+                                                         where the scenario has controls
+``ground_truth``                   scenario name         ``scenario.state_names`` (x_k)
+``estimates/<method>``             method name           ``scenario.state_names`` (x_hat_k)
+``estimates/<method>/covariance``  method name           ``P[i,j]``, i, j = 0..dx-1 row-major (P_hat_k)
+=================================  ====================  =================================================
+
+Every vector message starts with its identity, carried in-band because messages on different
+topics arrive in any order:
+
+- ``name[0] = "trajectory"``, ``position[0]`` = trajectory index n;
+- ``name[1] = "step"``, ``position[1]`` = step index k (0-based);
+- ``header.stamp`` = simulation time of the step, ``start + (n * T + k) * dt`` for the run's start
+  time, horizon T and the scenario's dt (integer nanoseconds; strictly increasing within a run);
+  an estimate carries the stamp of the observation it answers;
+- ``velocity`` and ``effort`` are empty.
+
+Timing convention (see :mod:`neural_estimator.scenarios.base`): the observation of step k carries
+z_k = (y_k, u_{k-1}), exactly what an estimator consumes at step k, so a single message is one
+estimator step.
+
+Run streams: ``std_msgs/msg/String`` holding JSON
+-------------------------------------------------
+- ``scenario``: ``scenario.describe()`` plus ``"run": {"seed", "trajectories", "horizon",
+  "rate_hz", "start_ns", "dt_ns", ...}``; published reliable + transient_local so that late
+  joiners and the recorder get it. :func:`neural_estimator.scenarios.scenario_from_description`
+  rebuilds the scenario from it.
+- ``run_status``: ``{"status": "started" | "complete", "trajectories", "horizon", "messages"}``
+  so that a recorder knows when the run ended and how many observations to expect.
+
+Everything here is a pure function between arrays and message bytes (or rosbags message
+objects); malformed input raises :class:`~neural_estimator.bags.errors.MessageError`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+from neural_estimator.bags.errors import MessageError
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+STRING = "std_msgs/msg/String"
+
+OBSERVATION = "observation"
+GROUND_TRUTH = "ground_truth"
+SCENARIO = "scenario"
+RUN_STATUS = "run_status"
+ESTIMATES = "estimates"
+COVARIANCE_SUFFIX = "covariance"
+
+ID_NAMES = ("trajectory", "step")
+CONTROL_PREFIX = "u_prev/"
+
+STATUS_STARTED = "started"
+STATUS_COMPLETE = "complete"
+
+_JointState = TYPESTORE.types[JOINT_STATE]
+_Header = TYPESTORE.types["std_msgs/msg/Header"]
+_Time = TYPESTORE.types["builtin_interfaces/msg/Time"]
+_String = TYPESTORE.types[STRING]
+_EMPTY = np.zeros(0, dtype=np.float64)
+_MAX_INDEX = 2**53  # identities are float64 in position[]: integers are exact below this
+
+
+# ---- topic names ---------------------------------------------------------------------------------
+def estimate_topic(method: str) -> str:
+    """Relative topic of a method's estimates, e.g. ``estimates/ukf``."""
+    return f"{ESTIMATES}/{method}"
+
+
+def covariance_topic(method: str) -> str:
+    """Relative topic of a method's covariances, e.g. ``estimates/ukf/covariance``."""
+    return f"{ESTIMATES}/{method}/{COVARIANCE_SUFFIX}"
+
+
+def resolve_topic(relative: str, namespace: str = "/") -> str:
+    """The absolute name of a relative topic in ``namespace`` (``/`` -> ``/observation``)."""
+    ns = "/" + namespace.strip("/")
+    return (ns.rstrip("/") + "/" + relative.strip("/")) if ns != "/" else "/" + relative.strip("/")
+
+
+class TopicRole(NamedTuple):
+    """What a topic carries: ``kind`` is observation, ground_truth, scenario, run_status, estimate
+    or covariance; ``method`` is set for the last two."""
+
+    kind: str
+    method: str | None = None
+
+
+def topic_role(topic: str, namespace: str = "/") -> TopicRole | None:
+    """Classify an absolute topic of this layout under ``namespace``; None for foreign topics."""
+    prefix = resolve_topic("", namespace).rstrip("/") + "/"
+    if not topic.startswith(prefix):
+        return None
+    rel = topic[len(prefix):]
+    if rel in (OBSERVATION, GROUND_TRUTH, SCENARIO, RUN_STATUS):
+        return TopicRole(rel)
+    parts = rel.split("/")
+    if parts[0] != ESTIMATES or len(parts) not in (2, 3) or not parts[1]:
+        return None
+    if len(parts) == 2:
+        return TopicRole("estimate", parts[1])
+    if parts[2] == COVARIANCE_SUFFIX:
+        return TopicRole("covariance", parts[1])
+    return None
+
+
+# ---- labels ----------------------------------------------------------------------------------------
+def observation_labels(scenario: Any) -> tuple[str, ...]:
+    """Value names of an observation: obs names, then ``u_prev/<control>`` (a Scenario or its
+    ``describe()`` dict)."""
+    obs, ctl = _names(scenario, "obs_names"), _names(scenario, "control_names")
+    return tuple(obs) + tuple(CONTROL_PREFIX + c for c in ctl)
+
+
+def state_labels(scenario: Any) -> tuple[str, ...]:
+    """Value names of ground truth and estimates: the scenario's state names."""
+    return tuple(_names(scenario, "state_names"))
+
+
+def covariance_labels(dx: int) -> tuple[str, ...]:
+    """``P[i,j]`` for i, j in 0..dx-1, row-major."""
+    return tuple(f"P[{i},{j}]" for i in range(dx) for j in range(dx))
+
+
+def _names(scenario: Any, key: str) -> Sequence[str]:
+    if isinstance(scenario, Mapping):
+        return list(scenario.get(key, ()))
+    return list(getattr(scenario, key))
+
+
+# ---- time ------------------------------------------------------------------------------------------
+def dt_ns(dt: float) -> int:
+    """A sampling period in integer nanoseconds (rounded)."""
+    return int(round(float(dt) * 1e9))
+
+
+def step_stamp_ns(start_ns: int, global_step: int, period_ns: int) -> int:
+    """Stamp of the ``global_step``-th step of a run: ``start + global_step * dt`` (integer ns)."""
+    return int(start_ns) + int(global_step) * int(period_ns)
+
+
+def split_ns(t_ns: int) -> tuple[int, int]:
+    """(sec, nanosec) of a builtin_interfaces/Time for integer nanoseconds (floor division)."""
+    sec, nsec = divmod(int(t_ns), 1_000_000_000)
+    return sec, nsec
+
+
+# ---- vector streams --------------------------------------------------------------------------------
+class Vector(NamedTuple):
+    """One decoded vector message (any of the JointState streams)."""
+
+    stamp_ns: int
+    frame_id: str
+    trajectory: int
+    step: int
+    names: tuple[str, ...]  # value names, identity entries removed
+    values: np.ndarray  # (len(names),) float64
+
+
+def vector_to_message(
+    stamp_ns: int, frame_id: str, trajectory: int, step: int, names: Sequence[str], values: Any
+) -> Any:
+    """A rosbags ``sensor_msgs/msg/JointState`` object of this layout."""
+    values = np.asarray(values, dtype=np.float64).reshape(-1)
+    if len(names) != values.shape[0]:
+        raise MessageError(f"{len(names)} names for {values.shape[0]} values")
+    sec, nsec = split_ns(stamp_ns)
+    position = np.empty(values.shape[0] + 2, dtype=np.float64)
+    position[0], position[1] = trajectory, step
+    position[2:] = values
+    return _JointState(
+        header=_Header(stamp=_Time(sec=sec, nanosec=nsec), frame_id=str(frame_id)),
+        name=[*ID_NAMES, *names],
+        position=position,
+        velocity=_EMPTY,
+        effort=_EMPTY,
+    )
+
+
+def encode_vector(
+    stamp_ns: int, frame_id: str, trajectory: int, step: int, names: Sequence[str], values: Any
+) -> bytes:
+    """CDR bytes of a vector message (see the module docstring)."""
+    msg = vector_to_message(stamp_ns, frame_id, trajectory, step, names, values)
+    return bytes(TYPESTORE.serialize_cdr(msg, JOINT_STATE))
+
+
+def vector_from_message(msg: Any) -> Vector:
+    """Validate a JointState object (rosbags or any object with the same fields) of this layout."""
+    names = tuple(msg.name)
+    position = np.asarray(msg.position, dtype=np.float64)
+    if len(names) != position.shape[0]:
+        raise MessageError(f"JointState has {len(names)} names but {position.shape[0]} positions")
+    if len(names) < 2 or names[:2] != ID_NAMES:
+        raise MessageError(
+            f"JointState does not start with the identity entries {list(ID_NAMES)} (got {list(names[:2])}); "
+            "not a neural_estimator stream"
+        )
+    traj, step = float(position[0]), float(position[1])
+    for label, v in (("trajectory", traj), ("step", step)):
+        if not (math.isfinite(v) and v == int(v) and 0 <= v < _MAX_INDEX):
+            raise MessageError(f"{label} index must be a non-negative integer, got {v!r}")
+    stamp = msg.header.stamp
+    return Vector(
+        stamp_ns=int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec),
+        frame_id=str(msg.header.frame_id),
+        trajectory=int(traj),
+        step=int(step),
+        names=names[2:],
+        values=position[2:],
+    )
+
+
+def decode_vector(raw: bytes | memoryview) -> Vector:
+    """Parse CDR bytes of a vector message; anything malformed is a :class:`MessageError`."""
+    if not len(raw):
+        raise MessageError("empty message (0 bytes)")
+    try:
+        msg = TYPESTORE.deserialize_cdr(raw, JOINT_STATE)
+    except Exception as exc:  # rosbags raises several types for malformed CDR
+        raise MessageError(f"cannot parse {len(raw)} bytes as {JOINT_STATE}: {exc}") from None
+    return vector_from_message(msg)
+
+
+def check_labels(vec: Vector, expected: Sequence[str], what: str) -> np.ndarray:
+    """The values of ``vec`` after checking its names equal ``expected``; else a clear error."""
+    expected = tuple(expected)
+    if vec.names != expected:
+        if len(vec.names) != len(expected):
+            raise MessageError(
+                f"{what} has {len(vec.names)} values {list(vec.names)[:8]} but {len(expected)} are expected "
+                f"{list(expected)[:8]}"
+            )
+        wrong = [(a, b) for a, b in zip(vec.names, expected) if a != b]
+        raise MessageError(f"{what} has unexpected names (got {wrong[0][0]!r} where {wrong[0][1]!r} is expected)")
+    return vec.values
+
+
+def encode_observation(
+    scenario: Any, stamp_ns: int, trajectory: int, step: int, y: Any, u_prev: Any | None = None
+) -> bytes:
+    """Observation message of step k: z_k = (y_k, u_{k-1})."""
+    y = np.asarray(y, dtype=np.float64).reshape(-1)
+    u_prev = np.zeros(0) if u_prev is None else np.asarray(u_prev, dtype=np.float64).reshape(-1)
+    name = scenario["scenario"] if isinstance(scenario, Mapping) else scenario.name
+    return encode_vector(stamp_ns, name, trajectory, step, observation_labels(scenario), np.concatenate([y, u_prev]))
+
+
+def split_observation(vec: Vector, scenario: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(y_k (dy,), u_{k-1} (du,)) of a decoded observation, names checked against the scenario."""
+    values = check_labels(vec, observation_labels(scenario), "observation")
+    dy = len(_names(scenario, "obs_names"))
+    return values[:dy], values[dy:]
+
+
+# ---- run streams -----------------------------------------------------------------------------------
+def encode_string(text: str) -> bytes:
+    """CDR bytes of a ``std_msgs/msg/String``."""
+    return bytes(TYPESTORE.serialize_cdr(_String(data=str(text)), STRING))
+
+
+def decode_string(raw: bytes | memoryview) -> str:
+    """Text of a ``std_msgs/msg/String``."""
+    try:
+        return str(TYPESTORE.deserialize_cdr(raw, STRING).data)
+    except Exception as exc:
+        raise MessageError(f"cannot parse {len(raw)} bytes as {STRING}: {exc}") from None
+
+
+def _decode_json(raw: bytes | memoryview, what: str) -> dict[str, Any]:
+    text = decode_string(raw)
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise MessageError(f"{what} message is not JSON: {exc.msg} in {text[:80]!r}") from None
+    if not isinstance(obj, dict):
+        raise MessageError(f"{what} message must be a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def encode_scenario(description: Mapping[str, Any], **run: Any) -> bytes:
+    """The ``scenario`` message: ``scenario.describe()`` with the run info under ``"run"``."""
+    return encode_string(json.dumps({**description, "run": run}, sort_keys=True))
+
+
+def decode_scenario(raw: bytes | memoryview) -> dict[str, Any]:
+    """The description dict (with ``"run"``) of a ``scenario`` message."""
+    obj = _decode_json(raw, "scenario")
+    if "scenario" not in obj or "state_names" not in obj:
+        raise MessageError("scenario message lacks 'scenario' / 'state_names': not a scenario description")
+    return obj
+
+
+def encode_run_status(status: str, **info: Any) -> bytes:
+    """The ``run_status`` message: ``{"status": ..., **info}``."""
+    return encode_string(json.dumps({"status": status, **info}, sort_keys=True))
+
+
+def decode_run_status(raw: bytes | memoryview) -> dict[str, Any]:
+    """The dict of a ``run_status`` message."""
+    obj = _decode_json(raw, "run_status")
+    if "status" not in obj:
+        raise MessageError("run_status message lacks 'status'")
+    return obj
+
+
+__all__ = [
+    "COVARIANCE_SUFFIX", "CONTROL_PREFIX", "ESTIMATES", "GROUND_TRUTH", "ID_NAMES", "JOINT_STATE",
+    "OBSERVATION", "RUN_STATUS", "SCENARIO", "STATUS_COMPLETE", "STATUS_STARTED", "STRING",
+    "TYPESTORE", "TopicRole", "Vector", "check_labels", "covariance_labels", "covariance_topic",
+    "decode_run_status", "decode_scenario", "decode_string", "decode_vector", "dt_ns",
+    "encode_observation", "encode_run_status", "encode_scenario", "encode_string", "encode_vector",
+    "estimate_topic", "observation_labels", "resolve_topic", "split_ns", "split_observation",
+    "state_labels", "step_stamp_ns", "topic_role", "vector_from_message", "vector_to_message",
+]

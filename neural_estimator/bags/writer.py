@@ -1,0 +1,310 @@
+"""Write one MCAP file in the layout rosbag2 (Jazzy) writes, without rclpy.
+
+What makes the file a rosbag2 bag that ``ros2 bag info/play``, Foxglove, PlotJuggler and rosbags
+read (MCAP ``ros2`` profile):
+
+- header profile ``ros2``; one schema per message type, encoding ``ros2msg``, holding the full
+  ``.msg`` text with its dependencies (``====`` separated, as rosbag2 stores it);
+- one channel per topic, message encoding ``cdr``, channel metadata ``offered_qos_profiles``
+  (rosbag2's YAML, metadata version 9 with string policies) and ``topic_type_hash`` (RIHS01);
+- zstd-compressed chunks with message indexes, then the summary (schemas, channels, statistics,
+  chunk indexes) and a ``rosbag2`` metadata record with ``serialized_metadata`` (the bag metadata
+  as rosbag2 writes it: without it rosbag2 would read the QoS strings as version 8 integers).
+
+A file is only complete after :meth:`BagWriter.close` (the context manager calls it, also when the
+body raises); until then the data of finished chunks are on disk and
+:class:`~neural_estimator.bags.reader.BagReader` recovers them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+from mcap.writer import CompressionType, Writer
+
+from neural_estimator import __version__
+from neural_estimator.bags.errors import BagError
+from neural_estimator.bags.messages import TYPESTORE
+
+_INFINITE_SEC, _INFINITE_NSEC = 9223372036, 854775807  # RMW_DURATION_INFINITE as rosbag2 prints it
+DEFAULT_CHUNK_SIZE = 256 * 1024  # bytes of uncompressed records per chunk (the unit recovered after a crash)
+
+
+@dataclasses.dataclass(frozen=True)
+class Qos:
+    """An offered QoS profile as rosbag2 records it (policy names lower-case, as in Jazzy).
+
+    Durations are (sec, nsec); None is infinite (rmw's default).
+    """
+
+    reliability: str = "reliable"  # reliable | best_effort
+    durability: str = "volatile"  # volatile | transient_local
+    history: str = "keep_last"  # keep_last | keep_all
+    depth: int = 10
+    deadline: tuple[int, int] | None = None
+    lifespan: tuple[int, int] | None = None
+    liveliness: str = "automatic"  # automatic | manual_by_topic
+    liveliness_lease_duration: tuple[int, int] | None = None
+    avoid_ros_namespace_conventions: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """The mapping rosbag2 writes for one profile (metadata version 9)."""
+
+        def dur(d: tuple[int, int] | None) -> dict[str, int]:
+            sec, nsec = d if d is not None else (_INFINITE_SEC, _INFINITE_NSEC)
+            return {"sec": int(sec), "nsec": int(nsec)}
+
+        return {
+            "history": self.history,
+            "depth": int(self.depth),
+            "reliability": self.reliability,
+            "durability": self.durability,
+            "deadline": dur(self.deadline),
+            "lifespan": dur(self.lifespan),
+            "liveliness": self.liveliness,
+            "liveliness_lease_duration": dur(self.liveliness_lease_duration),
+            "avoid_ros_namespace_conventions": bool(self.avoid_ros_namespace_conventions),
+        }
+
+
+# QoS of the streams of this package (see neural_estimator.bags.messages and the nodes).
+STREAM_QOS = Qos(reliability="reliable", durability="transient_local", depth=1000)
+LATCHED_QOS = Qos(reliability="reliable", durability="transient_local", depth=1)
+
+
+def qos_yaml(profiles: Sequence[Qos]) -> str:
+    """The ``offered_qos_profiles`` channel metadata string."""
+    if not profiles:
+        return ""
+    return yaml.safe_dump([p.to_dict() for p in profiles], default_flow_style=False, sort_keys=False).strip()
+
+
+@dataclasses.dataclass
+class _Topic:
+    name: str
+    msgtype: str
+    channel_id: int
+    qos: tuple[Qos, ...]
+    type_hash: str
+    count: int = 0
+
+
+class BagWriter:
+    """Write messages (raw CDR bytes or rosbags objects) into one ``.mcap`` file.
+
+    >>> with BagWriter(tmp / "run.mcap") as bag:
+    ...     bag.add_topic("/observation", "sensor_msgs/msg/JointState", qos=[STREAM_QOS])
+    ...     bag.write("/observation", t_ns, raw)
+
+    Args:
+        path: output file; must end in ``.mcap``. An existing file is an error unless ``overwrite``.
+        chunk_size: uncompressed bytes per chunk. A chunk is the unit a crashed recording loses.
+        compression: ``"zstd"`` (as ``ros2 bag record --storage-preset-profile zstd_fast``) or
+            ``"none"``.
+        overwrite: replace an existing file.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        compression: str = "zstd",
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.suffix != ".mcap":
+            raise BagError(f"{self.path}: a bag file name must end in .mcap")
+        if compression not in ("zstd", "none"):
+            raise BagError(f"compression must be 'zstd' or 'none', got {compression!r}")
+        self.chunk_size = int(chunk_size)
+        self.compression = compression
+        self.overwrite = overwrite
+        self._topics: dict[str, _Topic] = {}
+        self._schemas: dict[str, int] = {}
+        self._writer: Writer | None = None
+        self._stream: Any = None
+        self._start_ns: int | None = None
+        self._end_ns = 0
+        self._closed = False
+
+    # ---- lifecycle ----------------------------------------------------------------------------
+    def open(self) -> "BagWriter":
+        """Create the file and write the MCAP header."""
+        if self._writer is not None:
+            return self
+        if self._closed:
+            raise BagError(f"{self.path}: writer already closed")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._stream = open(self.path, "wb" if self.overwrite else "xb")
+        except FileExistsError:
+            raise BagError(f"{self.path}: file exists (pass overwrite=True to replace it)") from None
+        except OSError as exc:
+            raise BagError(f"{self.path}: cannot create: {exc.strerror}") from None
+        self._writer = Writer(
+            self._stream,
+            chunk_size=self.chunk_size,
+            compression=CompressionType.ZSTD if self.compression == "zstd" else CompressionType.NONE,
+        )
+        self._writer.start(profile="ros2", library=f"neural_estimator {__version__} (mcap-python)")
+        return self
+
+    def close(self) -> Path:
+        """Finish the last chunk, write the summary and the rosbag2 metadata, close the file."""
+        if self._closed:
+            return self.path
+        if self._writer is None:
+            self.open()
+        assert self._writer is not None
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": self._bag_metadata()})
+        self._writer.finish()
+        self._stream.flush()
+        os.fsync(self._stream.fileno())
+        self._stream.close()
+        self._closed = True
+        return self.path
+
+    def __enter__(self) -> "BagWriter":
+        return self.open()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # ---- topics and messages ---------------------------------------------------------------------
+    def add_topic(
+        self,
+        topic: str,
+        msgtype: str,
+        *,
+        qos: Sequence[Qos] = (),
+        msgdef: str | None = None,
+        type_hash: str | None = None,
+    ) -> None:
+        """Declare ``topic`` (absolute name) with its type and offered QoS profiles.
+
+        Types of the Jazzy type store need nothing else; any other type needs ``msgdef`` (its
+        ros2msg text with dependencies) and ``type_hash`` (RIHS01). Declaring a topic again with
+        the same type is a no-op; with another type it is an error.
+        """
+        w = self._require_open()
+        if not topic.startswith("/"):
+            raise BagError(f"topic {topic!r}: bags store absolute topic names (start with '/')")
+        known = self._topics.get(topic)
+        if known is not None:
+            if known.msgtype != msgtype:
+                raise BagError(f"topic {topic!r} already holds {known.msgtype}, cannot add it as {msgtype}")
+            return
+        if msgdef is None or type_hash is None:
+            if msgtype not in TYPESTORE.fielddefs:
+                raise BagError(f"type {msgtype!r} is not in the ROS 2 Jazzy type store: pass msgdef and type_hash")
+            msgdef = TYPESTORE.generate_msgdef(msgtype, ros_version=2)[0] if msgdef is None else msgdef
+            type_hash = TYPESTORE.hash_rihs01(msgtype) if type_hash is None else type_hash
+        schema_id = self._schemas.get(msgtype)
+        if schema_id is None:
+            schema_id = w.register_schema(name=msgtype, encoding="ros2msg", data=msgdef.encode())
+            self._schemas[msgtype] = schema_id
+        channel_id = w.register_channel(
+            topic=topic,
+            message_encoding="cdr",
+            schema_id=schema_id,
+            metadata={"offered_qos_profiles": qos_yaml(qos), "topic_type_hash": type_hash},
+        )
+        self._topics[topic] = _Topic(topic, msgtype, channel_id, tuple(qos), type_hash)
+
+    def write(self, topic: str, time_ns: int, raw: bytes | memoryview, *, publish_time_ns: int | None = None,
+              sequence: int = 0) -> None:
+        """Write serialized CDR bytes on a declared topic at log time ``time_ns`` (integer ns)."""
+        w = self._require_open()
+        t = self._topics.get(topic)
+        if t is None:
+            raise BagError(f"topic {topic!r} was not declared (add_topic first)")
+        time_ns = int(time_ns)
+        if time_ns < 0:
+            raise BagError(f"log time must be >= 0 ns, got {time_ns}")
+        w.add_message(
+            channel_id=t.channel_id,
+            log_time=time_ns,
+            data=bytes(raw),
+            publish_time=time_ns if publish_time_ns is None else int(publish_time_ns),
+            sequence=sequence,
+        )
+        t.count += 1
+        self._start_ns = time_ns if self._start_ns is None else min(self._start_ns, time_ns)
+        self._end_ns = max(self._end_ns, time_ns)
+
+    def write_message(self, topic: str, time_ns: int, msg: Any, msgtype: str | None = None, **kw: Any) -> None:
+        """Serialize a rosbags message object and write it (declaring the topic if needed)."""
+        if msgtype is None:
+            msgtype = getattr(msg, "__msgtype__", None)
+            if msgtype is None:
+                raise BagError(f"cannot tell the type of {type(msg).__name__}: pass msgtype")
+        if topic not in self._topics:
+            self.add_topic(topic, msgtype)
+        self.write(topic, time_ns, TYPESTORE.serialize_cdr(msg, msgtype), **kw)
+
+    @property
+    def message_counts(self) -> dict[str, int]:
+        """Messages written per topic so far."""
+        return {t.name: t.count for t in self._topics.values()}
+
+    def has_topic(self, topic: str) -> bool:
+        return topic in self._topics
+
+    # ---- internals -----------------------------------------------------------------------------------
+    def _require_open(self) -> Writer:
+        if self._closed:
+            raise BagError(f"{self.path}: writer already closed")
+        if self._writer is None:
+            self.open()
+        assert self._writer is not None
+        return self._writer
+
+    def _bag_metadata(self) -> str:
+        """rosbag2's BagMetadata (version 9) as YAML, as ``serialized_metadata`` holds it."""
+        start = self._start_ns or 0
+        count = sum(t.count for t in self._topics.values())
+        duration = max(0, self._end_ns - start) if count else 0
+        meta = {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": count,
+            "topics_with_message_count": [
+                {
+                    "topic_metadata": {
+                        "name": t.name,
+                        "type": t.msgtype,
+                        "serialization_format": "cdr",
+                        "offered_qos_profiles": [q.to_dict() for q in t.qos],
+                        "type_description_hash": t.type_hash,
+                    },
+                    "message_count": t.count,
+                }
+                for t in self._topics.values()
+            ],
+            "compression_format": "",
+            "compression_mode": "",
+            "relative_file_paths": [self.path.name],
+            "files": [
+                {
+                    "path": self.path.name,
+                    "starting_time": {"nanoseconds_since_epoch": start},
+                    "duration": {"nanoseconds": duration},
+                    "message_count": count,
+                }
+            ],
+            "custom_data": {"writer": f"neural_estimator {__version__}"},
+            "ros_distro": "jazzy",
+        }
+        return yaml.safe_dump(meta, default_flow_style=False, sort_keys=False)

@@ -1,0 +1,407 @@
+"""Bags without rclpy: message layout, MCAP writer/reader, rosbags interoperability, recovery."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import yaml
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from neural_estimator.bags import BagError, BagReader, BagWarning, BagWriter, LATCHED_QOS, MessageError, STREAM_QOS
+from neural_estimator.bags import messages as M
+from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
+from neural_estimator.data import simulate
+from neural_estimator.scenarios import Scenario, register_scenario, scenario_from_description
+
+
+@dataclass(frozen=True)
+class _CartConfig:
+    dt: float = 0.05
+    horizon: int = 30
+    noise_scale: float = 1.0
+
+
+class Cart(Scenario):
+    """A double integrator pushed by a force: a scenario with a control input for these tests."""
+
+    name = "bagtest_cart"
+    Config = _CartConfig
+    state_names = ("position", "velocity")
+    state_units = ("m", "m/s")
+    obs_names = ("position",)
+    obs_units = ("m",)
+    control_names = ("force",)
+    control_units = ("N",)
+
+    def f(self, x, u):
+        dt = self.config.dt
+        return np.stack([x[..., 0] + dt * x[..., 1], x[..., 1] + dt * u[..., 0]], axis=-1)
+
+    def h(self, x):
+        return x[..., :1]
+
+    def process_cov(self):
+        return np.diag([1e-6, 1e-4])
+
+    def obs_cov_nominal(self):
+        return np.array([[0.01]])
+
+    def prior(self):
+        return np.zeros(2), np.eye(2)
+
+    def sample_controls(self, rng, n, horizon):
+        return rng.standard_normal((n, horizon, 1))
+
+
+register_scenario(Cart, replace=True)
+
+
+def test_no_rclpy_in_the_bag_layer():
+    code = (
+        "import sys, neural_estimator.bags, neural_estimator.bags.dataset;"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'rosidl_runtime_py')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+# ---- message layout ----------------------------------------------------------------------------------
+def test_vector_round_trip_and_identity():
+    raw = M.encode_vector(1_500_000_123, "lorenz96", 3, 41, ["a", "b"], [1.5, -2.0])
+    vec = M.decode_vector(raw)
+    assert vec.stamp_ns == 1_500_000_123 and vec.frame_id == "lorenz96"
+    assert (vec.trajectory, vec.step, vec.names) == (3, 41, ("a", "b"))
+    np.testing.assert_array_equal(vec.values, [1.5, -2.0])
+    msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(raw, "sensor_msgs/msg/JointState")
+    assert list(msg.name) == ["trajectory", "step", "a", "b"]
+    assert msg.header.stamp.sec == 1 and msg.header.stamp.nanosec == 500_000_123
+    assert len(msg.velocity) == 0 and len(msg.effort) == 0
+
+
+def test_observation_layout_with_controls():
+    s = Cart()
+    assert M.observation_labels(s) == ("position", "u_prev/force")
+    assert M.observation_labels(s.describe()) == M.observation_labels(s)
+    raw = M.encode_observation(s, 10, 0, 2, [0.3], [-1.0])
+    y, u_prev = M.split_observation(M.decode_vector(raw), s)
+    np.testing.assert_array_equal(y, [0.3])
+    np.testing.assert_array_equal(u_prev, [-1.0])
+    assert M.covariance_labels(2) == ("P[0,0]", "P[0,1]", "P[1,0]", "P[1,1]")
+
+
+@pytest.mark.parametrize(
+    "raw, text",
+    [
+        (b"", "empty message"),
+        (b"\x00\x01\x00\x00garbage", "cannot parse"),
+        (M.encode_string("hello"), "cannot parse"),
+    ],
+)
+def test_malformed_bytes_are_message_errors(raw, text):
+    with pytest.raises(MessageError, match=text):
+        M.decode_vector(raw)
+
+
+def test_bad_identity_and_names_are_message_errors():
+    ts = M.TYPESTORE
+    J, H, T = ts.types[M.JOINT_STATE], ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    empty = np.zeros(0)
+
+    def raw(names, pos):
+        msg = J(header=H(stamp=T(sec=0, nanosec=0), frame_id=""), name=names, position=np.asarray(pos, float),
+                velocity=empty, effort=empty)
+        return bytes(ts.serialize_cdr(msg, M.JOINT_STATE))
+
+    with pytest.raises(MessageError, match="identity"):
+        M.decode_vector(raw(["x", "y"], [0, 1]))
+    with pytest.raises(MessageError, match="step index"):
+        M.decode_vector(raw(["trajectory", "step"], [0, 1.5]))
+    with pytest.raises(MessageError, match="trajectory index"):
+        M.decode_vector(raw(["trajectory", "step"], [np.nan, 1]))
+    with pytest.raises(MessageError, match="3 names but 2 positions"):
+        M.decode_vector(raw(["trajectory", "step", "a"], [0, 1]))
+    vec = M.decode_vector(raw(["trajectory", "step", "a"], [0, 1, 2.0]))
+    with pytest.raises(MessageError, match="1 values"):
+        M.check_labels(vec, ["a", "b"], "observation")
+    with pytest.raises(MessageError, match="'a' where 'z'"):
+        M.check_labels(vec, ["z"], "observation")
+
+
+def test_topics_and_namespaces():
+    assert M.resolve_topic("observation") == "/observation"
+    assert M.resolve_topic("estimates/ukf", "/robot1/") == "/robot1/estimates/ukf"
+    assert M.topic_role("/estimates/ukf") == M.TopicRole("estimate", "ukf")
+    assert M.topic_role("/estimates/ukf/covariance") == M.TopicRole("covariance", "ukf")
+    assert M.topic_role("/robot1/observation", "/robot1") == M.TopicRole("observation")
+    assert M.topic_role("/robot1/observation") is None
+    assert M.topic_role("/rosout") is None
+    assert M.topic_role("/estimates/ukf/other") is None
+
+
+def test_scenario_and_status_messages():
+    s = Cart(horizon=12)
+    desc = M.decode_scenario(M.encode_scenario(s.describe(), seed=3, trajectories=2, horizon=12))
+    assert desc["run"] == {"seed": 3, "trajectories": 2, "horizon": 12}
+    assert scenario_from_description(desc).config == s.config
+    st = M.decode_run_status(M.encode_run_status("complete", messages=24))
+    assert st == {"status": "complete", "messages": 24}
+    with pytest.raises(MessageError, match="not JSON"):
+        M.decode_run_status(M.encode_string("{nope"))
+
+
+def test_stamps_are_integer_nanoseconds():
+    assert M.dt_ns(0.05) == 50_000_000
+    assert M.step_stamp_ns(10**18, 3, M.dt_ns(0.05)) == 10**18 + 150_000_000
+
+
+# ---- writer and reader -----------------------------------------------------------------------------------
+def _small_bag(path, n=300, chunk_size=2048):
+    rng = np.random.default_rng(0)
+    written = []
+    with BagWriter(path, chunk_size=chunk_size) as bag:
+        bag.add_topic("/observation", M.JOINT_STATE, qos=[STREAM_QOS])
+        bag.add_topic("/scenario", M.STRING, qos=[LATCHED_QOS])
+        bag.write("/scenario", 1, M.encode_string("{}"))
+        written.append(("/scenario", 1, M.encode_string("{}")))
+        for k in range(n):
+            raw = M.encode_vector(100 + k, "s", 0, k, ["a"], rng.standard_normal(1))
+            bag.write("/observation", 100 + k, raw)
+            written.append(("/observation", 100 + k, raw))
+    return written
+
+
+def test_writer_reader_round_trip(tmp_path):
+    path = tmp_path / "run.mcap"
+    written = _small_bag(path)
+    with BagReader(path, strict=True) as bag:
+        assert bag.damage is None
+        assert bag.profile == "ros2"
+        got = [(c.topic, t, raw) for c, t, raw in bag.messages()]
+        conn = bag.topics["/observation"]
+        assert conn.msgtype == M.JOINT_STATE and conn.msgcount == 300
+        assert conn.message_encoding == "cdr"
+        assert conn.type_hash == M.TYPESTORE.hash_rihs01(M.JOINT_STATE)
+        assert "MSG: std_msgs/Header" in conn.msgdef and "builtin_interfaces/Time stamp" in conn.msgdef
+        qos = yaml.safe_load(conn.offered_qos_profiles)
+        assert qos[0]["reliability"] == "reliable" and qos[0]["durability"] == "transient_local"
+        meta = yaml.safe_load(bag.metadata["rosbag2"]["serialized_metadata"])
+        assert meta["version"] == 9 and meta["message_count"] == 301
+        assert (bag.start_time, bag.end_time) == (1, 399)
+        only = list(bag.messages(["/scenario"]))
+        assert len(only) == 1 and only[0][0].topic == "/scenario"
+        window = list(bag.messages(start=150, stop=160))
+        assert [t for _, t, _ in window] == list(range(150, 160))
+    assert got == written  # written in time order, read back in time order, bytes unchanged
+
+
+def test_reader_orders_by_log_time(tmp_path):
+    path = tmp_path / "shuffled.mcap"
+    times = np.random.default_rng(1).permutation(200)
+    with BagWriter(path, chunk_size=512) as bag:
+        bag.add_topic("/x", M.STRING)
+        for t in times:
+            bag.write("/x", int(t), M.encode_string(str(t)))
+    with BagReader(path) as bag:
+        got = [(t, M.decode_string(raw)) for _, t, raw in bag.messages()]
+    assert got == [(t, str(t)) for t in range(200)]
+
+
+def test_rosbags_anyreader_reads_our_bags(tmp_path):
+    s = Cart()
+    data = simulate(s, 2, 10, seed=0)
+    path = arrays_to_bag(tmp_path / "cart.mcap", s, data.x, data.y, data.u,
+                         estimates={"ukf": data.x + 0.1}, covariances={"ukf": np.tile(np.eye(2), (2, 10, 1, 1))})
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        assert topics == {
+            "/scenario": (M.STRING, 1),
+            "/run_status": (M.STRING, 2),
+            "/observation": (M.JOINT_STATE, 20),
+            "/ground_truth": (M.JOINT_STATE, 20),
+            "/estimates/ukf": (M.JOINT_STATE, 20),
+            "/estimates/ukf/covariance": (M.JOINT_STATE, 20),
+        }
+        truth = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                 if c.topic == "/ground_truth"]
+        qos = reader.connections[0].ext.offered_qos_profiles
+        assert qos and qos[0].depth in (1, 1000)
+    assert [list(m.name) for m in truth[:1]] == [["trajectory", "step", "position", "velocity"]]
+    np.testing.assert_array_equal(np.array([m.position[2:] for m in truth]), data.x.reshape(20, 2))
+
+
+def test_arrays_bag_arrays_round_trip(tmp_path):
+    s = Cart()
+    data = simulate(s, 3, 25, seed=4)
+    P = np.tile(np.diag([0.1, 0.2]), (3, 25, 1, 1))
+    path = arrays_to_bag(tmp_path / "run.mcap", s, data.x, data.y, data.u, estimates={"ekf": data.x * 0.9},
+                         covariances={"ekf": P}, start_ns=10**18, run_info={"seed": 4})
+    run = bag_to_arrays(path)
+    np.testing.assert_array_equal(run.x, data.x)
+    np.testing.assert_array_equal(run.y, data.y)
+    np.testing.assert_array_equal(run.u[:, :-1], data.u[:, :-1])  # u_{T-1} is never sent
+    np.testing.assert_array_equal(run.u_prev[:, 0], 0.0)
+    np.testing.assert_array_equal(run.x_hat["ekf"], data.x * 0.9)
+    np.testing.assert_array_equal(run.P_hat["ekf"], P)
+    assert run.methods == ["ekf"] and run.complete
+    assert run.description["run"]["seed"] == 4
+    assert run.scenario.config == s.config
+    assert run.trajectories.tolist() == [0, 1, 2]
+    assert run.stamps[0, 0] == 10**18 and run.stamps[1, 0] == 10**18 + 25 * M.dt_ns(s.dt)
+    assert np.all(np.diff(run.stamps.reshape(-1)) > 0)  # strictly increasing within the run
+    assert set(run.missing.values()) == {0} and not run.rejected and not run.duplicates
+
+
+def test_bag_to_arrays_keys_by_identity_not_order(tmp_path):
+    """Messages recorded in any order, one of them malformed: arrays are still right."""
+    s = Cart()
+    data = simulate(s, 2, 6, seed=1)
+    obs_names, state_names = M.observation_labels(s), M.state_labels(s)
+    items = []
+    for n in range(2):
+        for k in range(6):
+            u_prev = data.u[n, k - 1] if k else np.zeros(1)
+            items.append(("/observation", M.encode_vector(0, s.name, n, k, obs_names, np.r_[data.y[n, k], u_prev])))
+            items.append(("/ground_truth", M.encode_vector(0, s.name, n, k, state_names, data.x[n, k])))
+    order = np.random.default_rng(2).permutation(len(items))
+    path = tmp_path / "any_order.mcap"
+    with BagWriter(path) as bag:
+        bag.add_topic("/scenario", M.STRING)
+        bag.add_topic("/observation", M.JOINT_STATE)
+        bag.add_topic("/ground_truth", M.JOINT_STATE)
+        bag.write("/scenario", 0, M.encode_scenario(s.describe(), trajectories=2, horizon=6))
+        for t, i in enumerate(order):
+            bag.write(items[i][0], t + 1, items[i][1])
+        bag.write("/observation", 999, M.encode_vector(0, s.name, 0, 0, ["wrong"], [1.0]))
+        bag.write("/observation", 1000, items[0][1])  # a duplicate
+    run = bag_to_arrays(path)
+    np.testing.assert_array_equal(run.x, data.x)
+    np.testing.assert_array_equal(run.y, data.y)
+    assert run.rejected == {"observation": 1} and run.duplicates == {"observation": 1}
+    assert not run.complete and run.missing["observation"] == 0
+
+
+# ---- damage and errors ------------------------------------------------------------------------------------
+def test_truncated_bag_recovers_complete_chunks(tmp_path):
+    s = Cart()
+    data = simulate(s, 4, 30, seed=2)
+    full = arrays_to_bag(tmp_path / "full.mcap", s, data.x, data.y, data.u, estimates={"ukf": data.x}, chunk_size=2048)
+    blob = full.read_bytes()
+    with BagReader(full) as bag:
+        total = bag.message_count
+    for frac in (0.3, 0.5):
+        cut = tmp_path / f"cut{frac}.mcap"
+        cut.write_bytes(blob[: int(len(blob) * frac)])
+        with pytest.warns(BagWarning, match="Recovered"):
+            with BagReader(cut) as bag:
+                damage = bag.damage
+                msgs = list(bag.messages())
+        assert damage is not None and 0 < len(msgs) < total
+        assert damage.messages_recovered == len(msgs) and damage.chunks_lost <= 1
+        assert damage.lost_bytes > 0 and damage.file_size == cut.stat().st_size
+        assert damage.lost_span_ns is None or damage.lost_span_ns[0] <= damage.lost_span_ns[1]
+        assert "damaged or unfinished bag" in str(damage) and f"file ends at byte {damage.file_size}" in str(damage)
+        with pytest.raises(BagError, match="damaged or unfinished"):
+            BagReader(cut, strict=True).open()
+        with pytest.warns(BagWarning):
+            run = bag_to_arrays(cut)
+        # everything recovered is exact; the lost tail is NaN and counted
+        got = ~np.isnan(run.x[..., 0])
+        assert got.any() and run.missing["ground_truth"] == got.size - got.sum() > 0
+        np.testing.assert_array_equal(run.x[got], data.x[got])
+        assert not run.complete  # the final run_status was in the lost tail
+
+    # cut inside the summary: every message is still there, the damage says so
+    cut = tmp_path / "cut_summary.mcap"
+    cut.write_bytes(blob[:-30])
+    with pytest.warns(BagWarning, match="summary"):
+        with BagReader(cut) as bag:
+            assert bag.message_count == total and bag.damage.chunks_lost == 0
+
+
+def test_corrupt_chunk_is_skipped_and_reading_resumes(tmp_path):
+    path = tmp_path / "run.mcap"
+    _small_bag(path, n=400, chunk_size=1024)
+    blob = bytearray(path.read_bytes())
+    # find the third chunk record (opcode 0x06) by walking the records
+    pos, chunks = 8, []
+    while pos < len(blob):
+        op, length = blob[pos], int.from_bytes(blob[pos + 1 : pos + 9], "little")
+        if op == 0x06:
+            chunks.append((pos, length))
+        if op == 0x0F:
+            break
+        pos += 9 + length
+    at, length = chunks[2]
+    blob[at + 9 + length - 20 : at + 9 + length - 10] = b"\xff" * 10  # damage its compressed data
+    path.write_bytes(bytes(blob))
+    with pytest.warns(BagWarning, match="chunk at byte"):
+        with BagReader(path) as bag:
+            n = len(list(bag.messages()))
+            assert bag.damage.chunks_lost == 1 and bag.damage.chunks_recovered == len(chunks) - 1
+    assert 0 < n < 401
+
+
+def test_wrong_type_topic_is_an_error(tmp_path):
+    path = tmp_path / "wrong.mcap"
+    with BagWriter(path) as bag:
+        bag.add_topic("/observation", M.STRING)
+        bag.write("/observation", 1, M.encode_string("not a vector"))
+    with pytest.raises(BagError, match="'/observation' holds std_msgs/msg/String, expected sensor_msgs/msg/JointState"):
+        bag_to_arrays(path)
+    with BagReader(path) as bag:
+        with pytest.raises(BagError, match="holds std_msgs/msg/String"):
+            bag.connection("/observation", M.JOINT_STATE)
+        with pytest.raises(BagError, match="no topic '/ground_truth'"):
+            bag.connection("/ground_truth")
+
+
+def test_unreadable_files_are_bag_errors(tmp_path):
+    with pytest.raises(BagError, match="no such bag file"):
+        BagReader(tmp_path / "missing.mcap").open()
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    with pytest.raises(BagError, match="empty file"):
+        BagReader(tmp_path / "empty.mcap").open()
+    (tmp_path / "text.mcap").write_text(json.dumps({"not": "mcap"}))
+    with pytest.raises(BagError, match="not an MCAP file"):
+        BagReader(tmp_path / "text.mcap").open()
+
+
+def test_writer_refuses_misuse(tmp_path):
+    with pytest.raises(BagError, match="must end in .mcap"):
+        BagWriter(tmp_path / "x.bag")
+    path = tmp_path / "a.mcap"
+    with BagWriter(path) as bag:
+        with pytest.raises(BagError, match="absolute topic names"):
+            bag.add_topic("observation", M.JOINT_STATE)
+        with pytest.raises(BagError, match="not declared"):
+            bag.write("/nope", 0, b"")
+        bag.add_topic("/a", M.STRING)
+        with pytest.raises(BagError, match="already holds"):
+            bag.add_topic("/a", M.JOINT_STATE)
+        with pytest.raises(BagError, match="not in the ROS 2 Jazzy type store"):
+            bag.add_topic("/b", "my_msgs/msg/Thing")
+    with pytest.raises(BagError, match="file exists"):
+        BagWriter(path).open()
+    with BagWriter(path, overwrite=True) as bag:
+        bag.write_message("/s", 5, M.TYPESTORE.types[M.STRING](data="hi"))
+    with BagReader(path) as bag:
+        assert [(c.topic, M.decode_string(r)) for c, _, r in bag.messages()] == [("/s", "hi")]
+        (conn, _, msg), = list(bag.decoded())
+        assert msg.data == "hi"
+
+
+def test_writer_closes_file_when_body_raises(tmp_path):
+    path = tmp_path / "err.mcap"
+    with pytest.raises(RuntimeError):
+        with BagWriter(path) as bag:
+            bag.add_topic("/x", M.STRING)
+            bag.write("/x", 1, M.encode_string("kept"))
+            raise RuntimeError("boom")
+    with BagReader(path, strict=True) as bag:  # complete, not damaged
+        assert bag.message_count == 1
