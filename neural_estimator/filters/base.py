@@ -1,0 +1,236 @@
+"""What the four classical filters share: construction checks, the step cycle, divergence, run.
+
+The step cycle (timing convention of :mod:`neural_estimator.scenarios.base`): at step k a filter
+receives y_k (B, dy) and u_{k-1} (B, du) and
+
+    k = 0:   updates the prior (m0, P0) with y_0;
+    k >= 1:  predicts with u_{k-1}, then updates with y_k;
+
+then returns the posterior mean (B, dx) and leaves the posterior covariance (B, dx, dx) in
+``covariance`` (for the EnKF and PF: the ensemble / weighted particle mean and covariance).
+
+Bad input, per stream (row of the batch), never stopping the others:
+
+- a row of y_k with a NaN or inf is not used: that stream only predicts at step k and
+  ``skipped[b]`` is True for that step;
+- a stream whose mean or covariance goes non-finite, or (UKF) whose covariance cannot be
+  Cholesky-factored even with jitter, is flagged in ``diverged[b]``; from then on its outputs are
+  NaN until :meth:`reset`. Internally the stream is parked at the prior so
+  the batched linear algebra of the other streams never meets a NaN matrix.
+
+Subclasses implement ``_init_state(B)``, ``_predict(u)``, ``_update(y, skip)``, ``_estimate()``,
+``_park(mask)`` and, where needed, ``_after_estimate()`` (the PF resamples there).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from abc import abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+from neural_estimator.estimators import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.filters.numerics import ScenarioOps, sqrt_factor, symmetrize
+from neural_estimator.scenarios import Scenario
+
+
+def build_hyperparams(cls: type, method: str, hyperparams: Any, options: dict[str, Any]) -> Any:
+    """A ``cls`` dataclass from an optional instance plus keyword ``options`` (strings are parsed).
+
+    Unknown names and invalid values are an :class:`EstimatorError` naming the valid fields.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(options) - set(fields))
+    if unknown:
+        raise EstimatorError(f"{method}: unknown option(s) {', '.join(unknown)}; valid: {', '.join(fields)}")
+    base = hyperparams if hyperparams is not None else cls()
+    if not isinstance(base, cls):
+        raise EstimatorError(f"{method}: hyperparams must be a {cls.__name__}, got {type(base).__name__}")
+    values = {}
+    for name, value in options.items():
+        if isinstance(value, str):
+            try:
+                value = json.loads(value)
+            except json.JSONDecodeError:
+                raise EstimatorError(f"{method}: cannot parse {name}={value!r}") from None
+        values[name] = value
+    try:
+        hp = dataclasses.replace(base, **values)
+        hp.validate()
+    except (TypeError, ValueError) as exc:
+        raise EstimatorError(f"{method}: {exc}") from None
+    return hp
+
+
+def check_covariance(name: str, method: str, cov: Any, n: int, definite: bool = False) -> np.ndarray:
+    """A finite, symmetric, positive semi-definite (or definite) (n, n) matrix, else EstimatorError."""
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.shape != (n, n):
+        raise EstimatorError(f"{method}: {name} must be ({n}, {n}), got {cov.shape}")
+    if not np.all(np.isfinite(cov)):
+        raise EstimatorError(f"{method}: {name} contains NaN or inf")
+    scale = max(float(np.abs(cov).max()), 1e-300)
+    if np.abs(cov - cov.T).max() > 1e-9 * scale:
+        raise EstimatorError(f"{method}: {name} is not symmetric")
+    eig = np.linalg.eigvalsh(symmetrize(cov))
+    if eig[0] < -1e-9 * max(abs(eig[-1]), 1e-300):
+        raise EstimatorError(f"{method}: {name} is not positive semi-definite (smallest eigenvalue {eig[0]:.3g})")
+    if definite and eig[0] <= 0.0:
+        raise EstimatorError(f"{method}: {name} must be positive definite (smallest eigenvalue {eig[0]:.3g})")
+    return symmetrize(cov)
+
+
+class ClassicalFilter(Estimator):
+    """Base of the EKF, UKF, EnKF and PF: batched over B streams, float64.
+
+    Args:
+        scenario: the system (f, h, Jacobians, Q, R = ``obs_cov()``, prior, angle handling).
+        seed: seed of the filter's random draws (EnKF, PF); :meth:`reset` restarts the generator,
+            so equal inputs give equal outputs.
+        hyperparams: a ``HyperParams`` instance; ``options`` override its fields by name.
+    """
+
+    has_covariance: ClassVar[bool] = True
+    HyperParams: ClassVar[type]
+    require_definite_R: ClassVar[bool] = False
+
+    def __init__(self, scenario: Scenario, seed: int = 0, hyperparams: Any = None, **options: Any) -> None:
+        super().__init__(scenario)
+        self.hp = build_hyperparams(self.HyperParams, self.method, hyperparams, options)
+        self.seed = int(seed)
+        self.ops = ScenarioOps(scenario)
+        n, m = scenario.dx, scenario.dy
+        m0, P0 = scenario.prior()
+        m0 = np.asarray(m0, dtype=np.float64)
+        if m0.shape != (n,) or not np.all(np.isfinite(m0)):
+            raise EstimatorError(f"{self.method}: prior mean must be {n} finite numbers, got {m0!r}")
+        self.m0 = m0
+        self.P0 = check_covariance("prior covariance P0", self.method, P0, n)
+        self.Q = check_covariance("process noise covariance Q", self.method, scenario.process_cov(), n)
+        self.R = check_covariance(
+            "observation noise covariance R", self.method, scenario.obs_cov(), m, definite=self.require_definite_R
+        )
+        self._sqrt_Q, self._sd_Q = sqrt_factor(self.Q)
+        self._k = 0
+        self.rng = np.random.default_rng(self.seed)
+
+    # ---- the Estimator contract --------------------------------------------------------------
+    def reset(self, batch: int = 1) -> None:
+        """Start ``batch`` streams from the prior; restarts the random generator from ``seed``."""
+        B = int(batch)
+        if B < 1:
+            raise EstimatorError(f"{self.method}: batch must be >= 1, got {batch}")
+        self.batch = B
+        self._k = 0
+        self.rng = np.random.default_rng(self.seed)
+        self.diverged = np.zeros(B, dtype=bool)
+        self.skipped = np.zeros(B, dtype=bool)
+        self.covariance = None
+        self._init_state(B)
+
+    def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
+        """One step for B streams: (B, dy) y_k and (B, du) u_{k-1} -> (B, dx) posterior mean.
+
+        The first call after construction resets to the batch size of ``y``.
+        """
+        y, u = self.check_step(y, u_prev)
+        if not self.batch:
+            self.reset(y.shape[0])
+        mean, cov = self._advance(np.ascontiguousarray(y), np.ascontiguousarray(u))
+        self.covariance = cov
+        return mean
+
+    def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
+        """Filter whole sequences (B, T, dy), (B, T, du): equal to ``reset`` and a loop of ``step``.
+
+        Inputs are validated once for the whole sequence, and the estimates are written straight
+        into the output arrays; the arithmetic per step is the very same as :meth:`step`'s.
+        """
+        Y, U = self.check_sequences(Y, U)
+        B, T, _ = Y.shape
+        n = self.scenario.dx
+        self.reset(B)
+        Uprev = previous_controls(U)
+        xs = np.empty((B, T, n))
+        covs = np.empty((B, T, n, n))
+        for k in range(T):
+            mean, cov = self._advance(np.ascontiguousarray(Y[:, k]), np.ascontiguousarray(Uprev[:, k]))
+            xs[:, k] = mean
+            covs[:, k] = cov
+            self.covariance = cov
+        return Estimates(xs, covs, self.diverged.copy())
+
+    # ---- one step ------------------------------------------------------------------------------
+    def _advance(self, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # A diverging stream overflows by definition; it is reported through ``diverged``, so
+        # numpy's floating-point warnings (from the filter and the scenario's f and h) are off.
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+            return self._advance_checked(y, u)
+
+    def _advance_checked(self, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        finite = np.isfinite(y).all(axis=1)
+        skip = None
+        if not finite.all():
+            skip = ~finite
+            y = np.where(finite[:, None], y, 0.0)  # placeholder; these rows' updates are discarded
+        self.skipped = ~finite
+        ok = None
+        if self._k > 0:
+            ok = _and(ok, self._predict(u))
+        if skip is None or not skip.all():
+            ok = _and(ok, self._update(y, skip))
+        self._k += 1
+        mean, cov = self._estimate()
+        bad = ~(np.isfinite(mean).all(axis=1) & np.isfinite(cov).all(axis=(1, 2)))
+        if ok is not None:
+            bad |= ~ok
+        if bad.any():
+            self.diverged |= bad
+            self._park(bad)
+        self._after_estimate()
+        if self.diverged.any():
+            d = self.diverged
+            mean = np.where(d[:, None], np.nan, mean)
+            cov = np.where(d[:, None, None], np.nan, cov)
+        else:
+            mean = mean.copy()
+        cov.flags.writeable = False  # the filter's own array: read it, copy it, never write it
+        return mean, cov
+
+    @abstractmethod
+    def _init_state(self, B: int) -> None:
+        """Set the internal state of B streams to the prior."""
+
+    @abstractmethod
+    def _predict(self, u: np.ndarray) -> np.ndarray | None:
+        """Time update with u_{k-1} (B, du); returns per-stream ok flags (B,) or None (all ok)."""
+
+    @abstractmethod
+    def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
+        """Measurement update with y_k (B, dy); rows with ``skip`` keep their predicted state.
+
+        Returns per-stream ok flags (B,) or None (all ok); skipped rows count as ok.
+        """
+
+    @abstractmethod
+    def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """Current posterior mean (B, n) and covariance (B, n, n)."""
+
+    @abstractmethod
+    def _park(self, mask: np.ndarray) -> None:
+        """Reset the internal state of the streams in ``mask`` (B,) to finite prior values."""
+
+    def _after_estimate(self) -> None:
+        """Hook after the estimate of a step is taken (the PF resamples here)."""
+
+    def _broadcast_u(self, u: np.ndarray, N: int) -> np.ndarray:
+        """u (B, du) as a (B, N, du) view for members, particles or sigma points."""
+        return np.broadcast_to(u[:, None, :], (u.shape[0], N, u.shape[1]))
+
+
+def _and(ok: np.ndarray | None, new: np.ndarray | None) -> np.ndarray | None:
+    if new is None:
+        return ok
+    return new if ok is None else ok & new

@@ -1,0 +1,155 @@
+"""Unscented Kalman filter with Merwe's scaled sigma points, batched over B streams.
+
+References: E. A. Wan and R. van der Merwe, "The unscented Kalman filter for nonlinear
+estimation" (2000); R. van der Merwe, PhD thesis (2004), scaled sigma points; filterpy's
+``UnscentedKalmanFilter`` + ``MerweScaledSigmaPoints`` (the tests' independent implementation),
+including its choice of redrawing sigma points from the predicted (m^-, P^-) before the update.
+The paper uses alpha = 1e-3, beta = 2, kappa = 0 (Table hparams).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from neural_estimator.filters.base import ClassicalFilter
+from neural_estimator.filters.numerics import (
+    JitterPolicy,
+    cholesky,
+    psd_solve,
+    symmetrize,
+    weighted_covariance,
+    weighted_cross_covariance,
+)
+
+
+@dataclass(frozen=True)
+class UKFHyperParams:
+    """UKF settings; defaults are the paper's (Table hparams)."""
+
+    alpha: float = 1e-3  # spread of the sigma points around the mean
+    beta: float = 2.0  # prior knowledge of the distribution (2 is optimal for Gaussians)
+    kappa: float = 0.0  # secondary scaling
+    jitter: float = 1e-9  # not in the paper: first Cholesky jitter on P, relative to its mean diagonal
+    jitter_tries: int = 6  # not in the paper: retries, each jitter 10x the previous
+
+    def validate(self) -> None:
+        if not self.alpha > 0:
+            raise ValueError(f"alpha must be > 0, got {self.alpha}")
+        if not self.jitter > 0 or self.jitter_tries < 0:
+            raise ValueError("jitter must be > 0 and jitter_tries >= 0")
+
+
+def merwe_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Mean and covariance weights (2n+1,) of Merwe's scaled sigma points and c = n + lambda.
+
+    lambda = alpha^2 (n + kappa) - n;  Wm_0 = lambda / c,  Wc_0 = Wm_0 + 1 - alpha^2 + beta,
+    Wm_i = Wc_i = 1 / (2 c) for i = 1..2n.
+    """
+    lam = alpha**2 * (n + kappa) - n
+    c = n + lam
+    if not c > 0:
+        raise ValueError(f"n + lambda must be > 0 (alpha={alpha}, kappa={kappa}, n={n})")
+    Wm = np.full(2 * n + 1, 0.5 / c)
+    Wc = Wm.copy()
+    Wm[0] = lam / c
+    Wc[0] = lam / c + (1.0 - alpha**2 + beta)
+    return Wm, Wc, c
+
+
+class UnscentedKalmanFilter(ClassicalFilter):
+    r"""Unscented Kalman filter (Merwe scaled sigma points).
+
+    Sigma points of (m, P), with L L^T = P (Cholesky) and c = n + lambda:
+
+        X_0 = m,  X_i = m + sqrt(c) L_{:,i},  X_{n+i} = m - sqrt(c) L_{:,i}    (angles wrapped)
+
+    Predict (k >= 1):
+
+        X'_i = f(X_i, u_{k-1})
+        m^- = sum_i Wm_i X'_i                              (circular for angles)
+        P^- = sum_i Wc_i (X'_i - m^-)(X'_i - m^-)^T + Q    (residuals wrapped)
+
+    Update, from sigma points X_i of (m^-, P^-) (redrawn, as filterpy does):
+
+        Z_i = h(X_i),  z = sum_i Wm_i Z_i                  (circular for angles)
+        S = sum_i Wc_i (Z_i - z)(Z_i - z)^T + R
+        C = sum_i Wc_i (X_i - m^-)(Z_i - z)^T
+        K = C S^{-1}                                       (solved, never inverted)
+        m = m^- + K (y_k - z)                              (innovation and state angles wrapped)
+        P = P^- - K S K^T = P^- - C S^{-1} C^T
+
+    Every covariance is symmetrised; P's Cholesky falls back to jitter, and a stream whose P cannot
+    be factored even so, or whose mean or covariance goes non-finite, is flagged in ``diverged``.
+    S is solved, not Cholesky-factored: with alpha = 1e-3 the weight Wc_0 is about -1e6, and a
+    strongly curved h (bearings at short range) can make S indefinite; filterpy then carries on
+    with it (P grows), and so does this filter.
+    """
+
+    method = "ukf"
+    HyperParams = UKFHyperParams
+
+    def __init__(self, scenario, seed: int = 0, hyperparams=None, **options) -> None:
+        super().__init__(scenario, seed=seed, hyperparams=hyperparams, **options)
+        hp = self.hp
+        self.Wm, self.Wc, c = merwe_weights(scenario.dx, hp.alpha, hp.beta, hp.kappa)
+        self._sqrt_c = float(np.sqrt(c))
+        self.jitter = JitterPolicy(relative=hp.jitter, tries=hp.jitter_tries)
+
+    def _init_state(self, B: int) -> None:
+        n = self.scenario.dx
+        self._m = np.broadcast_to(self.m0, (B, n)).copy()
+        self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
+
+    def _sigma_points(self, m: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(B, 2n+1, n) sigma points of (m, P) and the Cholesky ok flags."""
+        B, n = m.shape
+        L, ok = cholesky(P, self.jitter)
+        if ok is not None:  # failed streams: sigma points at the mean (they are flagged anyway)
+            L = np.where(ok[:, None, None], L, 0.0)
+        cols = np.swapaxes(L, -1, -2)
+        cols *= self._sqrt_c  # row i = sqrt(c) L[:, i]
+        X = np.empty((B, 2 * n + 1, n))
+        X[:, 0] = m
+        np.add(m[:, None, :], cols, out=X[:, 1 : n + 1])
+        np.subtract(m[:, None, :], cols, out=X[:, n + 1 :])
+        return self.ops.normalize_state(X), ok
+
+    def _predict(self, u: np.ndarray) -> np.ndarray | None:
+        s = self.scenario
+        X, ok = self._sigma_points(self._m, self._P)
+        Xf = s.f(X, self._broadcast_u(u, X.shape[1]))  # (B, 2n+1, n)
+        m_pred = self.ops.state_mean(Xf, self.Wm)
+        D = self.ops.state_residual(Xf, m_pred[:, None, :])
+        self._m = m_pred
+        self._P = weighted_covariance(D, self.Wc) + self.Q  # symmetric: a symmetrised sum + Q
+        return ok
+
+    def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
+        s = self.scenario
+        m, P = self._m, self._P
+        X, ok = self._sigma_points(m, P)
+        Z = s.h(X)  # (B, 2n+1, dy)
+        z = self.ops.obs_mean(Z, self.Wm)
+        Dz = self.ops.obs_residual(Z, z[:, None, :])
+        Dx = self.ops.state_residual(X, m[:, None, :])
+        S = weighted_covariance(Dz, self.Wc) + self.R
+        C = weighted_cross_covariance(Dx, Dz, self.Wc)  # (B, n, dy)
+        Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (B, dy, n) = K^T
+        r = self.ops.obs_residual(y, z)
+        m_post = self.ops.normalize_state(m + np.einsum("bmn,bm->bn", Kt, r))
+        P_post = symmetrize(P - C @ Kt)
+        if skip is not None:
+            m_post = np.where(skip[:, None], m, m_post)
+            P_post = np.where(skip[:, None, None], P, P_post)
+            ok = None if ok is None else ok | skip
+        self._m, self._P = m_post, P_post
+        return ok
+
+    def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._m, self._P
+
+    def _park(self, mask: np.ndarray) -> None:
+        self._m = np.where(mask[:, None], self.m0, self._m)
+        self._P = np.where(mask[:, None, None], self.P0, self._P)
