@@ -120,6 +120,8 @@ def test_bad_identity_and_names_are_message_errors():
 
     with pytest.raises(MessageError, match="identity"):
         M.decode_vector(raw(["x", "y"], [0, 1]))
+    with pytest.raises(MessageError, match="empty JointState"):
+        M.decode_vector(raw([], []))
     with pytest.raises(MessageError, match="step index"):
         M.decode_vector(raw(["trajectory", "step"], [0, 1.5]))
     with pytest.raises(MessageError, match="trajectory index"):
@@ -405,3 +407,117 @@ def test_writer_closes_file_when_body_raises(tmp_path):
             raise RuntimeError("boom")
     with BagReader(path, strict=True) as bag:  # complete, not damaged
         assert bag.message_count == 1
+
+
+# ---- evaluation inputs and offline replay ----------------------------------------------------------------
+def test_load_bag_dataset_and_report(tmp_path):
+    from neural_estimator.bags import load_bag_dataset
+    from neural_estimator.bags.report import evaluate_bag, write_report
+
+    s = Cart()
+    data = simulate(s, 3, 20, seed=5)
+    est = data.x + 0.05
+    path = arrays_to_bag(tmp_path / "run.mcap", s, data.x, data.y, data.u, estimates={"a": est, "b": est * 1.1},
+                         covariances={"a": np.tile(np.eye(2), (3, 20, 1, 1))})
+    truth, estimates, angles = load_bag_dataset(path)
+    assert truth.x.shape == (3, 20, 2) and set(estimates) == {"a", "b"} and angles == ()
+    np.testing.assert_array_equal(estimates["a"][0], est)
+    assert estimates["b"][1] is None and estimates["a"][1].shape == (3, 20, 2, 2)
+    assert truth.meta["bag"]["left_out"] == []
+
+    report = evaluate_bag(path)
+    np.testing.assert_allclose(report.reports["a"].rmse, 0.05)
+    assert report.reports["a"].nees is not None and report.reports["b"].nees is None
+    assert "a" in report.table() and "RMSE" in report.summary()
+    paths = write_report(report)
+    assert paths["markdown"].name == "run.metrics.md" and paths["png"].stat().st_size > 0
+    assert json.loads(paths["json"].read_text())["methods"]["a"]["rmse"] == pytest.approx(0.05)
+
+
+def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
+    from neural_estimator.bags import load_bag_dataset
+
+    s = Cart()
+    data = simulate(s, 2, 5, seed=0)
+    names = M.state_labels(s)
+    path = tmp_path / "gappy.mcap"
+    arrays_to_bag(path, s, data.x, data.y, data.u, estimates={"a": data.x})
+    with BagReader(path) as bag:  # copy without the estimate of trajectory 1, step 3
+        msgs = [(c, t, r) for c, t, r in bag.messages()]
+    gappy = tmp_path / "gappy2.mcap"
+    with BagWriter(gappy) as out:
+        for c, t, raw in msgs:
+            if c.topic == "/estimates/a" and M.decode_vector(raw)[2:4] == (1, 3):
+                continue
+            if not out.has_topic(c.topic):
+                out.add_topic(c.topic, c.msgtype)
+            out.write(c.topic, t, raw)
+    truth, estimates, _ = load_bag_dataset(gappy)
+    assert truth.n == 1 and truth.meta["bag"]["left_out"] == [1]
+    assert truth.meta["bag"]["missing"]["estimates/a"] == 1
+    # a diverged (NaN) estimate is present, not missing
+    nan_est = data.x.copy()
+    nan_est[0, 2:] = np.nan
+    truth, estimates, _ = load_bag_dataset(arrays_to_bag(tmp_path / "nan.mcap", s, data.x, data.y, data.u,
+                                                         estimates={"a": nan_est}))
+    assert truth.n == 2 and np.isnan(estimates["a"][0][0, 2:]).all()
+
+
+def test_replay_equals_run_and_reads_any_order(tmp_path):
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.replay import replay
+
+    s = Cart()
+    data = simulate(s, 2, 15, seed=6)
+    src = arrays_to_bag(tmp_path / "src.mcap", s, data.x, data.y, data.u, estimates={"ukf": np.zeros_like(data.x)})
+    with BagReader(src) as bag:  # shuffle the recording order of the observations, add a bad one
+        msgs = [(c.topic, c.msgtype, t, r) for c, t, r in bag.messages()]
+    order = np.random.default_rng(0).permutation(len(msgs))
+    shuffled = tmp_path / "shuffled.mcap"
+    with BagWriter(shuffled) as out:
+        for topic, msgtype, _, _ in msgs:
+            if not out.has_topic(topic):
+                out.add_topic(topic, msgtype)
+        for t, i in enumerate(order):
+            out.write(msgs[i][0], t, msgs[i][3])
+        out.write("/observation", len(msgs), M.encode_vector(0, s.name, 0, 3, ["bad"], [1.0]))
+    res = replay(shuffled, ["ekf", "ukf"], tmp_path / "out.mcap")
+    assert res.estimates == {"ekf": 30, "ukf": 30} and res.rejected == {"ekf": 1, "ukf": 1}
+    assert res.per_step_us("ekf") > 0
+    run = bag_to_arrays(res.path)
+    assert run.received["estimates/ukf"] == 30 and run.received["estimates/ukf/covariance"] == 30
+    for m in ("ekf", "ukf"):
+        ref = make_estimator(m, s).run(data.y, data.u)
+        np.testing.assert_allclose(run.x_hat[m], ref.x, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(run.P_hat[m], ref.cov, rtol=0, atol=1e-10)
+    with pytest.raises(BagError, match="cannot overwrite its input"):
+        replay(shuffled, ["ekf"], shuffled)
+
+
+def test_online_estimator_stream_rules():
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.replay import OnlineEstimator
+
+    s = Cart()
+    data = simulate(s, 1, 8, seed=2)
+    online = OnlineEstimator(make_estimator("ekf", s), "ekf")
+
+    def obs(k, y=None, u=None, n=0):
+        y = data.y[0, k] if y is None else y
+        u = (data.u[0, k - 1] if k else np.zeros(1)) if u is None else u
+        return M.encode_observation(s, k, n, k, y, u)
+
+    assert online.process(obs(0)).status == "estimated"
+    assert online.process(obs(0)).status == "duplicate"
+    r = online.process(obs(3))
+    assert r.status == "estimated" and r.filled == 2
+    assert online.process(obs(2)).status == "stale"
+    r = online.process(obs(4, y=[np.nan]))
+    assert r.nonfinite and np.isfinite(r.x_hat).all()
+    for bad in (b"", obs(5, u=[np.nan]), M.encode_vector(0, s.name, 0, 5, ["position"], [0.0])):
+        with pytest.raises(MessageError):
+            online.process(bad)
+    assert online.step == 4  # bad messages change nothing
+    assert online.process(obs(0, n=1)).reset
+    online.max_gap = 2
+    assert online.process(obs(7, n=1)).restarted

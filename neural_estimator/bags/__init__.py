@@ -4,14 +4,17 @@
 - :class:`BagWriter` / :class:`BagReader`: one ``.mcap`` file, written as rosbag2 writes it, read
   back even when the recording was cut short.
 - :func:`bag_to_arrays` / :func:`arrays_to_bag`: a recorded run as arrays keyed by (trajectory,
-  step), and sample bags from simulated data.
+  step), and sample bags from simulated data; :func:`load_bag_dataset` for the metrics.
+- :mod:`~neural_estimator.bags.report`: the paper's metrics of a recorded run (imported on demand:
+  it pulls in scipy and matplotlib).
 """
 
+from neural_estimator.bags.dataset import RunArrays, arrays_to_bag, bag_to_arrays, load_bag_dataset
 from neural_estimator.bags.errors import BagError, BagWarning, MessageError
 from neural_estimator.bags.reader import BagDamage, BagReader, Connection
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, Qos
 
 __all__ = [
     "BagDamage", "BagError", "BagReader", "BagWarning", "BagWriter", "Connection", "LATCHED_QOS",
-    "MessageError", "Qos", "STREAM_QOS",
+    "MessageError", "Qos", "RunArrays", "STREAM_QOS", "arrays_to_bag", "bag_to_arrays", "load_bag_dataset",
 ]

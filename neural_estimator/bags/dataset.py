@@ -42,6 +42,7 @@ class RunArrays:
     duplicates: dict[str, int]  # messages repeating a cell already filled (the last one is kept)
     rejected: dict[str, int]  # messages that did not fit the layout (wrong names, malformed)
     status: list[dict[str, Any]]  # run_status messages in order
+    present: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # {stream: (N, T) bool}
 
     @property
     def scenario(self):
@@ -184,6 +185,12 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
             x_hat[method] = fill(key, dx)
     total = N * T
     streams = set(cells) | {M.OBSERVATION, M.GROUND_TRUTH}
+    present = {}
+    for key in sorted(streams):
+        mask = np.zeros((N, T), dtype=bool)
+        for n, k in cells.get(key, {}):
+            mask[row[n], k] = True
+        present[key] = mask
     return RunArrays(
         description=desc,
         trajectories=np.asarray(traj_ids, dtype=np.int64),
@@ -198,6 +205,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         duplicates=duplicates,
         rejected=rejected,
         status=status,
+        present=present,
     )
 
 
@@ -284,3 +292,46 @@ def arrays_to_bag(
                               M.encode_vector(stamp, m, n, k, cov_names, np.asarray(a[n, k]).reshape(-1)))
         bag.write(topic(M.RUN_STATUS), stamp, M.encode_run_status(M.STATUS_COMPLETE, **info))
     return Path(path)
+
+
+def load_bag_dataset(path: str | Path, *, namespace: str = "/") -> tuple[Any, dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[int, ...]]:
+    """A recorded run as the evaluation inputs: ``(truth, {method: (x_hat, P_hat or None)}, angle_states)``.
+
+    ``truth`` is a :class:`~neural_estimator.data.Trajectories` of the trajectories that are
+    complete in every stream (ground truth, observations and each estimate stream), so that every
+    method is scored on the same trajectories; ``truth.meta`` records the description, the run info
+    and, under ``"bag"``, what was received, missing and left out.
+
+    Raises:
+        BagError: as :func:`bag_to_arrays`, or when no trajectory is complete in every stream.
+    """
+    from neural_estimator.data import Trajectories
+
+    run = bag_to_arrays(path, namespace=namespace)
+    complete = np.ones(run.x.shape[0], dtype=bool)
+    for mask in run.present.values():  # a diverged estimate (NaN values) is present, not missing
+        complete &= mask.all(axis=1)
+    if not complete.any():
+        raise BagError(
+            f"{path}: no trajectory is complete in every stream (missing cells: "
+            + ", ".join(f"{k} {v}" for k, v in run.missing.items() if v) + ")"
+        )
+    keep = np.flatnonzero(complete)
+    meta = dict(run.description)
+    meta.update(
+        trajectories=int(keep.size),
+        horizon=int(run.x.shape[1]),
+        bag={
+            "path": str(path),
+            "trajectory_ids": run.trajectories[keep].tolist(),
+            "left_out": run.trajectories[~complete].tolist(),
+            "received": run.received,
+            "missing": run.missing,
+            "duplicates": run.duplicates,
+            "rejected": run.rejected,
+            "complete": run.complete,
+        },
+    )
+    truth = Trajectories(run.x[keep], run.y[keep], run.u[keep], meta)
+    estimates = {m: (xh[keep], run.P_hat[m][keep] if m in run.P_hat else None) for m, xh in sorted(run.x_hat.items())}
+    return truth, estimates, tuple(run.description.get("angle_states", ()))

@@ -217,6 +217,8 @@ def vector_from_message(msg: Any) -> Vector:
     position = np.asarray(msg.position, dtype=np.float64)
     if len(names) != position.shape[0]:
         raise MessageError(f"JointState has {len(names)} names but {position.shape[0]} positions")
+    if not names:
+        raise MessageError("empty JointState (no names, no positions): not a neural_estimator stream")
     if len(names) < 2 or names[:2] != ID_NAMES:
         raise MessageError(
             f"JointState does not start with the identity entries {list(ID_NAMES)} (got {list(names[:2])}); "

@@ -84,6 +84,46 @@ def qos_yaml(profiles: Sequence[Qos]) -> str:
     return yaml.safe_dump([p.to_dict() for p in profiles], default_flow_style=False, sort_keys=False).strip()
 
 
+def parse_qos_yaml(text: str) -> list[Qos]:
+    """Qos profiles back from rosbag2's ``offered_qos_profiles`` YAML (v9 names; v8 integers too)."""
+    if not text:
+        return []
+    try:
+        items = yaml.safe_load(text) or []
+    except yaml.YAMLError:
+        return []
+    names = {
+        "history": {1: "keep_last", 2: "keep_all"},
+        "reliability": {1: "reliable", 2: "best_effort"},
+        "durability": {1: "transient_local", 2: "volatile"},
+        "liveliness": {1: "automatic", 3: "manual_by_topic"},
+    }
+    out = []
+    for item in items if isinstance(items, list) else []:
+        if not isinstance(item, dict):
+            continue
+
+        def pol(key: str, default: str) -> str:
+            v = item.get(key, default)
+            return names[key].get(v, default) if isinstance(v, int) else str(v)
+
+        def dur(key: str) -> tuple[int, int] | None:
+            d = item.get(key)
+            if not isinstance(d, dict):
+                return None
+            sec, nsec = int(d.get("sec", 0)), int(d.get("nsec", 0))
+            return None if (sec, nsec) == (_INFINITE_SEC, _INFINITE_NSEC) else (sec, nsec)
+
+        out.append(Qos(
+            reliability=pol("reliability", "reliable"), durability=pol("durability", "volatile"),
+            history=pol("history", "keep_last"), depth=int(item.get("depth", 10)),
+            deadline=dur("deadline"), lifespan=dur("lifespan"), liveliness=pol("liveliness", "automatic"),
+            liveliness_lease_duration=dur("liveliness_lease_duration"),
+            avoid_ros_namespace_conventions=bool(item.get("avoid_ros_namespace_conventions", False)),
+        ))
+    return out
+
+
 @dataclasses.dataclass
 class _Topic:
     name: str
