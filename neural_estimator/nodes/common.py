@@ -1,0 +1,224 @@
+"""What the nodes share: parameters as frozen dataclasses, QoS profiles, the main() shape.
+
+Parameters: every field of a node's frozen dataclass is one ROS parameter, declared read-only with
+a :class:`ParameterDescriptor` whose description is the field's ``help`` metadata (the same text
+as the comment in ``params/<node>.yaml``). Values are converted to the field's type here, so
+``-p rate_hz:=1000`` and ``-p rate_hz:=1000.0`` both work and a wrong value is one clear line
+naming the parameter; a list parameter also accepts one comma-separated string.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
+
+from neural_estimator.bags.writer import Qos
+
+P = TypeVar("P")
+
+
+class StartupError(Exception):
+    """A node cannot start (bad parameter, unknown method, missing checkpoint): one clear line."""
+
+
+def param(default: Any, help: str) -> Any:  # noqa: A002 - the dataclass metadata key
+    """A dataclass field that is a ROS parameter with its description."""
+    if isinstance(default, (list, tuple)):
+        return dataclasses.field(default=tuple(default), metadata={"help": help})
+    return dataclasses.field(default=default, metadata={"help": help})
+
+
+def declare_params(node: Node, cls: type[P]) -> P:
+    """Declare every field of the frozen dataclass ``cls`` as a parameter and return the values."""
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for f in dataclasses.fields(cls):
+        kind = hints[f.name]
+        default = f.default
+        desc = ParameterDescriptor(
+            description=f.metadata.get("help", ""),
+            additional_constraints=f"type: {_type_name(kind)}",
+            read_only=True,
+            dynamic_typing=True,
+        )
+        value = node.declare_parameter(f.name, list(default) if isinstance(default, tuple) and default else
+                                       (None if isinstance(default, tuple) else default), desc).value
+        values[f.name] = _coerce(f.name, value, kind, default)
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as exc:
+        raise StartupError(str(exc)) from None
+
+
+def _type_name(kind: Any) -> str:
+    if typing.get_origin(kind) is tuple:
+        return "string list"
+    return getattr(kind, "__name__", str(kind))
+
+
+def _coerce(name: str, value: Any, kind: Any, default: Any) -> Any:
+    if value is None:
+        return default
+    try:
+        if typing.get_origin(kind) is tuple:
+            if isinstance(value, str):
+                return tuple(v.strip() for v in value.split(",") if v.strip())
+            return tuple(str(v) for v in value)
+        if kind is bool:
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, str) and value.lower() in ("true", "false"):
+                return value.lower() == "true"
+            raise ValueError
+        if kind is int:
+            if isinstance(value, bool) or float(value) != int(float(value)):
+                raise ValueError
+            return int(float(value))
+        if kind is float:
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+        if kind is str:
+            return str(value)
+    except (TypeError, ValueError):
+        pass
+    else:
+        return value
+    want = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, "a list of strings")
+    raise StartupError(f"parameter {name} must be {want}, got {value!r}")
+
+
+# ---- QoS -----------------------------------------------------------------------------------------------
+def stream_qos(depth: int, transient_local: bool = True) -> QoSProfile:
+    """Reliable, KEEP_LAST ``depth``; transient_local so that a recorder that joins a little late
+    still gets the first ``depth`` messages (the evaluator subscribes when it discovers a topic)."""
+    return QoSProfile(
+        depth=max(1, int(depth)),
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST,
+    )
+
+
+def latched_qos() -> QoSProfile:
+    """Reliable + transient_local, depth 1: the last value reaches late joiners (scenario, status)."""
+    return stream_qos(1, transient_local=True)
+
+
+_INF_NS = 9223372036854775807
+
+
+def to_bag_qos(profile: QoSProfile) -> Qos:
+    """The rosbag2 record of an (offered) rclpy QoS profile."""
+
+    def dur(d: Any) -> tuple[int, int] | None:
+        ns = int(d.nanoseconds) if d is not None else 0
+        return None if ns <= 0 or ns >= _INF_NS else divmod(ns, 1_000_000_000)  # 0 = rmw default = infinite
+
+    def name(policy: Any, default: str) -> str:
+        n = getattr(policy, "name", "").lower()
+        return n if n and n not in ("system_default", "unknown", "best_available") else default
+
+    return Qos(
+        reliability=name(profile.reliability, "reliable"),
+        durability=name(profile.durability, "volatile"),
+        history=name(profile.history, "keep_last"),
+        depth=int(profile.depth),
+        deadline=dur(profile.deadline),
+        lifespan=dur(profile.lifespan),
+        liveliness=name(profile.liveliness, "automatic"),
+        liveliness_lease_duration=dur(profile.liveliness_lease_duration),
+        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions),
+    )
+
+
+def from_bag_qos(q: Qos, min_depth: int = 1) -> QoSProfile:
+    """An rclpy profile from a recorded one (reliability, durability, history, depth)."""
+    return QoSProfile(
+        depth=max(int(q.depth), int(min_depth)),
+        reliability=ReliabilityPolicy.BEST_EFFORT if q.reliability == "best_effort" else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if q.durability == "transient_local" else DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_ALL if q.history == "keep_all" else HistoryPolicy.KEEP_LAST,
+        liveliness=LivelinessPolicy.MANUAL_BY_TOPIC if q.liveliness == "manual_by_topic" else LivelinessPolicy.AUTOMATIC,
+    )
+
+
+def message_class(msgtype: str) -> type:
+    """The rclpy message class of ``pkg/msg/Type``."""
+    pkg, _, name = msgtype.rpartition("/")
+    module = importlib.import_module(pkg.replace("/", "."))
+    return getattr(module, name)
+
+
+# ---- scenarios -----------------------------------------------------------------------------------------
+def load_plugins(paths: tuple[str, ...]) -> None:
+    """Import user files that register scenarios (the nodes' ``plugins`` parameter)."""
+    for p in paths:
+        path = Path(p)
+        if not path.is_file():
+            raise StartupError(f"plugins: no such file {p}")
+        spec = importlib.util.spec_from_file_location(f"neural_estimator_plugin_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as exc:
+            raise StartupError(f"plugins: {p} failed to import: {exc}") from None
+
+
+def build_scenario(name: str, assignments: tuple[str, ...], noise_scale: float | None = None):
+    """The scenario ``name`` with ``name=value`` constants (and noise scale) applied."""
+    from neural_estimator.scenarios import ScenarioError, make_scenario, parse_assignments
+
+    try:
+        overrides: dict[str, Any] = parse_assignments(assignments)
+        if noise_scale is not None:
+            overrides["noise_scale"] = noise_scale
+        return make_scenario(name, **overrides)
+    except ScenarioError as exc:
+        raise StartupError(str(exc)) from None
+
+
+# ---- main ----------------------------------------------------------------------------------------------
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
+    """The examples' main(): init, build, spin until shutdown, clean up; exit status.
+
+    A :class:`StartupError` while building the node is logged as one fatal line and gives exit
+    status 1. The node may set ``exit_code`` and call ``request_shutdown`` to end the spin itself.
+    """
+    rclpy.init(args=args)
+    try:
+        node = factory()
+    except StartupError as exc:
+        rclpy.logging.get_logger(name).fatal(str(exc))
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        code = int(getattr(node, "exit_code", 0) or 0)
+        closer = getattr(node, "on_shutdown", None)
+        if callable(closer):
+            code = int(closer() or code)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def request_shutdown(node: Node, code: int = 0) -> None:
+    """End the spin of :func:`run_node` (from a callback) with exit status ``code``."""
+    node.exit_code = code
+    node.context.try_shutdown()

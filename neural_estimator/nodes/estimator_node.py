@@ -1,0 +1,325 @@
+"""Estimator node: one method, updated once per observation message, B = 1.
+
+    ros2 run neural_estimator estimator --ros-args -p method:=ukf -p scenario:=lorenz96
+    python -m neural_estimator.nodes.estimator_node --ros-args -p method:=ukf   # without ros2
+
+Subscribes ``observation`` (raw CDR, sensor_msgs/JointState); publishes ``estimates/<method>`` and,
+where the method has one, ``estimates/<method>/covariance`` with the observation's stamp and
+identity; ``/diagnostics`` every ``diagnostics_period`` s; service ``~/reset`` (std_srvs/Trigger).
+The per-message work is :class:`neural_estimator.replay.OnlineEstimator` (the same code as offline
+replay); this node only wires it to topics. Parameters: ``params/estimator.yaml``.
+
+A message that cannot be used (wrong width or names, NaN control, empty, unparsable) is logged
+(throttled), counted in the diagnostics and dropped; the node never stops on one. An unknown
+method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
+"""
+
+from __future__ import annotations
+
+import array
+import dataclasses
+import sys
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from neural_estimator.bags import messages as M
+from neural_estimator.bags.errors import MessageError
+from neural_estimator.estimators import METHODS, EstimatorError, check_method, make_estimator
+from neural_estimator.nodes.common import (
+    StartupError,
+    build_scenario,
+    declare_params,
+    latched_qos,
+    load_plugins,
+    param,
+    request_shutdown,
+    run_node,
+    stream_qos,
+)
+from neural_estimator.replay import DEFAULT_MAX_GAP, OnlineEstimator
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimatorParams:
+    """Parameters of the estimator node (documented in params/estimator.yaml)."""
+
+    method: str = param("ukf", f"estimation method: one of {', '.join(METHODS)}")
+    scenario: str = param("", "scenario name; empty = take it (with its constants) from the 'scenario' topic")
+    set: tuple[str, ...] = param((), "scenario constants as name=value (with scenario set)")
+    plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
+    checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
+    device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
+    seed: int = param(0, "seed of the random draws of the EnKF and PF")
+    options: tuple[str, ...] = param((), "filter hyperparameters as name=value, e.g. n_particles=2048")
+    observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
+    scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
+    output_topic: str = param("", "estimate topic; empty = estimates/<method>; covariance goes to <output>/covariance")
+    publish_covariance: bool = param(True, "publish the covariance where the method has one")
+    queue_depth: int = param(1000, "subscription queue (reliable, KEEP_LAST): observations buffered while busy")
+    history_depth: int = param(1000, "estimate publisher depth (transient_local: what a late recorder still gets)")
+    max_gap: int = param(DEFAULT_MAX_GAP, "most missing steps bridged by predict-only steps before a restart")
+    diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
+    log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
+
+
+class EstimatorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("estimator")
+        self.p = p = declare_params(self, EstimatorParams)
+        try:
+            self.method = check_method(p.method)
+        except EstimatorError as exc:
+            raise StartupError(str(exc)) from None
+        if p.checkpoint and not _exists(p.checkpoint):
+            raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
+        load_plugins(p.plugins)
+        self.online: OnlineEstimator | None = None
+        out = p.output_topic or M.estimate_topic(self.method)
+        self.pub_est = self.create_publisher(JointState, out, stream_qos(p.history_depth))
+        self.pub_cov = self.create_publisher(JointState, f"{out}/{M.COVARIANCE_SUFFIX}", stream_qos(p.history_depth))
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.stats = _Stats()
+        self._last_log: dict[str, float] = {}
+        self._foreign: set[str] = set()
+        self._early: list[bytes] = []
+        if p.scenario:
+            self._build(build_scenario(p.scenario, p.set))
+        else:
+            self.get_logger().info(f"waiting for the scenario on '{p.scenario_topic}'")
+        self.sub_scenario = self.create_subscription(String, p.scenario_topic, self._on_scenario, latched_qos(), raw=True)
+        obs_qos = QoSProfile(depth=max(1, p.queue_depth), reliability=ReliabilityPolicy.RELIABLE)
+        self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observation, obs_qos, raw=True)
+        self.srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
+        self.timer = self.create_timer(p.diagnostics_period, self._on_diagnostics)
+
+    # ---- setup -------------------------------------------------------------------------------------
+    def _build(self, scenario) -> None:
+        p = self.p
+        try:
+            options = dict(item.split("=", 1) for item in p.options)
+        except ValueError:
+            raise StartupError(f"options must be name=value, got {list(p.options)}") from None
+        try:
+            est = make_estimator(self.method, scenario, checkpoint=p.checkpoint or None, device=p.device,
+                                 seed=p.seed, **options)
+        except EstimatorError as exc:
+            raise StartupError(str(exc)) from None
+        self.online = OnlineEstimator(est, self.method, publish_covariance=p.publish_covariance, max_gap=p.max_gap)
+        self.get_logger().info(
+            f"{self.method} on {scenario.name} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}): "
+            f"'{self.resolve_topic_name(p.observation_topic)}' -> "
+            f"'{self.pub_est.topic_name}'" + (" + covariance" if self.online.publish_covariance else "")
+        )
+
+    def _on_scenario(self, raw: bytes) -> None:
+        try:
+            desc = M.decode_scenario(raw)
+        except MessageError as exc:
+            self._warn("scenario", f"ignoring a scenario message: {exc}")
+            return
+        if self.online is None:
+            from neural_estimator.scenarios import ScenarioError, scenario_from_description
+
+            try:
+                self._build(scenario_from_description(desc))
+            except (StartupError, ScenarioError) as exc:
+                self.get_logger().fatal(f"cannot serve the announced scenario: {exc}")
+                request_shutdown(self, 1)
+                return
+            early, self._early = self._early, []
+            for raw_obs in early:
+                self._on_observation(raw_obs)
+        elif desc.get("scenario") != self.online.scenario.name or desc.get("config") != self.online.scenario.describe()["config"]:
+            self._warn("mismatch", f"the announced scenario {desc.get('scenario')!r} differs from the one this node "
+                                   f"serves ({self.online.scenario.name!r} with its constants); estimates may be wrong")
+
+    # ---- per message -------------------------------------------------------------------------------
+    def _on_observation(self, raw: bytes) -> None:
+        t0 = time.perf_counter()
+        if self.online is None:  # kept until the scenario arrives (messages on two topics race)
+            if len(self._early) < self.p.queue_depth:
+                self._early.append(bytes(raw))
+            else:
+                self.stats.early += 1
+                self._warn("early", f"{self.p.queue_depth} observations wait for the scenario: dropping more")
+            return
+        try:
+            res = self.online.process(raw)
+        except MessageError as exc:
+            self.stats.bad += 1
+            self._warn("bad", f"bad observation dropped: {exc}")
+            return
+        if res.status != "estimated":
+            self.stats.skipped[res.status] += 1
+            self._warn(res.status, f"{res.status} observation (trajectory {res.trajectory}, step {res.step}; "
+                                   f"last processed step {self.online.step}) skipped")
+            return
+        self.pub_est.publish(res.estimate)
+        if res.covariance is not None:
+            self.pub_cov.publish(res.covariance)
+        s = self.stats
+        s.latency.append(time.perf_counter() - t0)
+        s.estimated += 1
+        s.resets += res.reset
+        s.gap_steps += res.filled
+        s.restarts += res.restarted
+        s.nonfinite += res.nonfinite
+        s.diverged = res.diverged or not np.all(np.isfinite(res.x_hat))
+        s.position = (res.trajectory, res.step)
+        if res.filled:
+            self._warn("gap", f"{res.filled} observation(s) missing before step {res.step} of trajectory "
+                              f"{res.trajectory}: bridged by predict-only steps")
+        if res.restarted:
+            self._warn("restart", f"gap longer than max_gap={self.p.max_gap} before step {res.step}: restarted from the prior")
+        if res.nonfinite:
+            self._warn("nonfinite", f"observation {res.trajectory}/{res.step} has NaN/inf: predict only")
+
+    def _on_reset(self, request, response):
+        if self.online is not None:
+            self.online.reset()
+        self.stats.diverged = False
+        self.stats.manual_resets += 1
+        response.success = True
+        response.message = "reset: the next observation starts a new stream from the prior"
+        self.get_logger().info(response.message)
+        return response
+
+    # ---- diagnostics -------------------------------------------------------------------------------
+    def _on_diagnostics(self) -> None:
+        self._check_foreign_publishers()
+        s = self.stats
+        now = time.monotonic()
+        window = s.window(now)
+        status = DiagnosticStatus()
+        status.name = f"{self.get_fully_qualified_name()}: {self.method} estimator"
+        status.hardware_id = self.online.scenario.name if self.online else ""
+        problems = []
+        if s.diverged:
+            status.level, problems = DiagnosticStatus.ERROR, ["diverged (estimates NaN until reset)"]
+        else:
+            status.level = DiagnosticStatus.OK
+        recent_bad = window["bad"] + window["early"]
+        if recent_bad or window["gap_steps"] or window["nonfinite"] or self._foreign:
+            status.level = max(status.level, DiagnosticStatus.WARN)
+            problems += [f"{recent_bad} bad messages"] * bool(recent_bad)
+            problems += [f"{window['gap_steps']} missing steps"] * bool(window["gap_steps"])
+            problems += [f"{window['nonfinite']} non-finite observations"] * bool(window["nonfinite"])
+            problems += [f"foreign publishers: {', '.join(sorted(self._foreign))}"] * bool(self._foreign)
+        if self.online is None:
+            status.level = DiagnosticStatus.WARN
+            problems.append("waiting for the scenario")
+        status.message = "; ".join(problems) if problems else "ok"
+        p50, p99 = window["p50"], window["p99"]
+        a50, a99 = s.percentiles()
+        values = {
+            "method": self.method,
+            "update rate (Hz)": f"{window['rate']:.1f}",
+            "latency p50 (ms)": f"{p50 * 1e3:.3f}",
+            "latency p99 (ms)": f"{p99 * 1e3:.3f}",
+            "latency p50 since start (ms)": f"{a50 * 1e3:.3f}",
+            "latency p99 since start (ms)": f"{a99 * 1e3:.3f}",
+            "estimates published": str(s.estimated),
+            "bad messages": str(s.bad + s.early),
+            "non-finite observations": str(s.nonfinite),
+            "duplicate steps": str(s.skipped["duplicate"]),
+            "out-of-order steps": str(s.skipped["stale"]),
+            "missing steps bridged": str(s.gap_steps),
+            "stream restarts": str(s.restarts),
+            "trajectory resets": str(s.resets),
+            "manual resets": str(s.manual_resets),
+            "diverged": str(s.diverged).lower(),
+            "trajectory": str(s.position[0]),
+            "step": str(s.position[1]),
+        }
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        self.pub_diag.publish(msg)
+
+    def _check_foreign_publishers(self) -> None:
+        """Publishers of another type on the observation topic never reach this node (DDS does not
+        match them): say so instead of waiting silently."""
+        for info in self.get_publishers_info_by_topic(self.sub_obs.topic_name):
+            if info.topic_type != M.JOINT_STATE:
+                key = f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type})"
+                if key not in self._foreign:
+                    self._foreign.add(key)
+                    self.get_logger().error(
+                        f"'{self.sub_obs.topic_name}' has a publisher of the wrong type: {key}; "
+                        f"expected {M.JOINT_STATE}. Its messages cannot reach this node."
+                    )
+
+    def _warn(self, kind: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last_log.get(kind, -1e9) >= self.p.log_throttle:
+            self._last_log[kind] = now
+            self.get_logger().warning(text)
+
+
+@dataclasses.dataclass
+class _Stats:
+    """Counters of the node; ``window`` reports the part since the previous call."""
+
+    estimated: int = 0
+    bad: int = 0
+    early: int = 0
+    nonfinite: int = 0
+    gap_steps: int = 0
+    restarts: int = 0
+    resets: int = 0
+    manual_resets: int = 0
+    diverged: bool = False
+    position: tuple[int, int] = (-1, -1)
+    skipped: dict = dataclasses.field(default_factory=lambda: {"duplicate": 0, "stale": 0})
+    latency: array.array = dataclasses.field(default_factory=lambda: array.array("d"))
+    _mark: dict = dataclasses.field(default_factory=dict)
+
+    _MAX_KEPT = 200_000  # latencies kept for the since-start percentiles (the most recent ones)
+
+    def window(self, now: float) -> dict:
+        m = self._mark or {"t": now, "estimated": 0, "bad": 0, "early": 0, "gap_steps": 0, "nonfinite": 0, "n_lat": 0}
+        lat = np.frombuffer(self.latency, dtype=np.float64)[m["n_lat"]:]
+        dt = max(now - m["t"], 1e-9)
+        out = {
+            "rate": (self.estimated - m["estimated"]) / dt if self._mark else 0.0,
+            "bad": self.bad - m["bad"],
+            "early": self.early - m["early"],
+            "gap_steps": self.gap_steps - m["gap_steps"],
+            "nonfinite": self.nonfinite - m["nonfinite"],
+            "p50": float(np.percentile(lat, 50)) if lat.size else float("nan"),
+            "p99": float(np.percentile(lat, 99)) if lat.size else float("nan"),
+        }
+        if len(self.latency) > self._MAX_KEPT:
+            del self.latency[: len(self.latency) - self._MAX_KEPT // 2]
+        self._mark = {"t": now, "estimated": self.estimated, "bad": self.bad, "early": self.early,
+                      "gap_steps": self.gap_steps, "nonfinite": self.nonfinite, "n_lat": len(self.latency)}
+        return out
+
+    def percentiles(self) -> tuple[float, float]:
+        lat = np.frombuffer(self.latency, dtype=np.float64)
+        if not lat.size:
+            return float("nan"), float("nan")
+        return float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
+
+
+def _exists(path: str) -> bool:
+    from pathlib import Path
+
+    return Path(path).exists()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(EstimatorNode, "estimator", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,230 @@
+"""Evaluator node: records a run into one MCAP bag, then scores every estimator from that file.
+
+    ros2 run neural_estimator evaluator --ros-args -p output:=runs/l96.mcap -p methods:="['ekf','ukf']"
+    python -m neural_estimator.nodes.evaluator_node --ros-args -p output:=runs/l96.mcap
+
+Recording: ``scenario``, ``run_status``, ``observation``, ``ground_truth`` and every
+``estimates/<method>`` (and ``/covariance``) topic in the node's namespace, found by polling the
+graph every ``discovery_period`` s (plus ``topics``), from raw subscriptions: the bytes on the wire
+go to the file unchanged (rclpy's serialize_message would pad empty sequences with junk that
+rosbags rejects). Like ``ros2 bag record`` it subscribes with the QoS the publishers offer
+(transient_local when they all offer it, so the history of a stream that started before discovery
+is delivered), logs receive times, and stores the offered profiles in the channel metadata.
+
+End of a run: after ``run_status`` "complete", when every expected stream holds as many messages
+as the run announced (or after ``completion_timeout`` s), the bag is closed, the paper's metrics are
+computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
+and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
+status 0 (1 if no metrics could be computed). Ctrl-C / SIGTERM close the bag properly too.
+Parameters: ``params/evaluator.yaml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from neural_estimator.bags import messages as M
+from neural_estimator.bags.errors import BagError, MessageError
+from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
+from neural_estimator.nodes.common import (
+    StartupError,
+    declare_params,
+    message_class,
+    param,
+    request_shutdown,
+    run_node,
+    to_bag_qos,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluatorParams:
+    """Parameters of the evaluator node (documented in params/evaluator.yaml)."""
+
+    output: str = param("", "bag to write (.mcap); empty = runs/run-<date>-<time>.mcap")
+    overwrite: bool = param(False, "replace an existing output file")
+    methods: tuple[str, ...] = param((), "estimate streams that must be complete before the end; empty = all discovered")
+    topics: tuple[str, ...] = param((), "extra topics to record (names relative to the namespace, or absolute)")
+    discovery_period: float = param(0.25, "seconds between graph scans for new topics")
+    queue_depth: int = param(1000, "subscription depth: messages buffered while the node is busy")
+    completion_timeout: float = param(30.0, "seconds after 'complete' to wait for lagging streams")
+    chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
+    compute_metrics: bool = param(True, "compute and write the metrics when the run ends")
+    exit_when_done: bool = param(True, "shut down when the run is evaluated")
+
+
+class EvaluatorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("evaluator")
+        self.p = p = declare_params(self, EvaluatorParams)
+        out = p.output or f"runs/run-{datetime.now():%Y%m%d-%H%M%S}.mcap"
+        try:
+            self.bag = BagWriter(out, overwrite=p.overwrite, chunk_size=p.chunk_size).open()
+        except BagError as exc:
+            raise StartupError(str(exc)) from None
+        self.ns = self.get_namespace()
+        self.extra = {self.resolve_topic_name(t) for t in p.topics}
+        self.required_methods = tuple(p.methods)
+        self.subs: dict = {}
+        self.counts: dict[str, int] = {}
+        self._refused: set[str] = set()
+        self.expected: int | None = None
+        self.complete_at: float | None = None
+        self.closed = False
+        self.get_logger().info(f"recording to {self.bag.path}")
+        self.timer = self.create_timer(p.discovery_period, self._tick)
+        self._tick()
+
+    # ---- discovery -----------------------------------------------------------------------------------
+    def _tick(self) -> None:
+        if self.closed:
+            return
+        self._discover()
+        self._check_done()
+
+    def _discover(self) -> None:
+        for name, types in self.get_topic_names_and_types():
+            if name in self.subs:
+                continue
+            role = M.topic_role(name, self.ns)
+            if role is None and name not in self.extra:
+                continue
+            pubs = self.get_publishers_info_by_topic(name)
+            if not pubs:
+                continue
+            if role is not None:
+                want = M.STRING if role.kind in (M.SCENARIO, M.RUN_STATUS) else M.JOINT_STATE
+                wrong = sorted({i.topic_type for i in pubs if i.topic_type != want})
+                if wrong and name not in self._refused:
+                    self._refused.add(name)
+                    self.get_logger().error(f"'{name}' has publishers of type {', '.join(wrong)}; recording only {want}")
+                pubs = [i for i in pubs if i.topic_type == want]
+                if not pubs:
+                    continue
+            msgtype = pubs[0].topic_type
+            offered = [i.qos_profile for i in pubs]
+            qos = QoSProfile(
+                depth=self.p.queue_depth,
+                reliability=ReliabilityPolicy.RELIABLE
+                if all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered) else ReliabilityPolicy.BEST_EFFORT,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL
+                if all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered) else DurabilityPolicy.VOLATILE,
+            )
+            try:
+                cls = message_class(msgtype)
+            except (ImportError, AttributeError):
+                if name not in self._refused:
+                    self._refused.add(name)
+                    self.get_logger().error(f"'{name}': type {msgtype} is not installed here; not recorded")
+                continue
+            self.bag.add_topic(name, msgtype, qos=[to_bag_qos(q) for q in offered])
+            self.counts[name] = 0
+            self.subs[name] = self.create_subscription(cls, name, self._recorder(name, role), qos, raw=True)
+            self.get_logger().info(f"recording '{name}' ({msgtype})")
+
+    def _recorder(self, name: str, role: M.TopicRole | None):
+        is_status = role is not None and role.kind == M.RUN_STATUS
+
+        def record(raw: bytes, info) -> None:
+            if self.closed:
+                return
+            self.bag.write(name, info["received_timestamp"], raw, publish_time_ns=info["source_timestamp"])
+            self.counts[name] += 1
+            if is_status:
+                self._on_status(raw)
+
+        return record
+
+    def _on_status(self, raw: bytes) -> None:
+        try:
+            status = M.decode_run_status(raw)
+        except MessageError as exc:
+            self.get_logger().warning(f"unreadable run_status: {exc}")
+            return
+        if status["status"] == M.STATUS_STARTED:
+            self.get_logger().info(f"run started: {status.get('trajectories')} trajectories x {status.get('horizon')} steps")
+        elif status["status"] == M.STATUS_COMPLETE:
+            self.expected = int(status.get("messages", 0))
+            self.complete_at = time.monotonic()
+            self.get_logger().info(f"run complete ({self.expected} observations): waiting for the streams to catch up")
+
+    # ---- end of run -----------------------------------------------------------------------------------
+    def _required(self) -> list[str]:
+        topic = lambda rel: M.resolve_topic(rel, self.ns)  # noqa: E731
+        req = [topic(M.OBSERVATION)]
+        if topic(M.GROUND_TRUTH) in self.subs:
+            req.append(topic(M.GROUND_TRUTH))
+        req += [topic(M.estimate_topic(m)) for m in self.required_methods]
+        req += [t for t in self.subs if M.topic_role(t, self.ns) and M.topic_role(t, self.ns).kind in ("estimate", "covariance")]
+        return sorted(set(req))
+
+    def _check_done(self) -> None:
+        if self.complete_at is None or self.expected is None:
+            return
+        lagging = {t: self.counts.get(t, 0) for t in self._required() if self.counts.get(t, 0) < self.expected}
+        timed_out = time.monotonic() - self.complete_at > self.p.completion_timeout
+        if lagging and not timed_out:
+            return
+        if lagging:
+            self.get_logger().warning(
+                f"streams still short of {self.expected} messages after {self.p.completion_timeout:g} s: "
+                + ", ".join(f"{t} {n}" for t, n in lagging.items())
+            )
+        self._finish()
+
+    def _close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        for sub in self.subs.values():
+            try:
+                self.destroy_subscription(sub)
+            except Exception:  # the context may already be shut down (Ctrl-C): nothing to release
+                pass
+        self.subs.clear()
+        self.bag.close()
+        total = sum(self.counts.values())
+        self.get_logger().info(f"wrote {self.bag.path} ({total} messages on {len(self.counts)} topics)")
+
+    def _finish(self) -> None:
+        self._close()
+        code = 0
+        if self.p.compute_metrics:
+            code = self._evaluate()
+        if self.p.exit_when_done:
+            request_shutdown(self, code)
+
+    def _evaluate(self) -> int:
+        from neural_estimator.bags.report import evaluate_bag, write_report
+        from neural_estimator.metrics import MetricsError
+
+        try:
+            report = evaluate_bag(self.bag.path, namespace=self.ns)
+            paths = write_report(report)
+        except (BagError, MetricsError) as exc:
+            self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
+            return 1
+        print(report.summary(), end="", flush=True)
+        self.get_logger().info("wrote " + ", ".join(str(p) for p in paths.values()))
+        return 0
+
+    def on_shutdown(self) -> int:
+        if not self.closed:
+            self.get_logger().info("interrupted: closing the bag")
+            self._close()
+        return int(getattr(self, "exit_code", 0) or 0)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(EvaluatorNode, "evaluator", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

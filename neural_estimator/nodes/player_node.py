@@ -1,0 +1,146 @@
+"""Player node: publishes a bag's messages on their topics at the recorded rate times ``rate``.
+
+    ros2 run neural_estimator player --ros-args -p bag:=bags/lorenz96.mcap -p rate:=2.0
+    python -m neural_estimator.nodes.player_node --ros-args -p bag:=bags/lorenz96.mcap
+
+Messages go out as recorded (raw CDR bytes, no decoding) on the recorded topic names (remap with
+``-r /observation:=/robot1/observation``), in log-time order, message i at
+``start + (t_i - t_0) / rate``; each topic with the QoS profile its publishers offered when it was
+recorded (depth at least ``min_depth``). Estimate streams are left out unless ``play_estimates``,
+so that live estimator nodes can be compared on the bag's observations; the ``run_status``
+"complete" of the bag then tells the evaluator that the run ended. Parameters: ``params/player.yaml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import threading
+import time
+import warnings
+
+from rclpy.node import Node
+
+from neural_estimator.bags import messages as M
+from neural_estimator.bags.errors import BagError, BagWarning
+from neural_estimator.bags.reader import BagReader
+from neural_estimator.bags.writer import parse_qos_yaml
+from neural_estimator.nodes.common import (
+    StartupError,
+    declare_params,
+    from_bag_qos,
+    message_class,
+    param,
+    request_shutdown,
+    run_node,
+    stream_qos,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlayerParams:
+    """Parameters of the player node (documented in params/player.yaml)."""
+
+    bag: str = param("", "the .mcap bag to play")
+    rate: float = param(1.0, "speed factor: 2.0 plays twice as fast as recorded")
+    topics: tuple[str, ...] = param((), "absolute topic names to play; empty = all (see play_estimates)")
+    play_estimates: bool = param(False, "also play estimates/* streams (off: live estimators answer instead)")
+    min_depth: int = param(1000, "smallest publisher depth (recorded profiles may be shallower)")
+    wait_for_subscribers: int = param(0, "subscriptions to wait for on wait_topic before playing")
+    wait_topic: str = param("/observation", "topic whose subscribers are counted")
+    wait_timeout: float = param(30.0, "seconds to wait for them (then play anyway); 0 = forever")
+    start_delay: float = param(1.0, "extra seconds before the first message (discovery)")
+    exit_when_done: bool = param(True, "shut down after the last message (after linger seconds)")
+    linger: float = param(2.0, "seconds to stay up after the last message so reliable resends complete")
+
+
+class PlayerNode(Node):
+    def __init__(self) -> None:
+        super().__init__("player")
+        self.p = p = declare_params(self, PlayerParams)
+        if not p.bag:
+            raise StartupError("parameter bag is empty: which .mcap should be played?")
+        if p.rate <= 0:
+            raise StartupError(f"rate must be > 0, got {p.rate}")
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", BagWarning)
+                self.reader = BagReader(p.bag).open()
+        except BagError as exc:
+            raise StartupError(str(exc)) from None
+        for w in caught:
+            self.get_logger().warning(str(w.message))
+        self.pubs = {}
+        for conn in self.reader.connections:
+            if p.topics and conn.topic not in p.topics:
+                continue
+            if not p.topics and not p.play_estimates and f"/{M.ESTIMATES}/" in conn.topic:
+                continue
+            try:
+                cls = message_class(conn.msgtype)
+            except (ImportError, AttributeError):
+                self.get_logger().warning(f"'{conn.topic}': type {conn.msgtype} is not installed here; skipped")
+                continue
+            offered = parse_qos_yaml(conn.offered_qos_profiles)
+            qos = from_bag_qos(offered[0], p.min_depth) if offered else stream_qos(p.min_depth)
+            self.pubs[conn.topic] = self.create_publisher(cls, conn.topic, qos)
+        if not self.pubs:
+            raise StartupError(f"{p.bag}: no topic to play")
+        self.wait_pub = None
+        if p.wait_for_subscribers > 0:
+            self.wait_pub = self.pubs.get(p.wait_topic)
+            if self.wait_pub is None:
+                raise StartupError(f"wait_topic {p.wait_topic!r} is not played from {p.bag}")
+        self.get_logger().info(
+            f"playing {p.bag} at x{p.rate:g}: {', '.join(sorted(self.pubs))} "
+            f"({sum(self.reader.topics[t].msgcount for t in self.pubs)} messages)"
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._play, name="player", daemon=True)
+        self._thread.start()
+
+    def _play(self) -> None:
+        p = self.p
+        try:
+            if self.wait_pub is not None:
+                t0 = time.monotonic()
+                while self.wait_pub.get_subscription_count() < p.wait_for_subscribers:
+                    if self._stop.wait(0.05):
+                        return
+                    if p.wait_timeout > 0 and time.monotonic() - t0 > p.wait_timeout:
+                        self.get_logger().warning("not all subscribers arrived: playing anyway")
+                        break
+            if self._stop.wait(p.start_delay):
+                return
+            first = None
+            start = time.perf_counter()
+            sent = 0
+            for conn, t, raw in self.reader.messages(list(self.pubs)):
+                first = t if first is None else first
+                wait = start + (t - first) / 1e9 / p.rate - time.perf_counter()
+                if wait > 0 and self._stop.wait(wait):
+                    return
+                if self._stop.is_set():
+                    return
+                self.pubs[conn.topic].publish(raw)
+                sent += 1
+            self.get_logger().info(f"played {sent} messages in {time.perf_counter() - start:.2f} s")
+            if p.exit_when_done and not self._stop.wait(p.linger):
+                request_shutdown(self, 0)
+        except Exception as exc:
+            self.get_logger().fatal(f"playback failed: {exc!r}")
+            request_shutdown(self, 1)
+
+    def on_shutdown(self) -> int:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.reader.close()
+        return int(getattr(self, "exit_code", 0) or 0)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(PlayerNode, "player", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

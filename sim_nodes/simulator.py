@@ -1,0 +1,175 @@
+"""Simulator node: publishes a scenario's observations and ground truth at a fixed rate.
+
+    ros2 run neural_estimator simulator --ros-args -p scenario:=lorenz96 -p trajectories:=2
+    python -m sim_nodes.simulator --ros-args -p scenario:=lorenz96       # without ros2
+
+Publishes (relative names, layout of :mod:`neural_estimator.bags.messages`):
+
+- ``scenario`` (std_msgs/String, JSON, reliable + transient_local depth 1) once, first;
+- ``run_status`` (std_msgs/String, JSON, reliable + transient_local depth 1): "started", then
+  "complete" with the message count;
+- per step, ``observation`` then ``ground_truth`` (sensor_msgs/JointState, reliable +
+  transient_local, KEEP_LAST ``history_depth``).
+
+Losing nothing at start-up, the choice made here: the node waits until ``wait_for_subscribers``
+subscriptions match the observation topic (the launcher sets it to the number of estimators plus
+the evaluator; ``wait_timeout`` bounds the wait), then ``start_delay`` more seconds so that the
+other pairs (estimates -> evaluator) finish discovery. Because the streams are also
+transient_local with a deep history, a subscriber that still matches a little late (the recorder
+subscribes on discovery) receives the first ``history_depth`` messages it missed.
+
+The data are :func:`neural_estimator.data.simulate` of (scenario, trajectories, horizon, seed):
+the same bytes as ``neural-estimator simulate`` writes. Parameters: ``params/simulator.yaml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import threading
+import time
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+from neural_estimator.bags import messages as M
+from neural_estimator.nodes.common import (
+    StartupError,
+    build_scenario,
+    declare_params,
+    latched_qos,
+    load_plugins,
+    param,
+    request_shutdown,
+    run_node,
+    stream_qos,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulatorParams:
+    """Parameters of the simulator node (documented in params/simulator.yaml)."""
+
+    scenario: str = param("lorenz96", "scenario name (built-in or registered by a plugin)")
+    set: tuple[str, ...] = param((), "scenario constants as name=value, e.g. ['forcing=10.0']")
+    plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
+    noise_scale: float = param(-1.0, "observation-noise scale; negative = the scenario's (or set's) value")
+    seed: int = param(0, "seed of the simulated data (same seed, same data)")
+    trajectories: int = param(1, "number of trajectories, published one after the other")
+    horizon: int = param(0, "steps per trajectory; 0 = the scenario's default")
+    rate_hz: float = param(0.0, "steps published per second; 0 = real time (1 / dt)")
+    wait_for_subscribers: int = param(0, "observation subscriptions to wait for before starting")
+    wait_timeout: float = param(30.0, "seconds to wait for them (then start anyway, with a warning); 0 = forever")
+    start_delay: float = param(0.5, "extra seconds before the first step (discovery of the other topics)")
+    history_depth: int = param(1000, "depth of the observation / ground-truth publishers (transient_local)")
+    publish_ground_truth: bool = param(True, "publish ground_truth")
+    exit_when_done: bool = param(True, "shut down after the run (after linger seconds)")
+    linger: float = param(2.0, "seconds to stay up after the run so that reliable resends complete")
+
+
+class SimulatorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("simulator")
+        self.p = p = declare_params(self, SimulatorParams)
+        if p.trajectories < 1:
+            raise StartupError(f"trajectories must be >= 1, got {p.trajectories}")
+        if p.horizon < 0 or p.rate_hz < 0:
+            raise StartupError("horizon and rate_hz must be >= 0")
+        load_plugins(p.plugins)
+        self.scenario = build_scenario(p.scenario, p.set, p.noise_scale if p.noise_scale >= 0 else None)
+        from neural_estimator.data import simulate
+
+        self.horizon = p.horizon or self.scenario.horizon
+        self.rate = p.rate_hz or 1.0 / self.scenario.dt
+        self.data = simulate(self.scenario, p.trajectories, self.horizon, p.seed)
+        self.pub_scenario = self.create_publisher(String, M.SCENARIO, latched_qos())
+        self.pub_status = self.create_publisher(String, M.RUN_STATUS, latched_qos())
+        self.pub_obs = self.create_publisher(JointState, M.OBSERVATION, stream_qos(p.history_depth))
+        self.pub_truth = self.create_publisher(JointState, M.GROUND_TRUTH, stream_qos(p.history_depth))
+        self.get_logger().info(
+            f"{self.scenario.name}: {p.trajectories} trajectories x {self.horizon} steps at {self.rate:g} Hz "
+            f"(seed {p.seed}, dt {self.scenario.dt:g} s)"
+        )
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="simulator", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._wait_for_subscribers()
+            if not self._stop.wait(self.p.start_delay):
+                self._publish_run()
+        except Exception as exc:  # never leave the node spinning without its run
+            self.get_logger().fatal(f"simulation failed: {exc!r}")
+            request_shutdown(self, 1)
+
+    def _wait_for_subscribers(self) -> None:
+        want, timeout = self.p.wait_for_subscribers, self.p.wait_timeout
+        if want <= 0:
+            return
+        self.get_logger().info(f"waiting for {want} subscriber(s) on '{self.pub_obs.topic_name}'")
+        t0 = time.monotonic()
+        while self.pub_obs.get_subscription_count() < want:
+            if self._stop.wait(0.05):
+                return
+            if timeout > 0 and time.monotonic() - t0 > timeout:
+                self.get_logger().warning(
+                    f"only {self.pub_obs.get_subscription_count()} of {want} subscribers after {timeout:g} s: starting anyway"
+                )
+                return
+
+    def _publish_run(self) -> None:
+        p, s, d = self.p, self.scenario, self.data
+        N, T = d.n, d.horizon
+        period = M.dt_ns(s.dt)
+        start_ns = time.time_ns()
+        info = {"trajectories": N, "horizon": T, "messages": N * T}
+        self.pub_scenario.publish(M.encode_scenario(
+            s.describe(), seed=p.seed, trajectories=N, horizon=T, rate_hz=self.rate, start_ns=start_ns, dt_ns=period,
+            messages=N * T, node=self.get_fully_qualified_name(),
+        ))
+        self.pub_status.publish(M.encode_run_status(M.STATUS_STARTED, **info))
+        obs_names, state_names = M.observation_labels(s), M.state_labels(s)
+        zeros = np.zeros(s.du)
+        t0 = time.perf_counter()
+        late = 0
+        for n in range(N):
+            for k in range(T):
+                g = n * T + k
+                due = t0 + g / self.rate
+                wait = due - time.perf_counter()
+                if wait > 0:
+                    if self._stop.wait(wait):
+                        return
+                elif wait < -0.01:
+                    late += 1
+                stamp = M.step_stamp_ns(start_ns, g, period)
+                u_prev = d.u[n, k - 1] if k else zeros
+                self.pub_obs.publish(M.encode_vector(stamp, s.name, n, k, obs_names, np.concatenate([d.y[n, k], u_prev])))
+                if p.publish_ground_truth:
+                    self.pub_truth.publish(M.encode_vector(stamp, s.name, n, k, state_names, d.x[n, k]))
+            if self._stop.is_set():
+                return
+        elapsed = time.perf_counter() - t0
+        self.pub_status.publish(M.encode_run_status(M.STATUS_COMPLETE, elapsed_s=elapsed, **info))
+        self.get_logger().info(
+            f"run complete: {N * T} observations in {elapsed:.2f} s ({N * T / max(elapsed, 1e-9):.0f} Hz achieved, "
+            f"{late} steps more than 10 ms late)"
+        )
+        if p.exit_when_done and not self._stop.wait(p.linger):
+            request_shutdown(self, 0)
+
+    def on_shutdown(self) -> int:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        return int(getattr(self, "exit_code", 0) or 0)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SimulatorNode, "simulator", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

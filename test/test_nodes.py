@@ -1,0 +1,379 @@
+"""The ROS 2 nodes, live in an isolated ROS domain per test (processes started as the launcher does).
+
+The scenario is a small controlled system written to a plugin file, so that the nodes (separate
+processes) load it through their ``plugins`` parameter: observations carry a control u_{k-1}.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neural_estimator.bags import BagReader, BagWarning, arrays_to_bag, bag_to_arrays
+from neural_estimator.bags import messages as M
+from neural_estimator.data import simulate
+from neural_estimator.nodes.launch import (
+    ESTIMATOR,
+    EVALUATOR,
+    SIMULATOR,
+    PipelineConfig,
+    isolated_env,
+    node_command,
+    run_pipeline,
+)
+from neural_estimator.replay import replay
+
+pytest.importorskip("rclpy")
+
+PLUGIN = textwrap.dedent(
+    '''
+    """A cart pushed by a force (test scenario with a control input)."""
+    from dataclasses import dataclass
+
+    import numpy as np
+
+    from neural_estimator.scenarios import Scenario, register_scenario
+
+
+    @dataclass(frozen=True)
+    class CartConfig:
+        dt: float = 0.05
+        horizon: int = 40
+        noise_scale: float = 1.0
+        obs_noise_std: float = 0.1
+
+
+    class NodeCart(Scenario):
+        name = "nodecart"
+        Config = CartConfig
+        state_names = ("position", "velocity")
+        state_units = ("m", "m/s")
+        obs_names = ("position",)
+        obs_units = ("m",)
+        control_names = ("force",)
+        control_units = ("N",)
+
+        def f(self, x, u):
+            dt = self.config.dt
+            return np.stack([x[..., 0] + dt * x[..., 1], x[..., 1] + dt * u[..., 0]], axis=-1)
+
+        def h(self, x):
+            return x[..., :1]
+
+        def process_cov(self):
+            return np.diag([1e-6, 1e-3])
+
+        def obs_cov_nominal(self):
+            return np.array([[self.config.obs_noise_std ** 2]])
+
+        def prior(self):
+            return np.zeros(2), np.eye(2)
+
+        def sample_controls(self, rng, n, horizon):
+            return rng.standard_normal((n, horizon, 1))
+
+
+    register_scenario(NodeCart, replace=True)
+    '''
+)
+
+
+@pytest.fixture(scope="module")
+def plugin(tmp_path_factory) -> str:
+    path = tmp_path_factory.mktemp("plugin") / "nodecart.py"
+    path.write_text(PLUGIN)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def cart(plugin):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("nodecart_plugin", plugin)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.NodeCart()
+
+
+_used_domains: set[int] = set()
+
+
+@pytest.fixture
+def domain() -> int:
+    """A ROS domain of its own for each test (200..229: the launcher picks 100..199)."""
+    while True:
+        d = random.SystemRandom().randint(200, 229)
+        if d not in _used_domains:
+            _used_domains.add(d)
+            return d
+
+
+class Nodes:
+    """Node processes of one test; stopped (SIGINT, then SIGKILL) at the end."""
+
+    def __init__(self, domain: int, log_dir: Path) -> None:
+        self.env = isolated_env(domain)
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, module: str, name: str, **params) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "wb")
+        proc = subprocess.Popen(node_command(sys.executable, module, name, params), stdout=log,
+                                stderr=subprocess.STDOUT, env=self.env)
+        log.close()
+        self.procs[name] = proc
+        return proc
+
+    def log(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text(errors="replace")
+
+    def wait(self, name: str, timeout: float) -> int:
+        try:
+            return self.procs[name].wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"{name} still running after {timeout} s; log:\n{self.log(name)}") from None
+
+    def stop_all(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+@pytest.fixture
+def nodes(domain, tmp_path):
+    n = Nodes(domain, tmp_path)
+    yield n
+    n.stop_all()
+
+
+# ---- the whole chain -------------------------------------------------------------------------------------
+def test_live_chain_records_scores_and_equals_replay(plugin, cart, domain, tmp_path):
+    bag = tmp_path / "live.mcap"
+    cfg = PipelineConfig(scenario="nodecart", methods=("ekf", "ukf"), trajectories=2, horizon=40, rate_hz=200.0,
+                         seed=3, plugins=(plugin,), output=str(bag), domain_id=domain, timeout=100.0)
+    res = run_pipeline(cfg)
+    assert res.returncodes["evaluator"] == 0 and res.bag == bag
+    N, T = 2, 40
+
+    # the recorded file: every stream complete, identities right, estimates finite
+    with BagReader(bag, strict=True) as reader:
+        counts = {t: c.msgcount for t, c in reader.topics.items()}
+        assert all(c.message_encoding == "cdr" for c in reader.connections)
+    for topic in ("/observation", "/ground_truth", "/estimates/ekf", "/estimates/ukf",
+                  "/estimates/ekf/covariance", "/estimates/ukf/covariance"):
+        assert counts[topic] == N * T, (topic, counts)
+    assert counts["/scenario"] == 1 and counts["/run_status"] == 2
+    run = bag_to_arrays(bag)
+    assert run.complete and run.trajectories.tolist() == [0, 1]
+    assert all(v == 0 for v in run.missing.values()) and not run.rejected and not run.duplicates
+    data = simulate(cart, N, T, seed=3)  # the simulator publishes exactly these data
+    np.testing.assert_array_equal(run.x, data.x)
+    np.testing.assert_array_equal(run.y, data.y)
+    np.testing.assert_array_equal(run.u[:, :-1], data.u[:, :-1])
+    for m in ("ekf", "ukf"):
+        assert np.isfinite(run.x_hat[m]).all() and np.isfinite(run.P_hat[m]).all()
+    assert np.all(np.diff(run.stamps.reshape(-1)) > 0)
+
+    # the evaluator's metrics, from the file
+    metrics = res.metrics()
+    assert set(metrics["methods"]) == {"ekf", "ukf"} and metrics["trajectories"] == N
+    for m in ("ekf", "ukf"):
+        rmse = metrics["methods"][m]["rmse"]
+        assert 0 < rmse < 1.0 and metrics["methods"][m]["n_diverged"] == 0
+    assert {"markdown", "json", "png"} <= set(res.reports) and res.reports["png"].stat().st_size > 0
+
+    # offline replay of the recorded observations == the live estimates
+    out = replay(bag, ["ekf", "ukf"], tmp_path / "replayed.mcap")
+    assert out.estimates == {"ekf": N * T, "ukf": N * T}
+    rep = bag_to_arrays(out.path)
+    for m in ("ekf", "ukf"):
+        np.testing.assert_allclose(rep.x_hat[m], run.x_hat[m], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(rep.P_hat[m], run.P_hat[m], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(rep.x, run.x)  # the rest of the bag is carried over
+
+
+# ---- one estimator node and bad input ----------------------------------------------------------------------
+def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatch):
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    from neural_estimator.nodes.common import stream_qos
+
+    nodes.start(ESTIMATOR, "est", method="ekf", scenario="nodecart", plugins=[plugin], diagnostics_period=0.3,
+                log_throttle=0.0)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx, ctx2 = rclpy.Context(), rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = rclpy.create_node("tester", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        estimates, diags = [], []
+        node.create_subscription(JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)),
+                                 stream_qos(100), raw=True)
+        node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+        pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
+        # another type on the same topic needs another DDS participant: a second context
+        rclpy.init(context=ctx2, domain_id=domain)
+        foreign = rclpy.create_node("foreign", context=ctx2).create_publisher(String, "observation", 10)
+
+        def spin_until(pred, timeout=20.0):
+            t0 = time.monotonic()
+            while not pred():
+                if time.monotonic() - t0 > timeout:
+                    raise AssertionError(f"timed out; estimator log:\n{nodes.log('est')}")
+                ex.spin_once(timeout_sec=0.05)
+
+        spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ekf") >= 1)
+        labels = M.observation_labels(cart)
+
+        def obs(step, values, names=labels, trajectory=0):
+            return M.encode_vector(step, cart.name, trajectory, step, names, values)
+
+        J = M.TYPESTORE.types[M.JOINT_STATE]
+        empty_joint_state = bytes(M.TYPESTORE.serialize_cdr(J(
+            header=M.TYPESTORE.types["std_msgs/msg/Header"](
+                stamp=M.TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""),
+            name=[], position=np.zeros(0), velocity=np.zeros(0), effort=np.zeros(0)), M.JOINT_STATE))
+        sequence = [
+            obs(0, [0.1, 0.0]),
+            obs(1, [0.2, 0.5]),
+            obs(2, [0.3], names=("position",)),              # bad: wrong width
+            obs(2, [np.nan, 0.5]),                           # NaN observation: predict only
+            obs(3, [0.4, np.inf]),                           # bad: non-finite control
+            empty_joint_state,                               # bad: empty JointState
+            b"\x00\x01\x00\x00\x07garbage",                  # bad: unparsable
+            obs(3, [0.4, 0.1], names=("velocity", "u_prev/force")),  # bad: wrong names
+            obs(3, [0.4, 0.1]),
+            obs(1, [0.2, 0.5]),                              # out of order: skipped
+            obs(3, [0.4, 0.1]),                              # duplicate: skipped
+            obs(6, [0.7, 0.1]),                              # gap: steps 4, 5 bridged
+        ]
+        for raw in sequence:
+            pub.publish(raw)
+        foreign.publish(String(data="wrong type on the observation topic"))
+        spin_until(lambda: len(estimates) >= 5)
+
+        def diag_values():
+            for arr in reversed(diags):
+                for st in arr.status:
+                    if "ekf estimator" in st.name:
+                        return {kv.key: kv.value for kv in st.values}, st
+            return None, None
+
+        spin_until(lambda: diag_values()[0] is not None and "foreign" in diag_values()[1].message)
+        spin_until(lambda: diag_values()[0]["estimates published"] == "5")
+        values, status = diag_values()
+        assert [(e.trajectory, e.step) for e in estimates] == [(0, 0), (0, 1), (0, 2), (0, 3), (0, 6)]
+        assert all(np.isfinite(e.values).all() for e in estimates)
+        assert values["bad messages"] == "5"
+        assert values["non-finite observations"] == "1"
+        assert values["out-of-order steps"] == "1" and values["duplicate steps"] == "1"
+        assert values["missing steps bridged"] == "2"
+        assert values["diverged"] == "false" and float(values["latency p99 since start (ms)"]) > 0
+        assert "std_msgs/msg/String" in status.message
+
+        client = node.create_client(Trigger, "est/reset")
+        spin_until(lambda: client.service_is_ready())
+        fut = client.call_async(Trigger.Request())
+        spin_until(fut.done)
+        assert fut.result().success
+        pub.publish(obs(0, [0.0, 0.0], trajectory=1))
+        spin_until(lambda: len(estimates) >= 6)
+        assert (estimates[-1].trajectory, estimates[-1].step) == (1, 0)
+        assert nodes.procs["est"].poll() is None  # still up after all of it
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        rclpy.try_shutdown(context=ctx2)
+    log = nodes.log("est")
+    for text in ("bad observation dropped", "empty JointState", "cannot parse", "has 1 values",
+                 "unexpected names", "control u_prev contains NaN", "stale observation", "duplicate observation",
+                 "bridged by predict-only steps", "NaN/inf: predict only", "wrong type"):
+        assert text in log, text
+
+
+@pytest.mark.parametrize(
+    "params, text",
+    [
+        ({"method": "kalman"}, "unknown method 'kalman'"),
+        ({"method": "gru", "checkpoint": "/nonexistent/ckpt"}, "does not exist"),
+        ({"method": "ukf", "scenario": "no_such_scenario"}, "unknown scenario 'no_such_scenario'"),
+        ({"method": "ukf", "queue_depth": "many"}, "parameter queue_depth must be an integer, got 'many'"),
+    ],
+)
+def test_estimator_refuses_to_start(params, text, nodes):
+    nodes.start(ESTIMATOR, "bad", **{"scenario": "lorenz96", **params})
+    assert nodes.wait("bad", 60) == 1
+    assert text in nodes.log("bad")
+
+
+# ---- recording ends cleanly on signals; a killed recorder's file is recovered --------------------------------
+def test_evaluator_signals_and_crash_recovery(plugin, nodes, tmp_path):
+    term_bag, kill_bag = tmp_path / "term.mcap", tmp_path / "kill.mcap"
+    for name, bag in (("rec_term", term_bag), ("rec_kill", kill_bag)):
+        nodes.start(EVALUATOR, name, output=str(bag), chunk_size=2048, compute_metrics=False)
+    nodes.start(SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=1, horizon=100000,
+                rate_hz=200.0, wait_for_subscribers=2, start_delay=0.5)
+    t0 = time.monotonic()
+    while "run started" not in nodes.log("rec_kill") or "run started" not in nodes.log("rec_term"):
+        assert time.monotonic() - t0 < 30, nodes.log("sim") + nodes.log("rec_kill")
+        time.sleep(0.1)
+    time.sleep(1.5)
+    nodes.procs["rec_term"].send_signal(signal.SIGTERM)
+    nodes.procs["rec_kill"].send_signal(signal.SIGKILL)
+    assert nodes.wait("rec_term", 20) == 0
+    nodes.wait("rec_kill", 20)
+
+    with BagReader(term_bag, strict=True) as reader:  # SIGTERM: a complete, closed file
+        n_obs = reader.topics["/observation"].msgcount
+        assert n_obs > 50 and reader.topics["/scenario"].msgcount == 1
+    assert "closing the bag" in nodes.log("rec_term")
+
+    with warnings.catch_warnings(record=True) as caught:  # SIGKILL: no summary; complete chunks recovered
+        warnings.simplefilter("always")
+        run = bag_to_arrays(kill_bag)
+    damage = [str(w.message) for w in caught if issubclass(w.category, BagWarning)]
+    assert damage and ("without its summary" in damage[0] or "inside a" in damage[0])
+    got = run.present["observation"]
+    assert got.sum() > 20
+    assert np.array_equal(got[0, : got.sum()], np.ones(got.sum(), dtype=bool))  # a prefix, no holes
+
+
+# ---- playing a bag into a live estimator ----------------------------------------------------------------------
+def test_player_feeds_live_estimator_like_replay(plugin, cart, nodes, tmp_path):
+    data = simulate(cart, 2, 30, seed=7)
+    sample = arrays_to_bag(tmp_path / "sample.mcap", cart, data.x, data.y, data.u, start_ns=10**18,
+                           estimates={"ukf": np.zeros_like(data.x)})  # played estimates are left out
+    rec = tmp_path / "played.mcap"
+    nodes.start(EVALUATOR, "rec", output=str(rec), methods=["ukf"], compute_metrics=True)
+    nodes.start(ESTIMATOR, "est", method="ukf", plugins=[plugin])  # scenario from the bag's scenario topic
+    nodes.start("neural_estimator.nodes.player_node", "player", bag=str(sample), rate=10.0,
+                wait_for_subscribers=2, start_delay=0.5)
+    assert nodes.wait("rec", 90) == 0, nodes.log("rec") + nodes.log("est") + nodes.log("player")
+    assert nodes.wait("player", 30) == 0
+    live = bag_to_arrays(rec)
+    np.testing.assert_array_equal(live.x, data.x)
+    assert live.received["estimates/ukf"] == 60 and np.isfinite(live.x_hat["ukf"]).all()
+    offline = bag_to_arrays(replay(sample, ["ukf"], tmp_path / "offline.mcap").path)
+    np.testing.assert_allclose(live.x_hat["ukf"], offline.x_hat["ukf"], rtol=0, atol=1e-12)
+    assert "ukf" in rec.with_name("played.metrics.md").read_text()
