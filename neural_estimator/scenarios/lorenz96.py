@@ -113,7 +113,16 @@ class Lorenz96(Scenario):
 
     # ---- the model -------------------------------------------------------------------------
     def _field(self, x: np.ndarray) -> np.ndarray:
-        return (np.roll(x, -1, axis=-1) - np.roll(x, 2, axis=-1)) * np.roll(x, 1, axis=-1) - x + self.config.forcing
+        # dX_j/dt = (X_{j+1} - X_{j-2}) X_{j-1} - X_j + F on a ring. One wrap-padded copy
+        # [X_{J-2}, X_{J-1}, X_0 .. X_{J-1}, X_0] and three slices of it replace three np.roll
+        # copies (the UKF calls this on (2J+1) B sigma points four times a step).
+        n = x.shape[-1]
+        xp = np.concatenate((x[..., -2:], x, x[..., :1]), axis=-1)  # index j + 2 holds X_j
+        out = xp[..., 3 : n + 3] - xp[..., 0:n]  # X_{j+1} - X_{j-2}
+        out *= xp[..., 1 : n + 1]  # * X_{j-1}
+        out -= x
+        out += self.config.forcing
+        return out
 
     def f(self, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
         """One sampling period of RK4; (..., J) -> (..., J)."""
