@@ -95,10 +95,16 @@ def _cmd_scenarios(args) -> int:
     if args.json:
         print(json.dumps(descs, indent=2))
         return 0
+    def names(ns, us):
+        if len(ns) > 8:
+            return f"{ns[0]} .. {ns[-1]} ({len(ns)})" + (f" [{us[0]}]" if us[0] else "")
+        return ", ".join(f"{n} [{u}]" if u else n for n, u in zip(ns, us))
+
     for d in descs:
-        print(f"{d['scenario']}: x = [{', '.join(f'{n} [{u}]' for n, u in zip(d['state_names'], d['state_units']))}]")
-        print(f"  y = [{', '.join(f'{n} [{u}]' for n, u in zip(d['obs_names'], d['obs_units']))}]"
-              + (f", u = [{', '.join(d['control_names'])}]" if d["control_names"] else ""))
+        print(f"{d['scenario']}: x = [{names(d['state_names'], d['state_units'])}]")
+        print(f"  y = [{names(d['obs_names'], d['obs_units'])}]"
+              + (f", u = [{names(d['control_names'], d['control_units'])}]" if d["control_names"] else "")
+              + f", dt = {d['dt']} s")
         print("  " + ", ".join(f"{k}={v}" for k, v in d["config"].items() if not isinstance(v, list) or len(v) <= 4))
     return 0
 
