@@ -77,8 +77,9 @@ class OnlineEstimator:
         self.publish_covariance = bool(publish_covariance and estimator.has_covariance)
         self.max_gap = int(max_gap)
         self._obs_labels = M.observation_labels(self.scenario)
-        self._state_labels = M.state_labels(self.scenario)
-        self._cov_labels = M.covariance_labels(self.scenario.dx)
+        self._obs_codec = M.VectorCodec(self.scenario.name, self._obs_labels)
+        self._est_codec = M.VectorCodec(method, M.state_labels(self.scenario))
+        self._cov_codec = M.VectorCodec(method, M.covariance_labels(self.scenario.dx))
         self._dy = self.scenario.dy
         self.trajectory: int | None = None
         self.step = -1
@@ -98,7 +99,7 @@ class OnlineEstimator:
 
     def process(self, raw: bytes | memoryview) -> StepResult:
         """Consume one observation message; raises MessageError for a message that cannot be used."""
-        vec = M.decode_vector(raw)
+        vec = self._obs_codec.decode(raw)
         values = M.check_labels(vec, self._obs_labels, "observation")
         y, u_prev = values[None, : self._dy], values[None, self._dy :]
         if not np.all(np.isfinite(u_prev)):
@@ -127,11 +128,10 @@ class OnlineEstimator:
             raise MessageError(f"observation {vec.trajectory}/{vec.step}: {exc}") from None
         self.step = vec.step
         self._u_hold = u_prev
-        est = M.encode_vector(vec.stamp_ns, self.method, vec.trajectory, vec.step, self._state_labels, x_hat)
+        est = self._est_codec.encode(vec.stamp_ns, vec.trajectory, vec.step, x_hat)
         cov = None
         if self.publish_covariance and self.estimator.covariance is not None:
-            cov = M.encode_vector(vec.stamp_ns, self.method, vec.trajectory, vec.step, self._cov_labels,
-                                  self.estimator.covariance[0].reshape(-1))
+            cov = self._cov_codec.encode(vec.stamp_ns, vec.trajectory, vec.step, self.estimator.covariance[0])
         diverged = bool(self.estimator.diverged[0]) if len(self.estimator.diverged) else False
         return StepResult(
             "estimated", vec.trajectory, vec.step, vec.stamp_ns, est, cov, x_hat,

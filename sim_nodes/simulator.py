@@ -131,7 +131,8 @@ class SimulatorNode(Node):
             messages=N * T, node=self.get_fully_qualified_name(),
         ))
         self.pub_status.publish(M.encode_run_status(M.STATUS_STARTED, **info))
-        obs_names, state_names = M.observation_labels(s), M.state_labels(s)
+        obs_codec = M.VectorCodec(s.name, M.observation_labels(s))
+        truth_codec = M.VectorCodec(s.name, M.state_labels(s))
         zeros = np.zeros(s.du)
         t0 = time.perf_counter()
         late = 0
@@ -147,9 +148,9 @@ class SimulatorNode(Node):
                     late += 1
                 stamp = M.step_stamp_ns(start_ns, g, period)
                 u_prev = d.u[n, k - 1] if k else zeros
-                self.pub_obs.publish(M.encode_vector(stamp, s.name, n, k, obs_names, np.concatenate([d.y[n, k], u_prev])))
+                self.pub_obs.publish(obs_codec.encode(stamp, n, k, np.concatenate([d.y[n, k], u_prev])))
                 if p.publish_ground_truth:
-                    self.pub_truth.publish(M.encode_vector(stamp, s.name, n, k, state_names, d.x[n, k]))
+                    self.pub_truth.publish(truth_codec.encode(stamp, n, k, d.x[n, k]))
             if self._stop.is_set():
                 return
         elapsed = time.perf_counter() - t0

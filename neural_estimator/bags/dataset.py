@@ -115,7 +115,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         received: dict[str, int] = {}
         duplicates: dict[str, int] = {}
         rejected: dict[str, int] = {}
-        pending: list[tuple[str, M.Vector]] = []
+        pending: list[tuple[str, bytes]] = []
         for conn, _, raw in bag.messages(list(roles)):
             role = roles[conn.topic]
             key = _stream_key(role)
@@ -127,7 +127,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
                 if role.kind == M.RUN_STATUS:
                     status.append(M.decode_run_status(raw))
                     continue
-                pending.append((key, M.decode_vector(raw)))
+                pending.append((key, raw))
             except MessageError:
                 rejected[key] = rejected.get(key, 0) + 1
     if desc is None:
@@ -140,12 +140,21 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         M.GROUND_TRUTH: M.state_labels(desc),
     }
     state_names, cov_names = M.state_labels(desc), M.covariance_labels(dx)
-    for key, vec in pending:
-        if key.startswith(M.ESTIMATES + "/"):
-            names = cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else state_names
-        else:
-            names = expected[key]
-        if vec.names != tuple(names):
+    codecs: dict[str, M.VectorCodec] = {}
+    for key, raw in pending:
+        codec = codecs.get(key)
+        if codec is None:
+            if key.startswith(M.ESTIMATES + "/"):
+                names = cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else state_names
+            else:
+                names = expected[key]
+            codec = codecs[key] = M.VectorCodec("", names)
+        try:
+            vec = codec.decode(raw)
+        except MessageError:
+            rejected[key] = rejected.get(key, 0) + 1
+            continue
+        if vec.names != codec.names:
             rejected[key] = rejected.get(key, 0) + 1
             continue
         store = cells.setdefault(key, {})
@@ -262,8 +271,10 @@ def arrays_to_bag(
             raise BagError(f"covariances[{m!r}] must be {(N, T, scenario.dx, scenario.dx)}, got {np.shape(a)}")
     period = M.dt_ns(scenario.dt)
     topic = lambda rel: M.resolve_topic(rel, namespace)  # noqa: E731
-    state_names, obs_names = M.state_labels(scenario), M.observation_labels(scenario)
-    cov_names = M.covariance_labels(scenario.dx)
+    obs_codec = M.VectorCodec(scenario.name, M.observation_labels(scenario))
+    truth_codec = M.VectorCodec(scenario.name, M.state_labels(scenario))
+    est_codecs = {m: M.VectorCodec(m, M.state_labels(scenario)) for m in estimates}
+    cov_codecs = {m: M.VectorCodec(m, M.covariance_labels(scenario.dx)) for m in covariances}
     info = {"trajectories": N, "horizon": T, "messages": N * T}
     with BagWriter(path, overwrite=overwrite, chunk_size=chunk_size) as bag:
         bag.add_topic(topic(M.SCENARIO), M.STRING, qos=[LATCHED_QOS])
@@ -282,14 +293,12 @@ def arrays_to_bag(
             for k in range(T):
                 stamp = M.step_stamp_ns(start_ns, n * T + k, period)
                 u_prev = u[n, k - 1] if k else np.zeros(scenario.du)
-                bag.write(topic(M.OBSERVATION), stamp, M.encode_vector(stamp, scenario.name, n, k, obs_names,
-                                                                       np.concatenate([y[n, k], u_prev])))
-                bag.write(topic(M.GROUND_TRUTH), stamp, M.encode_vector(stamp, scenario.name, n, k, state_names, x[n, k]))
+                bag.write(topic(M.OBSERVATION), stamp, obs_codec.encode(stamp, n, k, np.concatenate([y[n, k], u_prev])))
+                bag.write(topic(M.GROUND_TRUTH), stamp, truth_codec.encode(stamp, n, k, x[n, k]))
                 for m, a in estimates.items():
-                    bag.write(topic(M.estimate_topic(m)), stamp, M.encode_vector(stamp, m, n, k, state_names, a[n, k]))
+                    bag.write(topic(M.estimate_topic(m)), stamp, est_codecs[m].encode(stamp, n, k, a[n, k]))
                 for m, a in covariances.items():
-                    bag.write(topic(M.covariance_topic(m)), stamp,
-                              M.encode_vector(stamp, m, n, k, cov_names, np.asarray(a[n, k]).reshape(-1)))
+                    bag.write(topic(M.covariance_topic(m)), stamp, cov_codecs[m].encode(stamp, n, k, a[n, k]))
         bag.write(topic(M.RUN_STATUS), stamp, M.encode_run_status(M.STATUS_COMPLETE, **info))
     return Path(path)
 

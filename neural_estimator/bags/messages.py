@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -264,6 +265,74 @@ def check_labels(vec: Vector, expected: Sequence[str], what: str) -> np.ndarray:
     return vec.values
 
 
+class VectorCodec:
+    """Fast CDR encoding and decoding of one vector stream (fixed frame_id and value names).
+
+    The bytes are exactly those of :func:`encode_vector` (the rosbags serializer), written with
+    precomputed parts: a few microseconds instead of tens, which matters at kilohertz rates.
+    :meth:`decode` takes a fast path when a message has exactly the expected names and falls back
+    to :func:`decode_vector` otherwise, so malformed input gets the same clear errors.
+    """
+
+    _ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
+
+    def __init__(self, frame_id: str, names: Sequence[str]) -> None:
+        self.frame_id = str(frame_id)
+        self.names = tuple(names)
+        frame = _cdr_string(self.frame_id)
+        labels = [*ID_NAMES, *self.names]
+        block = bytearray(struct.pack("<I", len(labels)))
+        for label in labels:
+            block += _pad4(len(block)) + _cdr_string(label)
+        self._block = bytes(block + _pad4(len(block)) + struct.pack("<I", len(labels)))
+        self._n = len(labels)
+        # offsets are counted from the end of the 4-byte encapsulation header
+        self._prefix_after_stamp = frame + _pad4(8 + len(frame))
+        start = 8 + len(self._prefix_after_stamp)
+        end = start + len(self._block)
+        self._mid = self._prefix_after_stamp + self._block + b"\x00" * ((-end) % 8)
+        self._values_at = end + (-end) % 8
+
+    def encode(self, stamp_ns: int, trajectory: int, step: int, values: Any) -> bytes:
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        if values.shape[0] != self._n - 2:
+            raise MessageError(f"{len(self.names)} names for {values.shape[0]} values")
+        sec, nsec = split_ns(stamp_ns)
+        return b"".join((self._ENCAPSULATION, struct.pack("<iI", sec, nsec), self._mid,
+                         struct.pack("<dd", trajectory, step), values.tobytes(), b"\x00" * 8))
+
+    def decode(self, raw: bytes | memoryview) -> Vector:
+        n_raw = len(raw)
+        try:
+            if bytes(raw[:4]) == self._ENCAPSULATION:
+                sec, nsec, flen = struct.unpack_from("<iII", raw, 4)
+                o = 12 + flen  # end of frame_id (offset from the payload start)
+                o += (-o) % 4
+                if bytes(raw[4 + o : 4 + o + len(self._block)]) == self._block:
+                    o += len(self._block)
+                    o += (-o) % 8
+                    end = o + 8 * self._n
+                    if n_raw >= 4 + end + 8 and bytes(raw[4 + end : 4 + end + 8]) == b"\x00" * 8:
+                        position = np.frombuffer(raw, dtype="<f8", count=self._n, offset=4 + o)
+                        traj, step = float(position[0]), float(position[1])
+                        if all(math.isfinite(v) and v == int(v) and 0 <= v < _MAX_INDEX for v in (traj, step)):
+                            frame = bytes(raw[16 : 16 + flen - 1]).decode("utf-8", errors="replace")
+                            return Vector(sec * 1_000_000_000 + nsec, frame, int(traj), int(step), self.names,
+                                          position[2:].astype(np.float64))
+        except struct.error:
+            pass
+        return decode_vector(raw)
+
+
+def _cdr_string(text: str) -> bytes:
+    data = text.encode() + b"\x00"
+    return struct.pack("<I", len(data)) + data
+
+
+def _pad4(n: int) -> bytes:
+    return b"\x00" * ((-n) % 4)
+
+
 def encode_observation(
     scenario: Any, stamp_ns: int, trajectory: int, step: int, y: Any, u_prev: Any | None = None
 ) -> bytes:
@@ -335,7 +404,7 @@ def decode_run_status(raw: bytes | memoryview) -> dict[str, Any]:
 __all__ = [
     "COVARIANCE_SUFFIX", "CONTROL_PREFIX", "ESTIMATES", "GROUND_TRUTH", "ID_NAMES", "JOINT_STATE",
     "OBSERVATION", "RUN_STATUS", "SCENARIO", "STATUS_COMPLETE", "STATUS_STARTED", "STRING",
-    "TYPESTORE", "TopicRole", "Vector", "check_labels", "covariance_labels", "covariance_topic",
+    "TYPESTORE", "TopicRole", "Vector", "VectorCodec", "check_labels", "covariance_labels", "covariance_topic",
     "decode_run_status", "decode_scenario", "decode_string", "decode_vector", "dt_ns",
     "encode_observation", "encode_run_status", "encode_scenario", "encode_string", "encode_vector",
     "estimate_topic", "observation_labels", "resolve_topic", "split_ns", "split_observation",
