@@ -1,0 +1,128 @@
+"""Training throughput of the six architectures: windows per second at the paper's batch and window.
+
+One training step is what :func:`neural_estimator.models.training.train` does per batch: forward a
+(64, 100, d_in) batch, the weighted MSE on (64, 100, d_out), backward, gradient clipping at 1.0 and
+an AdamW step. Inputs are random (throughput does not depend on the data); the default widths are
+Lorenz 96's (d_in = d_out = 40), the largest of the paper's five systems. Also measured: the
+validation forward (eval mode, no grad) over full-length trajectories, in timesteps per second, and
+from both the cost of one epoch at the paper's 20:1 setting (20,000 windows + 8,000 x 500
+validation steps).
+
+    python benchmarks/bench_training.py                      # all six, CPU
+    python benchmarks/bench_training.py --archs gru,mamba --device cuda --iters 50
+
+Prints a markdown table and the command that produced it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import shlex
+import sys
+import time
+
+import torch
+
+from neural_estimator.models import ARCHITECTURES, build_model
+from neural_estimator.models.neural import resolve_device
+from neural_estimator.models.training import weighted_loss
+
+EPOCH_WINDOWS = 20_000  # windows per epoch at 20:1 (protocol.windows_per_epoch)
+VAL_STEPS = 8_000 * 500  # validation timesteps per epoch
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def bench_arch(arch: str, args: argparse.Namespace, device: torch.device) -> dict[str, float]:
+    torch.manual_seed(0)
+    model = build_model(arch, args.d_in, args.d_out).to(device).train()
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-5)
+    z = torch.randn(args.batch, args.window, args.d_in, device=device)
+    x = torch.randn(args.batch, args.window, args.d_out, device=device)
+    w = torch.ones(args.batch, args.window, device=device)
+    w[:, :10] = 0.0
+    no_angles = torch.zeros(args.d_out, dtype=torch.bool, device=device)
+
+    def train_step() -> None:
+        loss = weighted_loss(model(z), x, w, no_angles)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+
+    for _ in range(args.warmup):
+        train_step()
+    _sync(device)
+    t0 = time.perf_counter()
+    for _ in range(args.iters):
+        train_step()
+    _sync(device)
+    train_s = (time.perf_counter() - t0) / args.iters
+
+    model.eval()
+    zv = torch.randn(args.val_batch, args.val_length, args.d_in, device=device)
+    with torch.no_grad():
+        model(zv)
+        _sync(device)
+        t0 = time.perf_counter()
+        for _ in range(args.val_iters):
+            model(zv)
+        _sync(device)
+    val_s = (time.perf_counter() - t0) / args.val_iters
+    windows_per_s = args.batch / train_s
+    val_steps_per_s = args.val_batch * args.val_length / val_s
+    return {
+        "params": sum(p.numel() for p in model.parameters()),
+        "ms_per_step": 1e3 * train_s,
+        "windows_per_s": windows_per_s,
+        "val_steps_per_s": val_steps_per_s,
+        "epoch_s": EPOCH_WINDOWS / windows_per_s + VAL_STEPS / val_steps_per_s,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--archs", default=",".join(ARCHITECTURES), help="comma-separated architectures")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--window", type=int, default=100)
+    p.add_argument("--d-in", type=int, default=40, help="input width (Lorenz 96: 40)")
+    p.add_argument("--d-out", type=int, default=40, help="state width (Lorenz 96: 40)")
+    p.add_argument("--warmup", type=int, default=2, help="untimed training steps first")
+    p.add_argument("--iters", type=int, default=10, help="timed training steps")
+    p.add_argument("--val-batch", type=int, default=100)
+    p.add_argument("--val-length", type=int, default=500)
+    p.add_argument("--val-iters", type=int, default=1)
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    args = p.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    archs = [a.strip() for a in args.archs.split(",") if a.strip()]
+    unknown = [a for a in archs if a not in ARCHITECTURES]
+    if unknown:
+        p.error(f"unknown architectures {unknown}; known: {', '.join(ARCHITECTURES)}")
+
+    if device.type == "cuda":
+        where = torch.cuda.get_device_name(device)
+    else:
+        where = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
+    print(f"Training throughput, batch {args.batch} x window {args.window}, d_in={args.d_in}, d_out={args.d_out}, "
+          f"{device} ({where}), torch {torch.__version__}\n")
+    print("| model | params | ms / step | windows / s | val steps / s | epoch at 20:1 (s) |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for arch in archs:
+        r = bench_arch(arch, args, device)
+        print(f"| {arch} | {r['params']:,} | {r['ms_per_step']:.1f} | {r['windows_per_s']:,.0f} | "
+              f"{r['val_steps_per_s']:,.0f} | {r['epoch_s']:,.0f} |", flush=True)
+    print(f"\nepoch = {EPOCH_WINDOWS:,} training windows + {VAL_STEPS:,} validation timesteps")
+    words = [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]
+    print("command: python " + " ".join(shlex.quote(a) for a in words))
+
+
+if __name__ == "__main__":
+    main()

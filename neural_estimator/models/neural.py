@@ -1,0 +1,165 @@
+"""The estimator interface over a trained sequence model: normalise, run the network, denormalise.
+
+One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2). At step k
+
+    z_k   = [y_k, u_{k-1}]                           (the paper's input; u_{-1} = 0)
+    z_n   = (z_k - mu_z) / sigma_z                   (training-set statistics, see normalization.py)
+    x_n, state = model.step(z_n, state)              (torch.inference_mode, eval mode, float32)
+    x_hat = mu_x + sigma_x x_n                       (float64 numpy, angles wrapped to (-pi, pi])
+
+:meth:`NeuralEstimator.run` uses the model's parallel form over whole sequences instead (chunked
+over the batch to bound memory); a test holds it equal to a loop of :meth:`NeuralEstimator.step`.
+A non-finite observation row is replaced by the training mean (0 after normalisation) and flagged in
+``skipped``. Filterformer also returns a covariance from its geometric-attention head, mapped back
+to state units as diag(sigma_x) C_n diag(sigma_x).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from neural_estimator.estimators import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.models.normalization import Normalizer
+from neural_estimator.scenarios import Scenario
+
+CHUNK_TIMESTEPS = 1 << 16  # sequences x steps per parallel forward in run(): bounds activation memory
+
+
+def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
+    """``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (cuda when available) as a torch.device.
+
+    Raises:
+        EstimatorError: an unknown device, or cuda requested where torch sees no GPU.
+    """
+    name = "cpu" if device is None else str(device).strip().lower()
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise EstimatorError(f"unknown device {device!r}; use cpu, cuda, cuda:N or auto") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise EstimatorError(f"unsupported device {device!r}; use cpu, cuda, cuda:N or auto")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise EstimatorError(
+            f"device {device!r} requested, but torch {torch.__version__} sees no CUDA GPU; use device='cpu'"
+        )
+    return dev
+
+
+class NeuralEstimator(Estimator):
+    """A trained sequence model behind the :class:`~neural_estimator.estimators.Estimator` contract.
+
+    Args:
+        scenario: the system the model was trained on (dimensions are checked).
+        model: a module of :mod:`neural_estimator.models` (``forward``, ``init_state``, ``step``;
+            Filterformer also ``forward_with_cov`` and ``step_with_cov``).
+        normalizer: the training-set statistics.
+        method: the method name (``gru``, ``lstm``, ``gpt2``, ``filterformer``, ``mamba``, ``mamba2``).
+        device: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``.
+        covariance: report the covariance where the model has one (Filterformer). False skips it,
+            which saves (B, T, dx, dx) memory in :meth:`run`.
+        card: the checkpoint card (kept as ``self.card`` for provenance).
+        chunk_timesteps: at most this many sequences x steps go through one parallel forward.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        model: nn.Module,
+        normalizer: Normalizer,
+        method: str,
+        device: str | torch.device = "cpu",
+        covariance: bool = True,
+        card: dict[str, Any] | None = None,
+        chunk_timesteps: int = CHUNK_TIMESTEPS,
+    ) -> None:
+        super().__init__(scenario)
+        self.method = method  # instance attribute: one class serves the six methods
+        n = normalizer
+        if (n.dy, n.du, n.dx) != (scenario.dy, scenario.du, scenario.dx):
+            raise EstimatorError(
+                f"{method}: normalisation statistics are for dy={n.dy}, du={n.du}, dx={n.dx}, but scenario "
+                f"{scenario.name!r} has dy={scenario.dy}, du={scenario.du}, dx={scenario.dx}"
+            )
+        self.normalizer = normalizer
+        self.device = resolve_device(device)
+        self.model = model.to(self.device).eval()  # serving is always eval mode (no dropout)
+        self.dtype = next(self.model.parameters()).dtype
+        self.has_covariance = bool(covariance) and hasattr(model, "step_with_cov")
+        self.card = dict(card or {})
+        self.chunk_timesteps = int(chunk_timesteps)
+        self._state: Any = None
+
+    # ---- streaming -------------------------------------------------------------------------------
+    def reset(self, batch: int = 1) -> None:
+        batch = int(batch)
+        if batch < 1:
+            raise EstimatorError(f"{self.method}: batch must be >= 1, got {batch}")
+        self.model.eval()
+        with torch.inference_mode():
+            self._state = self.model.init_state(batch, device=self.device, dtype=self.dtype)
+        self.batch = batch
+        self.covariance = None
+        self.diverged = np.zeros(batch, dtype=bool)
+        self.skipped = np.zeros(batch, dtype=bool)
+
+    def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
+        if self._state is None:
+            raise EstimatorError(f"{self.method}: call reset(batch) before step")
+        y, u_prev = self.check_step(y, u_prev)
+        z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
+        z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
+        with torch.inference_mode():
+            if self.has_covariance:
+                mean, cov, self._state = self.model.step_with_cov(z_t, self._state)  # (B, dx), (B, dx, dx)
+            else:
+                mean, self._state = self.model.step(z_t, self._state)
+        x = self.normalizer.denormalize_states(mean.cpu().double().numpy())  # (B, dx) float64
+        bad = ~np.all(np.isfinite(x), axis=-1)
+        if self.has_covariance:
+            self.covariance = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
+            bad |= ~np.all(np.isfinite(self.covariance), axis=(-2, -1))
+        self.diverged = self.diverged | bad
+        return x
+
+    # ---- whole sequences -------------------------------------------------------------------------
+    def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
+        """Parallel form over whole sequences: Y (B, T, dy), U (B, T, du) -> :class:`Estimates`.
+
+        Equals ``reset(B)`` and a loop of :meth:`step` to float32 round-off. Leaves no open streams
+        (call :meth:`reset` before stepping again).
+        """
+        Y, U = self.check_sequences(Y, U)
+        B, T, _ = Y.shape
+        dx = self.scenario.dx
+        Z, skipped = self.normalizer.normalize_inputs(Y, previous_controls(U))  # (B, T, d_in), (B, T)
+        xs = np.empty((B, T, dx))
+        covs = np.empty((B, T, dx, dx)) if self.has_covariance else None
+        self.model.eval()
+        chunk = max(1, self.chunk_timesteps // max(T, 1))
+        if T > 0:
+            with torch.inference_mode():
+                for b0 in range(0, B, chunk):
+                    z = torch.as_tensor(Z[b0 : b0 + chunk], dtype=self.dtype, device=self.device)
+                    if covs is not None:
+                        mean, cov = self.model.forward_with_cov(z)  # (b, T, dx), (b, T, dx, dx)
+                        covs[b0 : b0 + chunk] = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
+                    else:
+                        mean = self.model(z)  # (b, T, dx)
+                    xs[b0 : b0 + chunk] = self.normalizer.denormalize_states(mean.cpu().double().numpy())
+        diverged = ~np.all(np.isfinite(xs), axis=(1, 2))
+        if covs is not None:
+            diverged |= ~np.all(np.isfinite(covs), axis=(1, 2, 3))
+        self._state, self.batch = None, 0
+        self.diverged = diverged.copy()
+        self.skipped = skipped[:, -1] if T else np.zeros(B, dtype=bool)
+        self.covariance = covs[:, -1] if covs is not None and T else None
+        return Estimates(xs, covs, diverged)
+
+    def __repr__(self) -> str:
+        return f"NeuralEstimator({self.method!r}, scenario={self.scenario.name!r}, device={str(self.device)!r})"

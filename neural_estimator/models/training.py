@@ -1,0 +1,461 @@
+"""Training a neural estimator with the paper's protocol, readable top to bottom.
+
+Paper, "Neural Estimators and Training": "Inputs are noisy observations, while supervised targets
+are clean simulator states." "The default training setting uses a data-to-parameter ratio of
+approximately 20:1 ... Training samples are random length-100 sub-trajectories extracted from
+longer trajectories of length 500. Each training dataset has an independent validation set of
+8,000 trajectories for early stopping. Because chunking samples interior and endpoint timesteps with
+different frequencies, we weight each timestep loss by the inverse of its sampling frequency."
+Appendix "Hyperparameter Details": "AdamW with learning rate 2e-3, weight decay 1e-5, and gradient
+clipping with maximum norm 1.0. A ReduceLROnPlateau scheduler with decay factor 0.5 and patience 3
+... up to 500 epochs with batch size 64. Early stopping with patience 30 is applied based on
+validation performance. The first 10 timesteps are ignored during loss computation as a warmup
+period, and validation is performed after each epoch."
+
+What :func:`train` does, in order:
+
+1. Data (:mod:`neural_estimator.data.protocol`, cached): training set ``data_index`` of
+   ``data_seed`` (length-500 trajectories holding ratio x 100k steps: 20:1 -> 4,000 x 500) and its
+   validation set (8,000 x 500).
+2. Normalisation statistics from the training set (:mod:`~neural_estimator.models.normalization`).
+3. The model, initialised under ``torch.manual_seed(init_seed)``.
+4. Each epoch: ``windows_per_epoch`` random length-100 windows (default: as many as make the
+   training set's timesteps once, 20,000 at 20:1) in batches of 64. Loss, with e = x_hat_n - x_n the
+   error in normalised units (angular components wrapped to (-pi, pi], as the metrics wrap them)
+   and w_bt = inverse sampling frequency of the window's timestep x warm-up mask
+   (``ChunkSampler.loss_weights``):
+
+       L_train = sum_{b,t,d} w_bt e_btd^2 / (dx sum_{b,t} w_bt)
+
+5. Validation after each epoch (the paper does not define it; this is our definition): the model
+   in eval mode runs every validation trajectory from t = 0 over its full length (500) and
+
+       L_val = mean of e_ntd^2 over trajectories n, timesteps t >= warm-up (10), components d.
+
+   Full trajectories rather than windows: every timestep appears once, so no sampling weights are
+   needed, and the model is judged the way it is evaluated, run from the start over a horizon five
+   times its training windows, so early stopping favours stable filtering over short-window fit.
+   Both losses estimate the same per-timestep normalised MSE.
+6. ReduceLROnPlateau on L_val; the best model (lowest L_val so far) is written as a checkpoint
+   (``model.safetensors`` + ``card.json``) in ``out_dir``; training stops after ``patience`` epochs
+   without a strictly lower L_val, or at ``epochs``.
+7. After every epoch a ``resume/`` directory holds everything needed to continue bit-for-bit:
+   model, AdamW state, scheduler, RNG states, epoch, best, history (safetensors + JSON, no pickle).
+   ``resume=True`` continues from it; a larger ``epochs`` extends a finished run.
+8. The best model is rebuilt from its checkpoint and, if ``eval_trajectories`` > 0, measured on
+   evaluation set 0 with :func:`neural_estimator.metrics.compute_metrics`; the card is completed.
+
+Randomness: ``init_seed`` fixes the initial weights and dropout (torch's global RNG) and the window
+draws (a numpy Generator); the data depend on ``data_seed`` and ``data_index`` only. On CPU two runs
+with the same config give bit-identical weights, and an interrupted run resumed gives the weights of
+an uninterrupted one. On CUDA the same holds up to nondeterministic kernels (cuDNN RNNs, atomics).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from neural_estimator.data.protocol import (
+    TRAIN_TRAJECTORY_LENGTH,
+    VALIDATION_TRAJECTORIES,
+    WARMUP_STEPS,
+    WINDOW_LENGTH,
+    ChunkSampler,
+    dataset,
+    training_trajectories,
+)
+from neural_estimator.estimators import NEURAL_METHODS, check_method, previous_controls
+from neural_estimator.models.checkpoint import json_ready, load_checkpoint, save_checkpoint
+from neural_estimator.models.neural import NeuralEstimator, resolve_device
+from neural_estimator.models.normalization import Normalizer
+from neural_estimator.scenarios import Scenario, make_scenario
+
+RESUME_DIR = "resume"
+RESUME_FORMAT = "neural_estimator.resume"
+# Settings that may change when a run is resumed (budget and runtime); everything else must match.
+RESUMABLE_CHANGES = ("epochs", "patience", "device", "resume", "keep_resume", "cache_dir", "eval_trajectories",
+                     "val_batch_size")
+
+
+class TrainingError(ValueError):
+    """A training configuration or state that cannot be used; the message names the problem."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The training recipe. Defaults are the paper's (Appendix "Hyperparameter Details")."""
+
+    # data (paper, "Neural Estimators and Training")
+    data_ratio: float = 20.0  # data-to-parameter ratio: 20, 10, 5 or 1 (x 100k nominal parameters)
+    data_seed: int = 0  # seed of the data sets (training, validation, evaluation)
+    data_index: int = 0  # which training set (the paper uses three per scenario: 0, 1, 2)
+    trajectories: int | None = None  # training trajectories; None -> from data_ratio (20:1 -> 4,000)
+    val_trajectories: int = VALIDATION_TRAJECTORIES  # 8,000
+    train_length: int = TRAIN_TRAJECTORY_LENGTH  # length of training and validation trajectories (500)
+    window: int = WINDOW_LENGTH  # training sub-trajectory length (100)
+    warmup: int = WARMUP_STEPS  # leading steps of a window (and of a validation run) not in the loss
+    windows_per_epoch: int | None = None  # None -> N x train_length / window (the set's steps once)
+    # model
+    init_seed: int = 0  # initial weights, dropout and window draws
+    model_overrides: dict[str, Any] = field(default_factory=dict)  # architecture config changes
+    # optimisation (appendix)
+    batch_size: int = 64
+    lr: float = 2e-3
+    weight_decay: float = 1e-5
+    grad_clip: float = 1.0  # max gradient norm
+    lr_factor: float = 0.5  # ReduceLROnPlateau factor
+    lr_patience: int = 3  # ReduceLROnPlateau patience (epochs)
+    epochs: int = 500  # maximum number of epochs
+    patience: int = 30  # early stopping: epochs without a lower validation loss
+    # validation and evaluation
+    val_batch_size: int = 500  # validation trajectories per forward pass (memory only)
+    eval_trajectories: int = 0  # > 0: metrics of the best model on that many trajectories of eval set 0
+    # runtime
+    device: str = "cpu"  # cpu, cuda, cuda:N or auto
+    resume: bool = False  # continue from out_dir/resume if it exists
+    keep_resume: bool = True  # keep out_dir/resume after the run (lets a larger --epochs extend it)
+    cache_dir: str | None = None  # dataset cache (None -> $NEURAL_ESTIMATOR_CACHE or ~/.cache/...)
+
+    def __post_init__(self) -> None:
+        positive = ("val_trajectories", "train_length", "window", "batch_size", "epochs", "patience", "val_batch_size",
+                    "lr_patience")
+        for name in positive:
+            if int(getattr(self, name)) < 1:
+                raise TrainingError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("trajectories", "windows_per_epoch"):
+            v = getattr(self, name)
+            if v is not None and int(v) < 1:
+                raise TrainingError(f"{name} must be >= 1 (or None for the paper's), got {v}")
+        if not self.data_ratio > 0:
+            raise TrainingError(f"data_ratio must be positive, got {self.data_ratio}")
+        if not 1 <= self.window <= self.train_length:
+            raise TrainingError(f"window must be in [1, train_length={self.train_length}], got {self.window}")
+        if not 0 <= self.warmup < self.window:
+            raise TrainingError(f"warmup must be in [0, window={self.window}), got {self.warmup}")
+        if not (self.lr > 0 and self.weight_decay >= 0 and self.grad_clip > 0 and 0 < self.lr_factor < 1):
+            raise TrainingError("need lr > 0, weight_decay >= 0, grad_clip > 0 and 0 < lr_factor < 1")
+        if self.eval_trajectories < 0:
+            raise TrainingError(f"eval_trajectories must be >= 0, got {self.eval_trajectories}")
+
+    def recipe(self) -> dict[str, Any]:
+        """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
+
+        Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what).
+        """
+        d = dataclasses.asdict(self)
+        d["model_overrides"] = dict(self.model_overrides)
+        for key in ("cache_dir", "resume", "keep_resume"):
+            d.pop(key)
+        return d
+
+
+# ---- losses -----------------------------------------------------------------------------------------
+def state_error(pred: torch.Tensor, target: torch.Tensor, angle_mask: torch.Tensor) -> torch.Tensor:
+    """pred - target (..., dx) in normalised units, angular components wrapped to [-pi, pi).
+
+    Angular components are in radians (mean 0, std 1 in the normaliser), so the wrap acts on
+    radians; its gradient is 1 almost everywhere.
+    """
+    e = pred - target
+    if not bool(angle_mask.any()):
+        return e
+    wrapped = torch.remainder(e + math.pi, 2.0 * math.pi) - math.pi
+    return torch.where(angle_mask, wrapped, e)
+
+
+def weighted_loss(
+    pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, angle_mask: torch.Tensor
+) -> torch.Tensor:
+    """L = sum_{b,t,d} w_bt e_btd^2 / (dx sum_{b,t} w_bt); pred, target (B, L, dx), weights (B, L)."""
+    e = state_error(pred, target, angle_mask)
+    return (weights.unsqueeze(-1) * e.square()).sum() / (weights.sum() * e.shape[-1])
+
+
+# ---- the training run ---------------------------------------------------------------------------------
+def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: TrainConfig | None = None,
+          progress: bool = True) -> Path:
+    """Train ``arch`` on ``scenario`` and write the best model as a checkpoint in ``out_dir``.
+
+    Args:
+        scenario: a scenario instance (its constants are recorded) or a registered name.
+        arch: gru, lstm, gpt2, filterformer, mamba or mamba2.
+        out_dir: the checkpoint directory (``model.safetensors``, ``card.json``, ``resume/``).
+        config: the recipe (default: the paper's).
+        progress: show a tqdm bar (epoch, train and validation loss, learning rate, ETA).
+
+    Returns:
+        ``out_dir``.
+    """
+    from neural_estimator.models import ARCHITECTURES, build_model
+
+    cfg = config or TrainConfig()
+    if isinstance(scenario, str):
+        scenario = make_scenario(scenario)
+    arch = check_method(arch)
+    if arch not in NEURAL_METHODS:
+        raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(NEURAL_METHODS)}")
+    known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
+    unknown = sorted(set(cfg.model_overrides) - known)
+    if unknown:  # before any data are simulated
+        raise TrainingError(f"{arch} has no hyperparameter(s) {unknown}; valid: {sorted(known)}")
+    out_dir = Path(out_dir)
+    device = resolve_device(cfg.device)
+    cache = cfg.cache_dir
+    dx = scenario.dx
+
+    # ---- data ----
+    n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
+    train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
+    val_data = dataset(scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache)
+    norm = Normalizer.from_data(scenario, train_data)
+
+    def as_tensors(data) -> tuple[torch.Tensor, torch.Tensor]:
+        z, _ = norm.normalize_inputs(data.y, previous_controls(data.u))  # (N, T, d_in)
+        x = norm.normalize_states(data.x)  # (N, T, dx)
+        return (torch.as_tensor(z, dtype=torch.float32, device=device),
+                torch.as_tensor(x, dtype=torch.float32, device=device))
+
+    Z_train, X_train = as_tensors(train_data)
+    Z_val, X_val = as_tensors(val_data)
+    del train_data, val_data
+    sampler = ChunkSampler(n_train, cfg.train_length, cfg.window, cfg.warmup)
+    n_windows = int(cfg.windows_per_epoch or math.ceil(n_train * cfg.train_length / cfg.window))
+    steps_per_epoch = math.ceil(n_windows / cfg.batch_size)
+    angle_mask = torch.zeros(dx, dtype=torch.bool, device=device)
+    angle_mask[list(scenario.angle_states)] = True
+    window_cols = np.arange(cfg.window)
+
+    # ---- model, optimiser, scheduler, RNG ----
+    torch.manual_seed(cfg.init_seed)  # initial weights and dropout
+    model = build_model(arch, norm.d_in, dx, **cfg.model_overrides).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, mode="min", factor=cfg.lr_factor,
+                                                           patience=cfg.lr_patience)
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
+    run = {"epoch": 0, "best": math.inf, "best_epoch": 0, "bad_epochs": 0, "stopped": None, "history": []}
+    identity = {"scenario": scenario.describe(), "arch": arch, "config": cfg.recipe()}
+    if cfg.resume and (out_dir / RESUME_DIR / "state.json").is_file():
+        run = load_resume(out_dir / RESUME_DIR, identity, model, optimizer, scheduler, rng)
+        if run["stopped"] and run["bad_epochs"] < cfg.patience:
+            run["stopped"] = None  # resumed with a larger patience: early stopping no longer applies
+
+    def get_batch() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        idx, start = sampler.sample(rng, cfg.batch_size)  # (B,), (B,)
+        rows = torch.as_tensor(idx[:, None], device=device)  # (B, 1)
+        cols = torch.as_tensor(start[:, None] + window_cols[None, :], device=device)  # (B, L)
+        w = torch.as_tensor(sampler.loss_weights(start), dtype=torch.float32, device=device)  # (B, L)
+        return Z_train[rows, cols], X_train[rows, cols], w
+
+    @torch.no_grad()
+    def estimate_loss() -> float:
+        model.eval()
+        total, count = 0.0, 0
+        for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
+            pred = model(Z_val[b0 : b0 + cfg.val_batch_size])  # (b, T, dx)
+            e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
+            total += float(e.double().square().sum())
+            count += e.numel()
+        model.train()
+        return total / count
+
+    def card(metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+        return {
+            "scenario": scenario.describe(),
+            "data": {
+                "seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio,
+                "train_trajectories": n_train, "train_length": cfg.train_length,
+                "val_trajectories": cfg.val_trajectories, "windows_per_epoch": n_windows,
+            },
+            "init_seed": cfg.init_seed,
+            "training": {
+                "recipe": cfg.recipe(), "device": str(device), "steps_per_epoch": steps_per_epoch,
+                "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "
+                        "e = normalised error, angles wrapped",
+                "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode",
+                "epochs_run": run["epoch"], "best_epoch": run["best_epoch"],
+                "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
+                "history": run["history"],
+            },
+            "validation_loss": run["best"],
+            "metrics": metrics,
+        }
+
+    # ---- the loop ----
+    bar = tqdm(total=cfg.epochs, initial=run["epoch"], disable=not progress, unit="epoch",
+               desc=f"{scenario.name}/{arch}", dynamic_ncols=True)
+    while run["epoch"] < cfg.epochs and run["stopped"] is None:
+        t0 = time.perf_counter()
+        model.train()
+        train_loss = 0.0
+        for it in range(steps_per_epoch):
+            z, x, w = get_batch()
+            loss = weighted_loss(model(z), x, w, angle_mask)
+            loss_value = loss.item()
+            if not math.isfinite(loss_value):
+                raise TrainingError(
+                    f"training loss is {loss_value} at epoch {run['epoch'] + 1}, step {it + 1}; the run diverged "
+                    f"(a lower --lr may help; the last good state is in {out_dir / RESUME_DIR})"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            optimizer.step()
+            train_loss += loss_value
+        train_loss /= steps_per_epoch
+        val_loss = estimate_loss()
+        scheduler.step(val_loss)
+        run["epoch"] += 1
+        lr = optimizer.param_groups[0]["lr"]
+        run["history"].append({"epoch": run["epoch"], "train_loss": train_loss, "val_loss": val_loss, "lr": lr,
+                               "seconds": round(time.perf_counter() - t0, 3)})
+        if val_loss < run["best"]:
+            run["best"], run["best_epoch"], run["bad_epochs"] = val_loss, run["epoch"], 0
+            save_checkpoint(out_dir, model, norm, card())
+        else:
+            run["bad_epochs"] += 1
+            if run["bad_epochs"] >= cfg.patience:
+                run["stopped"] = f"early stopping: no lower validation loss in {cfg.patience} epochs"
+        save_resume(out_dir / RESUME_DIR, identity, run, model, optimizer, scheduler, rng)
+        bar.update(1)
+        bar.set_postfix({"train": f"{train_loss:.4g}", "val": f"{val_loss:.4g}", "best": f"{run['best']:.4g}",
+                         "lr": f"{lr:.2g}"})
+    bar.close()
+
+    # ---- the best model, rebuilt from its checkpoint; metrics; the final card ----
+    if run["best_epoch"] == 0:
+        raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
+    best_model, _, _ = load_checkpoint(out_dir, device)
+    metrics = None
+    if cfg.eval_trajectories:
+        metrics = evaluate(scenario, best_model, norm, arch, cfg.eval_trajectories, cfg.data_seed, device, cache)
+    save_checkpoint(out_dir, best_model, norm, card(metrics))
+    if not cfg.keep_resume:
+        shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
+    return out_dir
+
+
+def evaluate(scenario: Scenario, model: torch.nn.Module, normalizer: Normalizer, arch: str, trajectories: int,
+             seed: int = 0, device: str | torch.device = "cpu", cache_dir: str | None = None) -> dict[str, Any]:
+    """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon)."""
+    from neural_estimator.metrics import compute_metrics, to_json
+
+    data = dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir)
+    est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False)
+    out = est.run(data.y, data.u)
+    report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged)
+    return {"set": {"role": "eval", "index": 0, "seed": seed, "trajectories": trajectories, "horizon": data.horizon},
+            **to_json(report.scalars())}
+
+
+# ---- resume state: safetensors for tensors, JSON for the rest ----------------------------------------
+def save_resume(directory: Path, identity: dict[str, Any], run: dict[str, Any], model: torch.nn.Module,
+                optimizer: torch.optim.Optimizer, scheduler: Any, rng: np.random.Generator) -> None:
+    """Write the state after an epoch: written to ``directory.tmp`` and then swapped in."""
+    from safetensors.torch import save_file, save_model
+
+    tmp = directory.with_name(directory.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    save_model(model, str(tmp / "model.safetensors"), force_contiguous=True)
+    opt = optimizer.state_dict()
+    tensors, extra = {}, {}
+    for pid, slots in opt["state"].items():
+        for key, value in slots.items():
+            if torch.is_tensor(value):
+                tensors[f"{pid}.{key}"] = value.detach().cpu().contiguous()
+            else:
+                extra.setdefault(str(pid), {})[key] = value
+    save_file(tensors, str(tmp / "optimizer.safetensors"))
+    rng_tensors = {"torch_cpu": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        for i, s in enumerate(torch.cuda.get_rng_state_all()):
+            rng_tensors[f"torch_cuda_{i}"] = s
+    save_file(rng_tensors, str(tmp / "rng.safetensors"))
+    state = {
+        "format": RESUME_FORMAT,
+        **identity,
+        "run": run,
+        "optimizer": {"param_groups": opt["param_groups"], "state_extra": extra},
+        "scheduler": scheduler.state_dict(),
+        "numpy_rng": rng.bit_generator.state,
+    }
+    # allow_nan: the scheduler's "best" starts at inf; Python's json reads the Infinity token back
+    (tmp / "state.json").write_text(json.dumps(state, indent=1, allow_nan=True) + "\n")
+    old = directory.with_name(directory.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if directory.exists():
+        os.replace(directory, old)
+    os.replace(tmp, directory)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_resume(directory: Path, identity: dict[str, Any], model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                scheduler: Any, rng: np.random.Generator) -> dict[str, Any]:
+    """Restore the state :func:`save_resume` wrote (in place); returns the run record."""
+    from safetensors.torch import load_file, load_model
+
+    try:
+        state = json.loads((directory / "state.json").read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise TrainingError(f"{directory / 'state.json'} is corrupt ({exc}); start without --resume") from None
+    if state.get("format") != RESUME_FORMAT:
+        raise TrainingError(f"{directory / 'state.json'} is not a training resume state")
+    _check_same_run(directory, state, identity)
+    try:
+        device = str(next(model.parameters()).device)
+        load_model(model, str(directory / "model.safetensors"), strict=True, device=device)
+        flat = load_file(str(directory / "optimizer.safetensors"))
+        rng_tensors = load_file(str(directory / "rng.safetensors"))
+    except Exception as exc:  # safetensors' own error types for missing or malformed files
+        raise TrainingError(f"{directory}: cannot read the resume state ({exc}); start without --resume") from None
+    opt_state: dict[int, dict[str, Any]] = {}
+    for name, tensor in flat.items():
+        pid, _, key = name.partition(".")
+        opt_state.setdefault(int(pid), {})[key] = tensor
+    for pid, slots in state["optimizer"]["state_extra"].items():
+        opt_state.setdefault(int(pid), {}).update(slots)
+    groups = state["optimizer"]["param_groups"]
+    for g in groups:
+        if "betas" in g:
+            g["betas"] = tuple(g["betas"])
+    optimizer.load_state_dict({"state": opt_state, "param_groups": groups})
+    scheduler.load_state_dict(state["scheduler"])
+    rng.bit_generator.state = state["numpy_rng"]
+    torch.set_rng_state(rng_tensors["torch_cpu"])
+    if torch.cuda.is_available():
+        keys = [f"torch_cuda_{i}" for i in range(torch.cuda.device_count())]
+        cuda = [rng_tensors[k] for k in keys if k in rng_tensors]
+        if cuda:
+            torch.cuda.set_rng_state_all(cuda)
+    return state["run"]
+
+
+def _check_same_run(directory: Path, state: dict[str, Any], identity: dict[str, Any]) -> None:
+    """Refuse to resume a state written by another scenario, architecture or recipe."""
+    if state.get("scenario") != identity["scenario"]:
+        raise TrainingError(f"{directory} was written for scenario {state.get('scenario', {}).get('scenario')!r} "
+                            f"with other constants or dimensions; start without --resume or use another --out")
+    if state.get("arch") != identity["arch"]:
+        raise TrainingError(f"{directory} was written for {state.get('arch')!r}, not {identity['arch']!r}")
+    old, new = state.get("config", {}), json_ready(identity["config"])
+    diffs = [f"{k}={old.get(k)!r} (resume state) vs {new.get(k)!r} (now)" for k in sorted(set(old) | set(new))
+             if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
+    if diffs:
+        raise TrainingError(f"{directory} was written with other settings: {'; '.join(diffs)}. Resume with the same "
+                            f"settings (only {', '.join(RESUMABLE_CHANGES)} may change) or start without --resume")
+
+
+__all__ = ["TrainConfig", "TrainingError", "evaluate", "load_resume", "save_resume", "state_error", "train",
+           "weighted_loss"]

@@ -1,0 +1,352 @@
+"""Neural estimators: normalisation, run == step, checkpoints (safetensors + JSON), training protocol."""
+
+import json
+import math
+import pickle
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from neural_estimator.data import simulate
+from neural_estimator.estimators import EstimatorError, make_estimator
+from neural_estimator.models import ARCHITECTURES, build_model
+from neural_estimator.models.checkpoint import load_neural_estimator, save_checkpoint
+from neural_estimator.models.neural import NeuralEstimator, resolve_device
+from neural_estimator.models.normalization import Normalizer
+from neural_estimator.models.training import TrainConfig, TrainingError, state_error, train, weighted_loss
+from neural_estimator.scenarios import Scenario, make_scenario, register_scenario
+
+ARCHS = sorted(ARCHITECTURES)
+TOL = 1e-5  # run vs a loop of step, float32 models
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Small models on a shared 2-core machine: one intra-op thread avoids spin-wait contention."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+# ---- a small controlled system with an angular state (exercises u_{k-1} inputs and wrapping) ------
+@dataclass(frozen=True)
+class SpinnerConfig:
+    dt: float = 0.1
+    horizon: int = 80
+    noise_scale: float = 1.0
+    friction: float = 0.1
+    process_noise_std: float = 0.05
+    obs_noise_std: float = 0.1
+
+
+@register_scenario
+class Spinner(Scenario):
+    """A rotor driven by a random torque: angle (wrapped) and rate, the angle observed."""
+
+    name = "test_spinner"
+    Config = SpinnerConfig
+    state_names = ("angle", "rate")
+    state_units = ("rad", "rad/s")
+    obs_names = ("angle",)
+    obs_units = ("rad",)
+    control_names = ("torque",)
+    control_units = ("N m",)
+    angle_states = (0,)
+    angle_obs = (0,)
+
+    def f(self, x, u):
+        c = self.config
+        return np.stack([x[..., 0] + c.dt * x[..., 1], x[..., 1] + c.dt * (u[..., 0] - c.friction * x[..., 1])], -1)
+
+    def h(self, x):
+        return x[..., :1]
+
+    def process_cov(self):
+        return np.diag([1e-6, self.config.process_noise_std**2])
+
+    def obs_cov_nominal(self):
+        return np.array([[self.config.obs_noise_std**2]])
+
+    def prior(self):
+        return np.array([0.0, 2.0]), np.diag([1.0, 1.0])
+
+    def sample_controls(self, rng, n, horizon):
+        return 0.5 * rng.standard_normal((n, horizon, 1))
+
+
+@pytest.fixture
+def spinner():
+    return Spinner()
+
+
+def tiny_config(cache, **kw):
+    base = dict(trajectories=12, val_trajectories=6, train_length=60, window=20, warmup=5, windows_per_epoch=48,
+                batch_size=16, epochs=3, model_overrides={"hidden": 8}, cache_dir=str(cache))
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def estimator_for(scenario, arch, data, seed=0):
+    torch.manual_seed(seed)
+    norm = Normalizer.from_data(scenario, data)
+    model = build_model(arch, norm.d_in, scenario.dx)
+    return NeuralEstimator(scenario, model, norm, arch)
+
+
+def weights(path):
+    return load_file(str(path / "model.safetensors"))
+
+
+# ---- normalisation --------------------------------------------------------------------------------
+def test_normalizer_round_trip_and_statistics(spinner):
+    data = simulate(spinner, 20, 50, seed=0)
+    norm = Normalizer.from_data(spinner, data)
+    from neural_estimator.estimators import previous_controls
+
+    z, skipped = norm.normalize_inputs(data.y, previous_controls(data.u))
+    assert z.shape == (20, 50, 2) and not skipped.any()
+    np.testing.assert_allclose(z.reshape(-1, 2).mean(0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(z.reshape(-1, 2).std(0), 1.0, atol=1e-12)
+    # angles: predicted in radians (mean 0, std 1), wrapped on the way out
+    assert norm.out_mean[0] == 0.0 and norm.out_std[0] == 1.0 and norm.out_std[1] != 1.0
+    xn = norm.normalize_states(data.x)
+    np.testing.assert_allclose(norm.denormalize_states(xn), data.x, atol=1e-12)
+    assert norm.denormalize_states(np.array([[3 * np.pi / 2, 0.0]]))[0, 0] == pytest.approx(-np.pi / 2)
+    # JSON round trip is exact
+    back = Normalizer.from_dict(json.loads(json.dumps(norm.to_dict())))
+    for name in ("in_mean", "in_std", "out_mean", "out_std"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(norm, name))
+    assert back.angle_states == (0,) and (back.dy, back.du) == (1, 1)
+    # covariance maps back with diag(std) C diag(std)
+    np.testing.assert_allclose(norm.denormalize_covariance(np.eye(2)), np.diag(norm.out_std**2))
+
+
+def test_normalizer_floor_and_unusable_observations():
+    rng = np.random.default_rng(0)
+    y, x = rng.normal(5.0, 2.0, (4, 10, 2)), rng.normal(size=(4, 10, 3))
+    u = np.zeros((4, 10, 1))  # a control that never varies
+    norm = Normalizer.fit(y, u, x)
+    assert norm.in_std[2] == pytest.approx(1e-6)
+    z, skipped = norm.normalize_inputs(np.array([[np.nan, 1.0], [5.0, 5.0]]), np.zeros((2, 1)))
+    assert skipped.tolist() == [True, False]
+    assert z[0].tolist() == [0.0, 0.0, 0.0] and np.all(np.isfinite(z))
+
+
+# ---- the estimator: run equals a loop of step, past the training length -----------------------------
+@pytest.mark.parametrize("arch", ARCHS)
+def test_run_equals_step_loop(arch, spinner):
+    data = simulate(spinner, 6, 300, seed=1)
+    est = estimator_for(spinner, arch, data)
+    Y = data.y[:3].copy()
+    Y[1, 40] = np.nan  # an unusable observation: the training mean in its place, in both forms
+    out = est.run(Y, data.u[:3])
+    assert out.x.shape == (3, 300, 2) and out.x.dtype == np.float64 and not out.diverged.any()
+    est.reset(3)
+    prev = np.zeros((3, 1))
+    xs, covs = [], []
+    for k in range(300):
+        xs.append(est.step(Y[:, k], prev))
+        prev = data.u[:3, k]
+        if k == 40:
+            assert est.skipped.tolist() == [False, True, False]
+        if est.has_covariance:
+            covs.append(est.covariance)
+    assert np.abs(out.x - np.stack(xs, 1)).max() <= TOL
+    assert np.all(np.abs(out.x[..., 0]) <= np.pi)  # the angle comes out wrapped
+    assert est.has_covariance == (arch == "filterformer")
+    if est.has_covariance:
+        assert out.cov.shape == (3, 300, 2, 2)
+        assert np.abs(out.cov - np.stack(covs, 1)).max() <= TOL * max(1.0, np.abs(out.cov).max())
+        assert np.all(np.linalg.eigvalsh(out.cov) > 0)
+
+
+def test_estimator_checks_inputs(oscillator):
+    est = estimator_for(oscillator, "gru", simulate(oscillator, 4, 20, seed=0))
+    with pytest.raises(EstimatorError, match="call reset"):
+        est.step(np.zeros((1, 1)))
+    est.reset(2)
+    with pytest.raises(EstimatorError, match=r"observation must be \(B, 1\)"):
+        est.step(np.zeros((2, 3)))
+    with pytest.raises(EstimatorError, match="batch of 1 observations, but reset for 2"):
+        est.step(np.zeros((1, 1)))
+    assert est.model.training is False
+    if not torch.cuda.is_available():
+        with pytest.raises(EstimatorError, match="sees no CUDA GPU"):
+            resolve_device("cuda")
+    with pytest.raises(EstimatorError, match="unknown device"):
+        resolve_device("tpu9")
+
+
+# ---- checkpoints ----------------------------------------------------------------------------------
+def _save(tmp_path, scenario, arch, name="ckpt"):
+    data = simulate(scenario, 4, 30, seed=0)
+    est = estimator_for(scenario, arch, data)
+    path = save_checkpoint(tmp_path / name, est.model, est.normalizer, {"scenario": scenario.describe()})
+    return est, path, data
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_checkpoint_round_trip_gives_identical_outputs(arch, oscillator, tmp_path):
+    est, path, data = _save(tmp_path, oscillator, arch)
+    assert sorted(p.name for p in path.iterdir()) == ["card.json", "model.safetensors"]
+    back = load_neural_estimator(arch, oscillator, path)
+    a, b = est.run(data.y, data.u), back.run(data.y, data.u)
+    np.testing.assert_array_equal(a.x, b.x)
+    card = back.card
+    assert card["method"] == arch and card["architecture"]["name"] == arch
+    assert card["architecture"]["parameters"] == sum(p.numel() for p in est.model.parameters())
+    assert card["scenario"] == oscillator.describe()
+    assert {"torch", "numpy", "safetensors", "neural_estimator"} <= set(card["software"])
+    # the card path works too, and so does the registry
+    again = make_estimator(arch, oscillator, checkpoint=path / "card.json")
+    np.testing.assert_array_equal(again.run(data.y, data.u).x, a.x)
+
+
+def test_loading_never_unpickles(oscillator, tmp_path, monkeypatch):
+    _, path, data = _save(tmp_path, oscillator, "gru")
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("a checkpoint load reached torch.load / pickle")
+
+    monkeypatch.setattr(torch, "load", forbidden)
+    monkeypatch.setattr(pickle, "load", forbidden)
+    monkeypatch.setattr(pickle, "loads", forbidden)
+    monkeypatch.setattr(pickle, "Unpickler", forbidden)
+    load_neural_estimator("gru", oscillator, path).run(data.y, data.u)
+
+
+def test_loading_refuses_the_wrong_checkpoint(oscillator, spinner, tmp_path):
+    _, path, _ = _save(tmp_path, oscillator, "gru")
+    with pytest.raises(EstimatorError, match=r"was trained on scenario 'oscillator' \(dx=2, dy=1, du=0\), "
+                                             r"not 'test_spinner' \(dx=2, dy=1, du=1\)"):
+        load_neural_estimator("gru", spinner, path)
+    with pytest.raises(EstimatorError, match="holds a 'gru' model, not 'lstm'"):
+        load_neural_estimator("lstm", oscillator, path)
+    with pytest.raises(EstimatorError, match=r"other constants: omega=1\.0 \(checkpoint\) vs 2\.0 \(requested\)"):
+        load_neural_estimator("gru", make_scenario("oscillator", omega=2.0), path)
+    # the evaluation-only constants may differ (the noise-robustness study)
+    load_neural_estimator("gru", make_scenario("oscillator", noise_scale=3.0, horizon=50), path)
+    # other dimensions under the same name
+    card = json.loads((path / "card.json").read_text())
+    card["scenario"]["state_names"].append("extra")
+    (path / "card.json").write_text(json.dumps(card))
+    with pytest.raises(EstimatorError, match=r"with dx=3, dy=1, du=0, but the requested one has dx=2, dy=1, du=0"):
+        load_neural_estimator("gru", oscillator, path)
+
+
+def test_loading_names_missing_and_corrupt_files(oscillator, tmp_path):
+    _, path, _ = _save(tmp_path, oscillator, "gru")
+    blob = (path / "model.safetensors").read_bytes()
+    (path / "model.safetensors").write_bytes(blob[:-7] + b"garbage")
+    with pytest.raises(EstimatorError, match="model.safetensors does not match the sha256"):
+        load_neural_estimator("gru", oscillator, path)
+    card = json.loads((path / "card.json").read_text())
+    del card["weights"]["sha256"]
+    (path / "card.json").write_text(json.dumps(card))
+    (path / "model.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{broken}")
+    with pytest.raises(EstimatorError, match="cannot read model.safetensors"):
+        load_neural_estimator("gru", oscillator, path)
+    (path / "model.safetensors").unlink()
+    with pytest.raises(EstimatorError, match="weight file model.safetensors is missing"):
+        load_neural_estimator("gru", oscillator, path)
+    (path / "card.json").write_text('{"format": "neural_estimator.checkpoint", ')
+    with pytest.raises(EstimatorError, match=r"card.json: checkpoint card is corrupt \(not valid JSON"):
+        load_neural_estimator("gru", oscillator, path)
+    (path / "card.json").unlink()
+    with pytest.raises(EstimatorError, match="card.json: checkpoint card is missing"):
+        load_neural_estimator("gru", oscillator, path)
+    with pytest.raises(EstimatorError, match="does not exist"):
+        load_neural_estimator("gru", oscillator, tmp_path / "nowhere")
+    with pytest.raises(EstimatorError, match=r"no trained gru model ships for scenario 'oscillator'.*lacks card.json "
+                                             r"and model.safetensors.*neural-estimator train --scenario oscillator "
+                                             r"--model gru --out"):
+        make_estimator("gru", oscillator)
+
+
+# ---- training -------------------------------------------------------------------------------------
+def test_wrapped_and_weighted_loss():
+    mask = torch.tensor([True, False])
+    e = state_error(torch.tensor([[math.pi - 0.01, 1.0]]), torch.tensor([[-math.pi + 0.01, 0.5]]), mask)
+    assert e[0, 0].item() == pytest.approx(-0.02, abs=1e-6) and e[0, 1].item() == pytest.approx(0.5)
+    pred, target = torch.randn(3, 5, 2), torch.randn(3, 5, 2)
+    w = torch.ones(3, 5)
+    loss = weighted_loss(pred, target, w, torch.zeros(2, dtype=torch.bool))
+    assert loss.item() == pytest.approx((pred - target).square().mean().item(), rel=1e-6)
+    w[:, :2] = 0.0  # the warm-up steps do not count
+    loss = weighted_loss(pred, target, w, torch.zeros(2, dtype=torch.bool))
+    assert loss.item() == pytest.approx((pred - target)[:, 2:].square().mean().item(), rel=1e-6)
+
+
+def test_training_learns_is_deterministic_and_writes_a_card(oscillator, tmp_path):
+    cfg = tiny_config(tmp_path / "cache", epochs=4, eval_trajectories=5)
+    a = train(oscillator, "gru", tmp_path / "a", cfg, progress=False)
+    b = train(oscillator, "gru", tmp_path / "b", cfg, progress=False)
+    wa, wb = weights(a), weights(b)
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    c = train(oscillator, "gru", tmp_path / "c", replace(cfg, init_seed=1), progress=False)
+    assert not all(torch.equal(wa[k], weights(c)[k]) for k in wa)
+    card = json.loads((a / "card.json").read_text())
+    hist = card["training"]["history"]
+    assert len(hist) == 4
+    assert hist[-1]["val_loss"] < hist[0]["val_loss"] and hist[-1]["train_loss"] < hist[0]["train_loss"]
+    assert card["validation_loss"] == min(h["val_loss"] for h in hist)
+    assert card["data"] == {"seed": 0, "index": 0, "data_ratio": 20.0, "train_trajectories": 12, "train_length": 60,
+                            "val_trajectories": 6, "windows_per_epoch": 48}
+    assert card["init_seed"] == 0 and card["training"]["recipe"]["lr"] == 2e-3
+    assert card["training"]["stopped"] == "max epochs" and card["metrics"]["rmse"] > 0
+    assert card["normalization"]["dy"] == 1 and card["created"]
+    # no pickle anywhere: the checkpoint and its resume state are safetensors and JSON only
+    assert {p.suffix for p in a.rglob("*") if p.is_file()} == {".json", ".safetensors"}
+    est = load_neural_estimator("gru", oscillator, a)
+    assert est.run(np.zeros((1, 7, 1))).x.shape == (1, 7, 2)
+
+
+def test_angle_scenario_trains(spinner, tmp_path):
+    out = train(spinner, "gru", tmp_path / "s", tiny_config(tmp_path / "cache", epochs=3), progress=False)
+    hist = json.loads((out / "card.json").read_text())["training"]["history"]
+    assert all(math.isfinite(h["val_loss"]) for h in hist) and hist[-1]["val_loss"] < hist[0]["val_loss"]
+
+
+def test_resume_matches_an_uninterrupted_run(oscillator, tmp_path):
+    cfg = tiny_config(tmp_path / "cache", epochs=4)
+    full = train(oscillator, "gru", tmp_path / "full", cfg, progress=False)
+    part = tmp_path / "part"
+    train(oscillator, "gru", part, replace(cfg, epochs=2), progress=False)
+    assert json.loads((part / "resume" / "state.json").read_text())["run"]["epoch"] == 2
+    train(oscillator, "gru", part, replace(cfg, resume=True), progress=False)
+    for name in ("", "resume"):
+        wf, wp = weights(full / name), weights(part / name)
+        assert all(torch.equal(wf[k], wp[k]) for k in wf)
+    hf = json.loads((full / "card.json").read_text())["training"]["history"]
+    hp = json.loads((part / "card.json").read_text())["training"]["history"]
+    assert [h["val_loss"] for h in hf] == [h["val_loss"] for h in hp] and len(hp) == 4
+    with pytest.raises(TrainingError, match=r"other settings: lr=0\.002 \(resume state\) vs 0\.001 \(now\)"):
+        train(oscillator, "gru", part, replace(cfg, resume=True, lr=1e-3), progress=False)
+
+
+def test_early_stopping_on_a_plateau(oscillator, tmp_path):
+    # lr so small that float32 weights never change: the validation loss is exactly flat
+    cfg = tiny_config(tmp_path / "cache", epochs=20, patience=2, lr=1e-30)
+    out = train(oscillator, "gru", tmp_path / "flat", cfg, progress=False)
+    tr = json.loads((out / "card.json").read_text())["training"]
+    assert tr["epochs_run"] == 3 and tr["best_epoch"] == 1
+    assert tr["stopped"].startswith("early stopping")
+    # resumed with a larger patience, it goes on until that patience runs out too
+    train(oscillator, "gru", out, replace(cfg, patience=4, resume=True), progress=False)
+    tr = json.loads((out / "card.json").read_text())["training"]
+    assert tr["epochs_run"] == 5 and tr["best_epoch"] == 1 and tr["stopped"].startswith("early stopping")
+
+
+def test_config_is_checked():
+    with pytest.raises(TrainingError, match="window must be in"):
+        TrainConfig(window=600)
+    with pytest.raises(TrainingError, match="warmup must be in"):
+        TrainConfig(window=10, warmup=10)
+    with pytest.raises(TrainingError, match="classical filter"):
+        train("oscillator", "ekf", "/nonexistent", TrainConfig(), progress=False)
+    with pytest.raises(TrainingError, match=r"gru has no hyperparameter\(s\) \['hiden'\]"):
+        train("oscillator", "gru", "/nonexistent", TrainConfig(model_overrides={"hiden": 8}), progress=False)
