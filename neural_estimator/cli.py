@@ -258,8 +258,79 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+# ---- train --------------------------------------------------------------------------------------
+_TRAIN_FLAG_HELP = {
+    "data_ratio": "data-to-parameter ratio: 20 (paper's default), 10, 5 or 1",
+    "data_seed": "seed of the training/validation/evaluation sets",
+    "init_seed": "seed of the initial weights, dropout and window draws",
+    "trajectories": "training trajectories (default: from --data-ratio; 20:1 -> 4000 x 500 steps)",
+    "windows_per_epoch": "windows per epoch (default: the set's timesteps once)",
+    "epochs": "maximum epochs (paper: 500)",
+    "patience": "early-stopping patience in epochs (paper: 30)",
+    "eval_trajectories": "> 0: metrics of the best model on that many evaluation trajectories, in the card",
+}
+
+
+def _add_train(sub) -> None:
+    import dataclasses
+
+    from neural_estimator.models.training import TrainConfig
+
+    p = sub.add_parser("train", help="train a neural estimator with the paper's protocol")
+    _common(p)
+    p.add_argument("--model", required=True, help="gru, lstm, gpt2, filterformer, mamba or mamba2")
+    p.add_argument("--out", required=True, help="output directory (model.safetensors + card.json)")
+    p.add_argument("--model-set", action="append", metavar="NAME=VALUE", help="override an architecture hyperparameter")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    # Every TrainConfig field is a flag with the paper's default (one source of truth).
+    for f in dataclasses.fields(TrainConfig):
+        if f.name in ("model_overrides", "resume", "keep_resume"):
+            continue
+        default = f.default
+        flag = "--" + f.name.replace("_", "-")
+        kind = type(default) if default is not None else int
+        if f.name == "cache_dir":
+            kind = str
+        p.add_argument(flag, type=kind, default=default, help=_TRAIN_FLAG_HELP.get(f.name, f"default: {default}"))
+    p.add_argument("--resume", action="store_true", help="continue from OUT/resume if it exists")
+    p.add_argument("--no-keep-resume", action="store_true", help="delete OUT/resume after the run")
+    p.set_defaults(func=_cmd_train)
+
+
+def _cmd_train(args) -> int:
+    import dataclasses
+
+    from neural_estimator.estimators import NEURAL_METHODS, check_method
+    from neural_estimator.models.training import TrainConfig, TrainingError, train
+
+    method = check_method(args.model)
+    if method not in NEURAL_METHODS:
+        raise CliError(f"--model must be a neural method ({', '.join(NEURAL_METHODS)}), got {args.model!r}")
+    scenario = scenario_from_args(args)
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if hasattr(args, f.name)}
+    values.update(model_overrides=_parse_model_overrides(args.model_set), resume=args.resume,
+                  keep_resume=not args.no_keep_resume)
+    try:
+        config = TrainConfig(**values)
+        path = train(scenario, method, args.out, config, progress=not args.quiet)
+    except TrainingError as exc:
+        raise CliError(str(exc)) from None
+    print(f"wrote {path}")
+    return 0
+
+
+def _parse_model_overrides(items: list[str] | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, value in parse_assignments(items).items():
+        try:
+            out[name] = json.loads(value)
+        except json.JSONDecodeError:
+            out[name] = value
+    return out
+
+
 # Verbs are added to this list as their modules land; each is (adder).
-_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_scenarios]
+_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_scenarios]
 
 
 def build_parser() -> argparse.ArgumentParser:

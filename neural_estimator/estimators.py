@@ -172,11 +172,13 @@ def make_estimator(
 
     Classical filters take their settings from ``options`` (paper defaults otherwise) and ``seed``
     for their random draws. Neural models load ``checkpoint`` (a directory or its ``.json`` card),
-    or the model shipped with the package for (scenario, method) when ``checkpoint`` is None.
+    or the model shipped with the package for (scenario, method) when ``checkpoint`` is None;
+    their ``options`` go to :func:`~neural_estimator.models.checkpoint.load_neural_estimator`
+    (``covariance=False`` skips the Filterformer's per-step covariance).
     """
     m = check_method(method)
     if m in _CLASSICAL:
         return _load(_CLASSICAL[m])(scenario, seed=seed, **options)
     from neural_estimator.models.checkpoint import load_neural_estimator
 
-    return load_neural_estimator(m, scenario, checkpoint=checkpoint, device=device)
+    return load_neural_estimator(m, scenario, checkpoint=checkpoint, device=device, **options)
