@@ -18,12 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from scipy.special import logsumexp
-from filterpy.kalman import EnsembleKalmanFilter as FpEnKF
-from filterpy.kalman import ExtendedKalmanFilter as FpEKF
-from filterpy.kalman import MerweScaledSigmaPoints
-from filterpy.kalman import UnscentedKalmanFilter as FpUKF
-from filterpy.monte_carlo import systematic_resample as fp_systematic_resample
 
 from neural_estimator.angles import wrap_angle
 from neural_estimator.data.simulate import simulate
@@ -39,7 +33,8 @@ from neural_estimator.filters import (
     UnscentedKalmanFilter,
 )
 from neural_estimator.filters import numerics as nm
-from neural_estimator.scenarios import Scenario, make_scenario, psd_sqrt, register_scenario
+from neural_estimator.filters.reference import filterpy_ekf, filterpy_enkf, filterpy_ukf, reference_pf
+from neural_estimator.scenarios import Scenario, make_scenario, register_scenario
 
 RTOL = 1e-6  # EKF/UKF vs filterpy and vs the exact KF: relative, set once
 FILTERS = {"ekf": ExtendedKalmanFilter, "ukf": UnscentedKalmanFilter, "enkf": EnsembleKalmanFilter, "pf": ParticleFilter}
@@ -212,7 +207,7 @@ def data(s: Scenario, n: int, T: int, seed: int = 0):
     return tr.x, tr.y, tr.u
 
 
-# ---- independent references, one trajectory at a time --------------------------------------------
+# ---- the exact answer for the linear-Gaussian scenario (filterpy references: filters/reference.py) ---
 def kalman_filter(s: Scenario, y: np.ndarray, u: np.ndarray):
     """The textbook KF for LinearGaussian (explicit inverse on purpose: a different code path)."""
     A, G, C = s.matrices()
@@ -228,100 +223,6 @@ def kalman_filter(s: Scenario, y: np.ndarray, u: np.ndarray):
         xs.append(m)
         Ps.append(P)
     return np.array(xs), np.array(Ps)
-
-
-def filterpy_ekf(s: Scenario, y: np.ndarray, u: np.ndarray):
-    m0, P0 = s.prior()
-    ekf = FpEKF(dim_x=s.dx, dim_z=s.dy)
-    ekf.x, ekf.P, ekf.Q, ekf.R = m0.copy(), P0.copy(), s.process_cov(), s.obs_cov()
-    up = previous_controls(u[None])[0]
-    xs, Ps = [], []
-    for k in range(len(y)):
-        if k:
-            # filterpy's EKF predicts x with F x; the nonlinear f replaces that, F linearises at x.
-            ekf.F = s.jac_f(ekf.x, up[k])
-            x_new = s.normalize_state(s.f(ekf.x, up[k]))
-            ekf.predict()
-            ekf.x = x_new
-        ekf.update(y[k], HJacobian=s.jac_h, Hx=s.h, residual=s.obs_residual)
-        ekf.x = s.normalize_state(ekf.x)
-        xs.append(ekf.x.copy())
-        Ps.append(ekf.P.copy())
-    return np.array(xs), np.array(Ps)
-
-
-def filterpy_ukf(s: Scenario, y: np.ndarray, u: np.ndarray):
-    m0, P0 = s.prior()
-    angles_x, angles_z = bool(s.angle_states), bool(s.angle_obs)
-    pts = MerweScaledSigmaPoints(s.dx, alpha=1e-3, beta=2.0, kappa=0.0, subtract=s.state_residual if angles_x else None)
-    ukf = FpUKF(
-        dim_x=s.dx,
-        dim_z=s.dy,
-        dt=s.dt,
-        hx=s.h,
-        fx=lambda x, dt, u: s.f(x, u),
-        points=pts,
-        x_mean_fn=s.state_mean if angles_x else None,
-        z_mean_fn=s.obs_mean if angles_z else None,
-        residual_x=s.state_residual if angles_x else None,
-        residual_z=s.obs_residual if angles_z else None,
-        state_add=(lambda a, b: s.normalize_state(a + b)) if angles_x else None,
-    )
-    ukf.x, ukf.P, ukf.Q, ukf.R = m0.copy(), P0.copy(), s.process_cov(), s.obs_cov()
-    up = previous_controls(u[None])[0]
-    xs, Ps = [], []
-    for k in range(len(y)):
-        if k:
-            ukf.predict(u=up[k])
-        else:  # the timing convention: y_0 updates the prior, so draw its sigma points
-            ukf.sigmas_f = pts.sigma_points(ukf.x, ukf.P)
-        ukf.update(y[k])
-        xs.append(ukf.x.copy())
-        Ps.append(ukf.P.copy())
-    return np.array(xs), np.array(Ps)
-
-
-def filterpy_enkf(s: Scenario, y: np.ndarray, u: np.ndarray, N: int, seed: int):
-    np.random.seed(seed)  # filterpy draws from numpy's global generator
-    m0, P0 = s.prior()
-    up = previous_controls(u[None])[0]
-    enkf = FpEnKF(x=m0.copy(), P=P0.copy(), dim_z=s.dy, dt=s.dt, N=N, hx=s.h, fx=lambda x, dt: x)
-    enkf.Q, enkf.R = s.process_cov(), s.obs_cov()
-    xs = []
-    for k in range(len(y)):
-        if k:
-            enkf.fx = lambda x, dt, uk=up[k]: s.f(x, uk)
-            enkf.predict()
-        # filterpy's EnKF subtracts observations plainly; unwrapping each member's predicted angle
-        # next to y_k (h_k(x) = y_k + wrap(h(x) - y_k)) makes those differences the wrapped ones.
-        enkf.hx = lambda x, yk=y[k]: yk + s.obs_residual(s.h(x), yk)
-        enkf.update(y[k])
-        xs.append(enkf.x.copy())
-    return np.array(xs)
-
-
-def reference_pf(s: Scenario, y: np.ndarray, u: np.ndarray, N: int, init_std: float, seed: int):
-    """A bootstrap PF for one trajectory around filterpy's systematic_resample (log-space weights)."""
-    np.random.seed(seed)  # filterpy's systematic_resample draws from numpy's global generator
-    rng = np.random.default_rng(seed + 1)
-    m0, _ = s.prior()
-    LQ, Rinv = psd_sqrt(s.process_cov()), np.linalg.inv(s.obs_cov())
-    up = previous_controls(u[None])[0]
-    X = s.normalize_state(m0 + init_std * rng.standard_normal((N, s.dx)))
-    logw = np.full(N, -np.log(N))
-    xs = []
-    for k in range(len(y)):
-        if k:
-            X = s.normalize_state(s.f(X, np.broadcast_to(up[k], (N, s.du))) + rng.standard_normal((N, s.dx)) @ LQ.T)
-        r = s.obs_residual(y[k], s.h(X))
-        logw = logw - 0.5 * np.einsum("ni,ij,nj->n", r, Rinv, r, optimize=True)
-        logw -= logsumexp(logw)
-        w = np.exp(logw)
-        xs.append(s.state_mean(X, w))
-        if 1.0 / np.sum(w**2) < N / 2:
-            X = X[fp_systematic_resample(w)]
-            logw = np.full(N, -np.log(N))
-    return np.array(xs)
 
 
 def assert_close(ours: np.ndarray, ref: np.ndarray, scale: np.ndarray, what: str) -> None:
@@ -498,6 +399,27 @@ def test_run_equals_loop_of_step(method, name):
         np.testing.assert_array_equal(xk, est.x[:, k])
         np.testing.assert_array_equal(f.covariance, est.cov[:, k])
     np.testing.assert_array_equal(f.diverged, est.diverged)
+
+
+@pytest.mark.parametrize("name", CONTRACT_SCENARIOS)
+@pytest.mark.parametrize("method", list(FILTERS))
+def test_blocking_does_not_change_results(method, name):
+    """Streams are processed in cache-sized blocks; one stream per block agrees to round-off.
+
+    (Not bit for bit: numpy's stacked matmul and einsum may take another kernel for another stack
+    size. run and step share the blocks, so they stay bit-equal.)
+    """
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 6, 12, seed=13)
+    y[2, 3] = np.nan
+    opts = {"n_particles": 256} if method == "pf" else {}
+    whole = FILTERS[method](s, seed=3, **opts)
+    single = FILTERS[method](s, seed=3, **opts)
+    single.block_elements = 1
+    a, b = whole.run(y, u), single.run(y, u)
+    assert len(single._blocks) == 6 and len(whole._blocks) == 1
+    np.testing.assert_allclose(a.x, b.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.cov, b.cov, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("method", list(FILTERS))

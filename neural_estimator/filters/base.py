@@ -95,6 +95,13 @@ class ClassicalFilter(Estimator):
     has_covariance: ClassVar[bool] = True
     HyperParams: ClassVar[type]
     require_definite_R: ClassVar[bool] = False
+    # Streams are processed in blocks whose largest per-step array (sigma points, members,
+    # particles or covariances) holds about this many float64 numbers (1 MiB): the memory-bound
+    # elementwise work then runs in cache, about twice as fast at B = 8000 as one pass over the
+    # whole batch. Random draws are made block after block from one generator, which yields the
+    # same numbers as one draw for the whole batch, so results depend on the block size only
+    # through round-off (numpy may pick another matmul kernel for another stack size).
+    block_elements: int = 2**17
 
     def __init__(self, scenario: Scenario, seed: int = 0, hyperparams: Any = None, **options: Any) -> None:
         super().__init__(scenario)
@@ -128,6 +135,9 @@ class ClassicalFilter(Estimator):
         self.diverged = np.zeros(B, dtype=bool)
         self.skipped = np.zeros(B, dtype=bool)
         self.covariance = None
+        per_stream = max(1, int(self._stream_elements()))
+        size = max(1, min(B, int(self.block_elements) // per_stream))
+        self._blocks = [slice(i, min(i + size, B)) for i in range(0, B, size)]
         self._init_state(B)
 
     def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
@@ -183,7 +193,9 @@ class ClassicalFilter(Estimator):
             ok = _and(ok, self._update(y, skip))
         self._k += 1
         mean, cov = self._estimate()
-        bad = ~(np.isfinite(mean).all(axis=1) & np.isfinite(cov).all(axis=(1, 2)))
+        # One pass each: a sum is non-finite iff an entry is (or the entries reach ~1e308, which
+        # counts as divergence too).
+        bad = ~(np.isfinite(mean.sum(axis=1)) & np.isfinite(cov.sum(axis=(1, 2))))
         if ok is not None:
             bad |= ~ok
         if bad.any():
@@ -199,6 +211,33 @@ class ClassicalFilter(Estimator):
         cov.flags.writeable = False  # the filter's own array: read it, copy it, never write it
         return mean, cov
 
+    def _blockwise(self, kernel, *arrays: np.ndarray) -> tuple:
+        """Apply ``kernel(*block_arrays) -> (out_1, ..., out_j, ok)`` block by block of streams.
+
+        Every array has the streams on axis 0; outputs are assembled to (B, ...) and ok flags to
+        (B,) (None when every stream is ok). One block: the kernel's own outputs, no copies.
+        """
+        if len(self._blocks) == 1:
+            return kernel(*arrays)
+        outs: list = []
+        ok_full = None
+        for sl in self._blocks:
+            *res, ok = kernel(*(a[sl] for a in arrays))
+            if not outs:
+                outs = [np.empty((self.batch,) + r.shape[1:], dtype=r.dtype) for r in res]
+            for o, r in zip(outs, res):
+                o[sl] = r
+            if ok is not None and not ok.all():
+                if ok_full is None:
+                    ok_full = np.ones(self.batch, dtype=bool)
+                ok_full[sl] = ok
+        return (*outs, ok_full)
+
+    def _stream_elements(self) -> int:
+        """float64 numbers in the largest per-stream array of a step (sets the block size)."""
+        n = self.scenario.dx
+        return n * max(n, self.scenario.dy)
+
     @abstractmethod
     def _init_state(self, B: int) -> None:
         """Set the internal state of B streams to the prior."""
@@ -213,6 +252,13 @@ class ClassicalFilter(Estimator):
 
         Returns per-stream ok flags (B,) or None (all ok); skipped rows count as ok.
         """
+
+    @staticmethod
+    def _keep(skip: np.ndarray | None, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """``new`` with the rows of ``skip`` taken from ``old`` (any trailing shape)."""
+        if skip is None:
+            return new
+        return np.where(skip.reshape((-1,) + (1,) * (new.ndim - 1)), old, new)
 
     @abstractmethod
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:

@@ -53,38 +53,40 @@ class ExtendedKalmanFilter(ClassicalFilter):
 
     def _init_state(self, B: int) -> None:
         n = self.scenario.dx
+        self._eye = np.eye(n)
         self._m = np.broadcast_to(self.m0, (B, n)).copy()
         self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
 
     def _predict(self, u: np.ndarray) -> None:
-        s = self.scenario
-        m, P = self._m, self._P
-        F = s.jac_f(m, u)  # (B, n, n)
-        self._m = self.ops.normalize_state(s.f(m, u))
-        self._P = symmetrize(F @ P @ np.swapaxes(F, -1, -2) + self.Q)
+        self._m, self._P, _ = self._blockwise(self._predict_block, self._m, self._P, u)
         return None
 
-    def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
+    def _predict_block(self, m: np.ndarray, P: np.ndarray, u: np.ndarray):
         s = self.scenario
-        m, P = self._m, self._P
-        H = s.jac_h(m)  # (B, dy, n)
-        r = self.ops.obs_residual(y, s.h(m))  # (B, dy)
-        PHt = P @ np.swapaxes(H, -1, -2)  # (B, n, dy)
-        S = symmetrize(H @ PHt + self.R)  # (B, dy, dy)
-        Kt = psd_solve(S, np.swapaxes(PHt, -1, -2))  # (B, dy, n) = K^T = S^{-1} H P
+        F = s.jac_f(m, u)  # (b, n, n)
+        m_pred = self.ops.normalize_state(s.f(m, u))
+        return m_pred, symmetrize(F @ P @ np.swapaxes(F, -1, -2) + self.Q), None
+
+    def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
+        m_post, P_post, _ = self._blockwise(self._update_block, self._m, self._P, y)
+        self._m, self._P = self._keep(skip, self._m, m_post), self._keep(skip, self._P, P_post)
+        return None
+
+    def _update_block(self, m: np.ndarray, P: np.ndarray, y: np.ndarray):
+        s = self.scenario
+        H = s.jac_h(m)  # (b, dy, n)
+        r = self.ops.obs_residual(y, s.h(m))  # (b, dy)
+        PHt = P @ np.swapaxes(H, -1, -2)  # (b, n, dy)
+        S = symmetrize(H @ PHt + self.R)  # (b, dy, dy)
+        Kt = psd_solve(S, np.swapaxes(PHt, -1, -2))  # (b, dy, n) = K^T = S^{-1} H P
         m_post = self.ops.normalize_state(m + np.einsum("bmn,bm->bn", Kt, r))
         if self.hp.joseph_form:
             K = np.swapaxes(Kt, -1, -2)
-            IKH = np.eye(s.dx) - K @ H
+            IKH = self._eye - K @ H
             P_post = IKH @ P @ np.swapaxes(IKH, -1, -2) + K @ self.R @ Kt
         else:
             P_post = P - PHt @ Kt
-        P_post = symmetrize(P_post)
-        if skip is not None:
-            m_post = np.where(skip[:, None], m, m_post)
-            P_post = np.where(skip[:, None, None], P, P_post)
-        self._m, self._P = m_post, P_post
-        return None
+        return m_post, symmetrize(P_post), None
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
         return self._m, self._P

@@ -76,43 +76,53 @@ class EnsembleKalmanFilter(ClassicalFilter):
     def _init_state(self, B: int) -> None:
         self._X = self.ops.normalize_state(self.m0 + gaussian(self.rng, (B, self.N), self._sqrt_P0, self._sd_P0))
 
+    def _stream_elements(self) -> int:
+        s = self.scenario
+        return max(self.N * max(s.dx, s.dy), s.dx * s.dx)
+
     def _predict(self, u: np.ndarray) -> None:
-        X = self.scenario.f(self._X, self._broadcast_u(u, self.N))
-        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
-        self._X = self.ops.normalize_state(X)
+        self._X, _ = self._blockwise(self._predict_block, self._X, u)
         return None
 
+    def _predict_block(self, X: np.ndarray, u: np.ndarray):
+        X = self.scenario.f(X, self._broadcast_u(u, self.N))
+        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
+        return self.ops.normalize_state(X), None
+
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
+        X_post, _ = self._blockwise(self._update_block, self._X, y)
+        self._X = self._keep(skip, self._X, X_post)
+        return None
+
+    def _update_block(self, X: np.ndarray, y: np.ndarray):
         ops, N = self.ops, self.N
-        X = self._X
         xbar = ops.state_mean(X)
-        A = ops.state_residual(X, xbar[:, None, :])  # (B, N, n)
+        A = ops.state_residual(X, xbar[:, None, :])  # (b, N, n)
         if self.hp.inflation != 1.0:
             A = A * self.hp.inflation
             X = ops.normalize_state(xbar[:, None, :] + A)
-        Z = self.scenario.h(X)  # (B, N, dy)
+        Z = self.scenario.h(X)  # (b, N, dy)
         if not ops.plain_obs:
             # Unwrap each member's predicted observation onto the branch around y_k, so that the
             # anomalies (hence C and S) and the innovations use one continuous branch; the cut
             # lies opposite the observation, where the likelihood is smallest.
             Z = y[:, None, :] + ops.obs_residual(Z, y[:, None, :])
         Bz = Z - Z.mean(axis=1, keepdims=True)
-        C = weighted_cross_covariance(A, Bz, None, N - 1)  # (B, n, dy)
+        C = weighted_cross_covariance(A, Bz, None, N - 1)  # (b, n, dy)
         S = weighted_covariance(Bz, None, N - 1) + self.R
-        Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (B, dy, n) = K^T
-        E = gaussian(self.rng, Z.shape[:2], self._sqrt_R, self._sd_R)  # (B, N, dy)
+        Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (b, dy, n) = K^T
+        E = gaussian(self.rng, Z.shape[:2], self._sqrt_R, self._sd_R)  # (b, N, dy)
         innov = (y[:, None, :] + E) - Z
-        X_post = ops.normalize_state(X + innov @ Kt)
-        if skip is not None:
-            X_post = np.where(skip[:, None, None], self._X, X_post)
-        self._X = X_post
-        return None
+        return ops.normalize_state(X + innov @ Kt), None
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
-        X = self._X
+        mean, cov, _ = self._blockwise(self._estimate_block, self._X)
+        return mean, cov
+
+    def _estimate_block(self, X: np.ndarray):
         mean = self.ops.state_mean(X)
         A = self.ops.state_residual(X, mean[:, None, :])
-        return mean, weighted_covariance(A, None, self.N - 1)
+        return mean, weighted_covariance(A, None, self.N - 1), None
 
     def _park(self, mask: np.ndarray) -> None:
         self._X = np.where(mask[:, None, None], self.m0, self._X)

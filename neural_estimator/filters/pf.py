@@ -97,30 +97,38 @@ class ParticleFilter(ClassicalFilter):
         self._logw = np.full((B, self.N), -np.log(self.N))
         self._w = np.full((B, self.N), 1.0 / self.N)
 
+    def _stream_elements(self) -> int:
+        s = self.scenario
+        return max(self.N * max(s.dx, s.dy), s.dx * s.dx)
+
     def _predict(self, u: np.ndarray) -> None:
-        X = self.scenario.f(self._X, self._broadcast_u(u, self.N))
-        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
-        self._X = self.ops.normalize_state(X)
+        self._X, _ = self._blockwise(self._predict_block, self._X, u)
         return None
+
+    def _predict_block(self, X: np.ndarray, u: np.ndarray):
+        X = self.scenario.f(X, self._broadcast_u(u, self.N))
+        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
+        return self.ops.normalize_state(X), None
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
-        r = self.ops.obs_residual(y[:, None, :], self.scenario.h(self._X))  # (B, N, dy)
-        if self._inv_sd_R is not None:
-            r = r * self._inv_sd_R
-        else:
-            r = r @ self._white_R.T
-        loglik = -0.5 * np.einsum("bnm,bnm->bn", r, r)
-        logw, w = normalize_log_weights(self._logw + loglik)
-        if skip is not None:
-            logw = np.where(skip[:, None], self._logw, logw)
-            w = np.where(skip[:, None], self._w, w)
-        self._logw, self._w = logw, w
+        logw, w, _ = self._blockwise(self._update_block, self._X, self._logw, y)
+        self._logw, self._w = self._keep(skip, self._logw, logw), self._keep(skip, self._w, w)
         return None
 
+    def _update_block(self, X: np.ndarray, logw: np.ndarray, y: np.ndarray):
+        r = self.ops.obs_residual(y[:, None, :], self.scenario.h(X))  # (b, N, dy)
+        r = r * self._inv_sd_R if self._inv_sd_R is not None else r @ self._white_R.T
+        loglik = -0.5 * np.einsum("bnm,bnm->bn", r, r)
+        return (*normalize_log_weights(logw + loglik), None)
+
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
-        mean = self.ops.state_mean(self._X, self._w)
-        D = self.ops.state_residual(self._X, mean[:, None, :])
-        return mean, weighted_covariance(D, self._w)
+        mean, cov, _ = self._blockwise(self._estimate_block, self._X, self._w)
+        return mean, cov
+
+    def _estimate_block(self, X: np.ndarray, w: np.ndarray):
+        mean = self.ops.state_mean(X, w)
+        D = self.ops.state_residual(X, mean[:, None, :])
+        return mean, weighted_covariance(D, w), None
 
     def _park(self, mask: np.ndarray) -> None:
         self._X = np.where(mask[:, None, None], self.m0, self._X)
@@ -134,10 +142,17 @@ class ParticleFilter(ClassicalFilter):
         if not need.any():
             return
         rows = np.flatnonzero(need)
-        idx = systematic_resample(self._w[rows], offsets[rows])
-        Xr = np.take_along_axis(self._X[rows], idx[:, :, None], axis=1)
+        N, n = self.N, self.scenario.dx
+        idx = systematic_resample(self._w[rows], offsets[rows])  # (r, N) into each row's particles
+        flat = (idx + (rows * N)[:, None]).ravel()
+        Xr = np.take(self._X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
         if self.hp.rejuvenation_std > 0:
             Xr = self.ops.normalize_state(Xr + self.hp.rejuvenation_std * self.rng.standard_normal(Xr.shape))
-        self._X[rows] = Xr
-        self._logw[rows] = -np.log(self.N)
-        self._w[rows] = 1.0 / self.N
+        if rows.size == self.batch:  # every stream resampled (the usual case at B = 1): no scatter
+            self._X = Xr
+            self._logw = np.full((self.batch, N), -np.log(N))
+            self._w = np.full((self.batch, N), 1.0 / N)
+        else:
+            self._X[rows] = Xr
+            self._logw[rows] = -np.log(N)
+            self._w[rows] = 1.0 / N

@@ -116,36 +116,40 @@ class UnscentedKalmanFilter(ClassicalFilter):
         np.subtract(m[:, None, :], cols, out=X[:, n + 1 :])
         return self.ops.normalize_state(X), ok
 
+    def _stream_elements(self) -> int:
+        n = self.scenario.dx
+        return (2 * n + 1) * max(n, self.scenario.dy)
+
     def _predict(self, u: np.ndarray) -> np.ndarray | None:
-        s = self.scenario
-        X, ok = self._sigma_points(self._m, self._P)
-        Xf = s.f(X, self._broadcast_u(u, X.shape[1]))  # (B, 2n+1, n)
-        m_pred = self.ops.state_mean(Xf, self.Wm)
-        D = self.ops.state_residual(Xf, m_pred[:, None, :])
-        self._m = m_pred
-        self._P = weighted_covariance(D, self.Wc) + self.Q  # symmetric: a symmetrised sum + Q
+        self._m, self._P, ok = self._blockwise(self._predict_block, self._m, self._P, u)
         return ok
 
-    def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
-        s = self.scenario
-        m, P = self._m, self._P
+    def _predict_block(self, m: np.ndarray, P: np.ndarray, u: np.ndarray):
         X, ok = self._sigma_points(m, P)
-        Z = s.h(X)  # (B, 2n+1, dy)
+        Xf = self.scenario.f(X, self._broadcast_u(u, X.shape[1]))  # (b, 2n+1, n)
+        m_pred = self.ops.state_mean(Xf, self.Wm)
+        D = self.ops.state_residual(Xf, m_pred[:, None, :])
+        return m_pred, weighted_covariance(D, self.Wc) + self.Q, ok  # symmetric: a symmetrised sum + Q
+
+    def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
+        m_post, P_post, ok = self._blockwise(self._update_block, self._m, self._P, y)
+        self._m, self._P = self._keep(skip, self._m, m_post), self._keep(skip, self._P, P_post)
+        if ok is not None and skip is not None:
+            ok = ok | skip
+        return ok
+
+    def _update_block(self, m: np.ndarray, P: np.ndarray, y: np.ndarray):
+        X, ok = self._sigma_points(m, P)
+        Z = self.scenario.h(X)  # (b, 2n+1, dy)
         z = self.ops.obs_mean(Z, self.Wm)
         Dz = self.ops.obs_residual(Z, z[:, None, :])
         Dx = self.ops.state_residual(X, m[:, None, :])
         S = weighted_covariance(Dz, self.Wc) + self.R
-        C = weighted_cross_covariance(Dx, Dz, self.Wc)  # (B, n, dy)
-        Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (B, dy, n) = K^T
+        C = weighted_cross_covariance(Dx, Dz, self.Wc)  # (b, n, dy)
+        Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (b, dy, n) = K^T
         r = self.ops.obs_residual(y, z)
         m_post = self.ops.normalize_state(m + np.einsum("bmn,bm->bn", Kt, r))
-        P_post = symmetrize(P - C @ Kt)
-        if skip is not None:
-            m_post = np.where(skip[:, None], m, m_post)
-            P_post = np.where(skip[:, None, None], P, P_post)
-            ok = None if ok is None else ok | skip
-        self._m, self._P = m_post, P_post
-        return ok
+        return m_post, symmetrize(P - C @ Kt), ok
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
         return self._m, self._P
