@@ -29,6 +29,11 @@ setup(
             "neural-estimator = neural_estimator.cli:main",
             # the minimal `ros2 run` for pip environments; hands over to a real ros2 when installed
             "ros2 = neural_estimator.ros2_shim:main",
+            # ROS 2 nodes (`ros2 run neural_estimator <name>`)
+            "simulator = sim_nodes.simulator:main",
+            "estimator = neural_estimator.nodes.estimator_node:main",
+            "evaluator = neural_estimator.nodes.evaluator_node:main",
+            "player = neural_estimator.nodes.player_node:main",
         ],
     },
 )

@@ -5,6 +5,7 @@ Verbs (``neural-estimator VERB --help`` for each):
     metrics    the paper's table from a truth file and an estimate file (or one file, or an MCAP bag)
     evaluate   run methods on the three evaluation sets and print the paper's per-scenario table
     train      train a neural estimator with the paper's protocol
+    live       a live ROS 2 run (simulator, estimators, evaluator) ending with the table and an MCAP bag
     replay     run an MCAP bag's observations through estimators offline
     scenarios  list the registered scenarios and their constants
 
@@ -329,8 +330,22 @@ def _parse_model_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
+# ---- live ---------------------------------------------------------------------------------------
+def _add_live(sub) -> None:
+    p = sub.add_parser("live", add_help=False,  # dispatched before parsing, see main()
+                       help="live ROS 2 run: simulator -> estimators -> evaluator, ends with the table and the MCAP bag")
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_cmd_live)
+
+
+def _cmd_live(args) -> int:
+    from neural_estimator.nodes.launch import main as launch_main
+
+    return launch_main(args.rest)
+
+
 # Verbs are added to this list as their modules land; each is (adder).
-_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_scenarios]
+_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_live, _add_scenarios]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -346,6 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["live"]:  # its own parser (neural_estimator.nodes.launch); argparse.REMAINDER drops --help
+        return _cmd_live(argparse.Namespace(rest=argv[1:]))
     # Plugins must be imported before parsing so their scenario names show up in --help.
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--plugin", action="append")
