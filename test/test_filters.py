@@ -305,7 +305,7 @@ PF_CASES = {
     "test_filters_pendulum": (30, 20),
     "ballistic": (20, 20),
     "bearings": (30, 20),
-    "lorenz96": (8, 8),
+    "lorenz96": (6, 8),
     "nlink": (12, 10),
     "quadrotor": (30, 20),
 }

@@ -14,14 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from neural_estimator.filters.base import ClassicalFilter
-from neural_estimator.filters.numerics import (
-    JitterPolicy,
-    cholesky,
-    psd_solve,
-    symmetrize,
-    weighted_covariance,
-    weighted_cross_covariance,
-)
+from neural_estimator.filters.numerics import JitterPolicy, cholesky, psd_solve, symmetrize
 
 
 @dataclass(frozen=True)
@@ -80,8 +73,9 @@ class UnscentedKalmanFilter(ClassicalFilter):
         m = m^- + K (y_k - z)                              (innovation and state angles wrapped)
         P = P^- - K S K^T = P^- - C S^{-1} C^T
 
-    Every covariance is symmetrised; P's Cholesky falls back to jitter, and a stream whose P cannot
-    be factored even so, or whose mean or covariance goes non-finite, is flagged in ``diverged``.
+    Every covariance is symmetrised and Cholesky-factored when it is made (the factor serves the
+    next sigma points), with jitter as a fallback; a stream whose P^- or P cannot be factored even
+    so, or whose mean or covariance goes non-finite, is flagged in ``diverged`` at that step.
     S is solved, not Cholesky-factored: with alpha = 1e-3 the weight Wc_0 is about -1e6, and a
     strongly curved h (bearings at short range) can make S indefinite; filterpy then carries on
     with it (P grows), and so does this filter.
@@ -101,55 +95,94 @@ class UnscentedKalmanFilter(ClassicalFilter):
         n = self.scenario.dx
         self._m = np.broadcast_to(self.m0, (B, n)).copy()
         self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
+        self._L = np.broadcast_to(self._factor0, (B, n, n)).copy()
 
-    def _sigma_points(self, m: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """(B, 2n+1, n) sigma points of (m, P) and the Cholesky ok flags."""
-        B, n = m.shape
+    @property
+    def _factor0(self) -> np.ndarray:
+        """sqrt(c) chol(P0) (jitter where P0 is singular)."""
+        L, _ = cholesky(self.P0[None], self.jitter)
+        return self._sqrt_c * L[0]
+
+    def _factor(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """sqrt(c) chol(P) for stored covariances, jitter fallback; failed streams get 0 (and ok False)."""
         L, ok = cholesky(P, self.jitter)
-        if ok is not None:  # failed streams: sigma points at the mean (they are flagged anyway)
+        if ok is not None:
             L = np.where(ok[:, None, None], L, 0.0)
-        cols = np.swapaxes(L, -1, -2)
-        cols *= self._sqrt_c  # row i = sqrt(c) L[:, i]
+        L *= self._sqrt_c
+        return L, ok
+
+    def _sigma_points(self, m: np.ndarray, L: np.ndarray) -> np.ndarray:
+        """(b, 2n+1, n) sigma points m, m + L_{:,i}, m - L_{:,i} for the scaled factor L = sqrt(c) chol(P)."""
+        B, n = m.shape
+        cols = np.swapaxes(L, -1, -2)  # row i = sqrt(c) chol(P)[:, i]
         X = np.empty((B, 2 * n + 1, n))
         X[:, 0] = m
         np.add(m[:, None, :], cols, out=X[:, 1 : n + 1])
         np.subtract(m[:, None, :], cols, out=X[:, n + 1 :])
-        return self.ops.normalize_state(X), ok
+        return self.ops.normalize_state(X)
+
+    def _ut_covariance(self, D: np.ndarray) -> np.ndarray:
+        """sum_i Wc_i d_i d_i^T for (b, 2n+1, k) residuals: Wc_i = w for i >= 1, so one product.
+
+        = w D_{1:}^T D_{1:} + Wc_0 d_0 d_0^T (no weighted copy of D), symmetrised.
+        """
+        D1 = D[:, 1:]
+        C = np.swapaxes(D1, -1, -2) @ D1
+        C *= self.Wc[1]
+        d0 = D[:, 0]
+        C += self.Wc[0] * (d0[:, :, None] * d0[:, None, :])
+        return symmetrize(C)
+
+    def _ut_cross(self, Dx: np.ndarray, Dz: np.ndarray) -> np.ndarray:
+        """sum_i Wc_i dx_i dz_i^T: (b, 2n+1, n), (b, 2n+1, m) -> (b, n, m)."""
+        C = np.swapaxes(Dx[:, 1:], -1, -2) @ Dz[:, 1:]
+        C *= self.Wc[1]
+        C += self.Wc[0] * (Dx[:, 0, :, None] * Dz[:, 0, None, :])
+        return C
 
     def _stream_elements(self) -> int:
         n = self.scenario.dx
         return (2 * n + 1) * max(n, self.scenario.dy)
 
     def _predict(self, u: np.ndarray) -> np.ndarray | None:
-        self._m, self._P, ok = self._blockwise(self._predict_block, self._m, self._P, u)
+        self._m, self._P, self._L, ok = self._blockwise(self._predict_block, self._m, self._L, u)
         return ok
 
-    def _predict_block(self, m: np.ndarray, P: np.ndarray, u: np.ndarray):
-        X, ok = self._sigma_points(m, P)
+    def _predict_block(self, m: np.ndarray, L: np.ndarray, u: np.ndarray):
+        X = self._sigma_points(m, L)
         Xf = self.scenario.f(X, self._broadcast_u(u, X.shape[1]))  # (b, 2n+1, n)
         m_pred = self.ops.state_mean(Xf, self.Wm)
         D = self.ops.state_residual(Xf, m_pred[:, None, :])
-        return m_pred, weighted_covariance(D, self.Wc) + self.Q, ok  # symmetric: a symmetrised sum + Q
+        P_pred = self._ut_covariance(D) + self.Q  # symmetric: a symmetrised sum + Q
+        return (m_pred, P_pred, *self._factor(P_pred))
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
-        m_post, P_post, ok = self._blockwise(self._update_block, self._m, self._P, y)
-        self._m, self._P = self._keep(skip, self._m, m_post), self._keep(skip, self._P, P_post)
+        m_post, P_post, L_post, ok = self._blockwise(self._update_block, self._m, self._P, self._L, y)
+        self._m = self._keep(skip, self._m, m_post)
+        self._P = self._keep(skip, self._P, P_post)
+        self._L = self._keep(skip, self._L, L_post)
         if ok is not None and skip is not None:
             ok = ok | skip
         return ok
 
-    def _update_block(self, m: np.ndarray, P: np.ndarray, y: np.ndarray):
-        X, ok = self._sigma_points(m, P)
+    def _update_block(self, m: np.ndarray, P: np.ndarray, L: np.ndarray, y: np.ndarray):
+        n = self.scenario.dx
+        X = self._sigma_points(m, L)
         Z = self.scenario.h(X)  # (b, 2n+1, dy)
         z = self.ops.obs_mean(Z, self.Wm)
         Dz = self.ops.obs_residual(Z, z[:, None, :])
-        Dx = self.ops.state_residual(X, m[:, None, :])
-        S = weighted_covariance(Dz, self.Wc) + self.R
-        C = weighted_cross_covariance(Dx, Dz, self.Wc)  # (b, n, dy)
+        S = self._ut_covariance(Dz) + self.R
+        if self.ops.plain_state:
+            # X_i - m^- = +-L_{:,i} and X_0 - m^- = 0 exactly: C = w L (Dz_+ - Dz_-)
+            C = L @ (Dz[:, 1 : n + 1] - Dz[:, n + 1 :])
+            C *= self.Wc[1]
+        else:
+            C = self._ut_cross(self.ops.state_residual(X, m[:, None, :]), Dz)  # (b, n, dy)
         Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (b, dy, n) = K^T
         r = self.ops.obs_residual(y, z)
         m_post = self.ops.normalize_state(m + np.einsum("bmn,bm->bn", Kt, r))
-        return m_post, symmetrize(P - C @ Kt), ok
+        P_post = symmetrize(P - C @ Kt)
+        return (m_post, P_post, *self._factor(P_post))
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
         return self._m, self._P
@@ -157,3 +190,4 @@ class UnscentedKalmanFilter(ClassicalFilter):
     def _park(self, mask: np.ndarray) -> None:
         self._m = np.where(mask[:, None], self.m0, self._m)
         self._P = np.where(mask[:, None, None], self.P0, self._P)
+        self._L = np.where(mask[:, None, None], self._factor0, self._L)
