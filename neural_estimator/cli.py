@@ -272,9 +272,12 @@ _TRAIN_FLAG_HELP = {
 }
 
 
-def _add_train(sub) -> None:
+def _add_train(sub, full: bool = True) -> None:
     import dataclasses
 
+    if not full:  # listed in --help without importing torch (seconds) for the other verbs
+        sub.add_parser("train", help="train a neural estimator with the paper's protocol")
+        return
     from neural_estimator.models.training import TrainConfig
 
     p = sub.add_parser("train", help="train a neural estimator with the paper's protocol")
@@ -348,14 +351,18 @@ def _cmd_live(args) -> int:
 _VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_live, _add_scenarios]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
+    """The parser; ``verb`` (the first argument) lets verbs with heavy imports build lazily."""
     parser = argparse.ArgumentParser(
         prog="neural-estimator",
         description="Model-free neural estimators beside model-based nonlinear filters (paper reproduction).",
     )
     sub = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
     for add in _VERBS:
-        add(sub)
+        if add is _add_train:
+            add(sub, full=verb == "train")
+        else:
+            add(sub)
     return parser
 
 
@@ -372,14 +379,14 @@ def main(argv: list[str] | None = None) -> int:
 
     handled: tuple[type[BaseException], ...] = (CliError, ScenarioError, DataError, EstimatorError)
     try:
-        from neural_estimator.bags import BagError
+        from neural_estimator.bags.errors import BagError  # light: the bags package imports rosbags
 
         handled += (BagError,)
     except ImportError:  # bags not importable (optional dependency missing)
         pass
     try:
         load_plugins(known.plugin)
-        args = build_parser().parse_args(argv)
+        args = build_parser("train" if "train" in argv else None).parse_args(argv)
         return int(args.func(args) or 0)
     except handled as exc:
         print(f"neural-estimator: error: {exc}", file=sys.stderr)

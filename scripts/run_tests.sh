@@ -8,4 +8,7 @@ cd "$root"
 # Each test file gets its own ROS domain inside the tests; keep this run off any user's graph.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-77}"
 export MPLBACKEND=Agg
+# One BLAS/torch thread per process: the tests use small arrays, where two threads on two cores
+# (one of them also running the test's ROS nodes) only contend.
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
 exec "$root/.venv/bin/python" -m pytest -q test "$@"
