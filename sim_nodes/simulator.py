@@ -16,7 +16,9 @@ subscriptions match the observation topic (the launcher sets it to the number of
 the evaluator; ``wait_timeout`` bounds the wait), then ``start_delay`` more seconds so that the
 other pairs (estimates -> evaluator) finish discovery. Because the streams are also
 transient_local with a deep history, a subscriber that still matches a little late (the recorder
-subscribes on discovery) receives the first ``history_depth`` messages it missed.
+subscribes on discovery) receives the first ``history_depth`` messages it missed. The same depth is
+the backlog a slow subscriber may build without losing anything (the launcher sets it to the whole
+run), and at the end the node stays until every subscriber acknowledged every message (``linger``).
 
 The data are :func:`neural_estimator.data.simulate` of (scenario, trajectories, horizon, seed):
 the same bytes as ``neural-estimator simulate`` writes. Parameters: ``params/simulator.yaml``.
@@ -30,6 +32,7 @@ import threading
 import time
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -63,10 +66,10 @@ class SimulatorParams:
     wait_for_subscribers: int = param(0, "observation subscriptions to wait for before starting")
     wait_timeout: float = param(30.0, "seconds to wait for them (then start anyway, with a warning); 0 = forever")
     start_delay: float = param(0.5, "extra seconds before the first step (discovery of the other topics)")
-    history_depth: int = param(1000, "depth of the observation / ground-truth publishers (transient_local)")
+    history_depth: int = param(10000, "depth of the observation / ground-truth publishers (transient_local): the backlog a slow subscriber may build without loss")
     publish_ground_truth: bool = param(True, "publish ground_truth")
     exit_when_done: bool = param(True, "shut down after the run (after linger seconds)")
-    linger: float = param(2.0, "seconds to stay up after the run so that reliable resends complete")
+    linger: float = param(30.0, "most seconds to wait after the run until every subscriber acknowledged every message")
 
 
 class SimulatorNode(Node):
@@ -159,8 +162,19 @@ class SimulatorNode(Node):
             f"run complete: {N * T} observations in {elapsed:.2f} s ({N * T / max(elapsed, 1e-9):.0f} Hz achieved, "
             f"{late} steps more than 10 ms late)"
         )
-        if p.exit_when_done and not self._stop.wait(p.linger):
+        if p.exit_when_done:
+            self._wait_for_acks()
             request_shutdown(self, 0)
+
+    def _wait_for_acks(self) -> None:
+        """Exiting drops what subscribers have not acknowledged yet (a slow recorder's backlog)."""
+        deadline = time.monotonic() + self.p.linger
+        for pub in (self.pub_obs, self.pub_truth, self.pub_status):
+            left = deadline - time.monotonic()
+            if left <= 0 or self._stop.is_set():
+                break
+            if not pub.wait_for_all_acked(Duration(seconds=left)):
+                self.get_logger().warning(f"'{pub.topic_name}': not every subscriber acknowledged within {self.p.linger:g} s")
 
     def on_shutdown(self) -> int:
         self._stop.set()

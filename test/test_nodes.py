@@ -30,6 +30,7 @@ from neural_estimator.nodes.launch import (
     isolated_env,
     node_command,
     run_pipeline,
+    start_node,
 )
 from neural_estimator.replay import replay
 
@@ -127,10 +128,7 @@ class Nodes:
         self.procs: dict[str, subprocess.Popen] = {}
 
     def start(self, module: str, name: str, **params) -> subprocess.Popen:
-        log = open(self.log_dir / f"{name}.log", "wb")
-        proc = subprocess.Popen(node_command(sys.executable, module, name, params), stdout=log,
-                                stderr=subprocess.STDOUT, env=self.env)
-        log.close()
+        proc = start_node(node_command(sys.executable, module, name, params), self.log_dir / f"{name}.log", self.env)
         self.procs[name] = proc
         return proc
 

@@ -63,11 +63,12 @@ class EstimatorParams:
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
     output_topic: str = param("", "estimate topic; empty = estimates/<method>; covariance goes to <output>/covariance")
     publish_covariance: bool = param(True, "publish the covariance where the method has one")
-    queue_depth: int = param(1000, "subscription queue (reliable, KEEP_LAST): observations buffered while busy")
-    history_depth: int = param(1000, "estimate publisher depth (transient_local: what a late recorder still gets)")
+    queue_depth: int = param(10000, "subscription queue (reliable, KEEP_LAST): observations buffered while busy")
+    history_depth: int = param(10000, "estimate publisher depth (transient_local): a late or slow recorder's backlog")
     max_gap: int = param(DEFAULT_MAX_GAP, "most missing steps bridged by predict-only steps before a restart")
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
+    stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
 
 
 class EstimatorNode(Node):
@@ -257,6 +258,26 @@ class EstimatorNode(Node):
                         f"'{self.sub_obs.topic_name}' has a publisher of the wrong type: {key}; "
                         f"expected {M.JOINT_STATE}. Its messages cannot reach this node."
                     )
+
+    def on_shutdown(self) -> int:
+        if self.p.stats_file:
+            import json
+            from pathlib import Path
+
+            s = self.stats
+            lat = np.frombuffer(s.latency, dtype=np.float64)
+            pct = {f"latency_p{q}_ms": float(np.percentile(lat, q)) * 1e3 if lat.size else None for q in (50, 90, 99)}
+            out = {
+                "node": self.get_fully_qualified_name(), "method": self.method,
+                "estimates": s.estimated, "bad": s.bad + s.early, "nonfinite": s.nonfinite,
+                "duplicates": s.skipped["duplicate"], "out_of_order": s.skipped["stale"], "gap_steps": s.gap_steps,
+                "restarts": s.restarts, "resets": s.resets, "diverged": s.diverged, "latency_samples": int(lat.size),
+                "latency_max_ms": float(lat.max()) * 1e3 if lat.size else None, **pct,
+            }
+            path = Path(self.p.stats_file)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(out, indent=1))
+        return int(getattr(self, "exit_code", 0) or 0)
 
     def _warn(self, kind: str, text: str) -> None:
         now = time.monotonic()

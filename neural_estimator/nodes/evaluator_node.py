@@ -12,7 +12,7 @@ rosbags rejects). Like ``ros2 bag record`` it subscribes with the QoS the publis
 is delivered), logs receive times, and stores the offered profiles in the channel metadata.
 
 End of a run: after ``run_status`` "complete", when every expected stream holds as many messages
-as the run announced (or after ``completion_timeout`` s), the bag is closed, the paper's metrics are
+as the run announced (or when nothing arrived for ``completion_timeout`` s), the bag is closed, the paper's metrics are
 computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
 status 0 (1 if no metrics could be computed). Ctrl-C / SIGTERM close the bag properly too.
@@ -53,8 +53,8 @@ class EvaluatorParams:
     methods: tuple[str, ...] = param((), "estimate streams that must be complete before the end; empty = all discovered")
     topics: tuple[str, ...] = param((), "extra topics to record (names relative to the namespace, or absolute)")
     discovery_period: float = param(0.25, "seconds between graph scans for new topics")
-    queue_depth: int = param(1000, "subscription depth: messages buffered while the node is busy")
-    completion_timeout: float = param(30.0, "seconds after 'complete' to wait for lagging streams")
+    queue_depth: int = param(10000, "subscription depth (KEEP_LAST): messages buffered while the node is busy")
+    completion_timeout: float = param(30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds")
     chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
     compute_metrics: bool = param(True, "compute and write the metrics when the run ends")
     exit_when_done: bool = param(True, "shut down when the run is evaluated")
@@ -77,6 +77,7 @@ class EvaluatorNode(Node):
         self._refused: set[str] = set()
         self.expected: int | None = None
         self.complete_at: float | None = None
+        self._progress = (0, time.monotonic())  # (messages recorded, when that number last changed)
         self.closed = False
         self.get_logger().info(f"recording to {self.bag.path}")
         self.timer = self.create_timer(p.discovery_period, self._tick)
@@ -169,12 +170,16 @@ class EvaluatorNode(Node):
         if self.complete_at is None or self.expected is None:
             return
         lagging = {t: self.counts.get(t, 0) for t in self._required() if self.counts.get(t, 0) < self.expected}
-        timed_out = time.monotonic() - self.complete_at > self.p.completion_timeout
-        if lagging and not timed_out:
+        now = time.monotonic()
+        total = sum(self.counts.values())
+        if total != self._progress[0]:
+            self._progress = (total, now)
+        stalled = now - max(self._progress[1], self.complete_at) > self.p.completion_timeout
+        if lagging and not stalled:
             return
         if lagging:
             self.get_logger().warning(
-                f"streams still short of {self.expected} messages after {self.p.completion_timeout:g} s: "
+                f"streams still short of {self.expected} messages and nothing new for {self.p.completion_timeout:g} s: "
                 + ", ".join(f"{t} {n}" for t, n in lagging.items())
             )
         self._finish()

@@ -31,6 +31,7 @@ from typing import Any
 SIMULATOR = "sim_nodes.simulator"
 ESTIMATOR = "neural_estimator.nodes.estimator_node"
 EVALUATOR = "neural_estimator.nodes.evaluator_node"
+MAX_DEPTH = 100_000  # queue depth cap (about 30 MB per transient_local stream)
 
 
 class PipelineError(RuntimeError):
@@ -57,6 +58,8 @@ class PipelineConfig:
     output: str = ""  # bag path; empty = runs/<scenario>-<date>-<time>.mcap
     domain_id: int | None = None
     timeout: float = 600.0  # s for the whole run
+    record_topics: tuple[str, ...] = ()  # extra topics for the evaluator to record (e.g. /diagnostics)
+    stats_dir: str = ""  # each estimator writes <stats_dir>/<method>.json at shutdown ('' = no)
     python: str = sys.executable
 
 
@@ -110,6 +113,24 @@ def isolated_env(domain_id: int) -> dict[str, str]:
     return env
 
 
+def die_with_parent() -> None:
+    """``preexec_fn`` of node processes: SIGTERM when the launching process dies, however it dies
+    (the nodes run in their own session, so a terminal's Ctrl-C does not reach them either)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the launcher's own clean-up still applies
+        pass
+
+
+def start_node(cmd: list[str], log: Path, env: dict[str, str]) -> subprocess.Popen:
+    """One node process, output to ``log``, in its own session, ended when the caller dies."""
+    with open(log, "wb") as fh:
+        return subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                                preexec_fn=die_with_parent)
+
+
 def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
     """Run the chain once and wait for the evaluator (see the module docstring).
 
@@ -130,10 +151,14 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
         method, _, name = key.partition(".")
         opts.setdefault(method, []).append(f"{name}={value}")
 
+    # Every queue holds the whole run (up to MAX_DEPTH messages): a node that falls behind catches
+    # up later instead of losing messages (reliable, KEEP_LAST; transient_local publishers keep
+    # this many messages in memory).
+    depth = int(min(MAX_DEPTH, max(10_000, cfg.trajectories * (cfg.horizon or 10_000) + 100)))
     nodes: list[tuple[str, list[str]]] = [
         ("evaluator", node_command(cfg.python, EVALUATOR, "evaluator", {
             "output": str(bag), "overwrite": True, "methods": list(cfg.methods),
-            "completion_timeout": 60.0,
+            "completion_timeout": 60.0, "topics": list(cfg.record_topics), "queue_depth": depth,
         })),
     ]
     for m in cfg.methods:
@@ -141,12 +166,14 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
             "method": m, "scenario": cfg.scenario, "set": list(cfg.set), "plugins": list(cfg.plugins),
             "checkpoint": ckpt.get(m, ""), "device": cfg.device, "seed": cfg.seed, "options": opts.get(m, []),
             "publish_covariance": cfg.publish_covariance,
+            "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
+            "queue_depth": depth, "history_depth": depth,
         })))
     nodes.append(("simulator", node_command(cfg.python, SIMULATOR, "simulator", {
         "scenario": cfg.scenario, "set": list(cfg.set), "plugins": list(cfg.plugins),
         "noise_scale": float(cfg.noise_scale), "seed": cfg.seed, "trajectories": cfg.trajectories,
         "horizon": cfg.horizon, "rate_hz": float(cfg.rate_hz), "wait_for_subscribers": len(cfg.methods) + 1,
-        "wait_timeout": 120.0, "start_delay": 1.0,
+        "wait_timeout": 120.0, "start_delay": 1.0, "history_depth": depth, "linger": 120.0,
     })))
 
     procs: dict[str, subprocess.Popen] = {}
@@ -155,9 +182,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
     try:
         for name, cmd in nodes:
             logs[name] = log_dir / f"{name}.log"
-            with open(logs[name], "wb") as fh:
-                procs[name] = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env,
-                                               start_new_session=True)
+            procs[name] = start_node(cmd, logs[name], env)
         while True:
             rc = procs["evaluator"].poll()
             if rc is not None:
@@ -219,7 +244,7 @@ def _table_from_log(path: Path) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="neural-estimator-pipeline",
+    p = argparse.ArgumentParser(prog="neural-estimator live",
                                 description="Live comparison on ROS 2: simulator -> estimators -> evaluator.")
     p.add_argument("--scenario", required=True)
     p.add_argument("--methods", required=True, help="comma-separated, e.g. ekf,ukf,gru")
@@ -249,6 +274,10 @@ def main(argv: list[str] | None = None) -> int:
         device=a.device, publish_covariance=not a.no_covariance, output=a.output, domain_id=a.domain_id,
         timeout=a.timeout,
     )
+    def terminate(signum, frame):  # SIGTERM: stop the nodes too (run_pipeline's clean-up runs)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, terminate)
     try:
         res = run_pipeline(cfg, echo=True)
     except PipelineError as exc:

@@ -19,6 +19,7 @@ import threading
 import time
 import warnings
 
+from rclpy.duration import Duration
 from rclpy.node import Node
 
 from neural_estimator.bags import messages as M
@@ -45,13 +46,13 @@ class PlayerParams:
     rate: float = param(1.0, "speed factor: 2.0 plays twice as fast as recorded")
     topics: tuple[str, ...] = param((), "absolute topic names to play; empty = all (see play_estimates)")
     play_estimates: bool = param(False, "also play estimates/* streams (off: live estimators answer instead)")
-    min_depth: int = param(1000, "smallest publisher depth (recorded profiles may be shallower)")
+    min_depth: int = param(10000, "smallest publisher depth (recorded profiles may be shallower)")
     wait_for_subscribers: int = param(0, "subscriptions to wait for on wait_topic before playing")
     wait_topic: str = param("/observation", "topic whose subscribers are counted")
     wait_timeout: float = param(30.0, "seconds to wait for them (then play anyway); 0 = forever")
     start_delay: float = param(1.0, "extra seconds before the first message (discovery)")
     exit_when_done: bool = param(True, "shut down after the last message (after linger seconds)")
-    linger: float = param(2.0, "seconds to stay up after the last message so reliable resends complete")
+    linger: float = param(30.0, "most seconds to wait after the last message until every subscriber acknowledged it")
 
 
 class PlayerNode(Node):
@@ -125,7 +126,12 @@ class PlayerNode(Node):
                 self.pubs[conn.topic].publish(raw)
                 sent += 1
             self.get_logger().info(f"played {sent} messages in {time.perf_counter() - start:.2f} s")
-            if p.exit_when_done and not self._stop.wait(p.linger):
+            if p.exit_when_done:
+                deadline = time.monotonic() + p.linger
+                for pub in self.pubs.values():  # exiting drops what subscribers have not acknowledged
+                    left = deadline - time.monotonic()
+                    if left <= 0 or self._stop.is_set() or not pub.wait_for_all_acked(Duration(seconds=left)):
+                        break
                 request_shutdown(self, 0)
         except Exception as exc:
             self.get_logger().fatal(f"playback failed: {exc!r}")
