@@ -6,7 +6,6 @@ processes) load it through their ``plugins`` parameter: observations carry a con
 
 from __future__ import annotations
 
-import os
 import random
 import signal
 import subprocess

@@ -22,7 +22,6 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -32,7 +31,7 @@ from std_srvs.srv import Trigger
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.estimators import METHODS, EstimatorError, check_method, make_estimator
+from neural_estimator.estimators import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,
@@ -58,6 +57,7 @@ class EstimatorParams:
     checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
     device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
     seed: int = param(0, "seed of the random draws of the EnKF and PF")
+    threads: int = param(1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default")
     options: tuple[str, ...] = param((), "filter hyperparameters as name=value, e.g. n_particles=2048")
     observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
@@ -83,9 +83,10 @@ class EstimatorNode(Node):
             raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
         load_plugins(p.plugins)
         self.online: OnlineEstimator | None = None
-        out = p.output_topic or M.estimate_topic(self.method)
-        self.pub_est = self.create_publisher(JointState, out, stream_qos(p.history_depth))
-        self.pub_cov = self.create_publisher(JointState, f"{out}/{M.COVARIANCE_SUFFIX}", stream_qos(p.history_depth))
+        self.out_topic = p.output_topic or M.estimate_topic(self.method)
+        self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(p.history_depth))
+        self.pub_cov = None  # created once the method is known to have a covariance (a topic that
+        # never carries a message would keep a recorder waiting for it)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.stats = _Stats()
         self._last_log: dict[str, float] = {}
@@ -108,12 +109,19 @@ class EstimatorNode(Node):
             options = dict(item.split("=", 1) for item in p.options)
         except ValueError:
             raise StartupError(f"options must be name=value, got {list(p.options)}") from None
+        if p.threads > 0 and self.method in NEURAL_METHODS:
+            import torch
+
+            torch.set_num_threads(p.threads)
         try:
             est = make_estimator(self.method, scenario, checkpoint=p.checkpoint or None, device=p.device,
                                  seed=p.seed, **options)
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
         self.online = OnlineEstimator(est, self.method, publish_covariance=p.publish_covariance, max_gap=p.max_gap)
+        if self.online.publish_covariance:
+            self.pub_cov = self.create_publisher(JointState, f"{self.out_topic}/{M.COVARIANCE_SUFFIX}",
+                                                 stream_qos(p.history_depth))
         self.get_logger().info(
             f"{self.method} on {scenario.name} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}): "
             f"'{self.resolve_topic_name(p.observation_topic)}' -> "
@@ -158,13 +166,19 @@ class EstimatorNode(Node):
             self.stats.bad += 1
             self._warn("bad", f"bad observation dropped: {exc}")
             return
+        except Exception as exc:  # a failure inside a method must not take the node down
+            self.stats.errors += 1
+            self.online.reset()
+            self.get_logger().error(f"{self.method} failed on an observation ({exc!r}); the stream restarts "
+                                    "from the prior at the next observation")
+            return
         if res.status != "estimated":
             self.stats.skipped[res.status] += 1
             self._warn(res.status, f"{res.status} observation (trajectory {res.trajectory}, step {res.step}; "
                                    f"last processed step {self.online.step}) skipped")
             return
         self.pub_est.publish(res.estimate)
-        if res.covariance is not None:
+        if res.covariance is not None and self.pub_cov is not None:
             self.pub_cov.publish(res.covariance)
         s = self.stats
         s.latency.append(time.perf_counter() - t0)
@@ -207,6 +221,9 @@ class EstimatorNode(Node):
             status.level, problems = DiagnosticStatus.ERROR, ["diverged (estimates NaN until reset)"]
         else:
             status.level = DiagnosticStatus.OK
+        if window["errors"]:
+            status.level = DiagnosticStatus.ERROR
+            problems.append(f"{window['errors']} failures inside the method (stream restarted)")
         recent_bad = window["bad"] + window["early"]
         if recent_bad or window["gap_steps"] or window["nonfinite"] or self._foreign:
             status.level = max(status.level, DiagnosticStatus.WARN)
@@ -229,6 +246,7 @@ class EstimatorNode(Node):
             "latency p99 since start (ms)": f"{a99 * 1e3:.3f}",
             "estimates published": str(s.estimated),
             "bad messages": str(s.bad + s.early),
+            "method failures": str(s.errors),
             "non-finite observations": str(s.nonfinite),
             "duplicate steps": str(s.skipped["duplicate"]),
             "out-of-order steps": str(s.skipped["stale"]),
@@ -269,7 +287,7 @@ class EstimatorNode(Node):
             pct = {f"latency_p{q}_ms": float(np.percentile(lat, q)) * 1e3 if lat.size else None for q in (50, 90, 99)}
             out = {
                 "node": self.get_fully_qualified_name(), "method": self.method,
-                "estimates": s.estimated, "bad": s.bad + s.early, "nonfinite": s.nonfinite,
+                "estimates": s.estimated, "bad": s.bad + s.early, "method_failures": s.errors, "nonfinite": s.nonfinite,
                 "duplicates": s.skipped["duplicate"], "out_of_order": s.skipped["stale"], "gap_steps": s.gap_steps,
                 "restarts": s.restarts, "resets": s.resets, "diverged": s.diverged, "latency_samples": int(lat.size),
                 "latency_max_ms": float(lat.max()) * 1e3 if lat.size else None, **pct,
@@ -292,6 +310,7 @@ class _Stats:
 
     estimated: int = 0
     bad: int = 0
+    errors: int = 0  # exceptions inside the method (stream restarted)
     early: int = 0
     nonfinite: int = 0
     gap_steps: int = 0
@@ -307,7 +326,8 @@ class _Stats:
     _MAX_KEPT = 200_000  # latencies kept for the since-start percentiles (the most recent ones)
 
     def window(self, now: float) -> dict:
-        m = self._mark or {"t": now, "estimated": 0, "bad": 0, "early": 0, "gap_steps": 0, "nonfinite": 0, "n_lat": 0}
+        m = self._mark or {"t": now, "estimated": 0, "bad": 0, "early": 0, "gap_steps": 0, "nonfinite": 0,
+                           "errors": 0, "n_lat": 0}
         lat = np.frombuffer(self.latency, dtype=np.float64)[m["n_lat"]:]
         dt = max(now - m["t"], 1e-9)
         out = {
@@ -316,13 +336,15 @@ class _Stats:
             "early": self.early - m["early"],
             "gap_steps": self.gap_steps - m["gap_steps"],
             "nonfinite": self.nonfinite - m["nonfinite"],
+            "errors": self.errors - m["errors"],
             "p50": float(np.percentile(lat, 50)) if lat.size else float("nan"),
             "p99": float(np.percentile(lat, 99)) if lat.size else float("nan"),
         }
         if len(self.latency) > self._MAX_KEPT:
             del self.latency[: len(self.latency) - self._MAX_KEPT // 2]
         self._mark = {"t": now, "estimated": self.estimated, "bad": self.bad, "early": self.early,
-                      "gap_steps": self.gap_steps, "nonfinite": self.nonfinite, "n_lat": len(self.latency)}
+                      "gap_steps": self.gap_steps, "nonfinite": self.nonfinite, "errors": self.errors,
+                      "n_lat": len(self.latency)}
         return out
 
     def percentiles(self) -> tuple[float, float]:

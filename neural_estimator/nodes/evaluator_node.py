@@ -25,7 +25,6 @@ import dataclasses
 import sys
 import time
 from datetime import datetime
-from pathlib import Path
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy

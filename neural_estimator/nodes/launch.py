@@ -109,6 +109,8 @@ def isolated_env(domain_id: int) -> dict[str, str]:
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env["PYTHONUNBUFFERED"] = "1"
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # one small step per message:
+        env.setdefault(var, "1")  # threads only compete with the other nodes
     env.setdefault("MPLBACKEND", "Agg")
     return env
 
