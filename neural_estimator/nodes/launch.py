@@ -1,6 +1,6 @@
 """Start a live comparison as processes: simulator -> estimators -> evaluator (no ``ros2 launch``).
 
-    python -m neural_estimator.nodes.launch --scenario lorenz96 --methods ekf,ukf,gru \
+    neural-estimator live --scenario lorenz96 --methods ekf,ukf,gru \
         --trajectories 2 --output runs/l96.mcap
 
 Every process gets the same, otherwise unused ``ROS_DOMAIN_ID`` (random in 100..199 unless given)
