@@ -151,28 +151,27 @@ def _cmd_metrics(args) -> int:
 
     truth, estimates, angles = _estimates_from_files(args.files)
     reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
-    rows = {m: r.scalars() for m, r in reports.items()}
     if args.json:
         print(json.dumps(M.to_json({"scenario": truth.meta.get("scenario"), "methods": reports}), indent=1))
     else:
         print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps")
-        print(M.format_table(rows, fmt="text"), end="")
+        print(M.format_reports(reports, fmt="text"), end="")
     if args.out:
-        _write_table(args.out, rows, {m: M.to_json(r) for m, r in reports.items()})
+        _write_table(args.out, reports)
     return 0
 
 
-def _write_table(path: str, rows, json_obj) -> None:
+def _write_table(path: str, reports) -> None:
     from neural_estimator import metrics as M
 
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix == ".csv":
-        out.write_text(M.format_table(rows, fmt="csv"))
+        out.write_text(M.format_reports(reports, fmt="csv"))
     elif out.suffix == ".json":
-        out.write_text(json.dumps(json_obj, indent=1))
+        out.write_text(json.dumps(M.to_json(reports), indent=1))
     else:
-        out.write_text(M.format_table(rows, fmt="markdown"))
+        out.write_text(M.format_reports(reports, fmt="markdown"))
     print(f"wrote {out}")
 
 
@@ -347,8 +346,42 @@ def _cmd_live(args) -> int:
     return launch_main(args.rest)
 
 
+# ---- replay -------------------------------------------------------------------------------------
+def _add_replay(sub) -> None:
+    p = sub.add_parser("replay", help="run an MCAP bag's observations through estimators offline (no DDS)")
+    p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
+    p.add_argument("bag", help="input .mcap (recorded by the evaluator, or a sample bag from bags/)")
+    p.add_argument("--methods", required=True, help="comma-separated methods")
+    p.add_argument("--out", required=True, help="output .mcap: the input's messages plus the estimates")
+    p.add_argument("--checkpoint", action="append", metavar="METHOD=DIR", help="checkpoint of a neural method")
+    p.add_argument("--option", action="append", metavar="METHOD.NAME=VALUE", help="filter hyperparameter")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--namespace", default="/", help="namespace of the recorded streams")
+    p.add_argument("--no-covariance", action="store_true", help="do not write covariance streams")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--metrics", action="store_true", help="print the metrics table of the output bag")
+    p.set_defaults(func=_cmd_replay)
+
+
+def _cmd_replay(args) -> int:
+    from neural_estimator.estimators import check_method
+    from neural_estimator.replay import replay
+
+    methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
+    ckpts = {m: paths[-1] for m, paths in _parse_checkpoints(args.checkpoint).items()}
+    res = replay(args.bag, methods, args.out, ckpts, device=args.device, seed=args.seed, namespace=args.namespace,
+                 options=_parse_options(args.option), publish_covariance=not args.no_covariance, overwrite=args.overwrite)
+    print(f"wrote {res.path}: {res.observations} observations; "
+          + ", ".join(f"{m} {res.estimates[m]} estimates ({res.per_step_us(m):.0f} us/step"
+                      + (f", {res.rejected[m]} rejected" if res.rejected.get(m) else "") + ")" for m in methods))
+    if args.metrics:
+        return _cmd_metrics(argparse.Namespace(files=[str(res.path)], json=False, out=None))
+    return 0
+
+
 # Verbs are added to this list as their modules land; each is (adder).
-_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_live, _add_scenarios]
+_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_replay, _add_live, _add_scenarios]
 
 
 def build_parser(verb: str | None = None) -> argparse.ArgumentParser:

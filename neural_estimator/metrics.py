@@ -638,6 +638,13 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", i
     return "\n".join(aligned(r) for r in [header] + body) + "\n"
 
 
+def format_reports(reports: Mapping[str, MetricReport], fmt: str = "text") -> str:
+    """:func:`format_table` of one run per method: one run has no spread, so the IQR is NaN and the
+    cells show the value alone (no fake "±0.000")."""
+    rows = {m: {k: (v, math.nan) for k, v in r.scalars().items()} for m, r in reports.items()}
+    return format_table(rows, fmt=fmt)
+
+
 def to_json(obj: Any) -> Any:
     """A JSON-ready copy of a :class:`MetricReport`, :class:`Stat`, summary or nested container.
 

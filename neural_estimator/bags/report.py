@@ -32,8 +32,7 @@ class BagReport:
 
         One run has no spread: the IQR is given as NaN, so cells show the value alone.
         """
-        rows = {m: {k: (v, float("nan")) for k, v in r.scalars().items()} for m, r in self.reports.items()}
-        return metrics_mod.format_table(rows, fmt=fmt)
+        return metrics_mod.format_reports(self.reports, fmt=fmt)
 
     def to_json(self) -> dict[str, Any]:
         return metrics_mod.to_json(
