@@ -40,9 +40,10 @@ def main(argv=None) -> int:
     p.add_argument("--zoo", default=str(ZOO))
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
-    for scenario_name in a.scenarios.split(","):
-        scenario = make_scenario(scenario_name)
-        for method in a.methods.split(","):
+    # method-major: every scenario gets the first method before any gets the second
+    for method in a.methods.split(","):
+        for scenario_name in a.scenarios.split(","):
+            scenario = make_scenario(scenario_name)
             out = Path(a.zoo) / f"{scenario_name}-{method}"
             if a.skip_existing and (out / "card.json").exists():
                 continue
