@@ -3,8 +3,9 @@
 Three figures per architecture:
 
 - step latency: one ``model.step`` at batch 1 (the live node's case), p50 and p99 over ``--steps``
-  steps after ``--warmup`` steps, under ``torch.inference_mode`` and in eval mode. The stream runs
-  on, so the attention models' KV windows are full for most of the measured steps.
+  steps after ``--warmup`` steps, under ``torch.inference_mode`` and in eval mode, by the wall
+  clock and by the thread's CPU time (which leaves out waiting for a core on a shared machine).
+  The stream runs on, so the attention models' KV windows are full for most of the measured steps.
 - with ``--compile``, the step latency again with ``torch.compile(model.step)`` (inductor, C++
   kernels; compiling takes seconds to a minute per model and happens in the warm-up).
 - sequence throughput: the parallel form on one sequence of T = 500 (the evaluation horizon),
@@ -22,6 +23,7 @@ Run: python benchmarks/bench_models.py [--archs gru mamba] [--threads 1] [--comp
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import sys
@@ -34,19 +36,30 @@ from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
 D_IN = D_OUT = 40  # Lorenz 96
 
 
-def step_latency(model: torch.nn.Module, steps: int, warmup: int, compiled: bool = False) -> tuple[float, float]:
-    """(p50, p99) of one step at batch 1, in milliseconds; ``compiled``: through torch.compile."""
+def percentiles(seconds: list[float]) -> tuple[float, float]:
+    ms = sorted(1e3 * t for t in seconds)
+    return ms[len(ms) // 2], ms[min(len(ms) - 1, int(0.99 * len(ms)))]
+
+
+def step_latency(model: torch.nn.Module, steps: int, warmup: int,
+                 compiled: bool = False) -> tuple[float, float, float, float]:
+    """Wall-clock (p50, p99) and thread CPU time (p50, p99) of one step at batch 1, in milliseconds.
+
+    The CPU time leaves out the time the thread waited for a core, so on a shared machine it shows
+    what a dedicated core would give; the wall clock is what a caller sees here and now.
+    ``compiled``: through torch.compile (the first warm-up step compiles).
+    """
     z = torch.randn(warmup + steps, 1, D_IN)
     step = torch.compile(model.step, dynamic=False) if compiled else model.step
-    times = []
+    wall, cpu = [], []
     with torch.inference_mode():
         state = model.init_state(1)
-        for k in range(warmup + steps):  # the first warm-up step compiles
-            t0 = time.perf_counter()
+        for k in range(warmup + steps):
+            t0, c0 = time.perf_counter(), time.thread_time()
             _, state = step(z[k], state)
-            times.append(time.perf_counter() - t0)
-    ms = sorted(1e3 * t for t in times[warmup:])
-    return ms[len(ms) // 2], ms[min(len(ms) - 1, int(0.99 * len(ms)))]
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.thread_time() - c0)
+    return (*percentiles(wall[warmup:]), *percentiles(cpu[warmup:]))
 
 
 def sequence_throughput(model: torch.nn.Module, T: int, repeats: int) -> float:
@@ -96,19 +109,20 @@ def main(argv: list[str] | None = None) -> None:
     torch.manual_seed(0)
 
     print(f"command: python benchmarks/bench_models.py {' '.join(argv if argv is not None else sys.argv[1:])}".rstrip())
-    print(f"torch {torch.__version__}, {args.threads} thread(s), {platform.processor() or platform.machine()}, "
-          f"Lorenz 96 dims ({D_IN} -> {D_OUT})\n")
-    extra = " compiled p50 (ms) | compiled p99 (ms) |" if args.compile else ""
-    print(f"| arch | params | step p50 (ms) | step p99 (ms) |{extra} seq T={args.seq_len} (steps/s) "
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"torch {torch.__version__}, {args.threads} thread(s), {os.cpu_count()} CPUs ({platform.machine()}), "
+          f"load average {load:.1f} at start, Lorenz 96 dims ({D_IN} -> {D_OUT})\n")
+    extra = " compiled p50 / p99 (ms) | compiled CPU p50 / p99 (ms) |" if args.compile else ""
+    print(f"| arch | params | step p50 / p99 (ms) | step CPU p50 / p99 (ms) |{extra} seq T={args.seq_len} (steps/s) "
           f"| train B=64 T=100 (windows/s) |")
     print("|---|---:|---:|---:|" + ("---:|---:|" if args.compile else "") + "---:|---:|")
     for name in args.archs:
         model = build_model(name, D_IN, D_OUT).eval()
-        p50, p99 = step_latency(model, args.steps, args.warmup)
-        cols = f" {p50:.3f} | {p99:.3f} |"
+        p50, p99, c50, c99 = step_latency(model, args.steps, args.warmup)
+        cols = f" {p50:.3f} / {p99:.3f} | {c50:.3f} / {c99:.3f} |"
         if args.compile:
-            c50, c99 = step_latency(model, args.steps, args.warmup, compiled=True)
-            cols += f" {c50:.3f} | {c99:.3f} |"
+            p50, p99, c50, c99 = step_latency(model, args.steps, args.warmup, compiled=True)
+            cols += f" {p50:.3f} / {p99:.3f} | {c50:.3f} / {c99:.3f} |"
         seq = sequence_throughput(model, args.seq_len, args.repeats)
         train = training_throughput(model, 64, 100, args.train_iters)
         print(f"| {name} | {count_parameters(model):,} |{cols} {seq:,.0f} | {train:,.1f} |", flush=True)

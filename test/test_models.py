@@ -124,6 +124,16 @@ def test_gradients_flow(name):
         assert p.grad.abs().sum() > 0, pname
 
 
+@pytest.mark.parametrize("name", list(SMALL_WINDOW))
+def test_gradients_flow_blocked_attention(name):
+    """T > W in train mode: the blocked parallel form with attention dropout back-propagates."""
+    model = make(name, **SMALL_WINDOW[name]).train()
+    model(torch.randn(2, 90, 5)).square().mean().backward()
+    for pname, p in model.named_parameters():
+        if pname != "head.log_std":  # only the covariance uses it
+            assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, pname
+
+
 def test_build_model_rejects_unknown():
     with pytest.raises(KeyError, match="unknown architecture"):
         build_model("transformer", 1, 1)
