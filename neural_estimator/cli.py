@@ -16,7 +16,6 @@ scenarios. Errors in the input print one line naming the problem and exit with s
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -24,25 +23,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from neural_estimator.scenarios import ScenarioError, make_scenario, parse_assignments, scenario_names
+from neural_estimator.scenarios import ScenarioError, load_plugins, make_scenario, parse_assignments, scenario_names
 
 EXIT_BAD_INPUT = 2
 
 
 class CliError(Exception):
     """A command-line usage problem (message shown to the user, exit status 2)."""
-
-
-def load_plugins(paths: list[str] | None) -> None:
-    """Import user files that call ``register_scenario``."""
-    for p in paths or ():
-        path = Path(p)
-        if not path.is_file():
-            raise CliError(f"--plugin {p}: no such file")
-        spec = importlib.util.spec_from_file_location(f"neural_estimator_plugin_{path.stem}", path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        spec.loader.exec_module(module)
 
 
 def scenario_from_args(args: argparse.Namespace):

@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from neural_estimator.estimators import Estimates, Estimator, EstimatorError, previous_controls
-from neural_estimator.filters.numerics import ScenarioOps, sqrt_factor, symmetrize
+from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
 from neural_estimator.scenarios import Scenario
 
 
@@ -280,3 +280,23 @@ def _and(ok: np.ndarray | None, new: np.ndarray | None) -> np.ndarray | None:
     if new is None:
         return ok
     return new if ok is None else ok & new
+
+
+class MemberFilter(ClassicalFilter):
+    """Shared part of the sampling filters (EnKF members, PF particles): ``self._X`` (B, N, dx)
+    propagated through the model with process noise, N = ``self.N``."""
+
+    N: int
+
+    def _stream_elements(self) -> int:
+        s = self.scenario
+        return max(self.N * max(s.dx, s.dy), s.dx * s.dx)
+
+    def _predict(self, u: np.ndarray) -> None:
+        self._X, _ = self._blockwise(self._predict_block, self._X, u)
+
+    def _predict_block(self, X: np.ndarray, u: np.ndarray):
+        """x^i_{k+1} = f(x^i_k, u_k) + w^i_k,  w^i_k ~ N(0, Q), for every member i."""
+        X = self.scenario.f(X, self._broadcast_u(u, self.N))
+        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
+        return self.ops.normalize_state(X), None

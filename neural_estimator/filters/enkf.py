@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.filters.base import ClassicalFilter
+from neural_estimator.filters.base import MemberFilter
 from neural_estimator.filters.numerics import (
     gaussian,
     psd_solve,
@@ -37,7 +37,7 @@ class EnKFHyperParams:
             raise ValueError(f"inflation must be > 0, got {self.inflation}")
 
 
-class EnsembleKalmanFilter(ClassicalFilter):
+class EnsembleKalmanFilter(MemberFilter):
     r"""Stochastic EnKF with perturbed observations.
 
     Members X_i, i = 1..N, start as draws from the prior N(m0, P0).
@@ -75,19 +75,6 @@ class EnsembleKalmanFilter(ClassicalFilter):
 
     def _init_state(self, B: int) -> None:
         self._X = self.ops.normalize_state(self.m0 + gaussian(self.rng, (B, self.N), self._sqrt_P0, self._sd_P0))
-
-    def _stream_elements(self) -> int:
-        s = self.scenario
-        return max(self.N * max(s.dx, s.dy), s.dx * s.dx)
-
-    def _predict(self, u: np.ndarray) -> None:
-        self._X, _ = self._blockwise(self._predict_block, self._X, u)
-        return None
-
-    def _predict_block(self, X: np.ndarray, u: np.ndarray):
-        X = self.scenario.f(X, self._broadcast_u(u, self.N))
-        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
-        return self.ops.normalize_state(X), None
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
         X_post, _ = self._blockwise(self._update_block, self._X, y)

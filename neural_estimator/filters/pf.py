@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from neural_estimator.filters.base import ClassicalFilter
+from neural_estimator.filters.base import MemberFilter
 from neural_estimator.filters.numerics import (
     effective_sample_size,
     gaussian,
@@ -49,7 +49,7 @@ class PFHyperParams:
             raise ValueError(f"rejuvenation_std must be >= 0, got {self.rejuvenation_std}")
 
 
-class ParticleFilter(ClassicalFilter):
+class ParticleFilter(MemberFilter):
     r"""Bootstrap particle filter with ESS-triggered systematic resampling.
 
     Particles X_i with log-weights l_i, i = 1..N; initially X_i ~ N(m0, init_std^2 I) and
@@ -96,19 +96,6 @@ class ParticleFilter(ClassicalFilter):
         self._X = self.ops.normalize_state(self.m0 + gaussian(self.rng, (B, self.N), self._sqrt_init, self._sd_init))
         self._logw = np.full((B, self.N), -np.log(self.N))
         self._w = np.full((B, self.N), 1.0 / self.N)
-
-    def _stream_elements(self) -> int:
-        s = self.scenario
-        return max(self.N * max(s.dx, s.dy), s.dx * s.dx)
-
-    def _predict(self, u: np.ndarray) -> None:
-        self._X, _ = self._blockwise(self._predict_block, self._X, u)
-        return None
-
-    def _predict_block(self, X: np.ndarray, u: np.ndarray):
-        X = self.scenario.f(X, self._broadcast_u(u, self.N))
-        X += gaussian(self.rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
-        return self.ops.normalize_state(X), None
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
         logw, w, _ = self._blockwise(self._update_block, self._X, self._logw, y)

@@ -10,11 +10,9 @@ naming the parameter; a list parameter also accepts one comma-separated string.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
+import importlib
 import typing
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, TypeVar
 
 import rclpy
@@ -164,17 +162,13 @@ def message_class(msgtype: str) -> type:
 # ---- scenarios -----------------------------------------------------------------------------------------
 def load_plugins(paths: tuple[str, ...]) -> None:
     """Import user files that register scenarios (the nodes' ``plugins`` parameter)."""
-    for p in paths:
-        path = Path(p)
-        if not path.is_file():
-            raise StartupError(f"plugins: no such file {p}")
-        spec = importlib.util.spec_from_file_location(f"neural_estimator_plugin_{path.stem}", path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        try:
-            spec.loader.exec_module(module)
-        except Exception as exc:
-            raise StartupError(f"plugins: {p} failed to import: {exc}") from None
+    from neural_estimator.scenarios import ScenarioError
+    from neural_estimator.scenarios import load_plugins as load
+
+    try:
+        load(paths)
+    except ScenarioError as exc:
+        raise StartupError(f"plugins: {exc}") from None
 
 
 def build_scenario(name: str, assignments: tuple[str, ...], noise_scale: float | None = None):

@@ -10,7 +10,10 @@ scenario" section); every tool (simulate, evaluate, train, the nodes) then accep
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import inspect
+import sys
+from pathlib import Path
 from typing import Any
 
 from neural_estimator.scenarios.base import (
@@ -57,6 +60,24 @@ def _same_definition(a: Any, b: type) -> bool:
         return False
 
 
+def load_plugins(paths) -> None:
+    """Import user Python files that call :func:`register_scenario` (``--plugin``, the nodes' ``plugins``).
+
+    Loading a plugin runs its code: it is the user's own file, named explicitly.
+    """
+    for p in paths or ():
+        path = Path(p)
+        if not path.is_file():
+            raise ScenarioError(f"plugin {p}: no such file")
+        spec = importlib.util.spec_from_file_location(f"neural_estimator_plugin_{path.stem}", path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # the class's source file must be known (see _same_definition)
+        try:
+            spec.loader.exec_module(module)
+        except Exception as exc:  # a user's file: report any failure as a bad input
+            raise ScenarioError(f"plugin {p} failed to import: {exc}") from None
+
+
 def scenario_names() -> list[str]:
     """Names of every registered scenario."""
     return list(_REGISTRY)
@@ -90,6 +111,7 @@ __all__ = [
     "Scenario",
     "ScenarioError",
     "complex_step_jacobian",
+    "load_plugins",
     "make_scenario",
     "parse_assignments",
     "psd_sqrt",
