@@ -11,13 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.scenarios._integrate import rk4
+from neural_estimator.scenarios._integrate import rk4, rk4_tangent
 from neural_estimator.scenarios.base import Scenario, ScenarioError
 
 # A cyclic band matrix as {offset d (mod J): (..., J) coefficients}: (A v)_j = sum_d A_d[j] v_{j+d}.
 # Products of band matrices stay band matrices, so the RK4 Jacobian is built from O(J) arrays
 # instead of (J, J) matrix products.
 Band = dict[int, np.ndarray]
+_DENSE_JACOBIAN_MAX_BATCH = 8  # batches up to this size take the dense tangent path (see jac_f)
 
 
 @dataclass(frozen=True)
@@ -145,10 +146,28 @@ class Lorenz96(Scenario):
             {0: np.full_like(x, -1.0)},
         )
 
+    def _field_dense(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The field and its dense (..., J, J) Jacobian (four nonzeros a row)."""
+        n = x.shape[-1]
+        j = np.arange(n)
+        A = np.zeros(x.shape + (n,))
+        A[..., j, (j + 1) % n] = np.roll(x, 1, axis=-1)  # d/dX_{j+1}: X_{j-1}
+        A[..., j, (j - 2) % n] = -np.roll(x, 1, axis=-1)  # d/dX_{j-2}: -X_{j-1}
+        A[..., j, (j - 1) % n] = np.roll(x, -1, axis=-1) - np.roll(x, 2, axis=-1)  # d/dX_{j-1}
+        A[..., j, j] = -1.0
+        return self._field(x), A
+
     def jac_f(self, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
-        """d f / d x by banded tangent propagation through RK4; (..., J, J)."""
+        """d f / d x by tangent propagation through RK4; (..., J, J).
+
+        Small batches (the live node's B = 1) use dense J x J products, whose few large BLAS calls
+        cost less than the banded path's many small numpy operations (1.1 ms -> ~0.2 ms at B = 1);
+        large batches use the 13-diagonal banded form, which does ~J/13 times less arithmetic.
+        """
         x = np.asarray(x, dtype=np.float64)
         cfg = self.config
+        if x.size // x.shape[-1] <= _DENSE_JACOBIAN_MAX_BATCH:
+            return rk4_tangent(self._field_dense, x, cfg.dt / cfg.substeps, cfg.substeps)[1]
         h = cfg.dt / cfg.substeps
         ones = np.ones_like(x)
         eye: Band = {0: ones}
