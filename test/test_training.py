@@ -350,3 +350,25 @@ def test_config_is_checked():
         train("oscillator", "ekf", "/nonexistent", TrainConfig(), progress=False)
     with pytest.raises(TrainingError, match=r"gru has no hyperparameter\(s\) \['hiden'\]"):
         train("oscillator", "gru", "/nonexistent", TrainConfig(model_overrides={"hiden": 8}), progress=False)
+
+
+def test_compiled_step_equals_eager_step(oscillator, tmp_path):
+    """compile_step serves the same estimates (float32 round-off) through torch.compile."""
+    from neural_estimator.data import simulate
+    from neural_estimator.models import build_model
+    from neural_estimator.models.neural import NeuralEstimator
+    from neural_estimator.models.normalization import Normalizer
+
+    data = simulate(oscillator, 8, 40, seed=0)
+    norm = Normalizer.from_data(oscillator, data)
+    torch.manual_seed(0)
+    model = build_model("gru", oscillator.dy + oscillator.du, oscillator.dx)
+    eager = NeuralEstimator(oscillator, model, norm, "gru")
+    compiled = NeuralEstimator(oscillator, model, norm, "gru", compile_step="true")
+    a, b = eager.run(data.y[:2], data.u[:2]).x, np.empty((2, 40, 2))
+    compiled.reset(2)
+    for k in range(40):
+        b[:, k] = compiled.step(data.y[:2, k])
+    np.testing.assert_allclose(a, b, atol=1e-5)
+    with pytest.raises(EstimatorError, match="expected a boolean"):
+        NeuralEstimator(oscillator, model, norm, "gru", compile_step="maybe")

@@ -302,7 +302,7 @@ def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None
 
 
 def load_neural_estimator(method: str, scenario: Scenario, checkpoint: str | Path | None = None,
-                          device: str = "cpu", covariance: bool = True):
+                          device: str = "cpu", covariance: bool = True, compile_step: bool = False):
     """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
     Args:
@@ -312,6 +312,7 @@ def load_neural_estimator(method: str, scenario: Scenario, checkpoint: str | Pat
             ``neural_estimator/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
         covariance: report Filterformer's covariance (False saves memory in ``run``).
+        compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
@@ -334,4 +335,5 @@ def load_neural_estimator(method: str, scenario: Scenario, checkpoint: str | Pat
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
     model, normalizer, card = load_checkpoint(directory, device)
-    return NeuralEstimator(scenario, model, normalizer, m, device=device, covariance=covariance, card=card)
+    return NeuralEstimator(scenario, model, normalizer, m, device=device, covariance=covariance, card=card,
+                           compile_step=compile_step)

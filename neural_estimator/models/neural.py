@@ -65,6 +65,9 @@ class NeuralEstimator(Estimator):
             which saves (B, T, dx, dx) memory in :meth:`run`.
         card: the checkpoint card (kept as ``self.card`` for provenance).
         chunk_timesteps: at most this many sequences x steps go through one parallel forward.
+        compile_step: serve :meth:`step` through ``torch.compile`` of the model's step (fewer Python
+            dispatches per message: Mamba-2's p99 goes from ~1.1 ms to ~0.5 ms of CPU on the
+            development machine); the first steps pay a one-off compilation of seconds.
     """
 
     def __init__(
@@ -77,6 +80,7 @@ class NeuralEstimator(Estimator):
         covariance: bool = True,
         card: dict[str, Any] | None = None,
         chunk_timesteps: int = CHUNK_TIMESTEPS,
+        compile_step: bool = False,
     ) -> None:
         super().__init__(scenario)
         self.method = method  # instance attribute: one class serves the six methods
@@ -94,6 +98,8 @@ class NeuralEstimator(Estimator):
         self.card = dict(card or {})
         self.chunk_timesteps = int(chunk_timesteps)
         self._state: Any = None
+        step_fn = model.step_with_cov if self.has_covariance else model.step
+        self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step) else step_fn
 
     # ---- streaming -------------------------------------------------------------------------------
     def reset(self, batch: int = 1) -> None:
@@ -116,9 +122,9 @@ class NeuralEstimator(Estimator):
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():
             if self.has_covariance:
-                mean, cov, self._state = self.model.step_with_cov(z_t, self._state)  # (B, dx), (B, dx, dx)
+                mean, cov, self._state = self._step_fn(z_t, self._state)  # (B, dx), (B, dx, dx)
             else:
-                mean, self._state = self.model.step(z_t, self._state)
+                mean, self._state = self._step_fn(z_t, self._state)
         x = self.normalizer.denormalize_states(mean.cpu().double().numpy())  # (B, dx) float64
         bad = ~np.all(np.isfinite(x), axis=-1)
         if self.has_covariance:
@@ -163,3 +169,12 @@ class NeuralEstimator(Estimator):
 
     def __repr__(self) -> str:
         return f"NeuralEstimator({self.method!r}, scenario={self.scenario.name!r}, device={str(self.device)!r})"
+
+
+def _as_bool(v: Any) -> bool:
+    """Options may arrive as strings from a command line or a node parameter."""
+    if isinstance(v, str):
+        if v.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
+            raise EstimatorError(f"expected a boolean, got {v!r}")
+        return v.strip().lower() in ("true", "1", "yes")
+    return bool(v)

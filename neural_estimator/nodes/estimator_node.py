@@ -58,7 +58,7 @@ class EstimatorParams:
     device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
     seed: int = param(0, "seed of the random draws of the EnKF and PF")
     threads: int = param(1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default")
-    options: tuple[str, ...] = param((), "filter hyperparameters as name=value, e.g. n_particles=2048")
+    options: tuple[str, ...] = param((), "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true")
     observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
     output_topic: str = param("", "estimate topic; empty = estimates/<method>; covariance goes to <output>/covariance")
