@@ -1,0 +1,42 @@
+"""Print the README's table of the shipped models: RMSE (NRMSE) on evaluation set 0, as measured at
+the end of training and recorded in each card, and the training budget.
+
+    python scripts/zoo_table.py
+"""
+
+import json
+from pathlib import Path
+
+from neural_estimator.estimators import NEURAL_METHODS
+from neural_estimator.scenarios import BUILTIN_SCENARIOS
+
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+
+
+def main() -> None:
+    print("| model | " + " | ".join(BUILTIN_SCENARIOS) + " |")
+    print("|---|" + "---:|" * len(BUILTIN_SCENARIOS))
+    for m in NEURAL_METHODS:
+        cells = []
+        for s in BUILTIN_SCENARIOS:
+            card = ZOO / f"{s}-{m}" / "card.json"
+            if not card.exists():
+                cells.append("–")
+                continue
+            c = json.loads(card.read_text())
+            met = c["metrics"]
+            cells.append(f"{met['rmse']:.4g} ({met['nrmse']:.3f})")
+        print(f"| {m} | " + " | ".join(cells) + " |")
+    budgets = set()
+    for card in (p for p in ZOO.glob("*-*/card.json") if "." not in p.parent.name):
+        c = json.loads(card.read_text())
+        r, m = c["training"]["recipe"], c["metrics"]["set"]
+        budgets.add((c["scenario"]["scenario"] == "lorenz96", r["epochs"], r["windows_per_epoch"], r["val_trajectories"], m["trajectories"]))
+    for l96, ep, w, v, n in sorted(budgets, reverse=True):
+        print(f"\n{'Lorenz 96' if l96 else 'other scenarios'}: {ep} epochs x {w} windows, {v} validation trajectories, "
+              f"metrics on {n} trajectories of evaluation set 0.", end="")
+    print()
+
+
+if __name__ == "__main__":
+    main()
