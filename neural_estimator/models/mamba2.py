@@ -56,6 +56,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from neural_estimator.models.ssm_stack import SSMEstimator, rms_norm
+
 try:  # optional fused Triton/CUDA kernel; absent on CPU-only installs
     from mamba_ssm.ops.triton.ssd_combined import mamba_chunk_scan_combined as _cuda_chunk_scan
 except (ImportError, OSError):
@@ -175,23 +177,6 @@ def ssd_chunked(x: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor,
 
 
 # ---- modules -----------------------------------------------------------------------------------
-def rms_norm(x: Tensor, weight: Tensor, eps: float) -> Tensor:
-    """x / sqrt(mean(x^2) + eps) * weight over the last axis."""
-    return F.rms_norm(x, weight.shape, weight, eps)
-
-
-class RMSNorm(nn.Module):
-    """mamba_ssm's RMSNorm (parameter ``weight``, no bias)."""
-
-    def __init__(self, d: int, eps: float = 1e-5) -> None:
-        super().__init__()
-        self.eps = eps
-        self.weight = nn.Parameter(torch.ones(d))
-
-    def forward(self, x: Tensor) -> Tensor:
-        return rms_norm(x, self.weight, self.eps)
-
-
 class RMSNormGated(nn.Module):
     """mamba_ssm's gated RMSNorm with norm_before_gate=False and one group: rmsnorm(y * silu(g)) * weight."""
 
@@ -279,71 +264,13 @@ class Mamba2Mixer(nn.Module):
         return F.linear(y, self.out_proj.weight), conv_state, ssm_state
 
 
-class Block(nn.Module):
-    """Pre-norm residual block: h + mixer(norm(h)) (mamba_ssm's Block without an MLP)."""
-
-    def __init__(self, cfg: Mamba2Config) -> None:
-        super().__init__()
-        self.norm = RMSNorm(cfg.d_model, eps=cfg.norm_eps)
-        self.mixer = Mamba2Mixer(cfg)
-
-    def forward(self, h: Tensor, reference: bool = False) -> Tensor:
-        return h + self.mixer(self.norm(h), reference)
-
-    def step(self, h: Tensor, conv_state: Tensor, ssm_state: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        y, conv_state, ssm_state = self.mixer.step(rms_norm(h, self.norm.weight, self.norm.eps), conv_state, ssm_state)
-        return h + y, conv_state, ssm_state
-
-
-class Backbone(nn.Module):
-    """mamba_ssm's MixerModel without the token embedding: ``layers`` and ``norm_f``."""
-
-    def __init__(self, cfg: Mamba2Config) -> None:
-        super().__init__()
-        self.layers = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layer))
-        self.norm_f = RMSNorm(cfg.d_model, eps=cfg.norm_eps)
-
-
-class Mamba2Model(nn.Module):
+class Mamba2Model(SSMEstimator):
     """Mamba-2 estimator: ``forward(z) (B, T, d_in) -> (B, T, d_out)``, ``step(z_t, state)``.
 
     The step state is ``(conv_0, ssm_0, conv_1, ssm_1, ...)``: per layer the (B, E + 2N, K) window
     of conv inputs and the (B, H, P, N) SSM state.
+    The stack around the mixer is :class:`~neural_estimator.models.ssm_stack.SSMEstimator`.
     """
 
     def __init__(self, cfg: Mamba2Config) -> None:
-        super().__init__()
-        self.cfg = cfg
-        self.input_proj = nn.Linear(cfg.d_in, cfg.d_model)
-        self.backbone = Backbone(cfg)
-        self.head = nn.Linear(cfg.d_model, cfg.d_out)
-        # mamba_ssm's _init_weights: prenorm residual outputs scaled by 1/sqrt(n_layer)
-        for layer in self.backbone.layers:
-            nn.init.kaiming_uniform_(layer.mixer.out_proj.weight, a=math.sqrt(5))
-            with torch.no_grad():
-                layer.mixer.out_proj.weight /= math.sqrt(cfg.n_layer)
-
-    def forward(self, z: Tensor, reference: bool = False) -> Tensor:
-        """z (B, T, d_in) -> (B, T, d_out); ``reference=True`` runs the sequential reference scan."""
-        h = self.input_proj(z)  # (B, T, d)
-        for layer in self.backbone.layers:
-            h = layer(h, reference)
-        return self.head(self.backbone.norm_f(h))
-
-    def init_state(self, batch: int, device=None, dtype=None) -> tuple[Tensor, ...]:
-        p = self.head.weight
-        device = p.device if device is None else device
-        dtype = p.dtype if dtype is None else dtype
-        state: list[Tensor] = []
-        for layer in self.backbone.layers:
-            state += layer.mixer.init_state(batch, device, dtype)
-        return tuple(state)
-
-    def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
-        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, d)
-        new: list[Tensor] = []
-        for i, layer in enumerate(self.backbone.layers):
-            h, conv, ssm = layer.step(h, state[2 * i], state[2 * i + 1])
-            new += [conv, ssm]
-        norm_f = self.backbone.norm_f
-        return F.linear(rms_norm(h, norm_f.weight, norm_f.eps), self.head.weight, self.head.bias), tuple(new)
+        super().__init__(cfg, Mamba2Mixer)
