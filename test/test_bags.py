@@ -439,7 +439,6 @@ def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
 
     s = Cart()
     data = simulate(s, 2, 5, seed=0)
-    names = M.state_labels(s)
     path = tmp_path / "gappy.mcap"
     arrays_to_bag(path, s, data.x, data.y, data.u, estimates={"a": data.x})
     with BagReader(path) as bag:  # copy without the estimate of trajectory 1, step 3
