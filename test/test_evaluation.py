@@ -68,6 +68,21 @@ def test_evaluate_verb_writes_table_json_and_plot(tmp_path, capsys):
     assert (out / "table.csv").read_text().startswith("method,")
 
 
+def test_evaluate_threads_do_not_change_the_numbers(tmp_path, capsys):
+    """--threads runs the filters' blocks on threads; the results are the same as on one."""
+    runs = {}
+    for threads in ("1", "3"):
+        out = tmp_path / f"t{threads}"
+        assert main(["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ukf,enkf", "--trajectories", "40",
+                     "--horizon", "20", "--sets", "1", "--threads", threads, "--no-cache", "--quiet", "--out", str(out)]) == 0
+        capsys.readouterr()
+        runs[threads] = json.loads((out / "results.json").read_text())["methods"]
+    for m in ("ukf", "enkf"):
+        assert runs["1"][m]["runs"] == runs["3"][m]["runs"]
+    assert main(["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ukf", "--threads", "0", "--quiet"]) == 2
+    assert "--threads must be >= 1" in capsys.readouterr().err
+
+
 def test_train_then_evaluate_neural_next_to_classical(tmp_path, capsys):
     ckpt = tmp_path / "gru"
     assert main(["train", *PLUGIN, "--scenario", "oscillator", "--model", "gru", "--out", str(ckpt),

@@ -250,6 +250,48 @@ def compare_with_filterpy(s: Scenario, method: str, n: int, T: int, seed: int) -
         assert_close(est.cov[b], Pr, d[:, :, None] * d[:, None, :], f"{s.name} {method} covariance, trajectory {b}")
 
 
+# ---- the UKF's closed-form update for linear observations ------------------------------------------
+LINEAR_OBS_SCENARIOS = ("lorenz96", "quadrotor")
+
+
+@pytest.mark.parametrize("name", ["ballistic", "bearings", "lorenz96", "nlink", "quadrotor"])
+def test_obs_matrix_declarations_are_true(name):
+    """A scenario that declares h(x) = H x must mean it; the UKF's closed form relies on it."""
+    s = scenario_or_skip(name)
+    H = s.obs_matrix()
+    if name not in LINEAR_OBS_SCENARIOS:
+        assert H is None
+        return
+    x = s.sample_initial(np.random.default_rng(0), 9) + np.random.default_rng(1).standard_normal((9, s.dx))
+    assert H.shape == (s.dy, s.dx)
+    np.testing.assert_allclose(s.h(x), x @ H.T, rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("name", LINEAR_OBS_SCENARIOS)
+def test_ukf_linear_update_equals_unscented_update(name):
+    """The closed form (default) and the sigma-point update agree to round-off over a whole run,
+    NaN observations included; the closed form is the one used whenever obs_matrix is declared."""
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 5, 25, seed=4)
+    y[1, 7] = np.nan
+    closed = UnscentedKalmanFilter(s)
+    sigma = UnscentedKalmanFilter(s, linear_update=False)
+    assert closed._H is not None and sigma._H is None
+    a, b = closed.run(y, u), sigma.run(y, u)
+    scale = np.sqrt(np.diag(s.prior()[1]))
+    assert np.abs(a.x - b.x).max() <= 1e-7 * scale.max()
+    d = np.sqrt(np.diagonal(b.cov, axis1=-2, axis2=-1))
+    assert (np.abs(a.cov - b.cov) / (d[..., :, None] * d[..., None, :])).max() <= 1e-6
+    assert not a.diverged.any() and not b.diverged.any()
+
+
+def test_ukf_linear_update_rejects_a_wrong_obs_matrix():
+    s = scenario_or_skip("lorenz96")
+    s.obs_matrix = lambda: np.eye(3)  # instance attribute: this object only
+    with pytest.raises(EstimatorError, match="obs_matrix must be finite"):
+        UnscentedKalmanFilter(s)
+
+
 # ---- EKF / UKF versus filterpy on every scenario -----------------------------------------------------
 # Horizons are short where filterpy is slow (Lorenz 96: 81 sigma points x 40 dims per step).
 FILTERPY_CASES = {
@@ -402,24 +444,69 @@ def test_run_equals_loop_of_step(method, name):
 
 
 @pytest.mark.parametrize("name", CONTRACT_SCENARIOS)
-@pytest.mark.parametrize("method", list(FILTERS))
+@pytest.mark.parametrize("method", ["ekf", "ukf"])
 def test_blocking_does_not_change_results(method, name):
     """Streams are processed in cache-sized blocks; one stream per block agrees to round-off.
 
     (Not bit for bit: numpy's stacked matmul and einsum may take another kernel for another stack
-    size. run and step share the blocks, so they stay bit-equal.)
+    size. run and step share the blocks, so they stay bit-equal.) The EnKF and PF draw per block,
+    so for them the block size is part of the random stream: see the two tests below.
     """
     s = scenario_or_skip(name)
     x, y, u = data(s, 6, 12, seed=13)
     y[2, 3] = np.nan
-    opts = {"n_particles": 256} if method == "pf" else {}
-    whole = FILTERS[method](s, seed=3, **opts)
-    single = FILTERS[method](s, seed=3, **opts)
+    whole = FILTERS[method](s, seed=3)
+    single = FILTERS[method](s, seed=3)
     single.block_elements = 1
     a, b = whole.run(y, u), single.run(y, u)
     assert len(single._blocks) == 6 and len(whole._blocks) == 1
     np.testing.assert_allclose(a.x, b.x, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(a.cov, b.cov, rtol=1e-12, atol=1e-12)
+
+
+def _blocked(method, s, block_streams, threads):
+    """A filter whose blocks hold ``block_streams`` streams, on ``threads`` threads."""
+    opts = {"n_particles": 64} if method == "pf" else {}
+    f = FILTERS[method](s, seed=3, threads=threads, **opts)
+    f.block_elements = block_streams * f._stream_elements()
+    assert f.block_size == block_streams
+    return f
+
+
+@pytest.mark.parametrize("name", CONTRACT_SCENARIOS)
+@pytest.mark.parametrize("method", list(FILTERS))
+def test_threads_do_not_change_results(method, name):
+    """Blocks run concurrently on threads, draws keyed by block: bit-equal to one thread."""
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 7, 10, seed=13)
+    y[2, 3] = np.nan
+    one = _blocked(method, s, 2, threads=1).run(y, u)
+    three = _blocked(method, s, 2, threads=3).run(y, u)
+    np.testing.assert_array_equal(one.x, three.x)
+    np.testing.assert_array_equal(one.cov, three.cov)
+    np.testing.assert_array_equal(one.diverged, three.diverged)
+
+
+@pytest.mark.parametrize("name", CONTRACT_SCENARIOS)
+@pytest.mark.parametrize("method", ["enkf", "pf"])
+def test_stream_draws_do_not_depend_on_batch_size(method, name):
+    """A stream's random numbers depend on the seed and its index only: the first B streams of a
+    larger batch equal a batch of B (here B = 5 ends in a partial block of 1, the larger run has 2
+    there), to round-off (stacks of 1 and 2 may take different matmul kernels)."""
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 6, 10, seed=13)
+    big = _blocked(method, s, 2, threads=2).run(y, u)
+    small = _blocked(method, s, 2, threads=2).run(y[:5], u[:5])
+    np.testing.assert_allclose(small.x, big.x[:5], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(small.cov, big.cov[:5], rtol=1e-10, atol=1e-10)
+
+
+def test_threads_option_is_checked():
+    s = scenario_or_skip("test_filters_linear")
+    assert FILTERS["ukf"](s, threads="2").threads == 2
+    for bad in (0, -1, "two", 1.5):
+        with pytest.raises(EstimatorError, match="threads must be an integer"):
+            FILTERS["ukf"](s, threads=bad)
 
 
 @pytest.mark.parametrize("method", list(FILTERS))

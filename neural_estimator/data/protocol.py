@@ -129,6 +129,11 @@ class ChunkSampler:
 
 
 # ---- datasets with an on-disk cache --------------------------------------------------------------
+# Part of the cache key: bump it whenever a scenario's arithmetic changes, round-off included (the
+# chaotic systems turn a last-bit difference into another trajectory within the horizon), so no
+# cached set from older code is mixed with freshly simulated ones. 2: nlink's component-form RK4.
+SIMULATION_REVISION = 2
+
 def default_cache_dir() -> Path:
     """``$NEURAL_ESTIMATOR_CACHE`` or ``~/.cache/neural_estimator``."""
     return Path(os.environ.get("NEURAL_ESTIMATOR_CACHE", Path.home() / ".cache" / "neural_estimator"))
@@ -146,12 +151,16 @@ def dataset(
     """Dataset ``index`` of ``role``: simulated once, then read from the cache.
 
     The cache key hashes every input that defines the data (scenario description with all
-    constants, role, index, n, horizon, seed); ``cache_dir=False`` disables the cache.
+    constants, role, index, n, horizon, seed, :data:`SIMULATION_REVISION`); ``cache_dir=False``
+    disables the cache.
     """
     T = scenario.horizon if horizon is None else int(horizon)
     if cache_dir is False:
         return _make(scenario, role, index, n, T, seed)
-    key = json.dumps({"s": scenario.describe(), "r": role, "i": int(index), "n": int(n), "T": T, "seed": int(seed)}, sort_keys=True)
+    key = json.dumps(
+        {"s": scenario.describe(), "r": role, "i": int(index), "n": int(n), "T": T, "seed": int(seed), "v": SIMULATION_REVISION},
+        sort_keys=True,
+    )
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
     path = Path(cache_dir or default_cache_dir()) / "datasets" / f"{scenario.name}-{role}{index}-{n}x{T}-s{seed}-{digest}.npz"
     if path.is_file():

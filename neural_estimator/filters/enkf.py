@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.filters.base import MemberFilter
+from neural_estimator.filters.base import PHASE_INIT, PHASE_UPDATE, MemberFilter
 from neural_estimator.filters.numerics import (
     gaussian,
     psd_solve,
@@ -74,14 +74,15 @@ class EnsembleKalmanFilter(MemberFilter):
         self._sqrt_R, self._sd_R = sqrt_factor(self.R)
 
     def _init_state(self, B: int) -> None:
-        self._X = self.ops.normalize_state(self.m0 + gaussian(self.rng, (B, self.N), self._sqrt_P0, self._sd_P0))
+        draws = self._draw_blockwise(PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_P0, self._sd_P0))
+        self._X = self.ops.normalize_state(self.m0 + draws)
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
-        X_post, _ = self._blockwise(self._update_block, self._X, y)
+        X_post, _ = self._blockwise(self._update_block, self._X, y, phase=PHASE_UPDATE)
         self._X = self._keep(skip, self._X, X_post)
         return None
 
-    def _update_block(self, X: np.ndarray, y: np.ndarray):
+    def _update_block(self, X: np.ndarray, y: np.ndarray, rng: np.random.Generator):
         ops, N = self.ops, self.N
         xbar = ops.state_mean(X)
         A = ops.state_residual(X, xbar[:, None, :])  # (b, N, n)
@@ -98,7 +99,7 @@ class EnsembleKalmanFilter(MemberFilter):
         C = weighted_cross_covariance(A, Bz, None, N - 1)  # (b, n, dy)
         S = weighted_covariance(Bz, None, N - 1) + self.R
         Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (b, dy, n) = K^T
-        E = gaussian(self.rng, Z.shape[:2], self._sqrt_R, self._sd_R)  # (b, N, dy)
+        E = gaussian(rng, Z.shape[:2], self._sqrt_R, self._sd_R)  # (b, N, dy)
         innov = (y[:, None, :] + E) - Z
         return ops.normalize_state(X + innov @ Kt), None
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from neural_estimator.filters.base import MemberFilter
+from neural_estimator.filters.base import PHASE_INIT, PHASE_REJUVENATE, PHASE_RESAMPLE, MemberFilter
 from neural_estimator.filters.numerics import (
     effective_sample_size,
     gaussian,
@@ -93,7 +93,8 @@ class ParticleFilter(MemberFilter):
         self._white_R = None if R_diag else solve_triangular(L_R, np.eye(scenario.dy), lower=True)
 
     def _init_state(self, B: int) -> None:
-        self._X = self.ops.normalize_state(self.m0 + gaussian(self.rng, (B, self.N), self._sqrt_init, self._sd_init))
+        draws = self._draw_blockwise(PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_init, self._sd_init))
+        self._X = self.ops.normalize_state(self.m0 + draws)
         self._logw = np.full((B, self.N), -np.log(self.N))
         self._w = np.full((B, self.N), 1.0 / self.N)
 
@@ -117,6 +118,20 @@ class ParticleFilter(MemberFilter):
         D = self.ops.state_residual(X, mean[:, None, :])
         return mean, weighted_covariance(D, w), None
 
+    def _jitter_draws(self, rows: np.ndarray) -> np.ndarray:
+        """Standard-normal (len(rows), N, dx) rejuvenation draws for the streams ``rows`` (sorted).
+
+        Each block containing a resampled stream draws for all its streams (so a stream's numbers
+        do not depend on which others resample) and keeps the rows it needs.
+        """
+        size, shape = self.block_size, (self.N, self.scenario.dx)
+        parts = []
+        for i in np.unique(rows // size):
+            sl = self._blocks[i]
+            z = self.block_rng(int(i), PHASE_REJUVENATE).standard_normal((sl.stop - sl.start,) + shape)
+            parts.append(z[rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start])
+        return np.concatenate(parts, axis=0)
+
     def _park(self, mask: np.ndarray) -> None:
         self._X = np.where(mask[:, None, None], self.m0, self._X)
         self._logw = np.where(mask[:, None], -np.log(self.N), self._logw)
@@ -124,7 +139,7 @@ class ParticleFilter(MemberFilter):
 
     def _after_estimate(self) -> None:
         """Systematic resampling of the streams whose ESS fell below ess_fraction * N."""
-        offsets = self.rng.random(self.batch)  # one draw per stream and step, used or not
+        offsets = self._draw_blockwise(PHASE_RESAMPLE, lambda rng, rows: rng.random(rows))  # one per stream, used or not
         need = effective_sample_size(self._w) < self.hp.ess_fraction * self.N
         if not need.any():
             return
@@ -134,7 +149,7 @@ class ParticleFilter(MemberFilter):
         flat = (idx + (rows * N)[:, None]).ravel()
         Xr = np.take(self._X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
         if self.hp.rejuvenation_std > 0:
-            Xr = self.ops.normalize_state(Xr + self.hp.rejuvenation_std * self.rng.standard_normal(Xr.shape))
+            Xr = self.ops.normalize_state(Xr + self.hp.rejuvenation_std * self._jitter_draws(rows))
         if rows.size == self.batch:  # every stream resampled (the usual case at B = 1): no scatter
             self._X = Xr
             self._logw = np.full((self.batch, N), -np.log(N))

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from neural_estimator.estimators import EstimatorError
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.filters.numerics import JitterPolicy, cholesky, psd_solve, symmetrize
 
@@ -26,6 +27,7 @@ class UKFHyperParams:
     kappa: float = 0.0  # secondary scaling
     jitter: float = 1e-9  # not in the paper: first Cholesky jitter on P, relative to its mean diagonal
     jitter_tries: int = 6  # not in the paper: retries, each jitter 10x the previous
+    linear_update: bool = True  # not in the paper: closed-form update where h(x) = H x (same result)
 
     def validate(self) -> None:
         if not self.alpha > 0:
@@ -73,6 +75,15 @@ class UnscentedKalmanFilter(ClassicalFilter):
         m = m^- + K (y_k - z)                              (innovation and state angles wrapped)
         P = P^- - K S K^T = P^- - C S^{-1} C^T
 
+    Linear observations. When the scenario declares h(x) = H x (``obs_matrix``; Lorenz 96 and the
+    planar quadrotor) and has no angles, the update's unscented transform is exact and, in exact
+    arithmetic, gives z = H m^-, S = H P^- H^T + R and C = P^- H^T: with Z_i - z = H (X_i - m^-),
+    X_0 = m^- and sum_{i>=1} Wc_i (X_i - m^-)(X_i - m^-)^T = P^- (the sigma points' defining
+    property). The filter then uses these closed forms (``linear_update``, default on): the same
+    update without the redrawn sigma points, their h and the second Cholesky factorisation, and
+    with less round-off (no sums with Wm_0 ~ -1e6). The tests check both paths against each other
+    and against filterpy.
+
     Every covariance is symmetrised and Cholesky-factored when it is made (the factor serves the
     next sigma points), with jitter as a fallback; a stream whose P^- or P cannot be factored even
     so, or whose mean or covariance goes non-finite, is flagged in ``diverged`` at that step.
@@ -90,12 +101,26 @@ class UnscentedKalmanFilter(ClassicalFilter):
         self.Wm, self.Wc, c = merwe_weights(scenario.dx, hp.alpha, hp.beta, hp.kappa)
         self._sqrt_c = float(np.sqrt(c))
         self.jitter = JitterPolicy(relative=hp.jitter, tries=hp.jitter_tries)
+        self._H, self._H_is_identity = self._linear_observation(scenario) if hp.linear_update else (None, False)
+
+    def _linear_observation(self, scenario) -> tuple[np.ndarray | None, bool]:
+        """(H, H == I) when the closed-form update applies, else (None, False)."""
+        H = scenario.obs_matrix()
+        if H is None or not (self.ops.plain_state and self.ops.plain_obs):
+            return None, False
+        H = np.asarray(H, dtype=np.float64)
+        n, m = scenario.dx, scenario.dy
+        if H.shape != (m, n) or not np.all(np.isfinite(H)):
+            raise EstimatorError(f"{self.method}: scenario {scenario.name!r} obs_matrix must be finite ({m}, {n}), got {H.shape}")
+        return H, m == n and np.array_equal(H, np.eye(n))
 
     def _init_state(self, B: int) -> None:
         n = self.scenario.dx
         self._m = np.broadcast_to(self.m0, (B, n)).copy()
         self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
-        self._L = np.broadcast_to(self._factor0, (B, n, n)).copy()
+        # The factor of P for the next sigma points; the linear update needs none, so then predict
+        # factors the posterior itself.
+        self._L = None if self._H is not None else np.broadcast_to(self._factor0, (B, n, n)).copy()
 
     @property
     def _factor0(self) -> np.ndarray:
@@ -145,25 +170,58 @@ class UnscentedKalmanFilter(ClassicalFilter):
         return (2 * n + 1) * max(n, self.scenario.dy)
 
     def _predict(self, u: np.ndarray) -> np.ndarray | None:
+        if self._H is not None:
+            self._m, self._P, ok = self._blockwise(self._predict_block_linear, self._m, self._P, u)
+            return ok
         self._m, self._P, self._L, ok = self._blockwise(self._predict_block, self._m, self._L, u)
         return ok
 
+    def _predict_block_linear(self, m: np.ndarray, P: np.ndarray, u: np.ndarray):
+        """Predict from the posterior (m, P), factored here; P^- is not factored (no redraw)."""
+        L, ok = self._factor(P)
+        return (*self._unscented_predict(m, L, u), ok)
+
     def _predict_block(self, m: np.ndarray, L: np.ndarray, u: np.ndarray):
+        m_pred, P_pred = self._unscented_predict(m, L, u)
+        return (m_pred, P_pred, *self._factor(P_pred))
+
+    def _unscented_predict(self, m: np.ndarray, L: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(m^-, P^-) from the sigma points of (m, L)."""
         X = self._sigma_points(m, L)
         Xf = self.scenario.f(X, self._broadcast_u(u, X.shape[1]))  # (b, 2n+1, n)
         m_pred = self.ops.state_mean(Xf, self.Wm)
         D = self.ops.state_residual(Xf, m_pred[:, None, :])
         P_pred = self._ut_covariance(D) + self.Q  # symmetric: a symmetrised sum + Q
-        return (m_pred, P_pred, *self._factor(P_pred))
+        return m_pred, P_pred
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
-        m_post, P_post, L_post, ok = self._blockwise(self._update_block, self._m, self._P, self._L, y)
+        if self._H is not None:
+            m_post, P_post, ok = self._blockwise(self._update_block_linear, self._m, self._P, y)
+        else:
+            m_post, P_post, L_post, ok = self._blockwise(self._update_block, self._m, self._P, self._L, y)
+            self._L = self._keep(skip, self._L, L_post)
         self._m = self._keep(skip, self._m, m_post)
         self._P = self._keep(skip, self._P, P_post)
-        self._L = self._keep(skip, self._L, L_post)
         if ok is not None and skip is not None:
             ok = ok | skip
         return ok
+
+    def _update_block_linear(self, m: np.ndarray, P: np.ndarray, y: np.ndarray):
+        """The unscented update of h(x) = H x in closed form (see the class docstring):
+
+        S = H P H^T + R,  K^T = S^{-1} (P H^T)^T,  m = m^- + K (y - H m^-),  P = P^- - (P H^T) K^T.
+        """
+        if self._H_is_identity:
+            PHt, S, z = P, P + self.R, m
+        else:
+            H = self._H
+            PHt = P @ H.T  # (b, n, dy)
+            S = symmetrize(H @ PHt) + self.R
+            z = m @ H.T
+        Kt = psd_solve(S, np.swapaxes(PHt, -1, -2))  # (b, dy, n) = K^T
+        m_post = m + np.einsum("bmn,bm->bn", Kt, y - z)
+        P_post = symmetrize(P - PHt @ Kt)
+        return m_post, P_post, None
 
     def _update_block(self, m: np.ndarray, P: np.ndarray, L: np.ndarray, y: np.ndarray):
         n = self.scenario.dx
@@ -190,4 +248,5 @@ class UnscentedKalmanFilter(ClassicalFilter):
     def _park(self, mask: np.ndarray) -> None:
         self._m = np.where(mask[:, None], self.m0, self._m)
         self._P = np.where(mask[:, None, None], self.P0, self._P)
-        self._L = np.where(mask[:, None, None], self._factor0, self._L)
+        if self._L is not None:
+            self._L = np.where(mask[:, None, None], self._factor0, self._L)

@@ -144,6 +144,15 @@ class Scenario(ABC):
         """d h / d x at x; (..., dy, dx). Default: complex step."""
         return complex_step_jacobian(self.h, x)
 
+    def obs_matrix(self) -> np.ndarray | None:
+        """H (dy, dx) when the observation is exactly linear, h(x) = H x, else None (the default).
+
+        A declaration, not a requirement: filters may then use closed forms (the UKF's update is
+        the Kalman update, which its unscented transform of a linear h equals in exact arithmetic).
+        The test suite checks h(x) == H x for every scenario that declares it.
+        """
+        return None
+
     @abstractmethod
     def process_cov(self) -> np.ndarray:
         """Q, the (dx, dx) covariance of w_k."""

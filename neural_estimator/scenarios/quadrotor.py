@@ -171,6 +171,10 @@ class PlanarQuadrotor(Scenario):
         """y = C x; (..., 6) -> (..., 3)."""
         return np.asarray(x) @ self._c().T
 
+    def obs_matrix(self) -> np.ndarray:
+        """H = C."""
+        return self._c().copy()
+
     def jac_h(self, x: np.ndarray) -> np.ndarray:
         """C, broadcast to (..., 3, 6)."""
         x = np.asarray(x)
