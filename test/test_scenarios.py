@@ -216,6 +216,22 @@ def test_lorenz96_known_answers():
     np.testing.assert_allclose((x * s._field(x)).sum(-1), -(x * x).sum(-1) + 8.0 * x.sum(-1), rtol=1e-12)
 
 
+@pytest.mark.parametrize("substeps", [1, 3])
+@pytest.mark.parametrize("shape", [(40,), (3, 40), (2, 81, 40), (20001, 40)])
+def test_lorenz96_f_is_bit_equal_to_rk4_of_the_field(shape, substeps, monkeypatch):
+    """f integrates batches ring-major in chunks (the fast path); it must give rk4(_field)'s bits,
+    so datasets do not change with the path or the batch. Small chunks force several, unequal ones."""
+    import neural_estimator.scenarios.lorenz96 as l96
+
+    monkeypatch.setattr(l96, "_RING_MAJOR_CHUNK", 7000)
+    s = make_scenario("lorenz96", substeps=substeps)
+    x = 4.0 * np.random.default_rng(3).standard_normal(shape)
+    expected = rk4(s._field, x, s.config.dt / substeps, substeps)
+    np.testing.assert_array_equal(s.f(x), expected)
+    xc = x + 1e-20j * np.random.default_rng(4).standard_normal(shape)  # the complex step passes through
+    np.testing.assert_array_equal(s.f(xc), rk4(s._field, xc, s.config.dt / substeps, substeps))
+
+
 def test_lorenz96_spinup_lands_on_the_attractor():
     s = make_scenario("lorenz96")
     x = s.sample_initial(np.random.default_rng(8), 400)
