@@ -300,6 +300,13 @@ class ClassicalFilter(Estimator):
         cov.flags.writeable = False  # the filter's own array: read it, copy it, never write it
         return mean, cov
 
+    def _for_blocks(self, kernel: Callable[[int, slice], Any]) -> list:
+        """[kernel(i, slice_i) for every block i], on ``threads`` threads; for in-place kernels."""
+        blocks = self._blocks
+        if len(blocks) == 1 or self.threads == 1:
+            return [kernel(i, sl) for i, sl in enumerate(blocks)]
+        return list(_ordered_map(_pool(self.threads), lambda i: kernel(i, blocks[i]), range(len(blocks)), 2 * self.threads))
+
     def _blockwise(self, kernel, *arrays: np.ndarray, phase: int | None = None) -> tuple:
         """Apply ``kernel(*block_arrays) -> (out_1, ..., out_j, ok)`` block by block of streams.
 

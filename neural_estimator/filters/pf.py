@@ -118,43 +118,31 @@ class ParticleFilter(MemberFilter):
         D = self.ops.state_residual(X, mean[:, None, :])
         return mean, weighted_covariance(D, w), None
 
-    def _jitter_draws(self, rows: np.ndarray) -> np.ndarray:
-        """Standard-normal (len(rows), N, dx) rejuvenation draws for the streams ``rows`` (sorted).
-
-        Each block containing a resampled stream draws for all its streams (so a stream's numbers
-        do not depend on which others resample) and keeps the rows it needs.
-        """
-        size, shape = self.block_size, (self.N, self.scenario.dx)
-        parts = []
-        for i in np.unique(rows // size):
-            sl = self._blocks[i]
-            z = self.block_rng(int(i), PHASE_REJUVENATE).standard_normal((sl.stop - sl.start,) + shape)
-            parts.append(z[rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start])
-        return np.concatenate(parts, axis=0)
-
     def _park(self, mask: np.ndarray) -> None:
         self._X = np.where(mask[:, None, None], self.m0, self._X)
         self._logw = np.where(mask[:, None], -np.log(self.N), self._logw)
         self._w = np.where(mask[:, None], 1.0 / self.N, self._w)
 
     def _after_estimate(self) -> None:
-        """Systematic resampling of the streams whose ESS fell below ess_fraction * N."""
-        offsets = self._draw_blockwise(PHASE_RESAMPLE, lambda rng, rows: rng.random(rows))  # one per stream, used or not
-        need = effective_sample_size(self._w) < self.hp.ess_fraction * self.N
+        """Systematic resampling of the streams whose ESS fell below ess_fraction * N, block by block
+        on the worker threads, in place (most steps resample only some streams)."""
+        self._for_blocks(self._resample_block)
+
+    def _resample_block(self, block: int, sl: slice) -> None:
+        X, logw, w = self._X[sl], self._logw[sl], self._w[sl]  # views: written in place
+        offsets = self.block_rng(block, PHASE_RESAMPLE).random(X.shape[0])  # one per stream, used or not
+        need = effective_sample_size(w) < self.hp.ess_fraction * self.N
         if not need.any():
             return
         rows = np.flatnonzero(need)
         N, n = self.N, self.scenario.dx
-        idx = systematic_resample(self._w[rows], offsets[rows])  # (r, N) into each row's particles
+        idx = systematic_resample(w[rows], offsets[rows])  # (r, N) into each row's particles
         flat = (idx + (rows * N)[:, None]).ravel()
-        Xr = np.take(self._X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
+        Xr = np.take(X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
         if self.hp.rejuvenation_std > 0:
-            Xr = self.ops.normalize_state(Xr + self.hp.rejuvenation_std * self._jitter_draws(rows))
-        if rows.size == self.batch:  # every stream resampled (the usual case at B = 1): no scatter
-            self._X = Xr
-            self._logw = np.full((self.batch, N), -np.log(N))
-            self._w = np.full((self.batch, N), 1.0 / N)
-        else:
-            self._X[rows] = Xr
-            self._logw[rows] = -np.log(N)
-            self._w[rows] = 1.0 / N
+            # drawn for every stream of the block, so a stream's numbers do not depend on the others
+            z = self.block_rng(block, PHASE_REJUVENATE).standard_normal(X.shape)[rows]
+            Xr = self.ops.normalize_state(Xr + self.hp.rejuvenation_std * z)
+        X[rows] = Xr
+        logw[rows] = -np.log(N)
+        w[rows] = 1.0 / N
