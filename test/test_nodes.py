@@ -338,7 +338,8 @@ def test_evaluator_signals_and_crash_recovery(plugin, nodes, tmp_path):
     time.sleep(1.5)
     nodes.procs["rec_term"].send_signal(signal.SIGTERM)
     nodes.procs["rec_kill"].send_signal(signal.SIGKILL)
-    assert nodes.wait("rec_term", 20) == 0
+    code = nodes.wait("rec_term", 20)
+    assert code == 0, nodes.log("rec_term")
     nodes.wait("rec_kill", 20)
 
     with BagReader(term_bag, strict=True) as reader:  # SIGTERM: a complete, closed file
