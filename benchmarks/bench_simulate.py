@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from neural_estimator.data.simulate import simulate
+from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
 
 
@@ -54,6 +55,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=1, help="best of this many runs")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    tuned = tune_allocator()  # as the CLI does (neural_estimator/runtime.py)
 
     rows = []
     for name in args.scenarios.split(","):
@@ -62,7 +64,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"# {name}: {r['sim_s']:.2f} s", file=sys.stderr, flush=True)
 
     print(f"Simulating N = {args.n} trajectories (best of {args.repeats}); "
-          f"numpy {np.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs\n")
+          f"numpy {np.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+          f"allocator tuned: {tuned}\n")
     print(
         "| scenario | dx | dy | du | T | simulate [s] | trajectory-steps / s | ms / step (batch N) "
         "| jac_f [ms] (batch N) |"

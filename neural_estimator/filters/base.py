@@ -275,11 +275,7 @@ class ClassicalFilter(Estimator):
             skip = ~finite
             y = np.where(finite[:, None], y, 0.0)  # placeholder; these rows' updates are discarded
         self.skipped = ~finite
-        ok = None
-        if self._k > 0:
-            ok = _and(ok, self._predict(u))
-        if skip is None or not skip.all():
-            ok = _and(ok, self._update(y, skip))
+        ok = self._predict_update(u, y, skip)
         self._k += 1
         mean, cov = self._estimate()
         # One pass each: a sum is non-finite iff an entry is (or the entries reach ~1e308, which
@@ -347,6 +343,18 @@ class ClassicalFilter(Estimator):
         """float64 numbers in the largest per-stream array of a step (sets the block size)."""
         n = self.scenario.dx
         return n * max(n, self.scenario.dy)
+
+    def _predict_update(self, u: np.ndarray, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
+        """Predict (k >= 1), then update the rows not in ``skip``; per-stream ok flags or None.
+
+        A filter may override it to do both in one pass over the blocks (the UKF does).
+        """
+        ok = None
+        if self._k > 0:
+            ok = _and(ok, self._predict(u))
+        if skip is None or not skip.all():
+            ok = _and(ok, self._update(y, skip))
+        return ok
 
     @abstractmethod
     def _init_state(self, B: int) -> None:

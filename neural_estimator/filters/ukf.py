@@ -176,6 +176,18 @@ class UnscentedKalmanFilter(ClassicalFilter):
         self._m, self._P, self._L, ok = self._blockwise(self._predict_block, self._m, self._L, u)
         return ok
 
+    def _predict_update(self, u: np.ndarray, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
+        if self._H is None or self._k == 0 or skip is not None:
+            return super()._predict_update(u, y, skip)
+        # Linear observation, no stream skipping: predict and update each block in one pass, so
+        # (m, P) stay in cache between the two and the batch is assembled once a step, not twice.
+        self._m, self._P, ok = self._blockwise(self._step_block_linear, self._m, self._P, u, y)
+        return ok
+
+    def _step_block_linear(self, m: np.ndarray, P: np.ndarray, u: np.ndarray, y: np.ndarray):
+        m_pred, P_pred, ok = self._predict_block_linear(m, P, u)
+        return (*self._update_block_linear(m_pred, P_pred, y)[:2], ok)
+
     def _predict_block_linear(self, m: np.ndarray, P: np.ndarray, u: np.ndarray):
         """Predict from the posterior (m, P), factored here; P^- is not factored (no redraw)."""
         L, ok = self._factor(P)
