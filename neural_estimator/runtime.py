@@ -4,9 +4,10 @@ numpy allocates a fresh array for every intermediate result. The filters' and si
 intermediates are 0.1 to 10 MiB (a block of sigma points, members or particles), and glibc's
 malloc, with its default dynamic thresholds, hands such blocks back to the operating system when
 they are freed (the heap's top is trimmed once more than twice the largest recently freed block is
-free) and takes them back at the next call, page by page. Measured on Lorenz 96, f on 40 streams x
-81 sigma points: 124 us per stream with the defaults, 50 us with the two settings below
-(benchmarks/bench_filters.py prints the whole-filter figures).
+free) and takes them back at the next call, page by page. Measured with and without the two
+settings below: simulating 8,000 Lorenz 96 trajectories x 200 steps 9.0 s -> 3.9 s; the PF and
+EnKF on Lorenz 96 7-8 % faster; Lorenz 96 f alone on 40 streams x 81 sigma points 102 -> 28 us per
+stream (README, "Measured figures").
 """
 
 from __future__ import annotations
