@@ -296,12 +296,17 @@ class ClassicalFilter(Estimator):
         cov.flags.writeable = False  # the filter's own array: read it, copy it, never write it
         return mean, cov
 
+    def _map_blocks(self, fn: Callable[[int], Any]) -> Iterator[Any]:
+        """fn(i) for every block i, in order: on the calling thread for one block or one thread,
+        else on the worker threads, at most two blocks per thread in flight (bounded memory)."""
+        n = len(self._blocks)
+        if n == 1 or self.threads == 1:
+            return map(fn, range(n))
+        return _ordered_map(_pool(self.threads), fn, range(n), ahead=2 * self.threads)
+
     def _for_blocks(self, kernel: Callable[[int, slice], Any]) -> list:
-        """[kernel(i, slice_i) for every block i], on ``threads`` threads; for in-place kernels."""
-        blocks = self._blocks
-        if len(blocks) == 1 or self.threads == 1:
-            return [kernel(i, sl) for i, sl in enumerate(blocks)]
-        return list(_ordered_map(_pool(self.threads), lambda i: kernel(i, blocks[i]), range(len(blocks)), 2 * self.threads))
+        """[kernel(i, slice_i) for every block i]; for kernels that write their block in place."""
+        return list(self._map_blocks(lambda i: kernel(i, self._blocks[i])))
 
     def _blockwise(self, kernel, *arrays: np.ndarray, phase: int | None = None) -> tuple:
         """Apply ``kernel(*block_arrays) -> (out_1, ..., out_j, ok)`` block by block of streams.
@@ -309,7 +314,7 @@ class ClassicalFilter(Estimator):
         Every array has the streams on axis 0; outputs are assembled to (B, ...) and ok flags to
         (B,) (None when every stream is ok). One block: the kernel's own outputs, no copies.
         With ``phase``, the kernel also gets the block's generator as ``rng=`` (:meth:`block_rng`).
-        Blocks run on ``threads`` threads, at most two per thread in flight (bounded memory).
+        Blocks run as :meth:`_map_blocks` schedules them.
         """
         blocks = self._blocks
 
@@ -322,10 +327,7 @@ class ClassicalFilter(Estimator):
 
         if len(blocks) == 1:
             return one(0)
-        if self.threads > 1:
-            results = _ordered_map(_pool(self.threads), one, range(len(blocks)), ahead=2 * self.threads)
-        else:
-            results = map(one, range(len(blocks)))
+        results = self._map_blocks(one)
         outs: list = []
         ok_full = None
         for sl, (*res, ok) in zip(blocks, results):
