@@ -67,3 +67,18 @@ def rk4_tangent(field_jac: FieldWithJacobian, x: np.ndarray, h: float, substeps:
         step = eye + (h / 6.0) * (a1 + 2.0 * d2 + 2.0 * d3 + d4)
         phi = step if phi is None else step @ phi
     return x, phi
+
+
+def by_component_blocks(x: np.ndarray, block: int, step: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """``step`` on the states of ``x`` (..., n), at most ``block`` at a time, component-major.
+
+    Each block is handed to ``step`` as contiguous (n, m) rows (one transpose in) and its (n, m)
+    result transposed back. With the component index first, each numpy operation of an
+    integrator is one long loop over the block's states instead of m short rows of n numbers.
+    """
+    n = x.shape[-1]
+    flat = x.reshape(-1, n)
+    out = np.empty_like(flat)
+    for lo in range(0, flat.shape[0], block):
+        out[lo : lo + block] = step(np.ascontiguousarray(flat[lo : lo + block].T)).T
+    return out.reshape(x.shape)

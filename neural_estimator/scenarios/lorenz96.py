@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.scenarios._integrate import rk4, rk4_tangent
+from neural_estimator.scenarios._integrate import by_component_blocks, rk4, rk4_tangent
 from neural_estimator.scenarios.base import Scenario, ScenarioError
 
 # A cyclic band matrix as {offset d (mod J): (..., J) coefficients}: (A v)_j = sum_d A_d[j] v_{j+d}.
@@ -20,7 +20,7 @@ from neural_estimator.scenarios.base import Scenario, ScenarioError
 Band = dict[int, np.ndarray]
 _DENSE_JACOBIAN_MAX_BATCH = 8  # batches up to this size take the dense tangent path (see jac_f)
 _RING_MAJOR_MIN_STATES = 16  # f on fewer states uses _field directly (no transposes to pay back)
-_RING_MAJOR_CHUNK = 8192  # states per chunk of the ring-major RK4 (J = 40: 2.6 MiB a buffer; fastest measured)
+_RING_MAJOR_CHUNK = 8192  # states per block of the ring-major RK4 (J = 40: 2.6 MiB a buffer; fastest measured)
 
 
 @dataclass(frozen=True)
@@ -133,7 +133,7 @@ class Lorenz96(Scenario):
         Bit for bit :func:`~neural_estimator.scenarios._integrate.rk4` of :meth:`_field` (the
         tests check it): the same operations on every number, in the same order. Batches of
         states (the UKF's 81 sigma points per stream, the PF's 1,024 particles) are integrated
-        ring-major, see :meth:`_rk4_ring_major`; a few states take :meth:`_field` directly.
+        ring-major, see :meth:`_rk4_columns`; a few states take :meth:`_field` directly.
         """
         x = np.asarray(x)
         if not np.iscomplexobj(x):
@@ -143,30 +143,16 @@ class Lorenz96(Scenario):
         n = x.shape[-1]
         if x.size < _RING_MAJOR_MIN_STATES * n:
             return rk4(self._field, x, h, cfg.substeps)
-        return self._rk4_ring_major(x.reshape(-1, n), h).reshape(x.shape)
+        return by_component_blocks(x, _RING_MAJOR_CHUNK, lambda rows: self._rk4_columns(rows, h))
 
-    def _rk4_ring_major(self, flat: np.ndarray, h: float) -> np.ndarray:
-        """RK4 of (M, J) states, computed on their transpose (J, M) in chunks of columns.
+    def _rk4_columns(self, X: np.ndarray, h: float) -> np.ndarray:
+        """RK4 in place on (J, c) contiguous states, in :func:`rk4`'s order of operations; returns X.
 
-        In the (M, J) layout every shifted ring X_{j+d} is a strided view whose rows are only J
-        numbers long, and numpy's per-row loop overhead costs about as much as the arithmetic. With
-        the ring index first, X_{j+d} for all j is the contiguous block of rows j + d of a padded
-        copy [X_{J-2}; X_{J-1}; X_0 .. X_{J-1}; X_0], so each operation is one long loop. The
-        states are cut into equal chunks of at most ``_RING_MAJOR_CHUNK`` (contiguous buffers:
-        strided views of larger ones measured twice as slow).
+        Ring-major: in the (c, J) layout every shifted ring X_{j+d} is a strided view whose rows are
+        only J numbers long, and numpy's per-row loop overhead costs about as much as the arithmetic.
+        With the ring index first, X_{j+d} for all j is the contiguous block of rows j + d of a
+        padded copy [X_{J-2}; X_{J-1}; X_0 .. X_{J-1}; X_0], so each operation is one long loop.
         """
-        M, n = flat.shape
-        out = np.empty_like(flat)
-        chunks = -(-M // _RING_MAJOR_CHUNK)
-        size = -(-M // chunks)
-        for lo in range(0, M, size):
-            X = np.ascontiguousarray(flat[lo : lo + size].T)
-            self._rk4_columns(X, h)
-            out[lo : lo + size] = X.T
-        return out
-
-    def _rk4_columns(self, X: np.ndarray, h: float) -> None:
-        """RK4 in place on (J, c) contiguous states, in :func:`rk4`'s order of operations."""
         n = X.shape[0]
         forcing = self.config.forcing
         P = np.empty((n + 3,) + X.shape[1:], dtype=X.dtype)  # the padded stage state
@@ -203,6 +189,7 @@ class Lorenz96(Scenario):
             A += K
             A *= h / 6.0
             X += A  # x + h/6 (k1 + 2 k2 + 2 k3 + k4)
+        return X
 
     def _field_band(self, x: np.ndarray) -> Band:
         """The continuous Jacobian d(dX/dt)/dX at x as a band: offsets -2, -1, 0, +1 (mod J)."""

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.scenarios._integrate import rk4, rk4_tangent
+from neural_estimator.scenarios._integrate import by_component_blocks, rk4, rk4_tangent
 from neural_estimator.scenarios.base import Scenario, ScenarioError
 
 # States per block of the component-form RK4: enough that numpy's ~1 us per call (~70 calls a
@@ -235,19 +235,17 @@ class NLinkPendulum(Scenario):
     def _step_components(self, x: np.ndarray) -> np.ndarray:
         """:meth:`step_unwrapped` in component form, real or complex; (..., 2N) -> (..., 2N).
 
-        Blocks of ``_BLOCK`` states are transposed once to contiguous (2N, m) rows, the whole RK4
-        runs on the angle and rate rows (the field is (w, w'), so only w' needs
-        :meth:`_accel_components`), and the result is transposed back. The stages are those of
+        Blocks of ``_BLOCK`` states are transposed once to contiguous (2N, m) rows
+        (:func:`by_component_blocks`), the whole RK4 runs on the angle and rate rows (the field
+        is (w, w'), so only w' needs :meth:`_accel_components`), and the result is transposed back. The stages are those of
         :func:`rk4`, x_i = x + c_i h k_{i-1}, with h/6 (k1 + 2 k2 + 2 k3 + k4) summed as they come.
         """
         cfg = self.config
         n, h = self.n_links, cfg.dt / cfg.substeps
         _, weights, grav = self._constants()
         weights, neg_grav = weights.tolist(), -grav[:, None]
-        flat = x.reshape(-1, 2 * n)
-        out = np.empty_like(flat)
-        for start in range(0, len(flat), _BLOCK):
-            rows = flat[start : start + _BLOCK].T.copy()
+
+        def integrate(rows: np.ndarray) -> np.ndarray:
             th, om = rows[:n], rows[n:]
             for _ in range(cfg.substeps):
                 k_th, k_om = om, self._accel_components(th, om, weights, neg_grav)
@@ -258,9 +256,10 @@ class NLinkPendulum(Scenario):
                     new_th += weight * k_th
                     new_om += weight * k_om
                 th, om = new_th, new_om
-            out[start : start + _BLOCK, :n] = th.T
-            out[start : start + _BLOCK, n:] = om.T
-        return out.reshape(x.shape)
+            rows[:n], rows[n:] = th, om
+            return rows
+
+        return by_component_blocks(x, _BLOCK, integrate)
 
     def step_unwrapped(self, x: np.ndarray) -> np.ndarray:
         """RK4 over dt without wrapping the angles (complex-step safe); (..., 2N) -> (..., 2N).
