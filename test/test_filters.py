@@ -509,6 +509,15 @@ def test_threads_option_is_checked():
             FILTERS["ukf"](s, threads=bad)
 
 
+def test_threads_default_comes_from_the_environment(monkeypatch):
+    s = scenario_or_skip("test_filters_linear")
+    monkeypatch.setenv("NEURAL_ESTIMATOR_THREADS", "3")
+    assert FILTERS["pf"](s).threads == 3
+    monkeypatch.setenv("NEURAL_ESTIMATOR_THREADS", "0")
+    with pytest.raises(EstimatorError, match=r"\$NEURAL_ESTIMATOR_THREADS: threads must be an integer"):
+        FILTERS["pf"](s)
+
+
 @pytest.mark.parametrize("method", list(FILTERS))
 def test_nan_observation_predicts_only(method):
     s = make_scenario("test_filters_pendulum")

@@ -49,13 +49,7 @@ def default_threads() -> int:
     """Worker threads for the blocks of streams: $NEURAL_ESTIMATOR_THREADS, else the usable cores."""
     env = os.environ.get(THREADS_ENV, "").strip()
     if env:
-        try:
-            n = int(env)
-        except ValueError:
-            raise EstimatorError(f"{THREADS_ENV} must be an integer >= 1, got {env!r}") from None
-        if n < 1:
-            raise EstimatorError(f"{THREADS_ENV} must be an integer >= 1, got {env!r}")
-        return n
+        return _check_threads(f"${THREADS_ENV}", env)
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - platforms without sched_getaffinity
@@ -396,14 +390,14 @@ class ClassicalFilter(Estimator):
         return np.broadcast_to(u[:, None, :], (u.shape[0], N, u.shape[1]))
 
 
-def _check_threads(method: str, threads: int | str) -> int:
+def _check_threads(where: str, threads: int | str) -> int:
     """``threads`` as an int >= 1 (strings from the command line parse), else EstimatorError."""
     try:
         n = int(threads)
     except (TypeError, ValueError):
         n = 0
     if n < 1 or isinstance(threads, (bool, float)):
-        raise EstimatorError(f"{method}: threads must be an integer >= 1, got {threads!r}")
+        raise EstimatorError(f"{where}: threads must be an integer >= 1, got {threads!r}")
     return n
 
 
