@@ -29,21 +29,37 @@ Definitions where the paper is silent (each is documented again where it is comp
   estimate, or a squared error that overflows) are always flagged. RMSE, NRMSE, MAE, MedAE, AUC,
   drift ratio, the RMSE-time curve, NEES and coverage use the kept trajectories only; Full RMSE uses
   all trajectories and is inf as soon as one diverged.
-- NRMSE: errors divided, per state component d, by the spread s_d of the true state (population
-  standard deviation of x_true[..., d] over all trajectories and all timesteps), then the RMSE of
-  these normalised errors over the kept trajectories. The spread depends on the data set only, so
-  every method evaluated on one data set is normalised by the same numbers. The paper does not
-  define NRMSE; its tables fit this definition: the Lorenz-96 rows have NRMSE ~ RMSE / 3.6 (UKF
-  0.048 -> 0.013; 3.6 is the climatological standard deviation of L96 with F = 8), and in the
-  ballistic rows RMSE and NRMSE are of the same size (UKF 0.626 vs 0.607), as they are when every
-  component is normalised by its own spread.
+- NRMSE (``nrmse``, the paper's column): the mean over ALL trajectories of each trajectory's
+  RMSE of spread-normalised errors, NRMSE = (1/N) sum_n sqrt( (1/(T dx)) sum_{t,d} (e_{n,t,d}/s_d)^2 ),
+  with s_d the spread of component d of the true state (population standard deviation of
+  x_true[..., d] over all trajectories and timesteps; one set of numbers per data set, shared by
+  every method). inf as soon as one trajectory diverged, like Full RMSE. The paper does not
+  define NRMSE; this is the definition its own tables leave standing (see README, "Metrics", and
+  test/test_metrics.py::test_paper_tables_*): (1) in the Lorenz 96 rows, where every component has
+  the same spread by symmetry, RMSE / NRMSE is not one constant (LSTM 0.119 / 0.034 < 3.57 but
+  Filterformer 0.732 / 0.202 > 3.61, after rounding), which rules out any "RMSE divided by a
+  data-set constant", per component or overall; a mean of per-trajectory values is not tied to the
+  RMS, and gives the larger ratio to the method whose error varies more between trajectories;
+  (2) the N-link PF row (RMSE 0.086, Full RMSE 4.678, 27 % outliers, NRMSE 0.550, MAE 0.618 > RMSE,
+  impossible on one set of trajectories) only fits an NRMSE that includes the outliers.
+- ``nrmse_spread``: the previous definition, kept by name: the RMSE of the spread-normalised
+  errors over the kept trajectories, sqrt( (1/(|K| T dx)) sum_{n in K,t,d} (e_{n,t,d}/s_d)^2 ).
+- NEES and coverage (when the method reports covariances): e^T P^-1 e per kept (n, t). A
+  covariance that is not finite, not positive definite, or numerically singular (some component's
+  variance given the others below DEGENERATE_RCOND of its own variance: a collapsed particle
+  cloud) is *degenerate*: its NEES is inf and its 95 % region holds nothing. Reported:
+  ``nees_median`` (robust; inf only when most steps are degenerate), ``nees`` the mean over the
+  steps whose covariance is usable (inf when none is), ``coverage95`` the share of all kept steps
+  whose NEES is within the chi-square 95 % quantile (degenerate steps count as not covered) and
+  ``cov_degenerate`` the share of kept steps with a degenerate covariance. None (JSON null) for
+  methods without covariances.
 - AUC: the trapezoid rule on the RMSE-time curve with a unit timestep,
   sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2 (0 for T = 1). The paper's AUC is about T times its
   RMSE (ballistic UKF: 303.9 for T = 500 and RMSE 0.626), so the timestep is one step, not seconds.
 - Outlier ratio: the share of all N trajectories flagged by the rule, diverged ones included; the
   diverged share is also reported on its own.
-- When every trajectory diverged: error metrics and AUC are inf, drift, outlier ratio and coverage are
-  NaN (the paper's "N/A"), ``all_diverged`` is True. Nothing raises.
+- When every trajectory diverged: error metrics and AUC are inf, drift, outlier ratio and the
+  covariance columns are NaN (the paper's "N/A"), ``all_diverged`` is True. Nothing raises.
 
 References: Iglewicz & Hoaglin (1993), "How to Detect and Handle Outliers" (MAD z-score and its
 MeanAD fallback); Bar-Shalom, Li & Kirubarajan (2001), "Estimation with Applications to Tracking
@@ -70,21 +86,30 @@ LOG_SCALE_FLOOR = 1e-9  # robust scales below this (log space) are round-off, no
 COVERAGE_LEVEL = 0.95
 _TINY = np.finfo(np.float64).tiny  # floor of M_n before the log: log(0) would be -inf
 _NEES_CHUNK = 1 << 16  # (n, t) pairs per batched Cholesky, bounds the temporaries
+# A covariance whose smallest conditional-to-marginal variance ratio (1 - R^2 of one component on
+# the ones before it) is below this is numerically singular: its inverse is round-off. Scale-free,
+# so components in different units (ballistic: km and a drag coefficient) do not trip it.
+DEGENERATE_RCOND = 1e-10
 
 # Scalar metrics of a report, in table order. Keys are used by summarize, format_table and to_json.
 SCALAR_METRICS = (
     "rmse",
     "full_rmse",
     "nrmse",
+    "nrmse_spread",
     "mae",
     "medae",
     "auc",
     "outlier_ratio",
     "drift_ratio",
     "diverged_ratio",
+    "nees_median",
     "nees",
     "coverage95",
+    "cov_degenerate",
 )
+# Metrics that only apply to methods that report a covariance (None for the others).
+COVARIANCE_METRICS = ("nees_median", "nees", "coverage95", "cov_degenerate")
 
 
 class MetricsError(ValueError):
@@ -294,8 +319,12 @@ def nees(e: np.ndarray, P_hat: np.ndarray) -> np.ndarray:
 
     Computed as ||L^{-1} e||^2 with P = L L^T (Cholesky of the symmetrised P), never with an
     inverse. For a consistent estimator with Gaussian errors eps ~ chi^2(dx), so its mean is dx.
-    A covariance that is not finite and positive definite gives eps = inf (an estimator that
-    reports such a covariance makes no consistent claim about its error).
+    A *degenerate* covariance gives eps = inf: not finite, not positive definite, or numerically
+    singular, i.e. min_i L_ii^2 / P_ii < DEGENERATE_RCOND. L_ii^2 / P_ii is the variance of
+    component i given components 0..i-1 over its own variance (the Cholesky pivots of the
+    correlation matrix D^-1/2 P D^-1/2, D = diag P); it is 0 exactly when component i is a linear
+    function of the earlier ones, as for a particle cloud collapsed onto fewer than dx + 1 points.
+    Such a matrix's "inverse" is round-off, and the NEES it gives (1e12 and more) says nothing.
 
     Args:
         e: (N, T, dx) errors.
@@ -328,7 +357,7 @@ def _nees_chunk(e: np.ndarray, P: np.ndarray) -> np.ndarray:
     e_ok = e[ok]
     try:
         L = np.linalg.cholesky(P_ok)  # (K', dx, dx)
-        res[ok] = _whitened_sq(L, e_ok)
+        res[ok] = np.where(_singular(L, P_ok), np.inf, _whitened_sq(L, e_ok))
     except np.linalg.LinAlgError:
         # Some matrix is not positive definite: find which, one at a time (rare, slow path).
         vals = np.full(e_ok.shape[0], np.inf)
@@ -337,9 +366,18 @@ def _nees_chunk(e: np.ndarray, P: np.ndarray) -> np.ndarray:
                 L = np.linalg.cholesky(P_ok[k])
             except np.linalg.LinAlgError:
                 continue
-            vals[k] = _whitened_sq(L[None], e_ok[k][None])[0]
+            if not _singular(L[None], P_ok[k][None])[0]:
+                vals[k] = _whitened_sq(L[None], e_ok[k][None])[0]
         res[ok] = vals
     return res
+
+
+def _singular(L: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(K,) True where min_i L_ii^2 / P_ii < DEGENERATE_RCOND (see :func:`nees`)."""
+    d = np.diagonal(L, axis1=-2, axis2=-1)  # (K, dx)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = d * d / np.diagonal(P, axis1=-2, axis2=-1)
+    return ~(ratio.min(axis=-1) >= DEGENERATE_RCOND)  # NaN (P_ii = 0) counts as singular
 
 
 def _whitened_sq(L: np.ndarray, e: np.ndarray) -> np.ndarray:
@@ -360,7 +398,8 @@ class MetricReport:
 
     rmse: float  # sqrt(mean e^2) over kept trajectories, all t, d
     full_rmse: float  # same over all trajectories; inf if any diverged
-    nrmse: float  # RMSE of e_d / s_d over kept trajectories
+    nrmse: float  # mean over all trajectories of the per-trajectory RMSE of e_d / s_d; inf if any diverged
+    nrmse_spread: float  # RMSE of e_d / s_d over kept trajectories (the previous NRMSE)
     mae: float  # mean |e| over kept trajectories, all t, d
     medae: float  # median |e| over kept trajectories, all t, d
     auc: float  # trapezoid area under rmse_t, unit timestep
@@ -375,12 +414,19 @@ class MetricReport:
     spread: np.ndarray  # (dx,) NRMSE normaliser s_d
     outlier_idx: np.ndarray  # (n_outliers,) trajectory indices, diverged included
     diverged_idx: np.ndarray  # (n_diverged,) trajectory indices
-    nees: float | None = None  # mean e^T P^-1 e over kept trajectories, all t (when P_hat given)
-    coverage95: float | None = None  # share of kept (n, t) with NEES <= chi2_{dx}(0.95)
+    # Covariance metrics: None when the method reports no covariance (does not apply).
+    nees_median: float | None = None  # median e^T P^-1 e over kept (n, t); degenerate P count as inf
+    nees: float | None = None  # mean e^T P^-1 e over kept (n, t) with a usable P; inf if none is usable
+    coverage95: float | None = None  # share of kept (n, t) with NEES <= chi2_{dx}(0.95); degenerate P: not covered
+    cov_degenerate: float | None = None  # share of kept (n, t) whose P is degenerate (see nees())
 
-    def scalars(self) -> dict[str, float]:
-        """The scalar metrics of :data:`SCALAR_METRICS` that this report has (NEES only with P_hat)."""
-        return {k: getattr(self, k) for k in SCALAR_METRICS if getattr(self, k) is not None}
+    @property
+    def has_covariance(self) -> bool:
+        return self.nees_median is not None
+
+    def scalars(self) -> dict[str, float | None]:
+        """Every metric of :data:`SCALAR_METRICS`, None for the covariance ones without P_hat."""
+        return {k: getattr(self, k) for k in SCALAR_METRICS}
 
 
 def compute_metrics(
@@ -400,14 +446,17 @@ def compute_metrics(
 
         RMSE      = sqrt( (1 / (|K| T dx)) sum_{n in K, t, d} e_{n,t,d}^2 )
         Full RMSE = sqrt( (1 / (N T dx))   sum_{n, t, d}       e_{n,t,d}^2 ),  inf if any diverged
-        NRMSE     = sqrt( (1 / (|K| T dx)) sum_{n in K, t, d} (e_{n,t,d} / s_d)^2 )
+        NRMSE     = (1 / N) sum_n sqrt( (1 / (T dx)) sum_{t, d} (e_{n,t,d} / s_d)^2 ),  inf if any diverged
+        NRMSE_spread = sqrt( (1 / (|K| T dx)) sum_{n in K, t, d} (e_{n,t,d} / s_d)^2 )
         MAE       = mean   { |e_{n,t,d}| : n in K }
         MedAE     = median { |e_{n,t,d}| : n in K }
         RMSE_t    = sqrt( (1 / (|K| dx)) sum_{n in K, d} e_{n,t,d}^2 )
         AUC       = sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2
         drift     = mean(RMSE_{T-q+1..T}) / mean(RMSE_{1..q}),  q = max(1, floor(T/4))
-        NEES      = mean { e^T P^{-1} e : n in K, all t },  ~dx for a consistent estimator
-        95%       = share of kept (n, t) with e^T P^{-1} e <= chi2_{dx}^{-1}(0.95)
+        NEES med. = median { eps_{n,t} = e^T P^{-1} e : n in K, all t },  ~dx for a consistent estimator
+        NEES      = mean { eps_{n,t} : n in K, P_{n,t} usable }
+        95%       = share of kept (n, t) with eps_{n,t} <= chi2_{dx}^{-1}(0.95)
+        Degen.    = share of kept (n, t) whose P_{n,t} is degenerate (eps = inf, see :func:`nees`)
 
     s_d is :func:`state_spread` of ``x_true`` unless ``spread`` is given. Every timestep counts.
 
@@ -424,8 +473,8 @@ def compute_metrics(
             caller evaluate chunk by chunk without holding (N, T, dx, dx) covariances.
 
     Returns:
-        A :class:`MetricReport`. If every trajectory diverged: RMSE, NRMSE, MAE, MedAE, AUC, the
-        curve and NEES are inf, drift ratio, outlier ratio and coverage are NaN, ``all_diverged``.
+        A :class:`MetricReport`. If every trajectory diverged: RMSE, NRMSE, MAE, MedAE, AUC and the
+        curve are inf, drift ratio, outlier ratio and the covariance metrics NaN, ``all_diverged``.
 
     Raises:
         MetricsError: wrong shapes, non-finite ground truth, or a spread that is not positive.
@@ -454,6 +503,7 @@ def compute_metrics(
     full_rmse = math.inf if n_div else float(np.sqrt(M.mean()))
     common = dict(
         full_rmse=full_rmse,
+        nrmse=math.inf if n_div else trajectory_mean_nrmse(Md, s),
         diverged_ratio=n_div / n,
         n_trajectories=n,
         n_outliers=int(out.sum()),
@@ -466,24 +516,27 @@ def compute_metrics(
 
     if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
         has_p = P_hat is not None or nees_values is not None
+        na = math.nan if has_p else None
         return MetricReport(
             rmse=math.inf,
-            nrmse=math.inf,
+            nrmse_spread=math.inf,
             mae=math.inf,
             medae=math.inf,
             auc=math.inf,
             drift_ratio=math.nan,
             outlier_ratio=math.nan,
             rmse_t=np.full(t, np.inf),
-            nees=math.inf if has_p else None,
-            coverage95=math.nan if has_p else None,
+            nees_median=na,
+            nees=na,
+            coverage95=na,
+            cov_degenerate=na,
             **common,
         )
 
     msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories
     abs_e = np.abs(e[kept])  # (|K|, T, dx)
     rmse_t = np.sqrt(sq[kept].mean(axis=(0, 2)))  # (T,)
-    nees_mean = coverage = None
+    cov_metrics: dict[str, float | None] = dict.fromkeys(COVARIANCE_METRICS)
     if P_hat is not None:
         P_hat = np.asarray(P_hat, dtype=np.float64)
         if P_hat.shape != (n, t, dx, dx):
@@ -493,23 +546,52 @@ def compute_metrics(
         nees_values = np.asarray(nees_values, dtype=np.float64)
         if nees_values.shape != (n, t):
             raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
-        eps = nees_values[kept]  # (|K|, T)
-        nees_mean = float(eps.mean())
-        from scipy.special import chdtri  # chi2.ppf(q, k) = chdtri(k, 1 - q); scipy.stats takes seconds to import
-
-        coverage = float(np.mean(eps <= chdtri(dx, 1.0 - COVERAGE_LEVEL)))
+        cov_metrics = covariance_metrics(nees_values[kept], dx)
     return MetricReport(
         rmse=float(np.sqrt(msd.mean())),
-        nrmse=float(np.sqrt(np.mean(msd / s**2))),
+        nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
         mae=float(abs_e.mean()),
         medae=float(np.median(abs_e)),
         auc=auc(rmse_t),
         drift_ratio=drift_ratio(rmse_t),
         outlier_ratio=int(out.sum()) / n,
         rmse_t=rmse_t,
-        nees=nees_mean,
-        coverage95=coverage,
+        **cov_metrics,
         **common,
+    )
+
+
+def trajectory_mean_nrmse(Md: np.ndarray, spread: np.ndarray) -> float:
+    """The paper-matching NRMSE: (1/N) sum_n sqrt( mean_d Md[n, d] / s_d^2 ).
+
+    Args:
+        Md: (N, dx) per-trajectory, per-component MSE (1/T) sum_t e_{n,t,d}^2, all trajectories.
+        spread: (dx,) s_d > 0.
+
+    Returns:
+        The mean over trajectories of each one's spread-normalised RMSE (see the module docstring
+        for why a mean over all trajectories and not an RMS over the kept ones).
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        per_traj = np.sqrt(np.mean(Md / spread**2, axis=1))  # (N,)
+    return float(per_traj.mean())
+
+
+def covariance_metrics(eps: np.ndarray, dx: int) -> dict[str, float]:
+    """NEES median, NEES mean over usable covariances, 95 % coverage and degenerate share.
+
+    Args:
+        eps: (K, T) NEES of the kept trajectories, inf where the covariance is degenerate.
+        dx: state dimension (the chi-square degrees of freedom).
+    """
+    from scipy.special import chdtri  # chi2.ppf(q, k) = chdtri(k, 1 - q); scipy.stats takes seconds to import
+
+    usable = np.isfinite(eps)
+    return dict(
+        nees_median=float(np.median(eps)),  # inf only when over half the steps are degenerate
+        nees=float(eps[usable].mean()) if usable.any() else math.inf,
+        coverage95=float(np.mean(eps <= chdtri(dx, 1.0 - COVERAGE_LEVEL))),
+        cov_degenerate=float(1.0 - usable.mean()),
     )
 
 
@@ -524,6 +606,7 @@ class Stat:
     iqr: float  # q75 - q25
     n: int  # values that were available (NaN left out)
     max: float  # largest value (shows a divergence that the median hides)
+    applies: bool = True  # False: the metric does not apply to the method (no covariance)
 
 
 def median_iqr(values: Iterable[float]) -> tuple[float, float]:
@@ -546,16 +629,19 @@ def summarize(reports: Iterable[MetricReport | Mapping[str, Any]]) -> dict[str, 
 
     Args:
         reports: :class:`MetricReport` objects, or mappings of metric name to value such as the
-            output of :func:`to_json` ("inf" strings and None are read back as inf and NaN).
+            output of :func:`to_json` (null is read back as NaN; a key that is null in every run,
+            or absent, does not apply).
 
     Returns:
-        {metric: Stat} for each metric of :data:`SCALAR_METRICS` present in at least one report.
+        {metric: Stat} for every metric of :data:`SCALAR_METRICS`, always the same keys; a metric
+        with no value in any run (NEES of a neural method) has ``applies=False`` and NaN numbers.
     """
     rows = [r.scalars() if isinstance(r, MetricReport) else r for r in reports]
     out: dict[str, Stat] = {}
     for key in SCALAR_METRICS:
-        vals = [_as_float(r[key]) for r in rows if key in r]
+        vals = [_as_float(r[key]) for r in rows if r.get(key) is not None]
         if not vals:
+            out[key] = Stat(median=math.nan, iqr=math.nan, n=0, max=math.nan, applies=False)
             continue
         med, iqr = median_iqr(vals)
         avail = [x for x in vals if not math.isnan(x)]
@@ -565,8 +651,9 @@ def summarize(reports: Iterable[MetricReport | Mapping[str, Any]]) -> dict[str, 
 
 # ---- output -------------------------------------------------------------------------------------------
 
-# (metric key, header, decimals, show IQR). The paper prints Out. and Drift without "± IQR".
-_COLUMNS = (
+# (metric key, header, decimals, show IQR). The paper's eight columns first (it prints Out. and
+# Drift without "± IQR"), then ours. Every table has all of them, for every scenario and method.
+TABLE_COLUMNS = (
     ("rmse", "RMSE", 3, True),
     ("full_rmse", "Full RMSE", 3, True),
     ("nrmse", "NRMSE", 3, True),
@@ -575,56 +662,58 @@ _COLUMNS = (
     ("auc", "AUC", 1, True),
     ("outlier_ratio", "Out.", 3, False),
     ("drift_ratio", "Drift", 3, False),
-)
-_OPTIONAL_COLUMNS = (
     ("diverged_ratio", "Div.", 3, False),
-    ("nees", "NEES", 3, True),
+    ("nees_median", "NEES med.", 2, True),
+    ("nees", "NEES mean", 2, False),
     ("coverage95", "95%", 3, True),
+    ("cov_degenerate", "Degen.", 3, False),
 )
+NOT_APPLICABLE = "—"  # table cell of a metric that does not apply (NEES of a method without covariance)
+DEGENERATE = "degen."  # table cell of a NEES made infinite by degenerate covariances
 
 
 def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", iqr_everywhere: bool = False) -> str:
-    """The paper's extended-metrics table, one row per method.
+    """The paper's extended-metrics table, one row per method, always the same columns.
 
-    Columns RMSE, Full RMSE, NRMSE, MAE, MedAE, AUC, Out., Drift as in the appendix tables, then
-    Div. when some run of some method diverged, and NEES / 95% when some method has them.
-    Cells are "median±IQR" with 3 decimals (AUC 1); Out., Drift and Div. show the median only, as
-    the paper does, unless ``iqr_everywhere``. An infinite median prints "inf" (the paper's
-    infinity), NaN prints "N/A". The csv format is for machines: one numeric column per median and
-    per IQR (``rmse``, ``rmse_iqr``, ...), full precision, "inf" and "nan" as Python prints them.
+    Columns :data:`TABLE_COLUMNS`: the appendix tables' RMSE, Full RMSE, NRMSE, MAE, MedAE, AUC,
+    Out., Drift, then Div. (diverged share) and the covariance columns NEES med., NEES mean, 95%,
+    Degen. Cells are "median±IQR" with 3 decimals (AUC 1, NEES 2); Out., Drift, Div., NEES mean and
+    Degen. show the median only unless ``iqr_everywhere``. An infinite median prints "inf" (the
+    paper's infinity; in a NEES column "degen.": most covariances were degenerate), NaN prints
+    "N/A", a metric that does not apply to the method "—". The csv format is for machines: every
+    metric of :data:`SCALAR_METRICS` as a median and an IQR column (``rmse``, ``rmse_iqr``, ...),
+    full precision, "inf" and "nan" as Python prints them, empty where the metric does not apply.
 
     Args:
         rows: {method: summary}; a summary maps metric keys to :class:`Stat`, (median, iqr) or a
-            plain number (IQR 0), e.g. the output of :func:`summarize` or ``report.scalars()``.
+            plain number (IQR 0), e.g. the output of :func:`summarize` or ``report.scalars()``;
+            a key that is absent or None does not apply.
         fmt: "markdown", "text" or "csv".
-        iqr_everywhere: also print the IQR for Out., Drift and Div.
+        iqr_everywhere: also print the IQR of the median-only columns.
     """
     if fmt not in ("markdown", "text", "csv"):
         raise MetricsError(f"fmt must be 'markdown', 'text' or 'csv', got {fmt!r}")
-    stats = {m: {k: _as_stat(v) for k, v in s.items()} for m, s in rows.items()}
-    cols = list(_COLUMNS)
-    if any(s["diverged_ratio"].max > 0 for s in stats.values() if "diverged_ratio" in s):
-        cols.append(_OPTIONAL_COLUMNS[0])
-    cols += [c for c in _OPTIONAL_COLUMNS[1:] if any(c[0] in s for s in stats.values())]
+    stats = {m: {k: _as_stat(s.get(k)) for k in SCALAR_METRICS} for m, s in rows.items()}
 
     if fmt == "csv":
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["method"] + [h for key, *_ in cols for h in (key, key + "_iqr")])
+        w.writerow(["method"] + [h for key in SCALAR_METRICS for h in (key, key + "_iqr")])
         for method, s in stats.items():
             cells = [method]
-            for key, *_ in cols:
-                st = s.get(key)
-                cells += [repr(st.median), repr(st.iqr)] if st else ["", ""]
+            for key in SCALAR_METRICS:
+                st = s[key]
+                cells += [repr(st.median), repr(st.iqr)] if st.applies else ["", ""]
             w.writerow(cells)
         return buf.getvalue()
 
+    cols = TABLE_COLUMNS
     header = ["Method"] + [h for _, h, _, _ in cols]
     body = []
     for method, s in stats.items():
         cells = [method]
         for key, _, dec, show_iqr in cols:
-            cells.append(_cell(s.get(key), dec, show_iqr or iqr_everywhere))
+            cells.append(_cell(s[key], dec, show_iqr or iqr_everywhere, nees=key.startswith("nees")))
         body.append(cells)
     if fmt == "markdown":
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * len(cols)) + "|"]
@@ -641,21 +730,27 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", i
 def format_reports(reports: Mapping[str, MetricReport], fmt: str = "text") -> str:
     """:func:`format_table` of one run per method: one run has no spread, so the IQR is NaN and the
     cells show the value alone (no fake "±0.000")."""
-    rows = {m: {k: (v, math.nan) for k, v in r.scalars().items()} for m, r in reports.items()}
+    rows = {m: {k: (None if v is None else (v, math.nan)) for k, v in r.scalars().items()} for m, r in reports.items()}
     return format_table(rows, fmt=fmt)
 
 
 def to_json(obj: Any) -> Any:
     """A JSON-ready copy of a :class:`MetricReport`, :class:`Stat`, summary or nested container.
 
-    Arrays become lists, numpy scalars Python scalars. JSON has no infinity, and divergence must
-    survive the round trip, so inf is written as the string "inf" ("-inf") and NaN (an unavailable
-    statistic, the paper's "N/A") as null. Report fields that were not computed (NEES and coverage
-    without ``P_hat``) are left out, so null always means NaN. :func:`summarize` reads both back.
+    Strict JSON (``json.dumps(..., allow_nan=False)`` accepts it): arrays become lists, numpy
+    scalars Python scalars, and every non-finite number becomes null. A report always has every
+    key (the schema is in README, "Metrics"); null means "no finite value": the metric does not
+    apply (covariance metrics of a method without covariance: ``has_covariance`` is false), is
+    unavailable (the paper's N/A), or is infinite; which one is told by the report's own fields
+    (``n_diverged`` > 0 for an infinite Full RMSE or NRMSE, ``all_diverged`` for the rest,
+    ``cov_degenerate`` for an infinite NEES). Never a string.
     """
-    if isinstance(obj, (MetricReport, Stat)):  # fields that were not computed (None) are left out
-        fields = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
-        return {k: to_json(v) for k, v in fields if v is not None}
+    if isinstance(obj, MetricReport):
+        out = {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        out["has_covariance"] = obj.has_covariance
+        return out
+    if isinstance(obj, Stat):
+        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
     if isinstance(obj, Mapping):
         return {str(k): to_json(v) for k, v in obj.items()}
     if isinstance(obj, np.ndarray):
@@ -664,11 +759,8 @@ def to_json(obj: Any) -> Any:
         return [to_json(v) for v in obj]
     if isinstance(obj, np.generic):
         return to_json(obj.item())
-    if isinstance(obj, float):
-        if math.isnan(obj):
-            return None
-        if math.isinf(obj):
-            return "inf" if obj > 0 else "-inf"
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
     return obj
 
 
@@ -720,13 +812,15 @@ def _quantile(v: np.ndarray, p: float) -> float:
 
 
 def _as_float(x) -> float:
-    """Metric value as float: None -> NaN, "inf"/"-inf"/"nan" strings as floats."""
+    """Metric value as float: None -> NaN, "inf"/"-inf"/"nan" strings (older results files) as floats."""
     if x is None:
         return math.nan
     return float(x)
 
 
 def _as_stat(v) -> Stat:
+    if v is None:
+        return Stat(median=math.nan, iqr=math.nan, n=0, max=math.nan, applies=False)
     if isinstance(v, Stat):
         return v
     if isinstance(v, (tuple, list)):
@@ -736,10 +830,14 @@ def _as_stat(v) -> Stat:
     return Stat(median=x, iqr=0.0, n=1, max=x)
 
 
-def _cell(st: Stat | None, decimals: int, show_iqr: bool) -> str:
-    if st is None or math.isnan(st.median):
+def _cell(st: Stat, decimals: int, show_iqr: bool, nees: bool = False) -> str:
+    if not st.applies:
+        return NOT_APPLICABLE
+    if math.isnan(st.median):
         return "N/A"
     if math.isinf(st.median):
+        if nees:
+            return DEGENERATE
         return "inf" if st.median > 0 else "-inf"
     med = f"{st.median:.{decimals}f}"
     if not show_iqr or math.isnan(st.iqr):

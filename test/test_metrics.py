@@ -9,6 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
+from neural_estimator import metrics as M
 from neural_estimator.metrics import (
     MAD_SCALE,
     MEANAD_SCALE,
@@ -156,15 +157,19 @@ def test_compute_metrics_by_hand():
     np.testing.assert_allclose(r.rmse_t, curve, **TOL)
     assert r.rmse == pytest.approx(np.sqrt(23 / 12))  # (4 + 8 + 11) / 12
     assert r.full_rmse == pytest.approx(np.sqrt(23 / 12))
-    assert r.nrmse == pytest.approx(np.sqrt(23 / 12) / 2.0)
+    # per-trajectory MSE 4/4, 8/4, 11/4: NRMSE is the mean of their roots over the spread 2
+    assert r.nrmse == pytest.approx(np.mean(np.sqrt([1.0, 2.0, 2.75])) / 2.0)
+    assert r.nrmse_spread == pytest.approx(np.sqrt(23 / 12) / 2.0)
     assert r.mae == pytest.approx(13 / 12)  # |e| sums 4 + 4 + 5
     assert r.medae == pytest.approx(1.0)  # sorted |e|: 0 0 0 1 1 1 | 1 1 1 2 2 3
     assert r.auc == pytest.approx(0.5 * curve[0] + curve[1] + curve[2] + 0.5 * curve[3])
     assert r.drift_ratio == pytest.approx(np.sqrt(2 / 5))  # T = 4, q = 1: RMSE_4 / RMSE_1
     assert r.outlier_ratio == 0.0 and r.diverged_ratio == 0.0 and not r.all_diverged
     assert r.n_trajectories == 3 and r.outlier_idx.size == 0 and r.diverged_idx.size == 0
-    assert r.nees is None and r.coverage95 is None
-    assert set(r.scalars()) == {"rmse", "full_rmse", "nrmse", "mae", "medae", "auc", "outlier_ratio", "drift_ratio", "diverged_ratio"}
+    assert r.nees is None and r.coverage95 is None and not r.has_covariance
+    scalars = r.scalars()
+    assert tuple(scalars) == M.SCALAR_METRICS  # every key, always
+    assert all(scalars[k] is None for k in M.COVARIANCE_METRICS)
 
 
 def test_compute_metrics_drift_on_growing_curve_t8():
@@ -195,7 +200,7 @@ def test_nrmse_with_known_spread():
     np.testing.assert_allclose(state_spread(x_true), [1.0, 3.0], **TOL)
     x_hat = x_true + np.array([0.5, 1.5])  # normalised errors (0.5, 0.5) everywhere
     r = compute_metrics(x_true, x_hat)
-    assert r.nrmse == pytest.approx(0.5)
+    assert r.nrmse == pytest.approx(0.5) and r.nrmse_spread == pytest.approx(0.5)
     assert r.rmse == pytest.approx(np.sqrt((0.25 + 2.25) / 2))
     np.testing.assert_allclose(r.spread, [1.0, 3.0], **TOL)
     assert compute_metrics(x_true, x_hat, spread=[0.5, 1.5]).nrmse == pytest.approx(1.0)
@@ -237,17 +242,17 @@ def test_all_diverged_is_explicit():
         warnings.simplefilter("error")
         r = compute_metrics(x_true, x_hat, P_hat=P)
     assert r.all_diverged and r.n_diverged == 3 and r.diverged_ratio == 1.0
-    for k in ("rmse", "full_rmse", "nrmse", "mae", "medae", "auc", "nees"):
+    for k in ("rmse", "full_rmse", "nrmse", "nrmse_spread", "mae", "medae", "auc"):
         assert getattr(r, k) == math.inf, k
-    for k in ("drift_ratio", "outlier_ratio", "coverage95"):
+    for k in ("drift_ratio", "outlier_ratio") + M.COVARIANCE_METRICS:
         assert math.isnan(getattr(r, k)), k
     assert np.isinf(r.rmse_t).all() and r.rmse_t.shape == (4,)
     table = format_table({"EnKF": r.scalars()})
     row = table.splitlines()[2]
-    assert "| EnKF | inf | inf | inf | inf | inf | inf | N/A | N/A | 1.000 |" in row
+    assert row == "| EnKF | inf | inf | inf | inf | inf | inf | N/A | N/A | 1.000 | N/A | N/A | N/A | N/A |"
     payload = json.dumps(to_json(r), allow_nan=False)  # strict JSON
     back = json.loads(payload)
-    assert back["rmse"] == "inf" and back["drift_ratio"] is None and back["all_diverged"] is True
+    assert back["rmse"] is None and back["drift_ratio"] is None and back["all_diverged"] is True
 
 
 def test_bad_inputs_raise_own_error():
@@ -323,9 +328,9 @@ def test_summarize_median_iqr_across_runs_and_json_round_trip():
     assert s["rmse"].median == pytest.approx(2 * base) and s["rmse"].iqr == pytest.approx(1.5 * base)
     assert s["drift_ratio"].iqr == pytest.approx(0.0)  # scale-free
     assert s["rmse"].n == 3 and s["rmse"].max == pytest.approx(4 * base)
-    assert "nees" not in s
-    from_json = summarize(json.loads(json.dumps(to_json(r))) for r in reps)
-    assert from_json == s
+    assert set(s) == set(M.SCALAR_METRICS) and not s["nees"].applies and s["rmse"].applies
+    from_json = summarize(json.loads(json.dumps(to_json(r), allow_nan=False)) for r in reps)
+    assert repr(from_json) == repr(s)  # NaN != NaN, so compare the spelled-out values
 
 
 def test_format_table_paper_columns_and_cells():
@@ -333,21 +338,24 @@ def test_format_table_paper_columns_and_cells():
     bad = {"rmse": Stat(math.inf, math.nan, 3, math.inf), "full_rmse": (math.inf, 0.0), "outlier_ratio": math.nan, "diverged_ratio": 1.0}
     md = format_table({"UKF": good, "EnKF": bad})
     lines = md.splitlines()
-    assert lines[0] == "| Method | RMSE | Full RMSE | NRMSE | MAE | MedAE | AUC | Out. | Drift | Div. |"
+    assert lines[0] == ("| Method | RMSE | Full RMSE | NRMSE | MAE | MedAE | AUC | Out. | Drift | Div. "
+                        "| NEES med. | NEES mean | 95% | Degen. |")
     base = np.sqrt(23 / 12)
     ukf = lines[2].split(" | ")
     assert ukf[1] == f"{2 * base:.3f}±{1.5 * base:.3f}"
     assert ukf[6].count(".") == 2 and len(ukf[6].split("±")[0].split(".")[1]) == 1  # AUC: 1 decimal
     assert ukf[7] == "0.000" and "±" not in ukf[8]  # Out., Drift: median only, as in the paper
-    assert lines[3].startswith("| EnKF | inf | inf | N/A |")
-    # Div. only when someone diverged; NEES / 95% only when someone has them
-    assert "Div." not in format_table({"UKF": good})
-    with_p = {"KF": {"rmse": 1.0, "nees": (2.9, 0.1), "coverage95": (0.95, 0.01)}}
-    assert format_table(with_p).splitlines()[0].endswith("| NEES | 95% |")
+    assert lines[3].startswith("| EnKF | inf | inf | — |")  # NRMSE not given: does not apply
+    assert lines[2].endswith("| — | — | — | — |")  # no covariance: NEES columns do not apply
+    # the same columns whatever the rows hold
+    with_p = {"KF": {"rmse": 1.0, "nees_median": (2.9, 0.1), "nees": math.inf, "coverage95": (0.95, 0.01)}}
+    assert format_table(with_p).splitlines()[0] == lines[0] == format_table({"UKF": good}).splitlines()[0]
+    assert format_table(with_p).splitlines()[2].endswith("| 2.90±0.10 | degen. | 0.950±0.010 | — |")
     text = format_table({"UKF": good}, fmt="text").splitlines()
     assert text[0].split()[:3] == ["Method", "RMSE", "Full"] and text[1].startswith("UKF")
     rows = list(csv.DictReader(io.StringIO(format_table({"UKF": good, "EnKF": bad}, fmt="csv"))))
     assert float(rows[0]["rmse"]) == pytest.approx(2 * base) and rows[1]["rmse"] == "inf"
+    assert list(rows[0])[1::2] == list(M.SCALAR_METRICS) and rows[0]["nees"] == ""
     with pytest.raises(MetricsError):
         format_table({"UKF": good}, fmt="latex")
 
@@ -361,9 +369,11 @@ def test_to_json_plain_types():
     assert back["rmse_t"] == pytest.approx(list(np.sqrt([5 / 3, 2 / 3, 14 / 3, 2 / 3])))
     assert back["outlier_idx"] == [] and back["spread"] == [2.0]
     assert back["nees"] == pytest.approx(23 / 12)  # P = I: NEES = mean e^2
+    assert back["cov_degenerate"] == 0.0 and back["has_covariance"] is True
     assert type(back["n_trajectories"]) is int
-    assert "nees" not in to_json(compute_metrics(*_from_errors(E3), spread=2.0))  # not computed: absent
-    assert to_json({"a": np.float32(-np.inf), "b": np.array([np.nan, 1.0])}) == {"a": "-inf", "b": [None, 1.0]}
+    no_p = to_json(compute_metrics(*_from_errors(E3), spread=2.0))
+    assert set(no_p) == set(back) and no_p["nees"] is None and no_p["has_covariance"] is False  # same keys
+    assert to_json({"a": np.float32(-np.inf), "b": np.array([np.nan, 1.0])}) == {"a": None, "b": [None, 1.0]}
 
 
 def test_precomputed_nees_values_equal_p_hat_path():
