@@ -401,3 +401,125 @@ def test_round_off_is_not_an_outlier():
     x = np.random.default_rng(0).standard_normal((50, 8, 2)) * 1e3
     report = M.compute_metrics(x, x + 0.5)
     assert report.n_outliers == 0
+
+
+# ---- the NRMSE definition against the paper's own tables ---------------------------------------------
+# (RMSE, Full RMSE, NRMSE, MAE) medians, paper.tex appendix tables tab:l96_extended and
+# tab:nlink_pendulum_extended, printed to 3 decimals.
+PAPER_L96 = {
+    "EKF": (0.049, 0.049, 0.014, 0.027), "UKF": (0.048, 0.048, 0.013, 0.026), "EnKF": (0.054, 0.054, 0.015, 0.029),
+    "PF": (0.065, 0.065, 0.018, 0.037), "GRU": (0.127, 0.127, 0.036, 0.101), "LSTM": (0.119, 0.119, 0.034, 0.093),
+    "GPT-2": (0.099, 0.099, 0.028, 0.080), "Filterformer": (0.732, 0.732, 0.202, 0.493),
+    "Mamba": (0.052, 0.052, 0.015, 0.031), "Mamba-2": (0.052, 0.052, 0.015, 0.031),
+}
+PAPER_NLINK = {
+    "EKF": (0.080, 0.081, 0.012, 0.063), "UKF": (0.081, 0.081, 0.012, 0.065), "EnKF": (0.092, 0.092, 0.014, 0.073),
+    "PF": (0.086, 4.678, 0.550, 0.618), "GRU": (0.399, 0.452, 0.063, 0.242), "LSTM": (0.356, 0.421, 0.058, 0.217),
+    "GPT-2": (0.233, 0.269, 0.037, 0.153), "Filterformer": (1.749, 1.760, 0.219, 0.701),
+    "Mamba": (0.093, 0.118, 0.017, 0.076), "Mamba-2": (0.092, 0.105, 0.015, 0.073),
+}
+HALF_ULP = 0.0005  # a printed 3-decimal value v is in [v - 0.0005, v + 0.0005]
+
+
+def _ratio_interval(num, den):
+    """Range of num / den over the values that print as num and den."""
+    return (num - HALF_ULP) / (den + HALF_ULP), (num + HALF_ULP) / (den - HALF_ULP)
+
+
+def test_paper_tables_rule_out_rmse_over_a_constant():
+    """The paper's L96 rows contradict NRMSE = RMSE / (a number fixed by the data set).
+
+    All 40 Lorenz 96 components have the same spread s (the system is invariant under cyclic
+    shifts), so the old per-component definition, and any RMSE divided by a per-data-set
+    normaliser, make RMSE / NRMSE = s for every method on the same evaluation sets. In the paper's
+    table the LSTM and Filterformer ratios cannot be equal even allowing for rounding.
+    """
+    lo_ff, _ = _ratio_interval(PAPER_L96["Filterformer"][0], PAPER_L96["Filterformer"][2])
+    _, hi_lstm = _ratio_interval(PAPER_L96["LSTM"][0], PAPER_L96["LSTM"][2])
+    assert hi_lstm < 3.58 < 3.61 < lo_ff
+    # The same with Full RMSE (identical here): no normaliser of the all-trajectory RMSE either.
+    assert _ratio_interval(PAPER_L96["LSTM"][1], PAPER_L96["LSTM"][2])[1] < _ratio_interval(*PAPER_L96["Filterformer"][1:3])[0]
+
+
+def test_paper_tables_nrmse_includes_the_outliers():
+    """The N-link PF row only fits an NRMSE over all trajectories.
+
+    Its MAE (0.618) exceeds its RMSE (0.086), impossible on one set of trajectories (MAE <= RMSE
+    always): the paper's RMSE is over the kept trajectories, its other columns over all. Over the
+    kept trajectories the PF's NRMSE / RMSE would be 6.4 where every other N-link row has 0.12 to
+    0.19 (a 34x gap on the same trajectories); against Full RMSE all rows agree within 1.35x.
+    """
+    pf = PAPER_NLINK["PF"]
+    assert pf[3] > pf[0]  # MAE > RMSE
+    kept = {m: v[2] / v[0] for m, v in PAPER_NLINK.items()}
+    full = {m: v[1] / v[2] for m, v in PAPER_NLINK.items()}
+    others = [kept[m] for m in kept if m != "PF"]
+    assert kept["PF"] > 30 * max(others)
+    assert max(full.values()) / min(full.values()) < 1.35
+
+
+def test_nrmse_behaves_as_the_paper_tables_require():
+    """The two properties above, on our implementation: equal spreads and a different ratio for
+    the method whose error varies between trajectories; outliers count in NRMSE, not in RMSE."""
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((400, 30, 4)) * 3.6  # equal spreads, as in Lorenz 96
+    steady = x + 0.1 * rng.standard_normal(x.shape)  # the same error size in every trajectory
+    scale = np.exp(0.8 * rng.standard_normal(400))[:, None, None]  # per-trajectory error size varies
+    varied = x + 0.1 * scale * rng.standard_normal(x.shape)
+    r_steady, r_varied = compute_metrics(x, steady), compute_metrics(x, varied)
+    # the old definition: RMSE / NRMSE = s for both (equal spreads) -- the paper contradicts this
+    s = M.state_spread(x).mean()
+    assert r_steady.rmse / r_steady.nrmse_spread == pytest.approx(s, rel=0.01)
+    assert r_varied.rmse / r_varied.nrmse_spread == pytest.approx(s, rel=0.01)
+    # the new one: the steady method has the ratio ~s, the varied one a larger one (the
+    # Filterformer's ratio above the LSTM's in the paper's L96 rows)
+    assert r_steady.rmse / r_steady.nrmse == pytest.approx(s, rel=0.01)
+    assert r_varied.full_rmse / r_varied.nrmse > 1.1 * s
+
+    # outliers: 10 % of trajectories with a 100x error are removed from RMSE, not from NRMSE
+    bad = steady.copy()
+    bad[:40] = x[:40] + 10.0 * rng.standard_normal((40, 30, 4))
+    r_bad = compute_metrics(x, bad)
+    assert r_bad.n_outliers == 40
+    assert r_bad.rmse == pytest.approx(r_steady.rmse, rel=0.05)  # outliers removed
+    assert r_bad.nrmse > 10 * r_steady.nrmse  # outliers counted, like the paper's N-link PF
+
+
+# ---- degenerate covariances ----------------------------------------------------------------------------
+
+
+def test_degenerate_covariances_are_marked_not_overflowed():
+    """A collapsed particle cloud's covariance (rank deficient, or zero) gives no 1e12 NEES: it is
+    counted as degenerate, the median stays meaningful, and the table says so when most are."""
+    rng = np.random.default_rng(1)
+    n, t, dx = 20, 10, 3
+    x = rng.standard_normal((n, t, dx))
+    xh = x + rng.standard_normal((n, t, dx))  # errors ~ N(0, I): with P = I, NEES ~ chi2(3)
+    P = np.broadcast_to(np.eye(dx), (n, t, dx, dx)).copy()
+    v = np.array([1.0, 2.0, -1.0])
+    P[:, :3] = np.outer(v, v) * 1e-3 + np.eye(dx) * 1e-19  # rank one up to round-off: Cholesky passes
+    P[:, 3] = 0.0  # collapsed to a point: not positive definite
+    P[0, 4, 0, 0] = np.inf  # overflowed
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        eps = nees(M.errors(x, xh), P)
+        r = compute_metrics(x, xh, P_hat=P)
+    assert np.isinf(eps[:, :4]).all() and np.isinf(eps[0, 4]) and np.isfinite(eps[1:, 4:]).all()
+    assert r.cov_degenerate == pytest.approx((4 * n + 1) / (n * t))
+    assert r.nees == pytest.approx(eps[np.isfinite(eps)].mean())  # mean over the usable ones: ~3
+    assert 1.5 < r.nees < 5  # chi2(3) has mean 3
+    # 40 % degenerate: the median is finite, the 83rd percentile of the usable values' chi2(3)
+    assert r.nees_median == np.median(eps) and 3 < r.nees_median < 8
+    assert r.coverage95 == pytest.approx(np.mean(eps <= 7.814727903251178))  # degenerate: not covered
+    assert r.coverage95 < 0.6
+    # a legitimately ill-scaled but regular covariance (units differing by 1e6) is not degenerate
+    P_units = np.broadcast_to(np.diag([1e6, 1.0, 1e-6]), (n, t, dx, dx))
+    assert compute_metrics(x, xh, P_hat=P_units).cov_degenerate == 0.0
+    # most steps degenerate: the median NEES is inf and the table says "degen.", JSON null
+    P[:, :] = 0.0
+    r_all = compute_metrics(x, xh, P_hat=P)
+    assert r_all.cov_degenerate == 1.0 and r_all.coverage95 == 0.0 and math.isinf(r_all.nees_median)
+    row = M.format_reports({"PF": r_all}, fmt="markdown").splitlines()[2]
+    assert row.endswith("| degen. | degen. | 0.000 | 1.000 |") and "inf" not in row.split("|")[10]
+    back = json.loads(json.dumps(to_json(r_all), allow_nan=False))
+    assert back["nees_median"] is None and back["cov_degenerate"] == 1.0
