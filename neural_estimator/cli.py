@@ -139,7 +139,7 @@ def _cmd_metrics(args) -> int:
     truth, estimates, angles = _estimates_from_files(args.files)
     reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
     if args.json:
-        print(json.dumps(M.to_json({"scenario": truth.meta.get("scenario"), "methods": reports}), indent=1))
+        print(json.dumps(M.to_json({"scenario": truth.meta.get("scenario"), "methods": reports}), indent=1, allow_nan=False))
     else:
         print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps")
         print(M.format_reports(reports, fmt="text"), end="")
@@ -156,7 +156,7 @@ def _write_table(path: str, reports) -> None:
     if out.suffix == ".csv":
         out.write_text(M.format_reports(reports, fmt="csv"))
     elif out.suffix == ".json":
-        out.write_text(json.dumps(M.to_json(reports), indent=1))
+        out.write_text(json.dumps(M.to_json(reports), indent=1, allow_nan=False))
     else:
         out.write_text(M.format_reports(reports, fmt="markdown"))
     print(f"wrote {out}")
@@ -178,10 +178,13 @@ def _add_evaluate(sub) -> None:
     p.add_argument("--threads", type=int, metavar="N",
                    help="threads of the classical filters (default: $NEURAL_ESTIMATOR_THREADS, else the usable cores)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--no-cache", action="store_true", help="do not cache the evaluation sets on disk")
+    p.add_argument("--no-cache", action="store_true",
+                   help="no disk cache at all: evaluation sets and run results are neither read nor written (no resume)")
+    p.add_argument("--recompute", action="store_true",
+                   help="compute every run again even if its result is cached (and overwrite the cached result)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
-    p.add_argument("--out", help="directory for table.md, table.csv, results.json and rmse_over_time.png")
+    p.add_argument("--out", help="directory for table.md, table.csv, results.json (rewritten after every run) and rmse_over_time.png")
     p.set_defaults(func=_cmd_evaluate)
 
 
@@ -213,7 +216,6 @@ def _parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
 def _cmd_evaluate(args) -> int:
     from neural_estimator.estimators import CLASSICAL_METHODS, check_method
     from neural_estimator.evaluation import evaluate, results_json, results_table
-    from neural_estimator.plots import plot_rmse_over_time
 
     scenario = scenario_from_args(args)
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
@@ -229,29 +231,52 @@ def _cmd_evaluate(args) -> int:
         for m in methods:
             if m in CLASSICAL_METHODS:
                 options.setdefault(m, {}).setdefault("threads", args.threads)
+    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed)
+    out = Path(args.out) if args.out else None
+    expected_runs = {m: args.sets * max(1, len(checkpoints.get(m) or ())) for m in methods}
+
+    def write_partial(results) -> None:  # after every run: an interrupted evaluate leaves its finished runs
+        if out is not None:
+            _write_evaluation(out, scenario, results, info, expected_runs, plot=False)
+
     results = evaluate(
         scenario, methods, trajectories=args.trajectories, horizon=args.horizon, seed=args.seed, sets=args.sets,
         checkpoints=checkpoints, options=options, device=args.device,
-        cache_dir=False if args.no_cache else None, progress=not args.quiet,
+        cache_dir=False if args.no_cache else None, progress=not args.quiet, recompute=args.recompute,
+        on_result=write_partial,
     )
-    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed)
     if args.json:
-        print(json.dumps(results_json(scenario, results, **info), indent=1))
+        print(json.dumps(results_json(scenario, results, complete=True, **info), indent=1, allow_nan=False))
     else:
         print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps "
               f"(median ± IQR over runs)")
         print(results_table(results, fmt="text"), end="")
-        print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" for m, r in results.items()))
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "table.md").write_text(results_table(results, fmt="markdown"))
-        (out / "table.csv").write_text(results_table(results, fmt="csv"))
-        (out / "results.json").write_text(json.dumps(results_json(scenario, results, **info), indent=1))
-        plot_rmse_over_time({m: [rep.rmse_t for rep in r.reports] for m, r in results.items()},
-                            out / "rmse_over_time.png", title=scenario.name, dt=scenario.dt)
+        print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" + (f" ({r.cached} cached runs)" if r.cached else "")
+                                    for m, r in results.items()))
+    if out is not None:
+        _write_evaluation(out, scenario, results, info, expected_runs, plot=True)
         print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
     return 0
+
+
+def _write_evaluation(out: Path, scenario, results, info: dict[str, Any], expected_runs: dict[str, int], plot: bool) -> None:
+    """table.md, table.csv and results.json of the runs so far ("complete" says whether all are in)."""
+    from neural_estimator.evaluation import results_json, results_table
+
+    done = {m: r for m, r in results.items() if r.reports}
+    complete = all(len(results[m].reports) == n for m, n in expected_runs.items())
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table.md").write_text(results_table(done, fmt="markdown"))
+    (out / "table.csv").write_text(results_table(done, fmt="csv"))
+    payload = results_json(scenario, done, complete=complete, **info)
+    tmp = out / "results.json.tmp"
+    tmp.write_text(json.dumps(payload, indent=1, allow_nan=False))
+    tmp.replace(out / "results.json")
+    if plot:
+        from neural_estimator.plots import plot_rmse_over_time
+
+        plot_rmse_over_time({m: [rep.rmse_t for rep in r.reports] for m, r in done.items()},
+                            out / "rmse_over_time.png", title=scenario.name, dt=scenario.dt)
 
 
 # ---- train --------------------------------------------------------------------------------------

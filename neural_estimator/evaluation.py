@@ -12,10 +12,17 @@ Memory: the batch is cut into chunks so that no chunk holds more than ``memory_b
 outputs (the per-step covariances dominate: T dx^2 8 bytes per trajectory, 6.4 MB for Lorenz 96)
 plus the method's working set (the PF's particles). NEES is computed chunk by chunk, so the full
 (N, T, dx, dx) covariance array never exists.
+
+Long runs: a progress bar per run counts trajectory-steps (the classical filters advance it every
+time step of a chunk, so its rate and ETA are those of the run in progress), and every finished
+run is written at once to the result cache (:func:`run_key`), so an interrupted ``evaluate``
+resumes from the runs it finished and a second one with more methods only computes the new ones.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,11 +32,19 @@ from typing import Any
 import numpy as np
 
 from neural_estimator import metrics as M
+from neural_estimator import __version__
 from neural_estimator.data import Trajectories, evaluation_sets
-from neural_estimator.estimators import Estimator, check_method, make_estimator
+from neural_estimator.data.io import DataError, load_npz, save_npz
+from neural_estimator.data.protocol import SIMULATION_REVISION, default_cache_dir
+from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS, Estimator, Estimates, check_method, make_estimator, previous_controls
 from neural_estimator.scenarios import Scenario
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
+# Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
+# changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns.
+RESULTS_REVISION = 2
+# Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
+_SPEED_ONLY_OPTIONS = frozenset({"threads"})
 
 
 @dataclass
@@ -40,6 +55,7 @@ class MethodResult:
     reports: list[M.MetricReport] = field(default_factory=list)
     seconds: float = 0.0  # wall time spent estimating (excludes data generation and metrics)
     steps: int = 0  # trajectory-steps estimated
+    cached: int = 0  # runs read from the result cache (their seconds are those of the run that made them)
 
     @property
     def summary(self) -> dict[str, M.Stat]:
@@ -71,8 +87,15 @@ def run_method(
     chunk: int,
     angle_states: Sequence[int],
     on_chunk: Callable[[int], None] | None = None,
+    on_steps: Callable[[int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
     """Estimate every trajectory of ``data`` chunk by chunk.
+
+    Args:
+        on_chunk: called with the number of trajectories of each finished chunk.
+        on_steps: called with B after every time step of a chunk of B trajectories (classical
+            filters, which loop over time: see :func:`run_stepwise`), or with B T after a chunk
+            (neural models, whose parallel form has no steps to report); the calls add up to N T.
 
     Returns:
         (x_hat (N, T, dx), nees (N, T) or None, diverged (N,), seconds spent in the estimator).
@@ -85,7 +108,12 @@ def run_method(
     for lo in range(0, N, chunk):
         hi = min(N, lo + chunk)
         t0 = time.perf_counter()
-        est = estimator.run(data.y[lo:hi], data.u[lo:hi])
+        if on_steps is not None and estimator.method in CLASSICAL_METHODS:
+            est = run_stepwise(estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo))
+        else:
+            est = estimator.run(data.y[lo:hi], data.u[lo:hi])
+            if on_steps is not None:
+                on_steps((hi - lo) * data.horizon)
         seconds += time.perf_counter() - t0
         x_hat[lo:hi] = est.x
         diverged[lo:hi] = est.diverged
@@ -96,6 +124,107 @@ def run_method(
         if on_chunk:
             on_chunk(hi - lo)
     return x_hat, nees_all, diverged, seconds
+
+
+def run_stepwise(estimator: Estimator, Y: np.ndarray, U: np.ndarray, on_step: Callable[[], None]) -> Estimates:
+    """``estimator.run(Y, U)`` as ``reset`` and a loop of ``step``, calling ``on_step()`` after each.
+
+    The estimator contract makes the two equal (tested for every method, and here for the
+    filters); the loop lets a long chunk report its progress every time step.
+    """
+    Y, U = estimator.check_sequences(Y, U)
+    B, T, _ = Y.shape
+    dx = estimator.scenario.dx
+    estimator.reset(B)
+    Uprev = previous_controls(U)
+    xs = np.empty((B, T, dx))
+    covs = np.empty((B, T, dx, dx)) if estimator.has_covariance else None
+    for k in range(T):
+        xs[:, k] = estimator.step(Y[:, k], Uprev[:, k])
+        if covs is not None:
+            covs[:, k] = estimator.covariance
+        on_step()
+    return Estimates(xs, covs, estimator.diverged.copy())
+
+
+# ---- the result cache --------------------------------------------------------------------------------
+
+
+def dataset_digest(data: Trajectories) -> str:
+    """BLAKE2b of a data set's arrays (x, y, u with their shapes): what a run was computed on."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in (data.x, data.y, data.u):
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        h.update(repr(a.shape).encode())
+        h.update(a.data)
+    return h.hexdigest()
+
+
+def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | None) -> str | None:
+    """BLAKE2b of a neural method's card and weights (the shipped model's when ``checkpoint`` is
+    None); None for classical filters. A missing file hashes as "missing" (loading will fail)."""
+    if method not in NEURAL_METHODS:
+        return None
+    from neural_estimator.models.checkpoint import CARD_FILE, WEIGHTS_FILE, default_checkpoint
+
+    path = Path(checkpoint) if checkpoint is not None else default_checkpoint(scenario.name, method)
+    directory = path.parent if path.suffix == ".json" else path
+    h = hashlib.blake2b(digest_size=16)
+    for name in (CARD_FILE, WEIGHTS_FILE):
+        f = directory / name
+        h.update(name.encode())
+        h.update(f.read_bytes() if f.is_file() else b"missing")
+    return h.hexdigest()
+
+
+def run_key(scenario: Scenario, method: str, options: Mapping[str, Any] | None, checkpoint_hash: str | None,
+            seed: int, device: str, data: Trajectories | str) -> str:
+    """Hex digest of everything that defines one run's result.
+
+    Keyed: :data:`RESULTS_REVISION`, the simulation revision, the package version, the scenario
+    with all its constants, the method, its options (those that only change the speed, like
+    ``threads``, left out), the checkpoint's content hash, the filters' seed, the device, and the
+    evaluation set's content (:func:`dataset_digest`, or a digest given as a string).
+    """
+    opts = {k: v for k, v in sorted((options or {}).items()) if k not in _SPEED_ONLY_OPTIONS}
+    key = json.dumps({
+        "rev": RESULTS_REVISION, "sim": SIMULATION_REVISION, "version": __version__,
+        "scenario": scenario.describe(), "method": method, "options": opts, "checkpoint": checkpoint_hash,
+        "seed": int(seed), "device": str(device), "data": data if isinstance(data, str) else dataset_digest(data),
+    }, sort_keys=True, default=str)
+    return hashlib.sha256(key.encode()).hexdigest()[:20]
+
+
+def result_path(cache_root: Path, scenario: Scenario, method: str, key: str) -> Path:
+    return Path(cache_root) / "results" / f"{scenario.name}-{method}-{key}.npz"
+
+
+_REPORT_ARRAYS = ("rmse_t", "spread", "outlier_idx", "diverged_idx")
+
+
+def save_run(path: Path, report: M.MetricReport, seconds: float, steps: int) -> Path:
+    """Write one run (its metrics, time and size) as .npz + JSON meta, atomically (no pickle)."""
+    arrays = {k: np.asarray(getattr(report, k)) for k in _REPORT_ARRAYS}
+    scalars = {f.name: getattr(report, f.name) for f in M.MetricReport.__dataclass_fields__.values()
+               if f.name not in _REPORT_ARRAYS}
+    meta = {"kind": "neural_estimator run result", "revision": RESULTS_REVISION, "report": scalars,
+            "seconds": float(seconds), "steps": int(steps)}
+    return save_npz(path, arrays, meta)  # JSON with allow_nan: inf and NaN survive
+
+
+def load_run(path: Path) -> tuple[M.MetricReport, float, int] | None:
+    """(report, seconds, steps) of a cached run, or None if the file is absent or unreadable (a
+    damaged cache entry is recomputed, never trusted)."""
+    if not Path(path).is_file():
+        return None
+    try:
+        arrays, meta = load_npz(path)
+        if meta.get("kind") != "neural_estimator run result" or meta.get("revision") != RESULTS_REVISION:
+            return None
+        report = M.MetricReport(**meta["report"], **{k: arrays[k] for k in _REPORT_ARRAYS})
+        return report, float(meta["seconds"]), int(meta["steps"])
+    except (DataError, KeyError, TypeError, ValueError):
+        return None
 
 
 def evaluate(
@@ -113,6 +242,8 @@ def evaluate(
     cache_dir: str | Path | None | bool = None,
     progress: bool = True,
     datasets: Sequence[Trajectories] | None = None,
+    recompute: bool = False,
+    on_result: Callable[[dict[str, MethodResult]], None] | None = None,
 ) -> dict[str, MethodResult]:
     """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
 
@@ -125,9 +256,13 @@ def evaluate(
         options: {method: {hyperparameter: value}} for classical filters.
         device: torch device for neural methods.
         memory_budget: bytes per chunk (see :func:`chunk_size`).
-        cache_dir: dataset cache (False: no cache).
-        progress: show a progress bar on stderr.
+        cache_dir: root of the dataset and result caches (None: :func:`default_cache_dir`;
+            False: no cache, nothing read or written, no resume).
+        progress: show a progress bar per run on stderr (trajectory-steps, with the run's ETA).
         datasets: use these instead of generating evaluation sets.
+        recompute: compute every run even if a cached result exists (and overwrite it).
+        on_result: called with the results so far after every run (the CLI writes partial
+            outputs with it).
 
     Returns:
         {method: MethodResult} in the order given.
@@ -136,36 +271,61 @@ def evaluate(
     T = scenario.horizon if horizon is None else int(horizon)
     data_sets = list(datasets) if datasets is not None else evaluation_sets(
         scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
-    plan = []  # (method, estimator factory)
-    for m in methods:
-        ckpts = list((checkpoints or {}).get(m) or [None])
-        for c in ckpts:
-            plan.append((m, c))
-    total = sum(d.n for d in data_sets) * len(plan)
-    bar = _progress(total, progress, f"{scenario.name}")
+    cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
+    digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
+    plan = [(m, c) for m in methods for c in list((checkpoints or {}).get(m) or [None])]
     results = {m: MethodResult(m) for m in methods}
-    try:
-        for m, ckpt in plan:
-            est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(m, {})))
-            for data in data_sets:
-                bar.set_postfix_str(m)
-                chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, (options or {}).get(m))
-                x_hat, nees_nt, diverged, secs = run_method(est, data, chunk, scenario.angle_states, bar.update)
-                report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt)
-                r = results[m]
-                r.reports.append(report)
-                r.seconds += secs
-                r.steps += data.n * data.horizon
-    finally:
-        bar.close()
+    n_runs = len(plan) * len(data_sets)
+    run_no = 0
+    for m, ckpt in plan:
+        opts = dict((options or {}).get(m, {}))
+        est = None  # built on the first run that is not cached (loading a model takes seconds)
+        ckpt_hash = checkpoint_digest(scenario, m, ckpt) if cache_root is not None else None
+        for j, data in enumerate(data_sets):
+            run_no += 1
+            r = results[m]
+            path = None
+            if cache_root is not None:
+                path = result_path(cache_root, scenario, m, run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j]))
+                hit = None if recompute else load_run(path)
+                if hit is not None:
+                    report, secs, steps = hit
+                    r.reports.append(report)
+                    r.seconds += secs
+                    r.steps += steps
+                    r.cached += 1
+                    _note(progress, f"{scenario.name} {m} set {j + 1}/{len(data_sets)}: cached result reused ({path.name})")
+                    if on_result:
+                        on_result(results)
+                    continue
+            if est is None:
+                est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts)
+            chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
+            bar = _progress(data.n * data.horizon, progress, f"{scenario.name} {m} set {j + 1}/{len(data_sets)} (run {run_no}/{n_runs})")
+            try:
+                x_hat, nees_nt, diverged, secs = run_method(est, data, chunk, scenario.angle_states, on_steps=bar.update)
+            finally:
+                bar.close()
+            report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt)
+            r.reports.append(report)
+            r.seconds += secs
+            r.steps += data.n * data.horizon
+            if path is not None:
+                save_run(path, report, secs, data.n * data.horizon)
+            if on_result:
+                on_result(results)
     return results
+
+
+def _note(enabled: bool, message: str) -> None:
+    if enabled:
+        import sys
+
+        print(message, file=sys.stderr)
 
 
 class _NoBar:
     def update(self, n=1):
-        pass
-
-    def set_postfix_str(self, s):
         pass
 
     def close(self):
@@ -173,11 +333,14 @@ class _NoBar:
 
 
 def _progress(total: int, enabled: bool, desc: str):
+    """A bar over one run's N T trajectory-steps; its ETA is the run's own (the rate of one method
+    on one set, smoothed over the last updates, not an average over methods of different speed)."""
     if not enabled:
         return _NoBar()
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit="traj", dynamic_ncols=True, leave=False)
+    return tqdm(total=total, desc=desc, unit="traj-step", unit_scale=True, dynamic_ncols=True, leave=False,
+                mininterval=0.5)
 
 
 def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown") -> str:
@@ -185,15 +348,25 @@ def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown") ->
     return M.format_table({m: r.summary for m, r in results.items()}, fmt=fmt)
 
 
+RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see README, "Metrics"
+
+
 def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info: Any) -> dict[str, Any]:
-    """Everything measured, JSON-ready: scenario, settings, per-run reports, summaries, speed."""
+    """Everything measured, strict-JSON-ready (schema :data:`RESULTS_SCHEMA`, README "Metrics").
+
+    Every method has the same keys: its ``summary`` has every metric of
+    :data:`~neural_estimator.metrics.SCALAR_METRICS` (``applies`` false and null numbers for the
+    covariance metrics of a method without covariance), each run in ``runs`` has every report key.
+    """
     return M.to_json({
+        "schema": RESULTS_SCHEMA,
         "scenario": scenario.describe(),
         **info,
         "methods": {
             m: {
                 "summary": r.summary,
                 "runs": r.reports,
+                "cached_runs": r.cached,
                 "seconds": r.seconds,
                 "trajectory_steps_per_second": r.throughput,
             }

@@ -98,3 +98,128 @@ def test_train_then_evaluate_neural_next_to_classical(tmp_path, capsys):
     assert main(["evaluate", "--scenario", "bearings", "--methods", "gru", "--checkpoint", f"gru={ckpt}",
                  "--trajectories", "5", "--sets", "1", "--quiet"]) == 2
     assert "oscillator" in capsys.readouterr().err
+
+
+# ---- long runs: per-step progress, cached runs, resume ------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["ekf", "ukf", "enkf", "pf"])
+def test_stepwise_run_equals_run_and_reports_every_step(oscillator, method):
+    from neural_estimator.evaluation import run_stepwise
+
+    data = simulate(oscillator, 7, 12, seed=2)
+    opts = {"n_particles": 64} if method == "pf" else {}
+    whole = make_estimator(method, oscillator, seed=3, **opts).run(data.y, data.u)
+    calls = []
+    stepped = run_stepwise(make_estimator(method, oscillator, seed=3, **opts), data.y, data.u, lambda: calls.append(1))
+    np.testing.assert_array_equal(stepped.x, whole.x)
+    np.testing.assert_array_equal(stepped.cov, whole.cov)
+    assert len(calls) == 12
+    # run_method reports B per time step for the filters: the calls add up to N T
+    counts = []
+    run_method(make_estimator(method, oscillator, seed=3, **opts), data, 3, (), on_steps=counts.append)
+    assert sum(counts) == 7 * 12 and len(counts) == 3 * 12 and max(counts) == 3
+
+
+def _count_builds(monkeypatch):
+    import neural_estimator.evaluation as ev
+
+    built = []
+    real = ev.make_estimator
+
+    def counting(method, *a, **k):
+        built.append(method)
+        return real(method, *a, **k)
+
+    monkeypatch.setattr(ev, "make_estimator", counting)
+    return built
+
+
+def test_cached_runs_are_reused_and_keyed(oscillator, tmp_path, monkeypatch):
+    built = _count_builds(monkeypatch)
+    kw = dict(trajectories=20, horizon=15, sets=2, cache_dir=tmp_path, progress=False)
+    first = evaluate(oscillator, ["ekf", "pf"], options={"pf": {"n_particles": 64}}, **kw)
+    assert built == ["ekf", "pf"] and first["pf"].cached == 0
+    assert len(list((tmp_path / "results").glob("oscillator-*.npz"))) == 4  # one file per (method, set)
+    built.clear()
+    # adding a method computes only that one; the others come from the cache, numbers identical
+    second = evaluate(oscillator, ["ekf", "pf", "ukf"], options={"pf": {"n_particles": 64}}, **kw)
+    assert built == ["ukf"] and second["ekf"].cached == 2 and second["pf"].cached == 2 and second["ukf"].cached == 0
+    for m in ("ekf", "pf"):
+        assert results_json(oscillator, {m: second[m]})["methods"][m]["runs"] == results_json(oscillator, {m: first[m]})["methods"][m]["runs"]
+        assert second[m].seconds == first[m].seconds  # the time of the run that made them
+    built.clear()
+    # what defines the result is in the key: other options, seed or sets recompute; threads do not
+    evaluate(oscillator, ["pf"], options={"pf": {"n_particles": 32}}, **kw)
+    evaluate(oscillator, ["pf"], options={"pf": {"n_particles": 64, "threads": 2}}, **kw)
+    assert built == ["pf"]
+    built.clear()
+    evaluate(oscillator, ["ekf"], **{**kw, "trajectories": 21})
+    evaluate(oscillator, ["ekf"], recompute=True, **kw)  # forced
+    assert built == ["ekf", "ekf"]
+    # a damaged cache entry is recomputed, not trusted
+    built.clear()
+    for f in (tmp_path / "results").glob("oscillator-ekf-*.npz"):
+        f.write_bytes(b"not a zip")
+    evaluate(oscillator, ["ekf"], **kw)
+    assert built == ["ekf"]
+    # no cache: nothing written
+    before = sorted((tmp_path / "results").iterdir())
+    evaluate(oscillator, ["ukf"], **{**kw, "cache_dir": False, "trajectories": 5})
+    assert sorted((tmp_path / "results").iterdir()) == before
+
+
+def test_interrupted_evaluate_resumes_from_finished_runs(tmp_path, capsys, monkeypatch):
+    import neural_estimator.evaluation as ev
+
+    out = tmp_path / "ev"
+    args = ["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,ukf", "--trajectories", "15",
+            "--horizon", "10", "--sets", "2", "--quiet", "--out", str(out)]
+    real, calls = ev.run_method, []
+
+    def interrupted(*a, **k):  # the third run is interrupted (Ctrl-C)
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(ev, "run_method", interrupted)
+    assert main(args) == 130
+    partial = json.loads((out / "results.json").read_text())
+    assert partial["complete"] is False and len(partial["methods"]["ekf"]["runs"]) == 2 and "ukf" not in partial["methods"]
+    capsys.readouterr()
+    calls.clear()
+    assert main(args) == 0  # resumes: only the two ukf runs are computed
+    assert len(calls) == 2
+    done = json.loads((out / "results.json").read_text())
+    assert done["complete"] is True and done["methods"]["ekf"]["cached_runs"] == 2 and done["methods"]["ukf"]["cached_runs"] == 0
+    assert done["methods"]["ekf"]["runs"] == partial["methods"]["ekf"]["runs"]
+
+
+# ---- one table and one JSON schema for every scenario and method ------------------------------------------
+
+
+def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
+    from neural_estimator.metrics import SCALAR_METRICS
+    from neural_estimator.scenarios import scenario_names
+
+    headers, report_keys, summary_keys = set(), set(), set()
+    for name in ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor"):
+        assert name in scenario_names()
+        sc = make_scenario(name)
+        res = evaluate(sc, ["ekf", "gru"], trajectories=3, horizon=8, sets=1, cache_dir=False, progress=False)
+        headers.add(results_table(res, fmt="markdown").splitlines()[0])
+        headers.add(results_table(res, fmt="csv").splitlines()[0])
+        payload = json.loads(json.dumps(results_json(sc, res, complete=True), allow_nan=False))  # strict JSON
+        assert payload["schema"] == "neural_estimator.results/2"
+        for m, entry in payload["methods"].items():
+            summary_keys.add(tuple(entry["summary"]))
+            report_keys.add(tuple(entry["runs"][0]))
+            assert set(entry) == {"summary", "runs", "cached_runs", "seconds", "trajectory_steps_per_second"}
+            assert all(set(stat) == {"median", "iqr", "n", "max", "applies"} for stat in entry["summary"].values())
+        assert payload["methods"]["ekf"]["summary"]["nees_median"]["applies"] is True
+        gru = payload["methods"]["gru"]
+        assert gru["summary"]["nees"]["applies"] is False and gru["runs"][0]["nees"] is None
+        assert gru["runs"][0]["has_covariance"] is False
+    assert len(headers) == 2  # one markdown header and one csv header, the same for all five
+    assert summary_keys == {tuple(SCALAR_METRICS)} and len(report_keys) == 1
