@@ -839,8 +839,14 @@ def _cell(st: Stat, decimals: int, show_iqr: bool, nees: bool = False) -> str:
         if nees:
             return DEGENERATE
         return "inf" if st.median > 0 else "-inf"
-    med = f"{st.median:.{decimals}f}"
+    med = _number(st.median, decimals)
     if not show_iqr or math.isnan(st.iqr):
         return med
-    iqr = "inf" if math.isinf(st.iqr) else f"{st.iqr:.{decimals}f}"
+    iqr = "inf" if math.isinf(st.iqr) else _number(st.iqr, decimals)
     return f"{med}±{iqr}"
+
+
+def _number(x: float, decimals: int) -> str:
+    """Fixed decimals, or 3 significant digits from 1e6 up (an overconfident filter's NEES of
+    7e10 reads better than 71662836828.73)."""
+    return f"{x:.3g}" if abs(x) >= 1e6 else f"{x:.{decimals}f}"
