@@ -223,3 +223,24 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
         assert gru["runs"][0]["has_covariance"] is False
     assert len(headers) == 2  # one markdown header and one csv header, the same for all five
     assert summary_keys == {tuple(SCALAR_METRICS)} and len(report_keys) == 1
+
+
+def test_metrics_verb_json_is_strict_with_every_key(tmp_path, capsys, oscillator):
+    """metrics --json: one schema for a method with covariances and one without, nulls not strings."""
+    from neural_estimator.data import save_estimates
+    from neural_estimator.metrics import SCALAR_METRICS
+
+    data = simulate(oscillator, 6, 12, seed=4)
+    est = make_estimator("ukf", oscillator).run(data.y, data.u)
+    with_p = save_estimates(tmp_path / "ukf.npz", data, est.x, "ukf", P_hat=est.cov)
+    x_bad = est.x.copy()
+    x_bad[0, 3] = np.nan  # one diverged trajectory: Full RMSE and NRMSE are infinite
+    without_p = save_estimates(tmp_path / "net.npz", data, x_bad, "net")
+    assert main(["metrics", *PLUGIN, str(with_p), str(without_p), "--json"]) == 0
+    raw = capsys.readouterr().out
+    assert "Infinity" not in raw and "NaN" not in raw and '"inf"' not in raw
+    methods = json.loads(raw)["methods"]
+    assert set(methods["ukf"]) == set(methods["net"]) and set(SCALAR_METRICS) <= set(methods["net"])
+    assert methods["net"]["full_rmse"] is None and methods["net"]["nrmse"] is None and methods["net"]["n_diverged"] == 1
+    assert methods["net"]["nees_median"] is None and methods["net"]["has_covariance"] is False
+    assert methods["ukf"]["nees_median"] > 0 and methods["ukf"]["cov_degenerate"] == 0.0
