@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -319,8 +320,6 @@ def evaluate(
 
 def _note(enabled: bool, message: str) -> None:
     if enabled:
-        import sys
-
         print(message, file=sys.stderr)
 
 
