@@ -688,3 +688,89 @@ def test_registry_builds_every_filter():
         f = make_estimator(method, s, seed=1)
         assert type(f) is cls and f.method == method
         assert importlib.import_module("neural_estimator.filters").__dict__[cls.__name__] is cls
+
+
+# ---- the PF's compiled kernels (filters/compiled.py) against the numpy reference path ---------------
+def test_compiled_normals_are_standard_normal():
+    """The keyed ziggurat generator: moments, a KS test, the tail beyond the ziggurat's base strip
+    (drawn by a separate branch) at its Gaussian rate, and distinct keys give distinct streams."""
+    from scipy import stats
+
+    from neural_estimator.filters import compiled as ck
+
+    z = ck.stream_normals(7, 3, 1, 11, 400_000)
+    se = 1 / np.sqrt(z.size)
+    assert abs(z.mean()) < 4 * se and abs(z.var() - 1) < 4 * np.sqrt(2) * se
+    assert stats.kstest(z, "norm").pvalue > 1e-3
+    tail = (np.abs(z) > ck._ZIG_R).mean()
+    expect = 2 * stats.norm.sf(ck._ZIG_R)
+    assert abs(tail - expect) < 4 * np.sqrt(expect / z.size), (tail, expect)
+    np.testing.assert_array_equal(z[:100], ck.stream_normals(7, 3, 1, 11, 100))
+    for key in [(8, 3, 1, 11), (7, 4, 1, 11), (7, 3, 2, 11), (7, 3, 1, 12)]:
+        other = ck.stream_normals(*key, 100)
+        assert abs(np.corrcoef(z[:100], other)[0, 1]) < 0.4 and not np.array_equal(z[:100], other)
+
+
+@pytest.mark.parametrize("substeps", [1, 3])
+def test_compiled_lorenz96_transition_is_bit_equal(substeps):
+    from neural_estimator.filters import compiled as ck
+
+    s = make_scenario("lorenz96", substeps=substeps)
+    X = np.random.default_rng(0).normal(2.3, 3.6, (2, 64, 40))
+    Y = X.copy()
+    cfg = s.config
+    ck.lorenz96_transition(Y, cfg.forcing, cfg.dt / cfg.substeps, cfg.substeps)
+    np.testing.assert_array_equal(Y, s.f(X, None))
+
+
+@pytest.mark.parametrize("name", ["lorenz96", "nlink", "bearings", "test_filters_pendulum"])
+def test_compiled_pf_predict_equals_numpy_given_the_same_draws(name):
+    """One compiled predict step == the scenario's numpy f plus the stream's keyed draws times sqrt(Q)
+    (Lorenz 96: the fused kernel; the others: numpy f + the compiled noise; angles normalised)."""
+    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.base import PHASE_PREDICT
+
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 5, 3, seed=2)
+    pf = ParticleFilter(s, seed=9, n_particles=16, threads=2)
+    pf.block_elements = 2 * pf._stream_elements()  # blocks of 2 streams: keys must follow the stream
+    pf.reset(5)
+    pf._k = 4
+    X0 = pf._X.copy()
+    pf._predict(np.ascontiguousarray(u[:, 0]))
+    fx = s.f(X0, np.broadcast_to(u[:, 0][:, None, :], (5, 16, s.du)))
+    L = pf._sqrt_Q if pf._sd_Q is None else np.diag(pf._sd_Q)
+    for b in range(5):
+        z = ck.stream_normals(9, 4, PHASE_PREDICT, b, 16 * s.dx).reshape(16, s.dx)
+        expect = s.normalize_state(fx[b] + z @ L.T)
+        np.testing.assert_allclose(s.state_residual(pf._X[b], expect), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["lorenz96", "quadrotor"])
+def test_compiled_linear_likelihood_equals_numpy(name):
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 3, 2, seed=2)
+    pf = ParticleFilter(s, seed=9, n_particles=32)
+    assert pf._ck_H is not None
+    pf.reset(3)
+    logw = np.random.default_rng(1).normal(-np.log(32), 0.1, (3, 32))
+    got, want = pf._update_block_compiled(pf._X, logw, y[:, 0]), pf._update_block(pf._X, logw, y[:, 0])
+    for g, w in zip(got[:2], want[:2]):  # log-weights and weights (the third is the ok flag, None)
+        np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["test_filters_linear", "test_filters_pendulum", "bearings", "quadrotor"])
+def test_compiled_pf_equals_numpy_pf_in_distribution(name):
+    """Same algorithm, different random numbers: per-trajectory RMSE equal (paired test)."""
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 40, 15, seed=8)
+    fast = ParticleFilter(s, seed=2, n_particles=256).run(y, u).x
+    ref = ParticleFilter(s, seed=3, n_particles=256, compiled=False).run(y, u).x
+    paired_rmse_check(s, fast, ref, x, f"{name} compiled PF vs numpy PF")
+
+
+def test_compiled_option_is_checked():
+    s = scenario_or_skip("test_filters_linear")
+    assert ParticleFilter(s, compiled="false")._compiled is False
+    with pytest.raises(EstimatorError, match="compiled must be true or false"):
+        ParticleFilter(s, compiled=1)
