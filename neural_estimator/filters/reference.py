@@ -143,7 +143,10 @@ def dapper_filter(s: Scenario, x: np.ndarray, y: np.ndarray, method: str, seed: 
     Timing. DAPPER observes from its step 1 on; ours updates the prior with y_0. So DAPPER's step 1
     is an identity "transition" (its process noise, Q, is still added once: a 1e-5 relative change
     of P0 here), and its observation ko is our y_ko: the returned row k is the analysis after y_k,
-    as ours. DAPPER's noise is per unit time (it adds dt C), so C = Q / dt.
+    as ours. DAPPER's noise is per unit time (it adds dt C), so C = Q / dt. DAPPER 1.7's ExtKF
+    evaluates ``Dyn.linear`` at the forecast mean f(m) (after the step); ``linear`` here returns
+    df/dx at m, the state the step started from, so its ExtKF is the textbook EKF (with F at f(m)
+    it tracked Lorenz 96 at 0.066 RMSE where the textbook EKF has 0.047, same data).
     """
     import dapper.da_methods as da
     import dapper.mods as modelling
@@ -157,11 +160,16 @@ def dapper_filter(s: Scenario, x: np.ndarray, y: np.ndarray, method: str, seed: 
     m0, P0 = s.prior()
     u0 = np.zeros((0,))
 
+    last_input: list[np.ndarray] = []
+
     def step(E: np.ndarray, t: float, dt_: float) -> np.ndarray:
+        last_input[:] = [np.array(E)]
         return E if t < 0.5 * dt else s.f(E, u0)
 
     def linear(xk: np.ndarray, t: float, dt_: float) -> np.ndarray:
-        return np.eye(n) if t < 0.5 * dt else s.jac_f(xk, u0)
+        # DAPPER's ExtKF asks for F after stepping the mean, with the forecast: the Jacobian is
+        # taken at the state the step started from (the textbook EKF, filterpy's, ours).
+        return np.eye(n) if t < 0.5 * dt else s.jac_f(last_input[0], u0)
 
     tseq = modelling.Chronology(dt, dko=1, K=T, BurnIn=0)
     Dyn = {"M": n, "model": step, "linear": linear, "noise": modelling.GaussRV(C=s.process_cov() / dt, M=n)}
