@@ -143,6 +143,8 @@ def throughput(method: str, s: Scenario, Y: np.ndarray, U: np.ndarray, chunk: in
     """(trajectory-steps per second, diverged count) of ``run`` over Y in chunks, on ``threads`` threads."""
     B, T, _ = Y.shape
     diverged = 0
+    # warm-up: loads (or on a first run compiles) the PF's numba kernels, outside the timing
+    make_estimator(method, s, threads=threads).run(Y[:2, :2], U[:2, :2])
     t0 = time.perf_counter()
     for i in range(0, B, chunk):
         est = make_estimator(method, s, threads=threads).run(Y[i : i + chunk], U[i : i + chunk])

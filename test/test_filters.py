@@ -688,3 +688,184 @@ def test_registry_builds_every_filter():
         f = make_estimator(method, s, seed=1)
         assert type(f) is cls and f.method == method
         assert importlib.import_module("neural_estimator.filters").__dict__[cls.__name__] is cls
+
+
+# ---- the PF's compiled kernels (filters/compiled.py) against the numpy reference path ---------------
+def test_compiled_normals_are_standard_normal():
+    """The keyed ziggurat generator: moments, a KS test, the tail beyond the ziggurat's base strip
+    (drawn by a separate branch) at its Gaussian rate, and distinct keys give distinct streams."""
+    from scipy import stats
+
+    from neural_estimator.filters import compiled as ck
+
+    z = ck.stream_normals(7, 3, 1, 11, 400_000)
+    se = 1 / np.sqrt(z.size)
+    assert abs(z.mean()) < 4 * se and abs(z.var() - 1) < 4 * np.sqrt(2) * se
+    assert stats.kstest(z, "norm").pvalue > 1e-3
+    tail = (np.abs(z) > ck._ZIG_R).mean()
+    expect = 2 * stats.norm.sf(ck._ZIG_R)
+    assert abs(tail - expect) < 4 * np.sqrt(expect / z.size), (tail, expect)
+    np.testing.assert_array_equal(z[:100], ck.stream_normals(7, 3, 1, 11, 100))
+    for key in [(8, 3, 1, 11), (7, 4, 1, 11), (7, 3, 2, 11), (7, 3, 1, 12)]:
+        other = ck.stream_normals(*key, 100)
+        assert abs(np.corrcoef(z[:100], other)[0, 1]) < 0.4 and not np.array_equal(z[:100], other)
+
+
+@pytest.mark.parametrize("substeps", [1, 3])
+def test_compiled_lorenz96_transition_is_bit_equal(substeps):
+    from neural_estimator.filters import compiled as ck
+
+    s = make_scenario("lorenz96", substeps=substeps)
+    X = np.random.default_rng(0).normal(2.3, 3.6, (2, 64, 40))
+    Y = X.copy()
+    cfg = s.config
+    ck.lorenz96_transition(Y, cfg.forcing, cfg.dt / cfg.substeps, cfg.substeps)
+    np.testing.assert_array_equal(Y, s.f(X, None))
+
+
+@pytest.mark.parametrize("name", ["lorenz96", "nlink", "bearings", "test_filters_pendulum"])
+def test_compiled_pf_predict_equals_numpy_given_the_same_draws(name):
+    """One compiled predict step == the scenario's numpy f plus the stream's keyed draws times sqrt(Q)
+    (Lorenz 96: the fused kernel; the others: numpy f + the compiled noise; angles normalised)."""
+    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.base import PHASE_PREDICT
+
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 5, 3, seed=2)
+    pf = ParticleFilter(s, seed=9, n_particles=16, threads=2)
+    pf.block_elements = 2 * pf._stream_elements()  # blocks of 2 streams: keys must follow the stream
+    pf.reset(5)
+    pf._k = 4
+    X0 = pf._X.copy()
+    pf._predict(np.ascontiguousarray(u[:, 0]))
+    fx = s.f(X0, np.broadcast_to(u[:, 0][:, None, :], (5, 16, s.du)))
+    L = pf._sqrt_Q if pf._sd_Q is None else np.diag(pf._sd_Q)
+    for b in range(5):
+        z = ck.stream_normals(9, 4, PHASE_PREDICT, b, 16 * s.dx).reshape(16, s.dx)
+        expect = s.normalize_state(fx[b] + z @ L.T)
+        np.testing.assert_allclose(s.state_residual(pf._X[b], expect), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["lorenz96", "quadrotor"])
+def test_compiled_linear_likelihood_equals_numpy(name):
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 3, 2, seed=2)
+    pf = ParticleFilter(s, seed=9, n_particles=32)
+    assert pf._ck_H is not None
+    pf.reset(3)
+    logw = np.random.default_rng(1).normal(-np.log(32), 0.1, (3, 32))
+    got, want = pf._update_block_compiled(pf._X, logw, y[:, 0]), pf._update_block(pf._X, logw, y[:, 0])
+    for g, w in zip(got[:2], want[:2]):  # log-weights and weights (the third is the ok flag, None)
+        np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["test_filters_linear", "test_filters_pendulum", "bearings", "quadrotor"])
+def test_compiled_pf_equals_numpy_pf_in_distribution(name):
+    """Same algorithm, different random numbers: per-trajectory RMSE equal (paired test)."""
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 40, 15, seed=8)
+    fast = ParticleFilter(s, seed=2, n_particles=256).run(y, u).x
+    ref = ParticleFilter(s, seed=3, n_particles=256, compiled=False).run(y, u).x
+    paired_rmse_check(s, fast, ref, x, f"{name} compiled PF vs numpy PF")
+
+
+def test_compiled_option_is_checked():
+    s = scenario_or_skip("test_filters_linear")
+    assert ParticleFilter(s, compiled="false")._compiled is False
+    with pytest.raises(EstimatorError, match="compiled must be true or false"):
+        ParticleFilter(s, compiled=1)
+
+
+# ---- data-assimilation options: inflation, localisation, regularisation ------------------------------
+def test_inflation_options_off_by_default_and_validated():
+    s = make_scenario("test_filters_linear")
+    x, y, u = data(s, 3, 8, seed=2)
+    for method in ("ekf", "ukf", "enkf"):
+        default = FILTERS[method](s, seed=4).run(y, u)
+        off = FILTERS[method](s, seed=4, inflation=1.0, q_inflation=1.0).run(y, u)
+        np.testing.assert_array_equal(default.x, off.x)
+        np.testing.assert_array_equal(default.cov, off.cov)
+        for bad in (0, -1.0, float("inf"), True, "\"x\""):
+            with pytest.raises(EstimatorError, match="inflation must be a finite number > 0"):
+                FILTERS[method](s, inflation=bad)
+        assert np.allclose(FILTERS[method](s, q_inflation=4.0).Q, 4.0 * s.process_cov())
+    enkf = EnsembleKalmanFilter(s, seed=4, localization_radius=None).run(y, u)
+    np.testing.assert_array_equal(enkf.x, EnsembleKalmanFilter(s, seed=4).run(y, u).x)
+    pf = ParticleFilter(s, seed=4, regularization=0.0).run(y, u)
+    np.testing.assert_array_equal(pf.x, ParticleFilter(s, seed=4).run(y, u).x)
+
+
+@pytest.mark.parametrize("method", ["ekf", "ukf"])
+def test_multiplicative_inflation_scales_the_predicted_spread(method):
+    """P^- = inflation^2 (propagated covariance) + Q: with Q removed, the ratio is inflation^2."""
+    s = make_scenario("test_filters_pendulum")
+    x, y, u = data(s, 4, 2, seed=3)
+    preds = []
+    for lam in (1.0, 1.3):
+        f = FILTERS[method](s, inflation=lam)
+        f.reset(4)
+        f.step(y[:, 0])
+        f._predict(np.ascontiguousarray(u[:, 0]))
+        preds.append(f._P - f.Q)
+    np.testing.assert_allclose(preds[1], 1.3**2 * preds[0], rtol=1e-9, atol=1e-14)
+
+
+def test_gaspari_cohn_taper():
+    from neural_estimator.filters.localization import gaspari_cohn
+
+    z = np.array([0.0, 1.0 - 1e-12, 1.0 + 1e-12, 2.0, 2.5])
+    rho = gaspari_cohn(z)
+    assert rho[0] == 1.0 and rho[3] == 0.0 and rho[4] == 0.0
+    np.testing.assert_allclose(rho[1:3], 5.0 / 24.0, atol=1e-9)  # continuous at z = 1
+    fine = gaspari_cohn(np.linspace(0, 2, 2001))
+    assert np.all(np.diff(fine) <= 1e-15)  # decreasing
+    # a correlation function: the taper matrix of points on a line is positive semi-definite
+    pts = np.linspace(0, 10, 60)
+    assert np.linalg.eigvalsh(gaspari_cohn(np.abs(pts[:, None] - pts[None, :]) / 1.5)).min() > -1e-10
+
+
+def test_localization_cuts_far_observations_on_lorenz96():
+    """With radius c, the cross-covariance between a variable and an observation farther than 2c
+    (ring distance) is zeroed, so that observation moves the variable only through the (global)
+    solve with S: orders of magnitude less than without localisation, where sample correlations
+    of 40 members carry it. A huge radius is no localisation (to the taper's 1 - O(1/c^2))."""
+    s = make_scenario("lorenz96")
+    x, y, u = data(s, 2, 2, seed=1)
+    y2 = y.copy()
+    y2[:, 0, 20] += 3.0  # variable 20 is ring distance >= 8 from variables 0..12
+    far = {}
+    for radius in (4.0, None):
+        outs = [EnsembleKalmanFilter(s, seed=2, localization_radius=radius).run(yy[:, :1], u[:, :1]).x[:, 0] for yy in (y, y2)]
+        d = np.abs(outs[0] - outs[1])
+        far[radius] = d[:, :13].max()
+        assert d[:, 20].min() > 0.1  # the observed variable itself moves
+    assert far[4.0] < 1e-3 * far[None], far
+    wide = EnsembleKalmanFilter(s, seed=2, localization_radius=1e7).run(y, u).x
+    plain = EnsembleKalmanFilter(s, seed=2).run(y, u).x
+    np.testing.assert_allclose(wide, plain, atol=1e-6)
+
+
+def test_localization_needs_declared_distances():
+    s = make_scenario("test_filters_linear")
+    with pytest.raises(EstimatorError, match="localization needs distances"):
+        EnsembleKalmanFilter(s, localization_radius=2.0)
+    with pytest.raises(EstimatorError, match="localization_radius must be a finite number > 0"):
+        EnsembleKalmanFilter(make_scenario("lorenz96"), localization_radius=0)
+
+
+def test_regularization_jitters_resampled_particles_by_the_spread():
+    """After resampling, duplicates become distinct, with a spread ~ c h_opt times the ensemble's."""
+    s = make_scenario("test_filters_linear")
+    x, y, u = data(s, 4, 3, seed=5)
+    for reg in (0.0, 1.0):
+        pf = ParticleFilter(s, seed=1, n_particles=512, ess_fraction=1.0, regularization=reg)  # always resample
+        pf.reset(4)
+        pf.step(y[:, 0])
+        distinct = np.mean([np.unique(pf._X[b], axis=0).shape[0] for b in range(4)])
+        if reg == 0.0:
+            assert distinct < 0.8 * 512
+        else:
+            assert distinct == 512
+    assert pf.bandwidth == pytest.approx((4 / (512 * (4 + 2))) ** (1 / 8))
+    with pytest.raises(EstimatorError, match="regularization must be a finite number >= 0"):
+        ParticleFilter(s, regularization=-1)

@@ -42,7 +42,7 @@ from neural_estimator.scenarios import Scenario
 THREADS_ENV = "NEURAL_ESTIMATOR_THREADS"
 
 # Random draws, keyed by (seed, step, phase, block): see ClassicalFilter.block_rng.
-PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, PHASE_RESAMPLE, PHASE_REJUVENATE = range(5)
+PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, PHASE_RESAMPLE, PHASE_REJUVENATE, PHASE_REGULARIZE = range(6)
 
 
 def default_threads() -> int:
@@ -181,6 +181,9 @@ class ClassicalFilter(Estimator):
         self.R = check_covariance(
             "observation noise covariance R", self.method, scenario.obs_cov(), m, definite=self.require_definite_R
         )
+        q_inflation = getattr(self.hp, "q_inflation", 1.0)
+        if q_inflation != 1.0:  # additive inflation: the filter assumes a larger process noise
+            self.Q = self.Q * float(q_inflation)
         self._sqrt_Q, self._sd_Q = sqrt_factor(self.Q)
         self._k = 0
 
@@ -399,6 +402,14 @@ def _check_threads(where: str, threads: int | str) -> int:
     if n < 1 or isinstance(threads, (bool, float)):
         raise EstimatorError(f"{where}: threads must be an integer >= 1, got {threads!r}")
     return n
+
+
+def check_inflation(inflation: float, q_inflation: float) -> None:
+    """Multiplicative (``inflation``) and additive (``q_inflation``) covariance inflation factors:
+    finite numbers > 0 (1 = none; < 1 deflates, allowed for experiments); else ValueError."""
+    for name, value in (("inflation", inflation), ("q_inflation", q_inflation)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value < float("inf"):
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
 
 
 def _and(ok: np.ndarray | None, new: np.ndarray | None) -> np.ndarray | None:

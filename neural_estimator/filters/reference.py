@@ -130,3 +130,58 @@ def reference_pf(s: Scenario, y: np.ndarray, u: np.ndarray, N: int = 1024, init_
             X = X[fp_systematic_resample(w)]
             logw = np.full(N, -np.log(N))
     return np.array(xs)
+
+
+# ---- DAPPER (https://github.com/nansencenter/DAPPER), the data-assimilation reference ---------------
+def dapper_filter(s: Scenario, x: np.ndarray, y: np.ndarray, method: str, seed: int, **settings) -> np.ndarray:
+    """Analysis means (T, dx) of one DAPPER filter on one trajectory of ``s`` (no controls, h = H x).
+
+    ``method``: ``"ExtKF"`` (settings: ``infl``), ``"EnKF"`` (``upd_a``, ``N``, ``infl``) or
+    ``"PartFilt"`` (``N``, ``NER``, ``reg``, ``qroot``). DAPPER is given the scenario's own f, H, Q,
+    R and prior, so the two implementations see the same model and data.
+
+    Timing. DAPPER observes from its step 1 on; ours updates the prior with y_0. So DAPPER's step 1
+    is an identity "transition" (its process noise, Q, is still added once: a 1e-5 relative change
+    of P0 here), and its observation ko is our y_ko: the returned row k is the analysis after y_k,
+    as ours. DAPPER's noise is per unit time (it adds dt C), so C = Q / dt. DAPPER 1.7's ExtKF
+    evaluates ``Dyn.linear`` at the forecast mean f(m) (after the step); ``linear`` here returns
+    df/dx at m, the state the step started from, so its ExtKF is the textbook EKF (with F at f(m)
+    it tracked Lorenz 96 at 0.066 RMSE where the textbook EKF has 0.047, same data).
+    """
+    import dapper.da_methods as da
+    import dapper.mods as modelling
+    from dapper.tools.seeding import set_seed
+
+    H = s.obs_matrix()
+    if H is None or s.du:
+        raise ValueError(f"dapper_filter: {s.name} needs a linear observation and no controls")
+    T, n = x.shape
+    dt = s.dt
+    m0, P0 = s.prior()
+    u0 = np.zeros((0,))
+
+    last_input: list[np.ndarray] = []
+
+    def step(E: np.ndarray, t: float, dt_: float) -> np.ndarray:
+        last_input[:] = [np.array(E)]
+        return E if t < 0.5 * dt else s.f(E, u0)
+
+    def linear(xk: np.ndarray, t: float, dt_: float) -> np.ndarray:
+        # DAPPER's ExtKF asks for F after stepping the mean, with the forecast: the Jacobian is
+        # taken at the state the step started from (the textbook EKF, filterpy's, ours).
+        return np.eye(n) if t < 0.5 * dt else s.jac_f(last_input[0], u0)
+
+    tseq = modelling.Chronology(dt, dko=1, K=T, BurnIn=0)
+    Dyn = {"M": n, "model": step, "linear": linear, "noise": modelling.GaussRV(C=s.process_cov() / dt, M=n)}
+    Obs = {
+        "M": H.shape[0],
+        "model": lambda E: E @ H.T,
+        "linear": lambda xk: H,
+        "noise": modelling.GaussRV(C=s.obs_cov(), M=H.shape[0]),
+    }
+    HMM = modelling.HiddenMarkovModel(Dyn, Obs, tseq, modelling.GaussRV(mu=m0, C=P0))
+    xp = getattr(da, method)(**settings)
+    set_seed(int(seed) + 1)  # DAPPER refuses seed 0
+    xx = np.concatenate([x[:1], x], axis=0)
+    xp.assimilate(HMM, xx, y, liveplots=False)
+    return np.asarray(xp.stats.mu.a)

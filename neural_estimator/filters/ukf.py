@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from neural_estimator.estimators import EstimatorError
-from neural_estimator.filters.base import ClassicalFilter
+from neural_estimator.filters.base import ClassicalFilter, check_inflation
 from neural_estimator.filters.numerics import JitterPolicy, cholesky, psd_solve, symmetrize
 
 
@@ -28,8 +28,11 @@ class UKFHyperParams:
     jitter: float = 1e-9  # not in the paper: first Cholesky jitter on P, relative to its mean diagonal
     jitter_tries: int = 6  # not in the paper: retries, each jitter 10x the previous
     linear_update: bool = True  # not in the paper: closed-form update where h(x) = H x (same result)
+    inflation: float = 1.0  # not in the paper (1 = none): P^- = inflation^2 sum_i Wc_i d_i d_i^T + q_inflation Q
+    q_inflation: float = 1.0  # not in the paper (1 = none): multiplies the process noise covariance Q
 
     def validate(self) -> None:
+        check_inflation(self.inflation, self.q_inflation)
         if not self.alpha > 0:
             raise ValueError(f"alpha must be > 0, got {self.alpha}")
         if not self.jitter > 0 or self.jitter_tries < 0:
@@ -90,6 +93,14 @@ class UnscentedKalmanFilter(ClassicalFilter):
     S is solved, not Cholesky-factored: with alpha = 1e-3 the weight Wc_0 is about -1e6, and a
     strongly curved h (bearings at short range) can make S indefinite; filterpy then carries on
     with it (P grows), and so does this filter.
+
+    Covariance inflation (not in the paper; both off by default, the paper's filters):
+
+        P^- = inflation^2 sum_i Wc_i d_i d_i^T + q_inflation Q
+
+    ``inflation`` multiplies the spread of the unscented prediction (multiplicative inflation, as
+    the EnKF's ``inflation`` multiplies its anomalies); ``q_inflation`` multiplies the process noise
+    the filter assumes (additive inflation). Both compensate for model error and sampling error.
     """
 
     method = "ukf"
@@ -203,7 +214,10 @@ class UnscentedKalmanFilter(ClassicalFilter):
         Xf = self.scenario.f(X, self._broadcast_u(u, X.shape[1]))  # (b, 2n+1, n)
         m_pred = self.ops.state_mean(Xf, self.Wm)
         D = self.ops.state_residual(Xf, m_pred[:, None, :])
-        P_pred = self._ut_covariance(D) + self.Q  # symmetric: a symmetrised sum + Q
+        P_ut = self._ut_covariance(D)
+        if self.hp.inflation != 1.0:
+            P_ut *= self.hp.inflation**2
+        P_pred = P_ut + self.Q  # symmetric: a symmetrised sum + Q
         return m_pred, P_pred
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> np.ndarray | None:
