@@ -67,7 +67,15 @@ def init_ray(address: str | None, num_cpus: int | None):
 
 def run_jobs(jobs: Sequence[Job], cache_dir: str | Path, *, address: str | None = None, num_cpus: int | None = None,
              progress: bool = True, shutdown: bool = True) -> Outcome:
-    """Run every job on Ray; returns their results and failures (never raises for a failed job)."""
+    """Run every job on Ray; returns their results and failures (never raises for a failed job).
+
+    Joins the Ray instance already initialised in this process if there is one (and leaves it
+    running); otherwise starts one (or joins ``address``) and shuts it down at the end when
+    ``shutdown``.
+    """
+    import ray as _ray
+
+    owned = not _ray.is_initialized()
     ray = init_ray(address, num_cpus)
     total_cpus = int(ray.cluster_resources().get("CPU", 1))
     local_cpus = (num_cpus or default_num_cpus()) if not address else 1
@@ -95,7 +103,7 @@ def run_jobs(jobs: Sequence[Job], cache_dir: str | Path, *, address: str | None 
                 bar.set_postfix(failed=len(outcome.failed), cached=outcome.cached, refresh=False)
     finally:
         bar.close()
-        if shutdown:
+        if shutdown and owned:
             ray.shutdown()
     return outcome
 

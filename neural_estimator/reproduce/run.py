@@ -63,7 +63,7 @@ def check_out_dir(out: Path, settings: Settings, resume: bool) -> None:
         before = json.loads(state.read_text()).get("settings")
     except ValueError:
         raise ReproduceError(f"{state} is damaged; remove it or choose another --out") from None
-    if before != settings.to_json():
+    if before != json.loads(json.dumps(settings.to_json())):  # compared as stored (tuples read back as lists)
         raise ReproduceError(f"--resume: {out} holds a run with other settings (scale, scenarios or methods); choose another --out")
 
 
