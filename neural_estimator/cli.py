@@ -405,7 +405,6 @@ def _cmd_replay(args) -> int:
 # ---- reproduce ----------------------------------------------------------------------------------
 def _add_reproduce(sub) -> None:
     p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
-    p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
     p.add_argument("--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (README, 'Reproduce')")
     p.add_argument("--scenarios", help="comma-separated (default: the paper's five)")
     p.add_argument("--methods", help="comma-separated (default: all ten)")

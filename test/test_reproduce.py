@@ -158,6 +158,9 @@ def test_scales_and_bad_arguments(tmp_path, capsys):
     assert "nope" in capsys.readouterr().err
     assert main(["reproduce", "--scale", "smoke", "--scenarios", "mars", "--out", str(tmp_path / "o")]) == 2
     assert "mars" in capsys.readouterr().err
+    assert main(["reproduce", "--scale", "smoke", "--methods", "", "--out", str(tmp_path / "o")]) == 2
+    assert "--methods is empty" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # nothing ran
 
 
 def test_relative_score_and_cells():
