@@ -1,8 +1,8 @@
 """``neural-estimator reproduce``: smoke scale end to end on a local Ray, resume, failures, runtime path.
 
-The end-to-end run uses a subset (2 scenarios x 4 methods: two filters, two neural models, one
-with a covariance) so the suite stays fast; the full smoke scale (5 x 10) is the same code with
-more jobs (README, "Reproduce").
+The end-to-end run uses a subset (2 scenarios x 4 methods: two filters, two neural models; 16 tiny
+trainings for the data-efficiency table) so the suite stays fast; the full smoke scale (5 x 10)
+is the same code with more jobs (README, "Reproduce").
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ METHODS = "ekf,pf,gru,mamba2"
 SECTIONS = ("## Settings", "## Main accuracy", "## Relative score", "## Extended metrics", "### ballistic", "### nlink",
             "## Cross-scenario NRMSE", "## Stability", "## Beyond the paper: covariance", "## RMSE over time",
             "## Robustness to observation noise", "## Runtime", "### CPU", "## Data efficiency")
-FIGURES = ("rmse_over_time_ballistic.png", "rmse_over_time_nlink.png", "noise_ballistic.png", "noise_nlink.png")
+FIGURES = ("rmse_over_time_ballistic.png", "rmse_over_time_nlink.png", "noise_ballistic.png", "noise_nlink.png",
+           "data_ratio_ballistic.png", "data_ratio_nlink.png")
 
 
 def _args(out: Path, cache: Path, *extra: str) -> list[str]:
@@ -70,8 +71,9 @@ def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
     assert " · 5.289±0.004 |" in text  # extended, with the paper's IQR
     assert " · 71.143 |" in text  # stability: nlink PF drift
     assert " · 1,029.4 |" in text  # runtime_full_app: ballistic EKF on CPU
-    assert " · 0.339 |" not in text.split("## Data efficiency")[0]  # the data-ratio table is only the paper's, flagged
-    assert "Not run by this revision" in text
+    ratio_section = text.split("## Data efficiency")[1]
+    assert "| GRU | " in ratio_section and " · 0.224 |" in ratio_section and " · 0.292 |" in ratio_section
+    assert "| Mamba-2 | " in ratio_section and "![data efficiency, nlink]" in ratio_section
     for name in FIGURES:
         data = (out / "figures" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
@@ -142,7 +144,12 @@ def test_runtime_is_timed_through_the_real_step_path(tmp_path, monkeypatch):
 def test_plan_has_one_job_per_method_set_noise_level_and_runtime():
     sc = get_scale("smoke")
     jobs = plan_jobs(sc, ["ballistic"], ["ekf", "gru"], gpu=True)
-    kinds = [(j.experiment, j.device) for j in jobs]
+    kinds = [(j.experiment, j.device) for j in jobs if j.kind != "train"]
+    trains = [j for j in jobs if j.kind == "train"]
+    assert sorted(j.data_ratio for j in trains) == sorted(sc.data_ratios) and {j.method for j in trains} == {"gru"}
+    assert dict([j.train for j in trains if j.data_ratio == 1.0][0])["window"] == 10
+    assert dict(trains[0].train)["trajectories"] == sc.train_trajectories(trains[0].data_ratio)
+    assert kinds.count(("data_ratio", "cpu")) == len(sc.data_ratios) * sc.sets  # each trained model on every set
     assert kinds.count(("accuracy", "cpu")) == 2 * sc.sets
     assert kinds.count(("noise", "cpu")) == 2 * (len(sc.noise_scales) - 1) * sc.noise_sets  # nominal reused
     assert kinds.count(("runtime", "cpu")) == 2 and kinds.count(("runtime", "cuda")) == 1  # filters: CPU only

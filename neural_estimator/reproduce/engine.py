@@ -81,9 +81,14 @@ def run_jobs(jobs: Sequence[Job], cache_dir: str | Path, *, address: str | None 
     local_cpus = (num_cpus or default_num_cpus()) if not address else 1
     task = ray.remote(max_retries=0)(run_job)
     refs = {}
+    train_refs = {}  # train job -> its ref: an evaluation of the trained model waits for it
     for i, job in enumerate(jobs):
         cpus = min(local_cpus, total_cpus) if job.kind == "runtime" else 1
-        refs[task.options(num_cpus=cpus).remote(job, str(cache_dir), 1)] = i
+        after = [train_refs[job.train_job]] if job.train_job is not None and job.train_job in train_refs else []
+        ref = task.options(num_cpus=cpus).remote(job, str(cache_dir), 1, *after)
+        refs[ref] = i
+        if job.kind == "train":
+            train_refs[job] = ref
     outcome = Outcome()
     bar = _bar(len(refs), progress)
     pending = list(refs)

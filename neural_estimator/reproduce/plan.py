@@ -15,7 +15,8 @@ def noise_reuses_accuracy(scale: Scale) -> bool:
 
 def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool = False) -> list[Job]:
     """Accuracy (every method on every evaluation set), the noise sweep (same, per noise scale;
-    models trained at the nominal noise), runtime (batch-1 step throughput on CPU, and on GPU for
+    models trained at the nominal noise), data efficiency (train every neural architecture at every
+    ratio, then evaluate each trained instance on every set), runtime (batch-1 step throughput on CPU, and on GPU for
     the neural methods when ``gpu``)."""
     from neural_estimator.estimators import NEURAL_METHODS
 
@@ -33,6 +34,22 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
                 for j in range(scale.noise_sets):
                     jobs.append(Job("evaluate", s, m, seed=scale.seed, noise_scale=float(ns), set_index=j,
                                     trajectories=scale.noise_trajectories, horizon=scale.horizon, experiment="noise"))
+    neural = [m for m in methods if m in NEURAL_METHODS]
+    for s in scenarios:
+        for m in neural:
+            for ratio in scale.data_ratios:
+                for i in range(scale.train_instances):
+                    overrides = dict(scale.train_overrides)
+                    n = scale.train_trajectories(ratio)
+                    if n is not None:
+                        overrides["trajectories"] = n
+                    tj = Job("train", s, m, seed=scale.seed, data_ratio=float(ratio), instance=i,
+                             train=tuple(sorted(overrides.items())), experiment="data_ratio")
+                    jobs.append(tj)
+                    for j in range(scale.sets):
+                        jobs.append(Job("evaluate", s, m, seed=scale.seed, set_index=j,
+                                        trajectories=scale.ratio_trajectories or scale.trajectories, horizon=scale.horizon,
+                                        experiment="data_ratio", data_ratio=float(ratio), instance=i, train_job=tj))
     devices = ["cpu"] + (["cuda"] if gpu else [])
     for device in devices:
         for s in scenarios:

@@ -184,6 +184,55 @@ def runtime_table(rt: Mapping[str, Mapping[str, Mapping[str, float]]], scenarios
     return lines
 
 
+def data_ratio_table(nrmse: Mapping[str, Mapping[str, Mapping[float, list[float]]]], scenarios, methods,
+                     ratios: Sequence[float]) -> list[str]:
+    """Median across scenarios of each scenario's median NRMSE (over sets x instances), per ratio,
+    beside tab:data_ratio_main: ``nrmse[scenario][method][ratio] = [NRMSE of each run]``."""
+    lines = _header(["Method"] + [f"{r:g}:1" for r in ratios])
+    for m in methods:
+        cells = [PAPER_NAMES.get(m, m)]
+        for r in ratios:
+            per_s = [M.median_iqr(nrmse[s][m][r])[0] for s in scenarios if nrmse.get(s, {}).get(m, {}).get(r)]
+            ours = M.median_iqr(per_s)[0] if per_s else math.nan
+            paper = paper_value("data_ratio_main", f"{r:g}", m)
+            cells.append(side(num(ours), paper, 3, paper is not None))
+        lines.append(_row(cells))
+    return lines
+
+
+def plot_data_ratio(by_method: Mapping[str, Mapping[float, list[float]]], path: Path, title: str) -> Path:
+    """Grouped bars: median NRMSE per architecture at each data-to-parameter ratio (IQR as error bars)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = [m for m, v in by_method.items() if v]
+    ratios = sorted({r for m in methods for r in by_method[m]}, reverse=True)
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    width = 0.8 / max(1, len(ratios))
+    for k, r in enumerate(ratios):
+        med, lo, hi = [], [], []
+        for m in methods:
+            v = np.asarray(by_method[m].get(r, []), float)
+            v = v[np.isfinite(v)]
+            q = np.percentile(v, [25, 50, 75]) if v.size else [np.nan] * 3
+            med.append(q[1]), lo.append(q[1] - q[0]), hi.append(q[2] - q[1])
+        x = np.arange(len(methods)) + (k - (len(ratios) - 1) / 2) * width
+        ax.bar(x, med, width, yerr=[lo, hi], capsize=2, label=f"{r:g}:1")
+    ax.set_xticks(np.arange(len(methods)), [PAPER_NAMES.get(m, m) for m in methods])
+    ax.set_ylabel("NRMSE (median over sets x instances)")
+    ax.set_title(title)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(title="data : parameters", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def data_ratio_paper_table() -> list[str]:
     lines = _header(["Method", "20:1", "10:1", "5:1", "1:1"])
     for m in ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"):

@@ -136,6 +136,7 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
     acc: dict[str, dict[str, list]] = {s: {m: [] for m in meth} for s in scen}
     noise: dict[str, dict[str, dict[float, list]]] = {s: {m: {} for m in meth} for s in scen}
     rt: dict[str, dict[str, dict[str, float]]] = {}
+    ratio: dict[str, dict[str, dict[float, list[float]]]] = {s: {m: {} for m in meth} for s in scen}
     for i, r in outcome.results.items():
         job, res = jobs[i], r["result"]
         if job.experiment == "accuracy":
@@ -144,6 +145,8 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
                 noise[job.scenario][job.method].setdefault(1.0, []).append(_floats([res["rmse"]])[0])
         elif job.experiment == "noise":
             noise[job.scenario][job.method].setdefault(job.noise_scale, []).append(_floats([res["rmse"]])[0])
+        elif job.experiment == "data_ratio" and job.kind == "evaluate":
+            ratio[job.scenario][job.method].setdefault(job.data_ratio, []).append(_floats([res["nrmse"]])[0])
         elif job.experiment == "runtime":
             rt.setdefault(job.device, {}).setdefault(job.scenario, {})[job.method] = res["it_per_s"]
     summ = R.summaries(acc)
@@ -196,9 +199,25 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
           "Our hardware is not the paper's: compare orderings, not values.", ""]
     for device in rt:
         L += [f"### {device.upper()}", ""] + R.runtime_table(rt, scen, meth, device) + [""]
-    L += ["## Data efficiency (paper: Table data_ratio_main, figures data_ratio_*)", "",
-          "**Not run by this revision of `reproduce`** (it needs training jobs: 20:1, 10:1, 5:1 and 1:1 per architecture). "
-          "The paper's values, for reference:", ""] + R.data_ratio_paper_table() + [""]
+    from neural_estimator.estimators import NEURAL_METHODS
+
+    neural = [m for m in meth if m in NEURAL_METHODS]
+    L += ["## Data efficiency (paper: Table data_ratio_main, figures data_ratio_*)", ""]
+    if neural:
+        n_train = sum(1 for j in jobs if j.kind == "train")
+        L += [f"Median NRMSE across scenarios of each scenario's median over sets × instances; {n_train} models trained "
+              f"({sc.train_instances} instance(s) per scenario, architecture and ratio; recipe: the paper's"
+              + (f" with {dict(sc.train_overrides)}" if sc.train_overrides else "")
+              + (f", {sc.train_trajectories_at_20} training trajectories at 20:1 scaled by the ratio" if sc.train_trajectories_at_20 else "")
+              + ")" + ("" if len(scen) == 5 else f"; only {len(scen)} of the paper's 5 scenarios run") + ".", ""]
+        L += R.data_ratio_table(ratio, scen, neural, sc.data_ratios) + [""]
+        for s in scen:
+            by_m = {m: ratio[s][m] for m in neural if ratio[s][m]}
+            if by_m:
+                p = R.plot_data_ratio(by_m, figs / f"data_ratio_{s}.png", title=s)
+                L += [f"![data efficiency, {s}](figures/{p.name})", ""]
+    else:
+        L += ["No neural method was run: no data-efficiency experiment. The paper's values:", ""] + R.data_ratio_paper_table() + [""]
     path = out / "report.md"
     path.write_text("\n".join(L))
     return path
