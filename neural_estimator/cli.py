@@ -8,6 +8,7 @@ Verbs (``neural-estimator VERB --help`` for each):
     live       a live ROS 2 run (simulator, estimators, evaluator) ending with the table and an MCAP bag
     replay     run an MCAP bag's observations through estimators offline
     scenarios  list the registered scenarios and their constants
+    reproduce  the paper's experiments on Ray, with a report beside the paper's numbers
 
 Every command accepts ``--plugin FILE`` (repeatable) to import a Python file that registers user
 scenarios. Errors in the input print one line naming the problem and exit with status 2.
@@ -401,8 +402,30 @@ def _cmd_replay(args) -> int:
     return 0
 
 
+# ---- reproduce ----------------------------------------------------------------------------------
+def _add_reproduce(sub) -> None:
+    p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
+    p.add_argument("--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (README, 'Reproduce')")
+    p.add_argument("--scenarios", help="comma-separated (default: the paper's five)")
+    p.add_argument("--methods", help="comma-separated (default: all ten)")
+    p.add_argument("--out", default="reproduce-out", help="directory of report.md, figures/, reproduce.json")
+    p.add_argument("--address", help="Ray cluster to join (default: a local Ray instance)")
+    p.add_argument("--num-cpus", type=int, help="CPUs of the local Ray instance (default: usable cores, at most 4)")
+    p.add_argument("--cache-dir", help="job result cache (default: $NEURAL_ESTIMATOR_CACHE or ~/.cache/neural_estimator; "
+                                        "on a cluster, a path every node sees)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out (finished jobs are read back)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_reproduce)
+
+
+def _cmd_reproduce(args) -> int:
+    from neural_estimator.reproduce.cli import run_from_args
+
+    return run_from_args(args, CliError)
+
+
 # Verbs are added to this list as their modules land; each is (adder).
-_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_replay, _add_live, _add_scenarios]
+_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_replay, _add_live, _add_scenarios, _add_reproduce]
 
 
 def build_parser(verb: str | None = None) -> argparse.ArgumentParser:

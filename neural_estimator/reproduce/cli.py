@@ -1,0 +1,51 @@
+"""The ``reproduce`` verb's arguments -> :func:`neural_estimator.reproduce.run.reproduce`."""
+
+from __future__ import annotations
+
+from neural_estimator.data.protocol import default_cache_dir
+from neural_estimator.reproduce.run import ReproduceError, Settings, reproduce
+from neural_estimator.reproduce.scales import get_scale
+from neural_estimator.paper.transcribe import SCENARIOS as PAPER_SCENARIOS
+
+
+def _names(text: str | None, default, check, flag: str) -> list[str]:
+    names = [n.strip().lower() for n in (text.split(",") if text is not None else default) if n.strip()]
+    if not names:
+        raise ReproduceError(f"{flag} is empty")
+    return [check(n) for n in dict.fromkeys(names)]
+
+
+def run_from_args(args, usage_error: type[Exception]) -> int:
+    from neural_estimator.estimators import METHODS, check_method
+
+    try:
+        if args.num_cpus is not None and args.num_cpus < 1:
+            raise ReproduceError(f"--num-cpus must be >= 1, got {args.num_cpus}")
+        settings = Settings(
+            scale=get_scale(args.scale),
+            scenarios=_names(args.scenarios, PAPER_SCENARIOS, _builtin_scenario, "--scenarios"),
+            methods=_names(args.methods, METHODS, check_method, "--methods"),
+            gpu=_cuda(), cache_dir=str(args.cache_dir or default_cache_dir()), address=args.address,
+            num_cpus=args.num_cpus)
+        summary = reproduce(settings, args.out, resume=args.resume, progress=not args.quiet)
+    except ReproduceError as exc:
+        raise usage_error(str(exc)) from None
+    print(f"{summary['jobs']} jobs: {summary['computed']} computed, {summary['cached']} cached, {summary['failed']} failed "
+          f"in {summary['wall_s']:.1f} s; wrote {summary['report']}")
+    return 1 if summary["failed"] else 0
+
+
+def _cuda() -> bool:
+    import torch
+
+    return bool(torch.cuda.is_available())
+
+
+def _builtin_scenario(name: str) -> str:
+    """Only built-in scenarios: Ray workers do not load ``--plugin`` files (yet)."""
+    from neural_estimator.scenarios import BUILTIN_SCENARIOS, scenario_class
+
+    scenario_class(name)  # an unknown name: the registry's error, listing the valid ones
+    if name not in BUILTIN_SCENARIOS:
+        raise ReproduceError(f"scenario {name!r} is a plugin's: reproduce runs the built-in scenarios only (its Ray workers do not load plugins)")
+    return name

@@ -1,0 +1,209 @@
+"""One job of ``reproduce``: what it is, its cache key, and the code a Ray task runs for it.
+
+Three kinds:
+
+* ``evaluate``: one method on one evaluation set of one scenario (at one observation-noise scale);
+  its result is the run's :class:`~neural_estimator.metrics.MetricReport`, stored by
+  :mod:`neural_estimator.evaluation`'s result cache (the same cache ``neural-estimator evaluate``
+  uses, so either command reuses the other's runs);
+* ``runtime``: batch-1 iterations per second of one method on one scenario through its real
+  per-step path (``reset(1)`` then ``step`` once per observation, as the ROS 2 estimator node
+  does), timed after a few untimed warm-up steps; stored as JSON under ``runtime/``;
+* ``train``: one instance of one architecture on one scenario at one data-to-parameter ratio
+  (:func:`neural_estimator.models.training.train`), written under ``models/`` in a directory
+  named by the recipe's hash; an ``evaluate`` job with ``train_job`` set evaluates that model.
+
+Jobs are plain data (they travel to Ray workers); :func:`run_job` has no Ray in it, so it is tested
+and usable without a cluster.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+JOB_KINDS = ("evaluate", "runtime", "train")
+RUNTIME_REVISION = 1  # part of runtime keys: bump when the timing procedure changes
+DONE_FILE = "reproduce-done.json"  # written in a train job's directory once its training finished
+
+
+@dataclass(frozen=True)
+class Job:
+    kind: str
+    scenario: str
+    method: str
+    seed: int = 0
+    noise_scale: float = 1.0
+    set_index: int = 0  # evaluate: which evaluation set
+    trajectories: int = 0  # evaluate: per set
+    horizon: int | None = None  # evaluate: steps (None: the scenario's)
+    steps: int = 0  # runtime: timed steps
+    warmup: int = 0  # runtime: untimed steps first
+    device: str = "cpu"
+    experiment: str = "accuracy"  # accuracy | noise | runtime | data_ratio: which part of the report it feeds
+    data_ratio: float = 0.0  # train: the data-to-parameter ratio
+    instance: int = 0  # train: the instance (its init_seed)
+    train: tuple[tuple[str, Any], ...] = ()  # train: TrainConfig fields changed from the paper's recipe
+    train_job: "Job | None" = None  # evaluate: evaluate the model this train job writes (None: the shipped one)
+
+    @property
+    def label(self) -> str:
+        extra = f" noise x{self.noise_scale:g}" if self.noise_scale != 1.0 else ""
+        what = {"evaluate": f"set {self.set_index}", "runtime": f"{self.device} batch 1",
+                "train": f"ratio {self.data_ratio:g}:1 instance {self.instance}"}[self.kind]
+        if self.train_job is not None:
+            what += f" (model of ratio {self.train_job.data_ratio:g}:1 instance {self.train_job.instance})"
+        return f"{self.kind} {self.scenario} {self.method}{extra} {what}"
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def make_job_scenario(job: Job):
+    from neural_estimator.scenarios import make_scenario
+
+    return make_scenario(job.scenario, noise_scale=job.noise_scale) if job.noise_scale != 1.0 else make_scenario(job.scenario)
+
+
+def job_data(job: Job, cache_dir: Path):
+    """The job's evaluation set (simulated once, then read from the dataset cache)."""
+    from neural_estimator.data.protocol import dataset
+
+    return dataset(make_job_scenario(job), "eval", job.set_index, job.trajectories, job.horizon, job.seed, cache_dir)
+
+
+def train_config(job: Job, cache_dir: Path, **runtime: Any):
+    """The job's recipe; ``runtime``: how to run it (resume, keep_resume), not part of the result."""
+    from neural_estimator.models.training import TrainConfig
+
+    return TrainConfig(data_ratio=job.data_ratio, init_seed=job.instance, data_seed=job.seed, device=job.device,
+                       cache_dir=str(cache_dir), **dict(job.train), **runtime)
+
+
+def train_dir(cache_dir: Path, job: Job) -> Path:
+    """Where a train job's checkpoint lives: keyed by the recipe, the scenario, the architecture, the version."""
+    from neural_estimator import __version__
+
+    scenario = make_job_scenario(job)
+    key = json.dumps({"version": __version__, "scenario": scenario.describe(), "arch": job.method,
+                      "recipe": train_config(job, cache_dir).recipe()}, sort_keys=True, default=str)
+    digest = hashlib.sha256(key.encode()).hexdigest()[:20]
+    return Path(cache_dir) / "models" / f"{job.scenario}-{job.method}-r{job.data_ratio:g}-i{job.instance}-{digest}"
+
+
+def runtime_key(job: Job) -> str:
+    """Everything that defines a timing: the job, the code's version and the machine that ran it."""
+    from neural_estimator import __version__
+    from neural_estimator.evaluation import checkpoint_digest
+
+    scenario = make_job_scenario(job)
+    key = json.dumps({"rev": RUNTIME_REVISION, "version": __version__, "job": job.to_json(),
+                      "scenario": scenario.describe(), "checkpoint": checkpoint_digest(scenario, job.method, None),
+                      "machine": [platform.node(), platform.machine(), os.cpu_count()]}, sort_keys=True, default=str)
+    return hashlib.sha256(key.encode()).hexdigest()[:20]
+
+
+def runtime_path(cache_dir: Path, job: Job) -> Path:
+    return Path(cache_dir) / "runtime" / f"{job.scenario}-{job.method}-{job.device}-{runtime_key(job)}.json"
+
+
+def run_job(job: Job, cache_dir: str | Path, threads: int = 1, *after: Any) -> dict[str, Any]:
+    """Do one job (or read its cached result). Returns ``{"job", "cached", "seconds", "result"}``:
+    for ``evaluate`` the result is the run's report as JSON (:func:`neural_estimator.metrics.to_json`),
+    for ``runtime`` ``{"it_per_s", "steps", "seconds"}``.
+
+    ``threads`` bounds the job's own threads (classical filters' pool, torch) so that parallel jobs
+    do not oversubscribe the cores they were given. ``after``: results of the jobs this one waits
+    for (Ray passes them once they are done: an evaluation waits for its model's training).
+    """
+    if job.kind not in JOB_KINDS:
+        raise ValueError(f"unknown job kind {job.kind!r}; expected one of {JOB_KINDS}")
+    import torch
+
+    torch.set_num_threads(max(1, int(threads)))
+    cache_dir = Path(cache_dir)
+    t0 = time.perf_counter()
+    if job.kind == "evaluate":
+        result, cached = _evaluate(job, cache_dir, threads)
+    elif job.kind == "train":
+        result, cached = _train(job, cache_dir)
+    else:
+        result, cached = _runtime(job, cache_dir, threads)
+    return {"job": job.to_json(), "cached": cached, "seconds": time.perf_counter() - t0, "result": result}
+
+
+def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
+    from neural_estimator import metrics as M
+    from neural_estimator.estimators import CLASSICAL_METHODS
+    from neural_estimator.evaluation import evaluate
+
+    scenario = make_job_scenario(job)
+    data = job_data(job, cache_dir)
+    options = {job.method: {"threads": threads}} if job.method in CLASSICAL_METHODS else None
+    checkpoints = None
+    if job.train_job is not None:
+        ckpt = train_dir(cache_dir, job.train_job)
+        if not (ckpt / DONE_FILE).is_file():
+            raise RuntimeError(f"{ckpt}: the model of {job.train_job.label} is not trained")
+        checkpoints = {job.method: [str(ckpt)]}
+    res = evaluate(scenario, [job.method], seed=job.seed, datasets=[data], options=options, device=job.device,
+                   cache_dir=cache_dir, progress=False, checkpoints=checkpoints)[job.method]
+    return M.to_json(res.reports[0]), res.cached == 1
+
+
+def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
+    from neural_estimator.estimators import CLASSICAL_METHODS, make_estimator, previous_controls
+
+    path = runtime_path(cache_dir, job)
+    if path.is_file():
+        try:
+            return json.loads(path.read_text()), True
+        except (OSError, ValueError):
+            pass  # a damaged entry is measured again
+    scenario = make_job_scenario(job)
+    from neural_estimator.data.protocol import dataset
+
+    data = dataset(scenario, "eval", 0, 1, job.warmup + job.steps, job.seed, cache_dir)
+    opts = {"threads": threads} if job.method in CLASSICAL_METHODS else {}
+    est = make_estimator(job.method, scenario, device=job.device, seed=job.seed, **opts)
+    Uprev = previous_controls(data.u)
+    est.reset(1)
+    for k in range(job.warmup):
+        est.step(data.y[:, k], Uprev[:, k])
+    t0 = time.perf_counter()
+    for k in range(job.warmup, job.warmup + job.steps):
+        est.step(data.y[:, k], Uprev[:, k])
+    seconds = time.perf_counter() - t0
+    result = {"it_per_s": job.steps / seconds if seconds > 0 else float("inf"), "steps": job.steps,
+              "seconds": seconds, "threads": threads}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result))
+    tmp.replace(path)
+    return result, False
+
+
+def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:
+    from neural_estimator.models.training import train
+
+    out = train_dir(cache_dir, job)
+    done = out / DONE_FILE
+    if done.is_file():
+        try:
+            return json.loads(done.read_text()), True
+        except (OSError, ValueError):
+            pass
+    t0 = time.perf_counter()
+    cfg = train_config(job, cache_dir, resume=True, keep_resume=False)  # an interrupted training continues
+    train(make_job_scenario(job), job.method, out, cfg, progress=False)
+    result = {"checkpoint": str(out), "seconds": time.perf_counter() - t0}
+    tmp = done.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result))
+    tmp.replace(done)
+    return result, False

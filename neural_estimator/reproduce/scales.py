@@ -1,0 +1,74 @@
+"""The sizes of each scale of ``neural-estimator reproduce``.
+
+``paper`` is the paper's protocol ("Evaluation Protocol": three independent evaluation sets of
+8,000 trajectories at the scenario's horizon; batch-1 throughput). ``small`` fits one 2-core
+machine with the shipped models (one instance each) and reduced sets. ``smoke`` runs every
+experiment on tiny sizes, for the test suite: its numbers say the pipeline works, nothing about
+the methods.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+
+class ScaleError(ValueError):
+    """An unknown scale name."""
+
+
+@dataclass(frozen=True)
+class Scale:
+    name: str
+    trajectories: int  # per evaluation set
+    sets: int  # independent evaluation sets (paper: 3)
+    horizon: int | None  # steps per trajectory; None: the scenario's (paper: 500, quadrotor 200)
+    noise_scales: tuple[float, ...]  # observation-noise multipliers of the robustness sweep (1.0 = nominal)
+    noise_trajectories: int  # per set in the noise sweep
+    noise_sets: int
+    runtime_steps: int  # timed batch-1 steps per method and scenario
+    runtime_warmup: int  # untimed steps first (allocations, lazy initialisation)
+    data_ratios: tuple[float, ...] = (20.0, 10.0, 5.0, 1.0)  # data efficiency: data-to-parameter ratios trained
+    train_instances: int = 1  # trained instances per (scenario, architecture, ratio) (paper: 15)
+    train_trajectories_at_20: int | None = None  # training trajectories at 20:1, scaled by ratio; None: the paper's (4,000)
+    train_overrides: tuple[tuple[str, Any], ...] = ()  # TrainConfig fields changed from the paper's recipe
+    ratio_trajectories: int = 0  # per evaluation set of the trained models (0: as the accuracy experiment)
+    seed: int = 0  # of the evaluation sets' streams and the filters' draws
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    def settings(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def train_trajectories(self, ratio: float) -> int | None:
+        """Training trajectories at ``ratio`` (None: the paper's, from the ratio)."""
+        if self.train_trajectories_at_20 is None:
+            return None
+        return max(1, round(self.train_trajectories_at_20 * ratio / 20.0))
+
+
+SCALES: dict[str, Scale] = {
+    "smoke": Scale("smoke", trajectories=4, sets=2, horizon=20, noise_scales=(0.5, 1.0, 2.0), noise_trajectories=4,
+                   noise_sets=2, runtime_steps=20, runtime_warmup=3, train_trajectories_at_20=8,
+                   train_overrides=(("val_trajectories", 4), ("train_length", 20), ("window", 10), ("warmup", 2),
+                                    ("windows_per_epoch", 8), ("batch_size", 8), ("epochs", 1), ("patience", 1),
+                                    ("val_batch_size", 4)),
+                   notes=("tiny sizes: checks that every experiment runs, not what the methods achieve",
+                          "data efficiency: one epoch of 8 windows per model")),
+    "small": Scale("small", trajectories=200, sets=3, horizon=None, noise_scales=(0.5, 1.0, 2.0, 4.0),
+                   noise_trajectories=100, noise_sets=3, runtime_steps=500, runtime_warmup=20,
+                   train_overrides=(("epochs", 20), ("windows_per_epoch", 2000), ("val_trajectories", 500)),
+                   ratio_trajectories=100,
+                   notes=("shipped models, one instance per architecture", "reduced evaluation sets",
+                          "data efficiency: the shipped models' budget (20 epochs of 2,000 windows), one instance")),
+    "paper": Scale("paper", trajectories=8000, sets=3, horizon=None, noise_scales=(0.5, 1.0, 2.0, 4.0, 8.0),
+                   noise_trajectories=8000, noise_sets=3, runtime_steps=2000, runtime_warmup=50, train_instances=15,
+                   notes=("the paper's evaluation sizes; its noise levels are not published: ours are 0.5x to 8x",
+                          "accuracy, noise and runtime use the shipped models; data efficiency trains 15 instances "
+                          "per (scenario, architecture, ratio) with the paper's recipe")),
+}
+
+
+def get_scale(name: str) -> Scale:
+    if name not in SCALES:
+        raise ScaleError(f"unknown scale {name!r}; choose one of: {', '.join(SCALES)}")
+    return SCALES[name]

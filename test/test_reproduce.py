@@ -1,0 +1,184 @@
+"""``neural-estimator reproduce``: smoke scale end to end on a local Ray, resume, failures, runtime path.
+
+The end-to-end run uses a subset (2 scenarios x 4 methods: two filters, two neural models; 16 tiny
+trainings for the data-efficiency table) so the suite stays fast; the full smoke scale (5 x 10)
+is the same code with more jobs (README, "Reproduce").
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("ray")
+
+from neural_estimator.cli import main
+from neural_estimator.reproduce import report as R
+from neural_estimator.reproduce.jobs import Job, run_job
+from neural_estimator.reproduce.plan import plan_jobs
+from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
+
+SCENARIOS = "ballistic,nlink"
+METHODS = "ekf,pf,gru,mamba2"
+SECTIONS = ("## Settings", "## Main accuracy", "## Relative score", "## Extended metrics", "### ballistic", "### nlink",
+            "## Cross-scenario NRMSE", "## Stability", "## Beyond the paper: covariance", "## RMSE over time",
+            "## Robustness to observation noise", "## Runtime", "### CPU", "## Data efficiency")
+FIGURES = ("rmse_over_time_ballistic.png", "rmse_over_time_nlink.png", "noise_ballistic.png", "noise_nlink.png",
+           "data_ratio_ballistic.png", "data_ratio_nlink.png")
+
+
+def _args(out: Path, cache: Path, *extra: str) -> list[str]:
+    return ["reproduce", "--scale", "smoke", "--scenarios", SCENARIOS, "--methods", METHODS, "--out", str(out),
+            "--cache-dir", str(cache), "--num-cpus", "2", "--quiet", *extra]
+
+
+def _statuses(out: Path) -> list[tuple[str, str]]:
+    state = json.loads((out / "reproduce.json").read_text())
+    return [(json.dumps(r["job"], sort_keys=True), r["status"]) for r in state["jobs"]]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray():
+    """One local Ray instance for the module (starting one costs ~10-20 s on the loaded machine);
+    ``reproduce`` joins an instance already running in its process and leaves it running."""
+    from neural_estimator.reproduce.engine import init_ray
+
+    ray = init_ray(None, 2)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("reproduce")
+    out, cache = root / "out", root / "cache"
+    t0 = time.time()
+    rc = main(_args(out, cache))
+    return out, cache, rc, time.time() - t0
+
+
+def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
+    out, _, rc, seconds = smoke_run
+    assert rc == 0
+    text = (out / "report.md").read_text()
+    for heading in SECTIONS:
+        assert heading in text, heading
+    # the paper's value after ours, in the main, extended, stability and runtime tables
+    assert "| EKF | " in text and " · 5.289 |" in text  # accuracy_main, ballistic EKF RMSE
+    assert " · 5.289±0.004 |" in text  # extended, with the paper's IQR
+    assert " · 71.143 |" in text  # stability: nlink PF drift
+    assert " · 1,029.4 |" in text  # runtime_full_app: ballistic EKF on CPU
+    ratio_section = text.split("## Data efficiency")[1]
+    assert "| GRU | " in ratio_section and " · 0.224 |" in ratio_section and " · 0.292 |" in ratio_section
+    assert "| Mamba-2 | " in ratio_section and "![data efficiency, nlink]" in ratio_section
+    for name in FIGURES:
+        data = (out / "figures" / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
+    statuses = [s for _, s in _statuses(out)]
+    assert statuses and set(statuses) == {"computed"}
+    assert len(statuses) == len(plan_jobs(get_scale("smoke"), SCENARIOS.split(","), METHODS.split(",")))
+    assert seconds < 180, f"the smoke subset took {seconds:.0f} s"
+
+
+def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
+    out, cache, _, _ = smoke_run
+    assert main(_args(out, cache)) == 2  # an --out holding a run needs --resume
+    assert "--resume" in capsys.readouterr().err
+    # "interrupt": lose two evaluation results and one timing, as if their jobs never finished
+    lost = sorted((cache / "results").glob("nlink-gru-*.npz"))[:2] + sorted((cache / "runtime").glob("ballistic-ekf-*.json"))
+    assert len(lost) == 3
+    for f in lost:
+        f.unlink()
+    before = dict(_statuses(out))
+    assert main(_args(out, cache, "--resume")) == 0
+    after = dict(_statuses(out))
+    assert after.keys() == before.keys()
+    redone = [json.loads(k) for k, s in after.items() if s == "computed"]
+    assert sorted((j["kind"], j["scenario"], j["method"]) for j in redone) == [
+        ("evaluate", "nlink", "gru"), ("evaluate", "nlink", "gru"), ("runtime", "ballistic", "ekf")]
+    assert sum(s == "cached" for s in after.values()) == len(after) - 3
+    for f in lost:
+        assert f.is_file()
+
+
+def test_a_failed_job_is_reported_and_the_others_go_on(tmp_path):
+    from neural_estimator.reproduce.engine import run_jobs
+
+    jobs = [Job("evaluate", "ballistic", "no-such-method", trajectories=2, horizon=5),
+            Job("evaluate", "ballistic", "ekf", trajectories=2, horizon=5)]
+    outcome = run_jobs(jobs, tmp_path, num_cpus=2, progress=False)
+    assert list(outcome.failed) == [0] and "no-such-method" in outcome.failed[0]
+    assert list(outcome.results) == [1] and outcome.results[1]["result"]["rmse"] > 0
+
+
+def test_runtime_is_timed_through_the_real_step_path(tmp_path, monkeypatch):
+    import neural_estimator.estimators as E
+
+    real = E.make_estimator
+    calls = {"reset": [], "step": 0}
+
+    def counting(*a, **k):
+        est = real(*a, **k)
+        step, reset = est.step, est.reset
+
+        def slow_step(y, u_prev=None):
+            calls["step"] += 1
+            time.sleep(0.002)  # the timing must see the step's cost
+            return step(y, u_prev)
+
+        est.step = slow_step
+        est.reset = lambda b=1: (calls["reset"].append(b), reset(b))[1]
+        return est
+
+    monkeypatch.setattr(E, "make_estimator", counting)
+    r = run_job(Job("runtime", "ballistic", "ekf", steps=10, warmup=2), tmp_path)
+    assert calls == {"reset": [1], "step": 12} and not r["cached"]
+    assert r["result"]["it_per_s"] < 500  # 10 steps of >= 2 ms
+    again = run_job(Job("runtime", "ballistic", "ekf", steps=10, warmup=2), tmp_path)
+    assert again["cached"] and again["result"] == r["result"] and calls["step"] == 12
+
+
+def test_plan_has_one_job_per_method_set_noise_level_and_runtime():
+    sc = get_scale("smoke")
+    jobs = plan_jobs(sc, ["ballistic"], ["ekf", "gru"], gpu=True)
+    kinds = [(j.experiment, j.device) for j in jobs if j.kind != "train"]
+    trains = [j for j in jobs if j.kind == "train"]
+    assert sorted(j.data_ratio for j in trains) == sorted(sc.data_ratios) and {j.method for j in trains} == {"gru"}
+    assert dict([j.train for j in trains if j.data_ratio == 1.0][0])["window"] == 10
+    assert dict(trains[0].train)["trajectories"] == sc.train_trajectories(trains[0].data_ratio)
+    assert kinds.count(("data_ratio", "cpu")) == len(sc.data_ratios) * sc.sets  # each trained model on every set
+    assert kinds.count(("accuracy", "cpu")) == 2 * sc.sets
+    assert kinds.count(("noise", "cpu")) == 2 * (len(sc.noise_scales) - 1) * sc.noise_sets  # nominal reused
+    assert kinds.count(("runtime", "cpu")) == 2 and kinds.count(("runtime", "cuda")) == 1  # filters: CPU only
+    assert len(set(jobs)) == len(jobs)
+
+
+def test_scales_and_bad_arguments(tmp_path, capsys):
+    assert set(SCALES) == {"smoke", "small", "paper"}
+    assert SCALES["paper"].trajectories == 8000 and SCALES["paper"].sets == 3
+    with pytest.raises(ScaleError, match="unknown scale"):
+        get_scale("huge")
+    assert main(["reproduce", "--scale", "smoke", "--methods", "ekf,nope", "--out", str(tmp_path / "o")]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert main(["reproduce", "--scale", "smoke", "--scenarios", "mars", "--out", str(tmp_path / "o")]) == 2
+    assert "mars" in capsys.readouterr().err
+    assert main(["reproduce", "--scale", "smoke", "--methods", "", "--out", str(tmp_path / "o")]) == 2
+    assert "--methods is empty" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # nothing ran
+
+
+def test_relative_score_and_cells():
+    from neural_estimator.metrics import Stat
+
+    def st(rmse):
+        return {"rmse": Stat(rmse, 0.0, 1, rmse)}
+
+    summ = {"ballistic": {"mamba2": st(0.5), "ekf": st(2.0), "pf": st(float("inf"))}}
+    scores = R.relative_scores(summ, ["ballistic"], ["mamba2", "ekf", "pf"])["ballistic"]
+    assert scores == {"mamba2": 100.0, "ekf": 25.0, "pf": 0.0}
+    assert R.num(float("inf")) == "∞" and R.num(None) == "N/A" and R.num(12345.67, 1) == "12,345.7"
+    assert R.side("1.000", {"median": 2.0, "iqr": 0.5}, 3, True) == "1.000 · 2.000±0.500"
+    assert R.side("1.000", None, 3, False) == "1.000 · —"
