@@ -177,6 +177,9 @@ def _add_evaluate(sub) -> None:
                    help="filter hyperparameter, e.g. pf.n_particles=2048 (repeatable)")
     p.add_argument("--threads", type=int, metavar="N",
                    help="threads of the classical filters (default: $NEURAL_ESTIMATOR_THREADS, else the usable cores)")
+    p.add_argument("--init", choices=("prior", "truth"), default="prior",
+                   help="classical filters start from the scenario prior (default, as live) or at each "
+                        "trajectory's true x0 (mean only; P0 and the PF's init_std unchanged)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-cache", action="store_true", help="do not cache the evaluation sets on disk")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -232,14 +235,15 @@ def _cmd_evaluate(args) -> int:
     results = evaluate(
         scenario, methods, trajectories=args.trajectories, horizon=args.horizon, seed=args.seed, sets=args.sets,
         checkpoints=checkpoints, options=options, device=args.device,
-        cache_dir=False if args.no_cache else None, progress=not args.quiet,
+        cache_dir=False if args.no_cache else None, progress=not args.quiet, init=args.init,
     )
-    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed)
+    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed,
+                init=args.init)
     if args.json:
         print(json.dumps(results_json(scenario, results, **info), indent=1))
     else:
-        print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps "
-              f"(median ± IQR over runs)")
+        print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
+              f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)")
         print(results_table(results, fmt="text"), end="")
         print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" for m, r in results.items()))
     if args.out:

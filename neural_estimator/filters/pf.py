@@ -94,7 +94,7 @@ class ParticleFilter(MemberFilter):
 
     def _init_state(self, B: int) -> None:
         draws = self._draw_blockwise(PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_init, self._sd_init))
-        self._X = self.ops.normalize_state(self.m0 + draws)
+        self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
         self._logw = np.full((B, self.N), -np.log(self.N))
         self._w = np.full((B, self.N), 1.0 / self.N)
 
