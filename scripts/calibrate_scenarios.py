@@ -48,26 +48,33 @@ PAPER_RMSE = {
 # scenario's Config as shipped; the "previous" entries are the constants before the calibration.
 CANDIDATES: dict[str, dict[str, tuple[dict, str]]] = {
     "ballistic": {
-        "default": ({}, "as shipped"),
-        "previous": ({"dt": 0.1, "obs_noise_std": 0.03048, "prior_std": (0.3048, 1.2192, 0.01),
-                      "process_noise_std": (1e-3, 1e-3, 1e-4)}, "SSMToybox km scaling (before calibration)"),
+        "default": ({}, "as shipped (SSMToybox km scaling; not recalibrated, see the scenario)"),
+        "obs0.3-wide": ({"obs_noise_std": 0.3, "prior_std": (1.0, 1.0, 0.1)}, "noisier radar, wider prior"),
+        "obs1-wide": ({"obs_noise_std": 1.0, "prior_std": (0.3048, 1.2192, 0.3)}, "much noisier radar"),
     },
     "bearings": {
-        "default": ({}, "as shipped"),
-        "previous": ({"dt": 1.0, "accel_noise_std": 1.0, "obs_noise_std": 0.005,
-                      "prior_mean": (0.0, 400.0, 0.0, -50.0), "prior_std": (500.0, 300.0, 5.0, 10.0)},
+        "default": ({}, "as shipped: narrow prior, slow manoeuvres (calibrated)"),
+        "previous": ({"accel_noise_std": 1.0, "obs_noise_std": 0.005, "prior_std": (500.0, 300.0, 5.0, 10.0)},
                      "Gordon 1993 x 1000 (before calibration)"),
+        "prior1-q0.05": ({"prior_std": (1.0, 1.0, 1.0, 1.0), "accel_noise_std": 0.05}, "unit prior"),
+        "prior10-q0.1": ({"accel_noise_std": 0.1}, "faster manoeuvres"),
+        "prior20-r0.01": ({"prior_std": (20.0, 20.0, 1.0, 1.0), "obs_noise_std": 0.01}, "wider prior, better sensor"),
     },
     "lorenz96": {
-        "default": ({}, "as shipped (sakov2008 dynamics, obs std 0.25)"),
+        "default": ({}, "as shipped (sakov2008 dynamics, obs std 0.25; not changed)"),
     },
     "nlink": {
-        "default": ({}, "as shipped"),
-        "previous": ({"obs_noise_std": 0.05, "process_noise_q": 0.01, "prior_angle_std": 1.0, "prior_rate_std": 1.0},
+        "default": ({}, "as shipped: prior 0.1 rad, 0.1 rad/s, obs 0.02 m (calibrated)"),
+        "previous": ({"obs_noise_std": 0.05, "prior_angle_std": 1.0, "prior_rate_std": 1.0},
                      "VanderPlas / Sarkka (before calibration)"),
+        "obs0.03": ({"obs_noise_std": 0.03}, "noisier positions"),
+        "prior0.3-obs0.05": ({"obs_noise_std": 0.05, "prior_angle_std": 0.3, "prior_rate_std": 0.3}, "wider prior"),
     },
     "quadrotor": {
-        "default": ({}, "as shipped"),
+        "default": ({}, "as shipped: velocity noise 0.1 per step (calibrated)"),
+        "previous": ({"process_noise_std": 0.001}, "velocity noise 0.1 tau (before calibration)"),
+        "q0.01": ({"process_noise_std": 0.01}, "intermediate velocity noise"),
+        "obs1-q0.001": ({"process_noise_std": 0.001, "obs_noise_std": 1.0}, "noisier sensor instead"),
     },
 }
 

@@ -22,20 +22,23 @@ class BearingsConfig:
     Attributes:
         dt: sampling period T [s] (Gordon 1993).
         horizon: default trajectory length [steps].
-        accel_noise_std: std of the per-step white acceleration [m/s^2] (Gordon's 0.001 x 1000).
-        obs_noise_std: bearing noise std at noise_scale = 1 [rad] (Gordon 1993).
+        accel_noise_std: std of the per-step white acceleration [m/s^2]; calibrated 0.05 (was
+            Gordon's 0.001 x 1000 = 1.0), see "Calibration" in :class:`Bearings`.
+        obs_noise_std: bearing noise std at noise_scale = 1 [rad]; calibrated 0.02 (was
+            Gordon's 0.005).
         prior_mean: m0 in the paper's order (px [m], py [m], vx [m/s], vy [m/s]); Gordon's
             (x, vx, y, vy) = (0, 0, 0.4, -0.05) x 1000, reordered.
-        prior_std: square roots of diag(P0), same order; Gordon's (0.5, 0.005, 0.3, 0.01) x 1000.
+        prior_std: square roots of diag(P0), same order; calibrated (10, 10, 1, 1) (was Gordon's
+            (0.5, 0.3, 0.005, 0.01) x 1000 = (500, 300, 5, 10)).
         noise_scale: multiplies obs_noise_std.
     """
 
     dt: float = 1.0
     horizon: int = 500
-    accel_noise_std: float = 1.0
-    obs_noise_std: float = 0.005
+    accel_noise_std: float = 0.05
+    obs_noise_std: float = 0.02
     prior_mean: tuple = (0.0, 400.0, 0.0, -50.0)
-    prior_std: tuple = (500.0, 300.0, 5.0, 10.0)
+    prior_std: tuple = (10.0, 10.0, 1.0, 1.0)
     noise_scale: float = 1.0
 
 
@@ -57,6 +60,23 @@ class Bearings(Scenario):
     recedes (about 25 km away at step 500).
 
     Jacobians are analytic: F, and d atan2(py, px) / d(px, py) = (-py, px) / (px^2 + py^2).
+
+    Calibration (``scripts/calibrate_scenarios.py --scenario bearings``, issue 9). Gordon's
+    constants x 1000 (prior std 500 / 300 m, 5 / 10 m/s; acceleration noise 1 m/s^2; bearing noise
+    0.005 rad) put the EKF / UKF at 10,100 / 4,600 m RMSE (50 trajectories, seed 1), 33x and 26x
+    the paper's 309 / 181; starting the filters at the true x_0 still leaves 1,570 / 1,360. The
+    paper's MedAE (2.8-4.4 m against RMSE 181-363 m) and NRMSE ~ 1 (a state spread of a few
+    hundred metres over 500 steps) say the targets start almost where the prior says and wander
+    slowly: a narrow prior and a small acceleration noise. Swept: prior std (1, 1, 1, 1) and
+    (10, 10, 1, 1) or (20, 20, 1, 1), acceleration noise 0.03-0.3, bearing noise 0.005-0.05.
+    Chosen (200 trajectories, seed 1, filters from the prior): prior std (10, 10, 1, 1) m, m/s,
+    acceleration noise 0.05 m/s^2, bearing noise 0.02 rad: EKF 236 (paper x0.76), UKF 266
+    (x1.47), EnKF 170, PF 196 (50 trajectories). Both within the factor 1.5 but, as everywhere in
+    the sweep, without the paper's pattern (UKF best by 1.7x, EnKF diverging): here the four are
+    within 1.6x of each other and the UKF's few lost tracks (4 % outliers) weigh most. The prior
+    mean is unchanged: the target passes close to the sensor at about step 8, where the bearing
+    swings fastest. ``--set accel_noise_std=1.0 --set obs_noise_std=0.005 --set
+    prior_std=[500,300,5,10]`` gives the previous constants.
     """
 
     name = "bearings"
