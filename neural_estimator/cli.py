@@ -216,6 +216,7 @@ def _parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
 def _cmd_evaluate(args) -> int:
     from neural_estimator.estimators import CLASSICAL_METHODS, check_method
     from neural_estimator.evaluation import evaluate, results_json, results_table
+    from neural_estimator.expected_failures import mark_rows, notes
     from neural_estimator.plots import plot_rmse_over_time
 
     scenario = scenario_from_args(args)
@@ -244,7 +245,9 @@ def _cmd_evaluate(args) -> int:
     else:
         print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
               f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)")
-        print(results_table(results, fmt="text"), end="")
+        print(mark_rows(results_table(results, fmt="text"), scenario.name), end="")
+        for line in notes(scenario.name, list(results)) if args.init == "prior" else ():
+            print(line)
         print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" for m, r in results.items()))
     if args.out:
         out = Path(args.out)

@@ -1,0 +1,51 @@
+"""Methods known to fail in a scenario under the live protocol, with the one-line reason.
+
+The live pipeline (and ``evaluate --init prior``) starts every filter from the scenario prior.
+Where a method is expected to fail there, as the paper's EnKF fails on bearings-only tracking, the
+tables printed by the main job mark its row and say why in one line, so a collapsed estimator
+is never shown as if it were a result. Each entry was measured; the README's "Fidelity to the
+paper" section gives the commands.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+MARK = "(!)"
+
+EXPECTED_FAILURES: dict[tuple[str, str], str] = {
+    ("lorenz96", "pf"): (
+        "the bootstrap PF (1,024 particles, x0 std 1.0) cannot track the 40-dimensional Lorenz 96 state: "
+        "it collapses from the prior (RMSE ~5) and even when started at the true x0 (4.8, or 3.7 with "
+        "x0 std 0.01); the paper's 0.065 is not reproduced by any initialisation tried"
+    ),
+}
+
+CAVEATS: dict[tuple[str, str], str] = {
+    ("lorenz96", "enkf"): (
+        "50 members and no inflation (the paper's setting) become over-confident (NEES far above dx = 40) "
+        "and drift on long horizons"
+    ),
+}
+
+
+def notes(scenario: str, methods: Iterable[str]) -> list[str]:
+    """One line per expected failure (marked) or caveat among ``methods`` of ``scenario``."""
+    out = []
+    for m in methods:
+        if (scenario, m) in EXPECTED_FAILURES:
+            out.append(f"{MARK} {m}: expected to fail here: {EXPECTED_FAILURES[scenario, m]}")
+        elif (scenario, m) in CAVEATS:
+            out.append(f"note {m}: {CAVEATS[scenario, m]}")
+    return out
+
+
+def mark_rows(table: str, scenario: str) -> str:
+    """A text table whose rows of expected failures end with :data:`MARK`."""
+    lines = table.splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        name = line.split(" ", 1)[0]
+        if (scenario, name) in EXPECTED_FAILURES:
+            body = line.rstrip("\n")
+            lines[i] = f"{body}  {MARK}" + ("\n" if line.endswith("\n") else "")
+    return "".join(lines)
