@@ -178,6 +178,9 @@ def _add_evaluate(sub) -> None:
                    help="filter hyperparameter, e.g. pf.n_particles=2048 (repeatable)")
     p.add_argument("--threads", type=int, metavar="N",
                    help="threads of the classical filters (default: $NEURAL_ESTIMATOR_THREADS, else the usable cores)")
+    p.add_argument("--init", choices=("prior", "truth"), default="prior",
+                   help="classical filters start from the scenario prior (default, as live) or at each "
+                        "trajectory's true x0 (mean only; P0 and the PF's init_std unchanged)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-cache", action="store_true",
                    help="no disk cache at all: evaluation sets and run results are neither read nor written (no resume)")
@@ -217,6 +220,7 @@ def _parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
 def _cmd_evaluate(args) -> int:
     from neural_estimator.estimators import CLASSICAL_METHODS, check_method
     from neural_estimator.evaluation import evaluate, results_json, results_table
+    from neural_estimator.expected_failures import mark_rows, notes
 
     scenario = scenario_from_args(args)
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
@@ -232,7 +236,8 @@ def _cmd_evaluate(args) -> int:
         for m in methods:
             if m in CLASSICAL_METHODS:
                 options.setdefault(m, {}).setdefault("threads", args.threads)
-    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed)
+    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed,
+                init=args.init)
     out = Path(args.out) if args.out else None
     expected_runs = {m: args.sets * max(1, len(checkpoints.get(m) or ())) for m in methods}
 
@@ -244,14 +249,16 @@ def _cmd_evaluate(args) -> int:
         scenario, methods, trajectories=args.trajectories, horizon=args.horizon, seed=args.seed, sets=args.sets,
         checkpoints=checkpoints, options=options, device=args.device,
         cache_dir=False if args.no_cache else None, progress=not args.quiet, recompute=args.recompute,
-        on_result=write_partial,
+        on_result=write_partial, init=args.init,
     )
     if args.json:
         print(json.dumps(results_json(scenario, results, complete=True, **info), indent=1, allow_nan=False))
     else:
-        print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps "
-              f"(median ± IQR over runs)")
-        print(results_table(results, fmt="text"), end="")
+        print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
+              f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)")
+        print(mark_rows(results_table(results, fmt="text"), scenario.name), end="")
+        for line in notes(scenario.name, list(results)) if args.init == "prior" else ():
+            print(line)
         print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" + (f" ({r.cached} cached runs)" if r.cached else "")
                                     for m, r in results.items()))
     if out is not None:

@@ -38,6 +38,7 @@ from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError, load_npz, save_npz
 from neural_estimator.data.protocol import SIMULATION_REVISION, default_cache_dir
 from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS, Estimator, Estimates, check_method, make_estimator, previous_controls
+from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.scenarios import Scenario
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
@@ -46,6 +47,26 @@ DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
 RESULTS_REVISION = 2
 # Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
 _SPEED_ONLY_OPTIONS = frozenset({"threads"})
+
+INIT_MODES = ("prior", "truth")
+"""How the classical filters start in the offline protocol (``init``):
+
+- ``"prior"`` (default; the live node's only choice, it never knows the truth): every filter
+  starts from the scenario prior, mean m0 and covariance P0; the PF's particles are
+  N(m0, init_std^2 I) (paper: x_0 std = 1.0).
+- ``"truth"``: each trajectory's filters start at its true initial state x_0 (the mean only:
+  covariance P0 and the PF's init_std spread unchanged), i.e. the PF's particles are
+  N(x_0, init_std^2 I). This is the reading of the paper's "x_0 std = 1.0" under which a PF with a
+  fixed unit spread can lock on in every scenario (see the README, "Fidelity to the paper").
+  Neural methods read observations only; the option does not concern them.
+"""
+
+
+def check_init(init: str) -> str:
+    """``init`` if it is one of :data:`INIT_MODES`, else a one-line ValueError naming the choices."""
+    if init not in INIT_MODES:
+        raise ValueError(f"init must be one of {', '.join(INIT_MODES)}; got {init!r}")
+    return init
 
 
 @dataclass
@@ -89,6 +110,7 @@ def run_method(
     angle_states: Sequence[int],
     on_chunk: Callable[[int], None] | None = None,
     on_steps: Callable[[int], None] | None = None,
+    init: str = "prior",
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
     """Estimate every trajectory of ``data`` chunk by chunk.
 
@@ -97,6 +119,8 @@ def run_method(
         on_steps: called with B after every time step of a chunk of B trajectories (classical
             filters, which loop over time: see :func:`run_stepwise`), or with B T after a chunk
             (neural models, whose parallel form has no steps to report); the calls add up to N T.
+        init: ``"truth"`` starts the classical filters of each trajectory at its true x_0 (see
+            :data:`INIT_MODES`); neural methods are unaffected.
 
     Returns:
         (x_hat (N, T, dx), nees (N, T) or None, diverged (N,), seconds spent in the estimator).
@@ -106,15 +130,20 @@ def run_method(
     diverged = np.zeros(N, dtype=bool)
     nees_all = np.empty(data.x.shape[:2]) if estimator.has_covariance else None
     seconds = 0.0
+    from_truth = check_init(init) == "truth" and isinstance(estimator, ClassicalFilter)
     for lo in range(0, N, chunk):
         hi = min(N, lo + chunk)
         t0 = time.perf_counter()
+        initial_mean = data.x[lo:hi, 0] if from_truth else None
         if on_steps is not None and estimator.method in CLASSICAL_METHODS:
-            est = run_stepwise(estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo))
+            est = run_stepwise(estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo),
+                               initial_mean=initial_mean)
+        elif from_truth:
+            est = estimator.run(data.y[lo:hi], data.u[lo:hi], initial_mean=initial_mean)
         else:
             est = estimator.run(data.y[lo:hi], data.u[lo:hi])
-            if on_steps is not None:
-                on_steps((hi - lo) * data.horizon)
+        if on_steps is not None and estimator.method not in CLASSICAL_METHODS:
+            on_steps((hi - lo) * data.horizon)
         seconds += time.perf_counter() - t0
         x_hat[lo:hi] = est.x
         diverged[lo:hi] = est.diverged
@@ -127,8 +156,12 @@ def run_method(
     return x_hat, nees_all, diverged, seconds
 
 
-def run_stepwise(estimator: Estimator, Y: np.ndarray, U: np.ndarray, on_step: Callable[[], None]) -> Estimates:
+def run_stepwise(estimator: Estimator, Y: np.ndarray, U: np.ndarray, on_step: Callable[[], None],
+                 initial_mean: np.ndarray | None = None) -> Estimates:
     """``estimator.run(Y, U)`` as ``reset`` and a loop of ``step``, calling ``on_step()`` after each.
+
+    ``initial_mean`` (B, n), classical filters only, starts each stream there instead of at the
+    prior mean (``reset(B, initial_mean)``).
 
     The estimator contract makes the two equal (tested for every method, and here for the
     filters); the loop lets a long chunk report its progress every time step.
@@ -136,7 +169,10 @@ def run_stepwise(estimator: Estimator, Y: np.ndarray, U: np.ndarray, on_step: Ca
     Y, U = estimator.check_sequences(Y, U)
     B, T, _ = Y.shape
     dx = estimator.scenario.dx
-    estimator.reset(B)
+    if initial_mean is None:
+        estimator.reset(B)
+    else:
+        estimator.reset(B, initial_mean=initial_mean)
     Uprev = previous_controls(U)
     xs = np.empty((B, T, dx))
     covs = np.empty((B, T, dx, dx)) if estimator.has_covariance else None
@@ -179,19 +215,21 @@ def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | 
 
 
 def run_key(scenario: Scenario, method: str, options: Mapping[str, Any] | None, checkpoint_hash: str | None,
-            seed: int, device: str, data: Trajectories | str) -> str:
+            seed: int, device: str, data: Trajectories | str, init: str = "prior") -> str:
     """Hex digest of everything that defines one run's result.
 
     Keyed: :data:`RESULTS_REVISION`, the simulation revision, the package version, the scenario
     with all its constants, the method, its options (those that only change the speed, like
-    ``threads``, left out), the checkpoint's content hash, the filters' seed, the device, and the
-    evaluation set's content (:func:`dataset_digest`, or a digest given as a string).
+    ``threads``, left out), the checkpoint's content hash, the filters' seed, the device, the
+    evaluation set's content (:func:`dataset_digest`, or a digest given as a string) and, for
+    classical filters, how they start (``init``; neural methods ignore it, so it is not keyed).
     """
     opts = {k: v for k, v in sorted((options or {}).items()) if k not in _SPEED_ONLY_OPTIONS}
     key = json.dumps({
         "rev": RESULTS_REVISION, "sim": SIMULATION_REVISION, "version": __version__,
         "scenario": scenario.describe(), "method": method, "options": opts, "checkpoint": checkpoint_hash,
         "seed": int(seed), "device": str(device), "data": data if isinstance(data, str) else dataset_digest(data),
+        **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}),
     }, sort_keys=True, default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:20]
 
@@ -245,6 +283,7 @@ def evaluate(
     datasets: Sequence[Trajectories] | None = None,
     recompute: bool = False,
     on_result: Callable[[dict[str, MethodResult]], None] | None = None,
+    init: str = "prior",
 ) -> dict[str, MethodResult]:
     """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
 
@@ -264,11 +303,13 @@ def evaluate(
         recompute: compute every run even if a cached result exists (and overwrite it).
         on_result: called with the results so far after every run (the CLI writes partial
             outputs with it).
+        init: how the classical filters start, ``"prior"`` or ``"truth"`` (:data:`INIT_MODES`).
 
     Returns:
         {method: MethodResult} in the order given.
     """
     methods = [check_method(m) for m in methods]
+    check_init(init)
     T = scenario.horizon if horizon is None else int(horizon)
     data_sets = list(datasets) if datasets is not None else evaluation_sets(
         scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
@@ -287,7 +328,7 @@ def evaluate(
             r = results[m]
             path = None
             if cache_root is not None:
-                path = result_path(cache_root, scenario, m, run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j]))
+                path = result_path(cache_root, scenario, m, run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init))
                 hit = None if recompute else load_run(path)
                 if hit is not None:
                     report, secs, steps = hit
@@ -304,7 +345,7 @@ def evaluate(
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
             bar = _progress(data.n * data.horizon, progress, f"{scenario.name} {m} set {j + 1}/{len(data_sets)} (run {run_no}/{n_runs})")
             try:
-                x_hat, nees_nt, diverged, secs = run_method(est, data, chunk, scenario.angle_states, on_steps=bar.update)
+                x_hat, nees_nt, diverged, secs = run_method(est, data, chunk, scenario.angle_states, on_steps=bar.update, init=init)
             finally:
                 bar.close()
             report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt)

@@ -13,6 +13,7 @@ from typing import Any
 
 from neural_estimator import metrics as metrics_mod
 from neural_estimator.bags.dataset import load_bag_dataset
+from neural_estimator.expected_failures import mark_rows, notes
 
 
 @dataclasses.dataclass
@@ -50,9 +51,11 @@ class BagReport:
         """A heading line and the text table."""
         left = self.bag.get("left_out") or []
         extra = f"; {len(left)} incomplete trajectories left out" if left else ""
+        lines = notes(self.scenario, sorted(self.reports))
         return (
             f"{self.scenario}: {self.n_trajectories} trajectories x {self.horizon} steps from {self.path.name}{extra}\n"
-            + self.table("text")
+            + mark_rows(self.table("text"), self.scenario)
+            + "".join(line + "\n" for line in lines)
         )
 
 

@@ -188,11 +188,17 @@ class ClassicalFilter(Estimator):
         self._k = 0
 
     # ---- the Estimator contract --------------------------------------------------------------
-    def reset(self, batch: int = 1) -> None:
-        """Start ``batch`` streams from the prior; the random draws start again from ``seed``."""
+    def reset(self, batch: int = 1, initial_mean: np.ndarray | None = None) -> None:
+        """Start ``batch`` streams from the prior; the random draws start again from ``seed``.
+
+        ``initial_mean`` (B, n), optional, replaces the prior mean m0 stream by stream (the
+        offline protocol's ``init="truth"`` passes the true x_0 there); the prior covariance P0,
+        and the PF's ``init_std`` spread, are unchanged. None: every stream starts at m0.
+        """
         B = int(batch)
         if B < 1:
             raise EstimatorError(f"{self.method}: batch must be >= 1, got {batch}")
+        self._init_mean = self._check_initial_mean(initial_mean, B)
         self.batch = B
         self._k = 0
         self.diverged = np.zeros(B, dtype=bool)
@@ -201,6 +207,18 @@ class ClassicalFilter(Estimator):
         size = self.block_size
         self._blocks = [slice(i, min(i + size, B)) for i in range(0, B, size)]
         self._init_state(B)
+
+    def _check_initial_mean(self, initial_mean: np.ndarray | None, B: int) -> np.ndarray:
+        """(B, n) starting means: m0 for every stream, or ``initial_mean`` checked (finite, shape)."""
+        n = self.scenario.dx
+        if initial_mean is None:
+            return np.broadcast_to(self.m0, (B, n))
+        m = np.asarray(initial_mean, dtype=np.float64)
+        if m.shape != (B, n):
+            raise EstimatorError(f"{self.method}: initial_mean must be ({B}, {n}), got {m.shape}")
+        if not np.all(np.isfinite(m)):
+            raise EstimatorError(f"{self.method}: initial_mean contains NaN or inf")
+        return self.ops.normalize_state(m)
 
     @property
     def block_size(self) -> int:
@@ -238,16 +256,17 @@ class ClassicalFilter(Estimator):
         self.covariance = cov
         return mean
 
-    def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
+    def run(self, Y: np.ndarray, U: np.ndarray | None = None, initial_mean: np.ndarray | None = None) -> Estimates:
         """Filter whole sequences (B, T, dy), (B, T, du): equal to ``reset`` and a loop of ``step``.
 
         Inputs are validated once for the whole sequence, and the estimates are written straight
         into the output arrays; the arithmetic per step is the very same as :meth:`step`'s.
+        ``initial_mean`` (B, n) goes to :meth:`reset` (None: start from the prior mean).
         """
         Y, U = self.check_sequences(Y, U)
         B, T, _ = Y.shape
         n = self.scenario.dx
-        self.reset(B)
+        self.reset(B, initial_mean)
         Uprev = previous_controls(U)
         xs = np.empty((B, T, n))
         covs = np.empty((B, T, n, n))

@@ -73,7 +73,7 @@ class ExtendedKalmanFilter(ClassicalFilter):
     def _init_state(self, B: int) -> None:
         n = self.scenario.dx
         self._eye = np.eye(n)
-        self._m = np.broadcast_to(self.m0, (B, n)).copy()
+        self._m = np.array(self._init_mean, dtype=np.float64)  # (B, n): m0 or the given initial means
         self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
 
     def _predict(self, u: np.ndarray) -> None:

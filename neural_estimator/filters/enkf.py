@@ -100,7 +100,7 @@ class EnsembleKalmanFilter(MemberFilter):
 
     def _init_state(self, B: int) -> None:
         draws = self._draw_blockwise(PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_P0, self._sd_P0))
-        self._X = self.ops.normalize_state(self.m0 + draws)
+        self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
         X_post, _ = self._blockwise(self._update_block, self._X, y, phase=PHASE_UPDATE)

@@ -8,7 +8,8 @@ filterpy.monte_carlo.systematic_resample (the tests' reference particle filter i
 The paper's settings (Table hparams): 1024 particles, x_0 std = 1.0, ESS fraction = 0.5,
 rejuvenation std = 0.0. "x_0 std = 1.0" is read as: the initial particles are
 x_0^i ~ N(m0, 1.0^2 I), isotropic around the prior mean m0, whatever the prior covariance P0 is
-(``init_std=None`` draws them from the prior N(m0, P0) instead).
+(``init_std=None`` draws them from the prior N(m0, P0) instead). ``reset(batch, initial_mean)``
+centres them on given means instead of m0 (the offline protocol's ``init="truth"``: N(x_0, 1.0^2 I)).
 """
 
 from __future__ import annotations
@@ -149,7 +150,7 @@ class ParticleFilter(MemberFilter):
 
     def _init_state(self, B: int) -> None:
         draws = self._draw_blockwise(PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_init, self._sd_init))
-        self._X = self.ops.normalize_state(self.m0 + draws)
+        self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
         self._logw = np.full((B, self.N), -np.log(self.N))
         self._w = np.full((B, self.N), 1.0 / self.N)
 

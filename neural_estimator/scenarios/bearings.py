@@ -22,20 +22,24 @@ class BearingsConfig:
     Attributes:
         dt: sampling period T [s] (Gordon 1993).
         horizon: default trajectory length [steps].
-        accel_noise_std: std of the per-step white acceleration [m/s^2] (Gordon's 0.001 x 1000).
-        obs_noise_std: bearing noise std at noise_scale = 1 [rad] (Gordon 1993).
-        prior_mean: m0 in the paper's order (px [m], py [m], vx [m/s], vy [m/s]); Gordon's
-            (x, vx, y, vy) = (0, 0, 0.4, -0.05) x 1000, reordered.
-        prior_std: square roots of diag(P0), same order; Gordon's (0.5, 0.005, 0.3, 0.01) x 1000.
+        accel_noise_std: std of the per-step white acceleration [m/s^2]; calibrated 0.3 (was
+            Gordon's 0.001 x 1000 = 1.0), see "Calibration" in :class:`Bearings`.
+        obs_noise_std: bearing noise std at noise_scale = 1 [rad]; calibrated 0.01 (was
+            Gordon's 0.005).
+        prior_mean: m0 in the paper's order (px [m], py [m], vx [m/s], vy [m/s]); calibrated
+            (-200, 400, 2, 0), a target crossing slowly north of the sensor (was Gordon's
+            (x, vx, y, vy) = (0, 0, 0.4, -0.05) x 1000, reordered: (0, 400, 0, -50)).
+        prior_std: square roots of diag(P0), same order; calibrated (10, 10, 1, 1) (was Gordon's
+            (0.5, 0.3, 0.005, 0.01) x 1000 = (500, 300, 5, 10)).
         noise_scale: multiplies obs_noise_std.
     """
 
     dt: float = 1.0
     horizon: int = 500
-    accel_noise_std: float = 1.0
-    obs_noise_std: float = 0.005
-    prior_mean: tuple = (0.0, 400.0, 0.0, -50.0)
-    prior_std: tuple = (500.0, 300.0, 5.0, 10.0)
+    accel_noise_std: float = 0.3
+    obs_noise_std: float = 0.01
+    prior_mean: tuple = (-200.0, 400.0, 2.0, 0.0)
+    prior_std: tuple = (10.0, 10.0, 1.0, 1.0)
     noise_scale: float = 1.0
 
 
@@ -51,12 +55,30 @@ class Bearings(Scenario):
     Observation: the bearing from the origin, y_k = wrap(atan2(py, px)) + nu_k, nu_k ~ N(0, R),
     an angle (``angle_obs = (0,)``): innovations are wrapped to (-pi, pi].
 
-    Range is unobservable from one static sensor. The typical target starts about 400 m north of
-    the sensor heading south at about 50 m/s, so it passes the sensor's latitude after about 8
-    steps, where the bearing changes fastest and the filters are tested hardest, and then
-    recedes (about 25 km away at step 500).
+    Range is unobservable from one static sensor. The typical target starts about 450 m from the
+    sensor (200 m west, 400 m north) crossing eastwards at about 2 m/s with random accelerations
+    (velocity spread about 7 m/s by step 500), so its range stays of the order of a kilometre and
+    the bearing history carries range information only through the manoeuvres.
 
     Jacobians are analytic: F, and d atan2(py, px) / d(px, py) = (-py, px) / (px^2 + py^2).
+
+    Calibration (``scripts/calibrate_scenarios.py --scenario bearings``, issue 9). Gordon's
+    constants x 1000 (prior mean (0, 400, 0, -50), std (500, 300, 5, 10); acceleration noise
+    1 m/s^2; bearing noise 0.005 rad) put the EKF / UKF at 10,100 / 4,600 m RMSE (50 trajectories,
+    seed 1), 33x and 26x the paper's 309 / 181; starting the filters at the true x_0 still leaves
+    1,570 / 1,360. The paper's MedAE (2.8-4.4 m against RMSE 181-363 m), its small spread across
+    sets (IQR 1-3 m) and NRMSE ~ 1 (a state spread of a few hundred metres over 500 steps) say the
+    targets start almost where the prior says, wander slowly, and have no rare catastrophic
+    geometry. Swept (200 trajectories, seeds 1-2, EKF / UKF / EnKF): prior std (1, 1, 1, 1) to
+    (30, 30, 3, 3), acceleration noise 0.03-0.3, bearing noise 0.005-0.05, prior means heading
+    through the sensor ((0, 400, 0, -50): the target passes within metres of it at step 8, and a
+    few lost tracks dominate every RMSE, UKF 3 % numerically diverged at 1,000 trajectories) or
+    crossing slowly past it ((-200, 400, 2, 0), (400, 400, 0, -1)). Chosen: prior mean
+    (-200, 400, 2, 0), std (10, 10, 1, 1) m, m/s, acceleration noise 0.3 m/s^2, bearing noise
+    0.01 rad: EKF 324 (paper x1.05), UKF 204 (x1.13), EnKF 244, MedAE 4.5 (seed 1): the paper's
+    EKF / UKF ratio (1.7; here 1.6). The paper's EnKF "diverges"; ours does not (see the README,
+    "Fidelity to the paper"). ``--set prior_mean=[0,400,0,-50] --set prior_std=[500,300,5,10]
+    --set accel_noise_std=1.0 --set obs_noise_std=0.005`` gives the previous constants.
     """
 
     name = "bearings"

@@ -50,11 +50,13 @@ class NLinkConfig:
         total_length: sum of the link lengths [m]; every link is total_length / N long.
         mass: mass of each point mass [kg].
         g: gravitational acceleration [m/s^2].
-        obs_noise_std: std of the noise on each Cartesian coordinate at noise_scale = 1 [m].
+        obs_noise_std: std of the noise on each Cartesian coordinate at noise_scale = 1 [m];
+            calibrated 0.02 (was 0.05), see "Calibration" in :class:`NLinkPendulum`.
         process_noise_q: spectral density q of white noise on each angular acceleration
             [rad^2/s^3]; Q per link = q [[dt^3/3, dt^2/2], [dt^2/2, dt]] (Sarkka).
-        prior_angle_std: std of each initial angle around hanging straight down [rad].
-        prior_rate_std: std of each initial angular velocity [rad/s].
+        prior_angle_std: std of each initial angle around hanging straight down [rad];
+            calibrated 0.1 (was 1.0).
+        prior_rate_std: std of each initial angular velocity [rad/s]; calibrated 0.1 (was 1.0).
         noise_scale: multiplies obs_noise_std.
     """
 
@@ -65,10 +67,10 @@ class NLinkConfig:
     total_length: float = 1.0
     mass: float = 1.0
     g: float = 9.81
-    obs_noise_std: float = 0.05
+    obs_noise_std: float = 0.02
     process_noise_q: float = 0.01
-    prior_angle_std: float = 1.0
-    prior_rate_std: float = 1.0
+    prior_angle_std: float = 0.1
+    prior_rate_std: float = 0.1
     noise_scale: float = 1.0
 
 
@@ -96,12 +98,24 @@ class NLinkPendulum(Scenario):
     Process noise (Sarkka): white noise of density q on each angular acceleration, discretised
     per link as q [[dt^3/3, dt^2/2], [dt^2/2, dt]] on (theta_j, omega_j).
 
-    Initial states: prior N(0, diag(prior_angle_std^2 I, prior_rate_std^2 I)) with 1 rad and
-    1 rad/s. A 1 rad std puts a third of the links beyond 57 degrees, where sin th is far from
-    linear. Measured over 2,000 noise-free draws and the 500-step horizon: the angular velocities'
-    spread is 3.7 / 4.8 / 5.8 rad/s (links 1 / 2 / 3, peaks about 30 rad/s), and the outer link
-    makes a full turn in 25 % of the trajectories: strongly nonlinear, coupled motion, still smooth
-    on the 0.01 s scale.
+    Initial states: prior N(0, diag(prior_angle_std^2 I, prior_rate_std^2 I)), 0.1 rad and
+    0.1 rad/s since the calibration (below). With the previous 1 rad and 1 rad/s, a third of the
+    links started beyond 57 degrees; measured over 2,000 noise-free draws and the 500-step horizon
+    the angular velocities' spread was 3.7 / 4.8 / 5.8 rad/s (links 1 / 2 / 3) and the outer link
+    made a full turn in 25 % of the trajectories.
+
+    Calibration (``scripts/calibrate_scenarios.py --scenario nlink``, issue 9). The paper's rows
+    (EKF 0.080, UKF 0.081, EnKF 0.092, PF 0.086; MAE / RMSE = 0.79, no heavy tail; drift 1.01-1.06)
+    describe a smooth regime in which all four filters track. The previous constants gave EKF / UKF
+    0.31 / 0.31 (100 trajectories, seed 1; 3.9x the paper) with MedAE 0.04: a few trajectories
+    whose wide initial error (1 rad, 1 rad/s) the filters take long to remove; starting the filters
+    at the true x_0 (``--init truth``) still gave 0.21. Swept (50-100 trajectories, seed 1, EKF /
+    UKF): prior std 0.1 or 0.3 with obs noise 0.1 / 0.05 / 0.03 / 0.02: 0.30 / 0.16 / 0.11 / 0.082
+    at 0.1; process density q 0.0001-0.01 moves the RMSE by under 10 %. Chosen: prior std 0.1 rad
+    and 0.1 rad/s, obs noise 0.02 m, q unchanged: EKF 0.0816, UKF 0.0812 (x1.02, x1.00). Our
+    MedAE (0.016) is a third of the paper's (0.053): the paper's errors are spread more evenly.
+    ``--set obs_noise_std=0.05 --set prior_angle_std=1.0 --set prior_rate_std=1.0`` gives the
+    previous constants.
 
     Integration: RK4 with h = dt / substeps = 0.005 s. Measured on 2,000 noise-free prior draws
     over the 500-step horizon, the energy drift relative to the depth of the potential well

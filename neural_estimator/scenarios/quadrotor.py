@@ -37,8 +37,9 @@ class QuadrotorConfig:
         c_matrix: C, the (3, 6) observation matrix; default i.i.d. N(0, 1) from seed
             ``C_SEED`` = 0. Stored here so that every file records it and it can be overridden.
         obs_noise_std: std of the noise on each of the 3 observations at noise_scale = 1.
-        process_noise_std: std of the per-step noise on each velocity (x_dot, z_dot, phi_dot);
-            0.1 tau. Positions and phi get none (Q is singular, which the base class allows).
+        process_noise_std: std of the per-step noise on each velocity (x_dot, z_dot, phi_dot)
+            [m/s, rad/s]. Positions and phi get none (Q is singular, which the base class allows).
+            Calibrated to 0.1 (was 0.001 = 0.1 tau): see "Calibration" in :class:`PlanarQuadrotor`.
         thrust_perturb_rel: std of each rotor's per-step thrust perturbation, as a fraction of
             the hover thrust m g / 2 per rotor.
         integrate_phi_rate: True (default): phi_dot_{t+1} = phi_dot_t + (u0 - u1) l tau / J, the
@@ -57,7 +58,7 @@ class QuadrotorConfig:
     g: float = 9.81
     c_matrix: tuple = _default_c()
     obs_noise_std: float = 0.1
-    process_noise_std: float = 0.001
+    process_noise_std: float = 0.1
     thrust_perturb_rel: float = 0.1
     integrate_phi_rate: bool = True
     prior_mean: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -101,6 +102,17 @@ class PlanarQuadrotor(Scenario):
     with it, although nothing physical happened. Keeping phi unwrapped keeps f and h continuous.
 
     Jacobians are analytic.
+
+    Calibration (``scripts/calibrate_scenarios.py --scenario quadrotor``, issue 9). The paper's
+    EKF row (RMSE 0.287, MedAE 0.044) fixes the noise level; the other constants are the PVTOL
+    model's. Measured at seed 1, 200 trajectories, filters from the prior (EKF / UKF RMSE):
+    process_noise_std 0.001 (the previous default, scenarios.md's "0.1 tau"): 0.093 / 0.093
+    (paper x0.32); 0.01: 0.101; 0.1: 0.32 / 0.31 (x1.12). Raising obs_noise_std instead (0.3, 1.0
+    with q = 0.001) reaches 0.14 and 0.24 only. Chosen: process_noise_std = 0.1 (scenarios.md's
+    "about 0.1" read as a std per step, not 0.1 tau). ``--set process_noise_std=0.001`` gives the
+    previous constants. The paper's UKF (8.0) and EnKF (10.0) at 28-35x its EKF on a linear
+    observation are not explained by the system: here the UKF equals the EKF (see the README,
+    "Fidelity to the paper").
     """
 
     name = "quadrotor"

@@ -1,0 +1,69 @@
+"""Methods known to fail in a scenario under the live protocol, with the one-line reason.
+
+The live pipeline (and ``evaluate --init prior``) starts every filter from the scenario prior.
+Where a method is expected to fail there, as the paper's EnKF fails on bearings-only tracking, the
+tables printed by the main job mark its row and say why in one line, so a collapsed estimator
+is never shown as if it were a result. Each entry was measured; the README's "Fidelity to the
+paper" section gives the commands.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+MARK = "(!)"
+
+EXPECTED_FAILURES: dict[tuple[str, str], str] = {
+    ("lorenz96", "pf"): (
+        "the bootstrap PF (1,024 particles, x0 std 1.0) cannot track the 40-dimensional Lorenz 96 state: "
+        "it collapses from the prior (RMSE ~5) and even when started at the true x0 (4.8, or 3.7 with "
+        "x0 std 0.01); the paper's 0.065 is not reproduced by any initialisation tried"
+    ),
+    ("ballistic", "pf"): (
+        "particles N(m0, 1.0^2 I) spread the drag coefficient 1.5 +- 1.0 where the prior's std is 0.01: "
+        "particles with negative drag accelerate without bound (6 % of streams diverge from the prior, "
+        "9 % from the true x0); the paper's units, where a unit spread fits, are not known"
+    ),
+    ("nlink", "pf"): (
+        "the bootstrap PF degenerates: the process noise (q = 0.01, 0.01 rad/s per step) is too small to "
+        "refresh 1,024 particles against 0.02 m observations (RMSE 0.80 from the prior, 0.69 from the true "
+        "x0, NEES ~5e4); the paper's PF keeps 0.086 on the 73 % of trajectories it does not flag"
+    ),
+    ("quadrotor", "pf"): (
+        "as the paper's (RMSE 128): the process noise acts on the velocities only, so resampled particles "
+        "have no spread in position and the bootstrap PF degenerates (RMSE ~4 against the EKF's 0.3)"
+    ),
+}
+
+CAVEATS: dict[tuple[str, str], str] = {
+    ("lorenz96", "enkf"): (
+        "50 members and no inflation (the paper's setting) become over-confident (NEES far above dx = 40) "
+        "and drift on long horizons"
+    ),
+    ("quadrotor", "enkf"): (
+        "4x the EKF and over-confident (NEES ~ 27,000), as the paper's is far worse than its EKF (9.96 "
+        "against 0.287): velocity-only process noise leaves the 50 members no spread in position"
+    ),
+}
+
+
+def notes(scenario: str, methods: Iterable[str]) -> list[str]:
+    """One line per expected failure (marked) or caveat among ``methods`` of ``scenario``."""
+    out = []
+    for m in methods:
+        if (scenario, m) in EXPECTED_FAILURES:
+            out.append(f"{MARK} {m}: expected to fail here: {EXPECTED_FAILURES[scenario, m]}")
+        elif (scenario, m) in CAVEATS:
+            out.append(f"note {m}: {CAVEATS[scenario, m]}")
+    return out
+
+
+def mark_rows(table: str, scenario: str) -> str:
+    """A text table whose rows of expected failures end with :data:`MARK`."""
+    lines = table.splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        name = line.split(" ", 1)[0]
+        if (scenario, name) in EXPECTED_FAILURES:
+            body = line.rstrip("\n")
+            lines[i] = f"{body}  {MARK}" + ("\n" if line.endswith("\n") else "")
+    return "".join(lines)
