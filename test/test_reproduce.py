@@ -182,3 +182,21 @@ def test_relative_score_and_cells():
     assert R.num(float("inf")) == "∞" and R.num(None) == "N/A" and R.num(12345.67, 1) == "12,345.7"
     assert R.side("1.000", {"median": 2.0, "iqr": 0.5}, 3, True) == "1.000 · 2.000±0.500"
     assert R.side("1.000", None, 3, False) == "1.000 · —"
+
+
+def test_parallel_writers_of_one_cached_file_do_not_collide(tmp_path):
+    """Ray jobs that need the same evaluation set simulate and save it at the same time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+
+    from neural_estimator.data.io import load_npz, save_npz
+
+    path = tmp_path / "set.npz"
+    a = {"x": np.arange(200000, dtype=float)}
+    with ThreadPoolExecutor(8) as pool:
+        for f in [pool.submit(save_npz, path, a, {"k": 1}) for _ in range(16)]:
+            f.result()  # the old fixed ".tmp" name raised FileNotFoundError here
+    arrays, meta = load_npz(path)
+    assert np.array_equal(arrays["x"], a["x"]) and meta["k"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["set.npz"]

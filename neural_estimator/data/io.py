@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import threading
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -42,7 +44,9 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, An
     path.parent.mkdir(parents=True, exist_ok=True)
     items = dict(arrays)
     items["meta"] = np.array(json.dumps(meta, sort_keys=True, allow_nan=True))
-    tmp = path.with_name(path.name + ".tmp")
+    # A temporary name of this process and thread: parallel jobs (reproduce's Ray workers) that
+    # simulate the same cached set write the same bytes, and must not rename each other's file.
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         for name in sorted(items):
             buf = io.BytesIO()
