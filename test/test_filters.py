@@ -869,3 +869,24 @@ def test_regularization_jitters_resampled_particles_by_the_spread():
     assert pf.bandwidth == pytest.approx((4 / (512 * (4 + 2))) ** (1 / 8))
     with pytest.raises(EstimatorError, match="regularization must be a finite number >= 0"):
         ParticleFilter(s, regularization=-1)
+
+
+def test_compiled_systematic_resampling_equals_numpy_per_row():
+    from neural_estimator.filters import compiled as ck
+
+    rng = np.random.default_rng(4)
+    for N in (1, 7, 256):
+        w = rng.dirichlet(np.full(N, 0.3), size=5)
+        w[1] = 0.0
+        w[1, N // 2] = 1.0  # a collapsed row
+        u = rng.random(5)
+        X = rng.normal(size=(5, N, 3))
+        need = np.array([True, True, False, True, True])
+        got = X.copy()
+        ck.systematic_resample_rows(got, w, u, need)
+        for r in range(5):
+            if need[r]:
+                idx = nm.systematic_resample(w[r : r + 1], u[r : r + 1])[0]
+                np.testing.assert_array_equal(got[r], X[r, idx])
+            else:
+                np.testing.assert_array_equal(got[r], X[r])

@@ -276,3 +276,32 @@ def linear_log_likelihood(X, H, identity, y, inv_sd, logw):
                 e = (yr[j] - hx) * inv_sd[j]
                 acc += e * e
             logw[r, i] += -0.5 * acc
+
+
+# ---- systematic resampling ------------------------------------------------------------------------
+@nb.njit(nogil=True, cache=True)
+def systematic_resample_rows(X, w, offsets, need):
+    """X[r] <- X[r, idx_r] for the rows r with need[r], in place: systematic resampling with
+    positions p_i = (offsets[r] + i) / N and idx_r[i] = the first j with p_i < c_j, c the cumulative
+    weights with c_{N-1} set to 1 (``numerics.systematic_resample`` on one row, walked in O(N))."""
+    b, N, n = X.shape
+    tmp = np.empty((N, n))
+    c = np.empty(N)
+    for r in range(b):
+        if not need[r]:
+            continue
+        acc = 0.0
+        for j in range(N):
+            acc += w[r, j]
+            c[j] = acc
+        c[N - 1] = 1.0
+        j = 0
+        for i in range(N):
+            p = (offsets[r] + i) / N
+            while j < N - 1 and p >= c[j]:
+                j += 1
+            for m in range(n):
+                tmp[i, m] = X[r, j, m]
+        for i in range(N):
+            for m in range(n):
+                X[r, i, m] = tmp[i, m]

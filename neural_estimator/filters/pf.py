@@ -224,9 +224,13 @@ class ParticleFilter(MemberFilter):
             return
         rows = np.flatnonzero(need)
         N, n = self.N, self.scenario.dx
-        idx = systematic_resample(w[rows], offsets[rows])  # (r, N) into each row's particles
-        flat = (idx + (rows * N)[:, None]).ravel()
-        Xr = np.take(X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
+        if self._compiled:  # the same systematic resampling, walked per row in place
+            ck.systematic_resample_rows(X, w, offsets, need)
+            Xr = X[rows]
+        else:
+            idx = systematic_resample(w[rows], offsets[rows])  # (r, N) into each row's particles
+            flat = (idx + (rows * N)[:, None]).ravel()
+            Xr = np.take(X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
         if self.hp.rejuvenation_std > 0:
             # drawn for every stream of the block, so a stream's numbers do not depend on the others
             z = self.block_rng(block, PHASE_REJUVENATE).standard_normal(X.shape)[rows]
