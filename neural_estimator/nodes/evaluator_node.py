@@ -90,10 +90,10 @@ class EvaluatorNode(Node):
         self._progress = (0, time.monotonic())  # (messages recorded, when that number last changed)
         self.closed = False
         self.description = None
-        if p.scenario:
-            from neural_estimator.nodes.common import build_scenario, load_plugins
+        from neural_estimator.nodes.common import build_scenario, load_plugins
 
-            load_plugins(p.plugins)
+        load_plugins(p.plugins)  # also for scoring a recorded plugin scenario
+        if p.scenario:
             self.description = build_scenario(p.scenario, p.set).describe()
         self._last_stream = None  # monotonic time of the last observation / truth / estimate message
         self.get_logger().info(f"recording to {self.bag.path}")
