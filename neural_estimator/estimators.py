@@ -179,6 +179,15 @@ def make_estimator(
     m = check_method(method)
     if m in _CLASSICAL:
         return _load(_CLASSICAL[m])(scenario, seed=seed, **options)
+    import inspect
+
     from neural_estimator.models.checkpoint import load_neural_estimator
 
+    # an unknown option is the caller's one-line error, not a TypeError from deep inside
+    valid = [n for n in inspect.signature(load_neural_estimator).parameters
+             if n not in ("method", "scenario", "checkpoint", "device")]
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        raise EstimatorError(f"{m}: unknown option(s) {', '.join(unknown)}; valid: {', '.join(valid)}"
+                             + (" (torch threads: the threads setting, not an option)" if "threads" in unknown else ""))
     return load_neural_estimator(m, scenario, checkpoint=checkpoint, device=device, **options)

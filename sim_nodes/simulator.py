@@ -11,14 +11,18 @@ Publishes (relative names, layout of :mod:`neural_estimator.bags.messages`):
 - per step, ``observation`` then ``ground_truth`` (sensor_msgs/JointState, reliable +
   transient_local, KEEP_LAST ``history_depth``).
 
-Losing nothing at start-up, the choice made here: the node waits until ``wait_for_subscribers``
-subscriptions match the observation topic (the launcher sets it to the number of estimators plus
-the evaluator; ``wait_timeout`` bounds the wait), then ``start_delay`` more seconds so that the
-other pairs (estimates -> evaluator) finish discovery. Because the streams are also
-transient_local with a deep history, a subscriber that still matches a little late (the recorder
-subscribes on discovery) receives the first ``history_depth`` messages it missed. The same depth is
-the backlog a slow subscriber may build without losing anything (the launcher sets it to the whole
-run), and at the end the node stays until every subscriber acknowledged every message (``linger``).
+Losing nothing at start-up, whatever order the nodes are started in: the node waits until
+``wait_for_subscribers`` subscriptions match the observation topic (default 1: started by hand,
+it waits for its first estimator or recorder; the launcher sets it to the number of estimators
+plus the evaluator; ``wait_timeout`` bounds the wait), then ``start_delay`` more seconds. The
+streams are transient_local with a deep history, and the estimator and evaluator subscribe
+transient_local, so a subscriber that joins later, even after the run, receives the first
+``history_depth`` messages it missed as long as this node is up: after the run it stays
+``stay_after_run`` seconds for such late joiners, then until every subscriber acknowledged every
+message (``linger``). The same depth is the backlog a slow subscriber may build without loss.
+
+Time: with ``publish_clock`` the node publishes ``/clock`` (rosgraph_msgs/Clock) at each step's
+stamp, so nodes started with ``use_sim_time:=true`` live on the simulation's time.
 
 The data are :func:`neural_estimator.data.simulate` of (scenario, trajectories, horizon, seed):
 the same bytes as ``neural-estimator simulate`` writes. Parameters: ``params/simulator.yaml``.
@@ -35,6 +39,7 @@ import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import String
 
 from neural_estimator.bags import messages as M
@@ -63,13 +68,15 @@ class SimulatorParams:
     trajectories: int = param(1, "number of trajectories, published one after the other")
     horizon: int = param(0, "steps per trajectory; 0 = the scenario's default")
     rate_hz: float = param(0.0, "steps published per second; 0 = real time (1 / dt)")
-    wait_for_subscribers: int = param(0, "observation subscriptions to wait for before starting")
+    wait_for_subscribers: int = param(1, "observation subscriptions to wait for before starting (0 = start at once)")
     wait_timeout: float = param(30.0, "seconds to wait for them (then start anyway, with a warning); 0 = forever")
     start_delay: float = param(0.5, "extra seconds before the first step (discovery of the other topics)")
     history_depth: int = param(10000, "depth of the observation / ground-truth publishers (transient_local): the backlog a slow subscriber may build without loss")
     publish_ground_truth: bool = param(True, "publish ground_truth")
     exit_when_done: bool = param(True, "shut down after the run (after linger seconds)")
     linger: float = param(30.0, "most seconds to wait after the run until every subscriber acknowledged every message")
+    stay_after_run: float = param(10.0, "seconds to stay up after the run so that late subscribers still get the history")
+    publish_clock: bool = param(False, "publish /clock at each step's stamp (for nodes with use_sim_time:=true)")
 
 
 class SimulatorNode(Node):
@@ -91,6 +98,7 @@ class SimulatorNode(Node):
         self.pub_status = self.create_publisher(String, M.RUN_STATUS, latched_qos())
         self.pub_obs = self.create_publisher(JointState, M.OBSERVATION, stream_qos(p.history_depth))
         self.pub_truth = self.create_publisher(JointState, M.GROUND_TRUTH, stream_qos(p.history_depth))
+        self.pub_clock = self.create_publisher(ClockMsg, "/clock", 10) if p.publish_clock else None
         self.get_logger().info(
             f"{self.scenario.name}: {p.trajectories} trajectories x {self.horizon} steps at {self.rate:g} Hz "
             f"(seed {p.seed}, dt {self.scenario.dt:g} s)"
@@ -150,6 +158,10 @@ class SimulatorNode(Node):
                 elif wait < -0.01:
                     late += 1
                 stamp = M.step_stamp_ns(start_ns, g, period)
+                if self.pub_clock is not None:
+                    clock = ClockMsg()
+                    clock.clock.sec, clock.clock.nanosec = divmod(stamp, 1_000_000_000)
+                    self.pub_clock.publish(clock)
                 u_prev = d.u[n, k - 1] if k else zeros
                 self.pub_obs.publish(obs_codec.encode(stamp, n, k, np.concatenate([d.y[n, k], u_prev])))
                 if p.publish_ground_truth:
@@ -163,6 +175,8 @@ class SimulatorNode(Node):
             f"{late} steps more than 10 ms late)"
         )
         if p.exit_when_done:
+            if p.stay_after_run > 0 and self._stop.wait(p.stay_after_run):
+                return
             self._wait_for_acks()
             request_shutdown(self, 0)
 

@@ -480,7 +480,7 @@ def test_replay_equals_run_and_reads_any_order(tmp_path):
         for t, i in enumerate(order):
             out.write(msgs[i][0], t, msgs[i][3])
         out.write("/observation", len(msgs), M.encode_vector(0, s.name, 0, 3, ["bad"], [1.0]))
-    res = replay(shuffled, ["ekf", "ukf"], tmp_path / "out.mcap")
+    res = replay(shuffled, ["ekf", "ukf"], tmp_path / "out.mcap", order="identity")
     assert res.estimates == {"ekf": 30, "ukf": 30} and res.rejected == {"ekf": 1, "ukf": 1}
     assert res.per_step_us("ekf") > 0
     run = bag_to_arrays(res.path)

@@ -6,6 +6,8 @@ processes) load it through their ``plugins`` parameter: observations carry a con
 
 from __future__ import annotations
 
+import itertools
+import json
 import random
 import signal
 import subprocess
@@ -126,8 +128,9 @@ class Nodes:
         self.log_dir = log_dir
         self.procs: dict[str, subprocess.Popen] = {}
 
-    def start(self, module: str, name: str, **params) -> subprocess.Popen:
-        proc = start_node(node_command(sys.executable, module, name, params), self.log_dir / f"{name}.log", self.env)
+    def start(self, module: str, name: str, extra_args: tuple[str, ...] = (), **params) -> subprocess.Popen:
+        cmd = node_command(sys.executable, module, name, params) + list(extra_args)  # extra ROS args (remaps)
+        proc = start_node(cmd, self.log_dir / f"{name}.log", self.env)
         self.procs[name] = proc
         return proc
 
@@ -316,12 +319,18 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         ({"method": "gru", "checkpoint": "/nonexistent/ckpt"}, "does not exist"),
         ({"method": "ukf", "scenario": "no_such_scenario"}, "unknown scenario 'no_such_scenario'"),
         ({"method": "ukf", "queue_depth": "many"}, "parameter queue_depth must be an integer, got 'many'"),
+        ({"method": "ukf", "options": ["bogus=1"]}, "ukf: unknown option(s) bogus"),
+        ({"method": "mamba", "options": ["bogus=1"]}, "mamba: unknown option(s) bogus"),
+        ({"method": "mamba", "options": ["threads=1"]}, "mamba: unknown option(s) threads"),
+        ({"method": "ukf", "options": ["noequals"]}, "options must be name=value"),
+        ({"method": "ukf", "observation_qos": "fast"}, "observation_qos must be one of reliable, sensor_data"),
     ],
 )
 def test_estimator_refuses_to_start(params, text, nodes):
     nodes.start(ESTIMATOR, "bad", **{"scenario": "lorenz96", **params})
     assert nodes.wait("bad", 60) == 1
-    assert text in nodes.log("bad")
+    log = nodes.log("bad")
+    assert text in log and "Traceback" not in log
 
 
 # ---- recording ends cleanly on signals; a killed recorder's file is recovered --------------------------------
@@ -375,3 +384,161 @@ def test_player_feeds_live_estimator_like_replay(plugin, cart, nodes, tmp_path):
     offline = bag_to_arrays(replay(sample, ["ukf"], tmp_path / "offline.mcap").path)
     np.testing.assert_allclose(live.x_hat["ukf"], offline.x_hat["ukf"], rtol=0, atol=1e-12)
     assert "ukf" in rec.with_name("played.metrics.md").read_text()
+
+
+# ---- started by hand, in any order -----------------------------------------------------------------------------
+_UP = {"sim": ("trajectories x",), "est": ("waiting for the scenario", "ukf on"), "rec": ("recording to",)}
+
+
+@pytest.mark.parametrize("order", list(itertools.permutations(("sim", "est", "rec"))), ids="-".join)
+def test_hand_started_nodes_lose_nothing_in_any_order(order, plugin, nodes, tmp_path):
+    """The README's hand-start commands (defaults, no wait_for_subscribers), one node after the
+    other once the previous one is up; the evaluator on simulation time (/clock from the simulator)."""
+    bag = tmp_path / "hand.mcap"
+    N, T = 2, 40
+    start = {
+        "sim": lambda: nodes.start(SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=N, horizon=T,
+                                   rate_hz=100.0, publish_clock=True),
+        "est": lambda: nodes.start(ESTIMATOR, "est", method="ukf", plugins=[plugin]),
+        "rec": lambda: nodes.start(EVALUATOR, "rec", output=str(bag), plugins=[plugin], use_sim_time=True),
+    }
+    for name in order:
+        start[name]()
+        t0 = time.monotonic()
+        while not any(text in nodes.log(name) for text in _UP[name]):
+            assert time.monotonic() - t0 < 60, nodes.log(name)
+            assert nodes.procs[name].poll() is None, nodes.log(name)
+            time.sleep(0.1)
+    assert nodes.wait("rec", 120) == 0, nodes.log("rec") + nodes.log("est") + nodes.log("sim")
+    with BagReader(bag, strict=True) as reader:
+        counts = {t: c.msgcount for t, c in reader.topics.items()}
+    for topic in ("/observation", "/ground_truth", "/estimates/ukf", "/estimates/ukf/covariance"):
+        assert counts.get(topic) == N * T, (order, counts)
+    metrics = json.loads(bag.with_name("hand.metrics.json").read_text())
+    assert metrics["trajectories"] == N and set(metrics["methods"]) == {"ukf"}
+
+
+# ---- conventions and hostile messages on one estimator ---------------------------------------------------------
+def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
+    """bearings (a declared pose): best-effort publisher with observation_qos:=sensor_data, frame_id,
+    Odometry with covariance, use_sim_time without /clock (diagnostics go on), a stray message of an
+    earlier trajectory (skipped, no reset), a huge step jump (bounded time, /diagnostics go on)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.nodes.common import stream_qos
+    from neural_estimator.replay import OnlineEstimator
+    from neural_estimator.scenarios import make_scenario
+
+    scen = make_scenario("bearings")
+    data = simulate(scen, 2, 10, seed=1)
+    nodes.start(ESTIMATOR, "est", method="ukf", scenario="bearings",
+                observation_qos="sensor_data", frame_id="odom_test", use_sim_time=True, diagnostics_period=0.2,
+                max_gap=10**9, max_gap_seconds=0.2, log_throttle=0.0)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = rclpy.create_node("tester", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        estimates, odoms, diags = [], [], []
+        node.create_subscription(JointState, "estimates/ukf", lambda raw: estimates.append(M.decode_vector(raw)),
+                                 stream_qos(100), raw=True)
+        node.create_subscription(Odometry, "estimates/ukf/odometry", odoms.append, stream_qos(100))
+        node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+        pub = node.create_publisher(JointState, "observation", qos_profile_sensor_data)  # a driver's QoS
+
+        def spin_until(pred, timeout=30.0):
+            t0 = time.monotonic()
+            while not pred():
+                if time.monotonic() - t0 > timeout:
+                    raise AssertionError(f"timed out; estimator log:\n{nodes.log('est')}")
+                ex.spin_once(timeout_sec=0.05)
+
+        spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ukf/odometry") >= 1)
+
+        def obs(n, k, start=10**18):
+            t = M.step_stamp_ns(start, n * 10 + k, M.dt_ns(scen.dt))
+            return M.encode_observation(scen, t, n, k, data.y[n, k], np.zeros(0))
+
+        sent = [obs(0, k) for k in range(10)] + [obs(1, k) for k in range(4)] + [obs(0, 7)] + [obs(1, k) for k in range(4, 10)]
+        for i, raw in enumerate(sent):  # best effort: paced, and each waited for, so nothing is dropped
+            pub.publish(raw)
+            want = min(i + 1, 14) if i < 14 else (14 if i == 14 else i)
+            spin_until(lambda: len(estimates) >= want)
+        ref = OnlineEstimator(make_estimator("ukf", scen), "ukf")
+        expected = [ref.process(raw) for raw in sent]
+        assert [r.status for r in expected].count("stale") == 1
+        assert [(e.trajectory, e.step) for e in estimates] == [(r.trajectory, r.step) for r in expected if r.x_hat is not None]
+        np.testing.assert_allclose(np.array([e.values for e in estimates]),
+                                   np.array([r.x_hat for r in expected if r.x_hat is not None]), rtol=0, atol=1e-9)
+        assert {e.frame_id for e in estimates} == {"odom_test"}
+        spin_until(lambda: len(odoms) >= 20)
+        o = odoms[-1]
+        assert o.header.frame_id == "odom_test" and o.child_frame_id == "base_link"
+        assert o.pose.pose.position.x == pytest.approx(estimates[-1].values[0])
+        assert o.pose.pose.position.y == pytest.approx(estimates[-1].values[1])
+        assert o.twist.twist.linear.x == pytest.approx(estimates[-1].values[2])
+        assert o.pose.covariance[0] > 0 and o.pose.covariance[2 * 6 + 2] == 1e6  # z: not estimated
+
+        # a step jump of ten million: bounded time, diagnostics keep coming during and after it
+        n_diag = len(diags)
+        t0 = time.monotonic()
+        pub.publish(M.encode_observation(scen, 2 * 10**18, 1, 10_000_000, data.y[1, 9], np.zeros(0)))
+        spin_until(lambda: len(estimates) >= 21, timeout=20)
+        assert time.monotonic() - t0 < 15
+        spin_until(lambda: len(diags) >= n_diag + 3)
+
+        def diag_values():
+            for arr in reversed(diags):
+                for st in arr.status:
+                    if "ukf estimator" in st.name:
+                        return {kv.key: kv.value for kv in st.values}
+            return {}
+
+        spin_until(lambda: diag_values().get("estimates published") == "21")
+        values = diag_values()
+        assert values["out-of-order steps"] == "1" and values["stream restarts"] == "1"
+        assert values["trajectory resets"] == "2"  # trajectory 0, trajectory 1: the stray one reset nothing
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    log = nodes.log("est")
+    assert "nothing publishes /clock" in log and "restarted from the prior" in log
+
+
+# ---- a foreign rosbag2 directory without /scenario, played in a namespace --------------------------------------
+def test_player_plays_a_foreign_directory_in_its_namespace(plugin, cart, nodes, tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    data = simulate(cart, 2, 20, seed=5)
+    src = arrays_to_bag(tmp_path / "src.mcap", cart, data.x, data.y, data.u, start_ns=10**18)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    foreign = tmp_path / "foreign"
+    with BagReader(src) as reader, Writer(foreign, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {}
+        for c, t, raw in reader.messages(["/observation", "/ground_truth"]):  # no /scenario, no /run_status
+            if c.topic not in conns:
+                conns[c.topic] = w.add_connection(c.topic, M.JOINT_STATE, typestore=store)
+            w.write(conns[c.topic], t, raw)
+    rec = tmp_path / "ns.mcap"
+    ns = ("-r", "__ns:=/robot1")
+    nodes.start(EVALUATOR, "rec", output=str(rec), methods=["ukf"], scenario="nodecart", plugins=[plugin],
+                idle_timeout=3.0, topics=["/clock"], use_sim_time=True, extra_args=ns)
+    nodes.start(ESTIMATOR, "est", method="ukf", scenario="nodecart", plugins=[plugin], extra_args=ns)
+    nodes.start("neural_estimator.nodes.player_node", "player", bag=str(foreign), rate=10.0, wait_for_subscribers=2,
+                start_delay=0.5, publish_clock=True, extra_args=ns)
+    assert nodes.wait("rec", 90) == 0, nodes.log("rec") + nodes.log("est") + nodes.log("player")
+    with BagReader(rec) as reader:
+        assert {"/robot1/observation", "/robot1/estimates/ukf"} <= set(reader.topics)
+        assert reader.topics["/robot1/estimates/ukf"].msgcount == 40
+        clock = [M.TYPESTORE.deserialize_cdr(raw, "rosgraph_msgs/msg/Clock").clock for _, _, raw in reader.messages(["/clock"])]
+    assert len(clock) > 0 and clock[0].sec >= 10**9  # the bag's time (start 10**18 ns), not the wall clock
+    assert "idle" in nodes.log("rec") or "no run_status" in nodes.log("rec")
+    assert "ukf" in rec.with_name("ns.metrics.md").read_text()

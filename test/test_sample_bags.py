@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neural_estimator.bags import load_bag_dataset
+from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
 from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.scenarios import BUILTIN_SCENARIOS
@@ -17,8 +17,10 @@ ZOO = ROOT / "neural_estimator" / "zoo"
 @pytest.mark.parametrize("scenario", BUILTIN_SCENARIOS)
 def test_sample_bag_replays_through_every_classical_method(scenario, tmp_path, capsys):
     bag = ROOT / "bags" / f"{scenario}.mcap"
-    truth, estimates, _ = load_bag_dataset(bag)
-    assert truth.meta["scenario"] == scenario and truth.n == 2 and not estimates
+    with pytest.raises(BagError, match="no estimate stream"):  # nothing to score: an error, not an empty table
+        load_bag_dataset(bag)
+    truth = bag_to_arrays(bag)
+    assert truth.description["scenario"] == scenario and truth.x.shape[0] == 2 and not truth.x_hat
     out = tmp_path / "r.mcap"
     assert main(["replay", str(bag), "--methods", ",".join(CLASSICAL_METHODS), "--out", str(out),
                  "--option", "pf.n_particles=256"]) == 0

@@ -17,7 +17,7 @@ import numpy as np
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
-from neural_estimator.bags.reader import BagReader
+from neural_estimator.bags.reader import open_bag
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, LATCHED_QOS, STREAM_QOS, BagWriter
 
 
@@ -83,7 +83,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
     """Read a recorded run into arrays.
 
     Args:
-        path: the ``.mcap`` bag (a damaged one is recovered as far as possible, see
+        path: the ``.mcap`` bag or rosbag2 directory (a damaged one is recovered as far as possible, see
             :class:`~neural_estimator.bags.reader.BagReader`).
         namespace: the namespace the streams were published in.
         description: the scenario description to use when the bag has no ``scenario`` message.
@@ -91,7 +91,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
     Raises:
         BagError: no scenario description, or a stream topic holding a different message type.
     """
-    with BagReader(path) as bag:
+    with open_bag(path) as bag:
         roles = {}
         for topic, conn in bag.topics.items():
             role = M.topic_role(topic, namespace)
@@ -131,7 +131,8 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
             except MessageError:
                 rejected[key] = rejected.get(key, 0) + 1
     if desc is None:
-        raise BagError(f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message; pass description= to read it")
+        raise BagError(f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
+                       "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)")
 
     dx, dy = len(desc["state_names"]), len(desc["obs_names"])
     du = len(desc.get("control_names", ()))
@@ -303,29 +304,64 @@ def arrays_to_bag(
     return Path(path)
 
 
-def load_bag_dataset(path: str | Path, *, namespace: str = "/") -> tuple[Any, dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[int, ...]]:
+def load_bag_dataset(
+    path: str | Path, *, namespace: str = "/", description: Mapping[str, Any] | None = None,
+) -> tuple[Any, dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[int, ...]]:
     """A recorded run as the evaluation inputs: ``(truth, {method: (x_hat, P_hat or None)}, angle_states)``.
 
     ``truth`` is a :class:`~neural_estimator.data.Trajectories` of the trajectories that are
-    complete in every stream (ground truth, observations and each estimate stream), so that every
-    method is scored on the same trajectories; ``truth.meta`` records the description, the run info
-    and, under ``"bag"``, what was received, missing and left out.
+    complete in the ground truth, the observations (when recorded) and every scored estimate
+    stream, so that every method is scored on the same trajectories. A method whose stream is
+    complete on fewer than half of the trajectories the methods before it (by coverage) share is
+    left out rather than shrinking everyone's set; ``truth.meta["bag"]`` records what was
+    received, missing, and which trajectories (``left_out``) and methods (``methods_left_out``,
+    with the reason) were not scored.
+
+    Args:
+        path: a ``.mcap`` bag or a rosbag2 directory.
+        namespace: the namespace the streams were published in.
+        description: the scenario description for a bag without a ``scenario`` message.
 
     Raises:
-        BagError: as :func:`bag_to_arrays`, or when no trajectory is complete in every stream.
+        BagError: as :func:`bag_to_arrays`; when the bag has no estimate stream or no ground truth
+            (nothing to score), or when no trajectory is complete in the streams.
     """
     from neural_estimator.data import Trajectories
 
-    run = bag_to_arrays(path, namespace=namespace)
-    complete = np.ones(run.x.shape[0], dtype=bool)
-    for mask in run.present.values():  # a diverged estimate (NaN values) is present, not missing
-        complete &= mask.all(axis=1)
-    if not complete.any():
+    run = bag_to_arrays(path, namespace=namespace, description=description)
+    est_topic = M.resolve_topic(M.estimate_topic("<method>"), namespace)
+    if not run.x_hat:
+        raise BagError(f"{path}: no estimate stream ({est_topic}) to score; add one with "
+                       "`neural-estimator replay BAG --methods ... --out OUT.mcap`")
+    if not run.received.get(M.GROUND_TRUTH):
+        raise BagError(f"{path}: no {M.resolve_topic(M.GROUND_TRUTH, namespace)} messages: nothing to score "
+                       "the estimates against")
+    base = run.present[M.GROUND_TRUTH].all(axis=1)
+    if run.received.get(M.OBSERVATION):
+        base &= run.present[M.OBSERVATION].all(axis=1)
+    coverage = {}
+    for m in run.x_hat:  # a diverged estimate (NaN values) is present, not missing
+        ok = base & run.present[M.estimate_topic(m)].all(axis=1)
+        cov_key = M.covariance_topic(m)
+        if run.received.get(cov_key):
+            ok &= run.present[cov_key].all(axis=1)
+        coverage[m] = ok
+    common = base.copy()
+    kept: list[str] = []
+    methods_left_out: dict[str, str] = {}
+    for m in sorted(coverage, key=lambda m: (-int(coverage[m].sum()), m)):
+        cand = common & coverage[m]
+        if cand.any() and 2 * int(cand.sum()) >= int(common.sum()):
+            common, kept = cand, kept + [m]
+        else:
+            methods_left_out[m] = (f"its stream is complete on {int(coverage[m].sum())} of {int(base.sum())} "
+                                   "trajectories with complete ground truth")
+    if not kept or not common.any():
         raise BagError(
-            f"{path}: no trajectory is complete in every stream (missing cells: "
-            + ", ".join(f"{k} {v}" for k, v in run.missing.items() if v) + ")"
+            f"{path}: no trajectory is complete in the ground truth, observations and an estimate stream "
+            "(missing cells: " + ", ".join(f"{k} {v}" for k, v in run.missing.items() if v) + ")"
         )
-    keep = np.flatnonzero(complete)
+    keep = np.flatnonzero(common)
     meta = dict(run.description)
     meta.update(
         trajectories=int(keep.size),
@@ -333,7 +369,8 @@ def load_bag_dataset(path: str | Path, *, namespace: str = "/") -> tuple[Any, di
         bag={
             "path": str(path),
             "trajectory_ids": run.trajectories[keep].tolist(),
-            "left_out": run.trajectories[~complete].tolist(),
+            "left_out": run.trajectories[~common].tolist(),
+            "methods_left_out": methods_left_out,
             "received": run.received,
             "missing": run.missing,
             "duplicates": run.duplicates,
@@ -342,5 +379,17 @@ def load_bag_dataset(path: str | Path, *, namespace: str = "/") -> tuple[Any, di
         },
     )
     truth = Trajectories(run.x[keep], run.y[keep], run.u[keep], meta)
-    estimates = {m: (xh[keep], run.P_hat[m][keep] if m in run.P_hat else None) for m, xh in sorted(run.x_hat.items())}
+    estimates = {m: (run.x_hat[m][keep], run.P_hat[m][keep] if m in run.P_hat else None) for m in sorted(kept)}
     return truth, estimates, tuple(run.description.get("angle_states", ()))
+
+
+def left_out_note(bag_info: Mapping[str, Any]) -> str:
+    """One line saying what a partly scorable bag left out ('' when nothing was)."""
+    parts = []
+    left = bag_info.get("left_out") or []
+    if left:
+        parts.append(f"{len(left)} incomplete trajectories left out ({', '.join(map(str, left[:10]))}"
+                     + (", ..." if len(left) > 10 else "") + ")")
+    for m, why in (bag_info.get("methods_left_out") or {}).items():
+        parts.append(f"method {m} left out: {why}")
+    return "; ".join(parts)

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator import metrics as metrics_mod
-from neural_estimator.bags.dataset import load_bag_dataset
+from neural_estimator.bags.dataset import left_out_note, load_bag_dataset
 from neural_estimator.expected_failures import mark_rows, notes
 
 
@@ -49,8 +49,8 @@ class BagReport:
 
     def summary(self) -> str:
         """A heading line and the text table."""
-        left = self.bag.get("left_out") or []
-        extra = f"; {len(left)} incomplete trajectories left out" if left else ""
+        note = left_out_note(self.bag)
+        extra = f"; {note}" if note else ""
         lines = notes(self.scenario, sorted(self.reports))
         return (
             f"{self.scenario}: {self.n_trajectories} trajectories x {self.horizon} steps from {self.path.name}{extra}\n"
@@ -59,11 +59,11 @@ class BagReport:
         )
 
 
-def evaluate_bag(path: str | Path, *, namespace: str = "/") -> BagReport:
+def evaluate_bag(path: str | Path, *, namespace: str = "/", description: dict[str, Any] | None = None) -> BagReport:
     """Metrics of each ``estimates/<method>`` stream against ``ground_truth`` (NEES where the
     method published covariances). Trajectories missing a message in any stream are left out for
     every method, so that all methods are scored on the same trajectories."""
-    truth, estimates, angles = load_bag_dataset(path, namespace=namespace)
+    truth, estimates, angles = load_bag_dataset(path, namespace=namespace, description=description)
     reports = {m: metrics_mod.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
     return BagReport(
         path=Path(path),

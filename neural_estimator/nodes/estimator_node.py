@@ -5,7 +5,19 @@
 
 Subscribes ``observation`` (raw CDR, sensor_msgs/JointState); publishes ``estimates/<method>`` and,
 where the method has one, ``estimates/<method>/covariance`` with the observation's stamp and
-identity; ``/diagnostics`` every ``diagnostics_period`` s; service ``~/reset`` (std_srvs/Trigger).
+identity (header.frame_id = ``frame_id``); where the scenario declares a pose
+(``Scenario.pose_states``) also ``estimates/<method>/odometry`` (nav_msgs/Odometry with
+covariance); ``/diagnostics`` every ``diagnostics_period`` s; service ``~/reset`` (std_srvs/Trigger).
+
+Nothing lost when started by hand: the observation subscription is created when the first
+publisher of the topic appears, with that publisher's durability (transient_local when every
+publisher offers it, like ``ros2 bag record``), so an estimator started after the simulator still
+receives the run from its first step out of the simulator's history. Reliability is the
+``observation_qos`` parameter: ``reliable`` (default) or ``sensor_data`` (best effort, matches any
+publisher, e.g. a driver's sensor-data QoS). Estimate publishers are reliable + transient_local
+with a history bounded in messages (``history_depth``) and in memory (``history_mb``), so a late
+recorder or ``ros2 topic echo --qos-durability transient_local`` gets the start of the stream.
+Timers run on the steady clock, so ``use_sim_time`` without ``/clock`` silences nothing.
 The per-message work is :class:`neural_estimator.replay.OnlineEstimator` (the same code as offline
 replay); this node only wires it to topics. Parameters: ``params/estimator.yaml``.
 
@@ -23,8 +35,9 @@ import time
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -43,7 +56,9 @@ from neural_estimator.nodes.common import (
     run_node,
     stream_qos,
 )
-from neural_estimator.replay import DEFAULT_MAX_GAP, OnlineEstimator
+from neural_estimator.replay import DEFAULT_MAX_GAP, DEFAULT_MAX_GAP_SECONDS, OnlineEstimator
+
+OBSERVATION_QOS = ("reliable", "sensor_data")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,9 +78,18 @@ class EstimatorParams:
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
     output_topic: str = param("", "estimate topic; empty = estimates/<method>; covariance goes to <output>/covariance")
     publish_covariance: bool = param(True, "publish the covariance where the method has one")
-    queue_depth: int = param(10000, "subscription queue (reliable, KEEP_LAST): observations buffered while busy")
+    publish_odometry: bool = param(True, "publish nav_msgs/Odometry on <output>/odometry where the scenario declares a pose")
+    frame_id: str = param("map", "header.frame_id of estimates, covariances and odometry (the estimate's coordinate frame)")
+    child_frame_id: str = param("base_link", "child_frame_id of the odometry")
+    observation_qos: str = param("reliable", "observation subscription reliability: reliable or sensor_data (best effort); "
+                                             "durability follows the publishers (transient_local when all offer it)")
+    queue_depth: int = param(10000, "subscription queue (KEEP_LAST): observations buffered while busy")
     history_depth: int = param(10000, "estimate publisher depth (transient_local): a late or slow recorder's backlog")
+    history_mb: float = param(64.0, "memory bound of each estimate publisher's history (MiB): depth = min(history_depth, "
+                                    "history_mb / message size); large covariances get a shorter history")
     max_gap: int = param(DEFAULT_MAX_GAP, "most missing steps bridged by predict-only steps before a restart")
+    max_gap_seconds: float = param(DEFAULT_MAX_GAP_SECONDS, "most seconds spent bridging one gap before a restart "
+                                                            "(bounds the cost of a step jump; 0 = no bound)")
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
@@ -81,12 +105,21 @@ class EstimatorNode(Node):
             raise StartupError(str(exc)) from None
         if p.checkpoint and not _exists(p.checkpoint):
             raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
+        if p.observation_qos not in OBSERVATION_QOS:
+            raise StartupError(f"parameter observation_qos must be one of {', '.join(OBSERVATION_QOS)}, "
+                               f"got {p.observation_qos!r}")
+        if p.history_mb <= 0 or p.history_depth < 1:
+            raise StartupError("history_depth must be >= 1 and history_mb > 0")
         load_plugins(p.plugins)
         self.online: OnlineEstimator | None = None
         self.out_topic = p.output_topic or M.estimate_topic(self.method)
-        self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(p.history_depth))
-        self.pub_cov = None  # created once the method is known to have a covariance (a topic that
-        # never carries a message would keep a recorder waiting for it)
+        self.pub_est = None  # created with the scenario: their depth depends on the message size
+        self.pub_cov = None  # (and a covariance topic that never carries a message would keep a
+        self.pub_odom = None  # recorder waiting for it)
+        self.obs_topic = self.resolve_topic_name(p.observation_topic)
+        self.sub_obs = None  # created when the topic's first publisher appears (see the docstring)
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._sim_time_warned = False
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.stats = _Stats()
         self._last_log: dict[str, float] = {}
@@ -97,10 +130,33 @@ class EstimatorNode(Node):
         else:
             self.get_logger().info(f"waiting for the scenario on '{p.scenario_topic}'")
         self.sub_scenario = self.create_subscription(String, p.scenario_topic, self._on_scenario, latched_qos(), raw=True)
-        obs_qos = QoSProfile(depth=max(1, p.queue_depth), reliability=ReliabilityPolicy.RELIABLE)
-        self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observation, obs_qos, raw=True)
         self.srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
-        self.timer = self.create_timer(p.diagnostics_period, self._on_diagnostics)
+        # steady clock: with use_sim_time and no /clock, ROS-clock timers would never fire
+        self.timer = self.create_timer(p.diagnostics_period, self._on_diagnostics, clock=self._steady)
+        self.discovery = self.create_timer(0.1, self._subscribe_when_published, clock=self._steady)
+        self._subscribe_when_published()
+
+    def _subscribe_when_published(self) -> None:
+        """Create the observation subscription once a JointState publisher exists, with its durability."""
+        pubs = [i for i in self.get_publishers_info_by_topic(self.obs_topic) if i.topic_type == M.JOINT_STATE]
+        p = self.p
+        if p.observation_qos == "reliable":
+            best_effort = [i for i in pubs if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]
+            for i in best_effort:
+                self._warn("besteffort", f"'{self.obs_topic}' has a best-effort publisher ({i.node_name}): it cannot "
+                                         "reach a reliable subscription; start with -p observation_qos:=sensor_data")
+        if self.sub_obs is not None or not pubs:
+            return
+        transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in pubs)
+        qos = QoSProfile(
+            depth=max(1, p.queue_depth),
+            reliability=ReliabilityPolicy.RELIABLE if p.observation_qos == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
+        )
+        self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observation, qos, raw=True)
+        self.get_logger().info(f"subscribed to '{self.obs_topic}' ({p.observation_qos}, "
+                               f"{'transient_local: the publishers history is received' if transient else 'volatile'})")
+
 
     # ---- setup -------------------------------------------------------------------------------------
     def _build(self, scenario) -> None:
@@ -118,15 +174,35 @@ class EstimatorNode(Node):
                                  seed=p.seed, **options)
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
-        self.online = OnlineEstimator(est, self.method, publish_covariance=p.publish_covariance, max_gap=p.max_gap)
+        self.online = OnlineEstimator(est, self.method, publish_covariance=p.publish_covariance, max_gap=p.max_gap,
+                                      max_gap_seconds=p.max_gap_seconds, frame_id=p.frame_id)
+        dx = scenario.dx
+        self.depths = {"estimates": self._depth(dx), "covariance": self._depth(dx * dx)}
+        self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(self.depths["estimates"]))
         if self.online.publish_covariance:
             self.pub_cov = self.create_publisher(JointState, f"{self.out_topic}/{M.COVARIANCE_SUFFIX}",
-                                                 stream_qos(p.history_depth))
+                                                 stream_qos(self.depths["covariance"]))
+        from neural_estimator.nodes.odometry import has_pose
+
+        self.pose_states = dict(getattr(scenario, "pose_states", {}) or {})
+        if p.publish_odometry and has_pose(self.pose_states):
+            from nav_msgs.msg import Odometry
+
+            self._odom_cls = Odometry
+            self.pub_odom = self.create_publisher(Odometry, f"{self.out_topic}/odometry", stream_qos(self._depth(90)))
         self.get_logger().info(
             f"{self.method} on {scenario.name} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}): "
             f"'{self.resolve_topic_name(p.observation_topic)}' -> "
             f"'{self.pub_est.topic_name}'" + (" + covariance" if self.online.publish_covariance else "")
+            + (" + odometry" if self.pub_odom is not None else "")
+            + f" (history {self.depths['estimates']}" + (f"/{self.depths['covariance']}" if self.pub_cov else "") + " msgs)"
         )
+
+    def _depth(self, n_values: int) -> int:
+        """History depth of a stream of ``n_values`` labelled float64s within ``history_mb``
+        (per value: 8 bytes in CDR plus its label and the history's bookkeeping, ~24 bytes)."""
+        size = 200 + 32 * n_values
+        return max(1, min(self.p.history_depth, int(self.p.history_mb * 2**20 // size)))
 
     def _on_scenario(self, raw: bytes) -> None:
         try:
@@ -180,6 +256,12 @@ class EstimatorNode(Node):
         self.pub_est.publish(res.estimate)
         if res.covariance is not None and self.pub_cov is not None:
             self.pub_cov.publish(res.covariance)
+        if self.pub_odom is not None:
+            from neural_estimator.nodes.odometry import make_odometry
+
+            cov = self.online.estimator.covariance
+            self.pub_odom.publish(make_odometry(self._odom_cls, res.stamp_ns, self.p.frame_id, self.p.child_frame_id,
+                                                res.x_hat, None if cov is None else cov[0], self.pose_states))
         s = self.stats
         s.latency.append(time.perf_counter() - t0)
         s.estimated += 1
@@ -193,7 +275,8 @@ class EstimatorNode(Node):
             self._warn("gap", f"{res.filled} observation(s) missing before step {res.step} of trajectory "
                               f"{res.trajectory}: bridged by predict-only steps")
         if res.restarted:
-            self._warn("restart", f"gap longer than max_gap={self.p.max_gap} before step {res.step}: restarted from the prior")
+            self._warn("restart", f"gap before step {res.step} longer than max_gap={self.p.max_gap} steps or "
+                                  f"max_gap_seconds={self.p.max_gap_seconds:g} s: restarted from the prior")
         if res.nonfinite:
             self._warn("nonfinite", f"observation {res.trajectory}/{res.step} has NaN/inf: predict only")
 
@@ -210,6 +293,12 @@ class EstimatorNode(Node):
     # ---- diagnostics -------------------------------------------------------------------------------
     def _on_diagnostics(self) -> None:
         self._check_foreign_publishers()
+        if (not self._sim_time_warned and self.get_parameter("use_sim_time").value
+                and not self.count_publishers("/clock")):
+            self._sim_time_warned = True
+            self.get_logger().warning("use_sim_time is true but nothing publishes /clock: the ROS clock stands "
+                                      "still (timers here use the steady clock; start the simulator or player "
+                                      "with -p publish_clock:=true)")
         s = self.stats
         now = time.monotonic()
         window = s.window(now)
@@ -267,13 +356,13 @@ class EstimatorNode(Node):
     def _check_foreign_publishers(self) -> None:
         """Publishers of another type on the observation topic never reach this node (DDS does not
         match them): say so instead of waiting silently."""
-        for info in self.get_publishers_info_by_topic(self.sub_obs.topic_name):
+        for info in self.get_publishers_info_by_topic(self.obs_topic):
             if info.topic_type != M.JOINT_STATE:
                 key = f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type})"
                 if key not in self._foreign:
                     self._foreign.add(key)
                     self.get_logger().error(
-                        f"'{self.sub_obs.topic_name}' has a publisher of the wrong type: {key}; "
+                        f"'{self.obs_topic}' has a publisher of the wrong type: {key}; "
                         f"expected {M.JOINT_STATE}. Its messages cannot reach this node."
                     )
 

@@ -12,10 +12,15 @@ rosbags rejects). Like ``ros2 bag record`` it subscribes with the QoS the publis
 is delivered), logs receive times, and stores the offered profiles in the channel metadata.
 
 End of a run: after ``run_status`` "complete", when every expected stream holds as many messages
-as the run announced (or when nothing arrived for ``completion_timeout`` s), the bag is closed, the paper's metrics are
+as the run announced (or when nothing arrived for ``completion_timeout`` s; with no estimate
+stream discovered yet, it waits that long for one), or, for a source without ``run_status`` (a
+foreign bag played, your own nodes), when no stream message arrived for ``idle_timeout`` s, the
+bag is closed, the paper's metrics are
 computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
-status 0 (1 if no metrics could be computed). Ctrl-C / SIGTERM close the bag properly too.
+status 0 (1 if no metrics could be computed). Ctrl-C / SIGTERM close the bag properly too. A bag
+without ``/scenario`` is scored with the ``scenario`` (+ ``set``, ``plugins``) parameters. Timers run
+on the steady clock, so ``use_sim_time:=true`` records like the default.
 Parameters: ``params/evaluator.yaml``.
 """
 
@@ -26,6 +31,7 @@ import sys
 import time
 from datetime import datetime
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -55,6 +61,11 @@ class EvaluatorParams:
     queue_depth: int = param(10000, "subscription depth (KEEP_LAST): messages buffered while the node is busy")
     completion_timeout: float = param(30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds")
     chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
+    idle_timeout: float = param(10.0, "without run_status 'complete': end when no stream message arrived for this "
+                                      "many seconds after the first (0 = never)")
+    scenario: str = param("", "scenario to score a run whose source publishes no 'scenario' topic ('' = from the topic)")
+    set: tuple[str, ...] = param((), "constants of that scenario as name=value")
+    plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     compute_metrics: bool = param(True, "compute and write the metrics when the run ends")
     exit_when_done: bool = param(True, "shut down when the run is evaluated")
 
@@ -78,8 +89,16 @@ class EvaluatorNode(Node):
         self.complete_at: float | None = None
         self._progress = (0, time.monotonic())  # (messages recorded, when that number last changed)
         self.closed = False
+        self.description = None
+        from neural_estimator.nodes.common import build_scenario, load_plugins
+
+        load_plugins(p.plugins)  # also for scoring a recorded plugin scenario
+        if p.scenario:
+            self.description = build_scenario(p.scenario, p.set).describe()
+        self._last_stream = None  # monotonic time of the last observation / truth / estimate message
         self.get_logger().info(f"recording to {self.bag.path}")
-        self.timer = self.create_timer(p.discovery_period, self._tick)
+        # steady clock: with use_sim_time and no /clock, a ROS-clock timer would never fire
+        self.timer = self.create_timer(p.discovery_period, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._tick()
 
     # ---- discovery -----------------------------------------------------------------------------------
@@ -131,12 +150,15 @@ class EvaluatorNode(Node):
 
     def _recorder(self, name: str, role: M.TopicRole | None):
         is_status = role is not None and role.kind == M.RUN_STATUS
+        is_stream = role is not None and role.kind not in (M.RUN_STATUS, M.SCENARIO)
 
         def record(raw: bytes, info) -> None:
             if self.closed:
                 return
             self.bag.write(name, info["received_timestamp"], raw, publish_time_ns=info["source_timestamp"])
             self.counts[name] += 1
+            if is_stream:
+                self._last_stream = time.monotonic()
             if is_status:
                 self._on_status(raw)
 
@@ -167,6 +189,11 @@ class EvaluatorNode(Node):
 
     def _check_done(self) -> None:
         if self.complete_at is None or self.expected is None:
+            idle = self.p.idle_timeout
+            if idle > 0 and self._last_stream is not None and time.monotonic() - self._last_stream > idle:
+                self.get_logger().warning(f"no run_status 'complete' and no stream message for {idle:g} s: "
+                                          "ending the recording")
+                self._finish()
             return
         lagging = {t: self.counts.get(t, 0) for t in self._required() if self.counts.get(t, 0) < self.expected}
         now = time.monotonic()
@@ -176,6 +203,9 @@ class EvaluatorNode(Node):
         stalled = now - max(self._progress[1], self.complete_at) > self.p.completion_timeout
         if lagging and not stalled:
             return
+        no_estimates = not any(M.topic_role(t, self.ns).kind == "estimate" for t in self.subs if M.topic_role(t, self.ns))
+        if no_estimates and now - self.complete_at <= self.p.completion_timeout:
+            return  # an estimator started after the run still serves it from its history: wait for it
         if lagging:
             self.get_logger().warning(
                 f"streams still short of {self.expected} messages and nothing new for {self.p.completion_timeout:g} s: "
@@ -210,7 +240,7 @@ class EvaluatorNode(Node):
         from neural_estimator.metrics import MetricsError
 
         try:
-            report = evaluate_bag(self.bag.path, namespace=self.ns)
+            report = evaluate_bag(self.bag.path, namespace=self.ns, description=self.description)
             paths = write_report(report)
         except (BagError, MetricsError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")

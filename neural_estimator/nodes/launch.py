@@ -175,7 +175,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
         "scenario": cfg.scenario, "set": list(cfg.set), "plugins": list(cfg.plugins),
         "noise_scale": float(cfg.noise_scale), "seed": cfg.seed, "trajectories": cfg.trajectories,
         "horizon": cfg.horizon, "rate_hz": float(cfg.rate_hz), "wait_for_subscribers": len(cfg.methods) + 1,
-        "wait_timeout": 120.0, "start_delay": 1.0, "history_depth": depth, "linger": 120.0,
+        "wait_timeout": 120.0, "start_delay": 1.0, "history_depth": depth, "linger": 120.0, "stay_after_run": 0.0,
     })))
 
     procs: dict[str, subprocess.Popen] = {}

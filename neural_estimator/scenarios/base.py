@@ -96,6 +96,9 @@ class Scenario(ABC):
     control_units: ClassVar[tuple[str, ...]] = ()
     angle_states: ClassVar[tuple[int, ...]] = ()  # wrapped in errors, circular means, filter updates
     angle_obs: ClassVar[tuple[int, ...]] = ()  # wrapped in innovations
+    # Which state components are a pose and its rates, for nav_msgs/Odometry output: keys among
+    # x, y, z, roll, pitch, yaw (pose) and vx, vy, vz, wx, wy, wz (twist), values state indices.
+    pose_states: ClassVar[dict[str, int]] = {}
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         cfg = config if config is not None else self.Config()

@@ -84,6 +84,7 @@ class Bearings(Scenario):
     name = "bearings"
     Config = BearingsConfig
     state_names = ("px", "py", "vx", "vy")
+    pose_states = {"x": 0, "y": 1, "vx": 2, "vy": 3}  # planar pose for Odometry output
     state_units = ("m", "m", "m/s", "m/s")
     obs_names = ("bearing",)
     obs_units = ("rad",)

@@ -118,6 +118,8 @@ class PlanarQuadrotor(Scenario):
     name = "quadrotor"
     Config = QuadrotorConfig
     state_names = ("x", "z", "phi", "x_dot", "z_dot", "phi_dot")
+    # Odometry output: the x-z plane, phi a rotation about y (pitch)
+    pose_states = {"x": 0, "z": 1, "pitch": 2, "vx": 3, "vz": 4, "wy": 5}
     state_units = ("m", "m", "rad", "m/s", "m/s", "rad/s")
     obs_names = ("y0", "y1", "y2")
     obs_units = ("", "", "")

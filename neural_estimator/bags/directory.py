@@ -1,0 +1,175 @@
+"""A rosbag2 bag directory (``metadata.yaml`` + one or more ``.mcap`` files) read as one bag.
+
+``ros2 bag record`` writes a directory, not a file: ``metadata.yaml`` lists the storage files
+(``relative_file_paths``) that split recording produced. :class:`BagDirectory` opens each file
+with :class:`~neural_estimator.bags.reader.BagReader` (so a damaged or unfinished file is
+recovered as far as it can be) and merges them: one :class:`Connection` per topic, messages in
+log-time order across files (ties: file order, then order in the file). It offers the reader's
+interface, so every verb, the player and the metrics take either a file or a directory; use
+:func:`open_bag`, which picks the right one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import warnings
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from neural_estimator.bags.errors import BagError, BagWarning
+from neural_estimator.bags.reader import BagDamage, BagReader, Connection
+
+METADATA_FILE = "metadata.yaml"
+
+
+def bag_files(path: str | Path) -> list[Path]:
+    """The ``.mcap`` files of a rosbag2 directory, in recording order (``metadata.yaml``'s
+    ``relative_file_paths`` where it lists them, else the directory's ``*.mcap`` sorted by name)."""
+    root = Path(path)
+    meta = root / METADATA_FILE
+    listed: list[str] = []
+    if meta.is_file():
+        import yaml
+
+        try:
+            info = yaml.safe_load(meta.read_text()) or {}
+            listed = list((info.get("rosbag2_bagfile_information") or {}).get("relative_file_paths") or [])
+        except (yaml.YAMLError, AttributeError, TypeError) as exc:
+            raise BagError(f"{meta}: unreadable rosbag2 metadata ({exc})") from None
+        storage = (info.get("rosbag2_bagfile_information") or {}).get("storage_identifier", "mcap")
+        if storage not in ("mcap", "", None):
+            raise BagError(f"{root}: storage {storage!r} is not supported (only mcap; convert with "
+                           f"`rosbags-convert` or `ros2 bag convert`)")
+    files = [root / f for f in listed] if listed else sorted(root.glob("*.mcap"))
+    if not files:
+        raise BagError(f"{root}: a directory without .mcap files (not a rosbag2 mcap bag)")
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise BagError(f"{root}: {METADATA_FILE} lists missing file(s): {', '.join(missing)}")
+    return files
+
+
+class BagDirectory:
+    """The files of a rosbag2 directory as one bag (see the module docstring)."""
+
+    def __init__(self, path: str | Path, *, strict: bool = False) -> None:
+        self.path = Path(path)
+        self.strict = strict
+        self.parts: list[BagReader] = []
+        self.connections: list[Connection] = []
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.profile = ""
+        self.damage: BagDamage | None = None
+        self._map: list[dict[int, Connection]] = []  # per part: its channel id -> merged connection
+
+    def open(self) -> "BagDirectory":
+        if self.parts:
+            return self
+        files = bag_files(self.path)
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", BagWarning)
+                for f in files:
+                    self.parts.append(BagReader(f, strict=self.strict).open())
+        except BaseException:
+            self.close()
+            raise
+        by_topic: dict[str, Connection] = {}
+        for part in self.parts:
+            mapping = {}
+            for c in part.connections:
+                merged = by_topic.get(c.topic)
+                if merged is None:
+                    merged = by_topic[c.topic] = dataclasses.replace(c, id=len(by_topic) + 1, msgcount=0)
+                elif merged.msgtype != c.msgtype:
+                    self.close()
+                    raise BagError(f"{self.path}: topic {c.topic!r} holds {merged.msgtype} in one file and "
+                                   f"{c.msgtype} in {part.path.name}")
+                merged.msgcount += c.msgcount
+                mapping[c.id] = merged
+            self._map.append(mapping)
+            self.metadata.update(part.metadata)
+            self.profile = self.profile or part.profile
+        self.connections = list(by_topic.values())
+        damaged = [p.damage for p in self.parts if p.damage is not None]
+        if damaged:
+            self.damage = damaged[0] if len(damaged) == 1 else dataclasses.replace(
+                damaged[0], path=str(self.path), lost_bytes=sum(d.lost_bytes for d in damaged),
+                chunks_lost=sum(d.chunks_lost for d in damaged),
+                messages_recovered=self.message_count,
+                problems=tuple(f"{Path(d.path).name}: {p}" for d in damaged for p in d.problems))
+        for w in caught:  # re-announce the files' damage as the directory's
+            warnings.warn(str(w.message), BagWarning, stacklevel=2)
+        return self
+
+    def close(self) -> None:
+        for part in self.parts:
+            part.close()
+        self.parts = []
+
+    def __enter__(self) -> "BagDirectory":
+        return self.open()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    @property
+    def topics(self) -> dict[str, Connection]:
+        return {c.topic: c for c in self.connections}
+
+    @property
+    def message_count(self) -> int:
+        return sum(c.msgcount for c in self.connections)
+
+    @property
+    def start_time(self) -> int:
+        times = [p.start_time for p in self.parts if p.message_count]
+        return min(times) if times else 0
+
+    @property
+    def end_time(self) -> int:
+        return max([p.end_time for p in self.parts if p.message_count] or [0])
+
+    def connection(self, topic: str, msgtype: str | None = None) -> Connection:
+        conn = self.topics.get(topic)
+        if conn is None:
+            raise BagError(f"{self.path}: no topic {topic!r} (topics: {', '.join(sorted(self.topics)) or 'none'})")
+        if msgtype is not None and conn.msgtype != msgtype:
+            raise BagError(f"{self.path}: topic {topic!r} holds {conn.msgtype}, expected {msgtype}")
+        return conn
+
+    def messages(self, topics: Iterable[str] | None = None, start: int | None = None,
+                 stop: int | None = None) -> Iterator[tuple[Connection, int, bytes]]:
+        """``(connection, log_time_ns, raw)`` of every file, merged in log-time order."""
+        if not self.parts:
+            raise BagError(f"{self.path}: reader is not open (use it as a context manager)")
+        wanted = None if topics is None else list(topics)
+
+        def stream(i: int, part: BagReader):
+            for conn, t, raw in part.messages(wanted, start, stop):
+                yield t, i, self._map[i][conn.id], raw
+
+        merged = heapq.merge(*(stream(i, p) for i, p in enumerate(self.parts)), key=lambda m: (m[0], m[1]))
+        for t, _, conn, raw in merged:
+            yield conn, t, raw
+
+    __iter__ = messages
+
+    def decoded(self, topics: Iterable[str] | None = None) -> Iterator[tuple[Connection, int, Any]]:
+        for conn, t, raw in self.messages(topics):
+            yield conn, t, self.deserialize(raw, conn)
+
+    def deserialize(self, raw: bytes, conn: Connection) -> Any:
+        return self.parts[0].deserialize(raw, conn)
+
+
+def open_bag(path: str | Path, *, strict: bool = False) -> BagReader | BagDirectory:
+    """A reader (not yet opened: use ``with``) for a ``.mcap`` file or a rosbag2 directory."""
+    p = Path(path)
+    if p.is_dir():
+        return BagDirectory(p, strict=strict)
+    if not p.exists():
+        raise BagError(f"{p}: no such bag file or directory")
+    return BagReader(p, strict=strict)
