@@ -372,3 +372,65 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     np.testing.assert_allclose(a, b, atol=1e-5)
     with pytest.raises(EstimatorError, match="expected a boolean"):
         NeuralEstimator(oscillator, model, norm, "gru", compile_step="maybe")
+
+
+# ---- the zoo script: resumable across runs, cards with budget and convergence ---------------------
+def _train_zoo():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_zoo.py"
+    spec = importlib.util.spec_from_file_location("train_zoo", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path, monkeypatch):
+    import time
+    from types import SimpleNamespace
+
+    import neural_estimator.models.training as training
+
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo),
+            "--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6",
+            "--eval-trajectories", "4", "--max-epochs", "3", "--hours", "1", "--quiet"]
+    work = state / "test_spinner-gru"
+    # first run: the session's time runs out after two epochs (train() reads the clock before each epoch)
+    checks = iter([0.0, 0.0])  # read before each epoch: two epochs start, the third does not
+    clock = SimpleNamespace(time=lambda: next(checks, 1e12), perf_counter=time.perf_counter)
+    monkeypatch.setattr(training, "time", clock)
+    monkeypatch.setattr(zoo_script.time, "time", lambda: 0.0)
+    assert zoo_script.main(args) == 0
+    run = zoo_script.resume_state(work)
+    assert run["epoch"] == 2 and not zoo_script.finished(work) and not (zoo / work.name).exists()
+    # the next run resumes from epoch 2 and finishes the epoch budget
+    monkeypatch.undo()
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    assert zoo_script.main(args) == 0
+    card = json.loads((zoo / work.name / "card.json").read_text())
+    t = card["training"]
+    assert [h["epoch"] for h in t["history"]] == [1, 2, 3] and t["stopped"] == "max epochs"
+    assert t["budget"]["max_epochs"] == 3 and t["budget"]["windows_per_epoch"] == 48
+    assert t["converged"] is False and t["lr_reductions"] == 0
+    assert card["metrics"]["set"]["trajectories"] == 4
+    assert sorted(p.name for p in (zoo / work.name).iterdir()) == ["card.json", "model.safetensors"]
+    assert zoo_script.finished(work)
+    # the resumed run equals an uninterrupted one
+    ref = train("test_spinner", "gru", tmp_path / "ref",
+                TrainConfig(trajectories=12, windows_per_epoch=48, val_trajectories=6, epochs=3,
+                            eval_trajectories=4, cache_dir=str(tmp_path / "cache")), progress=False)
+    w_ref, w_zoo = weights(ref), weights(zoo / work.name)
+    assert all(torch.equal(w_ref[k], w_zoo[k]) for k in w_ref)
+
+
+def test_converged_rule():
+    from neural_estimator.models.training import converged, lr_reductions
+
+    hist = [{"lr": lr} for lr in (2e-3, 1e-3, 1e-3, 5e-4, 2.5e-4)]
+    assert lr_reductions(hist, 2e-3) == 3 and converged(None, hist, 2e-3)
+    assert not converged("max epochs", hist[:3], 2e-3)
+    assert converged("early stopping: no lower validation loss in 30 epochs", [], 2e-3)
