@@ -434,3 +434,29 @@ def test_converged_rule():
     assert lr_reductions(hist, 2e-3) == 3 and converged(None, hist, 2e-3)
     assert not converged("max epochs", hist[:3], 2e-3)
     assert converged("early stopping: no lower validation loss in 30 epochs", [], 2e-3)
+
+
+def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
+    """A zoo card's "converged" must follow from its own history: early stopping (patience epochs after the
+    best one, none lower) or >= 3 learning-rate reductions. Cards written before the rule carry no claim."""
+    from pathlib import Path
+
+    from neural_estimator.models.training import converged, lr_reductions
+
+    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+    cards = sorted(zoo.glob("*/card.json"))
+    assert cards
+    for path in cards:
+        card = json.loads(path.read_text())
+        t = card["training"]
+        if "converged" not in t:  # trained before the convergence rule existed: no claim to check
+            continue
+        for key in ("budget", "lr_reductions", "convergence_rule", "history", "stopped"):
+            assert key in t, f"{path}: training.{key} missing"
+        hist, lr0 = t["history"], t["recipe"]["lr"]
+        assert t["lr_reductions"] == lr_reductions(hist, lr0), path
+        if t["stopped"].startswith("early stopping"):  # the curve must show it
+            patience = t["recipe"]["patience"]
+            best = min(range(len(hist)), key=lambda i: hist[i]["val_loss"])
+            assert len(hist) - 1 - best >= patience, f"{path}: early stopping without {patience} epochs after the best"
+        assert t["converged"] == converged(t["stopped"], hist, lr0), path
