@@ -78,12 +78,13 @@ def gemm_rate(args: argparse.Namespace, reps: int = 20) -> float:
     mats = [(torch.randn(m, k), torch.randn(k, n)) for m, k, n in shapes]
     for a, b in mats:
         a @ b
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(reps):
         for a, b in mats:
             a @ b
-    seconds = time.perf_counter() - t0
-    return reps * sum(2 * m * k * n for m, k, n in shapes) / seconds / 1e9
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    flops = reps * sum(2 * m * k * n for m, k, n in shapes)
+    return flops / wall / 1e9, flops / cpu / 1e9
 
 
 def bench_arch(arch: str, args: argparse.Namespace, device: torch.device, scan: str | None = None) -> dict[str, float]:
@@ -108,11 +109,12 @@ def bench_arch(arch: str, args: argparse.Namespace, device: torch.device, scan: 
     for _ in range(args.warmup):
         train_step()
     _sync(device)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(args.iters):
         train_step()
     _sync(device)
     train_s = (time.perf_counter() - t0) / args.iters
+    train_cpu_s = (time.process_time() - c0) / args.iters  # this process's CPU time: less sensitive to load
 
     model.eval()
     zv = torch.randn(args.val_batch, args.val_length, args.d_in, device=device)
@@ -128,6 +130,7 @@ def bench_arch(arch: str, args: argparse.Namespace, device: torch.device, scan: 
     val_steps_per_s = args.val_batch * args.val_length / val_s
     return {
         "train_s": train_s,
+        "train_cpu_s": train_cpu_s,
         "params": sum(p.numel() for p in model.parameters()),
         "ms_per_step": 1e3 * train_s,
         "windows_per_s": windows_per_s,
@@ -166,19 +169,21 @@ def main(argv: list[str] | None = None) -> None:
         where = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
     print(f"Training throughput, batch {args.batch} x window {args.window}, d_in={args.d_in}, d_out={args.d_out}, "
           f"{device} ({where}), torch {torch.__version__}, allocator tuned: {tuned}")
-    rate = gemm_rate(args) if device.type == "cpu" else float("nan")
-    print(f"float32 GEMM rate on the models' matmul shapes (this run, same threads): {rate:.1f} GFLOP/s\n")
+    rate, rate_cpu = gemm_rate(args) if device.type == "cpu" else (float("nan"), float("nan"))
+    print(f"float32 GEMM rate on the models' matmul shapes (this run, same threads): {rate:.1f} GFLOP/s per wall "
+          f"second, {rate_cpu:.1f} GFLOP/s per CPU second\n")
     print("| model | path | params | ms / step | windows / s | GFLOP / step | GFLOP/s | % of GEMM rate "
-          "| val steps / s | epoch at 20:1 (s) |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "| windows / CPU-s | GFLOP / CPU-s | % of GEMM CPU rate | val steps / s | epoch at 20:1 (s) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for arch in archs:
         flops = step_flops(arch, args)
         paths = [BEFORE[arch] + " (before)", "fused"] if arch in BEFORE and device.type == "cpu" else ["default"]
         for path in paths:
             r = bench_arch(arch, args, device, None if path == "default" else path.split()[0])
-            gflops = flops / r["train_s"] / 1e9
+            gflops, gflops_cpu = flops / r["train_s"] / 1e9, flops / r["train_cpu_s"] / 1e9
             print(f"| {arch} | {path} | {r['params']:,} | {r['ms_per_step']:.1f} | {r['windows_per_s']:,.0f} | "
                   f"{flops / 1e9:.2f} | {gflops:.1f} | {100 * gflops / rate:.0f} % | "
+                  f"{args.batch / r['train_cpu_s']:,.0f} | {gflops_cpu:.1f} | {100 * gflops_cpu / rate_cpu:.0f} % | "
                   f"{r['val_steps_per_s']:,.0f} | {r['epoch_s']:,.0f} |", flush=True)
     print(f"\nepoch = {EPOCH_WINDOWS:,} training windows + {VAL_STEPS:,} validation timesteps")
     words = [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]

@@ -317,3 +317,94 @@ class SSDScanFn(torch.autograd.Function):
 def ssd_scan_fused(x: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor) -> tuple[Tensor, Tensor]:
     """The fused CPU Mamba-2 scan; same arguments and returns as ``ssd_ref``."""
     return SSDScanFn.apply(x, delta, A, B, C)
+
+
+# ---- the causal depthwise convolution + SiLU in front of both scans ------------------------------
+@njit(**_JIT)
+def _conv_silu_fwd(x, w, bias, pre, out):  # pragma: no cover - compiled
+    """pre[b, t, c] = bias[c] + sum_k w[c, k] x[b, t - K + 1 + k, c] (zero before t = 0); out = silu(pre).
+
+    x (B, T, C) may be a strided view (the in_proj output split in two); pre, out (B, T, C).
+    """
+    Bsz, T, C = x.shape
+    K = w.shape[1]
+    for b in range(Bsz):
+        for t in range(T):
+            for c in range(C):
+                pre[b, t, c] = bias[c]
+            for k in range(K):
+                s = t - K + 1 + k
+                if s >= 0:
+                    for c in range(C):
+                        pre[b, t, c] += w[c, k] * x[b, s, c]
+            for c in range(C):
+                p = pre[b, t, c]
+                out[b, t, c] = p / (1 + math.exp(-p))
+
+
+@njit(**_JIT)
+def _conv_silu_bwd(x, w, pre, gout, gx, gw_rows, gbias_rows):  # pragma: no cover - compiled
+    """Gradients of :func:`_conv_silu_fwd`: gx (B, T, C), and per-row gw (B, C, K), gbias (B, C).
+
+    silu'(p) = s (1 + p (1 - s)) with s = sigmoid(p); gx[s] = sum_k w[c, k] gpre[s + K - 1 - k].
+    """
+    Bsz, T, C = x.shape
+    K = w.shape[1]
+    gpre = np.empty((T, C), dtype=x.dtype)
+    for b in range(Bsz):
+        for t in range(T):
+            for c in range(C):
+                p = pre[b, t, c]
+                sg = 1 / (1 + math.exp(-p))
+                g = gout[b, t, c] * sg * (1 + p * (1 - sg))
+                gpre[t, c] = g
+                gbias_rows[b, c] += g
+        for s in range(T):
+            for c in range(C):
+                gx[b, s, c] = 0
+            for k in range(K):
+                t = s + K - 1 - k
+                if t < T:
+                    for c in range(C):
+                        gx[b, s, c] += w[c, k] * gpre[t, c]
+                        gw_rows[b, c, k] += gpre[t, c] * x[b, s, c]
+
+
+class ConvSiLUFn(torch.autograd.Function):
+    """silu(causal depthwise conv1d(x)) on (B, T, C) inputs, with ``nn.Conv1d``'s weight (C, 1, K) and bias (C,).
+
+    Equal to ``F.silu(conv1d(x.transpose(1, 2), weight, bias, padding=K-1, groups=C)[..., :T]).transpose(1, 2)``
+    (tested), without the transposes, the padded output and the graph of two operations.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor):
+        x = x.detach()
+        w = weight.detach()[:, 0].contiguous()  # (C, K)
+        b = bias.detach().contiguous()
+        Bsz, T, C = x.shape
+        pre, out = x.new_empty(Bsz, T, C), x.new_empty(Bsz, T, C)
+        xn = x.numpy() if x.stride(-1) == 1 else x.contiguous().numpy()
+        _by_rows(lambda x_, w_, b_, p_, o_: _conv_silu_fwd(x_, w_, b_, p_, o_), [xn], [w.numpy(), b.numpy()],
+                 [pre.numpy(), out.numpy()])
+        ctx.save_for_backward(x, w, pre)
+        ctx.weight_shape = weight.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, gout: Tensor):
+        x, w, pre = ctx.saved_tensors
+        gout = gout.contiguous()
+        Bsz, T, C = x.shape
+        gx = x.new_empty(Bsz, T, C)
+        gw_rows = x.new_zeros(Bsz, C, w.shape[1])
+        gb_rows = x.new_zeros(Bsz, C)
+        xn = x.numpy() if x.stride(-1) == 1 else x.contiguous().numpy()
+        _by_rows(lambda x_, p_, g_, w_, gx_, gw_, gb_: _conv_silu_bwd(x_, w_, p_, g_, gx_, gw_, gb_),
+                 [xn, pre.numpy(), gout.numpy()], [w.numpy()], [gx.numpy(), gw_rows.numpy(), gb_rows.numpy()])
+        return gx, gw_rows.sum(0).view(ctx.weight_shape), gb_rows.sum(0)
+
+
+def conv_silu_fused(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+    """silu(causal depthwise conv(x)) for x (B, T, C) on CPU; see :class:`ConvSiLUFn`."""
+    return ConvSiLUFn.apply(x, weight, bias)

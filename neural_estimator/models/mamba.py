@@ -60,9 +60,9 @@ from torch import Tensor
 from neural_estimator.models.ssm_stack import SSMEstimator
 
 try:  # the fused CPU kernels need numba (a dependency; the torch scan stands in if it is missing)
-    from neural_estimator.models.cpu_scan import mamba_scan_fused
+    from neural_estimator.models.cpu_scan import conv_silu_fused, mamba_scan_fused
 except ImportError:
-    mamba_scan_fused = None
+    conv_silu_fused = mamba_scan_fused = None
 
 try:  # optional fused CUDA kernel; absent on CPU-only installs
     from mamba_ssm.ops.selective_scan_interface import selective_scan_fn as _cuda_selective_scan
@@ -235,7 +235,11 @@ class MambaMixer(nn.Module):
         """h (B, T, d) -> (B, T, d); ``reference=True`` uses :func:`selective_scan_ref`."""
         T = h.shape[1]
         x, g = self.in_proj(h).chunk(2, dim=-1)  # (B, T, E) each
-        u = F.silu(self.conv1d(x.transpose(1, 2))[..., :T]).transpose(1, 2)  # (B, T, E)
+        if (not reference and self.cpu_scan == "fused" and conv_silu_fused is not None and x.device.type == "cpu"
+                and x.dtype in (torch.float32, torch.float64)):
+            u = conv_silu_fused(x, self.conv1d.weight, self.conv1d.bias)  # (B, T, E), one fused kernel
+        else:
+            u = F.silu(self.conv1d(x.transpose(1, 2))[..., :T]).transpose(1, 2)  # (B, T, E)
         dt, b, c = self._ssm_inputs(u)
         A = -torch.exp(self.A_log)  # (E, N)
         if self.use_cuda_kernels and _cuda_selective_scan is not None and u.is_cuda and not reference:

@@ -63,9 +63,9 @@ from torch import Tensor
 from neural_estimator.models.ssm_stack import SSMEstimator, rms_norm
 
 try:  # the fused CPU kernels need numba (a dependency; the torch SSD stands in if it is missing)
-    from neural_estimator.models.cpu_scan import ssd_scan_fused
+    from neural_estimator.models.cpu_scan import conv_silu_fused, ssd_scan_fused
 except ImportError:
-    ssd_scan_fused = None
+    conv_silu_fused = ssd_scan_fused = None
 
 try:  # optional fused Triton/CUDA kernel; absent on CPU-only installs
     from mamba_ssm.ops.triton.ssd_combined import mamba_chunk_scan_combined as _cuda_chunk_scan
@@ -230,7 +230,11 @@ class Mamba2Mixer(nn.Module):
         Bsz, T, _ = h.shape
         E, H, P, N = self.d_inner, self.nheads, self.headdim, self.d_state
         g, xbc, dt = self.in_proj(h).split([E, E + 2 * N, H], dim=-1)
-        xbc = F.silu(self.conv1d(xbc.transpose(1, 2))[..., :T].transpose(1, 2))  # (B, T, E + 2N)
+        if (not reference and self.cpu_scan == "fused" and conv_silu_fused is not None and h.device.type == "cpu"
+                and h.dtype in (torch.float32, torch.float64)):
+            xbc = conv_silu_fused(xbc, self.conv1d.weight, self.conv1d.bias)  # (B, T, E + 2N), one fused kernel
+        else:
+            xbc = F.silu(self.conv1d(xbc.transpose(1, 2))[..., :T].transpose(1, 2))  # (B, T, E + 2N)
         x, b, c = xbc.split([E, N, N], dim=-1)
         x = x.reshape(Bsz, T, H, P)  # (B, T, H, P)
         A = -torch.exp(self.A_log)  # (H,)
