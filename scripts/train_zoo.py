@@ -143,6 +143,10 @@ def main(argv=None) -> int:
                 # wall budget spent: finish as it stands (evaluate the best model, final card)
                 cfg = TrainConfig(epochs=run["epoch"], **recipe)
                 train(scenario, method, work, cfg, progress=False)
+                card = json.loads((work / "card.json").read_text())  # say why it stopped, and the real budget
+                card["training"]["stopped"] = f"wall budget spent ({a.model_hours:g} h)"
+                card["training"]["budget"]["max_epochs"] = a.max_epochs
+                (work / "card.json").write_text(json.dumps(card, indent=2) + "\n")
             if finished(work):
                 print(f"installed {install(work, zoo)}", flush=True)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)

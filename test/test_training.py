@@ -3,6 +3,7 @@
 import json
 import math
 import pickle
+import shutil
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -460,3 +461,22 @@ def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
             best = min(range(len(hist)), key=lambda i: hist[i]["val_loss"])
             assert len(hist) - 1 - best >= patience, f"{path}: early stopping without {patience} epochs after the best"
         assert t["converged"] == converged(t["stopped"], hist, lr0), path
+
+
+def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeypatch):
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo),
+            "--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6",
+            "--eval-trajectories", "4", "--quiet"]
+    assert zoo_script.main(args + ["--max-epochs", "1"]) == 0  # one epoch, finished on its epoch budget
+    work = state / "test_spinner-gru"
+    shutil.rmtree(zoo / work.name)
+    card = json.loads((work / "card.json").read_text())
+    card["training"]["stopped"] = "in progress"  # as if that run had been cut off after its first epoch
+    (work / "card.json").write_text(json.dumps(card))
+    assert zoo_script.main(args + ["--max-epochs", "5", "--model-hours", "1e-9"]) == 0
+    t = json.loads((zoo / work.name / "card.json").read_text())["training"]
+    assert t["stopped"] == "wall budget spent (1e-09 h)" and t["epochs_run"] == 1
+    assert t["budget"]["max_epochs"] == 5 and t["converged"] is False
