@@ -11,6 +11,17 @@ validation steps).
     python benchmarks/bench_training.py                      # all six, CPU
     python benchmarks/bench_training.py --archs gru,mamba --device cuda --iters 50
 
+Mamba and Mamba-2 are measured twice in the same run: ``(before)`` is the previous CPU training
+path (Mamba: the stepwise torch scan; Mamba-2: the chunked torch SSD, both with autograd graphs),
+``(fused)`` the numba kernels with hand-written backward (:mod:`neural_estimator.models.cpu_scan`).
+
+Achieved GFLOP/s = model FLOPs of one training step / its time. Model FLOPs are counted by torch's
+FlopCounterMode over forward + backward on the *before* path (matmuls, convolutions and the scans'
+contractions; elementwise work is not counted), so both paths of an architecture are charged the
+same work and their GFLOP/s ratio is their speed ratio. The machine's rate is float32 GEMM on the
+model's own matmul shapes ((B T) x d_model times d_model x 2 E and the like), measured in the same
+run and thread setting.
+
 Prints a markdown table and the command that produced it.
 """
 
@@ -23,10 +34,12 @@ import sys
 import time
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.neural import resolve_device
 from neural_estimator.models.training import weighted_loss
+from neural_estimator.runtime import tune_allocator
 
 EPOCH_WINDOWS = 20_000  # windows per epoch at 20:1 (protocol.windows_per_epoch)
 VAL_STEPS = 8_000 * 500  # validation timesteps per epoch
@@ -37,9 +50,48 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def bench_arch(arch: str, args: argparse.Namespace, device: torch.device) -> dict[str, float]:
+BEFORE = {"mamba": "stepwise", "mamba2": "chunked"}  # the previous CPU scan of each SSM
+
+
+def set_scan(model: torch.nn.Module, scan: str) -> None:
+    """Select the CPU training scan of every SSM mixer in ``model``."""
+    for m in model.modules():
+        if hasattr(m, "cpu_scan"):
+            m.cpu_scan = scan
+
+
+def step_flops(arch: str, args: argparse.Namespace) -> float:
+    """FLOPs of one forward + backward on the *before* path (FlopCounterMode), see the module docstring."""
+    model = build_model(arch, args.d_in, args.d_out)
+    set_scan(model, BEFORE.get(arch, "fused"))
+    z = torch.randn(args.batch, args.window, args.d_in)
+    with FlopCounterMode(display=False) as counter:
+        model(z).square().mean().backward()
+    return float(counter.get_total_flops())
+
+
+def gemm_rate(args: argparse.Namespace, reps: int = 20) -> float:
+    """float32 GFLOP/s of torch matmul on Mamba's GEMM shapes at this batch (forward and backward shapes)."""
+    M, d = args.batch * args.window, 80
+    E = 2 * d
+    shapes = [(M, d, 2 * E), (M, E, 5 + 32), (M, E, d), (M, 2 * E, d), (2 * E, M, d), (d, M, E)]
+    mats = [(torch.randn(m, k), torch.randn(k, n)) for m, k, n in shapes]
+    for a, b in mats:
+        a @ b
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(reps):
+        for a, b in mats:
+            a @ b
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    flops = reps * sum(2 * m * k * n for m, k, n in shapes)
+    return flops / wall / 1e9, flops / cpu / 1e9
+
+
+def bench_arch(arch: str, args: argparse.Namespace, device: torch.device, scan: str | None = None) -> dict[str, float]:
     torch.manual_seed(0)
     model = build_model(arch, args.d_in, args.d_out).to(device).train()
+    if scan:
+        set_scan(model, scan)
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-5)
     z = torch.randn(args.batch, args.window, args.d_in, device=device)
     x = torch.randn(args.batch, args.window, args.d_out, device=device)
@@ -57,11 +109,12 @@ def bench_arch(arch: str, args: argparse.Namespace, device: torch.device) -> dic
     for _ in range(args.warmup):
         train_step()
     _sync(device)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(args.iters):
         train_step()
     _sync(device)
     train_s = (time.perf_counter() - t0) / args.iters
+    train_cpu_s = (time.process_time() - c0) / args.iters  # this process's CPU time: less sensitive to load
 
     model.eval()
     zv = torch.randn(args.val_batch, args.val_length, args.d_in, device=device)
@@ -76,6 +129,8 @@ def bench_arch(arch: str, args: argparse.Namespace, device: torch.device) -> dic
     windows_per_s = args.batch / train_s
     val_steps_per_s = args.val_batch * args.val_length / val_s
     return {
+        "train_s": train_s,
+        "train_cpu_s": train_cpu_s,
         "params": sum(p.numel() for p in model.parameters()),
         "ms_per_step": 1e3 * train_s,
         "windows_per_s": windows_per_s,
@@ -101,6 +156,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    tuned = tune_allocator()  # as the CLI does: large tensors reuse memory instead of new zeroed pages
     device = resolve_device(args.device)
     archs = [a.strip() for a in args.archs.split(",") if a.strip()]
     unknown = [a for a in archs if a not in ARCHITECTURES]
@@ -112,13 +168,23 @@ def main(argv: list[str] | None = None) -> None:
     else:
         where = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
     print(f"Training throughput, batch {args.batch} x window {args.window}, d_in={args.d_in}, d_out={args.d_out}, "
-          f"{device} ({where}), torch {torch.__version__}\n")
-    print("| model | params | ms / step | windows / s | val steps / s | epoch at 20:1 (s) |")
-    print("|---|---:|---:|---:|---:|---:|")
+          f"{device} ({where}), torch {torch.__version__}, allocator tuned: {tuned}")
+    rate, rate_cpu = gemm_rate(args) if device.type == "cpu" else (float("nan"), float("nan"))
+    print(f"float32 GEMM rate on the models' matmul shapes (this run, same threads): {rate:.1f} GFLOP/s per wall "
+          f"second, {rate_cpu:.1f} GFLOP/s per CPU second\n")
+    print("| model | path | params | ms / step | windows / s | GFLOP / step | GFLOP/s | % of GEMM rate "
+          "| windows / CPU-s | GFLOP / CPU-s | % of GEMM CPU rate | val steps / s | epoch at 20:1 (s) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for arch in archs:
-        r = bench_arch(arch, args, device)
-        print(f"| {arch} | {r['params']:,} | {r['ms_per_step']:.1f} | {r['windows_per_s']:,.0f} | "
-              f"{r['val_steps_per_s']:,.0f} | {r['epoch_s']:,.0f} |", flush=True)
+        flops = step_flops(arch, args)
+        paths = [BEFORE[arch] + " (before)", "fused"] if arch in BEFORE and device.type == "cpu" else ["default"]
+        for path in paths:
+            r = bench_arch(arch, args, device, None if path == "default" else path.split()[0])
+            gflops, gflops_cpu = flops / r["train_s"] / 1e9, flops / r["train_cpu_s"] / 1e9
+            print(f"| {arch} | {path} | {r['params']:,} | {r['ms_per_step']:.1f} | {r['windows_per_s']:,.0f} | "
+                  f"{flops / 1e9:.2f} | {gflops:.1f} | {100 * gflops / rate:.0f} % | "
+                  f"{args.batch / r['train_cpu_s']:,.0f} | {gflops_cpu:.1f} | {100 * gflops_cpu / rate_cpu:.0f} % | "
+                  f"{r['val_steps_per_s']:,.0f} | {r['epoch_s']:,.0f} |", flush=True)
     print(f"\nepoch = {EPOCH_WINDOWS:,} training windows + {VAL_STEPS:,} validation timesteps")
     words = [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]
     print("command: python " + " ".join(shlex.quote(a) for a in words))

@@ -331,8 +331,12 @@ _TRAIN_FLAG_HELP = {
     "windows_per_epoch": "windows per epoch (default: the set's timesteps once)",
     "epochs": "maximum epochs (paper: 500)",
     "patience": "early-stopping patience in epochs (paper: 30)",
-    "eval_trajectories": "> 0: metrics of the best model on that many evaluation trajectories, in the card",
+    "eval_trajectories": "metrics of the best model on that many evaluation trajectories, in the card "
+                         "(default 200, a few seconds to minutes; 0: none)",
+    "val_trajectories": "validation trajectories, run in full after every epoch (default: half the training "
+                        "trajectories, at most the paper's 8000; 20:1 -> 2000)",
 }
+_TRAIN_DEFAULTS = {"eval_trajectories": 200, "val_trajectories": None}  # the CLI's, where they differ from TrainConfig's
 
 
 def _add_train(sub, full: bool = True) -> None:
@@ -353,14 +357,17 @@ def _add_train(sub, full: bool = True) -> None:
     for f in dataclasses.fields(TrainConfig):
         if f.name in ("model_overrides", "resume", "keep_resume"):
             continue
-        default = f.default
+        default = _TRAIN_DEFAULTS.get(f.name, f.default)
         flag = "--" + f.name.replace("_", "-")
-        kind = type(default) if default is not None else int
+        kind = type(f.default) if f.default is not None else int
         if f.name == "cache_dir":
             kind = str
         p.add_argument(flag, type=kind, default=default, help=_TRAIN_FLAG_HELP.get(f.name, f"default: {default}"))
     p.add_argument("--resume", action="store_true", help="continue from OUT/resume if it exists")
     p.add_argument("--no-keep-resume", action="store_true", help="delete OUT/resume after the run")
+    p.add_argument("--threads", type=int, default=1, metavar="N",
+                   help="CPU threads for torch and the fused scan kernels (default 1: on this project's 2-core "
+                        "machine one process per core beats two threads in one; see the README)")
     p.set_defaults(func=_cmd_train)
 
 
@@ -377,6 +384,20 @@ def _cmd_train(args) -> int:
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if hasattr(args, f.name)}
     values.update(model_overrides=_parse_model_overrides(args.model_set), resume=args.resume,
                   keep_resume=not args.no_keep_resume)
+    if args.threads < 1:
+        raise CliError(f"--threads must be >= 1, got {args.threads}")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    if values["val_trajectories"] is None:  # scales with the training set: half of it, at most the paper's 8000
+        from neural_estimator.data.protocol import VALIDATION_TRAJECTORIES, training_trajectories
+
+        n_train = values["trajectories"] or training_trajectories(values["data_ratio"], length=values["train_length"])
+        values["val_trajectories"] = max(1, min(VALIDATION_TRAJECTORIES, int(n_train) // 2))
+    if not args.quiet:
+        print(f"validation after every epoch: {values['val_trajectories']} trajectories x {values['train_length']} "
+              f"steps (--val-trajectories); card metrics on {values['eval_trajectories']} evaluation trajectories "
+              f"(--eval-trajectories); {args.threads} thread(s) (--threads)", flush=True)
     try:
         config = TrainConfig(**values)
         path = train(scenario, method, args.out, config, progress=not args.quiet)

@@ -1,16 +1,34 @@
-"""Train the model zoo shipped in neural_estimator/zoo/<scenario>-<method>/ (card.json + model.safetensors).
+"""Train the shipped model zoo with the paper's recipe, resumably, across as many runs as it takes.
 
-The paper's recipe (neural_estimator.models.training.TrainConfig defaults) with a smaller budget so
-the whole zoo trains on a CPU: fewer windows per epoch and fewer epochs (the budget is recorded in
-each card's recipe). Full-scale training is the same command with --full (GPU advised).
+Recipe (neural_estimator.models.training.TrainConfig defaults = the paper's): data ratio 20:1 (4,000
+training trajectories x 500 steps), 20,000 random length-100 windows per epoch in batches of 64,
+AdamW lr 2e-3 (weight decay 1e-5, clip 1.0), ReduceLROnPlateau factor 0.5 / patience 3, early
+stopping patience 30, at most 500 epochs. One deviation, for CPU time: the validation set is
+--val-trajectories (default 1,000) full-length trajectories instead of the paper's 8,000.
 
-    python scripts/train_zoo.py --scenarios lorenz96 --methods gru,lstm,gpt2,filterformer,mamba,mamba2 \
-        --epochs 20 --windows-per-epoch 2000
+Each (scenario, model) trains in STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the
+repository root): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
+AdamW state, scheduler, RNG states, history; safetensors + JSON, no pickle; about 1.5 MB per
+model), small enough to commit so that the next session continues where this one stopped.
+Running the script again resumes every unfinished model from its last finished epoch.
+
+A model is finished when early stopping triggers, the epoch budget (--max-epochs) is spent, or its
+wall-time budget (--model-hours, summed over all runs) is spent. A finished model is evaluated on
+--eval-trajectories trajectories of evaluation set 0 and installed into neural_estimator/zoo/ with its
+card, which records the budget and whether training converged (early stopping triggered, or the
+learning rate reduced at least three times).
+
+Order: Mamba and Mamba-2 on every scenario first, then GRU, LSTM, GPT-2, Filterformer (method-major).
+--hours bounds this invocation: no new epoch starts after it; the state stays resumable.
+
+    python scripts/train_zoo.py --scenarios lorenz96 --methods mamba,mamba2 --hours 1
+    python scripts/train_zoo.py --status        # what is finished, what is in progress
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import time
@@ -18,45 +36,120 @@ from pathlib import Path
 
 import torch
 
-from neural_estimator.estimators import NEURAL_METHODS
-from neural_estimator.models.training import TrainConfig, train
+from neural_estimator.models.training import RESUME_DIR, TrainConfig, train
+from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ROOT = Path(__file__).resolve().parents[1]
+ZOO = ROOT / "neural_estimator" / "zoo"
+STATE = ROOT / "zoo_training"
+ORDER = ("mamba", "mamba2", "gru", "lstm", "gpt2", "filterformer")  # the issue's order
+
+
+def resume_state(work: Path) -> dict | None:
+    """The run record of an unfinished model (epoch, history, ...), or None if it has not started."""
+    path = work / RESUME_DIR / "state.json"
+    return json.loads(path.read_text())["run"] if path.is_file() else None
+
+
+def finished(work: Path) -> bool:
+    """True once the model's card says training ended (early stopping, epoch or wall budget)."""
+    card = work / "card.json"
+    if not card.is_file():
+        return False
+    return json.loads(card.read_text())["training"]["stopped"] != "in progress"
+
+
+def used_seconds(work: Path) -> float:
+    run = resume_state(work)
+    return sum(h["seconds"] for h in run["history"]) if run else 0.0
+
+
+def install(work: Path, zoo: Path) -> Path:
+    """Copy the finished checkpoint (weights + card, not the resume state) into the zoo."""
+    dest = zoo / work.name
+    tmp = dest.with_name(dest.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for name in ("model.safetensors", "card.json"):
+        shutil.copy2(work / name, tmp / name)
+    shutil.rmtree(dest, ignore_errors=True)
+    tmp.rename(dest)
+    return dest
+
+
+def status_line(work: Path) -> str:
+    if finished(work):
+        card = json.loads((work / "card.json").read_text())
+        t = card["training"]
+        rmse = (card.get("metrics") or {}).get("rmse")
+        return (f"{work.name}: finished ({t['stopped']}), {t['epochs_run']} epochs, converged={t.get('converged')}, "
+                f"best val {card['validation_loss']:.4g}, RMSE {rmse}")
+    run = resume_state(work)
+    if run is None:
+        return f"{work.name}: not started"
+    h = run["history"][-1] if run["history"] else {}
+    return (f"{work.name}: in progress, {run['epoch']} epochs ({used_seconds(work) / 3600:.2f} h), "
+            f"best val {run['best']:.4g} at epoch {run['best_epoch']}, lr {h.get('lr')}")
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
-    p.add_argument("--methods", default=",".join(NEURAL_METHODS))
-    p.add_argument("--epochs", type=int, default=10)
-    p.add_argument("--windows-per-epoch", type=int, default=2000)
-    p.add_argument("--val-trajectories", type=int, default=400)
-    p.add_argument("--eval-trajectories", type=int, default=400)
-    p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared 2-core machine)")
-    p.add_argument("--full", action="store_true", help="the paper's full budget (500 epochs, 8000 validation trajectories)")
+    p.add_argument("--methods", default=",".join(ORDER))
+    p.add_argument("--max-epochs", type=int, default=500, help="epoch budget per model (paper: 500)")
+    p.add_argument("--model-hours", type=float, default=24.0,
+                   help="wall-time budget per model, summed over runs; then it is finished as it stands")
+    p.add_argument("--hours", type=float, default=None, help="stop starting epochs after this long (this run)")
+    p.add_argument("--val-trajectories", type=int, default=1000, help="validation set (paper: 8000)")
+    p.add_argument("--trajectories", type=int, default=None, help="training trajectories (default: 20:1 -> 4000)")
+    p.add_argument("--windows-per-epoch", type=int, default=None, help="default: the set's steps once (20:1 -> 20000)")
+    p.add_argument("--eval-trajectories", type=int, default=1000, help="card metrics of a finished model")
+    p.add_argument("--threads", type=int, default=1, help="torch and kernel threads (1: see the README's figures)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--skip-existing", action="store_true")
+    p.add_argument("--state", default=str(STATE), help="directory of the resumable training states")
     p.add_argument("--zoo", default=str(ZOO))
+    p.add_argument("--status", action="store_true", help="print each model's state and exit")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
-    # method-major: every scenario gets the first method before any gets the second
-    for method in a.methods.split(","):
-        for scenario_name in a.scenarios.split(","):
-            scenario = make_scenario(scenario_name)
-            out = Path(a.zoo) / f"{scenario_name}-{method}"
-            if a.skip_existing and (out / "card.json").exists():
+    tune_allocator()
+    state, zoo = Path(a.state), Path(a.zoo)
+    methods = [m.strip() for m in a.methods.split(",") if m.strip()]
+    scenarios = [s.strip() for s in a.scenarios.split(",") if s.strip()]
+    stop_at = time.time() + 3600 * a.hours if a.hours else None
+    for method in methods:  # method-major: every scenario gets Mamba before any gets Mamba-2, and so on
+        for scenario_name in scenarios:
+            work = state / f"{scenario_name}-{method}"
+            if a.status:
+                print(status_line(work))
                 continue
-            cfg = TrainConfig(device=a.device, keep_resume=False, eval_trajectories=a.eval_trajectories) if a.full else TrainConfig(
-                epochs=a.epochs, windows_per_epoch=a.windows_per_epoch, val_trajectories=a.val_trajectories,
-                eval_trajectories=a.eval_trajectories, device=a.device, keep_resume=False)
-            tmp = out.with_name(out.name + ".partial")
-            shutil.rmtree(tmp, ignore_errors=True)
+            if finished(work):
+                continue
+            if stop_at is not None and time.time() >= stop_at:
+                print(f"{work.name}: not started in this run (--hours spent)", flush=True)
+                continue
+            left = 3600 * a.model_hours - used_seconds(work)
+            deadline = time.time() + left if stop_at is None else min(stop_at, time.time() + left)
+            recipe = dict(val_trajectories=a.val_trajectories, trajectories=a.trajectories,
+                          windows_per_epoch=a.windows_per_epoch, device=a.device, eval_trajectories=a.eval_trajectories,
+                          resume=True, keep_resume=True)
+            cfg = TrainConfig(epochs=a.max_epochs, **recipe)
+            scenario = make_scenario(scenario_name)
             t0 = time.time()
-            train(scenario, method, tmp, cfg, progress=False)
-            shutil.rmtree(out, ignore_errors=True)
-            tmp.rename(out)
-            print(f"{scenario_name}-{method}: {time.time() - t0:.0f} s", flush=True)
+            train(scenario, method, work, cfg, progress=not a.quiet, deadline=deadline)
+            run = resume_state(work)
+            if not finished(work) and used_seconds(work) >= 3600 * a.model_hours and run is not None:
+                # wall budget spent: finish as it stands (evaluate the best model, final card)
+                cfg = TrainConfig(epochs=run["epoch"], **recipe)
+                train(scenario, method, work, cfg, progress=False)
+                card = json.loads((work / "card.json").read_text())  # say why it stopped, and the real budget
+                card["training"]["stopped"] = f"wall budget spent ({a.model_hours:g} h)"
+                card["training"]["budget"]["max_epochs"] = a.max_epochs
+                (work / "card.json").write_text(json.dumps(card, indent=2) + "\n")
+            if finished(work):
+                print(f"installed {install(work, zoo)}", flush=True)
+            print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0
 
 

@@ -1,5 +1,6 @@
 """Print the README's table of the shipped models: RMSE (NRMSE) on evaluation set 0, as measured at
-the end of training and recorded in each card, and the training budget.
+the end of training and recorded in each card, "(converged)" where the card says training converged,
+and the training budgets.
 
     python scripts/zoo_table.py
 """
@@ -25,13 +26,15 @@ def main() -> None:
                 continue
             c = json.loads(card.read_text())
             met = c["metrics"]
-            cells.append(f"{met['rmse']:.4g} ({met['nrmse']:.3f})")
+            mark = " (converged)" if c["training"].get("converged") else ""  # cards say so since the retraining
+            cells.append(f"{met['rmse']:.4g} ({met['nrmse']:.3f}){mark}")
         print(f"| {m} | " + " | ".join(cells) + " |")
     budgets = set()
     for card in (p for p in ZOO.glob("*-*/card.json") if "." not in p.parent.name):
         c = json.loads(card.read_text())
         r, m = c["training"]["recipe"], c["metrics"]["set"]
-        budgets.add((c["scenario"]["scenario"] == "lorenz96", r["epochs"], r["windows_per_epoch"], r["val_trajectories"], m["trajectories"]))
+        budgets.add((c["scenario"]["scenario"] == "lorenz96", r["epochs"], c["data"]["windows_per_epoch"],
+                     r["val_trajectories"], m["trajectories"]))
     for l96, ep, w, v, n in sorted(budgets, reverse=True):
         print(f"\n{'Lorenz 96' if l96 else 'other scenarios'}: {ep} epochs x {w} windows, {v} validation trajectories, "
               f"metrics on {n} trajectories of evaluation set 0.", end="")

@@ -3,6 +3,7 @@
 import json
 import math
 import pickle
+import shutil
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -372,3 +373,110 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     np.testing.assert_allclose(a, b, atol=1e-5)
     with pytest.raises(EstimatorError, match="expected a boolean"):
         NeuralEstimator(oscillator, model, norm, "gru", compile_step="maybe")
+
+
+# ---- the zoo script: resumable across runs, cards with budget and convergence ---------------------
+def _train_zoo():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_zoo.py"
+    spec = importlib.util.spec_from_file_location("train_zoo", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path, monkeypatch):
+    import time
+    from types import SimpleNamespace
+
+    import neural_estimator.models.training as training
+
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo),
+            "--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6",
+            "--eval-trajectories", "4", "--max-epochs", "3", "--hours", "1", "--quiet"]
+    work = state / "test_spinner-gru"
+    # first run: the session's time runs out after two epochs (train() reads the clock before each epoch)
+    checks = iter([0.0, 0.0])  # read before each epoch: two epochs start, the third does not
+    clock = SimpleNamespace(time=lambda: next(checks, 1e12), perf_counter=time.perf_counter)
+    monkeypatch.setattr(training, "time", clock)
+    monkeypatch.setattr(zoo_script.time, "time", lambda: 0.0)
+    assert zoo_script.main(args) == 0
+    run = zoo_script.resume_state(work)
+    assert run["epoch"] == 2 and not zoo_script.finished(work) and not (zoo / work.name).exists()
+    # the next run resumes from epoch 2 and finishes the epoch budget
+    monkeypatch.undo()
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    assert zoo_script.main(args) == 0
+    card = json.loads((zoo / work.name / "card.json").read_text())
+    t = card["training"]
+    assert [h["epoch"] for h in t["history"]] == [1, 2, 3] and t["stopped"] == "max epochs"
+    assert t["budget"]["max_epochs"] == 3 and t["budget"]["windows_per_epoch"] == 48
+    assert t["converged"] is False and t["lr_reductions"] == 0
+    assert card["metrics"]["set"]["trajectories"] == 4
+    assert sorted(p.name for p in (zoo / work.name).iterdir()) == ["card.json", "model.safetensors"]
+    assert zoo_script.finished(work)
+    # the resumed run equals an uninterrupted one
+    ref = train("test_spinner", "gru", tmp_path / "ref",
+                TrainConfig(trajectories=12, windows_per_epoch=48, val_trajectories=6, epochs=3,
+                            eval_trajectories=4, cache_dir=str(tmp_path / "cache")), progress=False)
+    w_ref, w_zoo = weights(ref), weights(zoo / work.name)
+    assert all(torch.equal(w_ref[k], w_zoo[k]) for k in w_ref)
+
+
+def test_converged_rule():
+    from neural_estimator.models.training import converged, lr_reductions
+
+    hist = [{"lr": lr} for lr in (2e-3, 1e-3, 1e-3, 5e-4, 2.5e-4)]
+    assert lr_reductions(hist, 2e-3) == 3 and converged(None, hist, 2e-3)
+    assert not converged("max epochs", hist[:3], 2e-3)
+    assert converged("early stopping: no lower validation loss in 30 epochs", [], 2e-3)
+
+
+def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
+    """A zoo card's "converged" must follow from its own history: early stopping (patience epochs after the
+    best one, none lower) or >= 3 learning-rate reductions. Cards written before the rule carry no claim."""
+    from pathlib import Path
+
+    from neural_estimator.models.training import converged, lr_reductions
+
+    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+    cards = sorted(zoo.glob("*/card.json"))
+    assert cards
+    for path in cards:
+        card = json.loads(path.read_text())
+        t = card["training"]
+        if "converged" not in t:  # trained before the convergence rule existed: no claim to check
+            continue
+        for key in ("budget", "lr_reductions", "convergence_rule", "history", "stopped"):
+            assert key in t, f"{path}: training.{key} missing"
+        hist, lr0 = t["history"], t["recipe"]["lr"]
+        assert t["lr_reductions"] == lr_reductions(hist, lr0), path
+        if t["stopped"].startswith("early stopping"):  # the curve must show it
+            patience = t["recipe"]["patience"]
+            best = min(range(len(hist)), key=lambda i: hist[i]["val_loss"])
+            assert len(hist) - 1 - best >= patience, f"{path}: early stopping without {patience} epochs after the best"
+        assert t["converged"] == converged(t["stopped"], hist, lr0), path
+
+
+def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeypatch):
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo),
+            "--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6",
+            "--eval-trajectories", "4", "--quiet"]
+    assert zoo_script.main(args + ["--max-epochs", "1"]) == 0  # one epoch, finished on its epoch budget
+    work = state / "test_spinner-gru"
+    shutil.rmtree(zoo / work.name)
+    card = json.loads((work / "card.json").read_text())
+    card["training"]["stopped"] = "in progress"  # as if that run had been cut off after its first epoch
+    (work / "card.json").write_text(json.dumps(card))
+    assert zoo_script.main(args + ["--max-epochs", "5", "--model-hours", "1e-9"]) == 0
+    t = json.loads((zoo / work.name / "card.json").read_text())["training"]
+    assert t["stopped"] == "wall budget spent (1e-09 h)" and t["epochs_run"] == 1
+    assert t["budget"]["max_epochs"] == 5 and t["converged"] is False

@@ -31,9 +31,12 @@ loads into ``mamba_ssm.modules.mamba_simple.Mamba`` and back unchanged.
 Forms of the recurrence, held equal by the tests:
 
 - :func:`selective_scan_ref`: the obvious loop over t (slow; the reference).
-- :func:`selective_scan`, the training path, picks one of two exact rearrangements:
-  :func:`selective_scan_stepwise` on CPU (the loop with a cache-sized working set and an O(T)
-  autograd graph; fastest on CPU, measured) and :func:`selective_scan_chunked` elsewhere (time cut
+- :func:`selective_scan`, the training path, picks one of three exact rearrangements: on CPU the
+  fused numba kernel :func:`neural_estimator.models.cpu_scan.mamba_scan_fused` (one pass per batch
+  row with the state in L1 cache, a hand-written backward that recomputes the states and runs the
+  adjoint recurrence backwards; fastest on CPU, measured in benchmarks/bench_training.py) or, as
+  before it, :func:`selective_scan_stepwise` (the loop with an O(T) autograd graph), and
+  :func:`selective_scan_chunked` elsewhere (time cut
   into chunks of Q ~ sqrt(T); the scan runs inside all chunks at once, then a loop over the chunks
   carries each end state into the next through the decay exp(A cumsum(delta)): about 2 sqrt(T)
   sequential steps instead of T, every exponent <= 0).
@@ -55,6 +58,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from neural_estimator.models.ssm_stack import SSMEstimator
+
+try:  # the fused CPU kernels need numba (a dependency; the torch scan stands in if it is missing)
+    from neural_estimator.models.cpu_scan import conv_silu_fused, mamba_scan_fused
+except ImportError:
+    conv_silu_fused = mamba_scan_fused = None
 
 try:  # optional fused CUDA kernel; absent on CPU-only installs
     from mamba_ssm.ops.selective_scan_interface import selective_scan_fn as _cuda_selective_scan
@@ -173,9 +181,17 @@ def selective_scan_chunked(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Te
     return y.reshape(Bsz, nc * Q, E)[:, :T], last
 
 
-def selective_scan(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, chunk: int = 0) -> tuple[Tensor, Tensor]:
-    """The training scan: :func:`selective_scan_stepwise` on CPU, :func:`selective_scan_chunked` elsewhere."""
+CPU_SCANS = ("fused", "stepwise")  # the CPU forms of the training scan, fastest first (measured)
+
+
+def selective_scan(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, chunk: int = 0,
+                   cpu_scan: str = "fused") -> tuple[Tensor, Tensor]:
+    """The training scan: on CPU the fused numba kernel (:mod:`~neural_estimator.models.cpu_scan`,
+    hand-written backward) or ``cpu_scan="stepwise"`` (:func:`selective_scan_stepwise`, torch
+    autograd, the previous path); :func:`selective_scan_chunked` elsewhere."""
     if u.device.type == "cpu":
+        if cpu_scan == "fused" and u.dtype in (torch.float32, torch.float64) and mamba_scan_fused is not None:
+            return mamba_scan_fused(u, delta, A, B, C)
         return selective_scan_stepwise(u, delta, A, B, C)
     return selective_scan_chunked(u, delta, A, B, C, chunk)
 
@@ -195,6 +211,7 @@ class MambaMixer(nn.Module):
         self.d_inner, self.d_state, self.dt_rank, self.d_conv = E, N, R, K
         self.scan_chunk = cfg.scan_chunk
         self.use_cuda_kernels = cfg.use_cuda_kernels
+        self.cpu_scan = "fused"  # CPU training scan (CPU_SCANS); a runtime choice, not part of the model
         self.in_proj = nn.Linear(d, 2 * E, bias=False)
         self.conv1d = nn.Conv1d(E, E, kernel_size=K, groups=E, padding=K - 1, bias=True)
         self.x_proj = nn.Linear(E, R + 2 * N, bias=False)
@@ -218,7 +235,11 @@ class MambaMixer(nn.Module):
         """h (B, T, d) -> (B, T, d); ``reference=True`` uses :func:`selective_scan_ref`."""
         T = h.shape[1]
         x, g = self.in_proj(h).chunk(2, dim=-1)  # (B, T, E) each
-        u = F.silu(self.conv1d(x.transpose(1, 2))[..., :T]).transpose(1, 2)  # (B, T, E)
+        if (not reference and self.cpu_scan == "fused" and conv_silu_fused is not None and x.device.type == "cpu"
+                and x.dtype in (torch.float32, torch.float64)):
+            u = conv_silu_fused(x, self.conv1d.weight, self.conv1d.bias)  # (B, T, E), one fused kernel
+        else:
+            u = F.silu(self.conv1d(x.transpose(1, 2))[..., :T]).transpose(1, 2)  # (B, T, E)
         dt, b, c = self._ssm_inputs(u)
         A = -torch.exp(self.A_log)  # (E, N)
         if self.use_cuda_kernels and _cuda_selective_scan is not None and u.is_cuda and not reference:
@@ -232,7 +253,7 @@ class MambaMixer(nn.Module):
         if reference:
             y, _ = selective_scan_ref(u, delta, A, b, c)
         else:
-            y, _ = selective_scan(u, delta, A, b, c, self.scan_chunk)
+            y, _ = selective_scan(u, delta, A, b, c, self.scan_chunk, self.cpu_scan)
         y = torch.addcmul(y, u, self.D)  # (B, T, E)
         return self.out_proj(y * F.silu(g))
 

@@ -39,6 +39,10 @@ Three forms of the recurrence, held equal by the tests:
   cumulative sums, not differences of two long cumulative sums. On one CPU core at B=64, H=8,
   P=16, N=48, forward+backward takes 0.1 s at T=100 and 0.6 s at T=500, against 0.5 s and 2.9 s
   for a step-by-step loop.
+- :func:`neural_estimator.models.cpu_scan.ssd_scan_fused`: the CPU training path, the recurrence
+  as one fused numba loop per batch row (state (H, P, N) in L1 cache) with a hand-written
+  backward; faster than :func:`ssd_chunked` on CPU (measured in benchmarks/bench_training.py).
+  ``mixer.cpu_scan = "chunked"`` selects the torch SSD instead.
 - ``Mamba2Model.step``: one time step with the conv state (B, E + 2N, K) and the SSM state
   (B, H, P, N); O(1) in the stream length.
 
@@ -57,6 +61,11 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from neural_estimator.models.ssm_stack import SSMEstimator, rms_norm
+
+try:  # the fused CPU kernels need numba (a dependency; the torch SSD stands in if it is missing)
+    from neural_estimator.models.cpu_scan import conv_silu_fused, ssd_scan_fused
+except ImportError:
+    conv_silu_fused = ssd_scan_fused = None
 
 try:  # optional fused Triton/CUDA kernel; absent on CPU-only installs
     from mamba_ssm.ops.triton.ssd_combined import mamba_chunk_scan_combined as _cuda_chunk_scan
@@ -204,6 +213,7 @@ class Mamba2Mixer(nn.Module):
         self.d_inner, self.nheads, self.headdim, self.d_state, self.d_conv = E, H, P, N, K
         self.chunk_size = cfg.chunk_size
         self.use_cuda_kernels = cfg.use_cuda_kernels
+        self.cpu_scan = "fused"  # CPU training scan: "fused" (numba) or "chunked" (torch SSD); not part of the model
         conv_dim = E + 2 * N
         self.in_proj = nn.Linear(d, 2 * E + 2 * N + H, bias=False)  # [z, x, B, C, dt]
         self.conv1d = nn.Conv1d(conv_dim, conv_dim, kernel_size=K, groups=conv_dim, padding=K - 1, bias=True)
@@ -220,7 +230,11 @@ class Mamba2Mixer(nn.Module):
         Bsz, T, _ = h.shape
         E, H, P, N = self.d_inner, self.nheads, self.headdim, self.d_state
         g, xbc, dt = self.in_proj(h).split([E, E + 2 * N, H], dim=-1)
-        xbc = F.silu(self.conv1d(xbc.transpose(1, 2))[..., :T].transpose(1, 2))  # (B, T, E + 2N)
+        if (not reference and self.cpu_scan == "fused" and conv_silu_fused is not None and h.device.type == "cpu"
+                and h.dtype in (torch.float32, torch.float64)):
+            xbc = conv_silu_fused(xbc, self.conv1d.weight, self.conv1d.bias)  # (B, T, E + 2N), one fused kernel
+        else:
+            xbc = F.silu(self.conv1d(xbc.transpose(1, 2))[..., :T].transpose(1, 2))  # (B, T, E + 2N)
         x, b, c = xbc.split([E, N, N], dim=-1)
         x = x.reshape(Bsz, T, H, P)  # (B, T, H, P)
         A = -torch.exp(self.A_log)  # (H,)
@@ -229,7 +243,13 @@ class Mamba2Mixer(nn.Module):
                                  dt_bias=self.dt_bias, dt_softplus=True)  # (B, T, H, P), D included
         else:
             delta = F.softplus(dt + self.dt_bias)  # (B, T, H)
-            y, _ = (ssd_ref(x, delta, A, b, c) if reference else ssd_chunked(x, delta, A, b, c, self.chunk_size))
+            if reference:
+                y, _ = ssd_ref(x, delta, A, b, c)
+            elif (self.cpu_scan == "fused" and ssd_scan_fused is not None and x.device.type == "cpu"
+                  and x.dtype in (torch.float32, torch.float64)):
+                y, _ = ssd_scan_fused(x, delta, A, b, c)
+            else:
+                y, _ = ssd_chunked(x, delta, A, b, c, self.chunk_size)
             y = y + x * self.D[:, None]  # (B, T, H, P)
         return self.out_proj(self.norm(y.reshape(Bsz, T, E), g))
 

@@ -184,8 +184,19 @@ def weighted_loss(
 
 
 # ---- the training run ---------------------------------------------------------------------------------
+def lr_reductions(history: list[dict[str, Any]], initial_lr: float) -> int:
+    """How many times the learning rate went down over a run's history (ReduceLROnPlateau steps)."""
+    lrs = [initial_lr] + [h["lr"] for h in history]
+    return sum(b < a for a, b in zip(lrs, lrs[1:]))
+
+
+def converged(stopped: str | None, history: list[dict[str, Any]], initial_lr: float) -> bool:
+    """The zoo's convergence rule: early stopping triggered, or the learning rate reduced >= 3 times."""
+    return bool(stopped and stopped.startswith("early stopping")) or lr_reductions(history, initial_lr) >= 3
+
+
 def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: TrainConfig | None = None,
-          progress: bool = True) -> Path:
+          progress: bool = True, deadline: float | None = None) -> Path:
     """Train ``arch`` on ``scenario`` and write the best model as a checkpoint in ``out_dir``.
 
     Args:
@@ -193,7 +204,11 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         arch: gru, lstm, gpt2, filterformer, mamba or mamba2.
         out_dir: the checkpoint directory (``model.safetensors``, ``card.json``, ``resume/``).
         config: the recipe (default: the paper's).
-        progress: show a tqdm bar (epoch, train and validation loss, learning rate, ETA).
+        progress: show progress bars: epochs (losses, learning rate), and inside each epoch the
+            training batches (windows/s, time left) and the validation batches.
+        deadline: a ``time.time()`` after which no new epoch starts; the run then returns with its
+            resume state saved and the card marked "in progress" (no final evaluation). The zoo
+            script uses it to spread training over several sessions.
 
     Returns:
         ``out_dir``.
@@ -258,15 +273,19 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         w = torch.as_tensor(sampler.loss_weights(start), dtype=torch.float32, device=device)  # (B, L)
         return Z_train[rows, cols], X_train[rows, cols], w
 
+    n_val_batches = math.ceil(Z_val.shape[0] / cfg.val_batch_size)
+
     @torch.no_grad()
-    def estimate_loss() -> float:
+    def estimate_loss(bar) -> float:
         model.eval()
         total, count = 0.0, 0
+        bar.set_description_str(f"{scenario.name}/{arch} epoch {run['epoch'] + 1} validation")
         for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
             pred = model(Z_val[b0 : b0 + cfg.val_batch_size])  # (b, T, dx)
             e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
             total += float(e.double().square().sum())
             count += e.numel()
+            bar.update(1)
         model.train()
         return total / count
 
@@ -286,6 +305,12 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
                 "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode",
                 "epochs_run": run["epoch"], "best_epoch": run["best_epoch"],
                 "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
+                "budget": {"max_epochs": cfg.epochs, "early_stopping_patience": cfg.patience,
+                           "windows_per_epoch": n_windows, "val_trajectories": cfg.val_trajectories,
+                           "wall_seconds": round(sum(h["seconds"] for h in run["history"]), 1)},
+                "lr_reductions": lr_reductions(run["history"], cfg.lr),
+                "converged": converged(run["stopped"], run["history"], cfg.lr),
+                "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
                 "history": run["history"],
             },
             "validation_loss": run["best"],
@@ -294,11 +319,18 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
 
     # ---- the loop ----
     bar = tqdm(total=cfg.epochs, initial=run["epoch"], disable=not progress, unit="epoch",
-               desc=f"{scenario.name}/{arch}", dynamic_ncols=True)
+               desc=f"{scenario.name}/{arch}", dynamic_ncols=True, position=0)
+    interrupted = False
     while run["epoch"] < cfg.epochs and run["stopped"] is None:
+        if deadline is not None and time.time() >= deadline:
+            interrupted = True
+            break
         t0 = time.perf_counter()
         model.train()
         train_loss = 0.0
+        # inside the epoch: batches of windows, then validation batches (rate and time left)
+        inner = tqdm(total=steps_per_epoch, disable=not progress, unit="batch", leave=False, position=1,
+                     desc=f"{scenario.name}/{arch} epoch {run['epoch'] + 1} training", dynamic_ncols=True)
         for it in range(steps_per_epoch):
             z, x, w = get_batch()
             loss = weighted_loss(model(z), x, w, angle_mask)
@@ -313,8 +345,16 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             optimizer.step()
             train_loss += loss_value
+            inner.update(1)
+            if it % 10 == 9 or it == steps_per_epoch - 1:
+                inner.set_postfix_str(f"{cfg.batch_size * inner.n / max(inner.format_dict['elapsed'], 1e-9):.0f} windows/s, "
+                                      f"loss {train_loss / (it + 1):.4g}")
+        inner.close()
         train_loss /= steps_per_epoch
-        val_loss = estimate_loss()
+        inner = tqdm(total=n_val_batches, disable=not progress, unit="batch", leave=False, position=1,
+                     dynamic_ncols=True)
+        val_loss = estimate_loss(inner)
+        inner.close()
         scheduler.step(val_loss)
         run["epoch"] += 1
         lr = optimizer.param_groups[0]["lr"]
@@ -332,6 +372,8 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         bar.set_postfix({"train": f"{train_loss:.4g}", "val": f"{val_loss:.4g}", "best": f"{run['best']:.4g}",
                          "lr": f"{lr:.2g}"})
     bar.close()
+    if interrupted:  # out of time: the resume state and the best checkpoint so far stay for the next run
+        return out_dir
 
     # ---- the best model, rebuilt from its checkpoint; metrics; the final card ----
     if run["best_epoch"] == 0:
@@ -457,5 +499,5 @@ def _check_same_run(directory: Path, state: dict[str, Any], identity: dict[str, 
                             f"settings (only {', '.join(RESUMABLE_CHANGES)} may change) or start without --resume")
 
 
-__all__ = ["TrainConfig", "TrainingError", "evaluate", "load_resume", "save_resume", "state_error", "train",
+__all__ = ["TrainConfig", "TrainingError", "converged", "evaluate", "load_resume", "lr_reductions", "save_resume", "state_error", "train",
            "weighted_loss"]
