@@ -4,14 +4,11 @@ A scenario declares how far apart its state and observation components are by de
 
     localization_distances() -> (d_xy (dx, dy), d_yy (dy, dy))
 
-(non-negative, in any unit; the radius is given in the same unit). Lorenz 96, whose components
-sit on a ring, has the cyclic index distance d(i, j) = min(|i - j|, J - |i - j|) here until its
-scenario class declares it (``_BUILTIN``): with H = I every observation sits on its variable.
+(non-negative, in any unit; the radius is given in the same unit). Lorenz 96 declares the cyclic
+index distance on its ring (``Lorenz96.localization_distances``).
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import numpy as np
 
@@ -40,25 +37,11 @@ def gaspari_cohn(z: np.ndarray) -> np.ndarray:
     return out
 
 
-def _ring_distances(s: Scenario) -> tuple[np.ndarray, np.ndarray]:
-    """Cyclic index distance on a ring of J variables, each observed where it is (H = I)."""
-    J = s.dx
-    i = np.arange(J)
-    d = np.abs(i[:, None] - i[None, :])
-    d = np.minimum(d, J - d).astype(np.float64)
-    return d, d.copy()
-
-
-_BUILTIN: dict[str, Callable[[Scenario], tuple[np.ndarray, np.ndarray]]] = {"lorenz96": _ring_distances}
-
-
 def component_distances(s: Scenario, method: str = "enkf") -> tuple[np.ndarray, np.ndarray]:
     """(d_xy (dx, dy), d_yy (dy, dy)) of scenario ``s``, checked; EstimatorError if undeclared."""
     declared = getattr(s, "localization_distances", None)
     if callable(declared):
         d_xy, d_yy = declared()
-    elif s.name in _BUILTIN:
-        d_xy, d_yy = _BUILTIN[s.name](s)
     else:
         raise EstimatorError(
             f"{method}: localization needs distances between the components of scenario {s.name!r}; "

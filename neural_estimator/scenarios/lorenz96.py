@@ -251,6 +251,15 @@ class Lorenz96(Scenario):
         """H = I; (..., J) -> (..., J)."""
         return np.array(x, copy=True)
 
+    def localization_distances(self) -> tuple[np.ndarray, np.ndarray]:
+        """(d_xy, d_yy) for EnKF localisation: the cyclic index distance on the ring,
+        d(i, j) = min(|i - j|, J - |i - j|); every observation sits on its variable (H = I)."""
+        J = self.dx
+        i = np.arange(J)
+        d = np.abs(i[:, None] - i[None, :])
+        d = np.minimum(d, J - d).astype(np.float64)
+        return d, d.copy()
+
     def obs_matrix(self) -> np.ndarray:
         """H = I."""
         return np.eye(self.dx)
