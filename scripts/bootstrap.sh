@@ -14,9 +14,10 @@ fi
 vpy="$venv/bin/python"
 
 # The stamp records the hash of the requirement list and of setup.py: when either changes, reinstall.
+# The import check runs from / so that a checkout on the path cannot hide a stale editable install.
 stamp="$venv/.neural_estimator_stamp"
 want="$(cat "$root/scripts/requirements.txt" "$root/setup.py" | sha256sum | cut -d' ' -f1)"
-if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && "$vpy" -c "import neural_estimator, torch, rclpy" 2>/dev/null; then
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && (cd / && "$vpy" -c "import neural_estimator, torch, rclpy") 2>/dev/null; then
   exit 0
 fi
 
