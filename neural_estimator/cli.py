@@ -499,7 +499,9 @@ def _cmd_recover(args) -> int:
 def _add_reproduce(sub) -> None:
     p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
     p.add_argument("--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (README, 'Reproduce')")
-    p.add_argument("--scenarios", help="comma-separated (default: the paper's five)")
+    p.add_argument("--plugin", action="append", metavar="FILE",
+                   help="Python file registering user scenarios (loaded by every Ray worker too)")
+    p.add_argument("--scenarios", help="comma-separated (default: the paper's five; plugin scenarios allowed)")
     p.add_argument("--methods", help="comma-separated (default: all ten)")
     p.add_argument("--out", default="reproduce-out", help="directory of report.md, figures/, reproduce.json")
     p.add_argument("--address", help="Ray cluster to join (default: a local Ray instance)")

@@ -36,7 +36,7 @@ from neural_estimator import metrics as M
 from neural_estimator import __version__
 from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError, load_npz, save_npz
-from neural_estimator.data.protocol import SIMULATION_REVISION, default_cache_dir
+from neural_estimator.data.protocol import SIMULATION_REVISION, code_key, default_cache_dir
 from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS, Estimator, Estimates, check_method, make_estimator, previous_controls
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.scenarios import Scenario
@@ -222,14 +222,15 @@ def run_key(scenario: Scenario, method: str, options: Mapping[str, Any] | None, 
     with all its constants, the method, its options (those that only change the speed, like
     ``threads``, left out), the checkpoint's content hash, the filters' seed, the device, the
     evaluation set's content (:func:`dataset_digest`, or a digest given as a string) and, for
-    classical filters, how they start (``init``; neural methods ignore it, so it is not keyed).
+    classical filters, how they start (``init``; neural methods ignore it, so it is not keyed), and a
+    plugin scenario's source file (:func:`~neural_estimator.scenarios.code_digest`).
     """
     opts = {k: v for k, v in sorted((options or {}).items()) if k not in _SPEED_ONLY_OPTIONS}
     key = json.dumps({
         "rev": RESULTS_REVISION, "sim": SIMULATION_REVISION, "version": __version__,
         "scenario": scenario.describe(), "method": method, "options": opts, "checkpoint": checkpoint_hash,
         "seed": int(seed), "device": str(device), "data": data if isinstance(data, str) else dataset_digest(data),
-        **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}),
+        **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}), **code_key(scenario),
     }, sort_keys=True, default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:20]
 

@@ -17,7 +17,7 @@ pytest.importorskip("ray")
 
 from neural_estimator.cli import main
 from neural_estimator.reproduce import report as R
-from neural_estimator.reproduce.jobs import Job, run_job
+from neural_estimator.reproduce.jobs import Job, run_job, train_dir
 from neural_estimator.reproduce.plan import plan_jobs
 from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
 
@@ -201,3 +201,56 @@ def test_parallel_writers_of_one_cached_file_do_not_collide(tmp_path):
     arrays, meta = load_npz(path)
     assert np.array_equal(arrays["x"], a["x"]) and meta["k"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["set.npz"]
+
+
+def test_a_plugin_scenario_runs_on_the_ray_workers(tmp_path):
+    """Workers are fresh processes: each loads the --plugin file before its job (built on the example)."""
+    plugin = Path(__file__).resolve().parents[1] / "examples" / "custom_scenario.py"
+    out = tmp_path / "out"
+    rc = main(["reproduce", "--scale", "smoke", "--plugin", str(plugin), "--scenarios", "oscillator", "--methods", "ekf,ukf",
+               "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--num-cpus", "2", "--quiet"])
+    state = json.loads((out / "reproduce.json").read_text())
+    assert rc == 0 and state["complete"], [r.get("error") for r in state["jobs"] if r["status"] == "failed"]
+    assert state["settings"]["plugins"] == {str(plugin): state["settings"]["plugins"][str(plugin)]}
+    report = (out / "report.md").read_text()
+    assert "### oscillator" in report and f"plugin: {plugin}" in report
+    assert (out / "figures" / "rmse_over_time_oscillator.png").is_file()
+
+
+def test_a_plugin_scenarios_source_is_part_of_every_cache_key(tmp_path):
+    """Editing a plugin's code (same name, same constants) must not reuse what the old code computed."""
+    from neural_estimator.data.protocol import code_key
+    from neural_estimator.evaluation import run_key
+    from neural_estimator.scenarios import code_digest, load_plugins, make_scenario
+
+    assert code_digest(make_scenario("ballistic")) is None and code_key(make_scenario("ballistic")) == {}
+    src = (Path(__file__).resolve().parents[1] / "examples" / "custom_scenario.py").read_text()
+    keys = []
+    for i, extra in enumerate(("", "\n# an edit that changes the code, not the constants\n")):
+        f = tmp_path / f"v{i}" / "custom_scenario.py"
+        f.parent.mkdir()
+        f.write_text(src + extra)
+        load_plugins([f])
+        s = make_scenario("oscillator")
+        keys.append((code_digest(s), run_key(s, "ekf", None, None, 0, "cpu", "data"),
+                     train_dir(tmp_path, Job("train", "oscillator", "gru", data_ratio=20.0))))
+    assert keys[0][0] != keys[1][0] and keys[0][1] != keys[1][1] and keys[0][2] != keys[1][2]
+
+
+def test_paper_scale_main_tables_use_the_instances_trained_at_20_to_1():
+    """The paper's main tables are medians over 15 trained instances x 3 sets, not one shipped model."""
+    sc = get_scale("paper")
+    jobs = plan_jobs(sc, ["lorenz96"], ["ukf", "mamba"])
+    trains = [j for j in jobs if j.kind == "train"]
+    assert len(trains) == len(set(trains)) == len(sc.data_ratios) * sc.train_instances  # each training once
+    acc = [j for j in jobs if j.kind == "evaluate" and j.experiment == "accuracy"]
+    neural = [j for j in acc if j.method == "mamba"]
+    assert len(neural) == sc.train_instances * sc.sets
+    assert {j.train_job.data_ratio for j in neural} == {20.0} and all(j.train_job in trains for j in neural)
+    assert {j.train_job.instance for j in neural} == set(range(sc.train_instances))
+    assert all(j.train_job is None for j in acc if j.method == "ukf") and sum(j.method == "ukf" for j in acc) == sc.sets
+    noise = [j for j in jobs if j.experiment == "noise" and j.method == "mamba"]
+    assert len(noise) == (len(sc.noise_scales) - 1) * sc.train_instances * sc.noise_sets and all(j.train_job for j in noise)
+    first_eval = next(i for i, j in enumerate(jobs) if j.kind == "evaluate")
+    assert all(j.kind == "train" for j in jobs[:first_eval]) and len(set(jobs)) == len(jobs)
+    assert not get_scale("small").main_from_training  # small: the shipped models

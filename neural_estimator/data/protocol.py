@@ -26,7 +26,7 @@ import numpy as np
 
 from neural_estimator.data.io import load_trajectories, save_trajectories
 from neural_estimator.data.simulate import Trajectories, simulate
-from neural_estimator.scenarios import Scenario
+from neural_estimator.scenarios import Scenario, code_digest
 
 ROLES = {"train": 0, "val": 1, "eval": 2}
 DATA_RATIOS = (20, 10, 5, 1)
@@ -153,14 +153,16 @@ def dataset(
     """Dataset ``index`` of ``role``: simulated once, then read from the cache.
 
     The cache key hashes every input that defines the data (scenario description with all
-    constants, role, index, n, horizon, seed, :data:`SIMULATION_REVISION`); ``cache_dir=False``
+    constants, role, index, n, horizon, seed, :data:`SIMULATION_REVISION`, and a plugin scenario's
+    source file, see :func:`~neural_estimator.scenarios.code_digest`); ``cache_dir=False``
     disables the cache.
     """
     T = scenario.horizon if horizon is None else int(horizon)
     if cache_dir is False:
         return _make(scenario, role, index, n, T, seed)
     key = json.dumps(
-        {"s": scenario.describe(), "r": role, "i": int(index), "n": int(n), "T": T, "seed": int(seed), "v": SIMULATION_REVISION},
+        {"s": scenario.describe(), "r": role, "i": int(index), "n": int(n), "T": T, "seed": int(seed), "v": SIMULATION_REVISION,
+         **code_key(scenario)},
         sort_keys=True,
     )
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
@@ -193,3 +195,9 @@ def validation_set(scenario, seed=0, index=0, trajectories=VALIDATION_TRAJECTORI
 def evaluation_sets(scenario, seed=0, trajectories=EVALUATION_TRAJECTORIES, horizon=None, sets=EVALUATION_SETS, cache_dir=None):
     """The three independent evaluation sets at the scenario's horizon."""
     return [dataset(scenario, "eval", j, trajectories, horizon, seed, cache_dir) for j in range(sets)]
+
+
+def code_key(scenario: Scenario) -> dict[str, str]:
+    """``{"code": digest}`` for a plugin scenario (its source file), ``{}`` for a built-in (keys unchanged)."""
+    digest = code_digest(scenario)
+    return {} if digest is None else {"code": digest}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from neural_estimator.data.protocol import default_cache_dir
 from neural_estimator.reproduce.run import ReproduceError, Settings, reproduce
 from neural_estimator.reproduce.scales import get_scale
@@ -23,10 +25,10 @@ def run_from_args(args, usage_error: type[Exception]) -> int:
             raise ReproduceError(f"--num-cpus must be >= 1, got {args.num_cpus}")
         settings = Settings(
             scale=get_scale(args.scale),
-            scenarios=_names(args.scenarios, PAPER_SCENARIOS, _builtin_scenario, "--scenarios"),
+            scenarios=_names(args.scenarios, PAPER_SCENARIOS, _known_scenario, "--scenarios"),
             methods=_names(args.methods, METHODS, check_method, "--methods"),
             gpu=_cuda(), cache_dir=str(args.cache_dir or default_cache_dir()), address=args.address,
-            num_cpus=args.num_cpus)
+            num_cpus=args.num_cpus, plugins=tuple(str(Path(p).resolve()) for p in (args.plugin or ())))
         summary = reproduce(settings, args.out, resume=args.resume, progress=not args.quiet)
     except ReproduceError as exc:
         raise usage_error(str(exc)) from None
@@ -41,11 +43,9 @@ def _cuda() -> bool:
     return bool(torch.cuda.is_available())
 
 
-def _builtin_scenario(name: str) -> str:
-    """Only built-in scenarios: Ray workers do not load ``--plugin`` files (yet)."""
-    from neural_estimator.scenarios import BUILTIN_SCENARIOS, scenario_class
+def _known_scenario(name: str) -> str:
+    """A registered scenario: built-in, or a plugin's loaded with ``--plugin`` (the workers load it too)."""
+    from neural_estimator.scenarios import scenario_class
 
     scenario_class(name)  # an unknown name: the registry's error, listing the valid ones
-    if name not in BUILTIN_SCENARIOS:
-        raise ReproduceError(f"scenario {name!r} is a plugin's: reproduce runs the built-in scenarios only (its Ray workers do not load plugins)")
     return name

@@ -66,8 +66,12 @@ def init_ray(address: str | None, num_cpus: int | None):
 
 
 def run_jobs(jobs: Sequence[Job], cache_dir: str | Path, *, address: str | None = None, num_cpus: int | None = None,
-             progress: bool = True, shutdown: bool = True) -> Outcome:
+             progress: bool = True, shutdown: bool = True, plugins: Sequence[str] = ()) -> Outcome:
     """Run every job on Ray; returns their results and failures (never raises for a failed job).
+
+    ``plugins``: scenario plugin files each task loads before its job (the same paths on every node).
+    Train jobs are submitted first, so that every evaluation of a trained model finds the training
+    it waits for, whatever the order of ``jobs``.
 
     Joins the Ray instance already initialised in this process if there is one (and leaves it
     running); otherwise starts one (or joins ``address``) and shuts it down at the end when
@@ -82,10 +86,12 @@ def run_jobs(jobs: Sequence[Job], cache_dir: str | Path, *, address: str | None 
     task = ray.remote(max_retries=0)(run_job)
     refs = {}
     train_refs = {}  # train job -> its ref: an evaluation of the trained model waits for it
-    for i, job in enumerate(jobs):
+    order = sorted(range(len(jobs)), key=lambda i: jobs[i].kind != "train")  # stable: trainings first
+    for i in order:
+        job = jobs[i]
         cpus = min(local_cpus, total_cpus) if job.kind == "runtime" else 1
         after = [train_refs[job.train_job]] if job.train_job is not None and job.train_job in train_refs else []
-        ref = task.options(num_cpus=cpus).remote(job, str(cache_dir), 1, *after)
+        ref = task.options(num_cpus=cpus).remote(job, str(cache_dir), 1, tuple(plugins), *after)
         refs[ref] = i
         if job.kind == "train":
             train_refs[job] = ref

@@ -89,10 +89,11 @@ def train_config(job: Job, cache_dir: Path, **runtime: Any):
 def train_dir(cache_dir: Path, job: Job) -> Path:
     """Where a train job's checkpoint lives: keyed by the recipe, the scenario, the architecture, the version."""
     from neural_estimator import __version__
+    from neural_estimator.data.protocol import code_key
 
     scenario = make_job_scenario(job)
     key = json.dumps({"version": __version__, "scenario": scenario.describe(), "arch": job.method,
-                      "recipe": train_config(job, cache_dir).recipe()}, sort_keys=True, default=str)
+                      "recipe": train_config(job, cache_dir).recipe(), **code_key(scenario)}, sort_keys=True, default=str)
     digest = hashlib.sha256(key.encode()).hexdigest()[:20]
     return Path(cache_dir) / "models" / f"{job.scenario}-{job.method}-r{job.data_ratio:g}-i{job.instance}-{digest}"
 
@@ -100,12 +101,14 @@ def train_dir(cache_dir: Path, job: Job) -> Path:
 def runtime_key(job: Job) -> str:
     """Everything that defines a timing: the job, the code's version and the machine that ran it."""
     from neural_estimator import __version__
+    from neural_estimator.data.protocol import code_key
     from neural_estimator.evaluation import checkpoint_digest
 
     scenario = make_job_scenario(job)
     key = json.dumps({"rev": RUNTIME_REVISION, "version": __version__, "job": job.to_json(),
                       "scenario": scenario.describe(), "checkpoint": checkpoint_digest(scenario, job.method, None),
-                      "machine": [platform.node(), platform.machine(), os.cpu_count()]}, sort_keys=True, default=str)
+                      "machine": [platform.node(), platform.machine(), os.cpu_count()], **code_key(scenario)},
+                     sort_keys=True, default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:20]
 
 
@@ -113,7 +116,7 @@ def runtime_path(cache_dir: Path, job: Job) -> Path:
     return Path(cache_dir) / "runtime" / f"{job.scenario}-{job.method}-{job.device}-{runtime_key(job)}.json"
 
 
-def run_job(job: Job, cache_dir: str | Path, threads: int = 1, *after: Any) -> dict[str, Any]:
+def run_job(job: Job, cache_dir: str | Path, threads: int = 1, plugins: tuple[str, ...] = (), *after: Any) -> dict[str, Any]:
     """Do one job (or read its cached result). Returns ``{"job", "cached", "seconds", "result"}``:
     for ``evaluate`` the result is the run's report as JSON (:func:`neural_estimator.metrics.to_json`),
     for ``runtime`` ``{"it_per_s", "steps", "seconds"}``.
@@ -121,9 +124,14 @@ def run_job(job: Job, cache_dir: str | Path, threads: int = 1, *after: Any) -> d
     ``threads`` bounds the job's own threads (classical filters' pool, torch) so that parallel jobs
     do not oversubscribe the cores they were given. ``after``: results of the jobs this one waits
     for (Ray passes them once they are done: an evaluation waits for its model's training).
+    ``plugins``: scenario plugin files to load first (a Ray worker is a fresh process).
     """
     if job.kind not in JOB_KINDS:
         raise ValueError(f"unknown job kind {job.kind!r}; expected one of {JOB_KINDS}")
+    if plugins:
+        from neural_estimator.scenarios import load_plugins
+
+        load_plugins(plugins)  # loading the same file twice is harmless (see register_scenario)
     import torch
 
     torch.set_num_threads(max(1, int(threads)))

@@ -13,43 +13,71 @@ def noise_reuses_accuracy(scale: Scale) -> bool:
     return (scale.noise_trajectories, scale.noise_sets) == (scale.trajectories, scale.sets)
 
 
+def train_job(scale: Scale, scenario: str, method: str, ratio: float, instance: int) -> Job:
+    """The training of one instance of ``method`` on ``scenario`` at ``ratio``:1 with the scale's recipe."""
+    overrides = dict(scale.train_overrides)
+    n = scale.train_trajectories(ratio)
+    if n is not None:
+        overrides["trajectories"] = n
+    return Job("train", scenario, method, seed=scale.seed, data_ratio=float(ratio), instance=instance,
+               train=tuple(sorted(overrides.items())), experiment="data_ratio")
+
+
+MAIN_RATIO = 20.0  # the paper's main tables: models trained at about 20:1
+
+
 def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool = False) -> list[Job]:
     """Accuracy (every method on every evaluation set), the noise sweep (same, per noise scale;
     models trained at the nominal noise), data efficiency (train every neural architecture at every
     ratio, then evaluate each trained instance on every set), runtime (batch-1 step throughput on CPU, and on GPU for
-    the neural methods when ``gpu``)."""
+    the neural methods when ``gpu``).
+
+    With ``scale.main_from_training`` (the paper scale) the accuracy and noise experiments evaluate
+    each neural architecture's ``train_instances`` models trained at 20:1 (the same trainings as the
+    data-efficiency experiment's 20:1 point) instead of the shipped model; each training is one job.
+    """
     from neural_estimator.estimators import NEURAL_METHODS
 
+    def models(s: str, m: str) -> list[Job | None]:
+        """What an accuracy or noise evaluation of ``m`` evaluates: the shipped model (None) or trainings."""
+        if m in NEURAL_METHODS and scale.main_from_training:
+            return [train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances)]
+        return [None]
+
     jobs: list[Job] = []
+    trainings: dict[Job, None] = {}  # every train job once, in order
     for s in scenarios:
         for m in methods:
-            for j in range(scale.sets):
-                jobs.append(Job("evaluate", s, m, seed=scale.seed, set_index=j, trajectories=scale.trajectories,
-                                horizon=scale.horizon, experiment="accuracy"))
+            for tj in models(s, m):
+                for j in range(scale.sets):
+                    jobs.append(Job("evaluate", s, m, seed=scale.seed, set_index=j, trajectories=scale.trajectories,
+                                    horizon=scale.horizon, experiment="accuracy", train_job=tj,
+                                    instance=tj.instance if tj else 0))
     for s in scenarios:
         for m in methods:
             for ns in scale.noise_scales:
                 if ns == 1.0 and noise_reuses_accuracy(scale):
                     continue
-                for j in range(scale.noise_sets):
-                    jobs.append(Job("evaluate", s, m, seed=scale.seed, noise_scale=float(ns), set_index=j,
-                                    trajectories=scale.noise_trajectories, horizon=scale.horizon, experiment="noise"))
+                for tj in models(s, m):
+                    for j in range(scale.noise_sets):
+                        jobs.append(Job("evaluate", s, m, seed=scale.seed, noise_scale=float(ns), set_index=j,
+                                        trajectories=scale.noise_trajectories, horizon=scale.horizon, experiment="noise",
+                                        train_job=tj, instance=tj.instance if tj else 0))
+    for job in jobs:
+        if job.train_job is not None:
+            trainings.setdefault(job.train_job)
     neural = [m for m in methods if m in NEURAL_METHODS]
     for s in scenarios:
         for m in neural:
             for ratio in scale.data_ratios:
                 for i in range(scale.train_instances):
-                    overrides = dict(scale.train_overrides)
-                    n = scale.train_trajectories(ratio)
-                    if n is not None:
-                        overrides["trajectories"] = n
-                    tj = Job("train", s, m, seed=scale.seed, data_ratio=float(ratio), instance=i,
-                             train=tuple(sorted(overrides.items())), experiment="data_ratio")
-                    jobs.append(tj)
+                    tj = train_job(scale, s, m, ratio, i)
+                    trainings.setdefault(tj)
                     for j in range(scale.sets):
                         jobs.append(Job("evaluate", s, m, seed=scale.seed, set_index=j,
                                         trajectories=scale.ratio_trajectories or scale.trajectories, horizon=scale.horizon,
                                         experiment="data_ratio", data_ratio=float(ratio), instance=i, train_job=tj))
+    jobs = list(trainings) + jobs  # trainings first (the engine submits them first anyway)
     devices = ["cpu"] + (["cuda"] if gpu else [])
     for device in devices:
         for s in scenarios:

@@ -35,9 +35,22 @@ class Settings:
     cache_dir: str
     address: str | None
     num_cpus: int | None
+    plugins: tuple[str, ...] = ()  # absolute paths of --plugin files: every Ray worker loads them before its job
 
     def to_json(self) -> dict[str, Any]:
-        return {"scale": self.scale.settings(), "scenarios": self.scenarios, "methods": self.methods, "gpu": self.gpu}
+        out = {"scale": self.scale.settings(), "scenarios": self.scenarios, "methods": self.methods, "gpu": self.gpu}
+        if self.plugins:  # a resumed run must use the same plugin code: its digest is part of the settings
+            out["plugins"] = {p: _file_digest(p) for p in self.plugins}
+        return out
+
+
+def _file_digest(path: str) -> str:
+    import hashlib
+
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    except OSError:
+        return "missing"
 
 
 def describe_settings(settings: Settings, n_jobs: int) -> str:
@@ -50,6 +63,7 @@ def describe_settings(settings: Settings, n_jobs: int) -> str:
     lines += [f"  note: {n}" for n in sc.notes]
     lines.append(f"  runtime on GPU: {'yes' if settings.gpu else 'no (no CUDA device)'}")
     lines.append(f"  result cache: {settings.cache_dir}")
+    lines += [f"  plugin: {p}" for p in settings.plugins]
     return "\n".join(lines)
 
 
@@ -76,7 +90,8 @@ def reproduce(settings: Settings, out: str | Path, *, resume: bool = False, prog
     out.mkdir(parents=True, exist_ok=True)
     _write_state(out, settings, jobs, None, None)
     t0 = time.time()
-    outcome = run_jobs(jobs, settings.cache_dir, address=settings.address, num_cpus=settings.num_cpus, progress=progress)
+    outcome = run_jobs(jobs, settings.cache_dir, address=settings.address, num_cpus=settings.num_cpus, progress=progress,
+                       plugins=settings.plugins)
     wall = time.time() - t0
     _write_state(out, settings, jobs, outcome, wall)
     write_report(out, settings, jobs, outcome, wall)
@@ -159,7 +174,7 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
     L += ["## Settings", "", "```", describe_settings(settings, len(jobs)), "```", ""]
     L += ["| | |", "|---|---|", f"| git commit | {git_commit()} |", f"| wall time | {wall:.1f} s |",
           f"| jobs | {len(jobs)}: {outcome.computed} computed, {outcome.cached} read from the cache, {len(outcome.failed)} failed |",
-          f"| seeds | evaluation sets and filters: {sc.seed}; neural models: the shipped checkpoints (one instance each) |"]
+          f"| seeds | evaluation sets and filters: {sc.seed}; neural models: {_neural_models(sc)} |"]
     L += [f"| {k} | {v} |" for k, v in versions().items()] + [""]
     if outcome.failed:
         L += ["## Failed jobs", ""] + [f"- {jobs[i].label}: `{e}`" for i, e in sorted(outcome.failed.items())] + [""]
@@ -221,6 +236,13 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
     path = out / "report.md"
     path.write_text("\n".join(L))
     return path
+
+
+def _neural_models(sc) -> str:
+    if sc.main_from_training:
+        return (f"{sc.train_instances} instances per architecture trained at 20:1 (init seeds 0-{sc.train_instances - 1}, "
+                f"data seed {sc.seed}) for the accuracy and noise tables; the shipped checkpoints for runtime")
+    return "the shipped checkpoints (one instance each) for accuracy, noise and runtime"
 
 
 def _floats(values) -> list[float]:

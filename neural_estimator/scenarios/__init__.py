@@ -9,6 +9,7 @@ scenario" section); every tool (simulate, evaluate, train, the nodes) then accep
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.util
 import inspect
@@ -101,6 +102,23 @@ def make_scenario(name: str, **overrides: Any) -> Scenario:
     return scenario_class(name)(**overrides)
 
 
+def code_digest(scenario: Scenario | type[Scenario]) -> str | None:
+    """SHA-256 (16 hex) of the source file that defines a user scenario's class; None for a built-in.
+
+    Cached results and data sets are keyed by a scenario's constants (:meth:`Scenario.describe`);
+    a built-in's code is covered by the package version and the simulation revision, a plugin's is
+    not, so its file's digest joins those keys: editing a plugin invalidates what it computed.
+    """
+    cls = scenario if isinstance(scenario, type) else type(scenario)
+    if cls.__module__.startswith("neural_estimator.scenarios."):
+        return None
+    try:
+        source = Path(inspect.getfile(cls)).read_bytes()
+    except (TypeError, OSError):  # defined interactively: no file to hash
+        return None
+    return hashlib.sha256(source).hexdigest()[:16]
+
+
 def scenario_from_description(desc: dict[str, Any]) -> Scenario:
     """Rebuild a scenario from :meth:`Scenario.describe` output (as stored in files)."""
     return make_scenario(desc["scenario"], **desc.get("config", {}))
@@ -110,6 +128,7 @@ __all__ = [
     "BUILTIN_SCENARIOS",
     "Scenario",
     "ScenarioError",
+    "code_digest",
     "complex_step_jacobian",
     "load_plugins",
     "make_scenario",
