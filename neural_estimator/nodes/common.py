@@ -22,6 +22,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
 from neural_estimator.bags.writer import Qos
+from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class
 
 P = TypeVar("P")
 
@@ -153,10 +154,22 @@ def from_bag_qos(q: Qos, min_depth: int = 1) -> QoSProfile:
 
 
 def message_class(msgtype: str) -> type:
-    """The rclpy message class of ``pkg/msg/Type``."""
-    pkg, _, name = msgtype.rpartition("/")
-    module = importlib.import_module(pkg.replace("/", "."))
-    return getattr(module, name)
+    """The rclpy message class of ``pkg/msg/Type``, for a name someone else chose (a bag, the graph).
+
+    The name is checked first (:func:`neural_estimator.interfaces.check_message_type`: the form
+    ``<package>/msg/<Type>`` and a package the ament index declares as a ROS interface package),
+    so no other package's import-time code runs; then only ``<package>.msg`` is imported and the
+    class must be a rosidl message class. Every refusal is an :class:`InterfaceError` (one line).
+    """
+    package, name = check_message_type(msgtype)
+    try:
+        module = importlib.import_module(f"{package}.msg")
+    except ImportError as exc:
+        raise InterfaceError(f"message type {msgtype!r}: its Python module is not installed here ({exc})") from None
+    cls = getattr(module, name, None)
+    if not is_message_class(cls, name):
+        raise InterfaceError(f"message type {msgtype!r}: {package}.msg.{name} is not a ROS message class")
+    return cls
 
 
 # ---- scenarios -----------------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.nodes.common import (
+    InterfaceError,
     StartupError,
     declare_params,
     message_class,
@@ -138,10 +139,10 @@ class EvaluatorNode(Node):
             )
             try:
                 cls = message_class(msgtype)
-            except (ImportError, AttributeError):
+            except InterfaceError as exc:
                 if name not in self._refused:
                     self._refused.add(name)
-                    self.get_logger().error(f"'{name}': type {msgtype} is not installed here; not recorded")
+                    self.get_logger().error(f"'{name}': {exc}; not recorded")
                 continue
             self.bag.add_topic(name, msgtype, qos=[to_bag_qos(q) for q in offered])
             self.counts[name] = 0

@@ -32,6 +32,7 @@ from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.reader import open_bag
 from neural_estimator.bags.writer import parse_qos_yaml
 from neural_estimator.nodes.common import (
+    InterfaceError,
     StartupError,
     declare_params,
     from_bag_qos,
@@ -88,8 +89,8 @@ class PlayerNode(Node):
                 continue
             try:
                 cls = message_class(conn.msgtype)
-            except (ImportError, AttributeError):
-                self.get_logger().warning(f"'{conn.topic}': type {conn.msgtype} is not installed here; skipped")
+            except InterfaceError as exc:
+                self.get_logger().warning(f"'{conn.topic}': {exc}; not played")
                 continue
             offered = parse_qos_yaml(conn.offered_qos_profiles)
             qos = from_bag_qos(offered[0], p.min_depth) if offered else stream_qos(p.min_depth)

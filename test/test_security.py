@@ -1,0 +1,132 @@
+"""Hostile inputs: type names from bags and the graph become imports only when they are ROS interfaces.
+
+A crafted package ``evilpkg`` on the path writes a marker file when imported: no check below may
+let its import-time code run.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class, parse_message_type
+
+EVIL = "evilpkg/msg/Boom"
+
+
+@pytest.fixture
+def evil_package(tmp_path, monkeypatch) -> Path:
+    """A Python package that is not a ROS interface package and leaves a marker when imported."""
+    marker = tmp_path / "imported"
+    pkg = tmp_path / "site" / "evilpkg"
+    (pkg / "msg").mkdir(parents=True)
+    (pkg / "__init__.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    (pkg / "msg" / "__init__.py").write_text("class Boom:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.delitem(sys.modules, "evilpkg", raising=False)
+    monkeypatch.delitem(sys.modules, "evilpkg.msg", raising=False)
+    yield marker
+    assert "evilpkg" not in sys.modules or marker.exists()  # consistency of the fixture itself
+
+
+@pytest.mark.parametrize("name", ["sensor_msgs/Imu", "sensor_msgs/srv/SetCameraInfo", "a.b/msg/C", "../x/msg/Y",
+                                  "sensor_msgs/msg/Imu; rm -rf /", "Sensor_msgs/msg/Imu", "sensor_msgs/msg/imu", "",
+                                  "x" * 300 + "/msg/Y", None, 42])
+def test_malformed_type_names_are_refused_before_anything_else(name):
+    with pytest.raises(InterfaceError, match="form <package>/msg/<Type>"):
+        parse_message_type(name)
+
+
+def test_only_types_declared_by_the_ament_index_pass():
+    pytest.importorskip("sensor_msgs")
+    assert check_message_type("sensor_msgs/msg/Imu") == ("sensor_msgs", "Imu")
+    assert check_message_type("nav_msgs/msg/Odometry") == ("nav_msgs", "Odometry")
+    with pytest.raises(InterfaceError, match="declares no message 'Nope'"):
+        check_message_type("sensor_msgs/msg/Nope")
+    with pytest.raises(InterfaceError, match="'numpy' is not an installed ROS interface package"):
+        check_message_type("numpy/msg/Array")
+
+
+def test_a_crafted_package_name_runs_no_code(evil_package):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.common import message_class
+
+    with pytest.raises(InterfaceError, match="not an installed ROS interface package"):
+        message_class(EVIL)
+    assert not evil_package.exists() and "evilpkg" not in sys.modules
+    assert is_message_class(message_class("sensor_msgs/msg/JointState"), "JointState")
+
+
+def test_a_declared_name_must_still_be_a_rosidl_message_class(evil_package, tmp_path, monkeypatch):
+    """A package the index declares (the index is trusted) still has to hold a generated message class."""
+    pytest.importorskip("rclpy")
+    from neural_estimator.interfaces import _declared
+    from neural_estimator.nodes.common import message_class
+
+    index = tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
+    index.mkdir(parents=True)
+    (index / "evilpkg").write_text("msg/Boom.idl\nmsg/Boom.msg\n")
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "prefix"))
+    _declared.cache_clear()
+    try:
+        with pytest.raises(InterfaceError, match="is not a ROS message class"):
+            message_class(EVIL)
+    finally:
+        _declared.cache_clear()
+
+
+@pytest.fixture
+def ros():
+    rclpy = pytest.importorskip("rclpy")
+    yield rclpy
+    rclpy.try_shutdown()
+
+
+def test_the_player_plays_nothing_a_bag_names_that_is_not_a_ros_interface(ros, evil_package, tmp_path):
+    from neural_estimator.bags import messages as M
+    from neural_estimator.bags.writer import BagWriter
+    from neural_estimator.nodes.player_node import PlayerNode
+
+    bag = tmp_path / "crafted.mcap"
+    with BagWriter(bag) as w:
+        w.add_topic("/observation", M.JOINT_STATE)
+        w.add_topic("/evil", EVIL, msgdef="int32 x", type_hash="RIHS01_" + "0" * 64)  # as a crafted bag declares it
+        w.write("/observation", 1_000, M.encode_vector(1_000, "", 0, 0, ["y0"], np.zeros(1)))
+        w.write("/evil", 2_000, b"\x00\x01\x00\x00")
+    ros.init(args=["--ros-args", "-p", f"bag:={bag}", "-p", "exit_when_done:=false"])
+    node = PlayerNode()
+    try:
+        assert set(node.pubs) == {"/observation"}
+    finally:
+        node.destroy_node()
+    assert not evil_package.exists() and "evilpkg" not in sys.modules
+
+
+def test_the_evaluator_records_no_crafted_type_from_the_graph(ros, evil_package, tmp_path, monkeypatch):
+    from neural_estimator.nodes.evaluator_node import EvaluatorNode
+
+    ros.init(args=["--ros-args", "-p", f"output:={tmp_path / 'rec.mcap'}", "-p", "topics:=[/evil]",
+                   "-p", "discovery_period:=100.0"])
+    node = EvaluatorNode()
+    try:
+        monkeypatch.setattr(node, "get_topic_names_and_types", lambda: [("/evil", [EVIL])])
+        monkeypatch.setattr(node, "get_publishers_info_by_topic", lambda name: [_FakeInfo(EVIL)])
+        node._discover()
+        assert "/evil" not in node.subs and "/evil" in node._refused
+    finally:
+        node.on_shutdown()
+        node.destroy_node()
+    assert not evil_package.exists() and "evilpkg" not in sys.modules
+
+
+class _FakeInfo:
+    """What ``get_publishers_info_by_topic`` reports for a publisher someone else started."""
+
+    def __init__(self, topic_type: str) -> None:
+        from rclpy.qos import QoSProfile
+
+        self.topic_type = topic_type
+        self.qos_profile = QoSProfile(depth=10)
