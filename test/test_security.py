@@ -130,3 +130,82 @@ class _FakeInfo:
 
         self.topic_type = topic_type
         self.qos_profile = QoSProfile(depth=10)
+
+
+# ---- bounded resources on hostile streams ------------------------------------------------------------
+def test_a_description_declaring_a_huge_dimension_is_refused_before_any_allocation():
+    import tracemalloc
+
+    from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description
+    from neural_estimator.scenarios.base import MAX_DIMENSION
+
+    desc = make_scenario("lorenz96").describe()
+    desc["config"]["n_vars"] = 10**9
+    tracemalloc.start()
+    try:
+        with pytest.raises(ScenarioError, match=f"more than the {MAX_DIMENSION}"):
+            scenario_from_description(desc)
+        assert tracemalloc.get_traced_memory()[1] < 10 << 20
+    finally:
+        tracemalloc.stop()
+    with pytest.raises(ScenarioError, match="n_links = 2049 gives 4098 dimensions"):
+        make_scenario("nlink", n_links=2049)
+    assert make_scenario("nlink", n_links=2048).dx == MAX_DIMENSION
+
+
+def test_an_oversized_or_deeply_nested_json_message_is_refused():
+    from neural_estimator.bags import messages as M
+    from neural_estimator.bags.errors import MessageError
+
+    with pytest.raises(MessageError, match="larger than the"):
+        M.decode_scenario(M.encode_string("x" * (M.MAX_JSON_BYTES + 1)))
+    with pytest.raises(MessageError, match="nests JSON too deeply"):
+        M.decode_scenario(M.encode_string("[" * 200_000))
+
+
+def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
+    import time
+    import tracemalloc
+
+    from neural_estimator.bags import messages as M
+    from neural_estimator.bags.errors import MessageError
+
+    codec = M.VectorCodec("lorenz96", [f"y{j}" for j in range(40)])
+    huge = M.encode_vector(0, "lorenz96", 0, 0, [f"v{j}" for j in range(1_000_000)], np.zeros(1_000_000))
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(MessageError, match="larger than any valid one of this stream"):
+            codec.decode(huge)
+        assert tracemalloc.get_traced_memory()[1] < 1 << 20  # nothing of the message's size was built
+    finally:
+        tracemalloc.stop()
+    assert time.perf_counter() - t0 < 1.0  # generous: the check is a length comparison
+    ok = codec.encode(5, 1, 2, np.arange(40.0))
+    assert codec.decode(ok).step == 2 and len(ok) <= codec.max_bytes
+
+
+def test_the_estimator_node_refuses_a_hostile_scenario_and_keeps_serving(ros, tmp_path):
+    from neural_estimator.bags import messages as M
+    from neural_estimator.nodes.estimator_node import EstimatorNode
+    from neural_estimator.scenarios import make_scenario
+
+    ros.init(args=["--ros-args", "-p", "method:=ekf"])
+    node = EstimatorNode()
+    try:
+        desc = make_scenario("lorenz96").describe()
+        bad = {**desc, "config": {**desc["config"], "n_vars": 10**9}}
+        node._on_scenario(M.encode_scenario(bad))
+        node._on_scenario(M.encode_string("[" * 100_000))
+        node._on_scenario(M.encode_scenario({**desc, "scenario": "no-such-scenario"}))
+        assert node.online is None and node.context.ok()  # still running, still waiting
+        node._on_scenario(M.encode_scenario(make_scenario("ballistic").describe()))
+        assert node.online is not None and node.online.scenario.name == "ballistic"
+        labels = M.observation_labels(node.online.scenario)
+        huge = M.encode_vector(0, "ballistic", 0, 0, [f"v{j}" for j in range(200_000)], np.zeros(200_000))
+        node._on_observation(huge)
+        assert node.stats.bad == 1 and node.context.ok()
+        node._on_observation(M.encode_vector(0, "ballistic", 0, 0, labels, np.zeros(len(labels))))
+        assert node.stats.estimated == 1
+    finally:
+        node.destroy_node()

@@ -240,6 +240,9 @@ def vector_from_message(msg: Any) -> Vector:
     )
 
 
+MAX_JSON_BYTES = 1 << 20  # scenario and run_status messages: a description is a few kB
+
+
 def decode_vector(raw: bytes | memoryview) -> Vector:
     """Parse CDR bytes of a vector message; anything malformed is a :class:`MessageError`."""
     if not len(raw):
@@ -292,6 +295,10 @@ class VectorCodec:
         end = start + len(self._block)
         self._mid = self._prefix_after_stamp + self._block + b"\x00" * ((-end) % 8)
         self._values_at = end + (-end) % 8
+        # A valid message of this stream is about _values_at + 8 n bytes; allow other frame_ids and
+        # names (the slow path's clear errors) but refuse before decoding anything much larger (a
+        # JointState with millions of entries costs time and memory to parse, and is wrong anyway).
+        self.max_bytes = 2 * (self._values_at + 8 * self._n) + 65536
 
     def encode(self, stamp_ns: int, trajectory: int, step: int, values: Any) -> bytes:
         values = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -303,6 +310,9 @@ class VectorCodec:
 
     def decode(self, raw: bytes | memoryview) -> Vector:
         n_raw = len(raw)
+        if n_raw > self.max_bytes:
+            raise MessageError(f"message of {n_raw} bytes is larger than any valid one of this stream ({len(self.names)} "
+                               f"values, at most {self.max_bytes} bytes): refused before decoding")
         try:
             if bytes(raw[:4]) == self._ENCAPSULATION:
                 sec, nsec, flen = struct.unpack_from("<iII", raw, 4)
@@ -365,11 +375,15 @@ def decode_string(raw: bytes | memoryview) -> str:
 
 
 def _decode_json(raw: bytes | memoryview, what: str) -> dict[str, Any]:
+    if len(raw) > MAX_JSON_BYTES:
+        raise MessageError(f"{what} message of {len(raw)} bytes is larger than the {MAX_JSON_BYTES} accepted: refused")
     text = decode_string(raw)
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as exc:
         raise MessageError(f"{what} message is not JSON: {exc.msg} in {text[:80]!r}") from None
+    except RecursionError:  # "[[[[..." nested deeper than the interpreter's stack
+        raise MessageError(f"{what} message nests JSON too deeply") from None
     if not isinstance(obj, dict):
         raise MessageError(f"{what} message must be a JSON object, got {type(obj).__name__}")
     return obj

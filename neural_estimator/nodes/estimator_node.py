@@ -52,7 +52,6 @@ from neural_estimator.nodes.common import (
     latched_qos,
     load_plugins,
     param,
-    request_shutdown,
     run_node,
     stream_qos,
 )
@@ -215,9 +214,9 @@ class EstimatorNode(Node):
 
             try:
                 self._build(scenario_from_description(desc))
-            except (StartupError, ScenarioError) as exc:
-                self.get_logger().fatal(f"cannot serve the announced scenario: {exc}")
-                request_shutdown(self, 1)
+            except (StartupError, ScenarioError, KeyError, TypeError, ValueError) as exc:
+                # anyone on the domain can publish a scenario: a bad one is refused, the node keeps waiting
+                self._warn("scenario", f"cannot serve the announced scenario, ignored: {exc}")
                 return
             early, self._early = self._early, []
             for raw_obs in early:

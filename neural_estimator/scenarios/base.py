@@ -33,6 +33,11 @@ import numpy as np
 
 from neural_estimator.angles import weighted_mean, wrap_components
 
+# The largest state, observation or control dimension a scenario may have. A filter holds dx x dx
+# matrices (128 MiB each at 4096) and a scenario description can arrive from the ROS graph, so the
+# bound is checked before anything of that size is allocated (see Scenario.dimension_fields).
+MAX_DIMENSION = 4096
+
 
 class ScenarioError(ValueError):
     """A scenario name, constant or input that cannot be used; the message names the problem."""
@@ -99,13 +104,33 @@ class Scenario(ABC):
     # Which state components are a pose and its rates, for nav_msgs/Odometry output: keys among
     # x, y, z, roll, pitch, yaw (pose) and vx, vy, vz, wx, wy, wz (twist), values state indices.
     pose_states: ClassVar[dict[str, int]] = {}
+    # Config fields that set a dimension, with how many dimensions one unit adds (Lorenz 96:
+    # {"n_vars": 1}; N-link: {"n_links": 2}). Checked against MAX_DIMENSION before the scenario is
+    # built, so a description naming 10^9 variables is refused before any allocation; a scenario
+    # with variable dimensions should declare its fields here (dx, dy, du are checked after too).
+    dimension_fields: ClassVar[dict[str, int]] = {}
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         cfg = config if config is not None else self.Config()
         if overrides:
             cfg = replace_config(cfg, overrides, scenario=self.name)
         self.config = cfg
+        self._check_dimension_fields()
         self._validate()
+        self._check_dimensions()
+
+    def _check_dimension_fields(self) -> None:
+        for field, per_unit in self.dimension_fields.items():
+            value = getattr(self.config, field)
+            if isinstance(value, (int, np.integer)) and int(value) * per_unit > MAX_DIMENSION:
+                raise ScenarioError(f"scenario {self.name!r}: {field} = {value} gives {int(value) * per_unit} dimensions, "
+                                    f"more than the {MAX_DIMENSION} this package accepts")
+
+    def _check_dimensions(self) -> None:
+        for what, n in (("state", self.dx), ("observation", self.dy), ("control", self.du)):
+            if n > MAX_DIMENSION:
+                raise ScenarioError(f"scenario {self.name!r}: {n} {what} dimensions, more than the {MAX_DIMENSION} "
+                                    "this package accepts")
 
     # ---- dimensions and timing -------------------------------------------------------------
     @property

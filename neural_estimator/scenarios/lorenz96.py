@@ -96,6 +96,7 @@ class Lorenz96(Scenario):
     """
 
     name = "lorenz96"
+    dimension_fields = {"n_vars": 1}  # J variables: dx = dy = J
     Config = Lorenz96Config
 
     @property

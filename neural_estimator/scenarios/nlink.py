@@ -129,6 +129,7 @@ class NLinkPendulum(Scenario):
     """
 
     name = "nlink"
+    dimension_fields = {"n_links": 2}  # N links: dx = dy = 2N
     Config = NLinkConfig
 
     @property
