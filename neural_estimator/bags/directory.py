@@ -34,21 +34,41 @@ def bag_files(path: str | Path) -> list[Path]:
         import yaml
 
         try:
-            info = yaml.safe_load(meta.read_text()) or {}
-            listed = list((info.get("rosbag2_bagfile_information") or {}).get("relative_file_paths") or [])
-        except (yaml.YAMLError, AttributeError, TypeError) as exc:
-            raise BagError(f"{meta}: unreadable rosbag2 metadata ({exc})") from None
-        storage = (info.get("rosbag2_bagfile_information") or {}).get("storage_identifier", "mcap")
+            info = yaml.safe_load(meta.read_text(errors="replace"))
+        except (yaml.YAMLError, RecursionError, ValueError) as exc:
+            raise BagError(f"{meta}: unreadable rosbag2 metadata ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        info = info.get("rosbag2_bagfile_information") if isinstance(info, dict) else None
+        if info is not None and not isinstance(info, dict):
+            raise BagError(f"{meta}: 'rosbag2_bagfile_information' is not a mapping")
+        info = info or {}
+        listed = info.get("relative_file_paths") or []
+        # a file list names files inside the directory: anything else is refused, never followed
+        if not isinstance(listed, list) or not all(isinstance(f, str) and _plain_file_name(f) for f in listed):
+            raise BagError(f"{meta}: relative_file_paths must list file names inside the bag directory")
+        storage = info.get("storage_identifier", "mcap")
         if storage not in ("mcap", "", None):
-            raise BagError(f"{root}: storage {storage!r} is not supported (only mcap; convert with "
+            raise BagError(f"{root}: storage {str(storage)[:40]!r} is not supported (only mcap; convert with "
                            f"`rosbags-convert` or `ros2 bag convert`)")
     files = [root / f for f in listed] if listed else sorted(root.glob("*.mcap"))
     if not files:
         raise BagError(f"{root}: a directory without .mcap files (not a rosbag2 mcap bag)")
-    missing = [str(f) for f in files if not f.is_file()]
+    missing = [str(f) for f in files if not _is_file(f)]
     if missing:
         raise BagError(f"{root}: {METADATA_FILE} lists missing file(s): {', '.join(missing)}")
     return files
+
+
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except (OSError, ValueError):  # a name the file system cannot hold (too long, undecodable)
+        return False
+
+
+def _plain_file_name(name: str) -> bool:
+    """A relative path of one component, not '.', '..' or hidden behind separators (rosbag2 lists bare names)."""
+    return bool(name) and len(name.encode("utf-8", "surrogatepass")) <= 255 and "/" not in name and "\\" not in name and "\x00" not in name \
+        and name not in (".", "..")
 
 
 class BagDirectory:

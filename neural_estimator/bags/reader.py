@@ -331,8 +331,11 @@ class BagReader:
                         pass
             elif op == _OP_HEADER:
                 body = self._read(body_at, length)
-                n = _U32.unpack_from(body, 0)[0]
-                self.profile = body[4 : 4 + n].decode(errors="replace")
+                if len(body) < 4:  # a header too short for its profile string: the profile is unknown
+                    problems.append(f"malformed header record at byte {pos} ({len(body)} bytes)")
+                else:
+                    n = _U32.unpack_from(body, 0)[0]
+                    self.profile = body[4 : 4 + n].decode(errors="replace")
             elif op in (_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_METADATA):
                 try:
                     self._record(op, self._read(body_at, length), loose=True)
