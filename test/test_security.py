@@ -209,3 +209,66 @@ def test_the_estimator_node_refuses_a_hostile_scenario_and_keeps_serving(ros, tm
         assert node.stats.estimated == 1
     finally:
         node.destroy_node()
+
+
+# ---- checkpoint cards someone sent you --------------------------------------------------------------
+def _copy_shipped(tmp_path: Path, edit) -> Path:
+    import json
+    import shutil
+
+    from neural_estimator.models.checkpoint import default_checkpoint
+
+    src = default_checkpoint("lorenz96", "mamba")
+    dst = tmp_path / "ckpt"
+    shutil.copytree(src, dst)
+    card = json.loads((dst / "card.json").read_text())
+    edit(card)
+    (dst / "card.json").write_text(json.dumps(card))
+    return dst
+
+
+def test_a_card_declaring_a_huge_model_is_refused_before_allocation(tmp_path):
+    import tracemalloc
+
+    from neural_estimator.estimators import EstimatorError
+    from neural_estimator.models.checkpoint import load_checkpoint
+
+    ckpt = _copy_shipped(tmp_path, lambda c: c["architecture"]["config"].update(d_model=200_000))
+    with pytest.raises(EstimatorError):  # once untraced: the first meta-device build imports parts of torch
+        load_checkpoint(ckpt)
+    tracemalloc.start()
+    try:
+        with pytest.raises(EstimatorError, match="more than the"):
+            load_checkpoint(ckpt)
+        assert tracemalloc.get_traced_memory()[1] < 50 << 20
+    finally:
+        tracemalloc.stop()
+    bigger = _copy_shipped(tmp_path / "b", lambda c: c["architecture"]["config"].update(d_model=400))
+    with pytest.raises(EstimatorError, match="card and weights do not belong together"):
+        load_checkpoint(bigger)
+
+
+@pytest.mark.parametrize("name", ["../../etc/passwd", "/etc/passwd", "..", "sub/model.safetensors", 7])
+def test_a_card_cannot_name_a_weight_file_outside_its_checkpoint(tmp_path, name):
+    from neural_estimator.estimators import EstimatorError
+    from neural_estimator.models.checkpoint import load_checkpoint
+
+    ckpt = _copy_shipped(tmp_path, lambda c: c["weights"].update(file=name))
+    with pytest.raises(EstimatorError, match="must be a file name inside the checkpoint"):
+        load_checkpoint(ckpt)
+
+
+def test_no_message_or_card_can_name_a_plugin_to_load(tmp_path):
+    """Plugins run code: only the user's explicit --plugin / plugins parameter loads one."""
+    from neural_estimator.bags import messages as M
+    from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description
+
+    marker = tmp_path / "ran"
+    plugin = tmp_path / "plugin.py"
+    plugin.write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    desc = make_scenario("ballistic").describe()
+    for crafted in ({**desc, "scenario": str(plugin)}, {**desc, "scenario": "plugin", "plugins": [str(plugin)]},
+                    {**desc, "scenario": f"{plugin}:Scenario"}):
+        with pytest.raises(ScenarioError, match="unknown scenario"):
+            scenario_from_description(M.decode_scenario(M.encode_scenario(crafted)))
+    assert not marker.exists()

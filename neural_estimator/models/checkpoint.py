@@ -238,10 +238,14 @@ def load_checkpoint(
         normalizer = Normalizer.from_dict(card["normalization"])
     except NormalizationError as exc:
         raise EstimatorError(f"{directory / CARD_FILE}: {exc}") from None
-    model = build_from_config(arch["name"], arch["config"])
-    weights = directory / card["weights"].get("file", WEIGHTS_FILE)
+    name = card["weights"].get("file", WEIGHTS_FILE)
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
+        raise EstimatorError(f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}")
+    weights = directory / name
     if not weights.is_file():
         raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
+    check_model_size(arch, weights.stat().st_size, directory)
+    model = build_from_config(arch["name"], arch["config"])
     expected = card["weights"].get("sha256")
     if expected and sha256_file(weights) != expected:
         raise EstimatorError(
@@ -254,6 +258,29 @@ def load_checkpoint(
         raise EstimatorError(f"checkpoint {directory}: cannot read {weights.name}: {exc}") from None
     model = model.to(resolve_device(device)).eval()
     return model, normalizer, card
+
+
+MAX_MODEL_ELEMENTS = 100_000_000  # parameters + buffers a card may declare (the paper's models: ~100k)
+
+
+def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path) -> None:
+    """Refuse a card whose architecture is larger than its weight file or than MAX_MODEL_ELEMENTS,
+    before allocating it: the model is built on torch's meta device (shapes only, no memory)."""
+    try:
+        with torch.device("meta"):
+            probe = build_from_config(arch["name"], arch["config"])
+    except EstimatorError:
+        raise
+    except Exception as exc:  # a card's config that the architecture rejects
+        raise EstimatorError(f"checkpoint {where}: the card's architecture cannot be built: {exc}") from None
+    params = sum(p.numel() for p in probe.parameters())
+    elements = params + sum(b.numel() for b in probe.buffers())
+    if elements > MAX_MODEL_ELEMENTS:
+        raise EstimatorError(f"checkpoint {where}: the card declares a model of {elements:,} elements, more than the "
+                             f"{MAX_MODEL_ELEMENTS:,} this package loads")
+    if 2 * params > weight_bytes + 4096:  # at least 2 bytes per stored parameter (bf16), plus the header
+        raise EstimatorError(f"checkpoint {where}: the card declares {params:,} parameters but the weight file holds "
+                             f"{weight_bytes:,} bytes: card and weights do not belong together")
 
 
 def _dims(desc: dict[str, Any]) -> tuple[int, int, int]:
