@@ -33,7 +33,7 @@ def test_chunking_does_not_change_results(oscillator):
 
 
 def test_chunk_size_respects_the_memory_budget():
-    l96 = make_scenario("lorenz96")
+    l96 = make_scenario("lorenz96", n_vars=40)
     n = chunk_size(l96, "ukf", 500, 8000, budget=1 << 30)
     per_traj = 500 * (40 + 1600 + 40) * 8
     assert 1 <= n < 8000 and n * per_traj <= 1 << 30
