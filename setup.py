@@ -17,7 +17,30 @@ setup(
         (f"share/{package_name}/params", glob("params/*.yaml")),
         (f"share/{package_name}/bags", glob("bags/*.mcap")),
     ],
-    install_requires=["setuptools"],
+    # What `pip install .` needs for every verb but `reproduce` and the nodes. The README's install
+    # (scripts/requirements.txt) pins torch to the CPU build on disk; here a range, so that an
+    # existing torch (CPU or CUDA) is kept. test/test_package.py checks every import is declared.
+    install_requires=[
+        "numpy>=1.26",
+        "scipy>=1.11",
+        "torch>=2.1",
+        "numba>=0.60",
+        "safetensors>=0.4",
+        "matplotlib>=3.8",
+        "tqdm>=4.66",
+        "rosbags>=0.10",
+        "mcap>=1.2",
+        "PyYAML>=6",
+        "zstandard>=0.21",
+    ],
+    extras_require={
+        # the nodes: from the ROS 2 install on a ROS machine, or these wheels in a plain venv
+        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "ros-jazzy-diagnostic-msgs",
+                "ros-jazzy-std-srvs"],
+        "reproduce": ["ray==2.60.0"],
+        "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
+        "test": ["pytest>=8", "atheris==3.0.0", "filterpy>=1.4.5", "dapper==1.7.1"],
+    },
     zip_safe=False,
     maintainer="neural_estimator maintainers",
     maintainer_email="maintainers@neural-estimator.dev",

@@ -45,3 +45,55 @@ def test_colcon_lists_and_builds_the_package(tmp_path):
     share = ws / "install" / "neural_estimator" / "share"
     assert (share / "ament_index" / "resource_index" / "packages" / "neural_estimator").exists()
     assert (share / "neural_estimator" / "package.xml").exists()
+
+
+# Imports guarded by `except ImportError` (optional speed-ups or GPU kernels), not dependencies.
+OPTIONAL_IMPORTS = {"mamba_ssm", "lz4"}
+# The ROS 2 interfaces come with the ROS install (package.xml) or the "ros" extra's wheels.
+ROS_PACKAGES = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "nav_msgs", "diagnostic_msgs", "std_srvs",
+                "rosgraph_msgs", "builtin_interfaces", "geometry_msgs"}
+
+
+def _declared_requirements() -> tuple[set[str], dict[str, set[str]]]:
+    import ast
+
+    tree = ast.parse((ROOT / "setup.py").read_text())
+    call = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "setup")
+    kw = {k.arg: ast.literal_eval(k.value) for k in call.keywords if k.arg in ("install_requires", "extras_require")}
+
+    def name(req: str) -> str:
+        return re.split(r"[\[<>=!~ ]", req, maxsplit=1)[0].lower().replace("_", "-")
+
+    return ({name(r) for r in kw["install_requires"]},
+            {extra: {name(r) for r in reqs} for extra, reqs in kw["extras_require"].items()})
+
+
+def test_every_third_party_import_is_a_declared_dependency():
+    """`pip install .` must give a package that imports: each distribution the package imports is in
+    install_requires, or in the extra of the feature that imports it (ROS nodes, reproduce, references)."""
+    import ast
+    import importlib.metadata as md
+
+    core, extras = _declared_requirements()
+    declared = core | set().union(*extras.values())
+    providers = md.packages_distributions()
+    missing = {}
+    for path in (ROOT / "neural_estimator").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [a.name.split(".")[0] for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module.split(".")[0]]
+            else:
+                continue
+            for top in names:
+                if top in sys.stdlib_module_names or top in ("neural_estimator", "sim_nodes") or top in OPTIONAL_IMPORTS:
+                    continue
+                if top in ROS_PACKAGES:
+                    assert "ros-jazzy-rclpy" in extras["ros"]
+                    continue
+                dists = {d.lower().replace("_", "-") for d in providers.get(top, [top])}
+                if not dists & declared:
+                    missing.setdefault(top, []).append(path.name)
+    assert not missing, f"imported but not declared in setup.py: {missing}"
+    assert {"numpy", "torch", "safetensors", "rosbags", "mcap", "pyyaml"} <= core  # what every verb needs
