@@ -23,8 +23,6 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 from neural_estimator.scenarios import ScenarioError, load_plugins, make_scenario, parse_assignments, scenario_names
 
 EXIT_BAD_INPUT = 2
@@ -136,6 +134,7 @@ def _is_bag(path: str) -> bool:
 def _estimates_from_files(files: list[str], args: argparse.Namespace | None = None):
     """(truth Trajectories, {method: (x_hat, P_hat or None)}, angle_states) from npz files or a bag."""
     from neural_estimator.data import DataError, load_trajectories
+    from neural_estimator.data.io import load_estimates
 
     if len(files) == 1 and _is_bag(files[0]):
         from neural_estimator.bags import load_bag_dataset
@@ -149,13 +148,9 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
     if "x_hat" in extras:
         estimates[truth.meta.get("method", Path(files[0]).stem)] = (extras["x_hat"], extras.get("P_hat"))
     for f in files[1:]:
-        other, ex = load_trajectories(f)
-        if "x_hat" not in ex:
-            raise DataError(f"{f}: no 'x_hat' array: not an estimate file")
-        if other.x.shape != truth.x.shape or not np.array_equal(other.x, truth.x):
-            raise DataError(f"{f}: its states differ from {files[0]}'s: estimates of another dataset")
-        name = other.meta.get("method", Path(f).stem)
-        estimates[name if name not in estimates else f"{name}:{Path(f).stem}"] = (ex["x_hat"], ex.get("P_hat"))
+        x_hat, P_hat, meta = load_estimates(f, truth)  # x_hat alone is enough (your own estimator's output)
+        name = meta.get("method", Path(f).stem)
+        estimates[name if name not in estimates else f"{name}:{Path(f).stem}"] = (x_hat, P_hat)
     if not estimates:
         raise DataError(f"{files[0]}: no 'x_hat' array and no estimate files given")
     return truth, estimates, tuple(truth.meta.get("angle_states", ()))

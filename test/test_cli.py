@@ -74,3 +74,22 @@ def test_metrics_refuses_estimates_of_another_dataset(tmp_path, capsys):
     save_estimates(tmp_path / "e.npz", other, other.x, "ukf")
     assert main(["metrics", str(tmp_path / "d0.npz"), str(tmp_path / "e.npz")]) == 2
     assert "estimates of another dataset" in capsys.readouterr().err
+
+
+def test_metrics_scores_an_estimate_file_holding_only_x_hat(tmp_path, capsys):
+    """A user's own estimator writes just its estimates: x_hat (N, T, dx), no copy of the data."""
+    import numpy as np
+
+    from neural_estimator.data.io import save_npz
+
+    main(["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "3", "--horizon", "5", "--out",
+          str(tmp_path / "d.npz")])
+    truth, _ = load_trajectories(tmp_path / "d.npz")
+    save_npz(tmp_path / "mine.npz", {"x_hat": truth.x + 0.5}, {"method": "mine"})
+    capsys.readouterr()
+    assert main(["metrics", str(tmp_path / "d.npz"), str(tmp_path / "mine.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "mine" in out and "0.500" in out
+    save_npz(tmp_path / "bad.npz", {"x_hat": np.zeros((3, 4, 2))}, {})
+    assert main(["metrics", str(tmp_path / "d.npz"), str(tmp_path / "bad.npz")]) == 2
+    assert "x_hat has shape (3, 4, 2), the truth's x has (3, 5, 2)" in capsys.readouterr().err

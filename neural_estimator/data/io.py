@@ -140,3 +140,28 @@ def load_trajectories(path: str | Path, *, allow_nonfinite_estimates: bool = Tru
             raise DataError(f"{path}: P_hat has shape {P.shape}, expected {x.shape + (x.shape[2],)}")
         extras["P_hat"] = P
     return Trajectories(x, y, u, meta), extras
+
+
+def load_estimates(path: str | Path, truth: Trajectories) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """(x_hat, P_hat or None, meta) of an estimate file for ``truth``'s trajectories.
+
+    An estimate file needs only ``x_hat`` (N, T, dx) (and optionally ``P_hat`` (N, T, dx, dx)), as a
+    user's own estimator writes it; when it also carries ``x`` (the package's own estimate files),
+    those states must be ``truth``'s, so that estimates of another dataset are never scored.
+    """
+    arrays, meta = load_npz(path)
+    if "x_hat" not in arrays:
+        raise DataError(f"{path}: no 'x_hat' array: not an estimate file (has {sorted(arrays)})")
+    xh = np.asarray(arrays["x_hat"], dtype=np.float64)
+    if xh.shape != truth.x.shape:
+        raise DataError(f"{path}: x_hat has shape {xh.shape}, the truth's x has {truth.x.shape}")
+    if "x" in arrays:
+        x = np.asarray(arrays["x"], dtype=np.float64)
+        if x.shape != truth.x.shape or not np.array_equal(x, truth.x):
+            raise DataError(f"{path}: its states differ from the truth file's: estimates of another dataset")
+    P = None
+    if "P_hat" in arrays:
+        P = np.asarray(arrays["P_hat"], dtype=np.float64)
+        if P.shape != xh.shape + (xh.shape[2],):
+            raise DataError(f"{path}: P_hat has shape {P.shape}, expected {xh.shape + (xh.shape[2],)}")
+    return xh, P, meta
