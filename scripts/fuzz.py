@@ -101,10 +101,13 @@ def decode_streams(data: bytes) -> None:
 
 
 def scenario_message(data: bytes) -> None:
-    try:
-        scenario_from_description(M.decode_scenario(data))
-    except (MessageError, ScenarioError, KeyError, TypeError, ValueError):  # as the estimator node catches them
-        pass
+    """The bytes as a whole ``scenario`` message (CDR string), and as the JSON text inside one (so
+    the fuzzer reaches the description's contents, not only the CDR framing)."""
+    for raw in (data, M.encode_string(data.decode("utf-8", errors="replace"))):
+        try:
+            scenario_from_description(M.decode_scenario(raw))
+        except (MessageError, ScenarioError, KeyError, TypeError, ValueError):  # as the estimator node catches them
+            pass
 
 
 class Target:
@@ -155,7 +158,8 @@ def seeds(name: str) -> list[bytes]:
             return [ROSBAG2_METADATA.encode()]
     if name == "cdr":
         return [c.encode(123, 1, 2, np.arange(len(c.names), dtype=float)) for c in _CODECS]
-    return [M.encode_scenario(make_scenario(s).describe(), trajectories=2) for s in ("ballistic", "nlink", "lorenz96")]
+    messages = [M.encode_scenario(make_scenario(s).describe(), trajectories=2) for s in ("ballistic", "nlink", "lorenz96")]
+    return messages + [M.decode_string(m).encode() for m in messages]  # and their JSON text
 
 
 def main(argv: list[str] | None = None) -> int:

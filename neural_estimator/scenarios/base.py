@@ -34,9 +34,9 @@ import numpy as np
 from neural_estimator.angles import weighted_mean, wrap_components
 
 # The largest state, observation or control dimension a scenario may have. A filter holds dx x dx
-# matrices (128 MiB each at 4096) and a scenario description can arrive from the ROS graph, so the
+# matrices (8 MiB each at 1024) and a scenario description can arrive from the ROS graph, so the
 # bound is checked before anything of that size is allocated (see Scenario.dimension_fields).
-MAX_DIMENSION = 4096
+MAX_DIMENSION = 1024
 
 
 class ScenarioError(ValueError):
