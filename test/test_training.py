@@ -248,7 +248,13 @@ def test_loading_names_missing_and_corrupt_files(oscillator, tmp_path):
     card = json.loads((path / "card.json").read_text())
     del card["weights"]["sha256"]
     (path / "card.json").write_text(json.dumps(card))
-    (path / "model.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{broken}")
+    broken = b"\x08\x00\x00\x00\x00\x00\x00\x00{broken}"
+    # far smaller than the card's model: refused by its size before anything is allocated or parsed
+    (path / "model.safetensors").write_bytes(broken)
+    with pytest.raises(EstimatorError, match="weight file holds 16 bytes: card and weights do not belong"):
+        load_neural_estimator("gru", oscillator, path)
+    # the model's size but not a safetensors file: the parser's refusal, named
+    (path / "model.safetensors").write_bytes(broken + bytes(len(blob)))
     with pytest.raises(EstimatorError, match="cannot read model.safetensors"):
         load_neural_estimator("gru", oscillator, path)
     (path / "model.safetensors").unlink()
