@@ -5,7 +5,10 @@ Each holds the `scenario`, `observation` and `ground_truth` streams of 2 traject
 
     neural-estimator replay bags/lorenz96.mcap --methods ukf,mamba --out /tmp/l96.mcap --metrics
 
-    python scripts/make_sample_bags.py [--trajectories 2] [--horizon 200]
+    python scripts/make_sample_bags.py [--scenarios lorenz96,...] [--trajectories 2] [--horizon 200]
+
+A bag records its scenario's constants, so a bag and the shipped models it replays through must be
+made on the same constants: rewrite a scenario's bag when its shipped models are retrained.
 """
 
 from __future__ import annotations
@@ -26,8 +29,9 @@ def main(argv=None) -> int:
     p.add_argument("--trajectories", type=int, default=2)
     p.add_argument("--horizon", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS), help="comma-separated (default: all five)")
     a = p.parse_args(argv)
-    for name in BUILTIN_SCENARIOS:
+    for name in a.scenarios.split(","):
         scenario = make_scenario(name)
         T = min(a.horizon, scenario.horizon)
         d = simulate(scenario, a.trajectories, T, a.seed)
