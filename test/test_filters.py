@@ -723,10 +723,11 @@ def test_compiled_lorenz96_transition_is_bit_equal(substeps):
     np.testing.assert_array_equal(Y, s.f(X, None))
 
 
-@pytest.mark.parametrize("name", ["lorenz96", "nlink", "bearings", "test_filters_pendulum"])
+@pytest.mark.parametrize("name", ["lorenz96", "nlink", "ballistic", "bearings", "quadrotor", "test_filters_pendulum"])
 def test_compiled_pf_predict_equals_numpy_given_the_same_draws(name):
     """One compiled predict step == the scenario's numpy f plus the stream's keyed draws times sqrt(Q)
-    (Lorenz 96: the fused kernel; the others: numpy f + the compiled noise; angles normalised)."""
+    (Lorenz 96, N-link, ballistic, bearings: the fused kernels of compiled_models; the others: numpy
+    f + the compiled noise; angles normalised)."""
     from neural_estimator.filters import compiled as ck
     from neural_estimator.filters.base import PHASE_PREDICT
 
@@ -759,7 +760,77 @@ def test_compiled_linear_likelihood_equals_numpy(name):
         np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["test_filters_linear", "test_filters_pendulum", "bearings", "quadrotor"])
+@pytest.mark.parametrize("name", ["nlink", "ballistic", "bearings"])
+def test_compiled_model_likelihood_equals_numpy(name):
+    """The scenarios' compiled h likelihoods (masses' positions, range, wrapped bearing) == numpy's."""
+    s = scenario_or_skip(name)
+    x, y, u = data(s, 3, 2, seed=2)
+    pf = ParticleFilter(s, seed=9, n_particles=64, init_std=2.0)
+    assert pf._ck_loglik is not None and pf._ck_H is None
+    pf.reset(3)
+    pf._X = pf._X + np.random.default_rng(4).normal(0.0, 0.5, pf._X.shape)  # spread: large innovations too
+    if name == "bearings":  # bearings around +-pi, where the innovation must wrap
+        y = np.where(np.arange(3)[:, None, None] == 0, np.pi - 1e-3, y)
+    logw = np.random.default_rng(1).normal(-np.log(64), 0.1, (3, 64))
+    got, want = pf._update_block_compiled(pf._X, logw, y[:, 0]), pf._update_block(pf._X, logw, y[:, 0])
+    for g, w in zip(got[:2], want[:2]):
+        np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-9)
+
+
+def test_compiled_model_transitions_match_the_scenarios():
+    """N-link (own sine and cosine: a few ulp) and ballistic (bit-equal, also below ground) kernels."""
+    from neural_estimator.filters import compiled_models as cm
+
+    rng = np.random.default_rng(0)
+    s = make_scenario("nlink", n_links=4)
+    x = s.sample_initial(rng, 3000) + rng.normal(0.0, 2.0, (3000, 8))  # 3000: not a multiple of the pass
+    X = x.copy()
+    _, W, G = s._constants()
+    cm.nlink_transition(X, s.config.dt / s.config.substeps, s.config.substeps, np.ascontiguousarray(W), -G)
+    np.testing.assert_allclose(s.state_residual(X, s.f(x)), 0.0, atol=1e-12)
+    b = make_scenario("ballistic", substeps=3)
+    x = b.sample_initial(rng, 500)
+    x[:250, 0] = rng.normal(0.0, 3.0, 250)  # around and below the ground, where E(a) = 1
+    X = x.copy()
+    cfg = b.config
+    cm.ballistic_transition(X, cfg.g, cfg.k, cfg.dt / cfg.substeps, cfg.substeps)
+    np.testing.assert_array_equal(X, b.f(x))
+
+
+def test_compiled_sincos_is_within_two_ulp():
+    import numba as nb
+
+    from neural_estimator.filters import compiled_models as cm
+
+    @nb.njit
+    def both(x, s, c):
+        for i in range(x.size):
+            s[i], c[i] = cm._sincos(x[i])
+
+    x = np.concatenate([np.random.default_rng(1).uniform(-50.0, 50.0, 200_000), np.arange(-8, 9) * np.pi / 4])
+    s, c = np.empty_like(x), np.empty_like(x)
+    both(x, s, c)
+    for got, want in ((s, np.sin(x)), (c, np.cos(x))):
+        err = np.abs(got - want) / np.spacing(np.maximum(np.abs(want), 1e-300))
+        # near a zero of sin or cos the reference's own rounding of x dominates: absolute 1e-16 there
+        assert np.all((err <= 2.0) | (np.abs(got - want) < 2e-16)), err.max()
+
+
+def test_compiled_circular_mean_and_residuals_equal_numpy():
+    from neural_estimator.filters import compiled_models as cm
+
+    s = make_scenario("nlink")
+    rng = np.random.default_rng(3)
+    X = s.normalize_state(rng.normal(np.pi - 0.2, 0.3, (4, 50, 6)))  # straddles the +-pi cut
+    w = rng.dirichlet(np.ones(50), 4)
+    mean, D = np.empty((4, 6)), np.empty_like(X)
+    cm.circular_mean_residuals(X, w, np.isin(np.arange(6), s.angle_states), mean, D)
+    want = s.state_mean(X, w)
+    np.testing.assert_allclose(s.state_residual(mean, want), 0.0, atol=1e-12)
+    np.testing.assert_allclose(s.state_residual(D, s.state_residual(X, want[:, None, :])), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["test_filters_linear", "test_filters_pendulum", "nlink", "ballistic", "bearings", "quadrotor"])
 def test_compiled_pf_equals_numpy_pf_in_distribution(name):
     """Same algorithm, different random numbers: per-trajectory RMSE equal (paired test)."""
     s = scenario_or_skip(name)

@@ -28,6 +28,7 @@ from neural_estimator.filters.base import (
     PHASE_RESAMPLE,
     MemberFilter,
 )
+from neural_estimator.filters.compiled_models import circular_mean_residuals, compiled_model
 from neural_estimator.filters.numerics import (
     effective_sample_size,
     gaussian,
@@ -36,6 +37,7 @@ from neural_estimator.filters.numerics import (
     systematic_resample,
     weighted_covariance,
 )
+from neural_estimator.scenarios import Scenario
 
 
 @dataclass(frozen=True)
@@ -129,22 +131,25 @@ class ParticleFilter(MemberFilter):
 
     def _setup_compiled(self) -> None:
         """Choose the compiled kernels that apply to this scenario (none with compiled=false)."""
-        from neural_estimator.scenarios.lorenz96 import Lorenz96
-
         s = self.scenario
         self._compiled = bool(self.hp.compiled)
         # noise: sd (diagonal Q) or a full square root L; the unused one is empty
         self._ck_sd = self._sd_Q if self._sd_Q is not None else np.zeros(0)
         self._ck_L = np.ascontiguousarray(self._sqrt_Q) if self._sd_Q is None else np.zeros((0, 0))
-        # f: the exact class only (a subclass may redefine f)
-        self._ck_l96 = None
-        if type(s) is Lorenz96:
-            cfg = s.config
-            self._ck_l96 = (float(cfg.forcing), float(cfg.dt) / int(cfg.substeps), int(cfg.substeps))
-        # likelihood: h(x) = H x, R diagonal, no angular observation
+        # the scenario's own f and h kernels (exact built-in classes; a subclass may redefine f or h)
+        model = compiled_model(s)
+        self._ck_predict = model.predict
+        self._ck_loglik = model.log_likelihood if self._inv_sd_R is not None else None
+        # the weighted mean and residuals of angular states (the base class's circular semantics)
+        cls, base = type(s), Scenario
+        standard_angles = cls.state_mean is base.state_mean and cls.state_residual is base.state_residual
+        self._ck_angles = None
+        if self._compiled and not self.ops.plain_state and standard_angles:
+            self._ck_angles = np.isin(np.arange(s.dx), list(s.angle_states))
+        # likelihood otherwise: h(x) = H x, R diagonal, no angular observation
         H = s.obs_matrix()
         self._ck_H = None
-        if H is not None and self._inv_sd_R is not None and self.ops.plain_obs:
+        if self._ck_loglik is None and H is not None and self._inv_sd_R is not None and self.ops.plain_obs:
             H = np.ascontiguousarray(np.asarray(H, dtype=np.float64))
             self._ck_H = (H, bool(H.shape == (s.dy, s.dx) and np.array_equal(H, np.eye(s.dx))))
 
@@ -165,16 +170,17 @@ class ParticleFilter(MemberFilter):
         (seed, k, PHASE_PREDICT, b); f compiled and fused with the noise where there is a kernel."""
         X = self._X[sl]
         key = (self.seed, self._k, PHASE_PREDICT, sl.start)
-        if self._ck_l96 is not None:
-            ck.lorenz96_predict(X, *self._ck_l96, self._ck_L, self._ck_sd, *key)
-        else:
-            X[...] = self.scenario.f(X, self._broadcast_u(u, self.N))
-            ck.add_process_noise(X, self._ck_L, self._ck_sd, *key)
+        if self._ck_predict is not None:  # f, noise and the angle wrapping fused
+            self._ck_predict(X, self._ck_L, self._ck_sd, key)
+            return
+        X[...] = self.scenario.f(X, self._broadcast_u(u, self.N))
+        ck.add_process_noise(X, self._ck_L, self._ck_sd, *key)
         if not self.ops.plain_state:
             X[...] = self.ops.normalize_state(X)
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
-        kernel = self._update_block if self._ck_H is None or not self._compiled else self._update_block_compiled
+        compiled = self._compiled and (self._ck_loglik is not None or self._ck_H is not None)
+        kernel = self._update_block_compiled if compiled else self._update_block
         logw, w, _ = self._blockwise(kernel, self._X, self._logw, y)
         self._logw, self._w = self._keep(skip, self._logw, logw), self._keep(skip, self._w, w)
         return None
@@ -187,7 +193,10 @@ class ParticleFilter(MemberFilter):
 
     def _update_block_compiled(self, X: np.ndarray, logw: np.ndarray, y: np.ndarray):
         logw = logw.copy()
-        ck.linear_log_likelihood(X, self._ck_H[0], self._ck_H[1], y, self._inv_sd_R, logw)
+        if self._ck_loglik is not None:
+            self._ck_loglik(X, y, self._inv_sd_R, logw)
+        else:
+            ck.linear_log_likelihood(X, self._ck_H[0], self._ck_H[1], y, self._inv_sd_R, logw)
         return (*normalize_log_weights(logw), None)
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
@@ -202,6 +211,10 @@ class ParticleFilter(MemberFilter):
         return (4.0 / (self.N * (n + 2))) ** (1.0 / (n + 4))
 
     def _estimate_block(self, X: np.ndarray, w: np.ndarray):
+        if self._ck_angles is not None:
+            mean, D = np.empty(X.shape[::2]), np.empty_like(X)
+            circular_mean_residuals(X, w, self._ck_angles, mean, D)
+            return mean, weighted_covariance(D, w), None
         mean = self.ops.state_mean(X, w)
         D = self.ops.state_residual(X, mean[:, None, :])
         return mean, weighted_covariance(D, w), None
