@@ -15,9 +15,9 @@ thread count, block size or batch size. They are not numpy's numbers: the compil
 numpy PF in distribution, and equals it exactly given the same draws (:func:`stream_normals`
 returns a stream's draws, the tests feed them to the numpy path).
 
-Models with a compiled transition (:func:`compiled_transition`): Lorenz 96 (the same RK4, in the
-same order of operations as ``Lorenz96.f``, bit-equal, tested). Other scenarios keep their numpy
-``f``; the compiled noise and likelihood kernels still apply to all.
+Lorenz 96's transition is here (the same RK4, in the same order of operations as ``Lorenz96.f``,
+bit-equal, tested); the other scenarios' kernels are in :mod:`.compiled_models`. Scenarios without
+one keep their numpy ``f``; the compiled noise and likelihood kernels still apply to all.
 """
 
 from __future__ import annotations
@@ -238,18 +238,66 @@ def lorenz96_transition(X, forcing, h, substeps):
         _l96_rk4(flat[i], forcing, h, substeps, K, A, M)
 
 
+@nb.njit(inline="always")
+def _l96_field_rows(x, out, forcing, m):
+    """:func:`_l96_field` on the first m columns of (J, P) rows: the same operations per state,
+    with the states innermost so the loops vectorise."""
+    n = x.shape[0]
+    for j in range(n):
+        jp, jm1, jm2 = (j + 1) % n, (j - 1) % n, (j - 2) % n
+        for i in range(m):
+            out[j, i] = (x[jp, i] - x[jm2, i]) * x[jm1, i] - x[j, i] + forcing
+
+
+@nb.njit(inline="always")
+def _l96_rk4_rows(X, forcing, h, substeps, x, K, A, M):
+    """:func:`_l96_rk4` on the m states X (m, J) (m <= P) in place, through (J, P) scratch rows."""
+    m, n = X.shape
+    half = 0.5 * h
+    sixth = h / 6.0
+    for i in range(m):
+        for j in range(n):
+            x[j, i] = X[i, j]
+    for _ in range(substeps):
+        _l96_field_rows(x, K, forcing, m)  # k1
+        for j in range(n):
+            for i in range(m):
+                A[j, i] = K[j, i]
+                M[j, i] = x[j, i] + K[j, i] * half
+        _l96_field_rows(M, K, forcing, m)  # k2
+        for j in range(n):
+            for i in range(m):
+                A[j, i] += K[j, i] * 2.0
+                M[j, i] = x[j, i] + K[j, i] * half
+        _l96_field_rows(M, K, forcing, m)  # k3
+        for j in range(n):
+            for i in range(m):
+                A[j, i] += K[j, i] * 2.0
+                M[j, i] = x[j, i] + K[j, i] * h
+        _l96_field_rows(M, K, forcing, m)  # k4
+        for j in range(n):
+            for i in range(m):
+                A[j, i] += K[j, i]
+                A[j, i] *= sixth
+                x[j, i] += A[j, i]
+    for i in range(m):
+        for j in range(n):
+            X[i, j] = x[j, i]
+
+
 @nb.njit(nogil=True, cache=True)
 def lorenz96_predict(X, forcing, h, substeps, L, sd, seed, k, phase, first_stream):
-    """X (b, N, J) <- f(X) + w per particle, fused (one pass over each particle)."""
+    """X (b, N, J) <- f(X) + w per particle: RK4 over each stream's particles as (J, N) rows
+    (vectorised across particles), then the noise particle by particle."""
     b, N, n = X.shape
     s = np.empty(4, dtype=np.uint64)
-    K, A, M, z = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    z = np.empty(n)
+    x, K, A, M = np.empty((n, N)), np.empty((n, N)), np.empty((n, N)), np.empty((n, N))
     for r in range(b):
+        _l96_rk4_rows(X[r], forcing, h, substeps, x, K, A, M)
         _seed_state(s, seed, k, phase, first_stream + r)
         for i in range(N):
-            x = X[r, i]
-            _l96_rk4(x, forcing, h, substeps, K, A, M)
-            _add_noise(x, s, L, sd, z)
+            _add_noise(X[r, i], s, L, sd, z)
 
 
 # ---- likelihood of a linear observation with diagonal R --------------------------------------------

@@ -102,12 +102,14 @@ class ParticleFilter(MemberFilter):
     smaller values jitter less (less bias, less diversity). DAPPER's ``PartFilt(reg=r)`` uses
     Scott's rule N^(-1/(n+4)) instead: c = r N^(-1/(n+4)) / h_opt gives its jitter.
 
-    Compiled kernels (``compiled=true``, the default): the predict step (f where the scenario has
-    a compiled transition, Lorenz 96; the process noise everywhere) and, for a linear observation
-    with diagonal R, the likelihood run as numba kernels (:mod:`neural_estimator.filters.compiled`),
-    fused per particle. Their process noise comes from per-stream keyed generators, not numpy's,
-    so the two paths agree in distribution, and exactly given the same draws (tested);
-    ``compiled=false`` is the numpy reference path.
+    Compiled kernels (``compiled=true``, the default): the predict step (f fused with the process
+    noise where the scenario has a kernel: Lorenz 96, N-link, ballistic, bearings; the process
+    noise everywhere), the likelihood (the scenario's h kernel, or any linear observation with
+    diagonal R) and, for angular states, the circular weighted mean run as numba kernels
+    (:mod:`neural_estimator.filters.compiled`, :mod:`neural_estimator.filters.compiled_models`),
+    fused per particle or over a stream's particles. Their process noise comes from per-stream
+    keyed generators, not numpy's, so the two paths agree in distribution, and to rounding given
+    the same draws (tested); ``compiled=false`` is the numpy reference path.
     """
 
     method = "pf"
@@ -239,6 +241,10 @@ class ParticleFilter(MemberFilter):
         N, n = self.N, self.scenario.dx
         if self._compiled:  # the same systematic resampling, walked per row in place
             ck.systematic_resample_rows(X, w, offsets, need)
+            if self.hp.rejuvenation_std <= 0 and self.hp.regularization <= 0:  # nothing else to do to X
+                logw[rows] = -np.log(N)
+                w[rows] = 1.0 / N
+                return
             Xr = X[rows]
         else:
             idx = systematic_resample(w[rows], offsets[rows])  # (r, N) into each row's particles
