@@ -10,6 +10,9 @@ Verbs (``neural-estimator VERB --help`` for each):
     recover    rewrite a damaged or unfinished bag into a valid .mcap
     scenarios  list the registered scenarios and their constants
     reproduce  the paper's experiments on Ray, with a report beside the paper's numbers
+    dataset    recorded bags of a robot -> a dataset (.npz), through a spec of message fields
+
+``train`` and ``evaluate`` take ``--data FILE.npz`` (a recorded dataset) instead of ``--scenario``.
 
 Every command accepts ``--plugin FILE`` (repeatable) to import a Python file that registers user
 scenarios. Errors in the input print one line naming the problem and exit with status 2.
@@ -40,10 +43,11 @@ def scenario_from_args(args: argparse.Namespace):
     return make_scenario(args.scenario, **overrides)
 
 
-def _common(p: argparse.ArgumentParser, scenario: bool = True) -> None:
+def _common(p: argparse.ArgumentParser, scenario: bool = True, data: bool = False) -> None:
     p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
     if scenario:
-        p.add_argument("--scenario", required=True, help=f"one of: {', '.join(scenario_names())} (or a plugin's)")
+        p.add_argument("--scenario", required=not data,
+                       help=f"one of: {', '.join(scenario_names())} (or a plugin's)" + ("; or --data" if data else ""))
         p.add_argument("--set", action="append", metavar="NAME=VALUE", help="override a scenario constant (repeatable)")
         p.add_argument("--noise-scale", type=float, help="multiply the observation-noise std (filters are told)")
 
@@ -194,10 +198,20 @@ def _write_table(path: str, reports) -> None:
 
 
 # ---- evaluate -----------------------------------------------------------------------------------
+_DEFAULT_METHODS = "ekf,ukf,enkf,pf"
+
+
 def _add_evaluate(sub) -> None:
     p = sub.add_parser("evaluate", help="run methods on the evaluation sets; print the paper's table")
-    _common(p)
-    p.add_argument("--methods", default="ekf,ukf,enkf,pf", help="comma-separated (ekf ukf enkf pf gru lstm gpt2 filterformer mamba mamba2)")
+    _common(p, data=True)
+    p.add_argument("--data", metavar="FILE.npz",
+                   help="a recorded dataset (neural-estimator dataset) instead of --scenario: its trajectories are the "
+                        "one evaluation set; neural methods need --checkpoint")
+    p.add_argument("--estimate", action="append", metavar="NAME=FILE.npz",
+                   help="with --data: a recorded estimate file (neural-estimator dataset writes one per spec estimate) "
+                        "scored as one more row")
+    p.add_argument("--methods", default=_DEFAULT_METHODS, help="comma-separated (ekf ukf enkf pf gru lstm gpt2 "
+                   "filterformer mamba mamba2); with --data: default the --checkpoint methods")
     p.add_argument("--trajectories", type=int, default=8000, help="per evaluation set (paper: 8000)")
     p.add_argument("--horizon", type=int, help="steps (default: the scenario's; paper: 500, quadrotor 200)")
     p.add_argument("--sets", type=int, default=3, help="independent evaluation sets (paper: 3)")
@@ -247,18 +261,66 @@ def _parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
     return out
 
 
+def _scenario_or_data(args: argparse.Namespace):
+    """(scenario, None) from --scenario, or (DataScenario, [the recorded trajectories]) from --data."""
+    if getattr(args, "data", None) is None:
+        if getattr(args, "scenario", None) is None:
+            raise CliError("pass --scenario NAME, or --data FILE.npz for recorded data")
+        return scenario_from_args(args), None
+    if getattr(args, "scenario", None) is not None or getattr(args, "set", None):
+        raise CliError("--data brings its own interface: drop --scenario and --set")
+    from neural_estimator.data import load_trajectories
+    from neural_estimator.robot import DataScenario
+
+    data, _ = load_trajectories(args.data)
+    if data.meta.get("scenario") != "data":
+        raise CliError(f"{args.data}: not a recorded dataset (scenario {data.meta.get('scenario')!r}); "
+                       "make one with neural-estimator dataset, or pass --scenario")
+    try:
+        scenario = DataScenario(data.meta)
+    except ScenarioError as exc:
+        raise CliError(f"{args.data}: {exc}") from None
+    return scenario, [data]
+
+
+def _recorded_estimates(items: list[str] | None, truth) -> dict[str, Any]:
+    from neural_estimator.data.io import load_estimates
+
+    out = {}
+    for item in items or ():
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise CliError(f"--estimate expects NAME=FILE.npz, got {item!r}")
+        out[name.strip()], _, _ = load_estimates(path, truth)
+    return out
+
+
 def _cmd_evaluate(args) -> int:
     from neural_estimator.estimators import CLASSICAL_METHODS, check_method
     from neural_estimator.evaluation import evaluate, results_json, results_table
     from neural_estimator.expected_failures import mark_rows, notes
 
-    scenario = scenario_from_args(args)
+    scenario, datasets = _scenario_or_data(args)
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
-    if not methods:
-        raise CliError("--methods is empty")
     checkpoints = _parse_checkpoints(args.checkpoint)
     for m in checkpoints:
         check_method(m)
+    recorded = {}
+    if datasets is not None:
+        if args.methods == _DEFAULT_METHODS:  # not given: the methods of the checkpoints
+            methods = list(checkpoints)
+        for m in methods:
+            if m in CLASSICAL_METHODS:
+                raise CliError(f"{m}: recorded data have no model for a classical filter; compare the robot's own "
+                               "filter with --estimate NAME=FILE")
+            if m not in checkpoints:
+                raise CliError(f"{m}: recorded data have no shipped model: pass --checkpoint {m}=DIR")
+        recorded = _recorded_estimates(args.estimate, datasets[0])
+    elif args.estimate:
+        raise CliError("--estimate needs --data")
+    if not methods and not recorded:
+        raise CliError("--methods is empty" if datasets is None else "nothing to evaluate: pass --checkpoint METHOD=DIR "
+                       "or --estimate NAME=FILE")
     options = _parse_options(args.option)
     if args.threads is not None:
         if args.threads < 1:
@@ -266,10 +328,15 @@ def _cmd_evaluate(args) -> int:
         for m in methods:
             if m in CLASSICAL_METHODS:
                 options.setdefault(m, {}).setdefault("threads", args.threads)
-    info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets, seed=args.seed,
-                init=args.init)
+    if datasets is not None:
+        info = dict(trajectories=datasets[0].n, horizon=datasets[0].horizon, sets=1, seed=None, init="recorded",
+                    data=str(args.data))
+    else:
+        info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets,
+                    seed=args.seed, init=args.init)
     out = Path(args.out) if args.out else None
-    expected_runs = {m: args.sets * max(1, len(checkpoints.get(m) or ())) for m in methods}
+    expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
+    expected_runs.update({name: 1 for name in recorded})
 
     def write_partial(results) -> None:  # after every run: an interrupted evaluate leaves its finished runs
         if out is not None:
@@ -279,17 +346,25 @@ def _cmd_evaluate(args) -> int:
         scenario, methods, trajectories=args.trajectories, horizon=args.horizon, seed=args.seed, sets=args.sets,
         checkpoints=checkpoints, options=options, device=args.device,
         cache_dir=False if args.no_cache else None, progress=not args.quiet, recompute=args.recompute,
-        on_result=write_partial, init=args.init,
+        on_result=write_partial, init=args.init, datasets=datasets,
     )
+    if recorded:
+        from neural_estimator.evaluation import recorded_result
+
+        for name, x_hat in recorded.items():
+            results[name] = recorded_result(scenario, datasets[0], x_hat, name)
     if args.json:
         print(json.dumps(results_json(scenario, results, complete=True, **info), indent=1, allow_nan=False))
     else:
-        print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
-              f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)")
+        if datasets is not None:
+            print(f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps")
+        else:
+            print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
+                  f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)")
         print(mark_rows(results_table(results, fmt="text"), scenario.name), end="")
         for line in notes(scenario.name, list(results)) if args.init == "prior" else ():
             print(line)
-        print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" + (f" ({r.cached} cached runs)" if r.cached else "")
+        print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" if r.seconds else f"{m} recorded" + (f" ({r.cached} cached runs)" if r.cached else "")
                                     for m, r in results.items()))
     if out is not None:
         _write_evaluation(out, scenario, results, info, expected_runs, plot=True)
@@ -343,7 +418,13 @@ def _add_train(sub, full: bool = True) -> None:
     from neural_estimator.models.training import TrainConfig
 
     p = sub.add_parser("train", help="train a neural estimator with the paper's protocol")
-    _common(p)
+    _common(p, data=True)
+    p.add_argument("--data", metavar="FILE.npz", help="train on a recorded dataset (neural-estimator dataset) "
+                   "instead of simulating --scenario")
+    p.add_argument("--val-data", metavar="FILE.npz", help="with --data: the validation set (default: the last "
+                   "--val-fraction of --data's trajectories)")
+    p.add_argument("--val-fraction", type=float, default=0.2, help="with --data and no --val-data: share of the "
+                   "trajectories held out for validation, split by trajectory (default 0.2)")
     p.add_argument("--model", required=True, help="gru, lstm, gpt2, filterformer, mamba or mamba2")
     p.add_argument("--out", required=True, help="output directory (model.safetensors + card.json)")
     p.add_argument("--model-set", action="append", metavar="NAME=VALUE", help="override an architecture hyperparameter")
@@ -375,7 +456,12 @@ def _cmd_train(args) -> int:
     method = check_method(args.model)
     if method not in NEURAL_METHODS:
         raise CliError(f"--model must be a neural method ({', '.join(NEURAL_METHODS)}), got {args.model!r}")
-    scenario = scenario_from_args(args)
+    scenario, datasets = _scenario_or_data(args)
+    data = None
+    if datasets is not None:
+        data = _train_val_split(args, scenario, datasets[0])
+    elif args.val_data:
+        raise CliError("--val-data needs --data")
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if hasattr(args, f.name)}
     values.update(model_overrides=_parse_model_overrides(args.model_set), resume=args.resume,
                   keep_resume=not args.no_keep_resume)
@@ -384,6 +470,8 @@ def _cmd_train(args) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    if data is not None:
+        values.update(trajectories=data[0].n, train_length=data[0].horizon, val_trajectories=data[1].n)
     if values["val_trajectories"] is None:  # scales with the training set: half of it, at most the paper's 8000
         from neural_estimator.data.protocol import VALIDATION_TRAJECTORIES, training_trajectories
 
@@ -395,11 +483,29 @@ def _cmd_train(args) -> int:
               f"(--eval-trajectories); {args.threads} thread(s) (--threads)", flush=True)
     try:
         config = TrainConfig(**values)
-        path = train(scenario, method, args.out, config, progress=not args.quiet)
+        path = train(scenario, method, args.out, config, progress=not args.quiet, data=data)
     except TrainingError as exc:
         raise CliError(str(exc)) from None
     print(f"wrote {path}")
     return 0
+
+
+def _train_val_split(args: argparse.Namespace, scenario, train_data):
+    """(training, validation) trajectories from --data and --val-data, or a split by trajectory."""
+    if args.val_data:
+        from neural_estimator.data import load_trajectories
+
+        val, _ = load_trajectories(args.val_data)
+        if val.meta.get("spec_sha256") != train_data.meta.get("spec_sha256"):
+            raise CliError(f"{args.val_data} was made with another spec than {args.data}")
+        return train_data, val
+    if not 0 < args.val_fraction < 1:
+        raise CliError(f"--val-fraction must be between 0 and 1, got {args.val_fraction}")
+    n_val = int(round(train_data.n * args.val_fraction))
+    if n_val < 1 or n_val >= train_data.n:
+        raise CliError(f"{args.data}: {train_data.n} trajectories cannot be split into training and validation "
+                       f"(--val-fraction {args.val_fraction}); record more, or cut shorter ones (dataset --length)")
+    return train_data.subset(slice(0, train_data.n - n_val)), train_data.subset(slice(train_data.n - n_val, None))
 
 
 def _parse_model_overrides(items: list[str] | None) -> dict[str, Any]:
@@ -515,8 +621,39 @@ def _cmd_reproduce(args) -> int:
 
 
 # Verbs are added to this list as their modules land; each is (adder).
+def _add_dataset(sub) -> None:
+    p = sub.add_parser("dataset", help="recorded bags of a robot -> a dataset (.npz) through a spec of message fields")
+    p.add_argument("bags", nargs="+", metavar="BAG", help=".mcap files or rosbag2 directories (any recorder)")
+    p.add_argument("--spec", required=True, metavar="SPEC.yaml", help="the observation, control and state as message "
+                   "fields on topics, the rate and the alignment (README, 'Your own robot')")
+    p.add_argument("--out", required=True, metavar="DATA.npz")
+    p.add_argument("--length", type=int, default=500, help="steps per trajectory: each segment of valid ticks is cut "
+                   "into trajectories of this length (default 500, the paper's)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_dataset)
+
+
+def _cmd_dataset(args) -> int:
+    from neural_estimator.data.io import save_estimates, save_trajectories
+    from neural_estimator.robot import SpecError, build_dataset, load_spec
+
+    try:
+        spec = load_spec(args.spec)
+        data, estimates, summaries = build_dataset(args.bags, spec, args.length,
+                                                   progress=None if args.quiet else print)
+    except SpecError as exc:
+        raise CliError(str(exc)) from None
+    out = save_trajectories(args.out, data)
+    print(f"wrote {out}: {data.n} trajectories x {data.horizon} steps at {spec.rate:g} Hz "
+          f"(dx={data.x.shape[2]}, dy={data.y.shape[2]}, du={data.u.shape[2]})")
+    for name, x_hat in estimates.items():
+        path = save_estimates(out.with_name(f"{out.stem}.{name}.npz"), data, x_hat, name)
+        print(f"wrote {path}: the recorded estimate {name!r} at the same ticks")
+    return 0
+
+
 _VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_replay, _add_recover, _add_live,
-                          _add_scenarios, _add_reproduce]
+                          _add_scenarios, _add_reproduce, _add_dataset]
 
 
 def build_parser(verb: str | None = None) -> argparse.ArgumentParser:

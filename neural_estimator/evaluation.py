@@ -37,6 +37,7 @@ from neural_estimator import __version__
 from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError, load_npz, save_npz
 from neural_estimator.data.protocol import SIMULATION_REVISION, code_key, default_cache_dir
+from neural_estimator.data.simulate import trajectories_digest as dataset_digest
 from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS, Estimator, Estimates, check_method, make_estimator, previous_controls
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.scenarios import Scenario
@@ -87,6 +88,15 @@ class MethodResult:
     def throughput(self) -> float:
         """Trajectory-steps per second."""
         return self.steps / self.seconds if self.seconds > 0 else float("nan")
+
+
+def recorded_result(scenario: Scenario, data: Trajectories, x_hat: np.ndarray, name: str) -> MethodResult:
+    """The metrics of estimates that were recorded, not computed here (a robot's own filter): one run,
+    no time spent, so no speed is reported."""
+    if x_hat.shape != data.x.shape:
+        raise DataError(f"recorded estimate {name!r} has shape {x_hat.shape}, the states have {data.x.shape}")
+    report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)))
+    return MethodResult(name, [report])
 
 
 def chunk_size(scenario: Scenario, method: str, horizon: int, n: int, budget: int = DEFAULT_MEMORY_BUDGET,
@@ -185,16 +195,6 @@ def run_stepwise(estimator: Estimator, Y: np.ndarray, U: np.ndarray, on_step: Ca
 
 
 # ---- the result cache --------------------------------------------------------------------------------
-
-
-def dataset_digest(data: Trajectories) -> str:
-    """BLAKE2b of a data set's arrays (x, y, u with their shapes): what a run was computed on."""
-    h = hashlib.blake2b(digest_size=16)
-    for a in (data.x, data.y, data.u):
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        h.update(repr(a.shape).encode())
-        h.update(a.data)
-    return h.hexdigest()
 
 
 def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | None) -> str | None:

@@ -15,6 +15,7 @@ horizon): same inputs, same bytes.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,6 +51,16 @@ class Trajectories:
     def subset(self, index) -> "Trajectories":
         """The trajectories selected by ``index`` (a slice or integer array), same meta."""
         return Trajectories(self.x[index], self.y[index], self.u[index], dict(self.meta))
+
+
+def trajectories_digest(data: Trajectories) -> str:
+    """BLAKE2b of a data set's arrays (x, y, u with their shapes): what a run or a model used."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in (data.x, data.y, data.u):
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        h.update(repr(a.shape).encode())
+        h.update(a.data)
+    return h.hexdigest()
 
 
 def simulate(

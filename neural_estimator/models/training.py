@@ -76,6 +76,7 @@ from neural_estimator.data.protocol import (
     dataset,
     training_trajectories,
 )
+from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimators import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.models.checkpoint import json_ready, load_checkpoint, save_checkpoint
 from neural_estimator.models.neural import NeuralEstimator, resolve_device
@@ -196,7 +197,8 @@ def converged(stopped: str | None, history: list[dict[str, Any]], initial_lr: fl
 
 
 def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: TrainConfig | None = None,
-          progress: bool = True, deadline: float | None = None) -> Path:
+          progress: bool = True, deadline: float | None = None,
+          data: tuple[Trajectories, Trajectories] | None = None) -> Path:
     """Train ``arch`` on ``scenario`` and write the best model as a checkpoint in ``out_dir``.
 
     Args:
@@ -209,6 +211,10 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         deadline: a ``time.time()`` after which no new epoch starts; the run then returns with its
             resume state saved and the card marked "in progress" (no final evaluation). The zoo
             script uses it to spread training over several sessions.
+        data: (training, validation) trajectories to train on instead of simulating the scenario's
+            (recorded data, with a :class:`~neural_estimator.robot.DataScenario`): the recipe's
+            trajectories, train_length and val_trajectories then come from these sets, the card
+            records their SHA-256, and the card's metrics are computed on the validation set.
 
     Returns:
         ``out_dir``.
@@ -231,9 +237,25 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
     dx = scenario.dx
 
     # ---- data ----
-    n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
-    train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
-    val_data = dataset(scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache)
+    recorded = None
+    if data is not None:
+        train_data, val_data = data
+        for role, d in (("training", train_data), ("validation", val_data)):
+            if (d.x.shape[2], d.y.shape[2], d.u.shape[2]) != (scenario.dx, scenario.dy, scenario.du):
+                raise TrainingError(f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
+                                    f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}")
+        if train_data.horizon < cfg.window:
+            raise TrainingError(f"training trajectories have {train_data.horizon} steps, fewer than the window "
+                                f"({cfg.window}); pass a smaller --window or cut longer trajectories")
+        cfg = dataclasses.replace(cfg, trajectories=train_data.n, train_length=train_data.horizon,
+                                  val_trajectories=val_data.n, eval_trajectories=min(cfg.eval_trajectories, val_data.n))
+        recorded = {"train_sha256": trajectories_digest(train_data), "val_sha256": trajectories_digest(val_data)}
+        n_train = train_data.n
+    else:
+        n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
+        train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
+        val_data = dataset(scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache)
+    eval_data = val_data if recorded is not None else None  # recorded data: card metrics on the validation set
     norm = Normalizer.from_data(scenario, train_data)
 
     def as_tensors(data) -> tuple[torch.Tensor, torch.Tensor]:
@@ -244,7 +266,7 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
 
     Z_train, X_train = as_tensors(train_data)
     Z_val, X_val = as_tensors(val_data)
-    del train_data, val_data
+    del train_data, val_data  # (eval_data keeps the recorded validation set for the card's metrics)
     sampler = ChunkSampler(n_train, cfg.train_length, cfg.window, cfg.warmup)
     n_windows = int(cfg.windows_per_epoch or math.ceil(n_train * cfg.train_length / cfg.window))
     steps_per_epoch = math.ceil(n_windows / cfg.batch_size)
@@ -260,7 +282,7 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
                                                            patience=cfg.lr_patience)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
     run = {"epoch": 0, "best": math.inf, "best_epoch": 0, "bad_epochs": 0, "stopped": None, "history": []}
-    identity = {"scenario": scenario.describe(), "arch": arch, "config": cfg.recipe()}
+    identity = {"scenario": scenario.describe(), "arch": arch, "config": cfg.recipe(), **({"recorded": recorded} if recorded else {})}
     if cfg.resume and (out_dir / RESUME_DIR / "state.json").is_file():
         run = load_resume(out_dir / RESUME_DIR, identity, model, optimizer, scheduler, rng)
         if run["stopped"] and run["bad_epochs"] < cfg.patience:
@@ -293,7 +315,8 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         return {
             "scenario": scenario.describe(),
             "data": {
-                "seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio,
+                **({"source": "recorded", **recorded} if recorded else
+                   {"seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio}),
                 "train_trajectories": n_train, "train_length": cfg.train_length,
                 "val_trajectories": cfg.val_trajectories, "windows_per_epoch": n_windows,
             },
@@ -381,7 +404,8 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
     best_model, _, _ = load_checkpoint(out_dir, device)
     metrics = None
     if cfg.eval_trajectories:
-        metrics = evaluate(scenario, best_model, norm, arch, cfg.eval_trajectories, cfg.data_seed, device, cache)
+        metrics = evaluate(scenario, best_model, norm, arch, cfg.eval_trajectories, cfg.data_seed, device, cache,
+                           data=eval_data)
     save_checkpoint(out_dir, best_model, norm, card(metrics))
     if not cfg.keep_resume:
         shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
@@ -389,15 +413,18 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
 
 
 def evaluate(scenario: Scenario, model: torch.nn.Module, normalizer: Normalizer, arch: str, trajectories: int,
-             seed: int = 0, device: str | torch.device = "cpu", cache_dir: str | None = None) -> dict[str, Any]:
-    """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon)."""
+             seed: int = 0, device: str | torch.device = "cpu", cache_dir: str | None = None,
+             data: Trajectories | None = None) -> dict[str, Any]:
+    """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon), or of
+    ``data`` (recorded data: the validation set)."""
     from neural_estimator.metrics import compute_metrics, to_json
 
-    data = dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir)
+    role = "eval" if data is None else "val (recorded)"
+    data = dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir) if data is None else data.subset(slice(0, trajectories))
     est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False)
     out = est.run(data.y, data.u)
     report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged)
-    return {"set": {"role": "eval", "index": 0, "seed": seed, "trajectories": trajectories, "horizon": data.horizon},
+    return {"set": {"role": role, "index": 0, "seed": seed, "trajectories": data.n, "horizon": data.horizon},
             **to_json(report.scalars())}
 
 

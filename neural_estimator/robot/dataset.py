@@ -1,0 +1,226 @@
+"""Recorded bags -> the project's dataset format, through a :mod:`~neural_estimator.robot.spec`.
+
+For each bag (a ``.mcap`` file or a rosbag2 directory, written by any tool: messages are decoded
+with rosbags' type store, custom types registered from the bag's own schemas):
+
+1. every topic the spec reads is collected as (stamp, field values) per message, the stamp being
+   ``header.stamp`` where the message has a header (``stamp: header``, the default) or the log
+   time;
+2. ticks: a fixed rate from the latest first message to the earliest last message over the
+   topics, or one tick per message of the ``trigger`` topic;
+3. at each tick every topic contributes its latest message with a stamp at or before the tick;
+   the tick is *stale* when some topic has none, or only one older than ``max_age``, and
+   *non-finite* when a value is NaN or inf (e.g. a zero quaternion); both are dropped and counted;
+4. the valid ticks form segments (runs between dropped ticks); each segment is cut into
+   trajectories of ``length`` steps, the remainder dropped and counted.
+
+The result is a :class:`~neural_estimator.data.simulate.Trajectories` whose meta records the spec,
+its digest, the names, units and angles of the three vectors, the rate, every source bag's SHA-256
+and what was dropped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neural_estimator.bags import BagError, open_bag
+from neural_estimator.data.simulate import Trajectories
+from neural_estimator.robot.data_scenario import DATA_SCENARIO
+from neural_estimator.robot.spec import ESTIMATE_PREFIX, Field, Spec, SpecError, topic_values
+
+
+@dataclasses.dataclass
+class BagSummary:
+    """What one bag contributed and what was dropped from it."""
+
+    bag: str
+    sha256: str
+    messages: dict[str, int]
+    ticks: int = 0
+    stale: int = 0
+    nonfinite: int = 0
+    segments: int = 0
+    trajectories: int = 0
+    remainder: int = 0  # valid ticks at the end of segments, fewer than a trajectory's length
+
+    def line(self) -> str:
+        return (f"{self.bag}: {self.ticks} ticks -> {self.trajectories} trajectories from {self.segments} segments; "
+                f"dropped {self.stale} stale, {self.nonfinite} non-finite, {self.remainder} remainder ticks")
+
+
+def bag_sha256(path: str | Path) -> str:
+    """SHA-256 of a bag file, or of a rosbag2 directory's files (names and bytes, sorted)."""
+    p = Path(path)
+    h = hashlib.sha256()
+    files = sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else [p]
+    for q in files:
+        if p.is_dir():
+            h.update(str(q.relative_to(p)).encode() + b"\0")
+        with q.open("rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def topic_fields(spec: Spec) -> dict[str, tuple[Field, ...]]:
+    """Per topic, every field any vector reads from it (each once, in order)."""
+    out: dict[str, list[Field]] = {}
+    for name in spec.vectors:
+        for f in spec.vectors[name]:
+            if f not in out.setdefault(f.topic, []):
+                out[f.topic].append(f)
+    return {t: tuple(fs) for t, fs in out.items()}
+
+
+def read_streams(bag_path: str | Path, spec: Spec) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, int]]:
+    """Per topic of the spec (and its trigger): (stamps_ns (M,) sorted, values (M, k)); message counts.
+
+    Raises SpecError for a topic the bag does not have (naming the bag's topics) or a field a
+    message does not have; BagError for a bag that cannot be read.
+    """
+    fields = topic_fields(spec)
+    wanted = list(fields) + ([spec.trigger] if spec.trigger and spec.trigger not in fields else [])
+    rows: dict[str, list[tuple[int, np.ndarray]]] = {t: [] for t in wanted}
+    with open_bag(bag_path) as bag:
+        missing = [t for t in wanted if t not in bag.topics]
+        if missing:
+            have = ", ".join(sorted(bag.topics)) or "none"
+            raise SpecError(f"{bag_path}: no topic {', '.join(missing)} in this bag (it has: {have})")
+        for conn, t_log, msg in bag.decoded(wanted):
+            stamp = t_log
+            header = getattr(msg, "header", None)
+            if spec.stamp == "header" and header is not None and hasattr(header, "stamp"):
+                stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+            values = topic_values(msg, fields.get(conn.topic, ()), conn.msgtype)
+            rows[conn.topic].append((stamp, values))
+    streams, counts = {}, {}
+    for topic, got in rows.items():
+        counts[topic] = len(got)
+        if not got:
+            raise SpecError(f"{bag_path}: topic {topic} has no messages")
+        stamps = np.array([s for s, _ in got], dtype=np.int64)
+        values = np.stack([v for _, v in got]) if fields.get(topic) else np.zeros((len(got), 0))
+        order = np.argsort(stamps, kind="stable")
+        streams[topic] = (stamps[order], values[order])
+    return streams, counts
+
+
+def tick_times(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec) -> np.ndarray:
+    """The sample times [ns]: the trigger topic's stamps, or a fixed rate over the common span."""
+    if spec.trigger:
+        return streams[spec.trigger][0]
+    start = max(int(s[0]) for s, _ in streams.values())
+    stop = min(int(s[-1]) for s, _ in streams.values())
+    if stop < start:
+        return np.zeros(0, dtype=np.int64)
+    step = spec.dt * 1e9
+    n = int(np.floor((stop - start) / step)) + 1
+    return start + np.round(np.arange(n) * step).astype(np.int64)
+
+
+def sample(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec, ticks: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The three vectors at every tick, and the stale and non-finite masks (K,).
+
+    Each topic contributes its latest message stamped at or before the tick, if no older than
+    ``max_age``.
+    """
+    fields = topic_fields(spec)
+    K = ticks.size
+    stale = np.zeros(K, dtype=bool)
+    at: dict[str, np.ndarray] = {}
+    max_age = int(round(spec.max_age * 1e9))
+    for topic in fields:
+        stamps, values = streams[topic]
+        idx = np.searchsorted(stamps, ticks, side="right") - 1
+        ok = idx >= 0
+        ok[ok] &= (ticks[ok] - stamps[idx[ok]]) <= max_age
+        stale |= ~ok
+        at[topic] = values[np.clip(idx, 0, None)]
+    vectors = {}
+    for name in spec.vectors:
+        cols = [at[f.topic][:, fields[f.topic].index(f)] for f in spec.vectors[name]]
+        vectors[name] = np.stack(cols, axis=1) if cols else np.zeros((K, 0))
+    finite = np.all([np.isfinite(v).all(axis=1) for v in vectors.values()], axis=0) if K else np.zeros(0, bool)
+    nonfinite = ~stale & ~finite
+    return vectors, stale, nonfinite
+
+
+def segments(valid: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges of the runs of True in ``valid``."""
+    edges = np.diff(np.concatenate([[0], valid.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def build_dataset(bags: Sequence[str | Path], spec: Spec, length: int, progress=None
+                  ) -> tuple[Trajectories, dict[str, np.ndarray], list[BagSummary]]:
+    """Trajectories of ``length`` steps from every bag (see the module docstring), and the spec's
+    recorded estimates {name: x_hat (N, T, dx)} at the same ticks.
+
+    Raises:
+        SpecError: a topic or field the spec names is missing, or no trajectory of ``length`` steps
+            could be cut (the message says how long the longest segment was).
+    """
+    if int(length) < 2:
+        raise SpecError(f"trajectory length must be at least 2 steps, got {length}")
+    length = int(length)
+    xs, ys, us, summaries, longest = [], [], [], [], 0
+    est: dict[str, list[np.ndarray]] = {name: [] for name in spec.estimates}
+    for bag in bags:
+        try:
+            streams, counts = read_streams(bag, spec)
+        except BagError as exc:
+            raise SpecError(str(exc)) from None
+        summary = BagSummary(str(bag), bag_sha256(bag), counts)
+        ticks = tick_times(streams, spec)
+        vectors, stale, nonfinite = sample(streams, spec, ticks)
+        summary.ticks, summary.stale, summary.nonfinite = ticks.size, int(stale.sum()), int(nonfinite.sum())
+        segs = segments(~stale & ~nonfinite)
+        summary.segments = len(segs)
+        for lo, hi in segs:
+            longest = max(longest, hi - lo)
+            n = (hi - lo) // length
+            summary.trajectories += n
+            summary.remainder += (hi - lo) - n * length
+            for k in range(n):
+                sl = slice(lo + k * length, lo + (k + 1) * length)
+                xs.append(vectors["state"][sl])
+                ys.append(vectors["observation"][sl])
+                us.append(vectors["control"][sl])
+                for name in est:
+                    est[name].append(vectors[ESTIMATE_PREFIX + name][sl])
+        summaries.append(summary)
+        if progress:
+            progress(summary.line())
+    if not xs:
+        raise SpecError(f"no trajectory of {length} steps: the longest run of valid ticks is {longest} "
+                        f"(at {spec.rate:g} Hz); pass a smaller --length, or raise max_age in the spec")
+    meta = dataset_meta(spec, length, summaries)
+    estimates = {name: np.stack(v) for name, v in est.items()}
+    return Trajectories(np.stack(xs), np.stack(ys), np.stack(us), meta), estimates, summaries
+
+
+def dataset_meta(spec: Spec, length: int, summaries: Sequence[BagSummary]) -> dict[str, Any]:
+    """The dataset's meta: everything a data scenario and a checkpoint card need, and the sources."""
+    return {
+        "scenario": DATA_SCENARIO,
+        "spec": spec.source,
+        "spec_sha256": spec.digest(),
+        "rate": spec.rate,
+        "dt": spec.dt,
+        "horizon": int(length),
+        "state_names": list(spec.names["state"]), "state_units": list(spec.units["state"]),
+        "obs_names": list(spec.names["observation"]), "obs_units": list(spec.units["observation"]),
+        "control_names": list(spec.names["control"]), "control_units": list(spec.units["control"]),
+        "angle_states": list(spec.angles("state")), "angle_obs": list(spec.angles("observation")),
+        "sources": [{"bag": Path(s.bag).name, "sha256": s.sha256, "messages": s.messages,
+                     "trajectories": s.trajectories} for s in summaries],
+        "dropped": {"stale_ticks": sum(s.stale for s in summaries),
+                    "nonfinite_ticks": sum(s.nonfinite for s in summaries),
+                    "remainder_ticks": sum(s.remainder for s in summaries)},
+    }

@@ -1,0 +1,179 @@
+"""Your own robot: spec -> dataset from bags written by rosbags -> train / evaluate / metrics, no scenario."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neural_estimator.cli import main
+from neural_estimator.data import load_trajectories
+from neural_estimator.robot import DataScenario, SpecError, build_dataset, load_spec
+from neural_estimator.robot.dataset import sample, segments
+from neural_estimator.robot.spec import euler
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+import robot_bag  # noqa: E402
+
+SPEC = ROOT / "examples" / "robot_spec.yaml"
+ESTIMATE = {"robot_filter": {"/odometry/filtered": ["pose.pose.position.x", "pose.pose.position.y",
+                                                    "yaw(pose.pose.orientation)"]}}
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory) -> Path:
+    """Three 25-second runs of the example robot, written by rosbags (rosbag2 directory, MCAP storage)."""
+    return robot_bag.write_bag(tmp_path_factory.mktemp("robot") / "bag", runs=3, seconds=25.0, seed=1)
+
+
+def spec_dict(**changes):
+    import yaml
+
+    raw = yaml.safe_load(SPEC.read_text())
+    raw.update(changes)
+    return {k: v for k, v in raw.items() if v is not None}  # None: leave the key out
+
+
+# ---- the spec ---------------------------------------------------------------------------------------
+def test_example_spec_parses_with_angles_names_and_units():
+    s = load_spec(SPEC)
+    assert [f.expr for f in s.vectors["state"]] == ["pose.position.x", "pose.position.y", "yaw(pose.orientation)"]
+    assert s.angles("state") == (2,) and s.angles("observation") == ()
+    assert s.names["state"] == ("x", "y", "yaw") and s.units["observation"][0] == "rad/s"
+    assert s.topics == ("/imu", "/wheel_odom", "/gps/fix", "/mocap/pose") and s.dt == pytest.approx(0.1)
+    assert len(s.digest()) == 64 and s.digest() != load_spec(spec_dict(rate=20.0)).digest()
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"rates": 10}, "unknown key"),
+    ({"rate": -1}, "rate must be a positive number"),
+    ({"state": None}, "missing 'state'"),
+    ({"state": {"/mocap/pose": ["pose.position..x"]}}, "is not a field path"),
+    ({"state": {"/mocap/pose": ["heading(pose.orientation)"]}}, "unknown conversion 'heading'"),
+    ({"state": {"mocap pose": ["pose.position.x"]}}, "is not a topic name"),
+    ({"names": {"state": ["x"]}}, "names.state must list 3 strings"),
+    ({"estimates": {"ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "one per state component"),
+    ({"stamp": "receive"}, "stamp must be one of"),
+])
+def test_bad_specs_are_refused_in_one_line(changes, message):
+    with pytest.raises(SpecError, match=message) as err:
+        load_spec(spec_dict(**changes))
+    assert "\n" not in str(err.value)
+
+
+def test_euler_angles_of_quaternions():
+    for yaw in (-3.0, -0.5, 0.0, 1.2, math.pi):
+        assert euler(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))[2] == pytest.approx(math.atan2(math.sin(yaw), math.cos(yaw)))
+    roll, pitch, yaw = euler(math.sin(0.15), 0.0, 0.0, math.cos(0.15))  # 0.3 rad about x
+    assert (roll, pitch, yaw) == pytest.approx((0.3, 0.0, 0.0))
+    assert all(math.isnan(v) for v in euler(0.0, 0.0, 0.0, 0.0))  # zero quaternion: dropped as non-finite
+
+
+# ---- alignment ----------------------------------------------------------------------------------------
+def test_latest_value_alignment_with_staleness_and_nonfinite_ticks():
+    s = load_spec({"rate": 10, "max_age": 0.15, "observation": {"/a": ["v"]}, "state": {"/b": ["v"]}})
+    ms = 1_000_000
+    streams = {
+        "/a": (np.array([0, 100, 200, 300, 400, 500]) * ms, np.array([[0.0], [1], [2], [3], [np.nan], [5]])),
+        "/b": (np.array([0, 50, 100, 150, 500]) * ms, np.array([[10.0], [11], [12], [13], [15]])),
+    }
+    ticks = np.arange(6) * 100 * ms
+    vectors, stale, nonfinite = sample(streams, s, ticks)
+    np.testing.assert_array_equal(vectors["observation"][:, 0][:4], [0, 1, 2, 3])
+    np.testing.assert_array_equal(vectors["state"][:, 0][:3], [10, 12, 13])  # latest at or before each tick
+    # /b's last message before t = 300 and 400 ms is 150 ms old and older: stale; /a is NaN at 400 ms
+    np.testing.assert_array_equal(stale, [False, False, False, False, True, False])
+    assert not nonfinite[4] and stale[4]  # stale takes precedence in the count
+    assert segments(~stale & ~nonfinite) == [(0, 4), (5, 6)]
+
+
+# ---- bags -> dataset ------------------------------------------------------------------------------------
+def test_dataset_from_a_rosbags_recording(bag):
+    spec = load_spec(spec_dict(estimates=ESTIMATE))
+    data, estimates, summaries = build_dataset([bag], spec, length=50)
+    (summary,) = summaries
+    assert summary.segments == 3  # one per run: the 2-second gaps are stale ticks
+    assert summary.stale >= 2 * 19 and summary.nonfinite == 0
+    assert data.x.shape[1:] == (50, 3) and data.y.shape[1:] == (50, 5) and data.u.shape[1:] == (50, 0)
+    # every tick accounted for: stale, non-finite, in a trajectory, or a segment's remainder
+    assert summary.ticks == summary.stale + summary.nonfinite + 50 * data.n + summary.remainder
+    assert data.n == summary.trajectories >= 3 * 4 and summary.remainder < 3 * 50
+    assert data.meta["angle_states"] == [2] and data.meta["scenario"] == "data"
+    assert data.meta["sources"][0]["sha256"] == summary.sha256 and len(summary.sha256) == 64
+    assert set(estimates) == {"robot_filter"} and estimates["robot_filter"].shape == data.x.shape
+    assert np.all(np.abs(data.x[..., 2]) <= math.pi)
+    # the GPS observation is the true position plus noise of 0.5 m (up to the staleness of a fix)
+    err = data.y[..., 3:5] - data.x[..., :2]
+    assert 0.3 < err.std() < 0.8
+    # the same recording through its .mcap file directly gives the same data
+    again, _, _ = build_dataset(sorted(bag.glob("*.mcap")), spec, length=50)
+    np.testing.assert_array_equal(again.x, data.x)
+
+
+def test_dataset_errors_name_the_topic_or_field(bag):
+    with pytest.raises(SpecError, match=r"no topic /lidar in this bag \(it has: .*/imu"):
+        build_dataset([bag], load_spec(spec_dict(observation={"/lidar": ["ranges[0]"]}, names=None, units=None)), length=50)
+    with pytest.raises(SpecError, match=r"no field 'angular_velocty' .*fields there: .*angular_velocity"):
+        build_dataset([bag], load_spec(spec_dict(observation={"/imu": ["angular_velocty.z"]}, names=None, units=None)), length=50)
+    with pytest.raises(SpecError, match="longest run of valid ticks is"):
+        build_dataset([bag], load_spec(SPEC), length=5000)
+
+
+def test_data_scenario_has_no_model_and_refuses_classical_filters(bag):
+    from neural_estimator.estimators import EstimatorError, make_estimator
+
+    data, _, _ = build_dataset([bag], load_spec(SPEC), length=50)
+    s = DataScenario(data.meta)
+    assert (s.dx, s.dy, s.du, s.angle_states, s.dt) == (3, 5, 0, (2,), pytest.approx(0.1))
+    with pytest.raises((EstimatorError, ValueError), match="no .*a classical filter needs the system's equations"):
+        make_estimator("ekf", s)
+
+
+# ---- the verbs ------------------------------------------------------------------------------------------
+def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
+    spec = tmp_path / "spec.yaml"
+    import yaml
+
+    spec.write_text(yaml.safe_dump(spec_dict(estimates=ESTIMATE)))
+    data = tmp_path / "data.npz"
+    assert main(["dataset", str(bag), "--spec", str(spec), "--length", "50", "--out", str(data)]) == 0
+    assert (tmp_path / "data.robot_filter.npz").is_file()
+    out = tmp_path / "gru"
+    assert main(["train", "--data", str(data), "--model", "gru", "--out", str(out), "--epochs", "1",
+                 "--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--quiet"]) == 0
+    import json
+
+    card = json.loads((out / "card.json").read_text())
+    assert card["scenario"]["scenario"] == "data" and card["data"]["source"] == "recorded"
+    assert card["metrics"]["set"]["role"] == "val (recorded)"
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(data), "--checkpoint", f"gru={out}",
+                 "--estimate", f"robot_filter={tmp_path / 'data.robot_filter.npz'}", "--quiet"]) == 0
+    table = capsys.readouterr().out
+    assert "gru " in table and "robot_filter " in table
+    assert main(["metrics", str(data), str(tmp_path / "data.robot_filter.npz")]) == 0
+    # a checkpoint of another spec (another rate) is refused; a classical filter too; --scenario with --data too
+    other = tmp_path / "other.npz"
+    spec.write_text(yaml.safe_dump(spec_dict(rate=5.0)))
+    assert main(["dataset", str(bag), "--spec", str(spec), "--length", "20", "--out", str(other), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(other), "--checkpoint", f"gru={out}", "--quiet"]) == 2
+    assert "spec_sha256" in capsys.readouterr().err
+    assert main(["evaluate", "--data", str(data), "--methods", "ekf", "--quiet"]) == 2
+    assert "classical filter" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--scenario", "lorenz96", "--model", "gru", "--out", str(tmp_path / "x")]) == 2
+    assert "drop --scenario" in capsys.readouterr().err
+
+
+def test_simulated_dataset_is_not_taken_as_recorded(tmp_path, capsys):
+    sim = tmp_path / "sim.npz"
+    assert main(["simulate", "--scenario", "bearings", "--trajectories", "2", "--horizon", "30", "--out", str(sim)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(sim), "--checkpoint", "gru=x", "--quiet"]) == 2
+    assert "not a recorded dataset" in capsys.readouterr().err
+    data, _ = load_trajectories(sim)
+    assert data.meta["scenario"] == "bearings"
