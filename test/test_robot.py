@@ -20,8 +20,6 @@ sys.path.insert(0, str(ROOT / "examples"))
 import robot_bag  # noqa: E402
 
 SPEC = ROOT / "examples" / "robot_spec.yaml"
-ESTIMATE = {"robot_filter": {"/odometry/filtered": ["pose.pose.position.x", "pose.pose.position.y",
-                                                    "yaw(pose.pose.orientation)"]}}
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +42,8 @@ def test_example_spec_parses_with_angles_names_and_units():
     assert [f.expr for f in s.vectors["state"]] == ["pose.position.x", "pose.position.y", "yaw(pose.orientation)"]
     assert s.angles("state") == (2,) and s.angles("observation") == ()
     assert s.names["state"] == ("x", "y", "yaw") and s.units["observation"][0] == "rad/s"
-    assert s.topics == ("/imu", "/wheel_odom", "/gps/fix", "/mocap/pose") and s.dt == pytest.approx(0.1)
+    assert s.topics == ("/imu", "/wheel_odom", "/gps/fix", "/mocap/pose", "/odometry/filtered")
+    assert s.estimates == ("robot_filter",) and s.dt == pytest.approx(0.1)
     assert len(s.digest()) == 64 and s.digest() != load_spec(spec_dict(rate=20.0)).digest()
 
 
@@ -57,6 +56,7 @@ def test_example_spec_parses_with_angles_names_and_units():
     ({"state": {"mocap pose": ["pose.position.x"]}}, "is not a topic name"),
     ({"names": {"state": ["x"]}}, "names.state must list 3 strings"),
     ({"estimates": {"ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "one per state component"),
+    ({"estimates": {"my ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "estimates must map names"),
     ({"stamp": "receive"}, "stamp must be one of"),
 ])
 def test_bad_specs_are_refused_in_one_line(changes, message):
@@ -93,7 +93,7 @@ def test_latest_value_alignment_with_staleness_and_nonfinite_ticks():
 
 # ---- bags -> dataset ------------------------------------------------------------------------------------
 def test_dataset_from_a_rosbags_recording(bag):
-    spec = load_spec(spec_dict(estimates=ESTIMATE))
+    spec = load_spec(SPEC)
     data, estimates, summaries = build_dataset([bag], spec, length=50)
     (summary,) = summaries
     assert summary.segments == 3  # one per run: the 2-second gaps are stale ticks
@@ -138,7 +138,7 @@ def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     spec = tmp_path / "spec.yaml"
     import yaml
 
-    spec.write_text(yaml.safe_dump(spec_dict(estimates=ESTIMATE)))
+    spec.write_text(yaml.safe_dump(spec_dict()))
     data = tmp_path / "data.npz"
     assert main(["dataset", str(bag), "--spec", str(spec), "--length", "50", "--out", str(data)]) == 0
     assert (tmp_path / "data.robot_filter.npz").is_file()
