@@ -57,6 +57,7 @@ setup(
             "estimator = neural_estimator.nodes.estimator_node:main",
             "evaluator = neural_estimator.nodes.evaluator_node:main",
             "player = neural_estimator.nodes.player_node:main",
+            "robot_estimator = neural_estimator.nodes.robot_estimator_node:main",
         ],
     },
 )

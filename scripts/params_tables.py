@@ -12,7 +12,7 @@ LINE = re.compile(r"^\s{4}(\w+):\s*(.*?)\s*#\s*(.*)$")
 
 def tables() -> str:
     out = []
-    for name in ("simulator", "estimator", "evaluator", "player"):
+    for name in ("simulator", "estimator", "evaluator", "player", "robot_estimator"):
         out.append(f"**`{name}`** (`params/{name}.yaml`)\n\n| parameter | default | meaning |\n|---|---|---|")
         for line in (PARAMS / f"{name}.yaml").read_text().splitlines():
             m = LINE.match(line)

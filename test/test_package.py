@@ -38,10 +38,11 @@ def test_colcon_lists_and_builds_the_package(tmp_path):
     build = subprocess.run([str(COLCON), "build"], cwd=ws, capture_output=True, text=True)
     assert build.returncode == 0, build.stdout + build.stderr
     lib = ws / "install" / "neural_estimator" / "lib" / "neural_estimator"
-    for exe in ("neural-estimator", "simulator", "estimator", "evaluator", "player"):
+    for exe in ("neural-estimator", "simulator", "estimator", "evaluator", "player", "robot_estimator"):
         assert (lib / exe).exists(), exe  # where `ros2 run neural_estimator <exe>` looks
     params = ws / "install" / "neural_estimator" / "share" / "neural_estimator" / "params"
-    assert {p.name for p in params.glob("*.yaml")} == {"simulator.yaml", "estimator.yaml", "evaluator.yaml", "player.yaml"}
+    assert {p.name for p in params.glob("*.yaml")} == {"simulator.yaml", "estimator.yaml", "evaluator.yaml", "player.yaml",
+                                                      "robot_estimator.yaml"}
     share = ws / "install" / "neural_estimator" / "share"
     assert (share / "ament_index" / "resource_index" / "packages" / "neural_estimator").exists()
     assert (share / "neural_estimator" / "package.xml").exists()

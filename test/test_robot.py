@@ -177,3 +177,90 @@ def test_simulated_dataset_is_not_taken_as_recorded(tmp_path, capsys):
     assert "not a recorded dataset" in capsys.readouterr().err
     data, _ = load_trajectories(sim)
     assert data.meta["scenario"] == "bearings"
+
+
+# ---- served live ------------------------------------------------------------------------------------------
+def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(tmp_path):
+    """player (the robot's own bag, standard messages) -> robot_estimator (a model trained with --data,
+    no scenario) -> evaluator (records /mocap/pose and the estimates) -> scored through a spec."""
+    pytest.importorskip("rclpy")
+    import random
+
+    import yaml
+
+    from neural_estimator.bags import BagReader
+    from neural_estimator.bags import messages as M
+    from neural_estimator.nodes.launch import EVALUATOR, isolated_env, node_command, start_node
+
+    bag = robot_bag.write_bag(tmp_path / "bag", runs=2, seconds=12.0, seed=3)
+    data = tmp_path / "data.npz"
+    assert main(["dataset", str(bag), "--spec", str(SPEC), "--length", "40", "--out", str(data), "--quiet"]) == 0
+    model = tmp_path / "gru"
+    assert main(["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1",
+                 "--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--quiet"]) == 0
+    env = isolated_env(random.SystemRandom().randint(230, 232))  # test_nodes uses 200..229, FastDDS allows <= 232
+    rec = tmp_path / "live.mcap"
+    procs = []
+    try:
+        for module, name, params in (
+            (EVALUATOR, "rec", dict(output=str(rec), methods=["gru"], compute_metrics=False, idle_timeout=3.0,
+                                    topics=["/mocap/pose"])),
+            ("neural_estimator.nodes.robot_estimator_node", "est", dict(checkpoint=str(model))),
+            ("neural_estimator.nodes.player_node", "player", dict(bag=str(bag), rate=2.0, wait_for_subscribers=1,
+                                                                   wait_topic="/imu", start_delay=1.0)),
+        ):
+            procs.append(start_node(node_command(sys.executable, module, name, params), tmp_path / f"{name}.log", env))
+        assert procs[0].wait(timeout=120) == 0, "".join((tmp_path / f"{n}.log").read_text() for n in ("rec", "est", "player"))
+    finally:
+        import signal
+
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except Exception:
+                p.kill()
+    log = (tmp_path / "est.log").read_text()
+    assert "subscribed to '/gps/fix' (geometry_msgs/msg/PointStamped)" in log, log
+    with BagReader(rec) as reader:
+        n_est = reader.topics["/estimates/gru"].msgcount
+        first = M.TYPESTORE.deserialize_cdr(next(raw for _, _, raw in reader.messages(["/estimates/gru"])),
+                                            "sensor_msgs/msg/JointState")
+    # 2 runs x 12 s played at 2x: ~12 s of 10 Hz ticks, minus the stale ones between runs and at the start
+    assert 60 <= n_est <= 130, n_est
+    assert list(first.name) == ["x", "y", "yaw"]
+    # score the live run through a spec: the truth from /mocap/pose, the estimates from the JointState
+    live_spec = tmp_path / "live.yaml"
+    live_spec.write_text(yaml.safe_dump({
+        "rate": 10.0, "max_age": 0.25, "stamp": "log",
+        "observation": {"/estimates/gru": ["position[0]"]},
+        "state": {"/mocap/pose": ["pose.position.x", "pose.position.y", "yaw(pose.orientation)"]},
+        "estimates": {"gru": {"/estimates/gru": ["position[0]", "position[1]", "angle(position[2])"]}},
+    }))
+    scored = tmp_path / "scored.npz"
+    assert main(["dataset", str(rec), "--spec", str(live_spec), "--length", "20", "--out", str(scored), "--quiet"]) == 0
+    truth, _ = load_trajectories(scored)
+    from neural_estimator.data.io import load_estimates
+
+    x_hat, _, _ = load_estimates(tmp_path / "scored.gru.npz", truth)
+    assert np.isfinite(x_hat).all() and truth.n >= 2
+
+
+@pytest.mark.parametrize("checkpoint, text", [
+    ("", "parameter checkpoint is required"),
+    ("/nonexistent/model", "does not exist"),
+    (str(ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
+])
+def test_robot_estimator_refuses_to_start(checkpoint, text, tmp_path):
+    pytest.importorskip("rclpy")
+    import random
+    import subprocess
+
+    from neural_estimator.nodes.launch import isolated_env, node_command
+
+    env = isolated_env(random.SystemRandom().randint(230, 232))
+    cmd = node_command(sys.executable, "neural_estimator.nodes.robot_estimator_node", "est", {"checkpoint": checkpoint})
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and text in proc.stderr + proc.stdout, proc.stderr + proc.stdout

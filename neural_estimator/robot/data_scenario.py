@@ -23,6 +23,8 @@ import numpy as np
 from neural_estimator.scenarios.base import MAX_DIMENSION, Scenario, ScenarioError
 
 DATA_SCENARIO = "data"
+# State names that make a pose for nav_msgs/Odometry output (the keys of Scenario.pose_states)
+POSE_NAMES = ("x", "y", "z", "roll", "pitch", "yaw", "vx", "vy", "vz", "wx", "wy", "wz")
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,8 @@ class DataScenario(Scenario):
         self.control_names, self.control_units = names["control_names"], names["control_units"]
         self.angle_states, self.angle_obs = angles["angle_states"], angles["angle_obs"]
         self.spec = meta.get("spec")
+        # a state named like a pose (x, y, yaw, ...) is published as nav_msgs/Odometry by the nodes
+        self.pose_states = {name: i for i, name in enumerate(self.state_names) if name in POSE_NAMES}
         super().__init__(cfg)
 
     @classmethod

@@ -1,0 +1,237 @@
+"""Robot estimator node: a neural estimator trained on recorded data, served on the robot's own topics.
+
+    ros2 run neural_estimator robot_estimator --ros-args -p checkpoint:=runs/robot-mamba
+    python -m neural_estimator.nodes.robot_estimator_node --ros-args -p checkpoint:=runs/robot-mamba
+
+The checkpoint's card (``neural-estimator train --data``) carries the spec the model was trained
+with (README, "Your own robot"). The node needs no scenario: it subscribes to the spec's
+observation and control topics with their own message types (found on the graph when a publisher
+appears, and checked as the evaluator checks foreign types: ``neural_estimator.interfaces``),
+reads the spec's fields from every message, and at every tick of the spec's rate (or on every
+message of its ``trigger`` topic) assembles the observation from each topic's latest message and
+steps the estimator once. A tick at which some topic has no message received within the spec's
+``max_age`` is skipped and counted (the model was trained on ticks with every input fresh).
+Live, ages are measured on receipt (the node's steady clock), since a recording's header stamps
+are of another clock when a bag is played.
+
+Publishes ``estimates/<method>`` (sensor_msgs/JointState with the spec's state names, stamped at
+the tick) and, when the state is named like a pose (x, y, yaw, ...), ``estimates/<method>/odometry``
+(nav_msgs/Odometry, unknown components with variance 1e6); ``/diagnostics`` every
+``diagnostics_period`` s. A message missing a field the spec names is counted and logged
+(throttled), never fatal; a missing checkpoint, a checkpoint without a spec or an unknown method
+is one fatal line at start-up (exit status 1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from neural_estimator.bags import messages as M
+from neural_estimator.nodes.common import (
+    InterfaceError,
+    StartupError,
+    declare_params,
+    message_class,
+    param,
+    run_node,
+    stream_qos,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotEstimatorParams:
+    """Parameters of the robot estimator node."""
+
+    checkpoint: str = param("", "checkpoint directory (or card.json) trained with neural-estimator train --data")
+    device: str = param("cpu", "torch device: cpu, cuda, cuda:N, auto")
+    threads: int = param(1, "torch intra-op threads (one suits one-step updates); 0 = torch's default")
+    output_topic: str = param("", "estimate topic; empty = estimates/<method>")
+    publish_odometry: bool = param(True, "publish nav_msgs/Odometry on <output>/odometry when the state is a pose")
+    frame_id: str = param("map", "header.frame_id of the estimates and the odometry")
+    child_frame_id: str = param("base_link", "child_frame_id of the odometry")
+    input_qos: str = param("sensor_data", "input subscriptions' reliability: sensor_data (best effort, matches any "
+                                          "publisher) or reliable")
+    discovery_period: float = param(0.2, "seconds between looks at the graph for the spec's topics")
+    diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
+    log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
+
+
+class RobotEstimatorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("robot_estimator")
+        self.p = p = declare_params(self, RobotEstimatorParams)
+        if p.input_qos not in ("sensor_data", "reliable"):
+            raise StartupError(f"parameter input_qos must be sensor_data or reliable, got {p.input_qos!r}")
+        self.scenario, self.spec, self.method, self.est = _load(p)
+        from neural_estimator.robot.dataset import topic_fields
+
+        fields = topic_fields(self.spec)
+        inputs = [f.topic for name in ("observation", "control") for f in self.spec.vectors[name]]
+        if self.spec.trigger:
+            inputs.append(self.spec.trigger)
+        self.fields = {t: fields.get(t, ()) for t in dict.fromkeys(inputs)}  # topic -> its fields, in order
+        self.latest: dict[str, tuple[int, np.ndarray]] = {}  # topic -> (receipt time ns, values)
+        self.subs: dict[str, object] = {}
+        self.counts = {"ticks": 0, "estimates": 0, "stale": 0, "bad_messages": 0, "messages": 0}
+        self._last_log: dict[str, float] = {}
+        self._refused: set[str] = set()
+        self._u_prev = np.zeros((1, self.scenario.du))
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.est.reset(1)
+        out = p.output_topic or M.estimate_topic(self.method)
+        self.pub_est = self.create_publisher(JointState, out, stream_qos(1000))
+        self.pub_odom = None
+        if p.publish_odometry and self.scenario.pose_states:
+            from nav_msgs.msg import Odometry
+
+            self._odom_cls = Odometry
+            self.pub_odom = self.create_publisher(Odometry, f"{out}/odometry", stream_qos(1000))
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(p.discovery_period, self._discover, clock=self._steady)
+        self.create_timer(p.diagnostics_period, self._diagnostics, clock=self._steady)
+        if not self.spec.trigger:
+            self.create_timer(self.spec.dt, self._tick, clock=self._steady)
+        self.get_logger().info(
+            f"{self.method} on recorded-data spec {self.spec.digest()[:12]}: {', '.join(self.fields)} -> '{out}'"
+            + (" + odometry" if self.pub_odom else "") + f" at {self.spec.rate:g} Hz"
+            + (f" (on {self.spec.trigger})" if self.spec.trigger else ""))
+        self._discover()
+
+    # ---- inputs ------------------------------------------------------------------------------------
+    def _discover(self) -> None:
+        """Subscribe to every spec topic that has a publisher, with the type it is published with."""
+        if len(self.subs) == len(self.fields):
+            return
+        types = dict(self.get_topic_names_and_types())
+        for topic in self.fields:
+            if topic in self.subs or topic not in types or topic in self._refused:
+                continue
+            msgtype = types[topic][0]
+            try:
+                cls = message_class(msgtype)
+            except InterfaceError as exc:
+                self._refused.add(topic)
+                self.get_logger().error(f"'{topic}': {exc}; not subscribed")
+                continue
+            qos = QoSProfile(depth=100, durability=DurabilityPolicy.VOLATILE,
+                             reliability=ReliabilityPolicy.BEST_EFFORT if self.p.input_qos == "sensor_data"
+                             else ReliabilityPolicy.RELIABLE)
+            self.subs[topic] = self.create_subscription(cls, topic, lambda msg, t=topic, m=msgtype: self._on_message(t, m, msg), qos)
+            self.get_logger().info(f"subscribed to '{topic}' ({msgtype})")
+
+    def _on_message(self, topic: str, msgtype: str, msg) -> None:
+        from neural_estimator.robot.spec import SpecError, topic_values
+
+        self.counts["messages"] += 1
+        try:
+            values = topic_values(msg, self.fields[topic], msgtype)
+        except SpecError as exc:
+            self.counts["bad_messages"] += 1
+            self._warn(f"field:{topic}", str(exc))
+            return
+        self.latest[topic] = (self._steady.now().nanoseconds, values)
+        if self.spec.trigger == topic:
+            self._tick()
+
+    # ---- one estimate per tick ------------------------------------------------------------------------
+    def _tick(self) -> None:
+        self.counts["ticks"] += 1
+        now = self._steady.now().nanoseconds
+        max_age = int(self.spec.max_age * 1e9)
+        if any(t not in self.latest or now - self.latest[t][0] > max_age for t in self.fields):
+            self.counts["stale"] += 1
+            return
+        y, u = self._vector("observation"), self._vector("control")
+        if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+            self.counts["stale"] += 1
+            return
+        x = np.asarray(self.est.step(y[None], self._u_prev), dtype=np.float64)[0]
+        self._u_prev = u[None]
+        self.counts["estimates"] += 1
+        stamp = self.get_clock().now().nanoseconds
+        msg = JointState()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        msg.header.frame_id = self.p.frame_id
+        msg.name = list(self.scenario.state_names)
+        msg.position = x.tolist()
+        self.pub_est.publish(msg)
+        if self.pub_odom is not None:
+            from neural_estimator.nodes.odometry import make_odometry
+
+            self.pub_odom.publish(make_odometry(self._odom_cls, stamp, self.p.frame_id, self.p.child_frame_id, x, None,
+                                                self.scenario.pose_states))
+
+    def _vector(self, name: str) -> np.ndarray:
+        out = []
+        for f in self.spec.vectors[name]:
+            values = self.latest[f.topic][1]
+            out.append(values[self.fields[f.topic].index(f)])
+        return np.array(out, dtype=np.float64)
+
+    # ---- reporting ------------------------------------------------------------------------------------
+    def _warn(self, kind: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last_log.get(kind, -1e9) >= self.p.log_throttle:
+            self._last_log[kind] = now
+            self.get_logger().warning(text)
+
+    def _diagnostics(self) -> None:
+        status = DiagnosticStatus(name=f"{self.get_name()}: {self.method} (recorded-data spec)", hardware_id="cpu")
+        missing = [t for t in self.fields if t not in self.subs]
+        status.level = DiagnosticStatus.OK if not missing else DiagnosticStatus.WARN
+        status.message = "running" if not missing else f"waiting for {', '.join(missing)}"
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [status]
+        self.pub_diag.publish(arr)
+
+
+def _load(p: RobotEstimatorParams):
+    """(DataScenario, Spec, method, estimator) from the checkpoint's card; StartupError otherwise."""
+    from pathlib import Path
+
+    from neural_estimator.estimators import EstimatorError, make_estimator
+    from neural_estimator.models.checkpoint import read_card
+    from neural_estimator.robot import DataScenario, SpecError, load_spec
+    from neural_estimator.scenarios import ScenarioError
+
+    if not p.checkpoint:
+        raise StartupError("parameter checkpoint is required: a model trained with neural-estimator train --data")
+    path = Path(p.checkpoint)
+    if not path.exists():
+        raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
+    try:
+        directory, card = read_card(path)
+        desc = card["scenario"]
+        if desc.get("scenario") != "data" or not desc.get("spec"):
+            raise StartupError(f"checkpoint {p.checkpoint}: trained on scenario {desc.get('scenario')!r}, not on recorded "
+                               "data with a spec; serve it with the estimator node")
+        scenario = DataScenario.from_description(desc)
+        spec = load_spec(desc["spec"])
+        method = str(card["method"])
+        if p.threads > 0:
+            import torch
+
+            torch.set_num_threads(p.threads)
+        est = make_estimator(method, scenario, checkpoint=directory, device=p.device)
+    except (EstimatorError, ScenarioError, SpecError, KeyError, TypeError) as exc:
+        raise StartupError(f"checkpoint {p.checkpoint}: {exc}") from None
+    return scenario, spec, method, est
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(RobotEstimatorNode, "robot_estimator", args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
