@@ -1,13 +1,21 @@
 """neural_estimator: model-free neural state estimators beside model-based nonlinear filters.
 
 Reproduces and extends Liu, Walker & Jain, "Model-Free Neural Filtering: A Comparison with
-Classical Filters in Nonlinear Systems". Layers (imports point downwards only):
+Classical Filters in Nonlinear Systems".
 
-1. ``scenarios``: the five nonlinear systems (pure numpy).
-2. ``data``, ``metrics``, ``bags``: simulation and datasets, the paper's metrics, MCAP I/O.
-3. ``filters`` (EKF, UKF, EnKF, PF) and ``models`` (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2).
-4. ``estimators``: one interface and a registry over all ten methods.
-5. Front ends: ``cli`` and the ROS 2 nodes (``nodes``, ``sim_nodes``); only the nodes import rclpy.
+Layers, bottom first. A module imports only from its own layer or those below it, at module level
+or inside a function alike, and module-level imports form no cycle (``test/test_layers.py`` walks
+every import of the package against this list):
+
+1. foundation: ``angles``, ``interfaces``, ``runtime``, ``metrics``, ``plots``, ``expected_failures``, ``paper``
+2. ``scenarios``: the five nonlinear systems (pure numpy)
+3. ``data``: simulation, the paper's protocol of data sets, the dataset files
+4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
+5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2)
+6. ``estimators``: the registry (``make_estimator``)
+7. ``bags``, ``evaluation``, ``replay``, ``robot``: MCAP I/O, the evaluation protocol, bag replay, recorded robot data
+8. ``reproduce``: the paper's experiments on Ray
+9. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
 """
 
 __version__ = "0.1.0"

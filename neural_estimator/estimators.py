@@ -1,162 +1,40 @@
-"""One estimator interface over both families, and the registry of the ten methods.
+"""The registry of the ten methods: :func:`make_estimator` builds any of them by name.
 
-Contract (every method, classical or neural):
-
-- ``reset(batch)``: start ``batch`` independent streams (filters from the prior (m0, P0); neural
-  models from their initial hidden state / empty cache).
-- ``step(y, u_prev) -> x_hat``: one time step for B streams. ``y`` is (B, dy), ``u_prev`` is
-  (B, du) = u_{k-1} (zeros at k = 0), ``x_hat`` is (B, dx). After a step, ``covariance`` holds
-  (B, dx, dx) where the method has one (else None) and ``diverged`` (B,) flags streams whose
-  estimate or covariance went non-finite (they stay flagged until ``reset``).
-- ``run(Y, U) -> Estimates``: whole sequences, ``Y`` (B, T, dy) and ``U`` (B, T, du) with
-  ``U[:, k] = u_k`` as stored in datasets (the estimator itself shifts to u_{k-1}). Filters loop over
-  time vectorised over B; neural models use their parallel form. Invariant, tested for every
-  method: ``run`` equals a loop of ``step``.
-
-Timing (see :mod:`neural_estimator.scenarios.base`): at step k the estimator receives
-z_k = (y_k, u_{k-1}) and returns x_hat_k from y_0..y_k and u_0..u_{k-1}.
-
-Observations that are non-finite are not used: filters predict only and neural models see the
-training mean in their place; the step is reported through ``skipped`` (B,) for that step.
+It sits above both families (:mod:`neural_estimator.filters`, :mod:`neural_estimator.models`), which
+implement the interface of :mod:`neural_estimator.estimator`; that interface is re-exported here, so
+``from neural_estimator.estimators import Estimator, EstimatorError, METHODS`` keeps working for the
+layers above.
 """
 
 from __future__ import annotations
 
-import importlib
-from abc import ABC, abstractmethod
+import inspect
 from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import Any
 
-import numpy as np
-
+from neural_estimator.estimator import (  # noqa: F401  re-exported: the interface, for the layers above
+    CLASSICAL_METHODS,
+    METHODS,
+    NEURAL_METHODS,
+    Estimates,
+    Estimator,
+    EstimatorError,
+    check_method,
+    previous_controls,
+)
+from neural_estimator.filters.ekf import ExtendedKalmanFilter
+from neural_estimator.filters.enkf import EnsembleKalmanFilter
+from neural_estimator.filters.pf import ParticleFilter
+from neural_estimator.filters.ukf import UnscentedKalmanFilter
 from neural_estimator.scenarios import Scenario
 
-
-class EstimatorError(ValueError):
-    """Bad input to an estimator or an unknown method; the message names the problem."""
-
-
-class Estimates(NamedTuple):
-    """Output of :meth:`Estimator.run`."""
-
-    x: np.ndarray  # (B, T, dx) state estimates
-    cov: np.ndarray | None  # (B, T, dx, dx) covariance where the method has one
-    diverged: np.ndarray  # (B,) True where the stream went non-finite at any step
-
-
-CLASSICAL_METHODS = ("ekf", "ukf", "enkf", "pf")
-NEURAL_METHODS = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
-METHODS = CLASSICAL_METHODS + NEURAL_METHODS
-
-
-def previous_controls(U: np.ndarray) -> np.ndarray:
-    """u_{k-1} for every k: (B, T, du) with zeros at k = 0 (the timing convention's u_{-1} = 0)."""
-    prev = np.zeros_like(U)
-    prev[:, 1:] = U[:, :-1]
-    return prev
-
-
-class Estimator(ABC):
-    """Base class of the ten methods (see the module docstring for the contract)."""
-
-    method: ClassVar[str]
-    has_covariance: ClassVar[bool] = False
-
-    def __init__(self, scenario: Scenario) -> None:
-        self.scenario = scenario
-        self.covariance: np.ndarray | None = None
-        self.diverged = np.zeros(0, dtype=bool)
-        self.skipped = np.zeros(0, dtype=bool)
-        self.batch = 0
-
-    @abstractmethod
-    def reset(self, batch: int = 1) -> None:
-        """Start ``batch`` independent streams."""
-
-    @abstractmethod
-    def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
-        """Consume z_k = (y_k, u_{k-1}) for B streams and return x_hat_k (B, dx)."""
-
-    def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
-        """Estimate whole sequences: Y (B, T, dy), U (B, T, du) -> :class:`Estimates`.
-
-        The default loops :meth:`step`; subclasses override with a faster form that must agree.
-        """
-        Y, U = self.check_sequences(Y, U)
-        B, T, _ = Y.shape
-        self.reset(B)
-        Uprev = previous_controls(U)
-        xs = np.empty((B, T, self.scenario.dx))
-        covs = np.empty((B, T, self.scenario.dx, self.scenario.dx)) if self.has_covariance else None
-        for k in range(T):
-            xs[:, k] = self.step(Y[:, k], Uprev[:, k])
-            if covs is not None:
-                covs[:, k] = self.covariance
-        return Estimates(xs, covs, self.diverged.copy())
-
-    # ---- input checks shared by every method --------------------------------------------------
-    def check_step(self, y: Any, u_prev: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Validate one step's inputs; returns float64 (B, dy) and (B, du)."""
-        s = self.scenario
-        y = np.asarray(y, dtype=np.float64)
-        if y.ndim == 1:
-            y = y[None]
-        if y.ndim != 2 or y.shape[1] != s.dy:
-            raise EstimatorError(
-                f"{self.method}: observation must be (B, {s.dy}) for scenario {s.name!r} "
-                f"({', '.join(s.obs_names)}), got shape {y.shape}"
-            )
-        if self.batch and y.shape[0] != self.batch:
-            raise EstimatorError(f"{self.method}: batch of {y.shape[0]} observations, but reset for {self.batch}")
-        if u_prev is None:
-            u_prev = np.zeros((y.shape[0], s.du))
-        u_prev = np.asarray(u_prev, dtype=np.float64)
-        if u_prev.ndim == 1:
-            u_prev = u_prev[None]
-        if u_prev.shape != (y.shape[0], s.du):
-            raise EstimatorError(f"{self.method}: control must be ({y.shape[0]}, {s.du}), got shape {u_prev.shape}")
-        if not np.all(np.isfinite(u_prev)):
-            raise EstimatorError(f"{self.method}: control contains NaN or inf")
-        return y, u_prev
-
-    def check_sequences(self, Y: Any, U: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Validate whole sequences; returns float64 (B, T, dy) and (B, T, du)."""
-        s = self.scenario
-        Y = np.asarray(Y, dtype=np.float64)
-        if Y.ndim != 3 or Y.shape[2] != s.dy:
-            raise EstimatorError(
-                f"{self.method}: observations must be (B, T, {s.dy}) for scenario {s.name!r}, got shape {Y.shape}"
-            )
-        if U is None:
-            U = np.zeros(Y.shape[:2] + (s.du,))
-        U = np.asarray(U, dtype=np.float64)
-        if U.shape != Y.shape[:2] + (s.du,):
-            raise EstimatorError(f"{self.method}: controls must be {Y.shape[:2] + (s.du,)}, got shape {U.shape}")
-        if not np.all(np.isfinite(U)):
-            raise EstimatorError(f"{self.method}: controls contain NaN or inf")
-        return Y, U
-
-
-# ---- registry -----------------------------------------------------------------------------------
-_CLASSICAL = {
-    "ekf": "neural_estimator.filters.ekf:ExtendedKalmanFilter",
-    "ukf": "neural_estimator.filters.ukf:UnscentedKalmanFilter",
-    "enkf": "neural_estimator.filters.enkf:EnsembleKalmanFilter",
-    "pf": "neural_estimator.filters.pf:ParticleFilter",
+CLASSICAL_FILTERS: dict[str, type[Estimator]] = {
+    "ekf": ExtendedKalmanFilter,
+    "ukf": UnscentedKalmanFilter,
+    "enkf": EnsembleKalmanFilter,
+    "pf": ParticleFilter,
 }
-
-
-def _load(entry: str) -> Any:
-    module, _, attr = entry.partition(":")
-    return getattr(importlib.import_module(module), attr)
-
-
-def check_method(method: str) -> str:
-    """Return ``method`` lower-cased if known; otherwise an error listing the ten valid names."""
-    m = str(method).strip().lower().replace("-", "")
-    if m not in METHODS:
-        raise EstimatorError(f"unknown method {method!r}; choose one of: {', '.join(METHODS)}")
-    return m
+assert tuple(CLASSICAL_FILTERS) == CLASSICAL_METHODS
 
 
 def make_estimator(
@@ -177,10 +55,10 @@ def make_estimator(
     (``covariance=False`` skips the Filterformer's per-step covariance).
     """
     m = check_method(method)
-    if m in _CLASSICAL:
-        return _load(_CLASSICAL[m])(scenario, seed=seed, **options)
-    import inspect
-
+    if m in CLASSICAL_FILTERS:
+        return CLASSICAL_FILTERS[m](scenario, seed=seed, **options)
+    # Imported here, not at the top: the neural side imports torch (1-2 s), which a process that
+    # only runs filters (an EKF node, a classical evaluate) should not pay.
     from neural_estimator.models.checkpoint import load_neural_estimator
 
     # an unknown option is the caller's one-line error, not a TypeError from deep inside

@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from neural_estimator.estimators import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
 from neural_estimator.scenarios import Scenario
 

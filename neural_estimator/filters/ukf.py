@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.estimators import EstimatorError
+from neural_estimator.estimator import EstimatorError
 from neural_estimator.filters.base import ClassicalFilter, check_inflation
 from neural_estimator.filters.numerics import JitterPolicy, cholesky, psd_solve, symmetrize
 

@@ -37,7 +37,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from neural_estimator.estimators import EstimatorError, check_method
+from neural_estimator import __version__
+from neural_estimator.estimator import EstimatorError, check_method
+from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
+from neural_estimator.models.neural import NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import NormalizationError, Normalizer
 from neural_estimator.scenarios import Scenario
 
@@ -49,39 +52,25 @@ ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
 EVALUATION_CONSTANTS = ("noise_scale", "horizon")  # may differ between training and use
 
 
-# ---- architecture registry access ---------------------------------------------------------------
-def _architectures() -> dict[str, tuple[type, type]]:
-    from neural_estimator.models import ARCHITECTURES
-
-    return ARCHITECTURES
-
-
+# ---- architectures ----------------------------------------------------------------------------------
 def architecture_of(model: nn.Module) -> tuple[str, dict[str, Any]]:
     """(architecture name, full config as a dict) of a model built by :mod:`neural_estimator.models`."""
-    for name, (_, model_cls) in _architectures().items():
+    for name, (_, model_cls) in ARCHITECTURES.items():
         if type(model) is model_cls:
             return name, dataclasses.asdict(model.cfg)
     raise EstimatorError(f"{type(model).__name__} is not one of the registered architectures")
 
 
 def build_from_config(name: str, config: dict[str, Any]) -> nn.Module:
-    """Rebuild an (untrained) model from its architecture name and config dict."""
-    archs = _architectures()
-    if name not in archs:
-        raise EstimatorError(f"unknown architecture {name!r}; known: {', '.join(archs)}")
-    config_cls, model_cls = archs[name]
-    fields = {f.name for f in dataclasses.fields(config_cls)}
-    unknown = sorted(set(config) - fields)
-    if unknown:
-        raise EstimatorError(f"{name} config has unknown fields {unknown}; this version knows {sorted(fields)}")
+    """Rebuild an (untrained) model from a card's architecture name and full config dict
+    (:func:`~neural_estimator.models.build_model`, its errors as EstimatorError naming the card's values)."""
+    config = dict(config)
     try:
-        return model_cls(config_cls(**config))
+        return build_model(name, config.pop("d_in"), config.pop("d_out"), **config)
+    except KeyError as exc:
+        raise EstimatorError(f"cannot build {name!r} from the card's config: {str(exc).strip(chr(39))}") from None
     except (TypeError, ValueError, AssertionError) as exc:
         raise EstimatorError(f"cannot build {name} from its config {config}: {exc}") from None
-
-
-def parameter_count(model: nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
 # ---- JSON that never holds inf/NaN tokens ---------------------------------------------------------
@@ -131,8 +120,6 @@ def sha256_file(path: Path) -> str:
 def software_versions() -> dict[str, str]:
     import safetensors
 
-    from neural_estimator import __version__
-
     return {
         "neural_estimator": __version__,
         "torch": torch.__version__,
@@ -174,7 +161,7 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
         "format_version": CARD_VERSION,
         "method": name,
         "scenario": card["scenario"],
-        "architecture": {"name": name, "config": config, "parameters": parameter_count(model)},
+        "architecture": {"name": name, "config": config, "parameters": count_parameters(model)},
         "normalization": normalizer.to_dict(),
     }
     for key, value in card.items():
@@ -229,8 +216,6 @@ def load_checkpoint(
         EstimatorError: missing or corrupt card or weights, weights that do not match the card.
     """
     from safetensors.torch import load_model
-
-    from neural_estimator.models.neural import resolve_device
 
     directory, card = read_card(checkpoint)
     arch = card["architecture"]
@@ -345,8 +330,6 @@ def load_neural_estimator(method: str, scenario: Scenario, checkpoint: str | Pat
         EstimatorError: no shipped default (the message gives the command that trains one), a
             checkpoint of another method or scenario, missing or corrupt files.
     """
-    from neural_estimator.models.neural import NeuralEstimator
-
     m = check_method(method)
     if checkpoint is None:
         checkpoint = default_checkpoint(scenario.name, m)

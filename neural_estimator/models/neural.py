@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from neural_estimator.estimators import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.models.normalization import Normalizer
 from neural_estimator.scenarios import Scenario
 
@@ -52,7 +52,7 @@ def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
 
 
 class NeuralEstimator(Estimator):
-    """A trained sequence model behind the :class:`~neural_estimator.estimators.Estimator` contract.
+    """A trained sequence model behind the :class:`~neural_estimator.estimator.Estimator` contract.
 
     Args:
         scenario: the system the model was trained on (dimensions are checked).

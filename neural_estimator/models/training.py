@@ -77,7 +77,9 @@ from neural_estimator.data.protocol import (
     training_trajectories,
 )
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
-from neural_estimator.estimators import NEURAL_METHODS, check_method, previous_controls
+from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
+from neural_estimator.metrics import compute_metrics, to_json
+from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.checkpoint import json_ready, load_checkpoint, save_checkpoint
 from neural_estimator.models.neural import NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import Normalizer
@@ -219,8 +221,6 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
     Returns:
         ``out_dir``.
     """
-    from neural_estimator.models import ARCHITECTURES, build_model
-
     cfg = config or TrainConfig()
     if isinstance(scenario, str):
         scenario = make_scenario(scenario)
@@ -417,8 +417,6 @@ def evaluate(scenario: Scenario, model: torch.nn.Module, normalizer: Normalizer,
              data: Trajectories | None = None) -> dict[str, Any]:
     """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon), or of
     ``data`` (recorded data: the validation set)."""
-    from neural_estimator.metrics import compute_metrics, to_json
-
     role = "eval" if data is None else "val (recorded)"
     data = dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir) if data is None else data.subset(slice(0, trajectories))
     est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False)

@@ -1,0 +1,105 @@
+"""Imports point downwards only, and module-level imports form no cycle, by the layers of the package
+docstring (neural_estimator/__init__.py)."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import neural_estimator
+
+PACKAGE = Path(neural_estimator.__file__).parent
+
+
+def layers() -> dict[str, int]:
+    """{top-level name: layer number} from the numbered list in the package docstring (the ``names``
+    in lower case on each numbered line)."""
+    out = {}
+    for line in neural_estimator.__doc__.splitlines():
+        m = re.match(r"(\d+)\. (.*)", line.strip())
+        if m:
+            for name in re.findall(r"``([a-z_0-9]+)``", m.group(2)):
+                out[name] = int(m.group(1))
+    return out
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports(path: Path) -> list[tuple[str, bool]]:
+    """(imported neural_estimator module, at module level?) of one file; ``from neural_estimator
+    import x`` counts as importing ``neural_estimator.x`` when x is a module."""
+    tree = ast.parse(path.read_text())
+    top = {id(n) for n in tree.body}
+    top |= {id(c) for n in tree.body if isinstance(n, (ast.If, ast.Try)) for c in ast.walk(n)}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(a.name, id(node) in top) for a in node.names if a.name.startswith("neural_estimator")]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("neural_estimator"):
+            for a in node.names:
+                sub = f"{node.module}.{a.name}"
+                is_module = (PACKAGE.parent / Path(*sub.split("."))).with_suffix(".py").exists() or \
+                    (PACKAGE.parent / Path(*sub.split("."))).is_dir()
+                found.append((sub if is_module else node.module, id(node) in top))
+    return found
+
+
+def layer_of(module: str, table: dict[str, int]) -> int:
+    parts = module.split(".")
+    if len(parts) == 1:
+        return 1  # the package itself holds only __version__
+    if parts[1] not in table:
+        raise AssertionError(f"{module}: the package docstring does not place '{parts[1]}' in a layer")
+    return table[parts[1]]
+
+
+def test_every_part_of_the_package_has_a_layer():
+    table = layers()
+    assert len(table) >= 20
+    for path in PACKAGE.iterdir():
+        name = path.stem if path.suffix == ".py" else path.name
+        if (path.suffix == ".py" and name != "__init__") or (path.is_dir() and (path / "__init__.py").exists()):
+            assert name in table, f"neural_estimator.{name} is in no layer of the package docstring"
+
+
+def test_imports_point_downwards_only():
+    table = layers()
+    upward = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        here = module_name(path)
+        for target, _ in imports(path):
+            if layer_of(target, table) > layer_of(here, table):
+                upward.append(f"{here} (layer {layer_of(here, table)}) imports {target} (layer {layer_of(target, table)})")
+    assert not upward, "upward imports:\n" + "\n".join(upward)
+
+
+def test_module_level_imports_form_no_cycle():
+    graph: dict[str, set[str]] = {}
+    modules = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+    for name, path in modules.items():
+        graph[name] = {t for t, top in imports(path) if top and t in modules and t != name}
+    # a package's __init__ importing its own submodules is how packages work, not a cycle
+    for name in graph:
+        graph[name] = {t for t in graph[name] if not (t.startswith(name + ".") and (modules[name].name == "__init__.py"))}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(n: str) -> None:
+        state[n] = 1
+        stack.append(n)
+        for m in sorted(graph[n]):
+            if state.get(m) == 1:
+                cycle = stack[stack.index(m):] + [m]
+                raise AssertionError("import cycle: " + " -> ".join(cycle))
+            if m not in state:
+                visit(m)
+        stack.pop()
+        state[n] = 2
+
+    for n in sorted(graph):
+        if n not in state:
+            visit(n)
