@@ -161,9 +161,14 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
 
 
 def _cmd_metrics(args) -> int:
+    return _print_metrics(args.files, args, as_json=args.json, out=args.out)
+
+
+def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = False, out: str | None = None) -> int:
+    """The metrics table of ``files`` (the ``metrics`` verb, and ``replay --metrics`` on its output)."""
     from neural_estimator import metrics as M
 
-    truth, estimates, angles = _estimates_from_files(args.files, args)
+    truth, estimates, angles = _estimates_from_files(files, args)
     reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
     note = ""
     if "bag" in truth.meta:
@@ -172,14 +177,14 @@ def _cmd_metrics(args) -> int:
         note = left_out_note(truth.meta["bag"])
         if note:  # a partly scorable bag: say what the table does not cover
             print(f"neural-estimator: note: {note}", file=sys.stderr)
-    if args.json:
+    if as_json:
         print(json.dumps(M.to_json({"scenario": truth.meta.get("scenario"), "methods": reports,
                                     **({"left_out": note} if note else {})}), indent=1, allow_nan=False))
     else:
         print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps")
         print(M.format_reports(reports, fmt="text"), end="")
-    if args.out:
-        _write_table(args.out, reports)
+    if out:
+        _write_table(out, reports)
     return 0
 
 
@@ -409,13 +414,10 @@ _TRAIN_FLAG_HELP = {
 _TRAIN_DEFAULTS = {"eval_trajectories": 200, "val_trajectories": None}  # the CLI's, where they differ from TrainConfig's
 
 
-def _add_train(sub, full: bool = True) -> None:
+def _add_train(sub) -> None:
     import dataclasses
 
-    if not full:  # listed in --help without importing torch (seconds) for the other verbs
-        sub.add_parser("train", help="train a neural estimator with the paper's protocol")
-        return
-    from neural_estimator.models.training import TrainConfig
+    from neural_estimator.data.recipe import TrainConfig  # no torch: the flags cost nothing to list
 
     p = sub.add_parser("train", help="train a neural estimator with the paper's protocol")
     _common(p, data=True)
@@ -451,7 +453,8 @@ def _cmd_train(args) -> int:
     import dataclasses
 
     from neural_estimator.estimators import NEURAL_METHODS, check_method
-    from neural_estimator.models.training import TrainConfig, TrainingError, train
+    from neural_estimator.data.recipe import TrainConfig, TrainingError
+    from neural_estimator.models.training import train
 
     method = check_method(args.model)
     if method not in NEURAL_METHODS:
@@ -573,8 +576,7 @@ def _cmd_replay(args) -> int:
                       + (f", {res.skipped[m]} duplicate or stale skipped" if res.skipped.get(m) else "") + ")"
                       for m in methods))
     if args.metrics:
-        return _cmd_metrics(argparse.Namespace(files=[str(res.path)], json=False, out=None, namespace=args.namespace,
-                                               scenario=args.scenario, set=args.set))
+        return _print_metrics([str(res.path)], args)
     return 0
 
 
@@ -656,18 +658,15 @@ _VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train
                           _add_scenarios, _add_reproduce, _add_dataset]
 
 
-def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
-    """The parser; ``verb`` (the first argument) lets verbs with heavy imports build lazily."""
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of every verb (none imports torch to build its flags)."""
     parser = argparse.ArgumentParser(
         prog="neural-estimator",
         description="Model-free neural estimators beside model-based nonlinear filters (paper reproduction).",
     )
     sub = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
     for add in _VERBS:
-        if add is _add_train:
-            add(sub, full=verb == "train")
-        else:
-            add(sub)
+        add(sub)
     return parser
 
 
@@ -694,7 +693,7 @@ def main(argv: list[str] | None = None) -> int:
         pass
     try:
         load_plugins(known.plugin)
-        args = build_parser("train" if "train" in argv else None).parse_args(argv)
+        args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except handled as exc:
         print(f"neural-estimator: error: {exc}", file=sys.stderr)

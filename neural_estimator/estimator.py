@@ -7,7 +7,8 @@ above them is the registry that builds any of the ten by name.
 Contract (every method, classical or neural):
 
 - ``reset(batch)``: start ``batch`` independent streams (filters from the prior (m0, P0); neural
-  models from their initial hidden state / empty cache).
+  models from their initial hidden state / empty cache). A ``step`` before any ``reset`` starts
+  as many streams as its observation has rows (both families alike, tested).
 - ``step(y, u_prev) -> x_hat``: one time step for B streams. ``y`` is (B, dy), ``u_prev`` is
   (B, du) = u_{k-1} (zeros at k = 0), ``x_hat`` is (B, dx). After a step, ``covariance`` holds
   (B, dx, dx) where the method has one (else None) and ``diverged`` (B,) flags streams whose

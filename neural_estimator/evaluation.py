@@ -40,6 +40,8 @@ from neural_estimator.data.protocol import SIMULATION_REVISION, code_key, defaul
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
 from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS, Estimator, Estimates, check_method, make_estimator, previous_controls
 from neural_estimator.filters.base import ClassicalFilter
+from neural_estimator.filters.enkf import EnKFHyperParams
+from neural_estimator.filters.pf import PFHyperParams
 from neural_estimator.scenarios import Scenario
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
@@ -104,11 +106,14 @@ def chunk_size(scenario: Scenario, method: str, horizon: int, n: int, budget: in
     """Trajectories per chunk so one chunk's arrays stay within ``budget`` bytes.
 
     Per trajectory: outputs T (dx + dx^2) float64 plus the inputs, plus the method's members
-    (EnKF: 50, PF: 1024 particles; each a few dx-vectors of temporaries).
+    (the EnKF's members, the PF's particles, defaults from their hyperparameters; each a few
+    dx-vectors of temporaries).
     """
     dx, dy, du = scenario.dx, scenario.dy, scenario.du
     per = horizon * (dx + dx * dx + dy + du) * 8
-    members = {"pf": (options or {}).get("n_particles", 1024), "enkf": (options or {}).get("n_members", 50)}.get(method, 2 * dx + 1)
+    opts = options or {}
+    members = {"pf": opts.get("n_particles", PFHyperParams.n_particles),
+               "enkf": opts.get("n_members", EnKFHyperParams.n_members)}.get(method, 2 * dx + 1)
     per += members * (dx + dy) * 8 * 6
     return int(max(1, min(n, budget // per)))
 

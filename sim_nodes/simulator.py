@@ -37,13 +37,13 @@ import time
 
 import numpy as np
 from rclpy.duration import Duration
-from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import String
 
 from neural_estimator.bags import messages as M
 from neural_estimator.nodes.common import (
+    ManagedNode,
     StartupError,
     build_scenario,
     declare_params,
@@ -79,7 +79,7 @@ class SimulatorParams:
     publish_clock: bool = param(False, "publish /clock at each step's stamp (for nodes with use_sim_time:=true)")
 
 
-class SimulatorNode(Node):
+class SimulatorNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("simulator")
         self.p = p = declare_params(self, SimulatorParams)
@@ -193,7 +193,7 @@ class SimulatorNode(Node):
     def on_shutdown(self) -> int:
         self._stop.set()
         self._thread.join(timeout=2.0)
-        return int(getattr(self, "exit_code", 0) or 0)
+        return self.exit_code
 
 
 def main(args: list[str] | None = None) -> int:

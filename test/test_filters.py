@@ -962,3 +962,14 @@ def test_compiled_systematic_resampling_equals_numpy_per_row():
                 np.testing.assert_array_equal(got[r], X[r, idx])
             else:
                 np.testing.assert_array_equal(got[r], X[r])
+
+
+def test_step_before_reset_starts_the_observations_batch_in_both_families():
+    """The Estimator contract: a step before any reset starts as many streams as y has rows."""
+    s = make_scenario("lorenz96")
+    d = simulate(s, 3, 2, seed=1)
+    for method in ("ukf", "gru"):
+        fresh, reset = make_estimator(method, s), make_estimator(method, s)
+        reset.reset(3)
+        np.testing.assert_array_equal(fresh.step(d.y[:, 0]), reset.step(d.y[:, 0]))
+        assert fresh.batch == 3

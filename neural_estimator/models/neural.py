@@ -115,9 +115,9 @@ class NeuralEstimator(Estimator):
         self.skipped = np.zeros(batch, dtype=bool)
 
     def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
-        if self._state is None:
-            raise EstimatorError(f"{self.method}: call reset(batch) before step")
         y, u_prev = self.check_step(y, u_prev)
+        if self._state is None:  # the first step after construction starts y's batch (as the filters do)
+            self.reset(y.shape[0])
         z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():

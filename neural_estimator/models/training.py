@@ -59,7 +59,6 @@ import math
 import os
 import shutil
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -67,15 +66,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from neural_estimator.data.protocol import (
-    TRAIN_TRAJECTORY_LENGTH,
-    VALIDATION_TRAJECTORIES,
-    WARMUP_STEPS,
-    WINDOW_LENGTH,
-    ChunkSampler,
-    dataset,
-    training_trajectories,
-)
+from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
+from neural_estimator.data.recipe import TrainConfig, TrainingError  # noqa: F401  (re-exported)
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import compute_metrics, to_json
@@ -92,79 +84,6 @@ RESUMABLE_CHANGES = ("epochs", "patience", "device", "resume", "keep_resume", "c
                      "val_batch_size")
 
 
-class TrainingError(ValueError):
-    """A training configuration or state that cannot be used; the message names the problem."""
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """The training recipe. Defaults are the paper's (Appendix "Hyperparameter Details")."""
-
-    # data (paper, "Neural Estimators and Training")
-    data_ratio: float = 20.0  # data-to-parameter ratio: 20, 10, 5 or 1 (x 100k nominal parameters)
-    data_seed: int = 0  # seed of the data sets (training, validation, evaluation)
-    data_index: int = 0  # which training set (the paper uses three per scenario: 0, 1, 2)
-    trajectories: int | None = None  # training trajectories; None -> from data_ratio (20:1 -> 4,000)
-    val_trajectories: int = VALIDATION_TRAJECTORIES  # 8,000
-    train_length: int = TRAIN_TRAJECTORY_LENGTH  # length of training and validation trajectories (500)
-    window: int = WINDOW_LENGTH  # training sub-trajectory length (100)
-    warmup: int = WARMUP_STEPS  # leading steps of a window (and of a validation run) not in the loss
-    windows_per_epoch: int | None = None  # None -> N x train_length / window (the set's steps once)
-    # model
-    init_seed: int = 0  # initial weights, dropout and window draws
-    model_overrides: dict[str, Any] = field(default_factory=dict)  # architecture config changes
-    # optimisation (appendix)
-    batch_size: int = 64
-    lr: float = 2e-3
-    weight_decay: float = 1e-5
-    grad_clip: float = 1.0  # max gradient norm
-    lr_factor: float = 0.5  # ReduceLROnPlateau factor
-    lr_patience: int = 3  # ReduceLROnPlateau patience (epochs)
-    epochs: int = 500  # maximum number of epochs
-    patience: int = 30  # early stopping: epochs without a lower validation loss
-    # validation and evaluation
-    val_batch_size: int = 500  # validation trajectories per forward pass (memory only)
-    eval_trajectories: int = 0  # > 0: metrics of the best model on that many trajectories of eval set 0
-    # runtime
-    device: str = "cpu"  # cpu, cuda, cuda:N or auto
-    resume: bool = False  # continue from out_dir/resume if it exists
-    keep_resume: bool = True  # keep out_dir/resume after the run (lets a larger --epochs extend it)
-    cache_dir: str | None = None  # dataset cache (None -> $NEURAL_ESTIMATOR_CACHE or ~/.cache/...)
-
-    def __post_init__(self) -> None:
-        positive = ("val_trajectories", "train_length", "window", "batch_size", "epochs", "patience", "val_batch_size",
-                    "lr_patience")
-        for name in positive:
-            if int(getattr(self, name)) < 1:
-                raise TrainingError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("trajectories", "windows_per_epoch"):
-            v = getattr(self, name)
-            if v is not None and int(v) < 1:
-                raise TrainingError(f"{name} must be >= 1 (or None for the paper's), got {v}")
-        if not self.data_ratio > 0:
-            raise TrainingError(f"data_ratio must be positive, got {self.data_ratio}")
-        if not 1 <= self.window <= self.train_length:
-            raise TrainingError(f"window must be in [1, train_length={self.train_length}], got {self.window}")
-        if not 0 <= self.warmup < self.window:
-            raise TrainingError(f"warmup must be in [0, window={self.window}), got {self.warmup}")
-        if not (self.lr > 0 and self.weight_decay >= 0 and self.grad_clip > 0 and 0 < self.lr_factor < 1):
-            raise TrainingError("need lr > 0, weight_decay >= 0, grad_clip > 0 and 0 < lr_factor < 1")
-        if self.eval_trajectories < 0:
-            raise TrainingError(f"eval_trajectories must be >= 0, got {self.eval_trajectories}")
-
-    def recipe(self) -> dict[str, Any]:
-        """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
-
-        Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what).
-        """
-        d = dataclasses.asdict(self)
-        d["model_overrides"] = dict(self.model_overrides)
-        for key in ("cache_dir", "resume", "keep_resume"):
-            d.pop(key)
-        return d
-
-
-# ---- losses -----------------------------------------------------------------------------------------
 def state_error(pred: torch.Tensor, target: torch.Tensor, angle_mask: torch.Tensor) -> torch.Tensor:
     """pred - target (..., dx) in normalised units, angular components wrapped to [-pi, pi).
 

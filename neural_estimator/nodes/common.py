@@ -198,11 +198,25 @@ def build_scenario(name: str, assignments: tuple[str, ...], noise_scale: float |
 
 
 # ---- main ----------------------------------------------------------------------------------------------
-def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
-    """The examples' main(): init, build, spin until shutdown, clean up; exit status.
+class ManagedNode(Node):
+    """What :func:`run_node` needs of a node, declared: an exit status and a clean-up hook.
+
+    ``exit_code`` is the process's exit status (:func:`request_shutdown` sets it and ends the
+    spin); :meth:`on_shutdown` runs once after the spin ends (Ctrl-C, SIGTERM, a shutdown request)
+    and may return a different status (e.g. the evaluator's, once its metrics are written).
+    """
+
+    exit_code: int = 0
+
+    def on_shutdown(self) -> int:
+        return self.exit_code
+
+
+def run_node(factory: Callable[[], ManagedNode], name: str, args: list[str] | None = None) -> int:
+    """The nodes' main(): init, build, spin until shutdown, clean up; exit status.
 
     A :class:`StartupError` while building the node is logged as one fatal line and gives exit
-    status 1. The node may set ``exit_code`` and call ``request_shutdown`` to end the spin itself.
+    status 1; otherwise the status is the node's :meth:`ManagedNode.on_shutdown`.
     """
     rclpy.init(args=args)
     try:
@@ -221,16 +235,13 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        code = int(getattr(node, "exit_code", 0) or 0)
-        closer = getattr(node, "on_shutdown", None)
-        if callable(closer):
-            code = int(closer() or code)
+        code = int(node.on_shutdown() or node.exit_code)
         node.destroy_node()
         rclpy.try_shutdown()
     return code
 
 
-def request_shutdown(node: Node, code: int = 0) -> None:
+def request_shutdown(node: ManagedNode, code: int = 0) -> None:
     """End the spin of :func:`run_node` (from a callback) with exit status ``code``."""
     node.exit_code = code
     node.context.try_shutdown()

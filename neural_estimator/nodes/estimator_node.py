@@ -36,7 +36,6 @@ import time
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -46,6 +45,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.estimators import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
+    ManagedNode,
     StartupError,
     build_scenario,
     declare_params,
@@ -94,7 +94,7 @@ class EstimatorParams:
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
 
 
-class EstimatorNode(Node):
+class EstimatorNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("estimator")
         self.p = p = declare_params(self, EstimatorParams)
@@ -383,7 +383,7 @@ class EstimatorNode(Node):
             path = Path(self.p.stats_file)
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(out, indent=1))
-        return int(getattr(self, "exit_code", 0) or 0)
+        return self.exit_code
 
     def _warn(self, kind: str, text: str) -> None:
         now = time.monotonic()

@@ -32,13 +32,13 @@ import time
 from datetime import datetime
 
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.nodes.common import (
+    ManagedNode,
     InterfaceError,
     StartupError,
     declare_params,
@@ -71,7 +71,7 @@ class EvaluatorParams:
     exit_when_done: bool = param(True, "shut down when the run is evaluated")
 
 
-class EvaluatorNode(Node):
+class EvaluatorNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("evaluator")
         self.p = p = declare_params(self, EvaluatorParams)
@@ -254,7 +254,7 @@ class EvaluatorNode(Node):
         if not self.closed:
             self.get_logger().info("interrupted: closing the bag")
             self._close()
-        return int(getattr(self, "exit_code", 0) or 0)
+        return self.exit_code
 
 
 def main(args: list[str] | None = None) -> int:

@@ -25,13 +25,13 @@ import time
 import warnings
 
 from rclpy.duration import Duration
-from rclpy.node import Node
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.reader import open_bag
 from neural_estimator.bags.writer import parse_qos_yaml
 from neural_estimator.nodes.common import (
+    ManagedNode,
     InterfaceError,
     StartupError,
     declare_params,
@@ -65,7 +65,7 @@ class PlayerParams:
     publish_clock: bool = param(False, "publish /clock at each message's log time (for nodes with use_sim_time:=true)")
 
 
-class PlayerNode(Node):
+class PlayerNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("player")
         self.p = p = declare_params(self, PlayerParams)
@@ -162,7 +162,7 @@ class PlayerNode(Node):
         self._stop.set()
         self._thread.join(timeout=2.0)
         self.reader.close()
-        return int(getattr(self, "exit_code", 0) or 0)
+        return self.exit_code
 
 
 def main(args: list[str] | None = None) -> int:

@@ -31,12 +31,12 @@ import time
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
 from neural_estimator.nodes.common import (
+    ManagedNode,
     InterfaceError,
     StartupError,
     declare_params,
@@ -65,7 +65,7 @@ class RobotEstimatorParams:
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
 
 
-class RobotEstimatorNode(Node):
+class RobotEstimatorNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("robot_estimator")
         self.p = p = declare_params(self, RobotEstimatorParams)
