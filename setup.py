@@ -39,7 +39,7 @@ setup(
                 "ros-jazzy-std-srvs"],
         "reproduce": ["ray==2.60.0"],
         "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
-        "test": ["pytest>=8", "atheris==3.0.0", "filterpy>=1.4.5", "dapper==1.7.1"],
+        "test": ["pytest>=8", "atheris==3.0.0", "ruff==0.14.14", "filterpy>=1.4.5", "dapper==1.7.1"],
     },
     zip_safe=False,
     maintainer="neural_estimator maintainers",

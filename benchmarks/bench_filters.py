@@ -55,7 +55,9 @@ SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     p.add_argument("--methods", nargs="+", default=list(METHODS))
     p.add_argument("--batch", type=int, default=8000, help="trajectories for the EKF, UKF and EnKF (8000)")
@@ -69,7 +71,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--run-mem-gib", type=float, default=2.0, help="memory bound of the runs made here (2)")
     p.add_argument("--threads", type=int, default=1, help="BLAS threads (1)")
     p.add_argument("--repeats", type=int, default=1, help="throughput runs per figure, the fastest kept (1)")
-    p.add_argument("--filter-threads", type=int, nargs="+", help="the filters' worker threads to measure (default: 1 and the usable cores)")
+    p.add_argument(
+        "--filter-threads",
+        type=int,
+        nargs="+",
+        help="the filters' worker threads to measure (default: 1 and the usable cores)",
+    )
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args(argv)
 
@@ -162,7 +169,9 @@ def filterpy_throughput(method: str, s: Scenario, Y: np.ndarray, U: np.ndarray, 
     return n * T / (time.perf_counter() - t0)
 
 
-def latency(method: str, s: Scenario, y: np.ndarray, u: np.ndarray, steps: int, warmup: int = 20) -> tuple[float, float]:
+def latency(
+    method: str, s: Scenario, y: np.ndarray, u: np.ndarray, steps: int, warmup: int = 20
+) -> tuple[float, float]:
     """(p50, p99) in ms of one step at B = 1."""
     f = make_estimator(method, s, threads=1)
     f.reset(1)
@@ -221,8 +230,18 @@ def main(args: argparse.Namespace) -> None:
             H = s.horizon
             chunk = chunk_size(a, c, s, H, args.mem_gib * 2**30)
             results[name, method] = dict(
-                B=B, T=T, rate=rate, rates=rates, fp_rate=fp_rate, diverged=diverged, run_chunk=run_chunk, a=a, c=c,
-                horizon=H, chunk=chunk, peak=a + chunk * (c + H * io_bytes_per_step(s)),
+                B=B,
+                T=T,
+                rate=rate,
+                rates=rates,
+                fp_rate=fp_rate,
+                diverged=diverged,
+                run_chunk=run_chunk,
+                a=a,
+                c=c,
+                horizon=H,
+                chunk=chunk,
+                peak=a + chunk * (c + H * io_bytes_per_step(s)),
                 protocol_s=PAPER_SETS * PAPER_TRAJECTORIES * H / rate,
             )
             print(
@@ -269,9 +288,18 @@ def main(args: argparse.Namespace) -> None:
         print(f"| {m.upper()} | {p50:.3f} | {p99:.3f} |")
 
     # (3) protocol
-    print(f"\n## (3) The paper's protocol: {PAPER_SETS} sets x {PAPER_TRAJECTORIES} trajectories x horizon, memory <= {args.mem_gib:g} GiB\n")
-    print(f"Estimated wall time = 24000 x horizon / throughput (1) on {thread_counts[-1]} thread(s), on this machine.\n")
-    print("| scenario | horizon | " + " | ".join(f"{m.upper()} time | {m.upper()} chunk (peak GiB)" for m in args.methods) + " |")
+    print(
+        f"\n## (3) The paper's protocol: {PAPER_SETS} sets x {PAPER_TRAJECTORIES} trajectories x horizon, "
+        f"memory <= {args.mem_gib:g} GiB\n"
+    )
+    print(
+        f"Estimated wall time = 24000 x horizon / throughput (1) on {thread_counts[-1]} thread(s), on this machine.\n"
+    )
+    print(
+        "| scenario | horizon | "
+        + " | ".join(f"{m.upper()} time | {m.upper()} chunk (peak GiB)" for m in args.methods)
+        + " |"
+    )
     print("|---|---:|" + "---:|---:|" * len(args.methods))
     totals = {m: 0.0 for m in args.methods}
     for name in args.scenarios:
@@ -294,8 +322,10 @@ def main(args: argparse.Namespace) -> None:
             r = results[name, m]
             cells += [f"{r['a'] / 2**20:.1f}", f"{r['c'] / 2**10:.1f}"]
         print(f"| {name} | " + " | ".join(cells) + " |")
-    print(f"\nWall time of this benchmark: {fmt_duration(time.perf_counter() - t_start)}; load average at the end "
-          f"{os.getloadavg()[0]:.2f}.")
+    print(
+        f"\nWall time of this benchmark: {fmt_duration(time.perf_counter() - t_start)}; load average at the end "
+        f"{os.getloadavg()[0]:.2f}."
+    )
 
 
 if __name__ == "__main__":

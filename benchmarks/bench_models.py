@@ -41,8 +41,9 @@ def percentiles(seconds: list[float]) -> tuple[float, float]:
     return ms[len(ms) // 2], ms[min(len(ms) - 1, int(0.99 * len(ms)))]
 
 
-def step_latency(model: torch.nn.Module, steps: int, warmup: int,
-                 compiled: bool = False) -> tuple[float, float, float, float]:
+def step_latency(
+    model: torch.nn.Module, steps: int, warmup: int, compiled: bool = False
+) -> tuple[float, float, float, float]:
     """Wall-clock (p50, p99) and thread CPU time (p50, p99) of one step at batch 1, in milliseconds.
 
     The CPU time leaves out the time the thread waited for a core, so on a shared machine it shows
@@ -110,11 +111,15 @@ def main(argv: list[str] | None = None) -> None:
 
     print(f"command: python benchmarks/bench_models.py {' '.join(argv if argv is not None else sys.argv[1:])}".rstrip())
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"torch {torch.__version__}, {args.threads} thread(s), {os.cpu_count()} CPUs ({platform.machine()}), "
-          f"load average {load:.1f} at start, Lorenz 96 dims ({D_IN} -> {D_OUT})\n")
+    print(
+        f"torch {torch.__version__}, {args.threads} thread(s), {os.cpu_count()} CPUs ({platform.machine()}), "
+        f"load average {load:.1f} at start, Lorenz 96 dims ({D_IN} -> {D_OUT})\n"
+    )
     extra = " compiled p50 / p99 (ms) | compiled CPU p50 / p99 (ms) |" if args.compile else ""
-    print(f"| arch | params | step p50 / p99 (ms) | step CPU p50 / p99 (ms) |{extra} seq T={args.seq_len} (steps/s) "
-          f"| train B=64 T=100 (windows/s) |")
+    print(
+        f"| arch | params | step p50 / p99 (ms) | step CPU p50 / p99 (ms) |{extra} seq T={args.seq_len} (steps/s) "
+        f"| train B=64 T=100 (windows/s) |"
+    )
     print("|---|---:|---:|---:|" + ("---:|---:|" if args.compile else "") + "---:|---:|")
     for name in args.archs:
         model = build_model(name, D_IN, D_OUT).eval()

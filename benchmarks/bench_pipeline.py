@@ -61,8 +61,11 @@ def end_to_end_ms(bag: Path, methods: list[str]) -> dict[str, dict[str, float]]:
     out = {}
     for m, items in got.items():
         lat = np.array([t - sent[k] for k, t in items if k in sent], dtype=np.float64) / 1e6
-        out[m] = {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                  "max": float(lat.max())} if lat.size else {}
+        out[m] = (
+            {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())}
+            if lat.size
+            else {}
+        )
     return out
 
 
@@ -86,12 +89,22 @@ def main(argv: list[str] | None = None) -> int:
         f.unlink()
     horizon = max(1, int(round(a.rate_hz * a.seconds / a.trajectories)))
     cfg = PipelineConfig(
-        scenario=a.scenario, methods=tuple(methods), trajectories=a.trajectories, horizon=horizon,
-        rate_hz=a.rate_hz, seed=a.seed, publish_covariance=not a.no_covariance, output=str(out / "run.mcap"),
-        timeout=max(120.0, 6 * a.seconds + 60), stats_dir=str(stats_dir),
+        scenario=a.scenario,
+        methods=tuple(methods),
+        trajectories=a.trajectories,
+        horizon=horizon,
+        rate_hz=a.rate_hz,
+        seed=a.seed,
+        publish_covariance=not a.no_covariance,
+        output=str(out / "run.mcap"),
+        timeout=max(120.0, 6 * a.seconds + 60),
+        stats_dir=str(stats_dir),
     )
-    print(f"{a.scenario}: {methods} at {a.rate_hz:g} Hz, {a.trajectories} x {horizon} steps "
-          f"({a.trajectories * horizon} observations), {os.cpu_count()} cores", flush=True)
+    print(
+        f"{a.scenario}: {methods} at {a.rate_hz:g} Hz, {a.trajectories} x {horizon} steps "
+        f"({a.trajectories * horizon} observations), {os.cpu_count()} cores",
+        flush=True,
+    )
     load_before = os.getloadavg()[0]
     t0 = time.monotonic()
     res = run_pipeline(cfg)
@@ -99,30 +112,45 @@ def main(argv: list[str] | None = None) -> int:
 
     run = bag_to_arrays(res.bag)
     expected = a.trajectories * horizon
-    streams = {k: {"received": run.received.get(k, 0), "missing": run.missing.get(k, expected),
-                   "duplicates": run.duplicates.get(k, 0), "rejected": run.rejected.get(k, 0)}
-               for k in sorted(run.received)}
+    streams = {
+        k: {
+            "received": run.received.get(k, 0),
+            "missing": run.missing.get(k, expected),
+            "duplicates": run.duplicates.get(k, 0),
+            "rejected": run.rejected.get(k, 0),
+        }
+        for k in sorted(run.received)
+    }
     sim_log = res.logs["simulator"].read_text(errors="replace")
     achieved = re.search(r"\(([\d.]+) Hz achieved, (\d+) steps more than 10 ms late\)", sim_log)
-    node_stats = {m: json.loads((stats_dir / f"{m}.json").read_text()) for m in methods
-                  if (stats_dir / f"{m}.json").exists()}
+    node_stats = {
+        m: json.loads((stats_dir / f"{m}.json").read_text()) for m in methods if (stats_dir / f"{m}.json").exists()
+    }
     e2e = end_to_end_ms(res.bag, methods)
     result = {
-        "scenario": a.scenario, "methods": methods, "rate_hz": a.rate_hz, "observations": expected,
-        "cores": os.cpu_count(), "wall_s": wall,
+        "scenario": a.scenario,
+        "methods": methods,
+        "rate_hz": a.rate_hz,
+        "observations": expected,
+        "cores": os.cpu_count(),
+        "wall_s": wall,
         "simulator_rate_hz": float(achieved.group(1)) if achieved else None,
         "simulator_late_steps": int(achieved.group(2)) if achieved else None,
-        "losses": {k: v["missing"] for k, v in streams.items()}, "streams": streams,
-        "latency_in_node_ms": {m: {k: s.get(f"latency_{k}_ms") for k in ("p50", "p90", "p99", "max")}
-                               for m, s in node_stats.items()},
+        "losses": {k: v["missing"] for k, v in streams.items()},
+        "streams": streams,
+        "latency_in_node_ms": {
+            m: {k: s.get(f"latency_{k}_ms") for k in ("p50", "p90", "p99", "max")} for m, s in node_stats.items()
+        },
         "end_to_end_ms": e2e,
         "node_counters": node_stats,
         "bag": str(res.bag),
     }
     (out / "bench_pipeline.json").write_text(json.dumps(result, indent=1))
 
-    print(f"simulator: {result['simulator_rate_hz']} Hz achieved, {result['simulator_late_steps']} steps > 10 ms late; "
-          f"wall {wall:.1f} s")
+    print(
+        f"simulator: {result['simulator_rate_hz']} Hz achieved, {result['simulator_late_steps']} steps > 10 ms late; "
+        f"wall {wall:.1f} s"
+    )
     print(f"{'stream':32s} {'received':>9s} {'lost':>6s} {'dup':>4s} {'bad':>4s}")
     for k, v in streams.items():
         print(f"{k:32s} {v['received']:9d} {v['missing']:6d} {v['duplicates']:4d} {v['rejected']:4d}")

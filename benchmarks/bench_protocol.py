@@ -56,7 +56,9 @@ def fmt_duration(seconds: float) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
     p.add_argument("--methods", default="ekf,ukf,enkf,pf")
     p.add_argument("--pf-paths", default="compiled", help="comma-separated: compiled, numpy")
@@ -73,8 +75,10 @@ def main(argv=None) -> int:
         columns += [(m, path) for path in a.pf_paths.split(",")] if m == "pf" else [(m, None)]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print("# Classical protocol cost (CPU time per trajectory-step, one thread)\n")
-    print(f"`python benchmarks/bench_protocol.py {' '.join(argv if argv is not None else sys.argv[1:])}`; "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average {load:.1f} at start\n")
+    print(
+        f"`python benchmarks/bench_protocol.py {' '.join(argv if argv is not None else sys.argv[1:])}`; "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average {load:.1f} at start\n"
+    )
     head = [f"{m} ({path})" if path else m for m, path in columns]
     print("| scenario | T | " + " | ".join(head) + " |")
     print("|---|---:|" + "---:|" * len(columns))
@@ -97,8 +101,10 @@ def main(argv=None) -> int:
     print(f"| **wall on {a.cores} cores** | | " + " | ".join(fmt_duration(v / a.cores) for v in totals.values()) + " |")
     chosen = [label for (m, path), label in zip(columns, head) if path in (None, "compiled")]
     wall = sum(totals[c] for c in chosen) / a.cores
-    print(f"\nThe protocol with {', '.join(chosen)}: {fmt_duration(wall)} on {a.cores} cores "
-          f"(load average {os.getloadavg()[0]:.1f} at the end).")
+    print(
+        f"\nThe protocol with {', '.join(chosen)}: {fmt_duration(wall)} on {a.cores} cores "
+        f"(load average {os.getloadavg()[0]:.1f} at the end)."
+    )
     return 0
 
 

@@ -63,9 +63,11 @@ def main(argv: list[str] | None = None) -> None:
         rows.append((name.strip(), r))
         print(f"# {name}: {r['sim_s']:.2f} s", file=sys.stderr, flush=True)
 
-    print(f"Simulating N = {args.n} trajectories (best of {args.repeats}); "
-          f"numpy {np.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"allocator tuned: {tuned}\n")
+    print(
+        f"Simulating N = {args.n} trajectories (best of {args.repeats}); "
+        f"numpy {np.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"allocator tuned: {tuned}\n"
+    )
     print(
         "| scenario | dx | dy | du | T | simulate [s] | trajectory-steps / s | ms / step (batch N) "
         "| jac_f [ms] (batch N) |"

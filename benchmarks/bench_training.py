@@ -167,13 +167,19 @@ def main(argv: list[str] | None = None) -> None:
         where = torch.cuda.get_device_name(device)
     else:
         where = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
-    print(f"Training throughput, batch {args.batch} x window {args.window}, d_in={args.d_in}, d_out={args.d_out}, "
-          f"{device} ({where}), torch {torch.__version__}, allocator tuned: {tuned}")
+    print(
+        f"Training throughput, batch {args.batch} x window {args.window}, d_in={args.d_in}, d_out={args.d_out}, "
+        f"{device} ({where}), torch {torch.__version__}, allocator tuned: {tuned}"
+    )
     rate, rate_cpu = gemm_rate(args) if device.type == "cpu" else (float("nan"), float("nan"))
-    print(f"float32 GEMM rate on the models' matmul shapes (this run, same threads): {rate:.1f} GFLOP/s per wall "
-          f"second, {rate_cpu:.1f} GFLOP/s per CPU second\n")
-    print("| model | path | params | ms / step | windows / s | GFLOP / step | GFLOP/s | % of GEMM rate "
-          "| windows / CPU-s | GFLOP / CPU-s | % of GEMM CPU rate | val steps / s | epoch at 20:1 (s) |")
+    print(
+        f"float32 GEMM rate on the models' matmul shapes (this run, same threads): {rate:.1f} GFLOP/s per wall "
+        f"second, {rate_cpu:.1f} GFLOP/s per CPU second\n"
+    )
+    print(
+        "| model | path | params | ms / step | windows / s | GFLOP / step | GFLOP/s | % of GEMM rate "
+        "| windows / CPU-s | GFLOP / CPU-s | % of GEMM CPU rate | val steps / s | epoch at 20:1 (s) |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for arch in archs:
         flops = step_flops(arch, args)
@@ -181,10 +187,13 @@ def main(argv: list[str] | None = None) -> None:
         for path in paths:
             r = bench_arch(arch, args, device, None if path == "default" else path.split()[0])
             gflops, gflops_cpu = flops / r["train_s"] / 1e9, flops / r["train_cpu_s"] / 1e9
-            print(f"| {arch} | {path} | {r['params']:,} | {r['ms_per_step']:.1f} | {r['windows_per_s']:,.0f} | "
-                  f"{flops / 1e9:.2f} | {gflops:.1f} | {100 * gflops / rate:.0f} % | "
-                  f"{args.batch / r['train_cpu_s']:,.0f} | {gflops_cpu:.1f} | {100 * gflops_cpu / rate_cpu:.0f} % | "
-                  f"{r['val_steps_per_s']:,.0f} | {r['epoch_s']:,.0f} |", flush=True)
+            print(
+                f"| {arch} | {path} | {r['params']:,} | {r['ms_per_step']:.1f} | {r['windows_per_s']:,.0f} | "
+                f"{flops / 1e9:.2f} | {gflops:.1f} | {100 * gflops / rate:.0f} % | "
+                f"{args.batch / r['train_cpu_s']:,.0f} | {gflops_cpu:.1f} | {100 * gflops_cpu / rate_cpu:.0f} % | "
+                f"{r['val_steps_per_s']:,.0f} | {r['epoch_s']:,.0f} |",
+                flush=True,
+            )
     print(f"\nepoch = {EPOCH_WINDOWS:,} training windows + {VAL_STEPS:,} validation timesteps")
     words = [sys.argv[0], *(argv if argv is not None else sys.argv[1:])]
     print("command: python " + " ".join(shlex.quote(a) for a in words))

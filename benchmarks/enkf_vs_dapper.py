@@ -50,19 +50,25 @@ def main() -> None:
     t1 = time.perf_counter()
     theirs = np.array(
         [
-            dapper_filter(s, data.x[b], data.y[b], "EnKF", seed=a.seed + b, upd_a="PertObs", N=a.members, infl=a.inflation)
+            dapper_filter(
+                s, data.x[b], data.y[b], "EnKF", seed=a.seed + b, upd_a="PertObs", N=a.members, infl=a.inflation
+            )
             for b in range(a.trajectories)
         ]
     )
     t2 = time.perf_counter()
-    print(f"lorenz96, obs std {a.obs_std}, N = {a.members}, inflation {a.inflation}, "
-          f"{a.trajectories} trajectories x {a.horizon} steps, RMSE after step {a.burn_in}")
+    print(
+        f"lorenz96, obs std {a.obs_std}, N = {a.members}, inflation {a.inflation}, "
+        f"{a.trajectories} trajectories x {a.horizon} steps, RMSE after step {a.burn_in}"
+    )
     for name, est, sec in (("ours", ours, t1 - t0), ("DAPPER EnKF PertObs", theirs, t2 - t1)):
         err = est - data.x
         rmse = np.sqrt((err[:, a.burn_in :] ** 2).mean(axis=(1, 2)))
         last = np.sqrt((err[:, -100:] ** 2).mean(axis=(1, 2)))
-        print(f"{name:22s} median {np.median(rmse):.3f}  per trajectory {np.round(rmse, 3).tolist()}  "
-              f"lost (last-100 RMSE > 1): {int((last > 1).sum())}/{a.trajectories}  ({sec:.0f} s)")
+        print(
+            f"{name:22s} median {np.median(rmse):.3f}  per trajectory {np.round(rmse, 3).tolist()}  "
+            f"lost (last-100 RMSE > 1): {int((last > 1).sum())}/{a.trajectories}  ({sec:.0f} s)"
+        )
 
 
 if __name__ == "__main__":

@@ -22,8 +22,11 @@ from neural_estimator.estimators import make_estimator
 from neural_estimator.scenarios import make_scenario
 
 PAPER_RATIO_RANGE = {  # min and max RMSE / NRMSE over the ten methods of the paper's appendix tables
-    "ballistic": (0.935, 3.37), "bearings": (254, 323), "lorenz96": (3.43, 3.69),
-    "nlink": (5.5, 8.0), "quadrotor": (32, 134),
+    "ballistic": (0.935, 3.37),
+    "bearings": (254, 323),
+    "lorenz96": (3.43, 3.69),
+    "nlink": (5.5, 8.0),
+    "quadrotor": (32, 134),
 }
 
 
@@ -41,9 +44,12 @@ def main(argv: list[str] | None = None) -> None:
             est = make_estimator(m, sc, seed=0).run(data.y, data.u)
             r = M.compute_metrics(data.x, est.x, sc.angle_states, diverged=est.diverged)
             lo, hi = PAPER_RATIO_RANGE.get(name, (np.nan, np.nan))
-            print(f"{name:9s} {m:4s} RMSE {r.rmse:.4g}  Full {r.full_rmse:.4g}  NRMSE {r.nrmse:.4g}  "
-                  f"nrmse_spread {r.nrmse_spread:.4g}  RMSE/NRMSE {r.rmse / r.nrmse:.3g} (paper {lo:g}-{hi:g})  "
-                  f"s_d {np.array2string(r.spread[:6], precision=4)}{' ...' if r.spread.size > 6 else ''}", flush=True)
+            print(
+                f"{name:9s} {m:4s} RMSE {r.rmse:.4g}  Full {r.full_rmse:.4g}  NRMSE {r.nrmse:.4g}  "
+                f"nrmse_spread {r.nrmse_spread:.4g}  RMSE/NRMSE {r.rmse / r.nrmse:.3g} (paper {lo:g}-{hi:g})  "
+                f"s_d {np.array2string(r.spread[:6], precision=4)}{' ...' if r.spread.size > 6 else ''}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

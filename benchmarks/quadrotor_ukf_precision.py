@@ -110,13 +110,17 @@ def main(argv=None) -> int:
         rows["ukf float32, eig fallback"] = textbook_ukf(s, data.y, data.u, np.float32, eig_fallback=True)
         rows["ukf float64, alpha=1"] = textbook_ukf(s, data.y, data.u, np.float64, alpha=1.0)
         rows["ukf float32, alpha=1"] = textbook_ukf(s, data.y, data.u, np.float32, alpha=1.0)
-    print(f"quadrotor, {args.trajectories} trajectories x {s.horizon} steps, seed {args.seed}, "
-          f"constants {parse_assignments(args.set) or 'default'}; paper: EKF 0.287, UKF 8.042")
+    print(
+        f"quadrotor, {args.trajectories} trajectories x {s.horizon} steps, seed {args.seed}, "
+        f"constants {parse_assignments(args.set) or 'default'}; paper: EKF 0.287, UKF 8.042"
+    )
     print(f"central weight W0_m = {(1e-6 * 6 - 6) / (1e-6 * 6):.4g} at alpha = 1e-3")
     for name, xh in rows.items():
         rep = M.compute_metrics(data.x, xh, s.angle_states)
-        print(f"{name:<27} RMSE {rep.rmse:8.4f}  full {rep.full_rmse:9.4g}  MedAE {rep.medae:.4f}  "
-              f"outliers {rep.outlier_ratio:.3f}  diverged {rep.diverged_ratio:.3f}")
+        print(
+            f"{name:<27} RMSE {rep.rmse:8.4f}  full {rep.full_rmse:9.4g}  MedAE {rep.medae:.4f}  "
+            f"outliers {rep.outlier_ratio:.3f}  diverged {rep.diverged_ratio:.3f}"
+        )
     return 0
 
 

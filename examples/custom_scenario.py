@@ -43,7 +43,7 @@ class Oscillator(Scenario):
 
     def transition_matrix(self) -> np.ndarray:
         c = self.config
-        return np.array([[1.0, c.dt], [-c.omega**2 * c.dt, 1.0 - 2.0 * c.zeta * c.omega * c.dt]])
+        return np.array([[1.0, c.dt], [-(c.omega**2) * c.dt, 1.0 - 2.0 * c.zeta * c.omega * c.dt]])
 
     def f(self, x, u):
         return x @ self.transition_matrix().T

@@ -42,8 +42,9 @@ def quaternion(yaw: float):
 
 
 def header(t_ns: int, frame: str):
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9),
-                                    frame_id=frame)
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id=frame
+    )
 
 
 def vec3(x=0.0, y=0.0, z=0.0):
@@ -51,13 +52,16 @@ def vec3(x=0.0, y=0.0, z=0.0):
 
 
 def odometry(t_ns: int, x: float, y: float, yaw: float, v: float, w: float):
-    pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-                                       orientation=quaternion(yaw))
+    pose = T["geometry_msgs/msg/Pose"](
+        position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0), orientation=quaternion(yaw)
+    )
     twist = T["geometry_msgs/msg/Twist"](linear=vec3(v), angular=vec3(z=w))
     return T["nav_msgs/msg/Odometry"](
-        header=header(t_ns, "odom"), child_frame_id="base_link",
+        header=header(t_ns, "odom"),
+        child_frame_id="base_link",
         pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-        twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
 
 
 def simulate_run(rng: np.random.Generator, seconds: float) -> np.ndarray:
@@ -82,10 +86,16 @@ def write_bag(out: Path, runs: int, seconds: float, seed: int) -> Path:
     if out.exists():
         shutil.rmtree(out)
     with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as bag:
-        conns = {topic: bag.add_connection(topic, msgtype, typestore=TS) for topic, msgtype in (
-            ("/imu", "sensor_msgs/msg/Imu"), ("/wheel_odom", "nav_msgs/msg/Odometry"),
-            ("/gps/fix", "geometry_msgs/msg/PointStamped"), ("/mocap/pose", "geometry_msgs/msg/PoseStamped"),
-            ("/odometry/filtered", "nav_msgs/msg/Odometry"))}
+        conns = {
+            topic: bag.add_connection(topic, msgtype, typestore=TS)
+            for topic, msgtype in (
+                ("/imu", "sensor_msgs/msg/Imu"),
+                ("/wheel_odom", "nav_msgs/msg/Odometry"),
+                ("/gps/fix", "geometry_msgs/msg/PointStamped"),
+                ("/mocap/pose", "geometry_msgs/msg/PoseStamped"),
+                ("/odometry/filtered", "nav_msgs/msg/Odometry"),
+            )
+        }
 
         def put(topic, t_ns, msg):
             bag.write(conns[topic], t_ns, TS.serialize_cdr(msg, conns[topic].msgtype))
@@ -99,13 +109,31 @@ def write_bag(out: Path, runs: int, seconds: float, seed: int) -> Path:
                 x, y, yaw, v, w = s[k]
                 t = t0 + int(round(k * DT * 1e9))
                 accel = (s[k, 3] - s[k - 1, 3]) / DT if k else 0.0
-                put("/mocap/pose", t, T["geometry_msgs/msg/PoseStamped"](header=header(t, "map"), pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0), orientation=quaternion(yaw))))
+                put(
+                    "/mocap/pose",
+                    t,
+                    T["geometry_msgs/msg/PoseStamped"](
+                        header=header(t, "map"),
+                        pose=T["geometry_msgs/msg/Pose"](
+                            position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+                            orientation=quaternion(yaw),
+                        ),
+                    ),
+                )
                 gyro = w + bias + 0.02 * rng.normal()
-                put("/imu", t, T["sensor_msgs/msg/Imu"](
-                    header=header(t, "imu"), orientation=quaternion(0.0), orientation_covariance=np.full(9, -1.0),
-                    angular_velocity=vec3(z=gyro), angular_velocity_covariance=np.zeros(9),
-                    linear_acceleration=vec3(accel + 0.1 * rng.normal()), linear_acceleration_covariance=np.zeros(9)))
+                put(
+                    "/imu",
+                    t,
+                    T["sensor_msgs/msg/Imu"](
+                        header=header(t, "imu"),
+                        orientation=quaternion(0.0),
+                        orientation_covariance=np.full(9, -1.0),
+                        angular_velocity=vec3(z=gyro),
+                        angular_velocity_covariance=np.zeros(9),
+                        linear_acceleration=vec3(accel + 0.1 * rng.normal()),
+                        linear_acceleration_covariance=np.zeros(9),
+                    ),
+                )
                 if k % 2 == 0:
                     speed = scale * v + 0.05 * rng.normal()
                     put("/wheel_odom", t, odometry(t, 0.0, 0.0, 0.0, speed, gyro))
@@ -115,8 +143,13 @@ def write_bag(out: Path, runs: int, seconds: float, seed: int) -> Path:
                     fy += speed * math.sin(fyaw) * 2 * DT
                 if k % 20 == 0:
                     gx, gy = x + 0.5 * rng.normal(), y + 0.5 * rng.normal()
-                    put("/gps/fix", t, T["geometry_msgs/msg/PointStamped"](
-                        header=header(t, "map"), point=T["geometry_msgs/msg/Point"](x=float(gx), y=float(gy), z=0.0)))
+                    put(
+                        "/gps/fix",
+                        t,
+                        T["geometry_msgs/msg/PointStamped"](
+                            header=header(t, "map"), point=T["geometry_msgs/msg/Point"](x=float(gx), y=float(gy), z=0.0)
+                        ),
+                    )
                     fx, fy = fx + 0.2 * (gx - fx), fy + 0.2 * (gy - fy)
                 if k % 2 == 0:
                     put("/odometry/filtered", t, odometry(t, fx, fy, fyaw, speed, gyro))

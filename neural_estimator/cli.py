@@ -46,8 +46,11 @@ def scenario_from_args(args: argparse.Namespace):
 def _common(p: argparse.ArgumentParser, scenario: bool = True, data: bool = False) -> None:
     p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
     if scenario:
-        p.add_argument("--scenario", required=not data,
-                       help=f"one of: {', '.join(scenario_names())} (or a plugin's)" + ("; or --data" if data else ""))
+        p.add_argument(
+            "--scenario",
+            required=not data,
+            help=f"one of: {', '.join(scenario_names())} (or a plugin's)" + ("; or --data" if data else ""),
+        )
         p.add_argument("--set", action="append", metavar="NAME=VALUE", help="override a scenario constant (repeatable)")
         p.add_argument("--noise-scale", type=float, help="multiply the observation-noise std (filters are told)")
 
@@ -69,8 +72,10 @@ def _cmd_simulate(args) -> int:
     scenario = scenario_from_args(args)
     data = simulate(scenario, args.trajectories, args.horizon, args.seed)
     path = save_trajectories(args.out, data)
-    print(f"wrote {path}: {data.n} trajectories x {data.horizon} steps of {scenario.name} "
-          f"(x {data.x.shape[2]}, y {data.y.shape[2]}, u {data.u.shape[2]}), seed {args.seed}")
+    print(
+        f"wrote {path}: {data.n} trajectories x {data.horizon} steps of {scenario.name} "
+        f"(x {data.x.shape[2]}, y {data.y.shape[2]}, u {data.u.shape[2]}), seed {args.seed}"
+    )
     return 0
 
 
@@ -87,6 +92,7 @@ def _cmd_scenarios(args) -> int:
     if args.json:
         print(json.dumps(descs, indent=2))
         return 0
+
     def names(ns, us):
         if len(ns) > 8:
             return f"{ns[0]} .. {ns[-1]} ({len(ns)})" + (f" [{us[0]}]" if us[0] else "")
@@ -94,9 +100,11 @@ def _cmd_scenarios(args) -> int:
 
     for d in descs:
         print(f"{d['scenario']}: x = [{names(d['state_names'], d['state_units'])}]")
-        print(f"  y = [{names(d['obs_names'], d['obs_units'])}]"
-              + (f", u = [{names(d['control_names'], d['control_units'])}]" if d["control_names"] else "")
-              + f", dt = {d['dt']} s")
+        print(
+            f"  y = [{names(d['obs_names'], d['obs_units'])}]"
+            + (f", u = [{names(d['control_names'], d['control_units'])}]" if d["control_names"] else "")
+            + f", dt = {d['dt']} s"
+        )
         print("  " + ", ".join(f"{k}={v}" for k, v in d["config"].items() if not isinstance(v, list) or len(v) <= 4))
     return 0
 
@@ -105,11 +113,17 @@ def _cmd_scenarios(args) -> int:
 def _add_metrics(sub) -> None:
     p = sub.add_parser("metrics", help="the paper's table from a truth file and estimate files (or an MCAP bag)")
     p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
-    p.add_argument("files", nargs="+", metavar="FILE",
-                   help="an estimate .npz (x and x_hat), or a truth .npz followed by estimate .npz files, or a bag "
-                        "(.mcap file or rosbag2 directory)")
+    p.add_argument(
+        "files",
+        nargs="+",
+        metavar="FILE",
+        help="an estimate .npz (x and x_hat), or a truth .npz followed by estimate .npz files, or a bag "
+        "(.mcap file or rosbag2 directory)",
+    )
     _bag_scenario_flags(p)
-    p.add_argument("--json", action="store_true", help="print JSON (RMSE-over-time curves, outlier and diverged indices)")
+    p.add_argument(
+        "--json", action="store_true", help="print JSON (RMSE-over-time curves, outlier and diverged indices)"
+    )
     p.add_argument("--out", help="also write the table: .csv, .md or .json by extension")
     p.set_defaults(func=_cmd_metrics)
 
@@ -117,9 +131,14 @@ def _add_metrics(sub) -> None:
 def _bag_scenario_flags(p: argparse.ArgumentParser) -> None:
     """Flags of the verbs that read a bag: its namespace, and the scenario of a bag without one."""
     p.add_argument("--namespace", default="/", help="namespace of the recorded streams")
-    p.add_argument("--scenario", help="scenario of a bag without a /scenario message (e.g. one recorded from your "
-                                      "own nodes); overrides the bag's")
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="scenario constant, with --scenario (repeatable)")
+    p.add_argument(
+        "--scenario",
+        help="scenario of a bag without a /scenario message (e.g. one recorded from your "
+        "own nodes); overrides the bag's",
+    )
+    p.add_argument(
+        "--set", action="append", metavar="NAME=VALUE", help="scenario constant, with --scenario (repeatable)"
+    )
 
 
 def _bag_description(args: argparse.Namespace) -> dict[str, Any] | None:
@@ -143,8 +162,11 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
     if len(files) == 1 and _is_bag(files[0]):
         from neural_estimator.bags import load_bag_dataset
 
-        return load_bag_dataset(files[0], namespace=getattr(args, "namespace", "/") or "/",
-                                description=_bag_description(args) if args is not None else None)
+        return load_bag_dataset(
+            files[0],
+            namespace=getattr(args, "namespace", "/") or "/",
+            description=_bag_description(args) if args is not None else None,
+        )
     if any(_is_bag(f) for f in files):
         raise CliError("a bag is scored on its own: pass one .mcap file or rosbag2 directory")
     truth, extras = load_trajectories(files[0])
@@ -178,8 +200,15 @@ def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = F
         if note:  # a partly scorable bag: say what the table does not cover
             print(f"neural-estimator: note: {note}", file=sys.stderr)
     if as_json:
-        print(json.dumps(M.to_json({"scenario": truth.meta.get("scenario"), "methods": reports,
-                                    **({"left_out": note} if note else {})}), indent=1, allow_nan=False))
+        print(
+            json.dumps(
+                M.to_json(
+                    {"scenario": truth.meta.get("scenario"), "methods": reports, **({"left_out": note} if note else {})}
+                ),
+                indent=1,
+                allow_nan=False,
+            )
+        )
     else:
         print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps")
         print(M.format_reports(reports, fmt="text"), end="")
@@ -209,35 +238,71 @@ _DEFAULT_METHODS = "ekf,ukf,enkf,pf"
 def _add_evaluate(sub) -> None:
     p = sub.add_parser("evaluate", help="run methods on the evaluation sets; print the paper's table")
     _common(p, data=True)
-    p.add_argument("--data", metavar="FILE.npz",
-                   help="a recorded dataset (neural-estimator dataset) instead of --scenario: its trajectories are the "
-                        "one evaluation set; neural methods need --checkpoint")
-    p.add_argument("--estimate", action="append", metavar="NAME=FILE.npz",
-                   help="with --data: a recorded estimate file (neural-estimator dataset writes one per spec estimate) "
-                        "scored as one more row")
-    p.add_argument("--methods", default=_DEFAULT_METHODS, help="comma-separated (ekf ukf enkf pf gru lstm gpt2 "
-                   "filterformer mamba mamba2); with --data: default the --checkpoint methods")
+    p.add_argument(
+        "--data",
+        metavar="FILE.npz",
+        help="a recorded dataset (neural-estimator dataset) instead of --scenario: its trajectories are the "
+        "one evaluation set; neural methods need --checkpoint",
+    )
+    p.add_argument(
+        "--estimate",
+        action="append",
+        metavar="NAME=FILE.npz",
+        help="with --data: a recorded estimate file (neural-estimator dataset writes one per spec estimate) "
+        "scored as one more row",
+    )
+    p.add_argument(
+        "--methods",
+        default=_DEFAULT_METHODS,
+        help="comma-separated (ekf ukf enkf pf gru lstm gpt2 "
+        "filterformer mamba mamba2); with --data: default the --checkpoint methods",
+    )
     p.add_argument("--trajectories", type=int, default=8000, help="per evaluation set (paper: 8000)")
     p.add_argument("--horizon", type=int, help="steps (default: the scenario's; paper: 500, quadrotor 200)")
     p.add_argument("--sets", type=int, default=3, help="independent evaluation sets (paper: 3)")
     p.add_argument("--seed", type=int, default=0, help="seed of the evaluation sets' streams")
-    p.add_argument("--checkpoint", action="append", metavar="METHOD=DIR[,DIR...]",
-                   help="checkpoints of a neural method (each one instance); default: the shipped model")
-    p.add_argument("--option", action="append", metavar="METHOD.NAME=VALUE",
-                   help="filter hyperparameter, e.g. pf.n_particles=2048 (repeatable)")
-    p.add_argument("--threads", type=int, metavar="N",
-                   help="threads of the classical filters (default: $NEURAL_ESTIMATOR_THREADS, else the usable cores)")
-    p.add_argument("--init", choices=("prior", "truth"), default="prior",
-                   help="classical filters start from the scenario prior (default, as live) or at each "
-                        "trajectory's true x0 (mean only; P0 and the PF's init_std unchanged)")
+    p.add_argument(
+        "--checkpoint",
+        action="append",
+        metavar="METHOD=DIR[,DIR...]",
+        help="checkpoints of a neural method (each one instance); default: the shipped model",
+    )
+    p.add_argument(
+        "--option",
+        action="append",
+        metavar="METHOD.NAME=VALUE",
+        help="filter hyperparameter, e.g. pf.n_particles=2048 (repeatable)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        metavar="N",
+        help="threads of the classical filters (default: $NEURAL_ESTIMATOR_THREADS, else the usable cores)",
+    )
+    p.add_argument(
+        "--init",
+        choices=("prior", "truth"),
+        default="prior",
+        help="classical filters start from the scenario prior (default, as live) or at each "
+        "trajectory's true x0 (mean only; P0 and the PF's init_std unchanged)",
+    )
     p.add_argument("--device", default="cpu")
-    p.add_argument("--no-cache", action="store_true",
-                   help="no disk cache at all: evaluation sets and run results are neither read nor written (no resume)")
-    p.add_argument("--recompute", action="store_true",
-                   help="compute every run again even if its result is cached (and overwrite the cached result)")
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="no disk cache at all: evaluation sets and run results are neither read nor written (no resume)",
+    )
+    p.add_argument(
+        "--recompute",
+        action="store_true",
+        help="compute every run again even if its result is cached (and overwrite the cached result)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
-    p.add_argument("--out", help="directory for table.md, table.csv, results.json (rewritten after every run) and rmse_over_time.png")
+    p.add_argument(
+        "--out",
+        help="directory for table.md, table.csv, results.json (rewritten after every run) and rmse_over_time.png",
+    )
     p.set_defaults(func=_cmd_evaluate)
 
 
@@ -279,8 +344,10 @@ def _scenario_or_data(args: argparse.Namespace):
 
     data, _ = load_trajectories(args.data)
     if data.meta.get("scenario") != "data":
-        raise CliError(f"{args.data}: not a recorded dataset (scenario {data.meta.get('scenario')!r}); "
-                       "make one with neural-estimator dataset, or pass --scenario")
+        raise CliError(
+            f"{args.data}: not a recorded dataset (scenario {data.meta.get('scenario')!r}); "
+            "make one with neural-estimator dataset, or pass --scenario"
+        )
     try:
         scenario = DataScenario(data.meta)
     except ScenarioError as exc:
@@ -316,16 +383,21 @@ def _cmd_evaluate(args) -> int:
             methods = list(checkpoints)
         for m in methods:
             if m in CLASSICAL_METHODS:
-                raise CliError(f"{m}: recorded data have no model for a classical filter; compare the robot's own "
-                               "filter with --estimate NAME=FILE")
+                raise CliError(
+                    f"{m}: recorded data have no model for a classical filter; compare the robot's own "
+                    "filter with --estimate NAME=FILE"
+                )
             if m not in checkpoints:
                 raise CliError(f"{m}: recorded data have no shipped model: pass --checkpoint {m}=DIR")
         recorded = _recorded_estimates(args.estimate, datasets[0])
     elif args.estimate:
         raise CliError("--estimate needs --data")
     if not methods and not recorded:
-        raise CliError("--methods is empty" if datasets is None else "nothing to evaluate: pass --checkpoint METHOD=DIR "
-                       "or --estimate NAME=FILE")
+        raise CliError(
+            "--methods is empty"
+            if datasets is None
+            else "nothing to evaluate: pass --checkpoint METHOD=DIR or --estimate NAME=FILE"
+        )
     options = _parse_options(args.option)
     if args.threads is not None:
         if args.threads < 1:
@@ -334,11 +406,22 @@ def _cmd_evaluate(args) -> int:
             if m in CLASSICAL_METHODS:
                 options.setdefault(m, {}).setdefault("threads", args.threads)
     if datasets is not None:
-        info = dict(trajectories=datasets[0].n, horizon=datasets[0].horizon, sets=1, seed=None, init="recorded",
-                    data=str(args.data))
+        info = dict(
+            trajectories=datasets[0].n,
+            horizon=datasets[0].horizon,
+            sets=1,
+            seed=None,
+            init="recorded",
+            data=str(args.data),
+        )
     else:
-        info = dict(trajectories=args.trajectories, horizon=args.horizon or scenario.horizon, sets=args.sets,
-                    seed=args.seed, init=args.init)
+        info = dict(
+            trajectories=args.trajectories,
+            horizon=args.horizon or scenario.horizon,
+            sets=args.sets,
+            seed=args.seed,
+            init=args.init,
+        )
     out = Path(args.out) if args.out else None
     expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
     expected_runs.update({name: 1 for name in recorded})
@@ -348,10 +431,21 @@ def _cmd_evaluate(args) -> int:
             _write_evaluation(out, scenario, results, info, expected_runs, plot=False)
 
     results = evaluate(
-        scenario, methods, trajectories=args.trajectories, horizon=args.horizon, seed=args.seed, sets=args.sets,
-        checkpoints=checkpoints, options=options, device=args.device,
-        cache_dir=False if args.no_cache else None, progress=not args.quiet, recompute=args.recompute,
-        on_result=write_partial, init=args.init, datasets=datasets,
+        scenario,
+        methods,
+        trajectories=args.trajectories,
+        horizon=args.horizon,
+        seed=args.seed,
+        sets=args.sets,
+        checkpoints=checkpoints,
+        options=options,
+        device=args.device,
+        cache_dir=False if args.no_cache else None,
+        progress=not args.quiet,
+        recompute=args.recompute,
+        on_result=write_partial,
+        init=args.init,
+        datasets=datasets,
     )
     if recorded:
         from neural_estimator.evaluation import recorded_result
@@ -364,20 +458,31 @@ def _cmd_evaluate(args) -> int:
         if datasets is not None:
             print(f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps")
         else:
-            print(f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
-                  f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)")
+            print(
+                f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
+                f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)"
+            )
         print(mark_rows(results_table(results, fmt="text"), scenario.name), end="")
         for line in notes(scenario.name, list(results)) if args.init == "prior" else ():
             print(line)
-        print("speed: " + ", ".join(f"{m} {r.throughput:,.0f} traj-steps/s" if r.seconds else f"{m} recorded" + (f" ({r.cached} cached runs)" if r.cached else "")
-                                    for m, r in results.items()))
+        print(
+            "speed: "
+            + ", ".join(
+                f"{m} {r.throughput:,.0f} traj-steps/s"
+                if r.seconds
+                else f"{m} recorded" + (f" ({r.cached} cached runs)" if r.cached else "")
+                for m, r in results.items()
+            )
+        )
     if out is not None:
         _write_evaluation(out, scenario, results, info, expected_runs, plot=True)
         print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
     return 0
 
 
-def _write_evaluation(out: Path, scenario, results, info: dict[str, Any], expected_runs: dict[str, int], plot: bool) -> None:
+def _write_evaluation(
+    out: Path, scenario, results, info: dict[str, Any], expected_runs: dict[str, int], plot: bool
+) -> None:
     """table.md, table.csv and results.json of the runs so far ("complete" says whether all are in)."""
     from neural_estimator.evaluation import results_json, results_table
 
@@ -393,8 +498,12 @@ def _write_evaluation(out: Path, scenario, results, info: dict[str, Any], expect
     if plot:
         from neural_estimator.plots import plot_rmse_over_time
 
-        plot_rmse_over_time({m: [rep.rmse_t for rep in r.reports] for m, r in done.items()},
-                            out / "rmse_over_time.png", title=scenario.name, dt=scenario.dt)
+        plot_rmse_over_time(
+            {m: [rep.rmse_t for rep in r.reports] for m, r in done.items()},
+            out / "rmse_over_time.png",
+            title=scenario.name,
+            dt=scenario.dt,
+        )
 
 
 # ---- train --------------------------------------------------------------------------------------
@@ -407,11 +516,14 @@ _TRAIN_FLAG_HELP = {
     "epochs": "maximum epochs (paper: 500)",
     "patience": "early-stopping patience in epochs (paper: 30)",
     "eval_trajectories": "metrics of the best model on that many evaluation trajectories, in the card "
-                         "(default 200, a few seconds to minutes; 0: none)",
+    "(default 200, a few seconds to minutes; 0: none)",
     "val_trajectories": "validation trajectories, run in full after every epoch (default: half the training "
-                        "trajectories, at most the paper's 8000; 20:1 -> 2000)",
+    "trajectories, at most the paper's 8000; 20:1 -> 2000)",
 }
-_TRAIN_DEFAULTS = {"eval_trajectories": 200, "val_trajectories": None}  # the CLI's, where they differ from TrainConfig's
+_TRAIN_DEFAULTS = {
+    "eval_trajectories": 200,
+    "val_trajectories": None,
+}  # the CLI's, where they differ from TrainConfig's
 
 
 def _add_train(sub) -> None:
@@ -421,12 +533,23 @@ def _add_train(sub) -> None:
 
     p = sub.add_parser("train", help="train a neural estimator with the paper's protocol")
     _common(p, data=True)
-    p.add_argument("--data", metavar="FILE.npz", help="train on a recorded dataset (neural-estimator dataset) "
-                   "instead of simulating --scenario")
-    p.add_argument("--val-data", metavar="FILE.npz", help="with --data: the validation set (default: the last "
-                   "--val-fraction of --data's trajectories)")
-    p.add_argument("--val-fraction", type=float, default=0.2, help="with --data and no --val-data: share of the "
-                   "trajectories held out for validation, split by trajectory (default 0.2)")
+    p.add_argument(
+        "--data",
+        metavar="FILE.npz",
+        help="train on a recorded dataset (neural-estimator dataset) instead of simulating --scenario",
+    )
+    p.add_argument(
+        "--val-data",
+        metavar="FILE.npz",
+        help="with --data: the validation set (default: the last --val-fraction of --data's trajectories)",
+    )
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.2,
+        help="with --data and no --val-data: share of the "
+        "trajectories held out for validation, split by trajectory (default 0.2)",
+    )
     p.add_argument("--model", required=True, help="gru, lstm, gpt2, filterformer, mamba or mamba2")
     p.add_argument("--out", required=True, help="output directory (model.safetensors + card.json)")
     p.add_argument("--model-set", action="append", metavar="NAME=VALUE", help="override an architecture hyperparameter")
@@ -443,9 +566,14 @@ def _add_train(sub) -> None:
         p.add_argument(flag, type=kind, default=default, help=_TRAIN_FLAG_HELP.get(f.name, f"default: {default}"))
     p.add_argument("--resume", action="store_true", help="continue from OUT/resume if it exists")
     p.add_argument("--no-keep-resume", action="store_true", help="delete OUT/resume after the run")
-    p.add_argument("--threads", type=int, default=1, metavar="N",
-                   help="CPU threads for torch and the fused scan kernels (default 1: on this project's 2-core "
-                        "machine one process per core beats two threads in one; see the README)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="CPU threads for torch and the fused scan kernels (default 1: on this project's 2-core "
+        "machine one process per core beats two threads in one; see the README)",
+    )
     p.set_defaults(func=_cmd_train)
 
 
@@ -466,8 +594,9 @@ def _cmd_train(args) -> int:
     elif args.val_data:
         raise CliError("--val-data needs --data")
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if hasattr(args, f.name)}
-    values.update(model_overrides=_parse_model_overrides(args.model_set), resume=args.resume,
-                  keep_resume=not args.no_keep_resume)
+    values.update(
+        model_overrides=_parse_model_overrides(args.model_set), resume=args.resume, keep_resume=not args.no_keep_resume
+    )
     if args.threads < 1:
         raise CliError(f"--threads must be >= 1, got {args.threads}")
     import torch
@@ -481,9 +610,12 @@ def _cmd_train(args) -> int:
         n_train = values["trajectories"] or training_trajectories(values["data_ratio"], length=values["train_length"])
         values["val_trajectories"] = max(1, min(VALIDATION_TRAJECTORIES, int(n_train) // 2))
     if not args.quiet:
-        print(f"validation after every epoch: {values['val_trajectories']} trajectories x {values['train_length']} "
-              f"steps (--val-trajectories); card metrics on {values['eval_trajectories']} evaluation trajectories "
-              f"(--eval-trajectories); {args.threads} thread(s) (--threads)", flush=True)
+        print(
+            f"validation after every epoch: {values['val_trajectories']} trajectories x {values['train_length']} "
+            f"steps (--val-trajectories); card metrics on {values['eval_trajectories']} evaluation trajectories "
+            f"(--eval-trajectories); {args.threads} thread(s) (--threads)",
+            flush=True,
+        )
     try:
         config = TrainConfig(**values)
         path = train(scenario, method, args.out, config, progress=not args.quiet, data=data)
@@ -506,8 +638,10 @@ def _train_val_split(args: argparse.Namespace, scenario, train_data):
         raise CliError(f"--val-fraction must be between 0 and 1, got {args.val_fraction}")
     n_val = int(round(train_data.n * args.val_fraction))
     if n_val < 1 or n_val >= train_data.n:
-        raise CliError(f"{args.data}: {train_data.n} trajectories cannot be split into training and validation "
-                       f"(--val-fraction {args.val_fraction}); record more, or cut shorter ones (dataset --length)")
+        raise CliError(
+            f"{args.data}: {train_data.n} trajectories cannot be split into training and validation "
+            f"(--val-fraction {args.val_fraction}); record more, or cut shorter ones (dataset --length)"
+        )
     return train_data.subset(slice(0, train_data.n - n_val)), train_data.subset(slice(train_data.n - n_val, None))
 
 
@@ -523,8 +657,11 @@ def _parse_model_overrides(items: list[str] | None) -> dict[str, Any]:
 
 # ---- live ---------------------------------------------------------------------------------------
 def _add_live(sub) -> None:
-    p = sub.add_parser("live", add_help=False,  # dispatched before parsing, see main()
-                       help="live ROS 2 run: simulator -> estimators -> evaluator, ends with the table and the MCAP bag")
+    p = sub.add_parser(
+        "live",
+        add_help=False,  # dispatched before parsing, see main()
+        help="live ROS 2 run: simulator -> estimators -> evaluator, ends with the table and the MCAP bag",
+    )
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=_cmd_live)
 
@@ -539,8 +676,11 @@ def _cmd_live(args) -> int:
 def _add_replay(sub) -> None:
     p = sub.add_parser("replay", help="run an MCAP bag's observations through estimators offline (no DDS)")
     p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
-    p.add_argument("bag", help="input bag: .mcap file or rosbag2 directory (recorded by the evaluator, by "
-                               "`ros2 bag record`, or a sample bag from bags/)")
+    p.add_argument(
+        "bag",
+        help="input bag: .mcap file or rosbag2 directory (recorded by the evaluator, by "
+        "`ros2 bag record`, or a sample bag from bags/)",
+    )
     p.add_argument("--methods", required=True, help="comma-separated methods")
     p.add_argument("--out", required=True, help="output .mcap: the input's messages plus the estimates")
     p.add_argument("--checkpoint", action="append", metavar="METHOD=DIR", help="checkpoint of a neural method")
@@ -548,11 +688,20 @@ def _add_replay(sub) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
     _bag_scenario_flags(p)
-    p.add_argument("--threads", type=int, default=1, metavar="N",
-                   help="torch threads of neural methods (default 1: fastest for one-step updates; 0 = torch's default)")
-    p.add_argument("--order", choices=("recorded", "identity"), default="recorded",
-                   help="process observations as recorded (default: exactly as a live estimator node) or sorted "
-                        "by (trajectory, step) for bags recorded out of order")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="torch threads of neural methods (default 1: fastest for one-step updates; 0 = torch's default)",
+    )
+    p.add_argument(
+        "--order",
+        choices=("recorded", "identity"),
+        default="recorded",
+        help="process observations as recorded (default: exactly as a live estimator node) or sorted "
+        "by (trajectory, step) for bags recorded out of order",
+    )
     p.add_argument("--no-covariance", action="store_true", help="do not write covariance streams")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--metrics", action="store_true", help="print the metrics table of the output bag")
@@ -567,14 +716,31 @@ def _cmd_replay(args) -> int:
     ckpts = {m: paths[-1] for m, paths in _parse_checkpoints(args.checkpoint).items()}
     if args.threads < 0:
         raise CliError(f"--threads must be >= 0 (0 = torch's default), got {args.threads}")
-    res = replay(args.bag, methods, args.out, ckpts, device=args.device, seed=args.seed, namespace=args.namespace,
-                 options=_parse_options(args.option), publish_covariance=not args.no_covariance, overwrite=args.overwrite,
-                 description=_bag_description(args), order=args.order, threads=args.threads)
-    print(f"wrote {res.path}: {res.observations} observations; "
-          + ", ".join(f"{m} {res.estimates[m]} estimates ({res.per_step_us(m):.0f} us/step"
-                      + (f", {res.rejected[m]} rejected" if res.rejected.get(m) else "")
-                      + (f", {res.skipped[m]} duplicate or stale skipped" if res.skipped.get(m) else "") + ")"
-                      for m in methods))
+    res = replay(
+        args.bag,
+        methods,
+        args.out,
+        ckpts,
+        device=args.device,
+        seed=args.seed,
+        namespace=args.namespace,
+        options=_parse_options(args.option),
+        publish_covariance=not args.no_covariance,
+        overwrite=args.overwrite,
+        description=_bag_description(args),
+        order=args.order,
+        threads=args.threads,
+    )
+    print(
+        f"wrote {res.path}: {res.observations} observations; "
+        + ", ".join(
+            f"{m} {res.estimates[m]} estimates ({res.per_step_us(m):.0f} us/step"
+            + (f", {res.rejected[m]} rejected" if res.rejected.get(m) else "")
+            + (f", {res.skipped[m]} duplicate or stale skipped" if res.skipped.get(m) else "")
+            + ")"
+            for m in methods
+        )
+    )
     if args.metrics:
         return _print_metrics([str(res.path)], args)
     return 0
@@ -582,7 +748,9 @@ def _cmd_replay(args) -> int:
 
 # ---- recover ------------------------------------------------------------------------------------
 def _add_recover(sub) -> None:
-    p = sub.add_parser("recover", help="rewrite a damaged or unfinished bag (e.g. a killed recorder's) into a valid .mcap")
+    p = sub.add_parser(
+        "recover", help="rewrite a damaged or unfinished bag (e.g. a killed recorder's) into a valid .mcap"
+    )
     p.add_argument("bag", help="the damaged .mcap file (or rosbag2 directory)")
     p.add_argument("--out", required=True, help="the valid .mcap to write")
     p.add_argument("--overwrite", action="store_true")
@@ -602,15 +770,22 @@ def _cmd_recover(args) -> int:
 def _add_reproduce(sub) -> None:
     p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
     p.add_argument("--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (README, 'Reproduce')")
-    p.add_argument("--plugin", action="append", metavar="FILE",
-                   help="Python file registering user scenarios (loaded by every Ray worker too)")
+    p.add_argument(
+        "--plugin",
+        action="append",
+        metavar="FILE",
+        help="Python file registering user scenarios (loaded by every Ray worker too)",
+    )
     p.add_argument("--scenarios", help="comma-separated (default: the paper's five; plugin scenarios allowed)")
     p.add_argument("--methods", help="comma-separated (default: all ten)")
     p.add_argument("--out", default="reproduce-out", help="directory of report.md, figures/, reproduce.json")
     p.add_argument("--address", help="Ray cluster to join (default: a local Ray instance)")
     p.add_argument("--num-cpus", type=int, help="CPUs of the local Ray instance (default: usable cores, at most 4)")
-    p.add_argument("--cache-dir", help="job result cache (default: $NEURAL_ESTIMATOR_CACHE or ~/.cache/neural_estimator; "
-                                        "on a cluster, a path every node sees)")
+    p.add_argument(
+        "--cache-dir",
+        help="job result cache (default: $NEURAL_ESTIMATOR_CACHE or ~/.cache/neural_estimator; "
+        "on a cluster, a path every node sees)",
+    )
     p.add_argument("--resume", action="store_true", help="continue the run in --out (finished jobs are read back)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_reproduce)
@@ -626,11 +801,21 @@ def _cmd_reproduce(args) -> int:
 def _add_dataset(sub) -> None:
     p = sub.add_parser("dataset", help="recorded bags of a robot -> a dataset (.npz) through a spec of message fields")
     p.add_argument("bags", nargs="+", metavar="BAG", help=".mcap files or rosbag2 directories (any recorder)")
-    p.add_argument("--spec", required=True, metavar="SPEC.yaml", help="the observation, control and state as message "
-                   "fields on topics, the rate and the alignment (README, 'Your own robot')")
+    p.add_argument(
+        "--spec",
+        required=True,
+        metavar="SPEC.yaml",
+        help="the observation, control and state as message "
+        "fields on topics, the rate and the alignment (README, 'Your own robot')",
+    )
     p.add_argument("--out", required=True, metavar="DATA.npz")
-    p.add_argument("--length", type=int, default=500, help="steps per trajectory: each segment of valid ticks is cut "
-                   "into trajectories of this length (default 500, the paper's)")
+    p.add_argument(
+        "--length",
+        type=int,
+        default=500,
+        help="steps per trajectory: each segment of valid ticks is cut "
+        "into trajectories of this length (default 500, the paper's)",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_dataset)
 
@@ -641,21 +826,32 @@ def _cmd_dataset(args) -> int:
 
     try:
         spec = load_spec(args.spec)
-        data, estimates, summaries = build_dataset(args.bags, spec, args.length,
-                                                   progress=None if args.quiet else print)
+        data, estimates, summaries = build_dataset(args.bags, spec, args.length, progress=None if args.quiet else print)
     except SpecError as exc:
         raise CliError(str(exc)) from None
     out = save_trajectories(args.out, data)
-    print(f"wrote {out}: {data.n} trajectories x {data.horizon} steps at {spec.rate:g} Hz "
-          f"(dx={data.x.shape[2]}, dy={data.y.shape[2]}, du={data.u.shape[2]})")
+    print(
+        f"wrote {out}: {data.n} trajectories x {data.horizon} steps at {spec.rate:g} Hz "
+        f"(dx={data.x.shape[2]}, dy={data.y.shape[2]}, du={data.u.shape[2]})"
+    )
     for name, x_hat in estimates.items():
         path = save_estimates(out.with_name(f"{out.stem}.{name}.npz"), data, x_hat, name)
         print(f"wrote {path}: the recorded estimate {name!r} at the same ticks")
     return 0
 
 
-_VERBS: list[Callable] = [_add_simulate, _add_metrics, _add_evaluate, _add_train, _add_replay, _add_recover, _add_live,
-                          _add_scenarios, _add_reproduce, _add_dataset]
+_VERBS: list[Callable] = [
+    _add_simulate,
+    _add_metrics,
+    _add_evaluate,
+    _add_train,
+    _add_replay,
+    _add_recover,
+    _add_live,
+    _add_scenarios,
+    _add_reproduce,
+    _add_dataset,
+]
 
 
 def build_parser() -> argparse.ArgumentParser:

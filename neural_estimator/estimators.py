@@ -62,10 +62,15 @@ def make_estimator(
     from neural_estimator.models.checkpoint import load_neural_estimator
 
     # an unknown option is the caller's one-line error, not a TypeError from deep inside
-    valid = [n for n in inspect.signature(load_neural_estimator).parameters
-             if n not in ("method", "scenario", "checkpoint", "device")]
+    valid = [
+        n
+        for n in inspect.signature(load_neural_estimator).parameters
+        if n not in ("method", "scenario", "checkpoint", "device")
+    ]
     unknown = sorted(set(options) - set(valid))
     if unknown:
-        raise EstimatorError(f"{m}: unknown option(s) {', '.join(unknown)}; valid: {', '.join(valid)}"
-                             + (" (torch threads: the threads setting, not an option)" if "threads" in unknown else ""))
+        raise EstimatorError(
+            f"{m}: unknown option(s) {', '.join(unknown)}; valid: {', '.join(valid)}"
+            + (" (torch threads: the threads setting, not an option)" if "threads" in unknown else "")
+        )
     return load_neural_estimator(m, scenario, checkpoint=checkpoint, device=device, **options)

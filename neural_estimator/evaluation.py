@@ -38,7 +38,15 @@ from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError, load_npz, save_npz
 from neural_estimator.data.protocol import SIMULATION_REVISION, code_key, default_cache_dir
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
-from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS, Estimator, Estimates, check_method, make_estimator, previous_controls
+from neural_estimator.estimators import (
+    CLASSICAL_METHODS,
+    NEURAL_METHODS,
+    Estimator,
+    Estimates,
+    check_method,
+    make_estimator,
+    previous_controls,
+)
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.filters.enkf import EnKFHyperParams
 from neural_estimator.filters.pf import PFHyperParams
@@ -101,8 +109,14 @@ def recorded_result(scenario: Scenario, data: Trajectories, x_hat: np.ndarray, n
     return MethodResult(name, [report])
 
 
-def chunk_size(scenario: Scenario, method: str, horizon: int, n: int, budget: int = DEFAULT_MEMORY_BUDGET,
-               options: Mapping[str, Any] | None = None) -> int:
+def chunk_size(
+    scenario: Scenario,
+    method: str,
+    horizon: int,
+    n: int,
+    budget: int = DEFAULT_MEMORY_BUDGET,
+    options: Mapping[str, Any] | None = None,
+) -> int:
     """Trajectories per chunk so one chunk's arrays stay within ``budget`` bytes.
 
     Per trajectory: outputs T (dx + dx^2) float64 plus the inputs, plus the method's members
@@ -112,8 +126,10 @@ def chunk_size(scenario: Scenario, method: str, horizon: int, n: int, budget: in
     dx, dy, du = scenario.dx, scenario.dy, scenario.du
     per = horizon * (dx + dx * dx + dy + du) * 8
     opts = options or {}
-    members = {"pf": opts.get("n_particles", PFHyperParams.n_particles),
-               "enkf": opts.get("n_members", EnKFHyperParams.n_members)}.get(method, 2 * dx + 1)
+    members = {
+        "pf": opts.get("n_particles", PFHyperParams.n_particles),
+        "enkf": opts.get("n_members", EnKFHyperParams.n_members),
+    }.get(method, 2 * dx + 1)
     per += members * (dx + dy) * 8 * 6
     return int(max(1, min(n, budget // per)))
 
@@ -151,8 +167,9 @@ def run_method(
         t0 = time.perf_counter()
         initial_mean = data.x[lo:hi, 0] if from_truth else None
         if on_steps is not None and estimator.method in CLASSICAL_METHODS:
-            est = run_stepwise(estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo),
-                               initial_mean=initial_mean)
+            est = run_stepwise(
+                estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo), initial_mean=initial_mean
+            )
         elif from_truth:
             est = estimator.run(data.y[lo:hi], data.u[lo:hi], initial_mean=initial_mean)
         else:
@@ -171,8 +188,13 @@ def run_method(
     return x_hat, nees_all, diverged, seconds
 
 
-def run_stepwise(estimator: Estimator, Y: np.ndarray, U: np.ndarray, on_step: Callable[[], None],
-                 initial_mean: np.ndarray | None = None) -> Estimates:
+def run_stepwise(
+    estimator: Estimator,
+    Y: np.ndarray,
+    U: np.ndarray,
+    on_step: Callable[[], None],
+    initial_mean: np.ndarray | None = None,
+) -> Estimates:
     """``estimator.run(Y, U)`` as ``reset`` and a loop of ``step``, calling ``on_step()`` after each.
 
     ``initial_mean`` (B, n), classical filters only, starts each stream there instead of at the
@@ -219,8 +241,16 @@ def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | 
     return h.hexdigest()
 
 
-def run_key(scenario: Scenario, method: str, options: Mapping[str, Any] | None, checkpoint_hash: str | None,
-            seed: int, device: str, data: Trajectories | str, init: str = "prior") -> str:
+def run_key(
+    scenario: Scenario,
+    method: str,
+    options: Mapping[str, Any] | None,
+    checkpoint_hash: str | None,
+    seed: int,
+    device: str,
+    data: Trajectories | str,
+    init: str = "prior",
+) -> str:
     """Hex digest of everything that defines one run's result.
 
     Keyed: :data:`RESULTS_REVISION`, the simulation revision, the package version, the scenario
@@ -231,12 +261,24 @@ def run_key(scenario: Scenario, method: str, options: Mapping[str, Any] | None, 
     plugin scenario's source file (:func:`~neural_estimator.scenarios.code_digest`).
     """
     opts = {k: v for k, v in sorted((options or {}).items()) if k not in _SPEED_ONLY_OPTIONS}
-    key = json.dumps({
-        "rev": RESULTS_REVISION, "sim": SIMULATION_REVISION, "version": __version__,
-        "scenario": scenario.describe(), "method": method, "options": opts, "checkpoint": checkpoint_hash,
-        "seed": int(seed), "device": str(device), "data": data if isinstance(data, str) else dataset_digest(data),
-        **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}), **code_key(scenario),
-    }, sort_keys=True, default=str)
+    key = json.dumps(
+        {
+            "rev": RESULTS_REVISION,
+            "sim": SIMULATION_REVISION,
+            "version": __version__,
+            "scenario": scenario.describe(),
+            "method": method,
+            "options": opts,
+            "checkpoint": checkpoint_hash,
+            "seed": int(seed),
+            "device": str(device),
+            "data": data if isinstance(data, str) else dataset_digest(data),
+            **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}),
+            **code_key(scenario),
+        },
+        sort_keys=True,
+        default=str,
+    )
     return hashlib.sha256(key.encode()).hexdigest()[:20]
 
 
@@ -250,10 +292,18 @@ _REPORT_ARRAYS = ("rmse_t", "spread", "outlier_idx", "diverged_idx")
 def save_run(path: Path, report: M.MetricReport, seconds: float, steps: int) -> Path:
     """Write one run (its metrics, time and size) as .npz + JSON meta, atomically (no pickle)."""
     arrays = {k: np.asarray(getattr(report, k)) for k in _REPORT_ARRAYS}
-    scalars = {f.name: getattr(report, f.name) for f in M.MetricReport.__dataclass_fields__.values()
-               if f.name not in _REPORT_ARRAYS}
-    meta = {"kind": "neural_estimator run result", "revision": RESULTS_REVISION, "report": scalars,
-            "seconds": float(seconds), "steps": int(steps)}
+    scalars = {
+        f.name: getattr(report, f.name)
+        for f in M.MetricReport.__dataclass_fields__.values()
+        if f.name not in _REPORT_ARRAYS
+    }
+    meta = {
+        "kind": "neural_estimator run result",
+        "revision": RESULTS_REVISION,
+        "report": scalars,
+        "seconds": float(seconds),
+        "steps": int(steps),
+    }
     return save_npz(path, arrays, meta)  # JSON with allow_nan: inf and NaN survive
 
 
@@ -317,8 +367,11 @@ def evaluate(
     methods = [check_method(m) for m in methods]
     check_init(init)
     T = scenario.horizon if horizon is None else int(horizon)
-    data_sets = list(datasets) if datasets is not None else evaluation_sets(
-        scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
+    data_sets = (
+        list(datasets)
+        if datasets is not None
+        else evaluation_sets(scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
+    )
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
     plan = [(m, c) for m in methods for c in list((checkpoints or {}).get(m) or [None])]
@@ -334,7 +387,9 @@ def evaluate(
             r = results[m]
             path = None
             if cache_root is not None:
-                path = result_path(cache_root, scenario, m, run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init))
+                path = result_path(
+                    cache_root, scenario, m, run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init)
+                )
                 hit = None if recompute else load_run(path)
                 if hit is not None:
                     report, secs, steps = hit
@@ -342,16 +397,25 @@ def evaluate(
                     r.seconds += secs
                     r.steps += steps
                     r.cached += 1
-                    _note(progress, f"{scenario.name} {m} set {j + 1}/{len(data_sets)}: cached result reused ({path.name})")
+                    _note(
+                        progress,
+                        f"{scenario.name} {m} set {j + 1}/{len(data_sets)}: cached result reused ({path.name})",
+                    )
                     if on_result:
                         on_result(results)
                     continue
             if est is None:
                 est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts)
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
-            bar = _progress(data.n * data.horizon, progress, f"{scenario.name} {m} set {j + 1}/{len(data_sets)} (run {run_no}/{n_runs})")
+            bar = _progress(
+                data.n * data.horizon,
+                progress,
+                f"{scenario.name} {m} set {j + 1}/{len(data_sets)} (run {run_no}/{n_runs})",
+            )
             try:
-                x_hat, nees_nt, diverged, secs = run_method(est, data, chunk, scenario.angle_states, on_steps=bar.update, init=init)
+                x_hat, nees_nt, diverged, secs = run_method(
+                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=init
+                )
             finally:
                 bar.close()
             report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt)
@@ -385,8 +449,9 @@ def _progress(total: int, enabled: bool, desc: str):
         return _NoBar()
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit="traj-step", unit_scale=True, dynamic_ncols=True, leave=False,
-                mininterval=0.5)
+    return tqdm(
+        total=total, desc=desc, unit="traj-step", unit_scale=True, dynamic_ncols=True, leave=False, mininterval=0.5
+    )
 
 
 def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown") -> str:
@@ -404,18 +469,20 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
     :data:`~neural_estimator.metrics.SCALAR_METRICS` (``applies`` false and null numbers for the
     covariance metrics of a method without covariance), each run in ``runs`` has every report key.
     """
-    return M.to_json({
-        "schema": RESULTS_SCHEMA,
-        "scenario": scenario.describe(),
-        **info,
-        "methods": {
-            m: {
-                "summary": r.summary,
-                "runs": r.reports,
-                "cached_runs": r.cached,
-                "seconds": r.seconds,
-                "trajectory_steps_per_second": r.throughput,
-            }
-            for m, r in results.items()
-        },
-    })
+    return M.to_json(
+        {
+            "schema": RESULTS_SCHEMA,
+            "scenario": scenario.describe(),
+            **info,
+            "methods": {
+                m: {
+                    "summary": r.summary,
+                    "runs": r.reports,
+                    "cached_runs": r.cached,
+                    "seconds": r.seconds,
+                    "trajectory_steps_per_second": r.throughput,
+                }
+                for m, r in results.items()
+            },
+        }
+    )

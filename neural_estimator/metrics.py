@@ -797,7 +797,9 @@ def _resolve_spread(x_true: np.ndarray, spread) -> np.ndarray:
     bad = ~(np.isfinite(s) & (s > 0))
     if bad.any():
         where = "given spread" if spread is not None else "true state (pass spread= explicitly)"
-        raise MetricsError(f"NRMSE spread must be positive and finite; components {np.flatnonzero(bad).tolist()} of the {where}")
+        raise MetricsError(
+            f"NRMSE spread must be positive and finite; components {np.flatnonzero(bad).tolist()} of the {where}"
+        )
     return np.array(s)
 
 

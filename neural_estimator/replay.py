@@ -75,9 +75,16 @@ class OnlineEstimator:
         frame_id: header.frame_id of the estimate and covariance messages (default: the method).
     """
 
-    def __init__(self, estimator: Estimator, method: str, *, publish_covariance: bool = True,
-                 max_gap: int = DEFAULT_MAX_GAP, max_gap_seconds: float = DEFAULT_MAX_GAP_SECONDS,
-                 frame_id: str | None = None) -> None:
+    def __init__(
+        self,
+        estimator: Estimator,
+        method: str,
+        *,
+        publish_covariance: bool = True,
+        max_gap: int = DEFAULT_MAX_GAP,
+        max_gap_seconds: float = DEFAULT_MAX_GAP_SECONDS,
+        frame_id: str | None = None,
+    ) -> None:
         self.estimator = estimator
         self.scenario = estimator.scenario
         self.method = method
@@ -102,7 +109,7 @@ class OnlineEstimator:
         self._last_stamp = None
 
     def _classify(self, trajectory: int, step: int, stamp_ns: int) -> str:
-        """"new" (start a stream here), "next" (continue), "duplicate" or "stale" (skip)."""
+        """ "new" (start a stream here), "next" (continue), "duplicate" or "stale" (skip)."""
         if self.trajectory is None:
             return "new"
         newer = self._last_stamp is None or stamp_ns > self._last_stamp
@@ -167,9 +174,18 @@ class OnlineEstimator:
             cov = self._cov_codec.encode(vec.stamp_ns, vec.trajectory, vec.step, self.estimator.covariance[0])
         diverged = bool(self.estimator.diverged[0]) if len(self.estimator.diverged) else False
         return StepResult(
-            "estimated", vec.trajectory, vec.step, vec.stamp_ns, est, cov, x_hat,
-            reset=reset, filled=gap, restarted=restarted,
-            nonfinite=not bool(np.all(np.isfinite(y))), diverged=diverged,
+            "estimated",
+            vec.trajectory,
+            vec.step,
+            vec.stamp_ns,
+            est,
+            cov,
+            x_hat,
+            reset=reset,
+            filled=gap,
+            restarted=restarted,
+            nonfinite=not bool(np.all(np.isfinite(y))),
+            diverged=diverged,
         )
 
 
@@ -285,9 +301,12 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        est = make_estimator(method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {})))
-        online = OnlineEstimator(est, method, publish_covariance=publish_covariance, max_gap=max_gap,
-                                 max_gap_seconds=max_gap_seconds)
+        est = make_estimator(
+            method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
+        )
+        online = OnlineEstimator(
+            est, method, publish_covariance=publish_covariance, max_gap=max_gap, max_gap_seconds=max_gap_seconds
+        )
         est_topic = M.resolve_topic(M.estimate_topic(method), namespace)
         cov_topic = M.resolve_topic(M.covariance_topic(method), namespace)
         counts[method], rejected[method], skipped[method], spent = 0, 0, 0, 0.0
@@ -314,12 +333,16 @@ def replay(
     out_msgs.sort(key=lambda m: m[1])  # stable: per time, input order then methods in order
     with BagWriter(bag_out, overwrite=overwrite) as out:
         for topic, conn in types.items():
-            out.add_topic(topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None,
-                          type_hash=conn.type_hash or None)
+            out.add_topic(
+                topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None, type_hash=conn.type_hash or None
+            )
         for topic, t, raw in out_msgs:
             if not out.has_topic(topic):
-                out.add_topic(topic, M.STRING if topic == scen_topic else M.JOINT_STATE,
-                              qos=[LATCHED_QOS if topic == scen_topic else STREAM_QOS])
+                out.add_topic(
+                    topic,
+                    M.STRING if topic == scen_topic else M.JOINT_STATE,
+                    qos=[LATCHED_QOS if topic == scen_topic else STREAM_QOS],
+                )
             out.write(topic, t, raw)
     return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
 

@@ -54,39 +54,99 @@ CANDIDATES: dict[str, dict[str, tuple[dict, str]]] = {
     },
     "bearings": {
         "default": ({}, "as shipped: slow crossing target, narrow prior (calibrated)"),
-        "previous": ({"prior_mean": (0.0, 400.0, 0.0, -50.0), "accel_noise_std": 1.0, "obs_noise_std": 0.005,
-                      "prior_std": (500.0, 300.0, 5.0, 10.0)}, "Gordon 1993 x 1000 (before calibration)"),
-        "through-sensor": ({"prior_mean": (0.0, 400.0, 0.0, -50.0), "accel_noise_std": 0.05, "obs_noise_std": 0.02},
-                           "Gordon's heading, narrow prior: passes within metres of the sensor"),
+        "previous": (
+            {
+                "prior_mean": (0.0, 400.0, 0.0, -50.0),
+                "accel_noise_std": 1.0,
+                "obs_noise_std": 0.005,
+                "prior_std": (500.0, 300.0, 5.0, 10.0),
+            },
+            "Gordon 1993 x 1000 (before calibration)",
+        ),
+        "through-sensor": (
+            {"prior_mean": (0.0, 400.0, 0.0, -50.0), "accel_noise_std": 0.05, "obs_noise_std": 0.02},
+            "Gordon's heading, narrow prior: passes within metres of the sensor",
+        ),
         "q0.2-r0.02": ({"accel_noise_std": 0.2, "obs_noise_std": 0.02}, "gentler manoeuvres, worse sensor"),
         "q0.2-r0.005": ({"accel_noise_std": 0.2, "obs_noise_std": 0.005}, "gentler manoeuvres, better sensor"),
-        "prior30": ({"prior_std": (30.0, 30.0, 3.0, 3.0), "accel_noise_std": 0.2, "obs_noise_std": 0.02},
-                    "wider prior"),
+        "prior30": (
+            {"prior_std": (30.0, 30.0, 3.0, 3.0), "accel_noise_std": 0.2, "obs_noise_std": 0.02},
+            "wider prior",
+        ),
     },
     "lorenz96": {
         "default": ({}, "as shipped: J = 10, obs std 0.07, process std 0.05 (calibrated; PF works from the truth)"),
-        "previous": ({"n_vars": 40, "obs_noise_std": 0.25, "process_noise_std": 0.003, "prior_mean": 2.34, "prior_std": 3.64},
-                     "sakov2008 ring J = 40, obs std 0.25 (before calibration; the PF cannot track it)"),
-        "J40-r0.25-q0.003": ({"n_vars": 40, "obs_noise_std": 0.25, "process_noise_std": 0.003, "prior_mean": 2.34, "prior_std": 3.64}, "grid: J, obs std r, process std q"),
-        "J40-r0.1-q0.02": ({"n_vars": 40, "obs_noise_std": 0.1, "process_noise_std": 0.02, "prior_mean": 2.34, "prior_std": 3.64}, "grid: J, obs std r, process std q"),
-        "J40-r0.07-q0.05": ({"n_vars": 40, "obs_noise_std": 0.07, "process_noise_std": 0.05, "prior_mean": 2.34, "prior_std": 3.64}, "grid: J, obs std r, process std q"),
-        "J40-r0.05-q0.1": ({"n_vars": 40, "obs_noise_std": 0.05, "process_noise_std": 0.1, "prior_mean": 2.34, "prior_std": 3.64}, "grid: J, obs std r, process std q"),
-        "J40-r0.03-q0.1": ({"n_vars": 40, "obs_noise_std": 0.03, "process_noise_std": 0.1, "prior_mean": 2.34, "prior_std": 3.64}, "grid: J, obs std r, process std q"),
-        "J10-r0.25-q0.003": ({"n_vars": 10, "obs_noise_std": 0.25, "process_noise_std": 0.003}, "grid: J, obs std r, process std q"),
-        "J10-r0.1-q0.02": ({"n_vars": 10, "obs_noise_std": 0.1, "process_noise_std": 0.02}, "grid: J, obs std r, process std q"),
-        "J10-r0.07-q0.05": ({"n_vars": 10, "obs_noise_std": 0.07, "process_noise_std": 0.05}, "grid: J, obs std r, process std q"),
-        "J10-r0.05-q0.1": ({"n_vars": 10, "obs_noise_std": 0.05, "process_noise_std": 0.1}, "grid: J, obs std r, process std q"),
-        "J10-r0.03-q0.1": ({"n_vars": 10, "obs_noise_std": 0.03, "process_noise_std": 0.1}, "grid: J, obs std r, process std q"),
-        "J5-r0.25-q0.003": ({"n_vars": 5, "obs_noise_std": 0.25, "process_noise_std": 0.003}, "grid: J, obs std r, process std q"),
-        "J5-r0.1-q0.02": ({"n_vars": 5, "obs_noise_std": 0.1, "process_noise_std": 0.02}, "grid: J, obs std r, process std q"),
-        "J5-r0.07-q0.05": ({"n_vars": 5, "obs_noise_std": 0.07, "process_noise_std": 0.05}, "grid: J, obs std r, process std q"),
-        "J5-r0.05-q0.1": ({"n_vars": 5, "obs_noise_std": 0.05, "process_noise_std": 0.1}, "grid: J, obs std r, process std q"),
-        "J5-r0.03-q0.1": ({"n_vars": 5, "obs_noise_std": 0.03, "process_noise_std": 0.1}, "grid: J, obs std r, process std q"),
+        "previous": (
+            {"n_vars": 40, "obs_noise_std": 0.25, "process_noise_std": 0.003, "prior_mean": 2.34, "prior_std": 3.64},
+            "sakov2008 ring J = 40, obs std 0.25 (before calibration; the PF cannot track it)",
+        ),
+        "J40-r0.25-q0.003": (
+            {"n_vars": 40, "obs_noise_std": 0.25, "process_noise_std": 0.003, "prior_mean": 2.34, "prior_std": 3.64},
+            "grid: J, obs std r, process std q",
+        ),
+        "J40-r0.1-q0.02": (
+            {"n_vars": 40, "obs_noise_std": 0.1, "process_noise_std": 0.02, "prior_mean": 2.34, "prior_std": 3.64},
+            "grid: J, obs std r, process std q",
+        ),
+        "J40-r0.07-q0.05": (
+            {"n_vars": 40, "obs_noise_std": 0.07, "process_noise_std": 0.05, "prior_mean": 2.34, "prior_std": 3.64},
+            "grid: J, obs std r, process std q",
+        ),
+        "J40-r0.05-q0.1": (
+            {"n_vars": 40, "obs_noise_std": 0.05, "process_noise_std": 0.1, "prior_mean": 2.34, "prior_std": 3.64},
+            "grid: J, obs std r, process std q",
+        ),
+        "J40-r0.03-q0.1": (
+            {"n_vars": 40, "obs_noise_std": 0.03, "process_noise_std": 0.1, "prior_mean": 2.34, "prior_std": 3.64},
+            "grid: J, obs std r, process std q",
+        ),
+        "J10-r0.25-q0.003": (
+            {"n_vars": 10, "obs_noise_std": 0.25, "process_noise_std": 0.003},
+            "grid: J, obs std r, process std q",
+        ),
+        "J10-r0.1-q0.02": (
+            {"n_vars": 10, "obs_noise_std": 0.1, "process_noise_std": 0.02},
+            "grid: J, obs std r, process std q",
+        ),
+        "J10-r0.07-q0.05": (
+            {"n_vars": 10, "obs_noise_std": 0.07, "process_noise_std": 0.05},
+            "grid: J, obs std r, process std q",
+        ),
+        "J10-r0.05-q0.1": (
+            {"n_vars": 10, "obs_noise_std": 0.05, "process_noise_std": 0.1},
+            "grid: J, obs std r, process std q",
+        ),
+        "J10-r0.03-q0.1": (
+            {"n_vars": 10, "obs_noise_std": 0.03, "process_noise_std": 0.1},
+            "grid: J, obs std r, process std q",
+        ),
+        "J5-r0.25-q0.003": (
+            {"n_vars": 5, "obs_noise_std": 0.25, "process_noise_std": 0.003},
+            "grid: J, obs std r, process std q",
+        ),
+        "J5-r0.1-q0.02": (
+            {"n_vars": 5, "obs_noise_std": 0.1, "process_noise_std": 0.02},
+            "grid: J, obs std r, process std q",
+        ),
+        "J5-r0.07-q0.05": (
+            {"n_vars": 5, "obs_noise_std": 0.07, "process_noise_std": 0.05},
+            "grid: J, obs std r, process std q",
+        ),
+        "J5-r0.05-q0.1": (
+            {"n_vars": 5, "obs_noise_std": 0.05, "process_noise_std": 0.1},
+            "grid: J, obs std r, process std q",
+        ),
+        "J5-r0.03-q0.1": (
+            {"n_vars": 5, "obs_noise_std": 0.03, "process_noise_std": 0.1},
+            "grid: J, obs std r, process std q",
+        ),
     },
     "nlink": {
         "default": ({}, "as shipped: prior 0.1 rad, 0.1 rad/s, obs 0.02 m (calibrated)"),
-        "previous": ({"obs_noise_std": 0.05, "prior_angle_std": 1.0, "prior_rate_std": 1.0},
-                     "VanderPlas / Sarkka (before calibration)"),
+        "previous": (
+            {"obs_noise_std": 0.05, "prior_angle_std": 1.0, "prior_rate_std": 1.0},
+            "VanderPlas / Sarkka (before calibration)",
+        ),
         "obs0.03": ({"obs_noise_std": 0.03}, "noisier positions"),
         "prior0.3-obs0.05": ({"obs_noise_std": 0.05, "prior_angle_std": 0.3, "prior_rate_std": 0.3}, "wider prior"),
     },
@@ -110,18 +170,40 @@ def distance(ours: dict[str, float], paper: dict[str, float], methods=("ekf", "u
     return out
 
 
-def run_candidate(scenario_name: str, overrides: dict, methods: list[str], trajectories: int, horizon: int | None,
-                  seed: int, init: str, pf_trajectories: int | None) -> dict[str, dict[str, float]]:
+def run_candidate(
+    scenario_name: str,
+    overrides: dict,
+    methods: list[str],
+    trajectories: int,
+    horizon: int | None,
+    seed: int,
+    init: str,
+    pf_trajectories: int | None,
+) -> dict[str, dict[str, float]]:
     """RMSE, full RMSE and outlier ratio of each method on one evaluation set of the candidate."""
     scenario = make_scenario(scenario_name, **overrides)
     out: dict[str, dict[str, float]] = {}
     for m in methods:
         n = pf_trajectories if (m == "pf" and pf_trajectories) else trajectories
-        res = evaluate(scenario, [m], trajectories=n, horizon=horizon, seed=seed, sets=1, cache_dir=False,
-                       progress=False, init=init)[m]
+        res = evaluate(
+            scenario,
+            [m],
+            trajectories=n,
+            horizon=horizon,
+            seed=seed,
+            sets=1,
+            cache_dir=False,
+            progress=False,
+            init=init,
+        )[m]
         rep = res.reports[0]
-        out[m] = {"rmse": float(rep.rmse), "full": float(rep.full_rmse), "out": float(rep.outlier_ratio),
-                  "medae": float(rep.medae), "drift": float(rep.drift_ratio)}
+        out[m] = {
+            "rmse": float(rep.rmse),
+            "full": float(rep.full_rmse),
+            "out": float(rep.outlier_ratio),
+            "medae": float(rep.medae),
+            "drift": float(rep.drift_ratio),
+        }
     return out
 
 
@@ -146,17 +228,32 @@ def main(argv=None) -> int:
     if unknown:
         p.error(f"unknown candidate(s) {', '.join(unknown)} for {args.scenario}; choose from {', '.join(table)}")
     paper = PAPER_RMSE[args.scenario]
-    print(f"{args.scenario}: {args.trajectories} trajectories, init={args.init}, seed {args.seed}; "
-          f"paper RMSE " + ", ".join(f"{m} {paper[m]:g}" for m in methods))
+    print(
+        f"{args.scenario}: {args.trajectories} trajectories, init={args.init}, seed {args.seed}; "
+        f"paper RMSE " + ", ".join(f"{m} {paper[m]:g}" for m in methods)
+    )
     for label in labels:
         overrides, source = table[label]
         t0 = time.perf_counter()
-        res = run_candidate(args.scenario, {**overrides, **extra}, methods, args.trajectories, args.horizon,
-                            args.seed, args.init, args.pf_trajectories)
+        res = run_candidate(
+            args.scenario,
+            {**overrides, **extra},
+            methods,
+            args.trajectories,
+            args.horizon,
+            args.seed,
+            args.init,
+            args.pf_trajectories,
+        )
         ours = {m: r["rmse"] for m, r in res.items()}
-        cells = "  ".join(f"{m} {r['rmse']:.4g} (x{r['rmse'] / paper[m]:.2f}; medae {r['medae']:.3g}, out {r['out']:.3f})" for m, r in res.items())
-        print(f"- {label:<14} d={distance(ours, paper):.3f}  {cells}  [{time.perf_counter() - t0:.0f} s] {source}",
-              flush=True)
+        cells = "  ".join(
+            f"{m} {r['rmse']:.4g} (x{r['rmse'] / paper[m]:.2f}; medae {r['medae']:.3g}, out {r['out']:.3f})"
+            for m, r in res.items()
+        )
+        print(
+            f"- {label:<14} d={distance(ours, paper):.3f}  {cells}  [{time.perf_counter() - t0:.0f} s] {source}",
+            flush=True,
+        )
     return 0
 
 

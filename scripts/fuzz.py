@@ -62,13 +62,18 @@ ROSBAG2_METADATA = """rosbag2_bagfile_information:
   compression_mode: ""
   relative_file_paths: [dir_0.mcap]
   files:
-    - {path: dir_0.mcap, starting_time: {nanoseconds_since_epoch: 0}, duration: {nanoseconds: 3000000}, message_count: 9}
+    - path: dir_0.mcap
+      starting_time: {nanoseconds_since_epoch: 0}
+      duration: {nanoseconds: 3000000}
+      message_count: 9
 """
 _SCENARIO = make_scenario("ballistic")
-_CODECS = [M.VectorCodec(_SCENARIO.name, M.observation_labels(_SCENARIO)),
-           M.VectorCodec(_SCENARIO.name, M.state_labels(_SCENARIO)),
-           M.VectorCodec("ekf", M.state_labels(_SCENARIO)),
-           M.VectorCodec("ekf", M.covariance_labels(_SCENARIO.dx))]
+_CODECS = [
+    M.VectorCodec(_SCENARIO.name, M.observation_labels(_SCENARIO)),
+    M.VectorCodec(_SCENARIO.name, M.state_labels(_SCENARIO)),
+    M.VectorCodec("ekf", M.state_labels(_SCENARIO)),
+    M.VectorCodec("ekf", M.covariance_labels(_SCENARIO.dx)),
+]
 
 
 def read_bag(path: Path) -> int:
@@ -158,7 +163,9 @@ def seeds(name: str) -> list[bytes]:
             return [ROSBAG2_METADATA.encode()]
     if name == "cdr":
         return [c.encode(123, 1, 2, np.arange(len(c.names), dtype=float)) for c in _CODECS]
-    messages = [M.encode_scenario(make_scenario(s).describe(), trajectories=2) for s in ("ballistic", "nlink", "lorenz96")]
+    messages = [
+        M.encode_scenario(make_scenario(s).describe(), trajectories=2) for s in ("ballistic", "nlink", "lorenz96")
+    ]
     return messages + [M.decode_string(m).encode() for m in messages]  # and their JSON text
 
 

@@ -35,8 +35,15 @@ def main(argv=None) -> int:
         scenario = make_scenario(name)
         T = min(a.horizon, scenario.horizon)
         d = simulate(scenario, a.trajectories, T, a.seed)
-        path = arrays_to_bag(BAGS / f"{name}.mcap", scenario, d.x, d.y, d.u, overwrite=True,
-                             run_info={"seed": a.seed, "trajectories": a.trajectories, "horizon": T})
+        path = arrays_to_bag(
+            BAGS / f"{name}.mcap",
+            scenario,
+            d.x,
+            d.y,
+            d.u,
+            overwrite=True,
+            run_info={"seed": a.seed, "trajectories": a.trajectories, "horizon": T},
+        )
         print(f"{path}: {a.trajectories} x {T} steps, {path.stat().st_size / 1024:.0f} KiB")
     return 0
 

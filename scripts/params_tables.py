@@ -1,6 +1,6 @@
 """Print the README's parameter tables from params/*.yaml (the documented source of truth).
 
-    python scripts/params_tables.py > /tmp/params.md
+python scripts/params_tables.py > /tmp/params.md
 """
 
 import re

@@ -11,4 +11,7 @@ export MPLBACKEND=Agg
 # One BLAS/torch thread per process: the tests use small arrays, where two threads on two cores
 # (one of them also running the test's ROS nodes) only contend.
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
+# Lint and formatting first (ruff.toml; under a second): a style slip fails the run like a test.
+"$root/.venv/bin/ruff" check neural_estimator sim_nodes test scripts benchmarks examples
+"$root/.venv/bin/ruff" format --check --quiet neural_estimator sim_nodes test scripts benchmarks examples
 exec "$root/.venv/bin/python" -m pytest -q test "$@"

@@ -83,14 +83,18 @@ def status_line(work: Path) -> str:
         card = json.loads((work / "card.json").read_text())
         t = card["training"]
         rmse = (card.get("metrics") or {}).get("rmse")
-        return (f"{work.name}: finished ({t['stopped']}), {t['epochs_run']} epochs, converged={t.get('converged')}, "
-                f"best val {card['validation_loss']:.4g}, RMSE {rmse}")
+        return (
+            f"{work.name}: finished ({t['stopped']}), {t['epochs_run']} epochs, converged={t.get('converged')}, "
+            f"best val {card['validation_loss']:.4g}, RMSE {rmse}"
+        )
     run = resume_state(work)
     if run is None:
         return f"{work.name}: not started"
     h = run["history"][-1] if run["history"] else {}
-    return (f"{work.name}: in progress, {run['epoch']} epochs ({used_seconds(work) / 3600:.2f} h), "
-            f"best val {run['best']:.4g} at epoch {run['best_epoch']}, lr {h.get('lr')}")
+    return (
+        f"{work.name}: in progress, {run['epoch']} epochs ({used_seconds(work) / 3600:.2f} h), "
+        f"best val {run['best']:.4g} at epoch {run['best_epoch']}, lr {h.get('lr')}"
+    )
 
 
 def main(argv=None) -> int:
@@ -98,8 +102,12 @@ def main(argv=None) -> int:
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
     p.add_argument("--methods", default=",".join(ORDER))
     p.add_argument("--max-epochs", type=int, default=500, help="epoch budget per model (paper: 500)")
-    p.add_argument("--model-hours", type=float, default=24.0,
-                   help="wall-time budget per model, summed over runs; then it is finished as it stands")
+    p.add_argument(
+        "--model-hours",
+        type=float,
+        default=24.0,
+        help="wall-time budget per model, summed over runs; then it is finished as it stands",
+    )
     p.add_argument("--hours", type=float, default=None, help="stop starting epochs after this long (this run)")
     p.add_argument("--val-trajectories", type=int, default=1000, help="validation set (paper: 8000)")
     p.add_argument("--trajectories", type=int, default=None, help="training trajectories (default: 20:1 -> 4000)")
@@ -131,9 +139,15 @@ def main(argv=None) -> int:
                 continue
             left = 3600 * a.model_hours - used_seconds(work)
             deadline = time.time() + left if stop_at is None else min(stop_at, time.time() + left)
-            recipe = dict(val_trajectories=a.val_trajectories, trajectories=a.trajectories,
-                          windows_per_epoch=a.windows_per_epoch, device=a.device, eval_trajectories=a.eval_trajectories,
-                          resume=True, keep_resume=True)
+            recipe = dict(
+                val_trajectories=a.val_trajectories,
+                trajectories=a.trajectories,
+                windows_per_epoch=a.windows_per_epoch,
+                device=a.device,
+                eval_trajectories=a.eval_trajectories,
+                resume=True,
+                keep_resume=True,
+            )
             cfg = TrainConfig(epochs=a.max_epochs, **recipe)
             scenario = make_scenario(scenario_name)
             t0 = time.time()

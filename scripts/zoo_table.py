@@ -33,11 +33,21 @@ def main() -> None:
     for card in (p for p in ZOO.glob("*-*/card.json") if "." not in p.parent.name):
         c = json.loads(card.read_text())
         r, m = c["training"]["recipe"], c["metrics"]["set"]
-        budgets.add((c["scenario"]["scenario"] == "lorenz96", r["epochs"], c["data"]["windows_per_epoch"],
-                     r["val_trajectories"], m["trajectories"]))
+        budgets.add(
+            (
+                c["scenario"]["scenario"] == "lorenz96",
+                r["epochs"],
+                c["data"]["windows_per_epoch"],
+                r["val_trajectories"],
+                m["trajectories"],
+            )
+        )
     for l96, ep, w, v, n in sorted(budgets, reverse=True):
-        print(f"\n{'Lorenz 96' if l96 else 'other scenarios'}: {ep} epochs x {w} windows, {v} validation trajectories, "
-              f"metrics on {n} trajectories of evaluation set 0.", end="")
+        print(
+            f"\n{'Lorenz 96' if l96 else 'other scenarios'}: {ep} epochs x {w} windows, {v} validation trajectories, "
+            f"metrics on {n} trajectories of evaluation set 0.",
+            end="",
+        )
     print()
 
 

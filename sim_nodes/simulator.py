@@ -71,11 +71,17 @@ class SimulatorParams:
     wait_for_subscribers: int = param(1, "observation subscriptions to wait for before starting (0 = start at once)")
     wait_timeout: float = param(30.0, "seconds to wait for them (then start anyway, with a warning); 0 = forever")
     start_delay: float = param(0.5, "extra seconds before the first step (discovery of the other topics)")
-    history_depth: int = param(10000, "depth of the observation / ground-truth publishers (transient_local): the backlog a slow subscriber may build without loss")
+    history_depth: int = param(
+        10000,
+        "depth of the observation / ground-truth publishers (transient_local): "
+        "the backlog a slow subscriber may build without loss",
+    )
     publish_ground_truth: bool = param(True, "publish ground_truth")
     exit_when_done: bool = param(True, "shut down after the run (after linger seconds)")
     linger: float = param(30.0, "most seconds to wait after the run until every subscriber acknowledged every message")
-    stay_after_run: float = param(10.0, "seconds to stay up after the run so that late subscribers still get the history")
+    stay_after_run: float = param(
+        10.0, "seconds to stay up after the run so that late subscribers still get the history"
+    )
     publish_clock: bool = param(False, "publish /clock at each step's stamp (for nodes with use_sim_time:=true)")
 
 
@@ -127,7 +133,8 @@ class SimulatorNode(ManagedNode):
                 return
             if timeout > 0 and time.monotonic() - t0 > timeout:
                 self.get_logger().warning(
-                    f"only {self.pub_obs.get_subscription_count()} of {want} subscribers after {timeout:g} s: starting anyway"
+                    f"only {self.pub_obs.get_subscription_count()} of {want} subscribers after {timeout:g} s: "
+                    "starting anyway"
                 )
                 return
 
@@ -137,10 +144,19 @@ class SimulatorNode(ManagedNode):
         period = M.dt_ns(s.dt)
         start_ns = time.time_ns()
         info = {"trajectories": N, "horizon": T, "messages": N * T}
-        self.pub_scenario.publish(M.encode_scenario(
-            s.describe(), seed=p.seed, trajectories=N, horizon=T, rate_hz=self.rate, start_ns=start_ns, dt_ns=period,
-            messages=N * T, node=self.get_fully_qualified_name(),
-        ))
+        self.pub_scenario.publish(
+            M.encode_scenario(
+                s.describe(),
+                seed=p.seed,
+                trajectories=N,
+                horizon=T,
+                rate_hz=self.rate,
+                start_ns=start_ns,
+                dt_ns=period,
+                messages=N * T,
+                node=self.get_fully_qualified_name(),
+            )
+        )
         self.pub_status.publish(M.encode_run_status(M.STATUS_STARTED, **info))
         obs_codec = M.VectorCodec(s.name, M.observation_labels(s))
         truth_codec = M.VectorCodec(s.name, M.state_labels(s))
@@ -188,7 +204,9 @@ class SimulatorNode(ManagedNode):
             if left <= 0 or self._stop.is_set():
                 break
             if not pub.wait_for_all_acked(Duration(seconds=left)):
-                self.get_logger().warning(f"'{pub.topic_name}': not every subscriber acknowledged within {self.p.linger:g} s")
+                self.get_logger().warning(
+                    f"'{pub.topic_name}': not every subscriber acknowledged within {self.p.linger:g} s"
+                )
 
     def on_shutdown(self) -> int:
         self._stop.set()

@@ -114,8 +114,13 @@ def test_bad_identity_and_names_are_message_errors():
     empty = np.zeros(0)
 
     def raw(names, pos):
-        msg = J(header=H(stamp=T(sec=0, nanosec=0), frame_id=""), name=names, position=np.asarray(pos, float),
-                velocity=empty, effort=empty)
+        msg = J(
+            header=H(stamp=T(sec=0, nanosec=0), frame_id=""),
+            name=names,
+            position=np.asarray(pos, float),
+            velocity=empty,
+            effort=empty,
+        )
         return bytes(ts.serialize_cdr(msg, M.JOINT_STATE))
 
     with pytest.raises(MessageError, match="identity"):
@@ -217,8 +222,15 @@ def test_reader_orders_by_log_time(tmp_path):
 def test_rosbags_anyreader_reads_our_bags(tmp_path):
     s = Cart()
     data = simulate(s, 2, 10, seed=0)
-    path = arrays_to_bag(tmp_path / "cart.mcap", s, data.x, data.y, data.u,
-                         estimates={"ukf": data.x + 0.1}, covariances={"ukf": np.tile(np.eye(2), (2, 10, 1, 1))})
+    path = arrays_to_bag(
+        tmp_path / "cart.mcap",
+        s,
+        data.x,
+        data.y,
+        data.u,
+        estimates={"ukf": data.x + 0.1},
+        covariances={"ukf": np.tile(np.eye(2), (2, 10, 1, 1))},
+    )
     with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
         assert topics == {
@@ -229,8 +241,7 @@ def test_rosbags_anyreader_reads_our_bags(tmp_path):
             "/estimates/ukf": (M.JOINT_STATE, 20),
             "/estimates/ukf/covariance": (M.JOINT_STATE, 20),
         }
-        truth = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
-                 if c.topic == "/ground_truth"]
+        truth = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages() if c.topic == "/ground_truth"]
         qos = reader.connections[0].ext.offered_qos_profiles
         assert qos and qos[0].depth in (1, 1000)
     assert [list(m.name) for m in truth[:1]] == [["trajectory", "step", "position", "velocity"]]
@@ -241,8 +252,17 @@ def test_arrays_bag_arrays_round_trip(tmp_path):
     s = Cart()
     data = simulate(s, 3, 25, seed=4)
     P = np.tile(np.diag([0.1, 0.2]), (3, 25, 1, 1))
-    path = arrays_to_bag(tmp_path / "run.mcap", s, data.x, data.y, data.u, estimates={"ekf": data.x * 0.9},
-                         covariances={"ekf": P}, start_ns=10**18, run_info={"seed": 4})
+    path = arrays_to_bag(
+        tmp_path / "run.mcap",
+        s,
+        data.x,
+        data.y,
+        data.u,
+        estimates={"ekf": data.x * 0.9},
+        covariances={"ekf": P},
+        start_ns=10**18,
+        run_info={"seed": 4},
+    )
     run = bag_to_arrays(path)
     np.testing.assert_array_equal(run.x, data.x)
     np.testing.assert_array_equal(run.y, data.y)
@@ -394,7 +414,7 @@ def test_writer_refuses_misuse(tmp_path):
         bag.write_message("/s", 5, M.TYPESTORE.types[M.STRING](data="hi"))
     with BagReader(path) as bag:
         assert [(c.topic, M.decode_string(r)) for c, _, r in bag.messages()] == [("/s", "hi")]
-        (conn, _, msg), = list(bag.decoded())
+        ((conn, _, msg),) = list(bag.decoded())
         assert msg.data == "hi"
 
 
@@ -417,8 +437,15 @@ def test_load_bag_dataset_and_report(tmp_path):
     s = Cart()
     data = simulate(s, 3, 20, seed=5)
     est = data.x + 0.05
-    path = arrays_to_bag(tmp_path / "run.mcap", s, data.x, data.y, data.u, estimates={"a": est, "b": est * 1.1},
-                         covariances={"a": np.tile(np.eye(2), (3, 20, 1, 1))})
+    path = arrays_to_bag(
+        tmp_path / "run.mcap",
+        s,
+        data.x,
+        data.y,
+        data.u,
+        estimates={"a": est, "b": est * 1.1},
+        covariances={"a": np.tile(np.eye(2), (3, 20, 1, 1))},
+    )
     truth, estimates, angles = load_bag_dataset(path)
     assert truth.x.shape == (3, 20, 2) and set(estimates) == {"a", "b"} and angles == ()
     np.testing.assert_array_equal(estimates["a"][0], est)
@@ -457,8 +484,9 @@ def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
     # a diverged (NaN) estimate is present, not missing
     nan_est = data.x.copy()
     nan_est[0, 2:] = np.nan
-    truth, estimates, _ = load_bag_dataset(arrays_to_bag(tmp_path / "nan.mcap", s, data.x, data.y, data.u,
-                                                         estimates={"a": nan_est}))
+    truth, estimates, _ = load_bag_dataset(
+        arrays_to_bag(tmp_path / "nan.mcap", s, data.x, data.y, data.u, estimates={"a": nan_est})
+    )
     assert truth.n == 2 and np.isnan(estimates["a"][0][0, 2:]).all()
 
 

@@ -10,7 +10,7 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from neural_estimator import cli
-from neural_estimator.bags import BagWarning, BagWriter, STREAM_QOS, arrays_to_bag, bag_to_arrays, open_bag
+from neural_estimator.bags import BagWriter, STREAM_QOS, arrays_to_bag, bag_to_arrays, open_bag
 from neural_estimator.bags import messages as M
 from neural_estimator.data import simulate
 from neural_estimator.estimators import make_estimator
@@ -90,7 +90,9 @@ def test_rosbag2_directory_without_scenario_replays_and_scores(scen, data, tmp_p
     assert cli.main(["replay", str(bag), "--methods", "ukf", "--out", str(tmp_path / "out.mcap")]) == 2
     assert "--scenario" in capsys.readouterr().err
     out = tmp_path / "out.mcap"
-    assert cli.main(["replay", str(bag), "--methods", "ekf,ukf", "--scenario", SCEN, "--out", str(out), "--metrics"]) == 0
+    assert (
+        cli.main(["replay", str(bag), "--methods", "ekf,ukf", "--scenario", SCEN, "--out", str(out), "--metrics"]) == 0
+    )
     text = capsys.readouterr().out
     assert "ekf" in text and "ukf" in text and f"{N} trajectories" in text
     ref = make_estimator("ukf", scen).run(data.y, data.u)
@@ -131,8 +133,13 @@ def _stamp(t):
 
 
 def _as_dict(vec):
-    return {"header": {"stamp": _stamp(vec.stamp_ns), "frame_id": vec.frame_id}, "name": list(M.ID_NAMES) + list(vec.names),
-            "position": [vec.trajectory, vec.step] + list(vec.values), "velocity": [], "effort": []}
+    return {
+        "header": {"stamp": _stamp(vec.stamp_ns), "frame_id": vec.frame_id},
+        "name": list(M.ID_NAMES) + list(vec.names),
+        "position": [vec.trajectory, vec.step] + list(vec.values),
+        "velocity": [],
+        "effort": [],
+    }
 
 
 # ---- recover ---------------------------------------------------------------------------------------------------
@@ -222,8 +229,10 @@ def test_a_stray_message_is_skipped_never_a_reset(scen, data, tmp_path):
         for k in range(T):
             ref.append(clean.process(_obs(scen, data, n, k)).x_hat)
             if n == 1 and k == 3:  # trajectory 0, step 5 (and 0) arrive late, during trajectory 1
-                statuses += [hostile.process(_obs(scen, data, 0, 5)).status,
-                             hostile.process(_obs(scen, data, 0, 0)).status]
+                statuses += [
+                    hostile.process(_obs(scen, data, 0, 5)).status,
+                    hostile.process(_obs(scen, data, 0, 0)).status,
+                ]
             got.append(hostile.process(_obs(scen, data, n, k)).x_hat)
     assert statuses == ["stale", "stale"]
     np.testing.assert_array_equal(np.array(got), np.array(ref))
@@ -263,11 +272,15 @@ def test_a_step_jump_costs_bounded_time(scen, data):
 
 
 # ---- options and threads -----------------------------------------------------------------------------------------
-@pytest.mark.parametrize("option", ["mamba.bogus=1", "mamba.threads=1", "gru.bogus=1", "ukf.bogus=1", "pf.n_particles=-3"])
+@pytest.mark.parametrize(
+    "option", ["mamba.bogus=1", "mamba.threads=1", "gru.bogus=1", "ukf.bogus=1", "pf.n_particles=-3"]
+)
 def test_bad_method_options_are_one_line(option, scen, data, tmp_path, capsys):
     bag = arrays_to_bag(tmp_path / "b.mcap", scen, data.x, data.y, data.u)
     method = option.split(".")[0]
-    assert cli.main(["replay", str(bag), "--methods", method, "--out", str(tmp_path / "o.mcap"), "--option", option]) == 2
+    assert (
+        cli.main(["replay", str(bag), "--methods", method, "--out", str(tmp_path / "o.mcap"), "--option", option]) == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("neural-estimator: error:") and err.count("\n") == 1, err
 

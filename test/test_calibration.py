@@ -21,14 +21,22 @@ def _script():
 
 
 CALIBRATED = {
-    "bearings": {"prior_mean": [-200.0, 400.0, 2.0, 0.0], "prior_std": [10.0, 10.0, 1.0, 1.0],
-                 "accel_noise_std": 0.3, "obs_noise_std": 0.01},
+    "bearings": {
+        "prior_mean": [-200.0, 400.0, 2.0, 0.0],
+        "prior_std": [10.0, 10.0, 1.0, 1.0],
+        "accel_noise_std": 0.3,
+        "obs_noise_std": 0.01,
+    },
     "nlink": {"obs_noise_std": 0.02, "prior_angle_std": 0.1, "prior_rate_std": 0.1},
     "quadrotor": {"process_noise_std": 0.1},
 }
 PREVIOUS = {
-    "bearings": {"prior_mean": [0.0, 400.0, 0.0, -50.0], "prior_std": [500.0, 300.0, 5.0, 10.0],
-                 "accel_noise_std": 1.0, "obs_noise_std": 0.005},
+    "bearings": {
+        "prior_mean": [0.0, 400.0, 0.0, -50.0],
+        "prior_std": [500.0, 300.0, 5.0, 10.0],
+        "accel_noise_std": 1.0,
+        "obs_noise_std": 0.005,
+    },
     "nlink": {"obs_noise_std": 0.05, "prior_angle_std": 1.0, "prior_rate_std": 1.0},
     "quadrotor": {"process_noise_std": 0.001},
 }

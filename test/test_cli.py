@@ -20,8 +20,27 @@ def _repo_cwd(monkeypatch):
 
 def test_simulate_writes_the_documented_format(tmp_path, capsys):
     out = tmp_path / "osc.npz"
-    assert main(["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "4", "--horizon", "9",
-                 "--seed", "2", "--set", "omega=2.0", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                *PLUGIN,
+                "--scenario",
+                "oscillator",
+                "--trajectories",
+                "4",
+                "--horizon",
+                "9",
+                "--seed",
+                "2",
+                "--set",
+                "omega=2.0",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     data, extras = load_trajectories(out)
     assert data.x.shape == (4, 9, 2) and data.y.shape == (4, 9, 1) and data.u.shape == (4, 9, 0)
     assert data.meta["config"]["omega"] == 2.0 and data.meta["seed"] == 2 and not extras
@@ -30,7 +49,20 @@ def test_simulate_writes_the_documented_format(tmp_path, capsys):
 
 def test_metrics_on_truth_and_estimate_files(tmp_path, capsys):
     truth = tmp_path / "truth.npz"
-    main(["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "20", "--horizon", "16", "--out", str(truth)])
+    main(
+        [
+            "simulate",
+            *PLUGIN,
+            "--scenario",
+            "oscillator",
+            "--trajectories",
+            "20",
+            "--horizon",
+            "16",
+            "--out",
+            str(truth),
+        ]
+    )
     data, _ = load_trajectories(truth)
     err = np.zeros_like(data.x)
     err[..., 0] = 0.5  # constant error 0.5 on one of two components: RMSE = sqrt(0.25 / 2)
@@ -52,11 +84,20 @@ def test_metrics_on_truth_and_estimate_files(tmp_path, capsys):
     "argv, message",
     [
         (["simulate", "--scenario", "nope", "--out", "x.npz"], "unknown scenario 'nope'; choose one of: ballistic"),
-        (["simulate", *PLUGIN, "--scenario", "oscillator", "--set", "omegaa=1", "--out", "x.npz"], "no constant 'omegaa'; valid:"),
-        (["simulate", *PLUGIN, "--scenario", "oscillator", "--set", "omega", "--out", "x.npz"], "--set expects name=value"),
+        (
+            ["simulate", *PLUGIN, "--scenario", "oscillator", "--set", "omegaa=1", "--out", "x.npz"],
+            "no constant 'omegaa'; valid:",
+        ),
+        (
+            ["simulate", *PLUGIN, "--scenario", "oscillator", "--set", "omega", "--out", "x.npz"],
+            "--set expects name=value",
+        ),
         (["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "0", "--out", "x.npz"], "must be >= 1"),
         (["metrics", "missing.npz"], "missing.npz: no such file"),
-        (["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,kalmannet"], "unknown method 'kalmannet'; choose one of: ekf"),
+        (
+            ["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,kalmannet"],
+            "unknown method 'kalmannet'; choose one of: ekf",
+        ),
         (["simulate", "--plugin", "nope.py", "--scenario", "x", "--out", "x.npz"], "plugin nope.py: no such file"),
     ],
 )
@@ -68,8 +109,22 @@ def test_bad_input_is_one_clear_line_and_status_2(argv, message, capsys, tmp_pat
 
 def test_metrics_refuses_estimates_of_another_dataset(tmp_path, capsys):
     for seed in (0, 1):
-        main(["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "3", "--horizon", "5",
-              "--seed", str(seed), "--out", str(tmp_path / f"d{seed}.npz")])
+        main(
+            [
+                "simulate",
+                *PLUGIN,
+                "--scenario",
+                "oscillator",
+                "--trajectories",
+                "3",
+                "--horizon",
+                "5",
+                "--seed",
+                str(seed),
+                "--out",
+                str(tmp_path / f"d{seed}.npz"),
+            ]
+        )
     other, _ = load_trajectories(tmp_path / "d1.npz")
     save_estimates(tmp_path / "e.npz", other, other.x, "ukf")
     assert main(["metrics", str(tmp_path / "d0.npz"), str(tmp_path / "e.npz")]) == 2
@@ -82,8 +137,20 @@ def test_metrics_scores_an_estimate_file_holding_only_x_hat(tmp_path, capsys):
 
     from neural_estimator.data.io import save_npz
 
-    main(["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "3", "--horizon", "5", "--out",
-          str(tmp_path / "d.npz")])
+    main(
+        [
+            "simulate",
+            *PLUGIN,
+            "--scenario",
+            "oscillator",
+            "--trajectories",
+            "3",
+            "--horizon",
+            "5",
+            "--out",
+            str(tmp_path / "d.npz"),
+        ]
+    )
     truth, _ = load_trajectories(tmp_path / "d.npz")
     save_npz(tmp_path / "mine.npz", {"x_hat": truth.x + 0.5}, {"method": "mine"})
     capsys.readouterr()

@@ -48,7 +48,9 @@ def test_enkf_equals_dapper_enkf_pertobs_in_distribution():
     n, T, burn = 6, 120, 30
     d = simulate(s, n, horizon=T, seed=4)
     ours = EnsembleKalmanFilter(s, seed=1).run(d.y, d.u).x
-    theirs = np.array([dapper_filter(s, d.x[b], d.y[b], "EnKF", seed=10 + b, upd_a="PertObs", N=50, infl=1.0) for b in range(n)])
+    theirs = np.array(
+        [dapper_filter(s, d.x[b], d.y[b], "EnKF", seed=10 + b, upd_a="PertObs", N=50, infl=1.0) for b in range(n)]
+    )
     r_ours, r_ref = _rmse(ours, d.x, burn), _rmse(theirs, d.x, burn)
     diff = r_ours - r_ref
     tol = 4 * diff.std(ddof=1) / np.sqrt(n) + 0.05 * r_ref.mean()
@@ -60,11 +62,15 @@ def test_enkf_reaches_dapper_band_at_sakov2008():
     (radius 6 on the ring) ours lands in DAPPER's published band, as DAPPER's EnKF('PertObs',
     N=40, infl=1.06) does on the same data."""
     # sakov2008's ring: J = 40 (the package's calibrated default is J = 10, see Lorenz96's docstring)
-    s = make_scenario("lorenz96", n_vars=40, obs_noise_std=1.0, process_noise_std=0.003, prior_mean=2.34, prior_std=3.64)
+    s = make_scenario(
+        "lorenz96", n_vars=40, obs_noise_std=1.0, process_noise_std=0.003, prior_mean=2.34, prior_std=3.64
+    )
     n, T, burn = 3, 250, 100
     d = simulate(s, n, horizon=T, seed=11)
     ours = EnsembleKalmanFilter(s, seed=1, n_members=40, inflation=1.02, localization_radius=6.0).run(d.y, d.u).x
-    theirs = np.array([dapper_filter(s, d.x[b], d.y[b], "EnKF", seed=20 + b, upd_a="PertObs", N=40, infl=1.06) for b in range(n)])
+    theirs = np.array(
+        [dapper_filter(s, d.x[b], d.y[b], "EnKF", seed=20 + b, upd_a="PertObs", N=40, infl=1.06) for b in range(n)]
+    )
     r_ours, r_ref = _rmse(ours, d.x, burn), _rmse(theirs, d.x, burn)
     print(f"sakov2008: ours {np.round(r_ours, 3)}, DAPPER {np.round(r_ref, 3)}")
     # DAPPER's band is for runs started at the truth; from the climatological prior its

@@ -43,7 +43,9 @@ def test_chunk_size_respects_the_memory_budget():
 
 def test_ekf_and_ukf_are_consistent_on_a_linear_gaussian_system(oscillator):
     """On a linear-Gaussian system the filters are exact: NEES ~ dx and 95% coverage ~ 0.95."""
-    results = evaluate(oscillator, ["ekf", "ukf"], trajectories=200, horizon=60, sets=2, cache_dir=False, progress=False)
+    results = evaluate(
+        oscillator, ["ekf", "ukf"], trajectories=200, horizon=60, sets=2, cache_dir=False, progress=False
+    )
     for m in ("ekf", "ukf"):
         s = results[m].summary
         assert s["nees"].median == pytest.approx(2.0, abs=0.15)
@@ -59,8 +61,30 @@ def test_ekf_and_ukf_are_consistent_on_a_linear_gaussian_system(oscillator):
 
 def test_evaluate_verb_writes_table_json_and_plot(tmp_path, capsys):
     out = tmp_path / "ev"
-    assert main(["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,pf", "--trajectories", "30",
-                 "--horizon", "25", "--sets", "2", "--option", "pf.n_particles=256", "--quiet", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                *PLUGIN,
+                "--scenario",
+                "oscillator",
+                "--methods",
+                "ekf,pf",
+                "--trajectories",
+                "30",
+                "--horizon",
+                "25",
+                "--sets",
+                "2",
+                "--option",
+                "pf.n_particles=256",
+                "--quiet",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "oscillator: 2 sets x 30 trajectories x 25 steps" in text and "pf" in text
     res = json.loads((out / "results.json").read_text())
@@ -74,8 +98,31 @@ def test_evaluate_threads_do_not_change_the_numbers(tmp_path, capsys):
     runs = {}
     for threads in ("1", "3"):
         out = tmp_path / f"t{threads}"
-        assert main(["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ukf,enkf", "--trajectories", "40",
-                     "--horizon", "20", "--sets", "1", "--threads", threads, "--no-cache", "--quiet", "--out", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "evaluate",
+                    *PLUGIN,
+                    "--scenario",
+                    "oscillator",
+                    "--methods",
+                    "ukf,enkf",
+                    "--trajectories",
+                    "40",
+                    "--horizon",
+                    "20",
+                    "--sets",
+                    "1",
+                    "--threads",
+                    threads,
+                    "--no-cache",
+                    "--quiet",
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         capsys.readouterr()
         runs[threads] = json.loads((out / "results.json").read_text())["methods"]
     for m in ("ukf", "enkf"):
@@ -86,18 +133,80 @@ def test_evaluate_threads_do_not_change_the_numbers(tmp_path, capsys):
 
 def test_train_then_evaluate_neural_next_to_classical(tmp_path, capsys):
     ckpt = tmp_path / "gru"
-    assert main(["train", *PLUGIN, "--scenario", "oscillator", "--model", "gru", "--out", str(ckpt),
-                 "--trajectories", "32", "--train-length", "120", "--val-trajectories", "16", "--epochs", "2",
-                 "--windows-per-epoch", "64", "--quiet", "--no-keep-resume"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                *PLUGIN,
+                "--scenario",
+                "oscillator",
+                "--model",
+                "gru",
+                "--out",
+                str(ckpt),
+                "--trajectories",
+                "32",
+                "--train-length",
+                "120",
+                "--val-trajectories",
+                "16",
+                "--epochs",
+                "2",
+                "--windows-per-epoch",
+                "64",
+                "--quiet",
+                "--no-keep-resume",
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in ckpt.iterdir()) == ["card.json", "model.safetensors"]
     capsys.readouterr()
-    assert main(["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ukf,gru", "--checkpoint",
-                 f"gru={ckpt}", "--trajectories", "20", "--horizon", "150", "--sets", "1", "--quiet", "--json"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                *PLUGIN,
+                "--scenario",
+                "oscillator",
+                "--methods",
+                "ukf,gru",
+                "--checkpoint",
+                f"gru={ckpt}",
+                "--trajectories",
+                "20",
+                "--horizon",
+                "150",
+                "--sets",
+                "1",
+                "--quiet",
+                "--json",
+            ]
+        )
+        == 0
+    )
     res = json.loads(capsys.readouterr().out)
     assert set(res["methods"]) == {"ukf", "gru"}
     # a checkpoint for another scenario is refused with a message naming both
-    assert main(["evaluate", "--scenario", "bearings", "--methods", "gru", "--checkpoint", f"gru={ckpt}",
-                 "--trajectories", "5", "--sets", "1", "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "--scenario",
+                "bearings",
+                "--methods",
+                "gru",
+                "--checkpoint",
+                f"gru={ckpt}",
+                "--trajectories",
+                "5",
+                "--sets",
+                "1",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     assert "oscillator" in capsys.readouterr().err
 
 
@@ -147,7 +256,10 @@ def test_cached_runs_are_reused_and_keyed(oscillator, tmp_path, monkeypatch):
     second = evaluate(oscillator, ["ekf", "pf", "ukf"], options={"pf": {"n_particles": 64}}, **kw)
     assert built == ["ukf"] and second["ekf"].cached == 2 and second["pf"].cached == 2 and second["ukf"].cached == 0
     for m in ("ekf", "pf"):
-        assert results_json(oscillator, {m: second[m]})["methods"][m]["runs"] == results_json(oscillator, {m: first[m]})["methods"][m]["runs"]
+        assert (
+            results_json(oscillator, {m: second[m]})["methods"][m]["runs"]
+            == results_json(oscillator, {m: first[m]})["methods"][m]["runs"]
+        )
         assert second[m].seconds == first[m].seconds  # the time of the run that made them
     built.clear()
     # what defines the result is in the key: other options, seed or sets recompute; threads do not
@@ -174,8 +286,23 @@ def test_interrupted_evaluate_resumes_from_finished_runs(tmp_path, capsys, monke
     import neural_estimator.evaluation as ev
 
     out = tmp_path / "ev"
-    args = ["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,ukf", "--trajectories", "15",
-            "--horizon", "10", "--sets", "2", "--quiet", "--out", str(out)]
+    args = [
+        "evaluate",
+        *PLUGIN,
+        "--scenario",
+        "oscillator",
+        "--methods",
+        "ekf,ukf",
+        "--trajectories",
+        "15",
+        "--horizon",
+        "10",
+        "--sets",
+        "2",
+        "--quiet",
+        "--out",
+        str(out),
+    ]
     real, calls = ev.run_method, []
 
     def interrupted(*a, **k):  # the third run is interrupted (Ctrl-C)
@@ -187,13 +314,19 @@ def test_interrupted_evaluate_resumes_from_finished_runs(tmp_path, capsys, monke
     monkeypatch.setattr(ev, "run_method", interrupted)
     assert main(args) == 130
     partial = json.loads((out / "results.json").read_text())
-    assert partial["complete"] is False and len(partial["methods"]["ekf"]["runs"]) == 2 and "ukf" not in partial["methods"]
+    assert (
+        partial["complete"] is False and len(partial["methods"]["ekf"]["runs"]) == 2 and "ukf" not in partial["methods"]
+    )
     capsys.readouterr()
     calls.clear()
     assert main(args) == 0  # resumes: only the two ukf runs are computed
     assert len(calls) == 2
     done = json.loads((out / "results.json").read_text())
-    assert done["complete"] is True and done["methods"]["ekf"]["cached_runs"] == 2 and done["methods"]["ukf"]["cached_runs"] == 0
+    assert (
+        done["complete"] is True
+        and done["methods"]["ekf"]["cached_runs"] == 2
+        and done["methods"]["ukf"]["cached_runs"] == 0
+    )
     assert done["methods"]["ekf"]["runs"] == partial["methods"]["ekf"]["runs"]
 
 

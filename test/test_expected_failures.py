@@ -14,8 +14,15 @@ def _report(rng, scale):
 
 def test_bag_summary_marks_the_expected_failure_and_says_why(tmp_path):
     rng = np.random.default_rng(0)
-    rep = BagReport(path=tmp_path / "run.mcap", scenario="lorenz96", n_trajectories=4, horizon=10, dt=0.05,
-                    reports={"ekf": _report(rng, 0.05), "pf": _report(rng, 5.0)}, bag={})
+    rep = BagReport(
+        path=tmp_path / "run.mcap",
+        scenario="lorenz96",
+        n_trajectories=4,
+        horizon=10,
+        dt=0.05,
+        reports={"ekf": _report(rng, 0.05), "pf": _report(rng, 5.0)},
+        bag={},
+    )
     text = rep.summary()
     rows = {line.split(" ", 1)[0]: line for line in text.splitlines()}
     assert rows["pf"].endswith(MARK) and not rows["ekf"].endswith(MARK)

@@ -37,7 +37,12 @@ from neural_estimator.filters.reference import filterpy_ekf, filterpy_enkf, filt
 from neural_estimator.scenarios import Scenario, make_scenario, register_scenario
 
 RTOL = 1e-6  # EKF/UKF vs filterpy and vs the exact KF: relative, set once
-FILTERS = {"ekf": ExtendedKalmanFilter, "ukf": UnscentedKalmanFilter, "enkf": EnsembleKalmanFilter, "pf": ParticleFilter}
+FILTERS = {
+    "ekf": ExtendedKalmanFilter,
+    "ukf": UnscentedKalmanFilter,
+    "enkf": EnsembleKalmanFilter,
+    "pf": ParticleFilter,
+}
 
 
 # ---- user scenarios of the tests ----------------------------------------------------------------
@@ -329,7 +334,9 @@ def paired_rmse_check(s, ours_x, ref_x, x_true, what):
     se = d.std(ddof=1) / np.sqrt(len(d))
     tol = 4.0 * se + 0.02 * r_ref.mean()
     print(f"{what}: mean RMSE {r_ours.mean():.4g} vs reference {r_ref.mean():.4g}, diff {d.mean():.3g}, tol {tol:.3g}")
-    assert abs(d.mean()) <= tol, f"{what}: RMSE {r_ours.mean():.4g} vs reference {r_ref.mean():.4g} (|diff| > {tol:.3g})"
+    assert abs(d.mean()) <= tol, (
+        f"{what}: RMSE {r_ours.mean():.4g} vs reference {r_ref.mean():.4g} (|diff| > {tol:.3g})"
+    )
 
 
 # scenario: (trajectories, horizon). filterpy's EnKF calls f and h once per member (50 per step),
@@ -830,7 +837,9 @@ def test_compiled_circular_mean_and_residuals_equal_numpy():
     np.testing.assert_allclose(s.state_residual(D, s.state_residual(X, want[:, None, :])), 0.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["test_filters_linear", "test_filters_pendulum", "nlink", "ballistic", "bearings", "quadrotor"])
+@pytest.mark.parametrize(
+    "name", ["test_filters_linear", "test_filters_pendulum", "nlink", "ballistic", "bearings", "quadrotor"]
+)
 def test_compiled_pf_equals_numpy_pf_in_distribution(name):
     """Same algorithm, different random numbers: per-trajectory RMSE equal (paired test)."""
     s = scenario_or_skip(name)
@@ -856,7 +865,7 @@ def test_inflation_options_off_by_default_and_validated():
         off = FILTERS[method](s, seed=4, inflation=1.0, q_inflation=1.0).run(y, u)
         np.testing.assert_array_equal(default.x, off.x)
         np.testing.assert_array_equal(default.cov, off.cov)
-        for bad in (0, -1.0, float("inf"), True, "\"x\""):
+        for bad in (0, -1.0, float("inf"), True, '"x"'):
             with pytest.raises(EstimatorError, match="inflation must be a finite number > 0"):
                 FILTERS[method](s, inflation=bad)
         assert np.allclose(FILTERS[method](s, q_inflation=4.0).Q, 4.0 * s.process_cov())
@@ -901,13 +910,18 @@ def test_localization_cuts_far_observations_on_lorenz96():
     solve with S: orders of magnitude less than without localisation, where sample correlations
     of 40 members carry it. A huge radius is no localisation (to the taper's 1 - O(1/c^2)).
     On DAPPER's 40-variable ring, where localisation matters (the calibrated default has J = 10)."""
-    s = make_scenario("lorenz96", n_vars=40, obs_noise_std=0.25, process_noise_std=0.003, prior_mean=2.34, prior_std=3.64)
+    s = make_scenario(
+        "lorenz96", n_vars=40, obs_noise_std=0.25, process_noise_std=0.003, prior_mean=2.34, prior_std=3.64
+    )
     x, y, u = data(s, 2, 2, seed=1)
     y2 = y.copy()
     y2[:, 0, 20] += 3.0  # variable 20 is ring distance >= 8 from variables 0..12
     far = {}
     for radius in (4.0, None):
-        outs = [EnsembleKalmanFilter(s, seed=2, localization_radius=radius).run(yy[:, :1], u[:, :1]).x[:, 0] for yy in (y, y2)]
+        outs = [
+            EnsembleKalmanFilter(s, seed=2, localization_radius=radius).run(yy[:, :1], u[:, :1]).x[:, 0]
+            for yy in (y, y2)
+        ]
         d = np.abs(outs[0] - outs[1])
         far[radius] = d[:, :13].max()
         assert d[:, 20].min() > 0.1  # the observed variable itself moves

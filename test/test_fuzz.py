@@ -24,7 +24,9 @@ def _harness():
 
 
 def _regressions() -> list[tuple[str, Path]]:
-    return [(d.name, f) for d in sorted(REGRESSIONS.iterdir()) if d.is_dir() for f in sorted(d.iterdir()) if f.is_file()]
+    return [
+        (d.name, f) for d in sorted(REGRESSIONS.iterdir()) if d.is_dir() for f in sorted(d.iterdir()) if f.is_file()
+    ]
 
 
 @pytest.mark.parametrize(("target", "path"), _regressions(), ids=lambda v: v if isinstance(v, str) else v.name)
@@ -39,7 +41,20 @@ def test_the_regression_corpus_is_not_empty():
 @pytest.mark.parametrize("target", ["mcap", "rosbag2", "cdr", "scenario"])
 def test_a_short_fuzzing_run_finds_nothing(target, tmp_path):
     """A few hundred mutated inputs per target (a few seconds): the longer campaign is the script's."""
-    proc = subprocess.run([sys.executable, str(SCRIPT), target, "-runs=400", "-timeout=10", "-rss_limit_mb=1024",
-                           f"-artifact_prefix={tmp_path}/"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(SCRIPT),
+            target,
+            "-runs=400",
+            "-timeout=10",
+            "-rss_limit_mb=1024",
+            f"-artifact_prefix={tmp_path}/",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Done 400 runs" in proc.stderr or "DONE" in proc.stderr

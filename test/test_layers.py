@@ -39,11 +39,14 @@ def imports(path: Path) -> list[tuple[str, bool]]:
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found += [(a.name, id(node) in top) for a in node.names if a.name.startswith("neural_estimator")]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("neural_estimator"):
+        elif (
+            isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("neural_estimator")
+        ):
             for a in node.names:
                 sub = f"{node.module}.{a.name}"
-                is_module = (PACKAGE.parent / Path(*sub.split("."))).with_suffix(".py").exists() or \
-                    (PACKAGE.parent / Path(*sub.split("."))).is_dir()
+                is_module = (PACKAGE.parent / Path(*sub.split("."))).with_suffix(".py").exists() or (
+                    PACKAGE.parent / Path(*sub.split("."))
+                ).is_dir()
                 found.append((sub if is_module else node.module, id(node) in top))
     return found
 
@@ -73,7 +76,9 @@ def test_imports_point_downwards_only():
         here = module_name(path)
         for target, _ in imports(path):
             if layer_of(target, table) > layer_of(here, table):
-                upward.append(f"{here} (layer {layer_of(here, table)}) imports {target} (layer {layer_of(target, table)})")
+                upward.append(
+                    f"{here} (layer {layer_of(here, table)}) imports {target} (layer {layer_of(target, table)})"
+                )
     assert not upward, "upward imports:\n" + "\n".join(upward)
 
 
@@ -84,7 +89,9 @@ def test_module_level_imports_form_no_cycle():
         graph[name] = {t for t, top in imports(path) if top and t in modules and t != name}
     # a package's __init__ importing its own submodules is how packages work, not a cycle
     for name in graph:
-        graph[name] = {t for t in graph[name] if not (t.startswith(name + ".") and (modules[name].name == "__init__.py"))}
+        graph[name] = {
+            t for t in graph[name] if not (t.startswith(name + ".") and (modules[name].name == "__init__.py"))
+        }
     state: dict[str, int] = {}
     stack: list[str] = []
 
@@ -93,7 +100,7 @@ def test_module_level_imports_form_no_cycle():
         stack.append(n)
         for m in sorted(graph[n]):
             if state.get(m) == 1:
-                cycle = stack[stack.index(m):] + [m]
+                cycle = stack[stack.index(m) :] + [m]
                 raise AssertionError("import cycle: " + " -> ".join(cycle))
             if m not in state:
                 visit(m)

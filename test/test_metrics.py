@@ -335,11 +335,18 @@ def test_summarize_median_iqr_across_runs_and_json_round_trip():
 
 def test_format_table_paper_columns_and_cells():
     good = summarize(_three_reports())
-    bad = {"rmse": Stat(math.inf, math.nan, 3, math.inf), "full_rmse": (math.inf, 0.0), "outlier_ratio": math.nan, "diverged_ratio": 1.0}
+    bad = {
+        "rmse": Stat(math.inf, math.nan, 3, math.inf),
+        "full_rmse": (math.inf, 0.0),
+        "outlier_ratio": math.nan,
+        "diverged_ratio": 1.0,
+    }
     md = format_table({"UKF": good, "EnKF": bad})
     lines = md.splitlines()
-    assert lines[0] == ("| Method | RMSE | Full RMSE | NRMSE | MAE | MedAE | AUC | Out. | Drift | Div. "
-                        "| NEES med. | NEES mean | 95% | Degen. |")
+    assert lines[0] == (
+        "| Method | RMSE | Full RMSE | NRMSE | MAE | MedAE | AUC | Out. | Drift | Div. "
+        "| NEES med. | NEES mean | 95% | Degen. |"
+    )
     base = np.sqrt(23 / 12)
     ukf = lines[2].split(" | ")
     assert ukf[1] == f"{2 * base:.3f}±{1.5 * base:.3f}"
@@ -407,16 +414,28 @@ def test_round_off_is_not_an_outlier():
 # (RMSE, Full RMSE, NRMSE, MAE) medians, paper.tex appendix tables tab:l96_extended and
 # tab:nlink_pendulum_extended, printed to 3 decimals.
 PAPER_L96 = {
-    "EKF": (0.049, 0.049, 0.014, 0.027), "UKF": (0.048, 0.048, 0.013, 0.026), "EnKF": (0.054, 0.054, 0.015, 0.029),
-    "PF": (0.065, 0.065, 0.018, 0.037), "GRU": (0.127, 0.127, 0.036, 0.101), "LSTM": (0.119, 0.119, 0.034, 0.093),
-    "GPT-2": (0.099, 0.099, 0.028, 0.080), "Filterformer": (0.732, 0.732, 0.202, 0.493),
-    "Mamba": (0.052, 0.052, 0.015, 0.031), "Mamba-2": (0.052, 0.052, 0.015, 0.031),
+    "EKF": (0.049, 0.049, 0.014, 0.027),
+    "UKF": (0.048, 0.048, 0.013, 0.026),
+    "EnKF": (0.054, 0.054, 0.015, 0.029),
+    "PF": (0.065, 0.065, 0.018, 0.037),
+    "GRU": (0.127, 0.127, 0.036, 0.101),
+    "LSTM": (0.119, 0.119, 0.034, 0.093),
+    "GPT-2": (0.099, 0.099, 0.028, 0.080),
+    "Filterformer": (0.732, 0.732, 0.202, 0.493),
+    "Mamba": (0.052, 0.052, 0.015, 0.031),
+    "Mamba-2": (0.052, 0.052, 0.015, 0.031),
 }
 PAPER_NLINK = {
-    "EKF": (0.080, 0.081, 0.012, 0.063), "UKF": (0.081, 0.081, 0.012, 0.065), "EnKF": (0.092, 0.092, 0.014, 0.073),
-    "PF": (0.086, 4.678, 0.550, 0.618), "GRU": (0.399, 0.452, 0.063, 0.242), "LSTM": (0.356, 0.421, 0.058, 0.217),
-    "GPT-2": (0.233, 0.269, 0.037, 0.153), "Filterformer": (1.749, 1.760, 0.219, 0.701),
-    "Mamba": (0.093, 0.118, 0.017, 0.076), "Mamba-2": (0.092, 0.105, 0.015, 0.073),
+    "EKF": (0.080, 0.081, 0.012, 0.063),
+    "UKF": (0.081, 0.081, 0.012, 0.065),
+    "EnKF": (0.092, 0.092, 0.014, 0.073),
+    "PF": (0.086, 4.678, 0.550, 0.618),
+    "GRU": (0.399, 0.452, 0.063, 0.242),
+    "LSTM": (0.356, 0.421, 0.058, 0.217),
+    "GPT-2": (0.233, 0.269, 0.037, 0.153),
+    "Filterformer": (1.749, 1.760, 0.219, 0.701),
+    "Mamba": (0.093, 0.118, 0.017, 0.076),
+    "Mamba-2": (0.092, 0.105, 0.015, 0.073),
 }
 HALF_ULP = 0.0005  # a printed 3-decimal value v is in [v - 0.0005, v + 0.0005]
 
@@ -438,7 +457,10 @@ def test_paper_tables_rule_out_rmse_over_a_constant():
     _, hi_lstm = _ratio_interval(PAPER_L96["LSTM"][0], PAPER_L96["LSTM"][2])
     assert hi_lstm < 3.58 < 3.61 < lo_ff
     # The same with Full RMSE (identical here): no normaliser of the all-trajectory RMSE either.
-    assert _ratio_interval(PAPER_L96["LSTM"][1], PAPER_L96["LSTM"][2])[1] < _ratio_interval(*PAPER_L96["Filterformer"][1:3])[0]
+    assert (
+        _ratio_interval(PAPER_L96["LSTM"][1], PAPER_L96["LSTM"][2])[1]
+        < _ratio_interval(*PAPER_L96["Filterformer"][1:3])[0]
+    )
 
 
 def test_paper_tables_nrmse_includes_the_outliers():

@@ -153,8 +153,14 @@ def test_parameter_budget(name, scenario):
 
 def test_known_parameter_counts_lorenz96():
     counts = {name: count_parameters(build_model(name, 40, 40)) for name in NAMES}
-    assert counts == {"gru": 94_645, "lstm": 97_315, "gpt2": 92_980, "filterformer": 105_192,
-                      "mamba": 104_360, "mamba2": 102_992}
+    assert counts == {
+        "gru": 94_645,
+        "lstm": 97_315,
+        "gpt2": 92_980,
+        "filterformer": 105_192,
+        "mamba": 104_360,
+        "mamba2": 102_992,
+    }
 
 
 # ---- attention ----------------------------------------------------------------------------------
@@ -212,13 +218,18 @@ def _scan_inputs(B, T, E, N, seed=0):
     return u, delta, A, b, c
 
 
-@pytest.mark.parametrize("B,T,E,N,chunk", [(1, 1, 3, 2, 0), (2, 7, 4, 3, 0), (3, 100, 8, 16, 0),
-                                           (2, 37, 5, 4, 6), (2, 50, 6, 5, 64), (1, 301, 4, 4, 0)])
+@pytest.mark.parametrize(
+    "B,T,E,N,chunk",
+    [(1, 1, 3, 2, 0), (2, 7, 4, 3, 0), (3, 100, 8, 16, 0), (2, 37, 5, 4, 6), (2, 50, 6, 5, 64), (1, 301, 4, 4, 0)],
+)
 def test_selective_scan_fast_equals_reference(B, T, E, N, chunk):
     u, delta, A, b, c = _scan_inputs(B, T, E, N)
     y_ref, s_ref = selective_scan_ref(u, delta, A, b, c)
-    for y, s in (selective_scan_stepwise(u, delta, A, b, c), selective_scan_chunked(u, delta, A, b, c, chunk),
-                 selective_scan(u, delta, A, b, c, chunk)):
+    for y, s in (
+        selective_scan_stepwise(u, delta, A, b, c),
+        selective_scan_chunked(u, delta, A, b, c, chunk),
+        selective_scan(u, delta, A, b, c, chunk),
+    ):
         torch.testing.assert_close(y, y_ref, rtol=0, atol=SCAN_ATOL)
         torch.testing.assert_close(s, s_ref, rtol=0, atol=SCAN_ATOL)
 
@@ -237,8 +248,17 @@ def test_selective_scan_gradients_equal_reference():
             torch.testing.assert_close(a, r, rtol=1e-9, atol=1e-10)
 
 
-@pytest.mark.parametrize("B,T,H,P,N,chunk", [(1, 1, 2, 3, 4, 32), (2, 7, 2, 3, 4, 3), (3, 100, 8, 16, 48, 32),
-                                             (2, 33, 4, 2, 5, 8), (2, 65, 2, 4, 3, 64), (1, 300, 2, 2, 6, 32)])
+@pytest.mark.parametrize(
+    "B,T,H,P,N,chunk",
+    [
+        (1, 1, 2, 3, 4, 32),
+        (2, 7, 2, 3, 4, 3),
+        (3, 100, 8, 16, 48, 32),
+        (2, 33, 4, 2, 5, 8),
+        (2, 65, 2, 4, 3, 64),
+        (1, 300, 2, 2, 6, 32),
+    ],
+)
 def test_ssd_chunked_equals_reference(B, T, H, P, N, chunk):
     g = torch.Generator().manual_seed(T)
     x = torch.randn(B, T, H, P, generator=g, dtype=torch.float64)
@@ -359,13 +379,19 @@ MAMBA2_MIXER_64 = {  # d_model=64, d_state=48, d_conv=4, expand=2, headdim=16, n
 }
 
 
-@pytest.mark.parametrize("name,mixer,n_layer,d_model", [("mamba", MAMBA_MIXER_80, 2, 80),
-                                                        ("mamba2", MAMBA2_MIXER_64, 3, 64)])
+@pytest.mark.parametrize(
+    "name,mixer,n_layer,d_model", [("mamba", MAMBA_MIXER_80, 2, 80), ("mamba2", MAMBA2_MIXER_64, 3, 64)]
+)
 def test_mamba_state_dict_layout(name, mixer, n_layer, d_model):
     model = build_model(name, 40, 40)
     shapes = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    expected = {"input_proj.weight": (d_model, 40), "input_proj.bias": (d_model,),
-                "backbone.norm_f.weight": (d_model,), "head.weight": (40, d_model), "head.bias": (40,)}
+    expected = {
+        "input_proj.weight": (d_model, 40),
+        "input_proj.bias": (d_model,),
+        "backbone.norm_f.weight": (d_model,),
+        "head.weight": (40, d_model),
+        "head.bias": (40,),
+    }
     for i in range(n_layer):
         expected[f"backbone.layers.{i}.norm.weight"] = (d_model,)
         expected.update({f"backbone.layers.{i}.mixer.{k}": v for k, v in mixer.items()})

@@ -165,8 +165,18 @@ def nodes(domain, tmp_path):
 # ---- the whole chain -------------------------------------------------------------------------------------
 def test_live_chain_records_scores_and_equals_replay(plugin, cart, domain, tmp_path):
     bag = tmp_path / "live.mcap"
-    cfg = PipelineConfig(scenario="nodecart", methods=("ekf", "ukf"), trajectories=2, horizon=40, rate_hz=200.0,
-                         seed=3, plugins=(plugin,), output=str(bag), domain_id=domain, timeout=100.0)
+    cfg = PipelineConfig(
+        scenario="nodecart",
+        methods=("ekf", "ukf"),
+        trajectories=2,
+        horizon=40,
+        rate_hz=200.0,
+        seed=3,
+        plugins=(plugin,),
+        output=str(bag),
+        domain_id=domain,
+        timeout=100.0,
+    )
     res = run_pipeline(cfg)
     assert res.returncodes["evaluator"] == 0 and res.bag == bag
     N, T = 2, 40
@@ -175,8 +185,14 @@ def test_live_chain_records_scores_and_equals_replay(plugin, cart, domain, tmp_p
     with BagReader(bag, strict=True) as reader:
         counts = {t: c.msgcount for t, c in reader.topics.items()}
         assert all(c.message_encoding == "cdr" for c in reader.connections)
-    for topic in ("/observation", "/ground_truth", "/estimates/ekf", "/estimates/ukf",
-                  "/estimates/ekf/covariance", "/estimates/ukf/covariance"):
+    for topic in (
+        "/observation",
+        "/ground_truth",
+        "/estimates/ekf",
+        "/estimates/ukf",
+        "/estimates/ekf/covariance",
+        "/estimates/ukf/covariance",
+    ):
         assert counts[topic] == N * T, (topic, counts)
     assert counts["/scenario"] == 1 and counts["/run_status"] == 2
     run = bag_to_arrays(bag)
@@ -219,8 +235,9 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
 
     from neural_estimator.nodes.common import stream_qos
 
-    nodes.start(ESTIMATOR, "est", method="ekf", scenario="nodecart", plugins=[plugin], diagnostics_period=0.3,
-                log_throttle=0.0)
+    nodes.start(
+        ESTIMATOR, "est", method="ekf", scenario="nodecart", plugins=[plugin], diagnostics_period=0.3, log_throttle=0.0
+    )
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx, ctx2 = rclpy.Context(), rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
@@ -229,8 +246,9 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         estimates, diags = [], []
-        node.create_subscription(JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)),
-                                 stream_qos(100), raw=True)
+        node.create_subscription(
+            JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
+        )
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
         pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
         # another type on the same topic needs another DDS participant: a second context
@@ -251,23 +269,33 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
             return M.encode_vector(step, cart.name, trajectory, step, names, values)
 
         J = M.TYPESTORE.types[M.JOINT_STATE]
-        empty_joint_state = bytes(M.TYPESTORE.serialize_cdr(J(
-            header=M.TYPESTORE.types["std_msgs/msg/Header"](
-                stamp=M.TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""),
-            name=[], position=np.zeros(0), velocity=np.zeros(0), effort=np.zeros(0)), M.JOINT_STATE))
+        empty_joint_state = bytes(
+            M.TYPESTORE.serialize_cdr(
+                J(
+                    header=M.TYPESTORE.types["std_msgs/msg/Header"](
+                        stamp=M.TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""
+                    ),
+                    name=[],
+                    position=np.zeros(0),
+                    velocity=np.zeros(0),
+                    effort=np.zeros(0),
+                ),
+                M.JOINT_STATE,
+            )
+        )
         sequence = [
             obs(0, [0.1, 0.0]),
             obs(1, [0.2, 0.5]),
-            obs(2, [0.3], names=("position",)),              # bad: wrong width
-            obs(2, [np.nan, 0.5]),                           # NaN observation: predict only
-            obs(3, [0.4, np.inf]),                           # bad: non-finite control
-            empty_joint_state,                               # bad: empty JointState
-            b"\x00\x01\x00\x00\x07garbage",                  # bad: unparsable
+            obs(2, [0.3], names=("position",)),  # bad: wrong width
+            obs(2, [np.nan, 0.5]),  # NaN observation: predict only
+            obs(3, [0.4, np.inf]),  # bad: non-finite control
+            empty_joint_state,  # bad: empty JointState
+            b"\x00\x01\x00\x00\x07garbage",  # bad: unparsable
             obs(3, [0.4, 0.1], names=("velocity", "u_prev/force")),  # bad: wrong names
             obs(3, [0.4, 0.1]),
-            obs(1, [0.2, 0.5]),                              # out of order: skipped
-            obs(3, [0.4, 0.1]),                              # duplicate: skipped
-            obs(6, [0.7, 0.1]),                              # gap: steps 4, 5 bridged
+            obs(1, [0.2, 0.5]),  # out of order: skipped
+            obs(3, [0.4, 0.1]),  # duplicate: skipped
+            obs(6, [0.7, 0.1]),  # gap: steps 4, 5 bridged
         ]
         for raw in sequence:
             pub.publish(raw)
@@ -306,9 +334,19 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         rclpy.try_shutdown(context=ctx)
         rclpy.try_shutdown(context=ctx2)
     log = nodes.log("est")
-    for text in ("bad observation dropped", "empty JointState", "cannot parse", "has 1 values",
-                 "unexpected names", "control u_prev contains NaN", "stale observation", "duplicate observation",
-                 "bridged by predict-only steps", "NaN/inf: predict only", "wrong type"):
+    for text in (
+        "bad observation dropped",
+        "empty JointState",
+        "cannot parse",
+        "has 1 values",
+        "unexpected names",
+        "control u_prev contains NaN",
+        "stale observation",
+        "duplicate observation",
+        "bridged by predict-only steps",
+        "NaN/inf: predict only",
+        "wrong type",
+    ):
         assert text in log, text
 
 
@@ -338,8 +376,17 @@ def test_evaluator_signals_and_crash_recovery(plugin, nodes, tmp_path):
     term_bag, kill_bag = tmp_path / "term.mcap", tmp_path / "kill.mcap"
     for name, bag in (("rec_term", term_bag), ("rec_kill", kill_bag)):
         nodes.start(EVALUATOR, name, output=str(bag), chunk_size=2048, compute_metrics=False)
-    nodes.start(SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=1, horizon=100000,
-                rate_hz=200.0, wait_for_subscribers=2, start_delay=0.5)
+    nodes.start(
+        SIMULATOR,
+        "sim",
+        scenario="nodecart",
+        plugins=[plugin],
+        trajectories=1,
+        horizon=100000,
+        rate_hz=200.0,
+        wait_for_subscribers=2,
+        start_delay=0.5,
+    )
     t0 = time.monotonic()
     while "run started" not in nodes.log("rec_kill") or "run started" not in nodes.log("rec_term"):
         assert time.monotonic() - t0 < 30, nodes.log("sim") + nodes.log("rec_kill")
@@ -369,13 +416,26 @@ def test_evaluator_signals_and_crash_recovery(plugin, nodes, tmp_path):
 # ---- playing a bag into a live estimator ----------------------------------------------------------------------
 def test_player_feeds_live_estimator_like_replay(plugin, cart, nodes, tmp_path):
     data = simulate(cart, 2, 30, seed=7)
-    sample = arrays_to_bag(tmp_path / "sample.mcap", cart, data.x, data.y, data.u, start_ns=10**18,
-                           estimates={"ukf": np.zeros_like(data.x)})  # played estimates are left out
+    sample = arrays_to_bag(
+        tmp_path / "sample.mcap",
+        cart,
+        data.x,
+        data.y,
+        data.u,
+        start_ns=10**18,
+        estimates={"ukf": np.zeros_like(data.x)},
+    )  # played estimates are left out
     rec = tmp_path / "played.mcap"
     nodes.start(EVALUATOR, "rec", output=str(rec), methods=["ukf"], compute_metrics=True)
     nodes.start(ESTIMATOR, "est", method="ukf", plugins=[plugin])  # scenario from the bag's scenario topic
-    nodes.start("neural_estimator.nodes.player_node", "player", bag=str(sample), rate=10.0,
-                wait_for_subscribers=2, start_delay=0.5)
+    nodes.start(
+        "neural_estimator.nodes.player_node",
+        "player",
+        bag=str(sample),
+        rate=10.0,
+        wait_for_subscribers=2,
+        start_delay=0.5,
+    )
     assert nodes.wait("rec", 90) == 0, nodes.log("rec") + nodes.log("est") + nodes.log("player")
     assert nodes.wait("player", 30) == 0
     live = bag_to_arrays(rec)
@@ -397,8 +457,16 @@ def test_hand_started_nodes_lose_nothing_in_any_order(order, plugin, nodes, tmp_
     bag = tmp_path / "hand.mcap"
     N, T = 2, 40
     start = {
-        "sim": lambda: nodes.start(SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=N, horizon=T,
-                                   rate_hz=100.0, publish_clock=True),
+        "sim": lambda: nodes.start(
+            SIMULATOR,
+            "sim",
+            scenario="nodecart",
+            plugins=[plugin],
+            trajectories=N,
+            horizon=T,
+            rate_hz=100.0,
+            publish_clock=True,
+        ),
         "est": lambda: nodes.start(ESTIMATOR, "est", method="ukf", plugins=[plugin]),
         "rec": lambda: nodes.start(EVALUATOR, "rec", output=str(bag), plugins=[plugin], use_sim_time=True),
     }
@@ -437,9 +505,19 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
 
     scen = make_scenario("bearings")
     data = simulate(scen, 2, 10, seed=1)
-    nodes.start(ESTIMATOR, "est", method="ukf", scenario="bearings",
-                observation_qos="sensor_data", frame_id="odom_test", use_sim_time=True, diagnostics_period=0.2,
-                max_gap=10**9, max_gap_seconds=0.2, log_throttle=0.0)
+    nodes.start(
+        ESTIMATOR,
+        "est",
+        method="ukf",
+        scenario="bearings",
+        observation_qos="sensor_data",
+        frame_id="odom_test",
+        use_sim_time=True,
+        diagnostics_period=0.2,
+        max_gap=10**9,
+        max_gap_seconds=0.2,
+        log_throttle=0.0,
+    )
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
@@ -448,8 +526,9 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         estimates, odoms, diags = [], [], []
-        node.create_subscription(JointState, "estimates/ukf", lambda raw: estimates.append(M.decode_vector(raw)),
-                                 stream_qos(100), raw=True)
+        node.create_subscription(
+            JointState, "estimates/ukf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
+        )
         node.create_subscription(Odometry, "estimates/ukf/odometry", odoms.append, stream_qos(100))
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
         pub = node.create_publisher(JointState, "observation", qos_profile_sensor_data)  # a driver's QoS
@@ -467,7 +546,12 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
             t = M.step_stamp_ns(start, n * 10 + k, M.dt_ns(scen.dt))
             return M.encode_observation(scen, t, n, k, data.y[n, k], np.zeros(0))
 
-        sent = [obs(0, k) for k in range(10)] + [obs(1, k) for k in range(4)] + [obs(0, 7)] + [obs(1, k) for k in range(4, 10)]
+        sent = (
+            [obs(0, k) for k in range(10)]
+            + [obs(1, k) for k in range(4)]
+            + [obs(0, 7)]
+            + [obs(1, k) for k in range(4, 10)]
+        )
         for i, raw in enumerate(sent):  # best effort: paced, and each waited for, so nothing is dropped
             pub.publish(raw)
             want = min(i + 1, 14) if i < 14 else (14 if i == 14 else i)
@@ -475,9 +559,15 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         ref = OnlineEstimator(make_estimator("ukf", scen), "ukf")
         expected = [ref.process(raw) for raw in sent]
         assert [r.status for r in expected].count("stale") == 1
-        assert [(e.trajectory, e.step) for e in estimates] == [(r.trajectory, r.step) for r in expected if r.x_hat is not None]
-        np.testing.assert_allclose(np.array([e.values for e in estimates]),
-                                   np.array([r.x_hat for r in expected if r.x_hat is not None]), rtol=0, atol=1e-9)
+        assert [(e.trajectory, e.step) for e in estimates] == [
+            (r.trajectory, r.step) for r in expected if r.x_hat is not None
+        ]
+        np.testing.assert_allclose(
+            np.array([e.values for e in estimates]),
+            np.array([r.x_hat for r in expected if r.x_hat is not None]),
+            rtol=0,
+            atol=1e-9,
+        )
         assert {e.frame_id for e in estimates} == {"odom_test"}
         spin_until(lambda: len(odoms) >= 20)
         o = odoms[-1]
@@ -529,16 +619,37 @@ def test_player_plays_a_foreign_directory_in_its_namespace(plugin, cart, nodes, 
             w.write(conns[c.topic], t, raw)
     rec = tmp_path / "ns.mcap"
     ns = ("-r", "__ns:=/robot1")
-    nodes.start(EVALUATOR, "rec", output=str(rec), methods=["ukf"], scenario="nodecart", plugins=[plugin],
-                idle_timeout=3.0, topics=["/clock"], use_sim_time=True, extra_args=ns)
+    nodes.start(
+        EVALUATOR,
+        "rec",
+        output=str(rec),
+        methods=["ukf"],
+        scenario="nodecart",
+        plugins=[plugin],
+        idle_timeout=3.0,
+        topics=["/clock"],
+        use_sim_time=True,
+        extra_args=ns,
+    )
     nodes.start(ESTIMATOR, "est", method="ukf", scenario="nodecart", plugins=[plugin], extra_args=ns)
-    nodes.start("neural_estimator.nodes.player_node", "player", bag=str(foreign), rate=10.0, wait_for_subscribers=2,
-                start_delay=0.5, publish_clock=True, extra_args=ns)
+    nodes.start(
+        "neural_estimator.nodes.player_node",
+        "player",
+        bag=str(foreign),
+        rate=10.0,
+        wait_for_subscribers=2,
+        start_delay=0.5,
+        publish_clock=True,
+        extra_args=ns,
+    )
     assert nodes.wait("rec", 90) == 0, nodes.log("rec") + nodes.log("est") + nodes.log("player")
     with BagReader(rec) as reader:
         assert {"/robot1/observation", "/robot1/estimates/ukf"} <= set(reader.topics)
         assert reader.topics["/robot1/estimates/ukf"].msgcount == 40
-        clock = [M.TYPESTORE.deserialize_cdr(raw, "rosgraph_msgs/msg/Clock").clock for _, _, raw in reader.messages(["/clock"])]
+        clock = [
+            M.TYPESTORE.deserialize_cdr(raw, "rosgraph_msgs/msg/Clock").clock
+            for _, _, raw in reader.messages(["/clock"])
+        ]
     assert len(clock) > 0 and clock[0].sec >= 10**9  # the bag's time (start 10**18 ns), not the wall clock
     assert "idle" in nodes.log("rec") or "no run_status" in nodes.log("rec")
     assert "ukf" in rec.with_name("ns.metrics.md").read_text()

@@ -30,8 +30,13 @@ def test_colcon_lists_and_builds_the_package(tmp_path):
     src = tmp_path / "ws" / "src"
     src.mkdir(parents=True)
     # copy only what a source checkout has (no venv, no caches)
-    shutil.copytree(ROOT, src / "neural_estimator", ignore=shutil.ignore_patterns(
-        ".venv", ".git", "__pycache__", "*.egg-info", "build", "install", "log", ".cache", "runs", "out"))
+    shutil.copytree(
+        ROOT,
+        src / "neural_estimator",
+        ignore=shutil.ignore_patterns(
+            ".venv", ".git", "__pycache__", "*.egg-info", "build", "install", "log", ".cache", "runs", "out"
+        ),
+    )
     ws = tmp_path / "ws"
     listed = subprocess.run([str(COLCON), "list"], cwd=ws, capture_output=True, text=True, check=True).stdout
     assert re.search(r"^neural_estimator\s+src/neural_estimator\s+\(ros\.ament_python\)$", listed, re.M), listed
@@ -41,8 +46,13 @@ def test_colcon_lists_and_builds_the_package(tmp_path):
     for exe in ("neural-estimator", "simulator", "estimator", "evaluator", "player", "robot_estimator"):
         assert (lib / exe).exists(), exe  # where `ros2 run neural_estimator <exe>` looks
     params = ws / "install" / "neural_estimator" / "share" / "neural_estimator" / "params"
-    assert {p.name for p in params.glob("*.yaml")} == {"simulator.yaml", "estimator.yaml", "evaluator.yaml", "player.yaml",
-                                                      "robot_estimator.yaml"}
+    assert {p.name for p in params.glob("*.yaml")} == {
+        "simulator.yaml",
+        "estimator.yaml",
+        "evaluator.yaml",
+        "player.yaml",
+        "robot_estimator.yaml",
+    }
     share = ws / "install" / "neural_estimator" / "share"
     assert (share / "ament_index" / "resource_index" / "packages" / "neural_estimator").exists()
     assert (share / "neural_estimator" / "package.xml").exists()
@@ -51,8 +61,18 @@ def test_colcon_lists_and_builds_the_package(tmp_path):
 # Imports guarded by `except ImportError` (optional speed-ups or GPU kernels), not dependencies.
 OPTIONAL_IMPORTS = {"mamba_ssm", "lz4"}
 # The ROS 2 interfaces come with the ROS install (package.xml) or the "ros" extra's wheels.
-ROS_PACKAGES = {"rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "nav_msgs", "diagnostic_msgs", "std_srvs",
-                "rosgraph_msgs", "builtin_interfaces", "geometry_msgs"}
+ROS_PACKAGES = {
+    "rclpy",
+    "rcl_interfaces",
+    "std_msgs",
+    "sensor_msgs",
+    "nav_msgs",
+    "diagnostic_msgs",
+    "std_srvs",
+    "rosgraph_msgs",
+    "builtin_interfaces",
+    "geometry_msgs",
+}
 
 
 def _declared_requirements() -> tuple[set[str], dict[str, set[str]]]:
@@ -65,8 +85,10 @@ def _declared_requirements() -> tuple[set[str], dict[str, set[str]]]:
     def name(req: str) -> str:
         return re.split(r"[\[<>=!~ ]", req, maxsplit=1)[0].lower().replace("_", "-")
 
-    return ({name(r) for r in kw["install_requires"]},
-            {extra: {name(r) for r in reqs} for extra, reqs in kw["extras_require"].items()})
+    return (
+        {name(r) for r in kw["install_requires"]},
+        {extra: {name(r) for r in reqs} for extra, reqs in kw["extras_require"].items()},
+    )
 
 
 def test_every_third_party_import_is_a_declared_dependency():
@@ -88,7 +110,11 @@ def test_every_third_party_import_is_a_declared_dependency():
             else:
                 continue
             for top in names:
-                if top in sys.stdlib_module_names or top in ("neural_estimator", "sim_nodes") or top in OPTIONAL_IMPORTS:
+                if (
+                    top in sys.stdlib_module_names
+                    or top in ("neural_estimator", "sim_nodes")
+                    or top in OPTIONAL_IMPORTS
+                ):
                     continue
                 if top in ROS_PACKAGES:
                     assert "ros-jazzy-rclpy" in extras["ros"]

@@ -25,16 +25,50 @@ from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
 # quadrotor; their zoo models are refused until the zoo is retrained, issue 10).
 SCENARIOS = "ballistic,lorenz96"
 METHODS = "ekf,pf,gru,mamba2"
-SECTIONS = ("## Settings", "## Main accuracy", "## Relative score", "## Extended metrics", "### ballistic", "### lorenz96",
-            "## Cross-scenario NRMSE", "## Stability", "## Beyond the paper: covariance", "## RMSE over time",
-            "## Robustness to observation noise", "## Runtime", "### CPU", "## Data efficiency")
-FIGURES = ("rmse_over_time_ballistic.png", "rmse_over_time_lorenz96.png", "noise_ballistic.png", "noise_lorenz96.png",
-           "data_ratio_ballistic.png", "data_ratio_lorenz96.png")
+SECTIONS = (
+    "## Settings",
+    "## Main accuracy",
+    "## Relative score",
+    "## Extended metrics",
+    "### ballistic",
+    "### lorenz96",
+    "## Cross-scenario NRMSE",
+    "## Stability",
+    "## Beyond the paper: covariance",
+    "## RMSE over time",
+    "## Robustness to observation noise",
+    "## Runtime",
+    "### CPU",
+    "## Data efficiency",
+)
+FIGURES = (
+    "rmse_over_time_ballistic.png",
+    "rmse_over_time_lorenz96.png",
+    "noise_ballistic.png",
+    "noise_lorenz96.png",
+    "data_ratio_ballistic.png",
+    "data_ratio_lorenz96.png",
+)
 
 
 def _args(out: Path, cache: Path, *extra: str) -> list[str]:
-    return ["reproduce", "--scale", "smoke", "--scenarios", SCENARIOS, "--methods", METHODS, "--out", str(out),
-            "--cache-dir", str(cache), "--num-cpus", "2", "--quiet", *extra]
+    return [
+        "reproduce",
+        "--scale",
+        "smoke",
+        "--scenarios",
+        SCENARIOS,
+        "--methods",
+        METHODS,
+        "--out",
+        str(out),
+        "--cache-dir",
+        str(cache),
+        "--num-cpus",
+        "2",
+        "--quiet",
+        *extra,
+    ]
 
 
 def _statuses(out: Path) -> list[tuple[str, str]]:
@@ -89,7 +123,9 @@ def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
     assert main(_args(out, cache)) == 2  # an --out holding a run needs --resume
     assert "--resume" in capsys.readouterr().err
     # "interrupt": lose two evaluation results and one timing, as if their jobs never finished
-    lost = sorted((cache / "results").glob("lorenz96-gru-*.npz"))[:2] + sorted((cache / "runtime").glob("ballistic-ekf-*.json"))
+    lost = sorted((cache / "results").glob("lorenz96-gru-*.npz"))[:2] + sorted(
+        (cache / "runtime").glob("ballistic-ekf-*.json")
+    )
     assert len(lost) == 3
     for f in lost:
         f.unlink()
@@ -99,7 +135,10 @@ def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
     assert after.keys() == before.keys()
     redone = [json.loads(k) for k, s in after.items() if s == "computed"]
     assert sorted((j["kind"], j["scenario"], j["method"]) for j in redone) == [
-        ("evaluate", "lorenz96", "gru"), ("evaluate", "lorenz96", "gru"), ("runtime", "ballistic", "ekf")]
+        ("evaluate", "lorenz96", "gru"),
+        ("evaluate", "lorenz96", "gru"),
+        ("runtime", "ballistic", "ekf"),
+    ]
     assert sum(s == "cached" for s in after.values()) == len(after) - 3
     for f in lost:
         assert f.is_file()
@@ -108,8 +147,10 @@ def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
 def test_a_failed_job_is_reported_and_the_others_go_on(tmp_path):
     from neural_estimator.reproduce.engine import run_jobs
 
-    jobs = [Job("evaluate", "ballistic", "no-such-method", trajectories=2, horizon=5),
-            Job("evaluate", "ballistic", "ekf", trajectories=2, horizon=5)]
+    jobs = [
+        Job("evaluate", "ballistic", "no-such-method", trajectories=2, horizon=5),
+        Job("evaluate", "ballistic", "ekf", trajectories=2, horizon=5),
+    ]
     outcome = run_jobs(jobs, tmp_path, num_cpus=2, progress=False)
     assert list(outcome.failed) == [0] and "no-such-method" in outcome.failed[0]
     assert list(outcome.results) == [1] and outcome.results[1]["result"]["rmse"] > 0
@@ -207,8 +248,26 @@ def test_a_plugin_scenario_runs_on_the_ray_workers(tmp_path):
     """Workers are fresh processes: each loads the --plugin file before its job (built on the example)."""
     plugin = Path(__file__).resolve().parents[1] / "examples" / "custom_scenario.py"
     out = tmp_path / "out"
-    rc = main(["reproduce", "--scale", "smoke", "--plugin", str(plugin), "--scenarios", "oscillator", "--methods", "ekf,ukf",
-               "--out", str(out), "--cache-dir", str(tmp_path / "cache"), "--num-cpus", "2", "--quiet"])
+    rc = main(
+        [
+            "reproduce",
+            "--scale",
+            "smoke",
+            "--plugin",
+            str(plugin),
+            "--scenarios",
+            "oscillator",
+            "--methods",
+            "ekf,ukf",
+            "--out",
+            str(out),
+            "--cache-dir",
+            str(tmp_path / "cache"),
+            "--num-cpus",
+            "2",
+            "--quiet",
+        ]
+    )
     state = json.loads((out / "reproduce.json").read_text())
     assert rc == 0 and state["complete"], [r.get("error") for r in state["jobs"] if r["status"] == "failed"]
     assert state["settings"]["plugins"] == {str(plugin): state["settings"]["plugins"][str(plugin)]}
@@ -232,8 +291,13 @@ def test_a_plugin_scenarios_source_is_part_of_every_cache_key(tmp_path):
         f.write_text(src + extra)
         load_plugins([f])
         s = make_scenario("oscillator")
-        keys.append((code_digest(s), run_key(s, "ekf", None, None, 0, "cpu", "data"),
-                     train_dir(tmp_path, Job("train", "oscillator", "gru", data_ratio=20.0))))
+        keys.append(
+            (
+                code_digest(s),
+                run_key(s, "ekf", None, None, 0, "cpu", "data"),
+                train_dir(tmp_path, Job("train", "oscillator", "gru", data_ratio=20.0)),
+            )
+        )
     assert keys[0][0] != keys[1][0] and keys[0][1] != keys[1][1] and keys[0][2] != keys[1][2]
 
 
@@ -250,7 +314,9 @@ def test_paper_scale_main_tables_use_the_instances_trained_at_20_to_1():
     assert {j.train_job.instance for j in neural} == set(range(sc.train_instances))
     assert all(j.train_job is None for j in acc if j.method == "ukf") and sum(j.method == "ukf" for j in acc) == sc.sets
     noise = [j for j in jobs if j.experiment == "noise" and j.method == "mamba"]
-    assert len(noise) == (len(sc.noise_scales) - 1) * sc.train_instances * sc.noise_sets and all(j.train_job for j in noise)
+    assert len(noise) == (len(sc.noise_scales) - 1) * sc.train_instances * sc.noise_sets and all(
+        j.train_job for j in noise
+    )
     first_eval = next(i for i, j in enumerate(jobs) if j.kind == "evaluate")
     assert all(j.kind == "train" for j in jobs[:first_eval]) and len(set(jobs)) == len(jobs)
     assert not get_scale("small").main_from_training  # small: the shipped models

@@ -47,18 +47,21 @@ def test_example_spec_parses_with_angles_names_and_units():
     assert len(s.digest()) == 64 and s.digest() != load_spec(spec_dict(rate=20.0)).digest()
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"rates": 10}, "unknown key"),
-    ({"rate": -1}, "rate must be a positive number"),
-    ({"state": None}, "missing 'state'"),
-    ({"state": {"/mocap/pose": ["pose.position..x"]}}, "is not a field path"),
-    ({"state": {"/mocap/pose": ["heading(pose.orientation)"]}}, "unknown conversion 'heading'"),
-    ({"state": {"mocap pose": ["pose.position.x"]}}, "is not a topic name"),
-    ({"names": {"state": ["x"]}}, "names.state must list 3 strings"),
-    ({"estimates": {"ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "one per state component"),
-    ({"estimates": {"my ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "estimates must map names"),
-    ({"stamp": "receive"}, "stamp must be one of"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"rates": 10}, "unknown key"),
+        ({"rate": -1}, "rate must be a positive number"),
+        ({"state": None}, "missing 'state'"),
+        ({"state": {"/mocap/pose": ["pose.position..x"]}}, "is not a field path"),
+        ({"state": {"/mocap/pose": ["heading(pose.orientation)"]}}, "unknown conversion 'heading'"),
+        ({"state": {"mocap pose": ["pose.position.x"]}}, "is not a topic name"),
+        ({"names": {"state": ["x"]}}, "names.state must list 3 strings"),
+        ({"estimates": {"ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "one per state component"),
+        ({"estimates": {"my ekf": {"/odometry/filtered": ["pose.pose.position.x"]}}}, "estimates must map names"),
+        ({"stamp": "receive"}, "stamp must be one of"),
+    ],
+)
 def test_bad_specs_are_refused_in_one_line(changes, message):
     with pytest.raises(SpecError, match=message) as err:
         load_spec(spec_dict(**changes))
@@ -67,7 +70,9 @@ def test_bad_specs_are_refused_in_one_line(changes, message):
 
 def test_euler_angles_of_quaternions():
     for yaw in (-3.0, -0.5, 0.0, 1.2, math.pi):
-        assert euler(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))[2] == pytest.approx(math.atan2(math.sin(yaw), math.cos(yaw)))
+        assert euler(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))[2] == pytest.approx(
+            math.atan2(math.sin(yaw), math.cos(yaw))
+        )
     roll, pitch, yaw = euler(math.sin(0.15), 0.0, 0.0, math.cos(0.15))  # 0.3 rad about x
     assert (roll, pitch, yaw) == pytest.approx((0.3, 0.0, 0.0))
     assert all(math.isnan(v) for v in euler(0.0, 0.0, 0.0, 0.0))  # zero quaternion: dropped as non-finite
@@ -116,9 +121,13 @@ def test_dataset_from_a_rosbags_recording(bag):
 
 def test_dataset_errors_name_the_topic_or_field(bag):
     with pytest.raises(SpecError, match=r"no topic /lidar in this bag \(it has: .*/imu"):
-        build_dataset([bag], load_spec(spec_dict(observation={"/lidar": ["ranges[0]"]}, names=None, units=None)), length=50)
+        build_dataset(
+            [bag], load_spec(spec_dict(observation={"/lidar": ["ranges[0]"]}, names=None, units=None)), length=50
+        )
     with pytest.raises(SpecError, match=r"no field 'angular_velocty' .*fields there: .*angular_velocity"):
-        build_dataset([bag], load_spec(spec_dict(observation={"/imu": ["angular_velocty.z"]}, names=None, units=None)), length=50)
+        build_dataset(
+            [bag], load_spec(spec_dict(observation={"/imu": ["angular_velocty.z"]}, names=None, units=None)), length=50
+        )
     with pytest.raises(SpecError, match="longest run of valid ticks is"):
         build_dataset([bag], load_spec(SPEC), length=5000)
 
@@ -143,16 +152,50 @@ def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     assert main(["dataset", str(bag), "--spec", str(spec), "--length", "50", "--out", str(data)]) == 0
     assert (tmp_path / "data.robot_filter.npz").is_file()
     out = tmp_path / "gru"
-    assert main(["train", "--data", str(data), "--model", "gru", "--out", str(out), "--epochs", "1",
-                 "--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--model",
+                "gru",
+                "--out",
+                str(out),
+                "--epochs",
+                "1",
+                "--windows-per-epoch",
+                "16",
+                "--window",
+                "20",
+                "--warmup",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     import json
 
     card = json.loads((out / "card.json").read_text())
     assert card["scenario"]["scenario"] == "data" and card["data"]["source"] == "recorded"
     assert card["metrics"]["set"]["role"] == "val (recorded)"
     capsys.readouterr()
-    assert main(["evaluate", "--data", str(data), "--checkpoint", f"gru={out}",
-                 "--estimate", f"robot_filter={tmp_path / 'data.robot_filter.npz'}", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(data),
+                "--checkpoint",
+                f"gru={out}",
+                "--estimate",
+                f"robot_filter={tmp_path / 'data.robot_filter.npz'}",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     table = capsys.readouterr().out
     assert "gru " in table and "robot_filter " in table
     assert main(["metrics", str(data), str(tmp_path / "data.robot_filter.npz")]) == 0
@@ -165,13 +208,18 @@ def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     assert "spec_sha256" in capsys.readouterr().err
     assert main(["evaluate", "--data", str(data), "--methods", "ekf", "--quiet"]) == 2
     assert "classical filter" in capsys.readouterr().err
-    assert main(["train", "--data", str(data), "--scenario", "lorenz96", "--model", "gru", "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(["train", "--data", str(data), "--scenario", "lorenz96", "--model", "gru", "--out", str(tmp_path / "x")])
+        == 2
+    )
     assert "drop --scenario" in capsys.readouterr().err
 
 
 def test_simulated_dataset_is_not_taken_as_recorded(tmp_path, capsys):
     sim = tmp_path / "sim.npz"
-    assert main(["simulate", "--scenario", "bearings", "--trajectories", "2", "--horizon", "30", "--out", str(sim)]) == 0
+    assert (
+        main(["simulate", "--scenario", "bearings", "--trajectories", "2", "--horizon", "30", "--out", str(sim)]) == 0
+    )
     capsys.readouterr()
     assert main(["evaluate", "--data", str(sim), "--checkpoint", "gru=x", "--quiet"]) == 2
     assert "not a recorded dataset" in capsys.readouterr().err
@@ -196,21 +244,50 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
     data = tmp_path / "data.npz"
     assert main(["dataset", str(bag), "--spec", str(SPEC), "--length", "40", "--out", str(data), "--quiet"]) == 0
     model = tmp_path / "gru"
-    assert main(["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1",
-                 "--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--model",
+                "gru",
+                "--out",
+                str(model),
+                "--epochs",
+                "1",
+                "--windows-per-epoch",
+                "16",
+                "--window",
+                "20",
+                "--warmup",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     env = isolated_env(random.SystemRandom().randint(230, 232))  # test_nodes uses 200..229, FastDDS allows <= 232
     rec = tmp_path / "live.mcap"
     procs = []
     try:
         for module, name, params in (
-            (EVALUATOR, "rec", dict(output=str(rec), methods=["gru"], compute_metrics=False, idle_timeout=3.0,
-                                    topics=["/mocap/pose"])),
+            (
+                EVALUATOR,
+                "rec",
+                dict(output=str(rec), methods=["gru"], compute_metrics=False, idle_timeout=3.0, topics=["/mocap/pose"]),
+            ),
             ("neural_estimator.nodes.robot_estimator_node", "est", dict(checkpoint=str(model))),
-            ("neural_estimator.nodes.player_node", "player", dict(bag=str(bag), rate=2.0, wait_for_subscribers=1,
-                                                                   wait_topic="/imu", start_delay=1.0)),
+            (
+                "neural_estimator.nodes.player_node",
+                "player",
+                dict(bag=str(bag), rate=2.0, wait_for_subscribers=1, wait_topic="/imu", start_delay=1.0),
+            ),
         ):
             procs.append(start_node(node_command(sys.executable, module, name, params), tmp_path / f"{name}.log", env))
-        assert procs[0].wait(timeout=120) == 0, "".join((tmp_path / f"{n}.log").read_text() for n in ("rec", "est", "player"))
+        assert procs[0].wait(timeout=120) == 0, "".join(
+            (tmp_path / f"{n}.log").read_text() for n in ("rec", "est", "player")
+        )
     finally:
         import signal
 
@@ -226,19 +303,26 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
     assert "subscribed to '/gps/fix' (geometry_msgs/msg/PointStamped)" in log, log
     with BagReader(rec) as reader:
         n_est = reader.topics["/estimates/gru"].msgcount
-        first = M.TYPESTORE.deserialize_cdr(next(raw for _, _, raw in reader.messages(["/estimates/gru"])),
-                                            "sensor_msgs/msg/JointState")
+        first = M.TYPESTORE.deserialize_cdr(
+            next(raw for _, _, raw in reader.messages(["/estimates/gru"])), "sensor_msgs/msg/JointState"
+        )
     # 2 runs x 12 s played at 2x: ~12 s of 10 Hz ticks, minus the stale ones between runs and at the start
     assert 60 <= n_est <= 130, n_est
     assert list(first.name) == ["x", "y", "yaw"]
     # score the live run through a spec: the truth from /mocap/pose, the estimates from the JointState
     live_spec = tmp_path / "live.yaml"
-    live_spec.write_text(yaml.safe_dump({
-        "rate": 10.0, "max_age": 0.25, "stamp": "log",
-        "observation": {"/estimates/gru": ["position[0]"]},
-        "state": {"/mocap/pose": ["pose.position.x", "pose.position.y", "yaw(pose.orientation)"]},
-        "estimates": {"gru": {"/estimates/gru": ["position[0]", "position[1]", "angle(position[2])"]}},
-    }))
+    live_spec.write_text(
+        yaml.safe_dump(
+            {
+                "rate": 10.0,
+                "max_age": 0.25,
+                "stamp": "log",
+                "observation": {"/estimates/gru": ["position[0]"]},
+                "state": {"/mocap/pose": ["pose.position.x", "pose.position.y", "yaw(pose.orientation)"]},
+                "estimates": {"gru": {"/estimates/gru": ["position[0]", "position[1]", "angle(position[2])"]}},
+            }
+        )
+    )
     scored = tmp_path / "scored.npz"
     assert main(["dataset", str(rec), "--spec", str(live_spec), "--length", "20", "--out", str(scored), "--quiet"]) == 0
     truth, _ = load_trajectories(scored)
@@ -248,11 +332,14 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
     assert np.isfinite(x_hat).all() and truth.n >= 2
 
 
-@pytest.mark.parametrize("checkpoint, text", [
-    ("", "parameter checkpoint is required"),
-    ("/nonexistent/model", "does not exist"),
-    (str(ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
-])
+@pytest.mark.parametrize(
+    "checkpoint, text",
+    [
+        ("", "parameter checkpoint is required"),
+        ("/nonexistent/model", "does not exist"),
+        (str(ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
+    ],
+)
 def test_robot_estimator_refuses_to_start(checkpoint, text, tmp_path):
     pytest.importorskip("rclpy")
     import random

@@ -9,7 +9,9 @@ from pathlib import Path
 import pytest
 
 SHIM = Path(sys.executable).with_name("ros2")
-pytestmark = pytest.mark.skipif(not SHIM.exists(), reason="package not installed in this environment (pip install -e .)")
+pytestmark = pytest.mark.skipif(
+    not SHIM.exists(), reason="package not installed in this environment (pip install -e .)"
+)
 
 
 def _run(args, env=None, **kw):
@@ -36,7 +38,7 @@ def test_unknown_executable_is_a_clear_error():
 def test_hands_over_to_a_real_ros2(tmp_path):
     fake = tmp_path / "bin" / "ros2"
     fake.parent.mkdir()
-    fake.write_text("#!/bin/sh\necho real ros2: \"$@\"\n")
+    fake.write_text('#!/bin/sh\necho real ros2: "$@"\n')
     fake.chmod(0o755)
     env = dict(os.environ, PATH=f"{fake.parent}{os.pathsep}{os.environ.get('PATH', '')}")
     res = _run(["run", "neural_estimator", "estimator", "--ros-args", "-p", "method:=mamba"], env=env)

@@ -22,8 +22,21 @@ def test_sample_bag_replays_through_every_classical_method(scenario, tmp_path, c
     truth = bag_to_arrays(bag)
     assert truth.description["scenario"] == scenario and truth.x.shape[0] == 2 and not truth.x_hat
     out = tmp_path / "r.mcap"
-    assert main(["replay", str(bag), "--methods", ",".join(CLASSICAL_METHODS), "--out", str(out),
-                 "--option", "pf.n_particles=256"]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(bag),
+                "--methods",
+                ",".join(CLASSICAL_METHODS),
+                "--out",
+                str(out),
+                "--option",
+                "pf.n_particles=256",
+            ]
+        )
+        == 0
+    )
     truth2, estimates2, _ = load_bag_dataset(out)
     np.testing.assert_array_equal(truth2.x, truth.x)
     assert set(estimates2) == set(CLASSICAL_METHODS)

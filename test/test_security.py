@@ -32,9 +32,22 @@ def evil_package(tmp_path, monkeypatch) -> Path:
     assert "evilpkg" not in sys.modules or marker.exists()  # consistency of the fixture itself
 
 
-@pytest.mark.parametrize("name", ["sensor_msgs/Imu", "sensor_msgs/srv/SetCameraInfo", "a.b/msg/C", "../x/msg/Y",
-                                  "sensor_msgs/msg/Imu; rm -rf /", "Sensor_msgs/msg/Imu", "sensor_msgs/msg/imu", "",
-                                  "x" * 300 + "/msg/Y", None, 42])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "sensor_msgs/Imu",
+        "sensor_msgs/srv/SetCameraInfo",
+        "a.b/msg/C",
+        "../x/msg/Y",
+        "sensor_msgs/msg/Imu; rm -rf /",
+        "Sensor_msgs/msg/Imu",
+        "sensor_msgs/msg/imu",
+        "",
+        "x" * 300 + "/msg/Y",
+        None,
+        42,
+    ],
+)
 def test_malformed_type_names_are_refused_before_anything_else(name):
     with pytest.raises(InterfaceError, match="form <package>/msg/<Type>"):
         parse_message_type(name)
@@ -108,8 +121,17 @@ def test_the_player_plays_nothing_a_bag_names_that_is_not_a_ros_interface(ros, e
 def test_the_evaluator_records_no_crafted_type_from_the_graph(ros, evil_package, tmp_path, monkeypatch):
     from neural_estimator.nodes.evaluator_node import EvaluatorNode
 
-    ros.init(args=["--ros-args", "-p", f"output:={tmp_path / 'rec.mcap'}", "-p", "topics:=[/evil]",
-                   "-p", "discovery_period:=100.0"])
+    ros.init(
+        args=[
+            "--ros-args",
+            "-p",
+            f"output:={tmp_path / 'rec.mcap'}",
+            "-p",
+            "topics:=[/evil]",
+            "-p",
+            "discovery_period:=100.0",
+        ]
+    )
     node = EvaluatorNode()
     try:
         monkeypatch.setattr(node, "get_topic_names_and_types", lambda: [("/evil", [EVIL])])
@@ -267,8 +289,11 @@ def test_no_message_or_card_can_name_a_plugin_to_load(tmp_path):
     plugin = tmp_path / "plugin.py"
     plugin.write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
     desc = make_scenario("ballistic").describe()
-    for crafted in ({**desc, "scenario": str(plugin)}, {**desc, "scenario": "plugin", "plugins": [str(plugin)]},
-                    {**desc, "scenario": f"{plugin}:Scenario"}):
+    for crafted in (
+        {**desc, "scenario": str(plugin)},
+        {**desc, "scenario": "plugin", "plugins": [str(plugin)]},
+        {**desc, "scenario": f"{plugin}:Scenario"},
+    ):
         with pytest.raises(ScenarioError, match="unknown scenario"):
             scenario_from_description(M.decode_scenario(M.encode_scenario(crafted)))
     assert not marker.exists()

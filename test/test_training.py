@@ -85,8 +85,18 @@ def spinner():
 
 
 def tiny_config(cache, **kw):
-    base = dict(trajectories=12, val_trajectories=6, train_length=60, window=20, warmup=5, windows_per_epoch=48,
-                batch_size=16, epochs=3, model_overrides={"hidden": 8}, cache_dir=str(cache))
+    base = dict(
+        trajectories=12,
+        val_trajectories=6,
+        train_length=60,
+        window=20,
+        warmup=5,
+        windows_per_epoch=48,
+        batch_size=16,
+        epochs=3,
+        model_overrides={"hidden": 8},
+        cache_dir=str(cache),
+    )
     base.update(kw)
     return TrainConfig(**base)
 
@@ -222,8 +232,11 @@ def test_loading_never_unpickles(oscillator, tmp_path, monkeypatch):
 
 def test_loading_refuses_the_wrong_checkpoint(oscillator, spinner, tmp_path):
     _, path, _ = _save(tmp_path, oscillator, "gru")
-    with pytest.raises(EstimatorError, match=r"was trained on scenario 'oscillator' \(dx=2, dy=1, du=0\), "
-                                             r"not 'test_spinner' \(dx=2, dy=1, du=1\)"):
+    with pytest.raises(
+        EstimatorError,
+        match=r"was trained on scenario 'oscillator' \(dx=2, dy=1, du=0\), "
+        r"not 'test_spinner' \(dx=2, dy=1, du=1\)",
+    ):
         load_neural_estimator("gru", spinner, path)
     with pytest.raises(EstimatorError, match="holds a 'gru' model, not 'lstm'"):
         load_neural_estimator("lstm", oscillator, path)
@@ -268,9 +281,12 @@ def test_loading_names_missing_and_corrupt_files(oscillator, tmp_path):
         load_neural_estimator("gru", oscillator, path)
     with pytest.raises(EstimatorError, match="does not exist"):
         load_neural_estimator("gru", oscillator, tmp_path / "nowhere")
-    with pytest.raises(EstimatorError, match=r"no trained gru model ships for scenario 'oscillator'.*lacks card.json "
-                                             r"and model.safetensors.*neural-estimator train --scenario oscillator "
-                                             r"--model gru --out"):
+    with pytest.raises(
+        EstimatorError,
+        match=r"no trained gru model ships for scenario 'oscillator'.*lacks card.json "
+        r"and model.safetensors.*neural-estimator train --scenario oscillator "
+        r"--model gru --out",
+    ):
         make_estimator("gru", oscillator)
 
 
@@ -301,8 +317,15 @@ def test_training_learns_is_deterministic_and_writes_a_card(oscillator, tmp_path
     assert len(hist) == 4
     assert hist[-1]["val_loss"] < hist[0]["val_loss"] and hist[-1]["train_loss"] < hist[0]["train_loss"]
     assert card["validation_loss"] == min(h["val_loss"] for h in hist)
-    assert card["data"] == {"seed": 0, "index": 0, "data_ratio": 20.0, "train_trajectories": 12, "train_length": 60,
-                            "val_trajectories": 6, "windows_per_epoch": 48}
+    assert card["data"] == {
+        "seed": 0,
+        "index": 0,
+        "data_ratio": 20.0,
+        "train_trajectories": 12,
+        "train_length": 60,
+        "val_trajectories": 6,
+        "windows_per_epoch": 48,
+    }
     assert card["init_seed"] == 0 and card["training"]["recipe"]["lr"] == 2e-3
     assert card["training"]["stopped"] == "max epochs" and card["metrics"]["rmse"] > 0
     assert card["normalization"]["dy"] == 1 and card["created"]
@@ -402,9 +425,29 @@ def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
     state, zoo = tmp_path / "state", tmp_path / "zoo"
-    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo),
-            "--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6",
-            "--eval-trajectories", "4", "--max-epochs", "3", "--hours", "1", "--quiet"]
+    args = [
+        "--scenarios",
+        "test_spinner",
+        "--methods",
+        "gru",
+        "--state",
+        str(state),
+        "--zoo",
+        str(zoo),
+        "--trajectories",
+        "12",
+        "--windows-per-epoch",
+        "48",
+        "--val-trajectories",
+        "6",
+        "--eval-trajectories",
+        "4",
+        "--max-epochs",
+        "3",
+        "--hours",
+        "1",
+        "--quiet",
+    ]
     work = state / "test_spinner-gru"
     # first run: the session's time runs out after two epochs (train() reads the clock before each epoch)
     checks = iter([0.0, 0.0])  # read before each epoch: two epochs start, the third does not
@@ -427,9 +470,20 @@ def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path
     assert sorted(p.name for p in (zoo / work.name).iterdir()) == ["card.json", "model.safetensors"]
     assert zoo_script.finished(work)
     # the resumed run equals an uninterrupted one
-    ref = train("test_spinner", "gru", tmp_path / "ref",
-                TrainConfig(trajectories=12, windows_per_epoch=48, val_trajectories=6, epochs=3,
-                            eval_trajectories=4, cache_dir=str(tmp_path / "cache")), progress=False)
+    ref = train(
+        "test_spinner",
+        "gru",
+        tmp_path / "ref",
+        TrainConfig(
+            trajectories=12,
+            windows_per_epoch=48,
+            val_trajectories=6,
+            epochs=3,
+            eval_trajectories=4,
+            cache_dir=str(tmp_path / "cache"),
+        ),
+        progress=False,
+    )
     w_ref, w_zoo = weights(ref), weights(zoo / work.name)
     assert all(torch.equal(w_ref[k], w_zoo[k]) for k in w_ref)
 
@@ -473,9 +527,25 @@ def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeyp
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
     state, zoo = tmp_path / "state", tmp_path / "zoo"
-    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo),
-            "--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6",
-            "--eval-trajectories", "4", "--quiet"]
+    args = [
+        "--scenarios",
+        "test_spinner",
+        "--methods",
+        "gru",
+        "--state",
+        str(state),
+        "--zoo",
+        str(zoo),
+        "--trajectories",
+        "12",
+        "--windows-per-epoch",
+        "48",
+        "--val-trajectories",
+        "6",
+        "--eval-trajectories",
+        "4",
+        "--quiet",
+    ]
     assert zoo_script.main(args + ["--max-epochs", "1"]) == 0  # one epoch, finished on its epoch budget
     work = state / "test_spinner-gru"
     shutil.rmtree(zoo / work.name)

@@ -16,7 +16,20 @@ from neural_estimator.bags.reader import BagDamage, BagReader, Connection
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, Qos
 
 __all__ = [
-    "BagDamage", "BagDirectory", "BagError", "BagReader", "BagWarning", "BagWriter", "Connection", "LATCHED_QOS",
-    "MessageError", "Qos", "RunArrays", "STREAM_QOS", "arrays_to_bag", "bag_to_arrays", "load_bag_dataset",
+    "BagDamage",
+    "BagDirectory",
+    "BagError",
+    "BagReader",
+    "BagWarning",
+    "BagWriter",
+    "Connection",
+    "LATCHED_QOS",
+    "MessageError",
+    "Qos",
+    "RunArrays",
+    "STREAM_QOS",
+    "arrays_to_bag",
+    "bag_to_arrays",
+    "load_bag_dataset",
     "open_bag",
 ]

@@ -106,7 +106,8 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         ):
             raise BagError(
                 f"{path}: no {M.resolve_topic(M.OBSERVATION, namespace)} or "
-                f"{M.resolve_topic(M.GROUND_TRUTH, namespace)} topic (topics: {', '.join(sorted(bag.topics)) or 'none'})"
+                f"{M.resolve_topic(M.GROUND_TRUTH, namespace)} topic "
+                f"(topics: {', '.join(sorted(bag.topics)) or 'none'})"
             )
 
         desc: dict[str, Any] | None = dict(description) if description is not None else None
@@ -131,8 +132,10 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
             except MessageError:
                 rejected[key] = rejected.get(key, 0) + 1
     if desc is None:
-        raise BagError(f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
-                       "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)")
+        raise BagError(
+            f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
+            "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)"
+        )
 
     dx, dy = len(desc["state_names"]), len(desc["obs_names"])
     du = len(desc.get("control_names", ()))
@@ -305,7 +308,10 @@ def arrays_to_bag(
 
 
 def load_bag_dataset(
-    path: str | Path, *, namespace: str = "/", description: Mapping[str, Any] | None = None,
+    path: str | Path,
+    *,
+    namespace: str = "/",
+    description: Mapping[str, Any] | None = None,
 ) -> tuple[Any, dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[int, ...]]:
     """A recorded run as the evaluation inputs: ``(truth, {method: (x_hat, P_hat or None)}, angle_states)``.
 
@@ -331,11 +337,14 @@ def load_bag_dataset(
     run = bag_to_arrays(path, namespace=namespace, description=description)
     est_topic = M.resolve_topic(M.estimate_topic("<method>"), namespace)
     if not run.x_hat:
-        raise BagError(f"{path}: no estimate stream ({est_topic}) to score; add one with "
-                       "`neural-estimator replay BAG --methods ... --out OUT.mcap`")
+        raise BagError(
+            f"{path}: no estimate stream ({est_topic}) to score; add one with "
+            "`neural-estimator replay BAG --methods ... --out OUT.mcap`"
+        )
     if not run.received.get(M.GROUND_TRUTH):
-        raise BagError(f"{path}: no {M.resolve_topic(M.GROUND_TRUTH, namespace)} messages: nothing to score "
-                       "the estimates against")
+        raise BagError(
+            f"{path}: no {M.resolve_topic(M.GROUND_TRUTH, namespace)} messages: nothing to score the estimates against"
+        )
     base = run.present[M.GROUND_TRUTH].all(axis=1)
     if run.received.get(M.OBSERVATION):
         base &= run.present[M.OBSERVATION].all(axis=1)
@@ -354,8 +363,10 @@ def load_bag_dataset(
         if cand.any() and 2 * int(cand.sum()) >= int(common.sum()):
             common, kept = cand, kept + [m]
         else:
-            methods_left_out[m] = (f"its stream is complete on {int(coverage[m].sum())} of {int(base.sum())} "
-                                   "trajectories with complete ground truth")
+            methods_left_out[m] = (
+                f"its stream is complete on {int(coverage[m].sum())} of {int(base.sum())} "
+                "trajectories with complete ground truth"
+            )
     if not kept or not common.any():
         raise BagError(
             f"{path}: no trajectory is complete in the ground truth, observations and an estimate stream "
@@ -388,8 +399,11 @@ def left_out_note(bag_info: Mapping[str, Any]) -> str:
     parts = []
     left = bag_info.get("left_out") or []
     if left:
-        parts.append(f"{len(left)} incomplete trajectories left out ({', '.join(map(str, left[:10]))}"
-                     + (", ..." if len(left) > 10 else "") + ")")
+        parts.append(
+            f"{len(left)} incomplete trajectories left out ({', '.join(map(str, left[:10]))}"
+            + (", ..." if len(left) > 10 else "")
+            + ")"
+        )
     for m, why in (bag_info.get("methods_left_out") or {}).items():
         parts.append(f"method {m} left out: {why}")
     return "; ".join(parts)

@@ -36,7 +36,9 @@ def bag_files(path: str | Path) -> list[Path]:
         try:
             info = yaml.safe_load(meta.read_text(errors="replace"))
         except (yaml.YAMLError, RecursionError, ValueError) as exc:
-            raise BagError(f"{meta}: unreadable rosbag2 metadata ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+            raise BagError(
+                f"{meta}: unreadable rosbag2 metadata ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+            ) from None
         info = info.get("rosbag2_bagfile_information") if isinstance(info, dict) else None
         if info is not None and not isinstance(info, dict):
             raise BagError(f"{meta}: 'rosbag2_bagfile_information' is not a mapping")
@@ -47,8 +49,10 @@ def bag_files(path: str | Path) -> list[Path]:
             raise BagError(f"{meta}: relative_file_paths must list file names inside the bag directory")
         storage = info.get("storage_identifier", "mcap")
         if storage not in ("mcap", "", None):
-            raise BagError(f"{root}: storage {str(storage)[:40]!r} is not supported (only mcap; convert with "
-                           f"`rosbags-convert` or `ros2 bag convert`)")
+            raise BagError(
+                f"{root}: storage {str(storage)[:40]!r} is not supported (only mcap; convert with "
+                f"`rosbags-convert` or `ros2 bag convert`)"
+            )
     files = [root / f for f in listed] if listed else sorted(root.glob("*.mcap"))
     if not files:
         raise BagError(f"{root}: a directory without .mcap files (not a rosbag2 mcap bag)")
@@ -67,8 +71,14 @@ def _is_file(path: Path) -> bool:
 
 def _plain_file_name(name: str) -> bool:
     """A relative path of one component, not '.', '..' or hidden behind separators (rosbag2 lists bare names)."""
-    return bool(name) and len(name.encode("utf-8", "surrogatepass")) <= 255 and "/" not in name and "\\" not in name and "\x00" not in name \
+    return (
+        bool(name)
+        and len(name.encode("utf-8", "surrogatepass")) <= 255
+        and "/" not in name
+        and "\\" not in name
+        and "\x00" not in name
         and name not in (".", "..")
+    )
 
 
 class BagDirectory:
@@ -105,8 +115,10 @@ class BagDirectory:
                     merged = by_topic[c.topic] = dataclasses.replace(c, id=len(by_topic) + 1, msgcount=0)
                 elif merged.msgtype != c.msgtype:
                     self.close()
-                    raise BagError(f"{self.path}: topic {c.topic!r} holds {merged.msgtype} in one file and "
-                                   f"{c.msgtype} in {part.path.name}")
+                    raise BagError(
+                        f"{self.path}: topic {c.topic!r} holds {merged.msgtype} in one file and "
+                        f"{c.msgtype} in {part.path.name}"
+                    )
                 merged.msgcount += c.msgcount
                 mapping[c.id] = merged
             self._map.append(mapping)
@@ -115,11 +127,18 @@ class BagDirectory:
         self.connections = list(by_topic.values())
         damaged = [p.damage for p in self.parts if p.damage is not None]
         if damaged:
-            self.damage = damaged[0] if len(damaged) == 1 else dataclasses.replace(
-                damaged[0], path=str(self.path), lost_bytes=sum(d.lost_bytes for d in damaged),
-                chunks_lost=sum(d.chunks_lost for d in damaged),
-                messages_recovered=self.message_count,
-                problems=tuple(f"{Path(d.path).name}: {p}" for d in damaged for p in d.problems))
+            self.damage = (
+                damaged[0]
+                if len(damaged) == 1
+                else dataclasses.replace(
+                    damaged[0],
+                    path=str(self.path),
+                    lost_bytes=sum(d.lost_bytes for d in damaged),
+                    chunks_lost=sum(d.chunks_lost for d in damaged),
+                    messages_recovered=self.message_count,
+                    problems=tuple(f"{Path(d.path).name}: {p}" for d in damaged for p in d.problems),
+                )
+            )
         for w in caught:  # re-announce the files' damage as the directory's
             warnings.warn(str(w.message), BagWarning, stacklevel=2)
         return self
@@ -160,8 +179,9 @@ class BagDirectory:
             raise BagError(f"{self.path}: topic {topic!r} holds {conn.msgtype}, expected {msgtype}")
         return conn
 
-    def messages(self, topics: Iterable[str] | None = None, start: int | None = None,
-                 stop: int | None = None) -> Iterator[tuple[Connection, int, bytes]]:
+    def messages(
+        self, topics: Iterable[str] | None = None, start: int | None = None, stop: int | None = None
+    ) -> Iterator[tuple[Connection, int, bytes]]:
         """``(connection, log_time_ns, raw)`` of every file, merged in log-time order."""
         if not self.parts:
             raise BagError(f"{self.path}: reader is not open (use it as a context manager)")

@@ -118,7 +118,7 @@ def topic_role(topic: str, namespace: str = "/") -> TopicRole | None:
     prefix = resolve_topic("", namespace).rstrip("/") + "/"
     if not topic.startswith(prefix):
         return None
-    rel = topic[len(prefix):]
+    rel = topic[len(prefix) :]
     if rel in (OBSERVATION, GROUND_TRUTH, SCENARIO, RUN_STATUS):
         return TopicRole(rel)
     parts = rel.split("/")
@@ -204,9 +204,7 @@ def vector_to_message(
     )
 
 
-def encode_vector(
-    stamp_ns: int, frame_id: str, trajectory: int, step: int, names: Sequence[str], values: Any
-) -> bytes:
+def encode_vector(stamp_ns: int, frame_id: str, trajectory: int, step: int, names: Sequence[str], values: Any) -> bytes:
     """CDR bytes of a vector message (see the module docstring)."""
     msg = vector_to_message(stamp_ns, frame_id, trajectory, step, names, values)
     return bytes(TYPESTORE.serialize_cdr(msg, JOINT_STATE))
@@ -305,14 +303,24 @@ class VectorCodec:
         if values.shape[0] != self._n - 2:
             raise MessageError(f"{len(self.names)} names for {values.shape[0]} values")
         sec, nsec = split_ns(stamp_ns)
-        return b"".join((self._ENCAPSULATION, struct.pack("<iI", sec, nsec), self._mid,
-                         struct.pack("<dd", trajectory, step), values.tobytes(), b"\x00" * 8))
+        return b"".join(
+            (
+                self._ENCAPSULATION,
+                struct.pack("<iI", sec, nsec),
+                self._mid,
+                struct.pack("<dd", trajectory, step),
+                values.tobytes(),
+                b"\x00" * 8,
+            )
+        )
 
     def decode(self, raw: bytes | memoryview) -> Vector:
         n_raw = len(raw)
         if n_raw > self.max_bytes:
-            raise MessageError(f"message of {n_raw} bytes is larger than any valid one of this stream ({len(self.names)} "
-                               f"values, at most {self.max_bytes} bytes): refused before decoding")
+            raise MessageError(
+                f"message of {n_raw} bytes is larger than any valid one of this stream ({len(self.names)} "
+                f"values, at most {self.max_bytes} bytes): refused before decoding"
+            )
         try:
             if bytes(raw[:4]) == self._ENCAPSULATION:
                 sec, nsec, flen = struct.unpack_from("<iII", raw, 4)
@@ -327,8 +335,14 @@ class VectorCodec:
                         traj, step = float(position[0]), float(position[1])
                         if all(math.isfinite(v) and v == int(v) and 0 <= v < _MAX_INDEX for v in (traj, step)):
                             frame = bytes(raw[16 : 16 + flen - 1]).decode("utf-8", errors="replace")
-                            return Vector(sec * 1_000_000_000 + nsec, frame, int(traj), int(step), self.names,
-                                          position[2:].astype(np.float64))
+                            return Vector(
+                                sec * 1_000_000_000 + nsec,
+                                frame,
+                                int(traj),
+                                int(step),
+                                self.names,
+                                position[2:].astype(np.float64),
+                            )
         except struct.error:
             pass
         return decode_vector(raw)
@@ -416,11 +430,43 @@ def decode_run_status(raw: bytes | memoryview) -> dict[str, Any]:
 
 
 __all__ = [
-    "COVARIANCE_SUFFIX", "CONTROL_PREFIX", "ESTIMATES", "GROUND_TRUTH", "ID_NAMES", "JOINT_STATE",
-    "OBSERVATION", "RUN_STATUS", "SCENARIO", "STATUS_COMPLETE", "STATUS_STARTED", "STRING",
-    "TYPESTORE", "TopicRole", "Vector", "VectorCodec", "check_labels", "covariance_labels", "covariance_topic",
-    "decode_run_status", "decode_scenario", "decode_string", "decode_vector", "dt_ns",
-    "encode_observation", "encode_run_status", "encode_scenario", "encode_string", "encode_vector",
-    "estimate_topic", "observation_labels", "resolve_topic", "split_ns", "split_observation",
-    "state_labels", "step_stamp_ns", "topic_role", "vector_from_message", "vector_to_message",
+    "COVARIANCE_SUFFIX",
+    "CONTROL_PREFIX",
+    "ESTIMATES",
+    "GROUND_TRUTH",
+    "ID_NAMES",
+    "JOINT_STATE",
+    "OBSERVATION",
+    "RUN_STATUS",
+    "SCENARIO",
+    "STATUS_COMPLETE",
+    "STATUS_STARTED",
+    "STRING",
+    "TYPESTORE",
+    "TopicRole",
+    "Vector",
+    "VectorCodec",
+    "check_labels",
+    "covariance_labels",
+    "covariance_topic",
+    "decode_run_status",
+    "decode_scenario",
+    "decode_string",
+    "decode_vector",
+    "dt_ns",
+    "encode_observation",
+    "encode_run_status",
+    "encode_scenario",
+    "encode_string",
+    "encode_vector",
+    "estimate_topic",
+    "observation_labels",
+    "resolve_topic",
+    "split_ns",
+    "split_observation",
+    "state_labels",
+    "step_stamp_ns",
+    "topic_role",
+    "vector_from_message",
+    "vector_to_message",
 ]

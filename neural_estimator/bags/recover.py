@@ -43,9 +43,13 @@ def recover_bag(src: str | Path, out: str | Path, *, overwrite: bool = False) ->
         warnings.simplefilter("ignore", BagWarning)  # reported through RecoverResult.damage
         with open_bag(src) as bag, BagWriter(out, overwrite=overwrite) as writer:
             for conn in bag.connections:
-                writer.add_topic(conn.topic, conn.msgtype, qos=parse_qos_yaml(conn.offered_qos_profiles),
-                                 msgdef=conn.msgdef or None,
-                                 type_hash=(conn.type_hash or "") if conn.msgdef else None)
+                writer.add_topic(
+                    conn.topic,
+                    conn.msgtype,
+                    qos=parse_qos_yaml(conn.offered_qos_profiles),
+                    msgdef=conn.msgdef or None,
+                    type_hash=(conn.type_hash or "") if conn.msgdef else None,
+                )
             n = 0
             for conn, t, raw in bag.messages():
                 writer.write(conn.topic, t, raw)

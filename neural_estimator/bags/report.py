@@ -87,12 +87,18 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
         "json": base.with_name(base.name + ".metrics.json"),
         "png": base.with_name(base.name + ".rmse.png"),
     }
-    heading = f"# {report.scenario}: {report.n_trajectories} trajectories x {report.horizon} steps ({report.path.name})\n\n"
+    heading = (
+        f"# {report.scenario}: {report.n_trajectories} trajectories x {report.horizon} steps ({report.path.name})\n\n"
+    )
     paths["markdown"].write_text(heading + report.table("markdown"))
     paths["json"].write_text(json.dumps(report.to_json(), indent=1))
     if report.reports:
-        plot_rmse_over_time({m: [r.rmse_t] for m, r in report.reports.items()}, paths["png"],
-                            title=f"{report.scenario} ({report.path.name})", dt=report.dt)
+        plot_rmse_over_time(
+            {m: [r.rmse_t] for m, r in report.reports.items()},
+            paths["png"],
+            title=f"{report.scenario} ({report.path.name})",
+            dt=report.dt,
+        )
     else:
         paths.pop("png")
     return paths

@@ -114,13 +114,19 @@ def parse_qos_yaml(text: str) -> list[Qos]:
             sec, nsec = int(d.get("sec", 0)), int(d.get("nsec", 0))
             return None if (sec, nsec) == (_INFINITE_SEC, _INFINITE_NSEC) else (sec, nsec)
 
-        out.append(Qos(
-            reliability=pol("reliability", "reliable"), durability=pol("durability", "volatile"),
-            history=pol("history", "keep_last"), depth=int(item.get("depth", 10)),
-            deadline=dur("deadline"), lifespan=dur("lifespan"), liveliness=pol("liveliness", "automatic"),
-            liveliness_lease_duration=dur("liveliness_lease_duration"),
-            avoid_ros_namespace_conventions=bool(item.get("avoid_ros_namespace_conventions", False)),
-        ))
+        out.append(
+            Qos(
+                reliability=pol("reliability", "reliable"),
+                durability=pol("durability", "volatile"),
+                history=pol("history", "keep_last"),
+                depth=int(item.get("depth", 10)),
+                deadline=dur("deadline"),
+                lifespan=dur("lifespan"),
+                liveliness=pol("liveliness", "automatic"),
+                liveliness_lease_duration=dur("liveliness_lease_duration"),
+                avoid_ros_namespace_conventions=bool(item.get("avoid_ros_namespace_conventions", False)),
+            )
+        )
     return out
 
 
@@ -261,8 +267,15 @@ class BagWriter:
         )
         self._topics[topic] = _Topic(topic, msgtype, channel_id, tuple(qos), type_hash)
 
-    def write(self, topic: str, time_ns: int, raw: bytes | memoryview, *, publish_time_ns: int | None = None,
-              sequence: int = 0) -> None:
+    def write(
+        self,
+        topic: str,
+        time_ns: int,
+        raw: bytes | memoryview,
+        *,
+        publish_time_ns: int | None = None,
+        sequence: int = 0,
+    ) -> None:
         """Write serialized CDR bytes on a declared topic at log time ``time_ns`` (integer ns)."""
         w = self._require_open()
         t = self._topics.get(topic)

@@ -16,8 +16,22 @@ from neural_estimator.data.protocol import (
 from neural_estimator.data.simulate import Trajectories, simulate
 
 __all__ = [
-    "ChunkSampler", "DataError", "Trajectories", "dataset", "evaluation_sets", "load_npz",
-    "load_trajectories", "save_estimates", "save_npz", "save_trajectories", "seed_stream", "simulate",
-    "training_set", "training_trajectories", "validation_set", "warmup_mask", "window_weights",
+    "ChunkSampler",
+    "DataError",
+    "Trajectories",
+    "dataset",
+    "evaluation_sets",
+    "load_npz",
+    "load_trajectories",
+    "save_estimates",
+    "save_npz",
+    "save_trajectories",
+    "seed_stream",
+    "simulate",
+    "training_set",
+    "training_trajectories",
+    "validation_set",
+    "warmup_mask",
+    "window_weights",
     "windows_per_epoch",
 ]

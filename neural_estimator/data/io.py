@@ -100,7 +100,9 @@ def load_npz(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     return arrays, meta
 
 
-def load_trajectories(path: str | Path, *, allow_nonfinite_estimates: bool = True) -> tuple[Trajectories, dict[str, np.ndarray]]:
+def load_trajectories(
+    path: str | Path, *, allow_nonfinite_estimates: bool = True
+) -> tuple[Trajectories, dict[str, np.ndarray]]:
     """Read and validate a dataset or estimate file.
 
     Returns:
@@ -122,7 +124,10 @@ def load_trajectories(path: str | Path, *, allow_nonfinite_estimates: bool = Tru
         bad = ~np.isfinite(a)
         if bad.any():
             n_bad = int(bad.any(axis=(1, 2)).sum())
-            raise DataError(f"{path}: {key!r} contains NaN or inf in {n_bad} trajectories (first: {int(np.argmax(bad.any(axis=(1, 2))))})")
+            raise DataError(
+                f"{path}: {key!r} contains NaN or inf in {n_bad} trajectories "
+                f"(first: {int(np.argmax(bad.any(axis=(1, 2))))})"
+            )
     names = meta.get("state_names")
     if names is not None and len(names) != x.shape[2]:
         raise DataError(f"{path}: x has {x.shape[2]} state components but meta names {len(names)}")

@@ -136,6 +136,7 @@ class ChunkSampler:
 # that no set from before the calibration is ever mixed in). 4: Lorenz 96 recalibrated (J = 10).
 SIMULATION_REVISION = 4
 
+
 def default_cache_dir() -> Path:
     """``$NEURAL_ESTIMATOR_CACHE`` or ``~/.cache/neural_estimator``."""
     return Path(os.environ.get("NEURAL_ESTIMATOR_CACHE", Path.home() / ".cache" / "neural_estimator"))
@@ -161,12 +162,24 @@ def dataset(
     if cache_dir is False:
         return _make(scenario, role, index, n, T, seed)
     key = json.dumps(
-        {"s": scenario.describe(), "r": role, "i": int(index), "n": int(n), "T": T, "seed": int(seed), "v": SIMULATION_REVISION,
-         **code_key(scenario)},
+        {
+            "s": scenario.describe(),
+            "r": role,
+            "i": int(index),
+            "n": int(n),
+            "T": T,
+            "seed": int(seed),
+            "v": SIMULATION_REVISION,
+            **code_key(scenario),
+        },
         sort_keys=True,
     )
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
-    path = Path(cache_dir or default_cache_dir()) / "datasets" / f"{scenario.name}-{role}{index}-{n}x{T}-s{seed}-{digest}.npz"
+    path = (
+        Path(cache_dir or default_cache_dir())
+        / "datasets"
+        / f"{scenario.name}-{role}{index}-{n}x{T}-s{seed}-{digest}.npz"
+    )
     if path.is_file():
         data, _ = load_trajectories(path)
         return data
@@ -192,7 +205,9 @@ def validation_set(scenario, seed=0, index=0, trajectories=VALIDATION_TRAJECTORI
     return dataset(scenario, "val", index, trajectories, horizon or TRAIN_TRAJECTORY_LENGTH, seed, cache_dir)
 
 
-def evaluation_sets(scenario, seed=0, trajectories=EVALUATION_TRAJECTORIES, horizon=None, sets=EVALUATION_SETS, cache_dir=None):
+def evaluation_sets(
+    scenario, seed=0, trajectories=EVALUATION_TRAJECTORIES, horizon=None, sets=EVALUATION_SETS, cache_dir=None
+):
     """The three independent evaluation sets at the scenario's horizon."""
     return [dataset(scenario, "eval", j, trajectories, horizon, seed, cache_dir) for j in range(sets)]
 

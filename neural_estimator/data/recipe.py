@@ -53,8 +53,16 @@ class TrainConfig:
     cache_dir: str | None = None  # dataset cache (None -> $NEURAL_ESTIMATOR_CACHE or ~/.cache/...)
 
     def __post_init__(self) -> None:
-        positive = ("val_trajectories", "train_length", "window", "batch_size", "epochs", "patience", "val_batch_size",
-                    "lr_patience")
+        positive = (
+            "val_trajectories",
+            "train_length",
+            "window",
+            "batch_size",
+            "epochs",
+            "patience",
+            "val_batch_size",
+            "lr_patience",
+        )
         for name in positive:
             if int(getattr(self, name)) < 1:
                 raise TrainingError(f"{name} must be >= 1, got {getattr(self, name)}")

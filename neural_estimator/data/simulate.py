@@ -117,5 +117,8 @@ def _noise_map(sqrt_cov: np.ndarray):
 def _seed_repr(seed: int | np.random.SeedSequence) -> Any:
     if isinstance(seed, np.random.SeedSequence):
         ent = seed.entropy
-        return {"entropy": [int(e) for e in ent] if np.ndim(ent) else int(ent), "spawn_key": [int(k) for k in seed.spawn_key]}
+        return {
+            "entropy": [int(e) for e in ent] if np.ndim(ent) else int(ent),
+            "spawn_key": [int(k) for k in seed.spawn_key],
+        }
     return int(seed)

@@ -163,7 +163,12 @@ class ClassicalFilter(Estimator):
     block_elements: int = 2**17
 
     def __init__(
-        self, scenario: Scenario, seed: int = 0, hyperparams: Any = None, threads: int | str | None = None, **options: Any
+        self,
+        scenario: Scenario,
+        seed: int = 0,
+        hyperparams: Any = None,
+        threads: int | str | None = None,
+        **options: Any,
     ) -> None:
         super().__init__(scenario)
         self.hp = build_hyperparams(self.HyperParams, self.method, hyperparams, options)
@@ -237,7 +242,9 @@ class ClassicalFilter(Estimator):
         batch of any size B > b: a stream's result depends on the seed and its index only.
         (SFC64: the fastest of numpy's generators for normal draws, a fifth faster than PCG64 here.)
         """
-        return np.random.Generator(np.random.SFC64(np.random.SeedSequence(self.seed, spawn_key=(self._k, phase, block))))
+        return np.random.Generator(
+            np.random.SFC64(np.random.SeedSequence(self.seed, spawn_key=(self._k, phase, block)))
+        )
 
     def _draw_blockwise(self, phase: int, draw: Callable[[np.random.Generator, int], np.ndarray]) -> np.ndarray:
         """(B, ...) draws assembled from ``draw(rng, rows)`` block by block (on the calling thread)."""

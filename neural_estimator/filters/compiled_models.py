@@ -113,13 +113,13 @@ def _nlink_accel(th, om, weights, neg_grav, c, s, om2, a, inv_d, acc, m):
     for j in range(n):
         for i in range(m):
             inv_d[j, i] = 1.0 / a[j, j, i]
-        for l in range(j + 1, n):
+        for q in range(j + 1, n):
             for i in range(m):
-                lij = a[j, l, i] * inv_d[j, i]
-                a[l, j, i] = lij
-                for k in range(l, n):
-                    a[l, k, i] -= lij * a[j, k, i]
-                acc[l, i] -= lij * acc[j, i]
+                lij = a[j, q, i] * inv_d[j, i]
+                a[q, j, i] = lij
+                for k in range(q, n):
+                    a[q, k, i] -= lij * a[j, k, i]
+                acc[q, i] -= lij * acc[j, i]
     for j in range(n - 1, -1, -1):
         for i in range(m):
             v = acc[j, i] * inv_d[j, i]
@@ -138,9 +138,23 @@ _NLINK_FASTMATH = {"contract", "arcp", "nsz"}
 def _nlink_scratch(n, P):
     """Twelve (N, P) rows and one (N, N, P) block of scratch for :func:`_nlink_rk4_rows` (separate
     arrays: views of one block would be typed non-contiguous, which stops the loops vectorising)."""
-    return ((np.empty((n, P)), np.empty((n, P)), np.empty((n, P)), np.empty((n, P)), np.empty((n, P)), np.empty((n, P)),
-             np.empty((n, P)), np.empty((n, P)), np.empty((n, P)), np.empty((n, P)), np.empty((n, P)), np.empty((n, P))),
-            np.empty((n, n, P)))
+    return (
+        (
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+            np.empty((n, P)),
+        ),
+        np.empty((n, n, P)),
+    )
 
 
 @nb.njit(inline="always")
@@ -216,7 +230,7 @@ def nlink_transition(X, h, substeps, weights, neg_grav):
     n = dx // 2
     rows, a = _nlink_scratch(n, _NLINK_ROWS)
     for lo in range(0, M, _NLINK_ROWS):
-        _nlink_rk4_rows(X[lo:lo + _NLINK_ROWS], h, substeps, weights, neg_grav, rows, a)
+        _nlink_rk4_rows(X[lo : lo + _NLINK_ROWS], h, substeps, weights, neg_grav, rows, a)
     for i in range(M):
         for j in range(n):
             X[i, j] = _wrap(X[i, j])

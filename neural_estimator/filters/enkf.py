@@ -99,7 +99,9 @@ class EnsembleKalmanFilter(MemberFilter):
             self._rho = localization_tapers(scenario, float(self.hp.localization_radius), self.method)
 
     def _init_state(self, B: int) -> None:
-        draws = self._draw_blockwise(PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_P0, self._sd_P0))
+        draws = self._draw_blockwise(
+            PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_P0, self._sd_P0)
+        )
         self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:

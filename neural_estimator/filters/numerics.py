@@ -245,9 +245,7 @@ class ScenarioOps:
             and cls.normalize_state is Scenario.normalize_state
         )
         self.plain_obs = (
-            not scenario.angle_obs
-            and cls.obs_residual is Scenario.obs_residual
-            and cls.obs_mean is Scenario.obs_mean
+            not scenario.angle_obs and cls.obs_residual is Scenario.obs_residual and cls.obs_mean is Scenario.obs_mean
         )
 
     def state_residual(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -296,7 +294,9 @@ def weighted_covariance(D: np.ndarray, weights: np.ndarray | None, denom: float 
     return symmetrize(C)
 
 
-def weighted_cross_covariance(Dx: np.ndarray, Dz: np.ndarray, weights: np.ndarray | None, denom: float = 1.0) -> np.ndarray:
+def weighted_cross_covariance(
+    Dx: np.ndarray, Dz: np.ndarray, weights: np.ndarray | None, denom: float = 1.0
+) -> np.ndarray:
     """sum_i w_i dx_i dz_i^T: (B, N, n), (B, N, m) -> (B, n, m)."""
     Dt = np.swapaxes(Dx, -1, -2)
     if weights is None:

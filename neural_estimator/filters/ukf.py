@@ -122,7 +122,9 @@ class UnscentedKalmanFilter(ClassicalFilter):
         H = np.asarray(H, dtype=np.float64)
         n, m = scenario.dx, scenario.dy
         if H.shape != (m, n) or not np.all(np.isfinite(H)):
-            raise EstimatorError(f"{self.method}: scenario {scenario.name!r} obs_matrix must be finite ({m}, {n}), got {H.shape}")
+            raise EstimatorError(
+                f"{self.method}: scenario {scenario.name!r} obs_matrix must be finite ({m}, {n}), got {H.shape}"
+            )
         return H, m == n and np.array_equal(H, np.eye(n))
 
     def _init_state(self, B: int) -> None:

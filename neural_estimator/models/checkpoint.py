@@ -225,7 +225,9 @@ def load_checkpoint(
         raise EstimatorError(f"{directory / CARD_FILE}: {exc}") from None
     name = card["weights"].get("file", WEIGHTS_FILE)
     if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
-        raise EstimatorError(f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}")
+        raise EstimatorError(
+            f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}"
+        )
     weights = directory / name
     if not weights.is_file():
         raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
@@ -261,11 +263,15 @@ def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path) -> No
     params = sum(p.numel() for p in probe.parameters())
     elements = params + sum(b.numel() for b in probe.buffers())
     if elements > MAX_MODEL_ELEMENTS:
-        raise EstimatorError(f"checkpoint {where}: the card declares a model of {elements:,} elements, more than the "
-                             f"{MAX_MODEL_ELEMENTS:,} this package loads")
+        raise EstimatorError(
+            f"checkpoint {where}: the card declares a model of {elements:,} elements, more than the "
+            f"{MAX_MODEL_ELEMENTS:,} this package loads"
+        )
     if 2 * params > weight_bytes + 4096:  # at least 2 bytes per stored parameter (bf16), plus the header
-        raise EstimatorError(f"checkpoint {where}: the card declares {params:,} parameters but the weight file holds "
-                             f"{weight_bytes:,} bytes: card and weights do not belong together")
+        raise EstimatorError(
+            f"checkpoint {where}: the card declares {params:,} parameters but the weight file holds "
+            f"{weight_bytes:,} bytes: card and weights do not belong together"
+        )
 
 
 def _dims(desc: dict[str, Any]) -> tuple[int, int, int]:
@@ -313,8 +319,14 @@ def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None
         )
 
 
-def load_neural_estimator(method: str, scenario: Scenario, checkpoint: str | Path | None = None,
-                          device: str = "cpu", covariance: bool = True, compile_step: bool = False):
+def load_neural_estimator(
+    method: str,
+    scenario: Scenario,
+    checkpoint: str | Path | None = None,
+    device: str = "cpu",
+    covariance: bool = True,
+    compile_step: bool = False,
+):
     """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
     Args:
@@ -345,5 +357,6 @@ def load_neural_estimator(method: str, scenario: Scenario, checkpoint: str | Pat
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
     model, normalizer, card = load_checkpoint(directory, device)
-    return NeuralEstimator(scenario, model, normalizer, m, device=device, covariance=covariance, card=card,
-                           compile_step=compile_step)
+    return NeuralEstimator(
+        scenario, model, normalizer, m, device=device, covariance=covariance, card=card, compile_step=compile_step
+    )

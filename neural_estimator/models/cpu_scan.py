@@ -24,7 +24,8 @@ Mamba-2 (per batch row; one scalar decay per head, a_t = exp(delta_t A) (H,), st
     gA   = sum_t a_t delta_t sum_{p,n} lam_t S_{t-1}
 
 Rows are independent, so with several threads the batch is split in row ranges run side by side
-(the kernels release the GIL); the per-row partial gradients of A are summed afterwards (no races). The autograd functions
+(the kernels release the GIL); the per-row partial gradients of A are summed afterwards (no races). The
+autograd functions
 :class:`MambaScanFn` and :class:`SSDScanFn` wrap them; the tests hold their outputs and gradients
 equal to the sequential references in float64.
 """
@@ -166,8 +167,10 @@ def _by_rows(kernel, row_args: list[np.ndarray], shared: list[np.ndarray], tail:
     if _POOL is None or _POOL._max_workers < k:
         _POOL = ThreadPoolExecutor(max_workers=k, thread_name_prefix="scan")
     bounds = np.linspace(0, n, k + 1).astype(int)
-    futures = [_POOL.submit(kernel, *(a[i:j] for a in row_args), *shared, *(a[i:j] for a in tail))
-               for i, j in zip(bounds[:-1], bounds[1:])]
+    futures = [
+        _POOL.submit(kernel, *(a[i:j] for a in row_args), *shared, *(a[i:j] for a in tail))
+        for i, j in zip(bounds[:-1], bounds[1:])
+    ]
     for f in futures:
         f.result()
 
@@ -187,8 +190,9 @@ class MambaScanFn(torch.autograd.Function):
         dA = torch.mul(delta.unsqueeze(-1), A).exp_()  # (B, T, E, N), one allocation
         y = u.new_empty(Bsz, T, E)
         last = u.new_empty(Bsz, E, A.shape[1])
-        _by_rows(_mamba_fwd, [u.numpy(), delta.numpy(), dA.numpy(), B.numpy(), C.numpy()], [],
-                 [y.numpy(), last.numpy()])
+        _by_rows(
+            _mamba_fwd, [u.numpy(), delta.numpy(), dA.numpy(), B.numpy(), C.numpy()], [], [y.numpy(), last.numpy()]
+        )
         ctx.save_for_backward(u, delta, dA, A, B, C)
         ctx.mark_non_differentiable(last)
         return y, last
@@ -200,9 +204,12 @@ class MambaScanFn(torch.autograd.Function):
         gu, gdelta = torch.empty_like(u), torch.empty_like(delta)
         gB, gC = torch.zeros_like(B), torch.zeros_like(C)
         gA_rows = u.new_zeros(u.shape[0], *A.shape)
-        _by_rows(lambda u_, d_, dA_, B_, C_, gy_, A_, *out: _mamba_bwd(u_, d_, dA_, A_, B_, C_, gy_, *out),
-                 [u.numpy(), delta.numpy(), dA.numpy(), B.numpy(), C.numpy(), gy.numpy()], [A.numpy()],
-                 [gu.numpy(), gdelta.numpy(), gA_rows.numpy(), gB.numpy(), gC.numpy()])
+        _by_rows(
+            lambda u_, d_, dA_, B_, C_, gy_, A_, *out: _mamba_bwd(u_, d_, dA_, A_, B_, C_, gy_, *out),
+            [u.numpy(), delta.numpy(), dA.numpy(), B.numpy(), C.numpy(), gy.numpy()],
+            [A.numpy()],
+            [gu.numpy(), gdelta.numpy(), gA_rows.numpy(), gB.numpy(), gC.numpy()],
+        )
         return gu, gdelta, gA_rows.sum(0), gB, gC
 
 
@@ -216,8 +223,12 @@ def mamba_scan_fused(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor) 
     u, delta, A, B, C = (x.detach().contiguous() for x in (u, delta, A, B, C))
     y = u.new_empty(u.shape)
     last = u.new_empty(u.shape[0], u.shape[2], A.shape[1])
-    _by_rows(lambda u_, d_, B_, C_, A_, y_, l_: _mamba_fwd_exp(u_, d_, A_, B_, C_, y_, l_),
-             [u.numpy(), delta.numpy(), B.numpy(), C.numpy()], [A.numpy()], [y.numpy(), last.numpy()])
+    _by_rows(
+        lambda u_, d_, B_, C_, A_, y_, l_: _mamba_fwd_exp(u_, d_, A_, B_, C_, y_, l_),
+        [u.numpy(), delta.numpy(), B.numpy(), C.numpy()],
+        [A.numpy()],
+        [y.numpy(), last.numpy()],
+    )
     return y, last
 
 
@@ -305,8 +316,12 @@ class SSDScanFn(torch.autograd.Function):
         Bsz, T, H, P = x.shape
         y = x.new_empty(Bsz, T, H, P)
         last = x.new_empty(Bsz, H, P, B.shape[-1])
-        _by_rows(lambda x_, d_, B_, C_, A_, y_, l_: _ssd_fwd(x_, d_, A_, B_, C_, y_, l_),
-                 [x.numpy(), delta.numpy(), B.numpy(), C.numpy()], [A.numpy()], [y.numpy(), last.numpy()])
+        _by_rows(
+            lambda x_, d_, B_, C_, A_, y_, l_: _ssd_fwd(x_, d_, A_, B_, C_, y_, l_),
+            [x.numpy(), delta.numpy(), B.numpy(), C.numpy()],
+            [A.numpy()],
+            [y.numpy(), last.numpy()],
+        )
         ctx.save_for_backward(x, delta, A, B, C)
         ctx.mark_non_differentiable(last)
         return y, last
@@ -318,9 +333,12 @@ class SSDScanFn(torch.autograd.Function):
         gx, gdelta = torch.empty_like(x), torch.empty_like(delta)
         gB, gC = torch.zeros_like(B), torch.zeros_like(C)
         gA_rows = x.new_zeros(x.shape[0], A.shape[0])
-        _by_rows(lambda x_, d_, B_, C_, gy_, A_, *out: _ssd_bwd(x_, d_, A_, B_, C_, gy_, *out),
-                 [x.numpy(), delta.numpy(), B.numpy(), C.numpy(), gy.numpy()], [A.numpy()],
-                 [gx.numpy(), gdelta.numpy(), gA_rows.numpy(), gB.numpy(), gC.numpy()])
+        _by_rows(
+            lambda x_, d_, B_, C_, gy_, A_, *out: _ssd_bwd(x_, d_, A_, B_, C_, gy_, *out),
+            [x.numpy(), delta.numpy(), B.numpy(), C.numpy(), gy.numpy()],
+            [A.numpy()],
+            [gx.numpy(), gdelta.numpy(), gA_rows.numpy(), gB.numpy(), gC.numpy()],
+        )
         return gx, gdelta, gA_rows.sum(0), gB, gC
 
 
@@ -395,8 +413,12 @@ class ConvSiLUFn(torch.autograd.Function):
         Bsz, T, C = x.shape
         pre, out = x.new_empty(Bsz, T, C), x.new_empty(Bsz, T, C)
         xn = x.numpy() if x.stride(-1) == 1 else x.contiguous().numpy()
-        _by_rows(lambda x_, w_, b_, p_, o_: _conv_silu_fwd(x_, w_, b_, p_, o_), [xn], [w.numpy(), b.numpy()],
-                 [pre.numpy(), out.numpy()])
+        _by_rows(
+            lambda x_, w_, b_, p_, o_: _conv_silu_fwd(x_, w_, b_, p_, o_),
+            [xn],
+            [w.numpy(), b.numpy()],
+            [pre.numpy(), out.numpy()],
+        )
         ctx.save_for_backward(x, w, pre)
         ctx.weight_shape = weight.shape
         return out
@@ -410,8 +432,12 @@ class ConvSiLUFn(torch.autograd.Function):
         gw_rows = x.new_zeros(Bsz, C, w.shape[1])
         gb_rows = x.new_zeros(Bsz, C)
         xn = x.numpy() if x.stride(-1) == 1 else x.contiguous().numpy()
-        _by_rows(lambda x_, p_, g_, w_, gx_, gw_, gb_: _conv_silu_bwd(x_, w_, p_, g_, gx_, gw_, gb_),
-                 [xn, pre.numpy(), gout.numpy()], [w.numpy()], [gx.numpy(), gw_rows.numpy(), gb_rows.numpy()])
+        _by_rows(
+            lambda x_, p_, g_, w_, gx_, gw_, gb_: _conv_silu_bwd(x_, w_, p_, g_, gx_, gw_, gb_),
+            [xn, pre.numpy(), gout.numpy()],
+            [w.numpy()],
+            [gx.numpy(), gw_rows.numpy(), gb_rows.numpy()],
+        )
         return gx, gw_rows.sum(0).view(ctx.weight_shape), gb_rows.sum(0)
 
 

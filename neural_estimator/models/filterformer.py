@@ -173,8 +173,9 @@ class FilterformerModel(nn.Module):
         e = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, D)
         ln_1, ln_2, ln_f = self.ln_1, self.ln_2, self.ln_f
         fc1, fc2 = self.mlp[0], self.mlp[2]
-        a, kv = self.attn.step(F.layer_norm(e, ln_1.normalized_shape, ln_1.weight, ln_1.bias, ln_1.eps),
-                               state[1], self.slot_alibi + mask)
+        a, kv = self.attn.step(
+            F.layer_norm(e, ln_1.normalized_shape, ln_1.weight, ln_1.bias, ln_1.eps), state[1], self.slot_alibi + mask
+        )
         e = e + a
         m = F.layer_norm(e, ln_2.normalized_shape, ln_2.weight, ln_2.bias, ln_2.eps)
         e = e + F.linear(F.gelu(F.linear(m, fc1.weight, fc1.bias)), fc2.weight, fc2.bias)

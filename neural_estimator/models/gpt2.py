@@ -108,8 +108,9 @@ class Block(nn.Module):
 
     def step(self, x: Tensor, kv_cache: Tensor, attn_bias: Tensor) -> tuple[Tensor, Tensor]:
         ln_1, ln_2 = self.ln_1, self.ln_2
-        a, kv_cache = self.attn.step(F.layer_norm(x, ln_1.normalized_shape, ln_1.weight, ln_1.bias, ln_1.eps),
-                                     kv_cache, attn_bias)
+        a, kv_cache = self.attn.step(
+            F.layer_norm(x, ln_1.normalized_shape, ln_1.weight, ln_1.bias, ln_1.eps), kv_cache, attn_bias
+        )
         x = x + a
         return x + self.mlp.step(F.layer_norm(x, ln_2.normalized_shape, ln_2.weight, ln_2.bias, ln_2.eps)), kv_cache
 
@@ -155,8 +156,10 @@ class GPT2Model(nn.Module):
         device = p.device if device is None else device
         dtype = p.dtype if dtype is None else dtype
         cfg = self.cfg
-        caches = [window_cache(batch, cfg.n_head, cfg.n_embd // cfg.n_head, cfg.decode_chunk, device, dtype)
-                  for _ in range(cfg.n_layer)]
+        caches = [
+            window_cache(batch, cfg.n_head, cfg.n_embd // cfg.n_head, cfg.decode_chunk, device, dtype)
+            for _ in range(cfg.n_layer)
+        ]
         return (caches[0][1], *(kv for kv, _ in caches))
 
     def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:

@@ -41,8 +41,13 @@ class GRUModel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.input_proj = nn.Linear(cfg.d_in, cfg.hidden)
-        self.rnn = nn.GRU(cfg.hidden, cfg.hidden, num_layers=cfg.layers, batch_first=True,
-                          dropout=cfg.dropout if cfg.layers > 1 else 0.0)
+        self.rnn = nn.GRU(
+            cfg.hidden,
+            cfg.hidden,
+            num_layers=cfg.layers,
+            batch_first=True,
+            dropout=cfg.dropout if cfg.layers > 1 else 0.0,
+        )
         self.head = nn.Linear(cfg.hidden, cfg.d_out)
 
     def forward(self, z: Tensor) -> Tensor:
@@ -51,9 +56,13 @@ class GRUModel(nn.Module):
 
     def init_state(self, batch: int, device=None, dtype=None) -> Tensor:
         p = self.head.weight
-        return torch.zeros(self.cfg.layers, batch, self.cfg.hidden,
-                           device=p.device if device is None else device,
-                           dtype=p.dtype if dtype is None else dtype)  # (L, B, H)
+        return torch.zeros(
+            self.cfg.layers,
+            batch,
+            self.cfg.hidden,
+            device=p.device if device is None else device,
+            dtype=p.dtype if dtype is None else dtype,
+        )  # (L, B, H)
 
     def step(self, z_t: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, H); no module-call overhead

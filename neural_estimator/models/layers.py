@@ -53,9 +53,7 @@ def _bias(slopes: Tensor, dist: Tensor, allowed: Tensor) -> Tensor:
     return bias.masked_fill(~allowed, float("-inf"))
 
 
-def window_attention(
-    q: Tensor, k: Tensor, v: Tensor, slopes: Tensor, window: int, dropout_p: float = 0.0
-) -> Tensor:
+def window_attention(q: Tensor, k: Tensor, v: Tensor, slopes: Tensor, window: int, dropout_p: float = 0.0) -> Tensor:
     """Parallel causal sliding-window ALiBi attention.
 
     Args:
@@ -103,8 +101,9 @@ def window_alibi(slopes: Tensor, window: int) -> Tensor:
     return -slopes[:, None, None] * age  # (nh, 1, W)
 
 
-def window_cache(batch: int, n_heads: int, head_size: int, window: int,
-                 device=None, dtype=None) -> tuple[Tensor, Tensor]:
+def window_cache(
+    batch: int, n_heads: int, head_size: int, window: int, device=None, dtype=None
+) -> tuple[Tensor, Tensor]:
     """Empty KV cache for :func:`window_attention_step` (one per layer) and the slot mask.
 
     Returns:

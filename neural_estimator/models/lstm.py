@@ -40,8 +40,13 @@ class LSTMModel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.input_proj = nn.Linear(cfg.d_in, cfg.hidden)
-        self.rnn = nn.LSTM(cfg.hidden, cfg.hidden, num_layers=cfg.layers, batch_first=True,
-                           dropout=cfg.dropout if cfg.layers > 1 else 0.0)
+        self.rnn = nn.LSTM(
+            cfg.hidden,
+            cfg.hidden,
+            num_layers=cfg.layers,
+            batch_first=True,
+            dropout=cfg.dropout if cfg.layers > 1 else 0.0,
+        )
         self.head = nn.Linear(cfg.hidden, cfg.d_out)
 
     def forward(self, z: Tensor) -> Tensor:
@@ -50,9 +55,13 @@ class LSTMModel(nn.Module):
 
     def init_state(self, batch: int, device=None, dtype=None) -> tuple[Tensor, Tensor]:
         p = self.head.weight
-        h = torch.zeros(self.cfg.layers, batch, self.cfg.hidden,
-                        device=p.device if device is None else device,
-                        dtype=p.dtype if dtype is None else dtype)  # (L, B, H)
+        h = torch.zeros(
+            self.cfg.layers,
+            batch,
+            self.cfg.hidden,
+            device=p.device if device is None else device,
+            dtype=p.dtype if dtype is None else dtype,
+        )  # (L, B, H)
         return h, torch.zeros_like(h)
 
     def step(self, z_t: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, tuple[Tensor, Tensor]]:

@@ -136,8 +136,9 @@ def selective_scan_stepwise(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: T
     return torch.stack(ys, dim=1), s
 
 
-def selective_scan_chunked(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor,
-                           chunk: int = 0) -> tuple[Tensor, Tensor]:
+def selective_scan_chunked(
+    u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, chunk: int = 0
+) -> tuple[Tensor, Tensor]:
     """Chunked parallel selective scan, equal to :func:`selective_scan_ref` (same arguments and returns).
 
     With t = iQ + j (chunk i, offset j) and L_{i,j} = sum_{j' <= j} delta_{i,j'} (within chunk i):
@@ -184,8 +185,9 @@ def selective_scan_chunked(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Te
 CPU_SCANS = ("fused", "stepwise")  # the CPU forms of the training scan, fastest first (measured)
 
 
-def selective_scan(u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, chunk: int = 0,
-                   cpu_scan: str = "fused") -> tuple[Tensor, Tensor]:
+def selective_scan(
+    u: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, chunk: int = 0, cpu_scan: str = "fused"
+) -> tuple[Tensor, Tensor]:
     """The training scan: on CPU the fused numba kernel (:mod:`~neural_estimator.models.cpu_scan`,
     hand-written backward) or ``cpu_scan="stepwise"`` (:func:`selective_scan_stepwise`, torch
     autograd, the previous path); :func:`selective_scan_chunked` elsewhere."""
@@ -235,8 +237,13 @@ class MambaMixer(nn.Module):
         """h (B, T, d) -> (B, T, d); ``reference=True`` uses :func:`selective_scan_ref`."""
         T = h.shape[1]
         x, g = self.in_proj(h).chunk(2, dim=-1)  # (B, T, E) each
-        if (not reference and self.cpu_scan == "fused" and conv_silu_fused is not None and x.device.type == "cpu"
-                and x.dtype in (torch.float32, torch.float64)):
+        if (
+            not reference
+            and self.cpu_scan == "fused"
+            and conv_silu_fused is not None
+            and x.device.type == "cpu"
+            and x.dtype in (torch.float32, torch.float64)
+        ):
             u = conv_silu_fused(x, self.conv1d.weight, self.conv1d.bias)  # (B, T, E), one fused kernel
         else:
             u = F.silu(self.conv1d(x.transpose(1, 2))[..., :T]).transpose(1, 2)  # (B, T, E)
@@ -244,9 +251,15 @@ class MambaMixer(nn.Module):
         A = -torch.exp(self.A_log)  # (E, N)
         if self.use_cuda_kernels and _cuda_selective_scan is not None and u.is_cuda and not reference:
             y = _cuda_selective_scan(
-                u.transpose(1, 2).contiguous(), (dt @ self.dt_proj.weight.t()).transpose(1, 2).contiguous(),
-                A.float(), b.transpose(1, 2).contiguous(), c.transpose(1, 2).contiguous(), self.D.float(),
-                z=g.transpose(1, 2).contiguous(), delta_bias=self.dt_proj.bias.float(), delta_softplus=True,
+                u.transpose(1, 2).contiguous(),
+                (dt @ self.dt_proj.weight.t()).transpose(1, 2).contiguous(),
+                A.float(),
+                b.transpose(1, 2).contiguous(),
+                c.transpose(1, 2).contiguous(),
+                self.D.float(),
+                z=g.transpose(1, 2).contiguous(),
+                delta_bias=self.dt_proj.bias.float(),
+                delta_softplus=True,
             ).transpose(1, 2)  # (B, T, E)
             return self.out_proj(y)
         delta = F.softplus(self.dt_proj(dt))  # (B, T, E)

@@ -138,8 +138,9 @@ def segsum(a: Tensor) -> Tensor:
     return out.masked_fill(~causal, float("-inf"))
 
 
-def ssd_chunked(x: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor,
-                chunk_size: int = 32) -> tuple[Tensor, Tensor]:
+def ssd_chunked(
+    x: Tensor, delta: Tensor, A: Tensor, B: Tensor, C: Tensor, chunk_size: int = 32
+) -> tuple[Tensor, Tensor]:
     """Chunked SSD, equal to :func:`ssd_ref` (same arguments and returns).
 
     Chunks of Q <= chunk_size steps (the number of chunks is ceil(T / chunk_size) and Q evens them
@@ -230,8 +231,13 @@ class Mamba2Mixer(nn.Module):
         Bsz, T, _ = h.shape
         E, H, P, N = self.d_inner, self.nheads, self.headdim, self.d_state
         g, xbc, dt = self.in_proj(h).split([E, E + 2 * N, H], dim=-1)
-        if (not reference and self.cpu_scan == "fused" and conv_silu_fused is not None and h.device.type == "cpu"
-                and h.dtype in (torch.float32, torch.float64)):
+        if (
+            not reference
+            and self.cpu_scan == "fused"
+            and conv_silu_fused is not None
+            and h.device.type == "cpu"
+            and h.dtype in (torch.float32, torch.float64)
+        ):
             xbc = conv_silu_fused(xbc, self.conv1d.weight, self.conv1d.bias)  # (B, T, E + 2N), one fused kernel
         else:
             xbc = F.silu(self.conv1d(xbc.transpose(1, 2))[..., :T].transpose(1, 2))  # (B, T, E + 2N)
@@ -239,14 +245,27 @@ class Mamba2Mixer(nn.Module):
         x = x.reshape(Bsz, T, H, P)  # (B, T, H, P)
         A = -torch.exp(self.A_log)  # (H,)
         if self.use_cuda_kernels and _cuda_chunk_scan is not None and h.is_cuda and not reference:
-            y = _cuda_chunk_scan(x, dt, A.float(), b.unsqueeze(2), c.unsqueeze(2), chunk_size=256, D=self.D,
-                                 dt_bias=self.dt_bias, dt_softplus=True)  # (B, T, H, P), D included
+            y = _cuda_chunk_scan(
+                x,
+                dt,
+                A.float(),
+                b.unsqueeze(2),
+                c.unsqueeze(2),
+                chunk_size=256,
+                D=self.D,
+                dt_bias=self.dt_bias,
+                dt_softplus=True,
+            )  # (B, T, H, P), D included
         else:
             delta = F.softplus(dt + self.dt_bias)  # (B, T, H)
             if reference:
                 y, _ = ssd_ref(x, delta, A, b, c)
-            elif (self.cpu_scan == "fused" and ssd_scan_fused is not None and x.device.type == "cpu"
-                  and x.dtype in (torch.float32, torch.float64)):
+            elif (
+                self.cpu_scan == "fused"
+                and ssd_scan_fused is not None
+                and x.device.type == "cpu"
+                and x.dtype in (torch.float32, torch.float64)
+            ):
                 y, _ = ssd_scan_fused(x, delta, A, b, c)
             else:
                 y, _ = ssd_chunked(x, delta, A, b, c, self.chunk_size)
@@ -275,8 +294,11 @@ class Mamba2Mixer(nn.Module):
         delta = F.softplus(dt + self.dt_bias)  # (B, H)
         dA = torch.exp(delta * -torch.exp(self.A_log))  # (B, H)
         # S = dA S + (delta x) b^T as one batched outer-product update, S viewed as (B, E, N)
-        ssm_state = torch.baddbmm((ssm_state * dA[:, :, None, None]).view(Bsz, E, N),
-                                  (x * delta.unsqueeze(-1)).view(Bsz, E, 1), b.view(Bsz, 1, N))
+        ssm_state = torch.baddbmm(
+            (ssm_state * dA[:, :, None, None]).view(Bsz, E, N),
+            (x * delta.unsqueeze(-1)).view(Bsz, E, 1),
+            b.view(Bsz, 1, N),
+        )
         y = torch.baddbmm((x * self.D[:, None]).view(Bsz, E, 1), ssm_state, c.view(Bsz, N, 1))  # S c + D x
         ssm_state = ssm_state.view(Bsz, H, P, N)
         y = y.view(Bsz, E)

@@ -70,8 +70,10 @@ class Normalizer:
         object.__setattr__(self, "angle_states", tuple(int(i) for i in self.angle_states))
         d_in = self.dy + self.du
         if self.in_mean.shape != (d_in,) or self.in_std.shape != (d_in,):
-            raise NormalizationError(f"input statistics must be ({d_in},) for dy={self.dy}, du={self.du}; "
-                                     f"got {self.in_mean.shape} and {self.in_std.shape}")
+            raise NormalizationError(
+                f"input statistics must be ({d_in},) for dy={self.dy}, du={self.du}; "
+                f"got {self.in_mean.shape} and {self.in_std.shape}"
+            )
         if self.out_mean.ndim != 1 or self.out_std.shape != self.out_mean.shape:
             raise NormalizationError(
                 f"state statistics must be (dx,); got {self.out_mean.shape} and {self.out_std.shape}"
@@ -117,8 +119,15 @@ class Normalizer:
         out_mean, out_std = xs.mean(0), xs.std(0)
         idx = list(angle_states)
         out_mean[idx], out_std[idx] = 0.0, 1.0
-        return cls(in_mean, _floored_std(in_mean, in_std, std_floor), out_mean,
-                   _floored_std(out_mean, out_std, std_floor), dy, du, tuple(angle_states))
+        return cls(
+            in_mean,
+            _floored_std(in_mean, in_std, std_floor),
+            out_mean,
+            _floored_std(out_mean, out_std, std_floor),
+            dy,
+            du,
+            tuple(angle_states),
+        )
 
     @classmethod
     def from_data(cls, scenario, data, std_floor: float = STD_FLOOR) -> "Normalizer":
@@ -180,9 +189,15 @@ class Normalizer:
     def from_dict(cls, d: dict[str, Any]) -> "Normalizer":
         """Inverse of :meth:`to_dict`; a missing or malformed field raises NormalizationError."""
         try:
-            return cls(np.asarray(d["in_mean"], dtype=np.float64), np.asarray(d["in_std"], dtype=np.float64),
-                       np.asarray(d["out_mean"], dtype=np.float64), np.asarray(d["out_std"], dtype=np.float64),
-                       int(d["dy"]), int(d["du"]), tuple(d.get("angle_states", ())))
+            return cls(
+                np.asarray(d["in_mean"], dtype=np.float64),
+                np.asarray(d["in_std"], dtype=np.float64),
+                np.asarray(d["out_mean"], dtype=np.float64),
+                np.asarray(d["out_std"], dtype=np.float64),
+                int(d["dy"]),
+                int(d["du"]),
+                tuple(d.get("angle_states", ())),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, NormalizationError):
                 raise

@@ -80,8 +80,16 @@ from neural_estimator.scenarios import Scenario, make_scenario
 RESUME_DIR = "resume"
 RESUME_FORMAT = "neural_estimator.resume"
 # Settings that may change when a run is resumed (budget and runtime); everything else must match.
-RESUMABLE_CHANGES = ("epochs", "patience", "device", "resume", "keep_resume", "cache_dir", "eval_trajectories",
-                     "val_batch_size")
+RESUMABLE_CHANGES = (
+    "epochs",
+    "patience",
+    "device",
+    "resume",
+    "keep_resume",
+    "cache_dir",
+    "eval_trajectories",
+    "val_batch_size",
+)
 
 
 def state_error(pred: torch.Tensor, target: torch.Tensor, angle_mask: torch.Tensor) -> torch.Tensor:
@@ -117,9 +125,15 @@ def converged(stopped: str | None, history: list[dict[str, Any]], initial_lr: fl
     return bool(stopped and stopped.startswith("early stopping")) or lr_reductions(history, initial_lr) >= 3
 
 
-def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: TrainConfig | None = None,
-          progress: bool = True, deadline: float | None = None,
-          data: tuple[Trajectories, Trajectories] | None = None) -> Path:
+def train(
+    scenario: Scenario | str,
+    arch: str,
+    out_dir: str | Path,
+    config: TrainConfig | None = None,
+    progress: bool = True,
+    deadline: float | None = None,
+    data: tuple[Trajectories, Trajectories] | None = None,
+) -> Path:
     """Train ``arch`` on ``scenario`` and write the best model as a checkpoint in ``out_dir``.
 
     Args:
@@ -161,27 +175,40 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         train_data, val_data = data
         for role, d in (("training", train_data), ("validation", val_data)):
             if (d.x.shape[2], d.y.shape[2], d.u.shape[2]) != (scenario.dx, scenario.dy, scenario.du):
-                raise TrainingError(f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
-                                    f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}")
+                raise TrainingError(
+                    f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
+                    f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}"
+                )
         if train_data.horizon < cfg.window:
-            raise TrainingError(f"training trajectories have {train_data.horizon} steps, fewer than the window "
-                                f"({cfg.window}); pass a smaller --window or cut longer trajectories")
-        cfg = dataclasses.replace(cfg, trajectories=train_data.n, train_length=train_data.horizon,
-                                  val_trajectories=val_data.n, eval_trajectories=min(cfg.eval_trajectories, val_data.n))
+            raise TrainingError(
+                f"training trajectories have {train_data.horizon} steps, fewer than the window "
+                f"({cfg.window}); pass a smaller --window or cut longer trajectories"
+            )
+        cfg = dataclasses.replace(
+            cfg,
+            trajectories=train_data.n,
+            train_length=train_data.horizon,
+            val_trajectories=val_data.n,
+            eval_trajectories=min(cfg.eval_trajectories, val_data.n),
+        )
         recorded = {"train_sha256": trajectories_digest(train_data), "val_sha256": trajectories_digest(val_data)}
         n_train = train_data.n
     else:
         n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
         train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
-        val_data = dataset(scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache)
+        val_data = dataset(
+            scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache
+        )
     eval_data = val_data if recorded is not None else None  # recorded data: card metrics on the validation set
     norm = Normalizer.from_data(scenario, train_data)
 
     def as_tensors(data) -> tuple[torch.Tensor, torch.Tensor]:
         z, _ = norm.normalize_inputs(data.y, previous_controls(data.u))  # (N, T, d_in)
         x = norm.normalize_states(data.x)  # (N, T, dx)
-        return (torch.as_tensor(z, dtype=torch.float32, device=device),
-                torch.as_tensor(x, dtype=torch.float32, device=device))
+        return (
+            torch.as_tensor(z, dtype=torch.float32, device=device),
+            torch.as_tensor(x, dtype=torch.float32, device=device),
+        )
 
     Z_train, X_train = as_tensors(train_data)
     Z_val, X_val = as_tensors(val_data)
@@ -197,11 +224,17 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
     torch.manual_seed(cfg.init_seed)  # initial weights and dropout
     model = build_model(arch, norm.d_in, dx, **cfg.model_overrides).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, mode="min", factor=cfg.lr_factor,
-                                                           patience=cfg.lr_patience)
+    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+        optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
+    )
     rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
     run = {"epoch": 0, "best": math.inf, "best_epoch": 0, "bad_epochs": 0, "stopped": None, "history": []}
-    identity = {"scenario": scenario.describe(), "arch": arch, "config": cfg.recipe(), **({"recorded": recorded} if recorded else {})}
+    identity = {
+        "scenario": scenario.describe(),
+        "arch": arch,
+        "config": cfg.recipe(),
+        **({"recorded": recorded} if recorded else {}),
+    }
     if cfg.resume and (out_dir / RESUME_DIR / "state.json").is_file():
         run = load_resume(out_dir / RESUME_DIR, identity, model, optimizer, scheduler, rng)
         if run["stopped"] and run["bad_epochs"] < cfg.patience:
@@ -234,22 +267,34 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         return {
             "scenario": scenario.describe(),
             "data": {
-                **({"source": "recorded", **recorded} if recorded else
-                   {"seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio}),
-                "train_trajectories": n_train, "train_length": cfg.train_length,
-                "val_trajectories": cfg.val_trajectories, "windows_per_epoch": n_windows,
+                **(
+                    {"source": "recorded", **recorded}
+                    if recorded
+                    else {"seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio}
+                ),
+                "train_trajectories": n_train,
+                "train_length": cfg.train_length,
+                "val_trajectories": cfg.val_trajectories,
+                "windows_per_epoch": n_windows,
             },
             "init_seed": cfg.init_seed,
             "training": {
-                "recipe": cfg.recipe(), "device": str(device), "steps_per_epoch": steps_per_epoch,
+                "recipe": cfg.recipe(),
+                "device": str(device),
+                "steps_per_epoch": steps_per_epoch,
                 "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "
-                        "e = normalised error, angles wrapped",
+                "e = normalised error, angles wrapped",
                 "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode",
-                "epochs_run": run["epoch"], "best_epoch": run["best_epoch"],
+                "epochs_run": run["epoch"],
+                "best_epoch": run["best_epoch"],
                 "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
-                "budget": {"max_epochs": cfg.epochs, "early_stopping_patience": cfg.patience,
-                           "windows_per_epoch": n_windows, "val_trajectories": cfg.val_trajectories,
-                           "wall_seconds": round(sum(h["seconds"] for h in run["history"]), 1)},
+                "budget": {
+                    "max_epochs": cfg.epochs,
+                    "early_stopping_patience": cfg.patience,
+                    "windows_per_epoch": n_windows,
+                    "val_trajectories": cfg.val_trajectories,
+                    "wall_seconds": round(sum(h["seconds"] for h in run["history"]), 1),
+                },
                 "lr_reductions": lr_reductions(run["history"], cfg.lr),
                 "converged": converged(run["stopped"], run["history"], cfg.lr),
                 "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
@@ -260,8 +305,15 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         }
 
     # ---- the loop ----
-    bar = tqdm(total=cfg.epochs, initial=run["epoch"], disable=not progress, unit="epoch",
-               desc=f"{scenario.name}/{arch}", dynamic_ncols=True, position=0)
+    bar = tqdm(
+        total=cfg.epochs,
+        initial=run["epoch"],
+        disable=not progress,
+        unit="epoch",
+        desc=f"{scenario.name}/{arch}",
+        dynamic_ncols=True,
+        position=0,
+    )
     interrupted = False
     while run["epoch"] < cfg.epochs and run["stopped"] is None:
         if deadline is not None and time.time() >= deadline:
@@ -271,8 +323,15 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
         model.train()
         train_loss = 0.0
         # inside the epoch: batches of windows, then validation batches (rate and time left)
-        inner = tqdm(total=steps_per_epoch, disable=not progress, unit="batch", leave=False, position=1,
-                     desc=f"{scenario.name}/{arch} epoch {run['epoch'] + 1} training", dynamic_ncols=True)
+        inner = tqdm(
+            total=steps_per_epoch,
+            disable=not progress,
+            unit="batch",
+            leave=False,
+            position=1,
+            desc=f"{scenario.name}/{arch} epoch {run['epoch'] + 1} training",
+            dynamic_ncols=True,
+        )
         for it in range(steps_per_epoch):
             z, x, w = get_batch()
             loss = weighted_loss(model(z), x, w, angle_mask)
@@ -289,19 +348,29 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
             train_loss += loss_value
             inner.update(1)
             if it % 10 == 9 or it == steps_per_epoch - 1:
-                inner.set_postfix_str(f"{cfg.batch_size * inner.n / max(inner.format_dict['elapsed'], 1e-9):.0f} windows/s, "
-                                      f"loss {train_loss / (it + 1):.4g}")
+                inner.set_postfix_str(
+                    f"{cfg.batch_size * inner.n / max(inner.format_dict['elapsed'], 1e-9):.0f} windows/s, "
+                    f"loss {train_loss / (it + 1):.4g}"
+                )
         inner.close()
         train_loss /= steps_per_epoch
-        inner = tqdm(total=n_val_batches, disable=not progress, unit="batch", leave=False, position=1,
-                     dynamic_ncols=True)
+        inner = tqdm(
+            total=n_val_batches, disable=not progress, unit="batch", leave=False, position=1, dynamic_ncols=True
+        )
         val_loss = estimate_loss(inner)
         inner.close()
         scheduler.step(val_loss)
         run["epoch"] += 1
         lr = optimizer.param_groups[0]["lr"]
-        run["history"].append({"epoch": run["epoch"], "train_loss": train_loss, "val_loss": val_loss, "lr": lr,
-                               "seconds": round(time.perf_counter() - t0, 3)})
+        run["history"].append(
+            {
+                "epoch": run["epoch"],
+                "train_loss": train_loss,
+                "val_loss": val_loss,
+                "lr": lr,
+                "seconds": round(time.perf_counter() - t0, 3),
+            }
+        )
         if val_loss < run["best"]:
             run["best"], run["best_epoch"], run["bad_epochs"] = val_loss, run["epoch"], 0
             save_checkpoint(out_dir, model, norm, card())
@@ -311,8 +380,9 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
                 run["stopped"] = f"early stopping: no lower validation loss in {cfg.patience} epochs"
         save_resume(out_dir / RESUME_DIR, identity, run, model, optimizer, scheduler, rng)
         bar.update(1)
-        bar.set_postfix({"train": f"{train_loss:.4g}", "val": f"{val_loss:.4g}", "best": f"{run['best']:.4g}",
-                         "lr": f"{lr:.2g}"})
+        bar.set_postfix(
+            {"train": f"{train_loss:.4g}", "val": f"{val_loss:.4g}", "best": f"{run['best']:.4g}", "lr": f"{lr:.2g}"}
+        )
     bar.close()
     if interrupted:  # out of time: the resume state and the best checkpoint so far stay for the next run
         return out_dir
@@ -323,31 +393,53 @@ def train(scenario: Scenario | str, arch: str, out_dir: str | Path, config: Trai
     best_model, _, _ = load_checkpoint(out_dir, device)
     metrics = None
     if cfg.eval_trajectories:
-        metrics = evaluate(scenario, best_model, norm, arch, cfg.eval_trajectories, cfg.data_seed, device, cache,
-                           data=eval_data)
+        metrics = evaluate(
+            scenario, best_model, norm, arch, cfg.eval_trajectories, cfg.data_seed, device, cache, data=eval_data
+        )
     save_checkpoint(out_dir, best_model, norm, card(metrics))
     if not cfg.keep_resume:
         shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
     return out_dir
 
 
-def evaluate(scenario: Scenario, model: torch.nn.Module, normalizer: Normalizer, arch: str, trajectories: int,
-             seed: int = 0, device: str | torch.device = "cpu", cache_dir: str | None = None,
-             data: Trajectories | None = None) -> dict[str, Any]:
+def evaluate(
+    scenario: Scenario,
+    model: torch.nn.Module,
+    normalizer: Normalizer,
+    arch: str,
+    trajectories: int,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    cache_dir: str | None = None,
+    data: Trajectories | None = None,
+) -> dict[str, Any]:
     """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon), or of
     ``data`` (recorded data: the validation set)."""
     role = "eval" if data is None else "val (recorded)"
-    data = dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir) if data is None else data.subset(slice(0, trajectories))
+    data = (
+        dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir)
+        if data is None
+        else data.subset(slice(0, trajectories))
+    )
     est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False)
     out = est.run(data.y, data.u)
     report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged)
-    return {"set": {"role": role, "index": 0, "seed": seed, "trajectories": data.n, "horizon": data.horizon},
-            **to_json(report.scalars())}
+    return {
+        "set": {"role": role, "index": 0, "seed": seed, "trajectories": data.n, "horizon": data.horizon},
+        **to_json(report.scalars()),
+    }
 
 
 # ---- resume state: safetensors for tensors, JSON for the rest ----------------------------------------
-def save_resume(directory: Path, identity: dict[str, Any], run: dict[str, Any], model: torch.nn.Module,
-                optimizer: torch.optim.Optimizer, scheduler: Any, rng: np.random.Generator) -> None:
+def save_resume(
+    directory: Path,
+    identity: dict[str, Any],
+    run: dict[str, Any],
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    rng: np.random.Generator,
+) -> None:
     """Write the state after an epoch: written to ``directory.tmp`` and then swapped in."""
     from safetensors.torch import save_file, save_model
 
@@ -387,8 +479,14 @@ def save_resume(directory: Path, identity: dict[str, Any], run: dict[str, Any], 
     shutil.rmtree(old, ignore_errors=True)
 
 
-def load_resume(directory: Path, identity: dict[str, Any], model: torch.nn.Module, optimizer: torch.optim.Optimizer,
-                scheduler: Any, rng: np.random.Generator) -> dict[str, Any]:
+def load_resume(
+    directory: Path,
+    identity: dict[str, Any],
+    model: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
     """Restore the state :func:`save_resume` wrote (in place); returns the run record."""
     from safetensors.torch import load_file, load_model
 
@@ -431,17 +529,34 @@ def load_resume(directory: Path, identity: dict[str, Any], model: torch.nn.Modul
 def _check_same_run(directory: Path, state: dict[str, Any], identity: dict[str, Any]) -> None:
     """Refuse to resume a state written by another scenario, architecture or recipe."""
     if state.get("scenario") != identity["scenario"]:
-        raise TrainingError(f"{directory} was written for scenario {state.get('scenario', {}).get('scenario')!r} "
-                            f"with other constants or dimensions; start without --resume or use another --out")
+        raise TrainingError(
+            f"{directory} was written for scenario {state.get('scenario', {}).get('scenario')!r} "
+            f"with other constants or dimensions; start without --resume or use another --out"
+        )
     if state.get("arch") != identity["arch"]:
         raise TrainingError(f"{directory} was written for {state.get('arch')!r}, not {identity['arch']!r}")
     old, new = state.get("config", {}), json_ready(identity["config"])
-    diffs = [f"{k}={old.get(k)!r} (resume state) vs {new.get(k)!r} (now)" for k in sorted(set(old) | set(new))
-             if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
+    diffs = [
+        f"{k}={old.get(k)!r} (resume state) vs {new.get(k)!r} (now)"
+        for k in sorted(set(old) | set(new))
+        if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)
+    ]
     if diffs:
-        raise TrainingError(f"{directory} was written with other settings: {'; '.join(diffs)}. Resume with the same "
-                            f"settings (only {', '.join(RESUMABLE_CHANGES)} may change) or start without --resume")
+        raise TrainingError(
+            f"{directory} was written with other settings: {'; '.join(diffs)}. Resume with the same "
+            f"settings (only {', '.join(RESUMABLE_CHANGES)} may change) or start without --resume"
+        )
 
 
-__all__ = ["TrainConfig", "TrainingError", "converged", "evaluate", "load_resume", "lr_reductions", "save_resume", "state_error", "train",
-           "weighted_loss"]
+__all__ = [
+    "TrainConfig",
+    "TrainingError",
+    "converged",
+    "evaluate",
+    "load_resume",
+    "lr_reductions",
+    "save_resume",
+    "state_error",
+    "train",
+    "weighted_loss",
+]

@@ -51,8 +51,13 @@ def declare_params(node: Node, cls: type[P]) -> P:
             read_only=True,
             dynamic_typing=True,
         )
-        value = node.declare_parameter(f.name, list(default) if isinstance(default, tuple) and default else
-                                       (None if isinstance(default, tuple) else default), desc).value
+        value = node.declare_parameter(
+            f.name,
+            list(default)
+            if isinstance(default, tuple) and default
+            else (None if isinstance(default, tuple) else default),
+            desc,
+        ).value
         values[f.name] = _coerce(f.name, value, kind, default)
     try:
         return cls(**values)
@@ -149,7 +154,9 @@ def from_bag_qos(q: Qos, min_depth: int = 1) -> QoSProfile:
         reliability=ReliabilityPolicy.BEST_EFFORT if q.reliability == "best_effort" else ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if q.durability == "transient_local" else DurabilityPolicy.VOLATILE,
         history=HistoryPolicy.KEEP_ALL if q.history == "keep_all" else HistoryPolicy.KEEP_LAST,
-        liveliness=LivelinessPolicy.MANUAL_BY_TOPIC if q.liveliness == "manual_by_topic" else LivelinessPolicy.AUTOMATIC,
+        liveliness=LivelinessPolicy.MANUAL_BY_TOPIC
+        if q.liveliness == "manual_by_topic"
+        else LivelinessPolicy.AUTOMATIC,
     )
 
 

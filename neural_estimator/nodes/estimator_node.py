@@ -71,24 +71,40 @@ class EstimatorParams:
     checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
     device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
     seed: int = param(0, "seed of the random draws of the EnKF and PF")
-    threads: int = param(1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default")
-    options: tuple[str, ...] = param((), "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true")
+    threads: int = param(
+        1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default"
+    )
+    options: tuple[str, ...] = param(
+        (), "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true"
+    )
     observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
     output_topic: str = param("", "estimate topic; empty = estimates/<method>; covariance goes to <output>/covariance")
     publish_covariance: bool = param(True, "publish the covariance where the method has one")
-    publish_odometry: bool = param(True, "publish nav_msgs/Odometry on <output>/odometry where the scenario declares a pose")
-    frame_id: str = param("map", "header.frame_id of estimates, covariances and odometry (the estimate's coordinate frame)")
+    publish_odometry: bool = param(
+        True, "publish nav_msgs/Odometry on <output>/odometry where the scenario declares a pose"
+    )
+    frame_id: str = param(
+        "map", "header.frame_id of estimates, covariances and odometry (the estimate's coordinate frame)"
+    )
     child_frame_id: str = param("base_link", "child_frame_id of the odometry")
-    observation_qos: str = param("reliable", "observation subscription reliability: reliable or sensor_data (best effort); "
-                                             "durability follows the publishers (transient_local when all offer it)")
+    observation_qos: str = param(
+        "reliable",
+        "observation subscription reliability: reliable or sensor_data (best effort); "
+        "durability follows the publishers (transient_local when all offer it)",
+    )
     queue_depth: int = param(10000, "subscription queue (KEEP_LAST): observations buffered while busy")
     history_depth: int = param(10000, "estimate publisher depth (transient_local): a late or slow recorder's backlog")
-    history_mb: float = param(64.0, "memory bound of each estimate publisher's history (MiB): depth = min(history_depth, "
-                                    "history_mb / message size); large covariances get a shorter history")
+    history_mb: float = param(
+        64.0,
+        "memory bound of each estimate publisher's history (MiB): depth = min(history_depth, "
+        "history_mb / message size); large covariances get a shorter history",
+    )
     max_gap: int = param(DEFAULT_MAX_GAP, "most missing steps bridged by predict-only steps before a restart")
-    max_gap_seconds: float = param(DEFAULT_MAX_GAP_SECONDS, "most seconds spent bridging one gap before a restart "
-                                                            "(bounds the cost of a step jump; 0 = no bound)")
+    max_gap_seconds: float = param(
+        DEFAULT_MAX_GAP_SECONDS,
+        "most seconds spent bridging one gap before a restart (bounds the cost of a step jump; 0 = no bound)",
+    )
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
@@ -105,8 +121,9 @@ class EstimatorNode(ManagedNode):
         if p.checkpoint and not _exists(p.checkpoint):
             raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
         if p.observation_qos not in OBSERVATION_QOS:
-            raise StartupError(f"parameter observation_qos must be one of {', '.join(OBSERVATION_QOS)}, "
-                               f"got {p.observation_qos!r}")
+            raise StartupError(
+                f"parameter observation_qos must be one of {', '.join(OBSERVATION_QOS)}, got {p.observation_qos!r}"
+            )
         if p.history_mb <= 0 or p.history_depth < 1:
             raise StartupError("history_depth must be >= 1 and history_mb > 0")
         load_plugins(p.plugins)
@@ -128,7 +145,9 @@ class EstimatorNode(ManagedNode):
             self._build(build_scenario(p.scenario, p.set))
         else:
             self.get_logger().info(f"waiting for the scenario on '{p.scenario_topic}'")
-        self.sub_scenario = self.create_subscription(String, p.scenario_topic, self._on_scenario, latched_qos(), raw=True)
+        self.sub_scenario = self.create_subscription(
+            String, p.scenario_topic, self._on_scenario, latched_qos(), raw=True
+        )
         self.srv_reset = self.create_service(Trigger, "~/reset", self._on_reset)
         # steady clock: with use_sim_time and no /clock, ROS-clock timers would never fire
         self.timer = self.create_timer(p.diagnostics_period, self._on_diagnostics, clock=self._steady)
@@ -142,20 +161,26 @@ class EstimatorNode(ManagedNode):
         if p.observation_qos == "reliable":
             best_effort = [i for i in pubs if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]
             for i in best_effort:
-                self._warn("besteffort", f"'{self.obs_topic}' has a best-effort publisher ({i.node_name}): it cannot "
-                                         "reach a reliable subscription; start with -p observation_qos:=sensor_data")
+                self._warn(
+                    "besteffort",
+                    f"'{self.obs_topic}' has a best-effort publisher ({i.node_name}): it cannot "
+                    "reach a reliable subscription; start with -p observation_qos:=sensor_data",
+                )
         if self.sub_obs is not None or not pubs:
             return
         transient = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in pubs)
         qos = QoSProfile(
             depth=max(1, p.queue_depth),
-            reliability=ReliabilityPolicy.RELIABLE if p.observation_qos == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+            reliability=ReliabilityPolicy.RELIABLE
+            if p.observation_qos == "reliable"
+            else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
         self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observation, qos, raw=True)
-        self.get_logger().info(f"subscribed to '{self.obs_topic}' ({p.observation_qos}, "
-                               f"{'transient_local: the publishers history is received' if transient else 'volatile'})")
-
+        self.get_logger().info(
+            f"subscribed to '{self.obs_topic}' ({p.observation_qos}, "
+            f"{'transient_local: the publishers history is received' if transient else 'volatile'})"
+        )
 
     # ---- setup -------------------------------------------------------------------------------------
     def _build(self, scenario) -> None:
@@ -169,18 +194,26 @@ class EstimatorNode(ManagedNode):
 
             torch.set_num_threads(p.threads)
         try:
-            est = make_estimator(self.method, scenario, checkpoint=p.checkpoint or None, device=p.device,
-                                 seed=p.seed, **options)
+            est = make_estimator(
+                self.method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options
+            )
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
-        self.online = OnlineEstimator(est, self.method, publish_covariance=p.publish_covariance, max_gap=p.max_gap,
-                                      max_gap_seconds=p.max_gap_seconds, frame_id=p.frame_id)
+        self.online = OnlineEstimator(
+            est,
+            self.method,
+            publish_covariance=p.publish_covariance,
+            max_gap=p.max_gap,
+            max_gap_seconds=p.max_gap_seconds,
+            frame_id=p.frame_id,
+        )
         dx = scenario.dx
         self.depths = {"estimates": self._depth(dx), "covariance": self._depth(dx * dx)}
         self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(self.depths["estimates"]))
         if self.online.publish_covariance:
-            self.pub_cov = self.create_publisher(JointState, f"{self.out_topic}/{M.COVARIANCE_SUFFIX}",
-                                                 stream_qos(self.depths["covariance"]))
+            self.pub_cov = self.create_publisher(
+                JointState, f"{self.out_topic}/{M.COVARIANCE_SUFFIX}", stream_qos(self.depths["covariance"])
+            )
         from neural_estimator.nodes.odometry import has_pose
 
         self.pose_states = dict(getattr(scenario, "pose_states", {}) or {})
@@ -192,9 +225,12 @@ class EstimatorNode(ManagedNode):
         self.get_logger().info(
             f"{self.method} on {scenario.name} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}): "
             f"'{self.resolve_topic_name(p.observation_topic)}' -> "
-            f"'{self.pub_est.topic_name}'" + (" + covariance" if self.online.publish_covariance else "")
+            f"'{self.pub_est.topic_name}'"
+            + (" + covariance" if self.online.publish_covariance else "")
             + (" + odometry" if self.pub_odom is not None else "")
-            + f" (history {self.depths['estimates']}" + (f"/{self.depths['covariance']}" if self.pub_cov else "") + " msgs)"
+            + f" (history {self.depths['estimates']}"
+            + (f"/{self.depths['covariance']}" if self.pub_cov else "")
+            + " msgs)"
         )
 
     def _depth(self, n_values: int) -> int:
@@ -221,9 +257,15 @@ class EstimatorNode(ManagedNode):
             early, self._early = self._early, []
             for raw_obs in early:
                 self._on_observation(raw_obs)
-        elif desc.get("scenario") != self.online.scenario.name or desc.get("config") != self.online.scenario.describe()["config"]:
-            self._warn("mismatch", f"the announced scenario {desc.get('scenario')!r} differs from the one this node "
-                                   f"serves ({self.online.scenario.name!r} with its constants); estimates may be wrong")
+        elif (
+            desc.get("scenario") != self.online.scenario.name
+            or desc.get("config") != self.online.scenario.describe()["config"]
+        ):
+            self._warn(
+                "mismatch",
+                f"the announced scenario {desc.get('scenario')!r} differs from the one this node "
+                f"serves ({self.online.scenario.name!r} with its constants); estimates may be wrong",
+            )
 
     # ---- per message -------------------------------------------------------------------------------
     def _on_observation(self, raw: bytes) -> None:
@@ -244,13 +286,18 @@ class EstimatorNode(ManagedNode):
         except Exception as exc:  # a failure inside a method must not take the node down
             self.stats.errors += 1
             self.online.reset()
-            self.get_logger().error(f"{self.method} failed on an observation ({exc!r}); the stream restarts "
-                                    "from the prior at the next observation")
+            self.get_logger().error(
+                f"{self.method} failed on an observation ({exc!r}); the stream restarts "
+                "from the prior at the next observation"
+            )
             return
         if res.status != "estimated":
             self.stats.skipped[res.status] += 1
-            self._warn(res.status, f"{res.status} observation (trajectory {res.trajectory}, step {res.step}; "
-                                   f"last processed step {self.online.step}) skipped")
+            self._warn(
+                res.status,
+                f"{res.status} observation (trajectory {res.trajectory}, step {res.step}; "
+                f"last processed step {self.online.step}) skipped",
+            )
             return
         self.pub_est.publish(res.estimate)
         if res.covariance is not None and self.pub_cov is not None:
@@ -259,8 +306,17 @@ class EstimatorNode(ManagedNode):
             from neural_estimator.nodes.odometry import make_odometry
 
             cov = self.online.estimator.covariance
-            self.pub_odom.publish(make_odometry(self._odom_cls, res.stamp_ns, self.p.frame_id, self.p.child_frame_id,
-                                                res.x_hat, None if cov is None else cov[0], self.pose_states))
+            self.pub_odom.publish(
+                make_odometry(
+                    self._odom_cls,
+                    res.stamp_ns,
+                    self.p.frame_id,
+                    self.p.child_frame_id,
+                    res.x_hat,
+                    None if cov is None else cov[0],
+                    self.pose_states,
+                )
+            )
         s = self.stats
         s.latency.append(time.perf_counter() - t0)
         s.estimated += 1
@@ -271,11 +327,17 @@ class EstimatorNode(ManagedNode):
         s.diverged = res.diverged or not np.all(np.isfinite(res.x_hat))
         s.position = (res.trajectory, res.step)
         if res.filled:
-            self._warn("gap", f"{res.filled} observation(s) missing before step {res.step} of trajectory "
-                              f"{res.trajectory}: bridged by predict-only steps")
+            self._warn(
+                "gap",
+                f"{res.filled} observation(s) missing before step {res.step} of trajectory "
+                f"{res.trajectory}: bridged by predict-only steps",
+            )
         if res.restarted:
-            self._warn("restart", f"gap before step {res.step} longer than max_gap={self.p.max_gap} steps or "
-                                  f"max_gap_seconds={self.p.max_gap_seconds:g} s: restarted from the prior")
+            self._warn(
+                "restart",
+                f"gap before step {res.step} longer than max_gap={self.p.max_gap} steps or "
+                f"max_gap_seconds={self.p.max_gap_seconds:g} s: restarted from the prior",
+            )
         if res.nonfinite:
             self._warn("nonfinite", f"observation {res.trajectory}/{res.step} has NaN/inf: predict only")
 
@@ -292,12 +354,17 @@ class EstimatorNode(ManagedNode):
     # ---- diagnostics -------------------------------------------------------------------------------
     def _on_diagnostics(self) -> None:
         self._check_foreign_publishers()
-        if (not self._sim_time_warned and self.get_parameter("use_sim_time").value
-                and not self.count_publishers("/clock")):
+        if (
+            not self._sim_time_warned
+            and self.get_parameter("use_sim_time").value
+            and not self.count_publishers("/clock")
+        ):
             self._sim_time_warned = True
-            self.get_logger().warning("use_sim_time is true but nothing publishes /clock: the ROS clock stands "
-                                      "still (timers here use the steady clock; start the simulator or player "
-                                      "with -p publish_clock:=true)")
+            self.get_logger().warning(
+                "use_sim_time is true but nothing publishes /clock: the ROS clock stands "
+                "still (timers here use the steady clock; start the simulator or player "
+                "with -p publish_clock:=true)"
+            )
         s = self.stats
         now = time.monotonic()
         window = s.window(now)
@@ -374,11 +441,21 @@ class EstimatorNode(ManagedNode):
             lat = np.frombuffer(s.latency, dtype=np.float64)
             pct = {f"latency_p{q}_ms": float(np.percentile(lat, q)) * 1e3 if lat.size else None for q in (50, 90, 99)}
             out = {
-                "node": self.get_fully_qualified_name(), "method": self.method,
-                "estimates": s.estimated, "bad": s.bad + s.early, "method_failures": s.errors, "nonfinite": s.nonfinite,
-                "duplicates": s.skipped["duplicate"], "out_of_order": s.skipped["stale"], "gap_steps": s.gap_steps,
-                "restarts": s.restarts, "resets": s.resets, "diverged": s.diverged, "latency_samples": int(lat.size),
-                "latency_max_ms": float(lat.max()) * 1e3 if lat.size else None, **pct,
+                "node": self.get_fully_qualified_name(),
+                "method": self.method,
+                "estimates": s.estimated,
+                "bad": s.bad + s.early,
+                "method_failures": s.errors,
+                "nonfinite": s.nonfinite,
+                "duplicates": s.skipped["duplicate"],
+                "out_of_order": s.skipped["stale"],
+                "gap_steps": s.gap_steps,
+                "restarts": s.restarts,
+                "resets": s.resets,
+                "diverged": s.diverged,
+                "latency_samples": int(lat.size),
+                "latency_max_ms": float(lat.max()) * 1e3 if lat.size else None,
+                **pct,
             }
             path = Path(self.p.stats_file)
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -414,9 +491,17 @@ class _Stats:
     _MAX_KEPT = 200_000  # latencies kept for the since-start percentiles (the most recent ones)
 
     def window(self, now: float) -> dict:
-        m = self._mark or {"t": now, "estimated": 0, "bad": 0, "early": 0, "gap_steps": 0, "nonfinite": 0,
-                           "errors": 0, "n_lat": 0}
-        lat = np.frombuffer(self.latency, dtype=np.float64)[m["n_lat"]:]
+        m = self._mark or {
+            "t": now,
+            "estimated": 0,
+            "bad": 0,
+            "early": 0,
+            "gap_steps": 0,
+            "nonfinite": 0,
+            "errors": 0,
+            "n_lat": 0,
+        }
+        lat = np.frombuffer(self.latency, dtype=np.float64)[m["n_lat"] :]
         dt = max(now - m["t"], 1e-9)
         out = {
             "rate": (self.estimated - m["estimated"]) / dt if self._mark else 0.0,
@@ -430,9 +515,16 @@ class _Stats:
         }
         if len(self.latency) > self._MAX_KEPT:
             del self.latency[: len(self.latency) - self._MAX_KEPT // 2]
-        self._mark = {"t": now, "estimated": self.estimated, "bad": self.bad, "early": self.early,
-                      "gap_steps": self.gap_steps, "nonfinite": self.nonfinite, "errors": self.errors,
-                      "n_lat": len(self.latency)}
+        self._mark = {
+            "t": now,
+            "estimated": self.estimated,
+            "bad": self.bad,
+            "early": self.early,
+            "gap_steps": self.gap_steps,
+            "nonfinite": self.nonfinite,
+            "errors": self.errors,
+            "n_lat": len(self.latency),
+        }
         return out
 
     def percentiles(self) -> tuple[float, float]:

@@ -56,15 +56,24 @@ class EvaluatorParams:
 
     output: str = param("", "bag to write (.mcap); empty = runs/run-<date>-<time>.mcap")
     overwrite: bool = param(False, "replace an existing output file")
-    methods: tuple[str, ...] = param((), "estimate streams that must be complete before the end; empty = all discovered")
+    methods: tuple[str, ...] = param(
+        (), "estimate streams that must be complete before the end; empty = all discovered"
+    )
     topics: tuple[str, ...] = param((), "extra topics to record (names relative to the namespace, or absolute)")
     discovery_period: float = param(0.25, "seconds between graph scans for new topics")
     queue_depth: int = param(10000, "subscription depth (KEEP_LAST): messages buffered while the node is busy")
-    completion_timeout: float = param(30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds")
+    completion_timeout: float = param(
+        30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds"
+    )
     chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
-    idle_timeout: float = param(10.0, "without run_status 'complete': end when no stream message arrived for this "
-                                      "many seconds after the first (0 = never)")
-    scenario: str = param("", "scenario to score a run whose source publishes no 'scenario' topic ('' = from the topic)")
+    idle_timeout: float = param(
+        10.0,
+        "without run_status 'complete': end when no stream message arrived for this "
+        "many seconds after the first (0 = never)",
+    )
+    scenario: str = param(
+        "", "scenario to score a run whose source publishes no 'scenario' topic ('' = from the topic)"
+    )
     set: tuple[str, ...] = param((), "constants of that scenario as name=value")
     plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     compute_metrics: bool = param(True, "compute and write the metrics when the run ends")
@@ -124,7 +133,9 @@ class EvaluatorNode(ManagedNode):
                 wrong = sorted({i.topic_type for i in pubs if i.topic_type != want})
                 if wrong and name not in self._refused:
                     self._refused.add(name)
-                    self.get_logger().error(f"'{name}' has publishers of type {', '.join(wrong)}; recording only {want}")
+                    self.get_logger().error(
+                        f"'{name}' has publishers of type {', '.join(wrong)}; recording only {want}"
+                    )
                 pubs = [i for i in pubs if i.topic_type == want]
                 if not pubs:
                     continue
@@ -133,9 +144,11 @@ class EvaluatorNode(ManagedNode):
             qos = QoSProfile(
                 depth=self.p.queue_depth,
                 reliability=ReliabilityPolicy.RELIABLE
-                if all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered) else ReliabilityPolicy.BEST_EFFORT,
+                if all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+                else ReliabilityPolicy.BEST_EFFORT,
                 durability=DurabilityPolicy.TRANSIENT_LOCAL
-                if all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered) else DurabilityPolicy.VOLATILE,
+                if all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+                else DurabilityPolicy.VOLATILE,
             )
             try:
                 cls = message_class(msgtype)
@@ -172,7 +185,9 @@ class EvaluatorNode(ManagedNode):
             self.get_logger().warning(f"unreadable run_status: {exc}")
             return
         if status["status"] == M.STATUS_STARTED:
-            self.get_logger().info(f"run started: {status.get('trajectories')} trajectories x {status.get('horizon')} steps")
+            self.get_logger().info(
+                f"run started: {status.get('trajectories')} trajectories x {status.get('horizon')} steps"
+            )
         elif status["status"] == M.STATUS_COMPLETE:
             self.expected = int(status.get("messages", 0))
             self.complete_at = time.monotonic()
@@ -185,15 +200,20 @@ class EvaluatorNode(ManagedNode):
         if topic(M.GROUND_TRUTH) in self.subs:
             req.append(topic(M.GROUND_TRUTH))
         req += [topic(M.estimate_topic(m)) for m in self.required_methods]
-        req += [t for t in self.subs if M.topic_role(t, self.ns) and M.topic_role(t, self.ns).kind in ("estimate", "covariance")]
+        req += [
+            t
+            for t in self.subs
+            if M.topic_role(t, self.ns) and M.topic_role(t, self.ns).kind in ("estimate", "covariance")
+        ]
         return sorted(set(req))
 
     def _check_done(self) -> None:
         if self.complete_at is None or self.expected is None:
             idle = self.p.idle_timeout
             if idle > 0 and self._last_stream is not None and time.monotonic() - self._last_stream > idle:
-                self.get_logger().warning(f"no run_status 'complete' and no stream message for {idle:g} s: "
-                                          "ending the recording")
+                self.get_logger().warning(
+                    f"no run_status 'complete' and no stream message for {idle:g} s: ending the recording"
+                )
                 self._finish()
             return
         lagging = {t: self.counts.get(t, 0) for t in self._required() if self.counts.get(t, 0) < self.expected}
@@ -204,7 +224,9 @@ class EvaluatorNode(ManagedNode):
         stalled = now - max(self._progress[1], self.complete_at) > self.p.completion_timeout
         if lagging and not stalled:
             return
-        no_estimates = not any(M.topic_role(t, self.ns).kind == "estimate" for t in self.subs if M.topic_role(t, self.ns))
+        no_estimates = not any(
+            M.topic_role(t, self.ns).kind == "estimate" for t in self.subs if M.topic_role(t, self.ns)
+        )
         if no_estimates and now - self.complete_at <= self.p.completion_timeout:
             return  # an estimator started after the run still serves it from its history: wait for it
         if lagging:

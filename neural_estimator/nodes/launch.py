@@ -129,8 +129,9 @@ def die_with_parent() -> None:
 def start_node(cmd: list[str], log: Path, env: dict[str, str]) -> subprocess.Popen:
     """One node process, output to ``log``, in its own session, ended when the caller dies."""
     with open(log, "wb") as fh:
-        return subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True,
-                                preexec_fn=die_with_parent)
+        return subprocess.Popen(
+            cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True, preexec_fn=die_with_parent
+        )
 
 
 def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
@@ -158,25 +159,74 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
     # this many messages in memory).
     depth = int(min(MAX_DEPTH, max(10_000, cfg.trajectories * (cfg.horizon or 10_000) + 100)))
     nodes: list[tuple[str, list[str]]] = [
-        ("evaluator", node_command(cfg.python, EVALUATOR, "evaluator", {
-            "output": str(bag), "overwrite": True, "methods": list(cfg.methods),
-            "completion_timeout": 60.0, "topics": list(cfg.record_topics), "queue_depth": depth,
-        })),
+        (
+            "evaluator",
+            node_command(
+                cfg.python,
+                EVALUATOR,
+                "evaluator",
+                {
+                    "output": str(bag),
+                    "overwrite": True,
+                    "methods": list(cfg.methods),
+                    "completion_timeout": 60.0,
+                    "topics": list(cfg.record_topics),
+                    "queue_depth": depth,
+                },
+            ),
+        ),
     ]
     for m in cfg.methods:
-        nodes.append((f"estimator_{m}", node_command(cfg.python, ESTIMATOR, f"estimator_{m}", {
-            "method": m, "scenario": cfg.scenario, "set": list(cfg.set), "plugins": list(cfg.plugins),
-            "checkpoint": ckpt.get(m, ""), "device": cfg.device, "seed": cfg.seed, "options": opts.get(m, []),
-            "publish_covariance": cfg.publish_covariance,
-            "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
-            "queue_depth": depth, "history_depth": depth,
-        })))
-    nodes.append(("simulator", node_command(cfg.python, SIMULATOR, "simulator", {
-        "scenario": cfg.scenario, "set": list(cfg.set), "plugins": list(cfg.plugins),
-        "noise_scale": float(cfg.noise_scale), "seed": cfg.seed, "trajectories": cfg.trajectories,
-        "horizon": cfg.horizon, "rate_hz": float(cfg.rate_hz), "wait_for_subscribers": len(cfg.methods) + 1,
-        "wait_timeout": 120.0, "start_delay": 1.0, "history_depth": depth, "linger": 120.0, "stay_after_run": 0.0,
-    })))
+        nodes.append(
+            (
+                f"estimator_{m}",
+                node_command(
+                    cfg.python,
+                    ESTIMATOR,
+                    f"estimator_{m}",
+                    {
+                        "method": m,
+                        "scenario": cfg.scenario,
+                        "set": list(cfg.set),
+                        "plugins": list(cfg.plugins),
+                        "checkpoint": ckpt.get(m, ""),
+                        "device": cfg.device,
+                        "seed": cfg.seed,
+                        "options": opts.get(m, []),
+                        "publish_covariance": cfg.publish_covariance,
+                        "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
+                        "queue_depth": depth,
+                        "history_depth": depth,
+                    },
+                ),
+            )
+        )
+    nodes.append(
+        (
+            "simulator",
+            node_command(
+                cfg.python,
+                SIMULATOR,
+                "simulator",
+                {
+                    "scenario": cfg.scenario,
+                    "set": list(cfg.set),
+                    "plugins": list(cfg.plugins),
+                    "noise_scale": float(cfg.noise_scale),
+                    "seed": cfg.seed,
+                    "trajectories": cfg.trajectories,
+                    "horizon": cfg.horizon,
+                    "rate_hz": float(cfg.rate_hz),
+                    "wait_for_subscribers": len(cfg.methods) + 1,
+                    "wait_timeout": 120.0,
+                    "start_delay": 1.0,
+                    "history_depth": depth,
+                    "linger": 120.0,
+                    "stay_after_run": 0.0,
+                },
+            ),
+        )
+    )
 
     procs: dict[str, subprocess.Popen] = {}
     logs: dict[str, Path] = {}
@@ -194,15 +244,19 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
                 if code not in (None, 0) and name != "evaluator":
                     raise PipelineError(f"{name} exited with status {code}:\n{_tail(logs[name])}")
             if time.monotonic() - t0 > cfg.timeout:
-                raise PipelineError(f"the run took longer than {cfg.timeout:g} s; evaluator log:\n{_tail(logs['evaluator'])}")
+                raise PipelineError(
+                    f"the run took longer than {cfg.timeout:g} s; evaluator log:\n{_tail(logs['evaluator'])}"
+                )
             time.sleep(0.1)
     finally:
         _stop_all(procs)
     codes = {n: p.returncode for n, p in procs.items()}
     if echo:
         sys.stdout.write(_table_from_log(logs["evaluator"]))
-    reports = {k: bag.with_name(bag.stem + suffix) for k, suffix in
-               (("markdown", ".metrics.md"), ("json", ".metrics.json"), ("png", ".rmse.png"))}
+    reports = {
+        k: bag.with_name(bag.stem + suffix)
+        for k, suffix in (("markdown", ".metrics.md"), ("json", ".metrics.json"), ("png", ".rmse.png"))
+    }
     reports = {k: p for k, p in reports.items() if p.exists()}
     if codes["evaluator"] != 0:
         raise PipelineError(f"evaluator exited with status {codes['evaluator']}:\n{_tail(logs['evaluator'])}")
@@ -246,8 +300,9 @@ def _table_from_log(path: Path) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="neural-estimator live",
-                                description="Live comparison on ROS 2: simulator -> estimators -> evaluator.")
+    p = argparse.ArgumentParser(
+        prog="neural-estimator live", description="Live comparison on ROS 2: simulator -> estimators -> evaluator."
+    )
     p.add_argument("--scenario", required=True)
     p.add_argument("--methods", required=True, help="comma-separated, e.g. ekf,ukf,gru")
     p.add_argument("--trajectories", type=int, default=2)
@@ -270,12 +325,24 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     cfg = PipelineConfig(
-        scenario=a.scenario, methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()),
-        trajectories=a.trajectories, horizon=a.horizon, rate_hz=a.rate_hz, seed=a.seed, set=tuple(a.set),
-        plugins=tuple(a.plugin), noise_scale=a.noise_scale, checkpoints=tuple(a.checkpoint), options=tuple(a.option),
-        device=a.device, publish_covariance=not a.no_covariance, output=a.output, domain_id=a.domain_id,
+        scenario=a.scenario,
+        methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()),
+        trajectories=a.trajectories,
+        horizon=a.horizon,
+        rate_hz=a.rate_hz,
+        seed=a.seed,
+        set=tuple(a.set),
+        plugins=tuple(a.plugin),
+        noise_scale=a.noise_scale,
+        checkpoints=tuple(a.checkpoint),
+        options=tuple(a.option),
+        device=a.device,
+        publish_covariance=not a.no_covariance,
+        output=a.output,
+        domain_id=a.domain_id,
         timeout=a.timeout,
     )
+
     def terminate(signum, frame):  # SIGTERM: stop the nodes too (run_pipeline's clean-up runs)
         raise KeyboardInterrupt
 
@@ -288,8 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("pipeline: interrupted", file=sys.stderr)
         return 130
-    print(f"bag: {res.bag} (ROS_DOMAIN_ID {res.domain_id}, {res.seconds:.1f} s); "
-          + ", ".join(str(p) for p in res.reports.values()))
+    print(
+        f"bag: {res.bag} (ROS_DOMAIN_ID {res.domain_id}, {res.seconds:.1f} s); "
+        + ", ".join(str(p) for p in res.reports.values())
+    )
     return 0
 
 

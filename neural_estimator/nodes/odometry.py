@@ -30,8 +30,12 @@ def quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, flo
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
     cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy)
+    return (
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+        cr * cp * cy + sr * sp * sy,
+    )
 
 
 def block(x: np.ndarray, P: np.ndarray | None, pose_states: Mapping[str, int], keys: tuple[str, ...]):
@@ -48,8 +52,15 @@ def block(x: np.ndarray, P: np.ndarray | None, pose_states: Mapping[str, int], k
     return values, cov.reshape(-1).tolist()
 
 
-def make_odometry(msg_cls, stamp_ns: int, frame_id: str, child_frame_id: str, x: np.ndarray,
-                  P: np.ndarray | None, pose_states: Mapping[str, int]):
+def make_odometry(
+    msg_cls,
+    stamp_ns: int,
+    frame_id: str,
+    child_frame_id: str,
+    x: np.ndarray,
+    P: np.ndarray | None,
+    pose_states: Mapping[str, int],
+):
     """A ``nav_msgs.msg.Odometry`` (``msg_cls``) of the estimate ``x`` (dx,) with covariance ``P``."""
     msg = msg_cls()
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)

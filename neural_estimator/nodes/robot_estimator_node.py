@@ -58,8 +58,9 @@ class RobotEstimatorParams:
     publish_odometry: bool = param(True, "publish nav_msgs/Odometry on <output>/odometry when the state is a pose")
     frame_id: str = param("map", "header.frame_id of the estimates and the odometry")
     child_frame_id: str = param("base_link", "child_frame_id of the odometry")
-    input_qos: str = param("sensor_data", "input subscriptions' reliability: sensor_data (best effort, matches any "
-                                          "publisher) or reliable")
+    input_qos: str = param(
+        "sensor_data", "input subscriptions' reliability: sensor_data (best effort, matches any publisher) or reliable"
+    )
     discovery_period: float = param(0.2, "seconds between looks at the graph for the spec's topics")
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
@@ -102,8 +103,10 @@ class RobotEstimatorNode(ManagedNode):
             self.create_timer(self.spec.dt, self._tick, clock=self._steady)
         self.get_logger().info(
             f"{self.method} on recorded-data spec {self.spec.digest()[:12]}: {', '.join(self.fields)} -> '{out}'"
-            + (" + odometry" if self.pub_odom else "") + f" at {self.spec.rate:g} Hz"
-            + (f" (on {self.spec.trigger})" if self.spec.trigger else ""))
+            + (" + odometry" if self.pub_odom else "")
+            + f" at {self.spec.rate:g} Hz"
+            + (f" (on {self.spec.trigger})" if self.spec.trigger else "")
+        )
         self._discover()
 
     # ---- inputs ------------------------------------------------------------------------------------
@@ -122,10 +125,16 @@ class RobotEstimatorNode(ManagedNode):
                 self._refused.add(topic)
                 self.get_logger().error(f"'{topic}': {exc}; not subscribed")
                 continue
-            qos = QoSProfile(depth=100, durability=DurabilityPolicy.VOLATILE,
-                             reliability=ReliabilityPolicy.BEST_EFFORT if self.p.input_qos == "sensor_data"
-                             else ReliabilityPolicy.RELIABLE)
-            self.subs[topic] = self.create_subscription(cls, topic, lambda msg, t=topic, m=msgtype: self._on_message(t, m, msg), qos)
+            qos = QoSProfile(
+                depth=100,
+                durability=DurabilityPolicy.VOLATILE,
+                reliability=ReliabilityPolicy.BEST_EFFORT
+                if self.p.input_qos == "sensor_data"
+                else ReliabilityPolicy.RELIABLE,
+            )
+            self.subs[topic] = self.create_subscription(
+                cls, topic, lambda msg, t=topic, m=msgtype: self._on_message(t, m, msg), qos
+            )
             self.get_logger().info(f"subscribed to '{topic}' ({msgtype})")
 
     def _on_message(self, topic: str, msgtype: str, msg) -> None:
@@ -167,8 +176,11 @@ class RobotEstimatorNode(ManagedNode):
         if self.pub_odom is not None:
             from neural_estimator.nodes.odometry import make_odometry
 
-            self.pub_odom.publish(make_odometry(self._odom_cls, stamp, self.p.frame_id, self.p.child_frame_id, x, None,
-                                                self.scenario.pose_states))
+            self.pub_odom.publish(
+                make_odometry(
+                    self._odom_cls, stamp, self.p.frame_id, self.p.child_frame_id, x, None, self.scenario.pose_states
+                )
+            )
 
     def _vector(self, name: str) -> np.ndarray:
         out = []
@@ -214,8 +226,10 @@ def _load(p: RobotEstimatorParams):
         directory, card = read_card(path)
         desc = card["scenario"]
         if desc.get("scenario") != "data" or not desc.get("spec"):
-            raise StartupError(f"checkpoint {p.checkpoint}: trained on scenario {desc.get('scenario')!r}, not on recorded "
-                               "data with a spec; serve it with the estimator node")
+            raise StartupError(
+                f"checkpoint {p.checkpoint}: trained on scenario {desc.get('scenario')!r}, not on recorded "
+                "data with a spec; serve it with the estimator node"
+            )
         scenario = DataScenario.from_description(desc)
         spec = load_spec(desc["spec"])
         method = str(card["method"])

@@ -18,15 +18,38 @@ import sys
 from pathlib import Path
 from typing import Any
 
-METHOD_IDS = {"EKF": "ekf", "UKF": "ukf", "EnKF": "enkf", "PF": "pf", "GRU": "gru", "LSTM": "lstm",
-              "GPT-2": "gpt2", "Filterformer": "filterformer", "Mamba": "mamba", "Mamba-2": "mamba2"}
+METHOD_IDS = {
+    "EKF": "ekf",
+    "UKF": "ukf",
+    "EnKF": "enkf",
+    "PF": "pf",
+    "GRU": "gru",
+    "LSTM": "lstm",
+    "GPT-2": "gpt2",
+    "Filterformer": "filterformer",
+    "Mamba": "mamba",
+    "Mamba-2": "mamba2",
+}
 SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")  # the paper's column order
-EXTENDED_LABELS = {"ballistic": "ballistic_reentry_extended", "bearings": "bearings_only_tracking_extended",
-                   "lorenz96": "l96_extended", "nlink": "nlink_pendulum_extended", "quadrotor": "planar_quadrotor_extended"}
+EXTENDED_LABELS = {
+    "ballistic": "ballistic_reentry_extended",
+    "bearings": "bearings_only_tracking_extended",
+    "lorenz96": "l96_extended",
+    "nlink": "nlink_pendulum_extended",
+    "quadrotor": "planar_quadrotor_extended",
+}
 EXTENDED_COLUMNS = ("rmse", "full_rmse", "nrmse", "mae", "medae", "auc", "outlier_ratio", "drift_ratio")
 DATA_RATIOS = ("20", "10", "5", "1")
-TABLES = ("accuracy_main", "relative_score", "data_ratio_main", "runtime_summary", *EXTENDED_LABELS.values(),
-          "nrmse_avg_all", "stability_summary_app", "runtime_full_app")
+TABLES = (
+    "accuracy_main",
+    "relative_score",
+    "data_ratio_main",
+    "runtime_summary",
+    *EXTENDED_LABELS.values(),
+    "nrmse_avg_all",
+    "stability_summary_app",
+    "runtime_full_app",
+)
 
 
 class TranscriptionError(ValueError):
@@ -42,12 +65,12 @@ def table_source(tex: str, label: str) -> str:
     end = tex.find("\\end{table}", at)
     if start < 0 or end < 0:
         raise TranscriptionError(f"tab:{label} is not inside a table environment")
-    return tex[start:end + len("\\end{table}")]
+    return tex[start : end + len("\\end{table}")]
 
 
 def _rows(table: str) -> list[list[str]]:
     """Body rows between \\midrule and \\bottomrule, split on & (rows may span lines)."""
-    body = table[table.find("\\midrule"):table.find("\\bottomrule")]
+    body = table[table.find("\\midrule") : table.find("\\bottomrule")]
     rows = []
     for raw in body.split("\\\\"):
         text = " ".join(line for line in raw.splitlines() if not line.strip().startswith(("\\midrule", "\\cmidrule")))
@@ -107,7 +130,10 @@ def transcribe(tex: str) -> dict[str, Any]:
     if len(avg_rows) != 2 or len(avg_rows[0]) != 11:
         raise TranscriptionError("tab:nrmse_avg_all: expected a Median NRMSE row and an (IQR) row of 10 methods")
     avg_methods = [METHOD_IDS[m] for m in METHOD_IDS]  # the table's column order is the paper's method order
-    runtime_full: dict[str, dict[str, dict[str, Any]]] = {"cpu": {s: {} for s in SCENARIOS}, "gpu": {s: {} for s in SCENARIOS}}
+    runtime_full: dict[str, dict[str, dict[str, Any]]] = {
+        "cpu": {s: {} for s in SCENARIOS},
+        "gpu": {s: {} for s in SCENARIOS},
+    }
     for row in _rows(t["runtime_full_app"]):
         if len(row) != 7:
             raise TranscriptionError(f"tab:runtime_full_app row {row[:2]} has {len(row) - 2} cells, expected 5")
@@ -121,14 +147,19 @@ def transcribe(tex: str) -> dict[str, Any]:
         "source": "paper.tex",
         "methods": list(METHOD_IDS.values()),
         "scenarios": list(SCENARIOS),
-        "accuracy_main": {s: {m: {"rmse": v[2 * i], "nrmse": v[2 * i + 1]} for m, v in acc.items()}
-                          for i, s in enumerate(SCENARIOS)},
+        "accuracy_main": {
+            s: {m: {"rmse": v[2 * i], "nrmse": v[2 * i + 1]} for m, v in acc.items()} for i, s in enumerate(SCENARIOS)
+        },
         "relative_score": {s: {m: v[i] for m, v in rel.items()} for i, s in enumerate(SCENARIOS)},
         "extended": extended,
-        "nrmse_avg_all": {m: {"median": cell_value(a), "iqr": cell_value(b.strip("() "))}
-                          for m, a, b in zip(avg_methods, avg_rows[0][1:], avg_rows[1][1:])},
-        "stability": {s: {m: {"outlier_ratio": v[i], "drift_ratio": v[5 + i]} for m, v in stab.items()}
-                      for i, s in enumerate(SCENARIOS)},
+        "nrmse_avg_all": {
+            m: {"median": cell_value(a), "iqr": cell_value(b.strip("() "))}
+            for m, a, b in zip(avg_methods, avg_rows[0][1:], avg_rows[1][1:])
+        },
+        "stability": {
+            s: {m: {"outlier_ratio": v[i], "drift_ratio": v[5 + i]} for m, v in stab.items()}
+            for i, s in enumerate(SCENARIOS)
+        },
         "data_ratio_main": {r: {m: v[i] for m, v in ratio.items()} for i, r in enumerate(DATA_RATIOS)},
         "runtime_summary": {m: {"cpu": v[0], "gpu": v[1], "cpu_gpu_ratio": v[2]} for m, v in rt.items()},
         "runtime_full": runtime_full,

@@ -27,13 +27,20 @@ def run_from_args(args, usage_error: type[Exception]) -> int:
             scale=get_scale(args.scale),
             scenarios=_names(args.scenarios, PAPER_SCENARIOS, _known_scenario, "--scenarios"),
             methods=_names(args.methods, METHODS, check_method, "--methods"),
-            gpu=_cuda(), cache_dir=str(args.cache_dir or default_cache_dir()), address=args.address,
-            num_cpus=args.num_cpus, plugins=tuple(str(Path(p).resolve()) for p in (args.plugin or ())))
+            gpu=_cuda(),
+            cache_dir=str(args.cache_dir or default_cache_dir()),
+            address=args.address,
+            num_cpus=args.num_cpus,
+            plugins=tuple(str(Path(p).resolve()) for p in (args.plugin or ())),
+        )
         summary = reproduce(settings, args.out, resume=args.resume, progress=not args.quiet)
     except ReproduceError as exc:
         raise usage_error(str(exc)) from None
-    print(f"{summary['jobs']} jobs: {summary['computed']} computed, {summary['cached']} cached, {summary['failed']} failed "
-          f"in {summary['wall_s']:.1f} s; wrote {summary['report']}")
+    print(
+        f"{summary['jobs']} jobs: {summary['computed']} computed, {summary['cached']} cached, "
+        f"{summary['failed']} failed "
+        f"in {summary['wall_s']:.1f} s; wrote {summary['report']}"
+    )
     return 1 if summary["failed"] else 0
 
 

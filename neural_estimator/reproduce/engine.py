@@ -55,18 +55,36 @@ def init_ray(address: str | None, num_cpus: int | None):
         return ray
     # the package must be importable by the workers as it is by the driver (editable installs, tests)
     root = str(Path(__file__).resolve().parents[2])
-    env = {"env_vars": {"PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
-                        "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}}
+    env = {
+        "env_vars": {
+            "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+            "OMP_NUM_THREADS": "1",
+            "MKL_NUM_THREADS": "1",
+        }
+    }
     if address:
         ray.init(address=address, runtime_env=env, log_to_driver=False)
     else:
-        ray.init(num_cpus=num_cpus or default_num_cpus(), include_dashboard=False, log_to_driver=False,
-                 object_store_memory=256 << 20, runtime_env=env)
+        ray.init(
+            num_cpus=num_cpus or default_num_cpus(),
+            include_dashboard=False,
+            log_to_driver=False,
+            object_store_memory=256 << 20,
+            runtime_env=env,
+        )
     return ray
 
 
-def run_jobs(jobs: Sequence[Job], cache_dir: str | Path, *, address: str | None = None, num_cpus: int | None = None,
-             progress: bool = True, shutdown: bool = True, plugins: Sequence[str] = ()) -> Outcome:
+def run_jobs(
+    jobs: Sequence[Job],
+    cache_dir: str | Path,
+    *,
+    address: str | None = None,
+    num_cpus: int | None = None,
+    progress: bool = True,
+    shutdown: bool = True,
+    plugins: Sequence[str] = (),
+) -> Outcome:
     """Run every job on Ray; returns their results and failures (never raises for a failed job).
 
     ``plugins``: scenario plugin files each task loads before its job (the same paths on every node).

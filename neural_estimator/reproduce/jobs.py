@@ -55,8 +55,11 @@ class Job:
     @property
     def label(self) -> str:
         extra = f" noise x{self.noise_scale:g}" if self.noise_scale != 1.0 else ""
-        what = {"evaluate": f"set {self.set_index}", "runtime": f"{self.device} batch 1",
-                "train": f"ratio {self.data_ratio:g}:1 instance {self.instance}"}[self.kind]
+        what = {
+            "evaluate": f"set {self.set_index}",
+            "runtime": f"{self.device} batch 1",
+            "train": f"ratio {self.data_ratio:g}:1 instance {self.instance}",
+        }[self.kind]
         if self.train_job is not None:
             what += f" (model of ratio {self.train_job.data_ratio:g}:1 instance {self.train_job.instance})"
         return f"{self.kind} {self.scenario} {self.method}{extra} {what}"
@@ -68,7 +71,11 @@ class Job:
 def make_job_scenario(job: Job):
     from neural_estimator.scenarios import make_scenario
 
-    return make_scenario(job.scenario, noise_scale=job.noise_scale) if job.noise_scale != 1.0 else make_scenario(job.scenario)
+    return (
+        make_scenario(job.scenario, noise_scale=job.noise_scale)
+        if job.noise_scale != 1.0
+        else make_scenario(job.scenario)
+    )
 
 
 def job_data(job: Job, cache_dir: Path):
@@ -82,8 +89,15 @@ def train_config(job: Job, cache_dir: Path, **runtime: Any):
     """The job's recipe; ``runtime``: how to run it (resume, keep_resume), not part of the result."""
     from neural_estimator.models.training import TrainConfig
 
-    return TrainConfig(data_ratio=job.data_ratio, init_seed=job.instance, data_seed=job.seed, device=job.device,
-                       cache_dir=str(cache_dir), **dict(job.train), **runtime)
+    return TrainConfig(
+        data_ratio=job.data_ratio,
+        init_seed=job.instance,
+        data_seed=job.seed,
+        device=job.device,
+        cache_dir=str(cache_dir),
+        **dict(job.train),
+        **runtime,
+    )
 
 
 def train_dir(cache_dir: Path, job: Job) -> Path:
@@ -92,8 +106,17 @@ def train_dir(cache_dir: Path, job: Job) -> Path:
     from neural_estimator.data.protocol import code_key
 
     scenario = make_job_scenario(job)
-    key = json.dumps({"version": __version__, "scenario": scenario.describe(), "arch": job.method,
-                      "recipe": train_config(job, cache_dir).recipe(), **code_key(scenario)}, sort_keys=True, default=str)
+    key = json.dumps(
+        {
+            "version": __version__,
+            "scenario": scenario.describe(),
+            "arch": job.method,
+            "recipe": train_config(job, cache_dir).recipe(),
+            **code_key(scenario),
+        },
+        sort_keys=True,
+        default=str,
+    )
     digest = hashlib.sha256(key.encode()).hexdigest()[:20]
     return Path(cache_dir) / "models" / f"{job.scenario}-{job.method}-r{job.data_ratio:g}-i{job.instance}-{digest}"
 
@@ -105,10 +128,19 @@ def runtime_key(job: Job) -> str:
     from neural_estimator.evaluation import checkpoint_digest
 
     scenario = make_job_scenario(job)
-    key = json.dumps({"rev": RUNTIME_REVISION, "version": __version__, "job": job.to_json(),
-                      "scenario": scenario.describe(), "checkpoint": checkpoint_digest(scenario, job.method, None),
-                      "machine": [platform.node(), platform.machine(), os.cpu_count()], **code_key(scenario)},
-                     sort_keys=True, default=str)
+    key = json.dumps(
+        {
+            "rev": RUNTIME_REVISION,
+            "version": __version__,
+            "job": job.to_json(),
+            "scenario": scenario.describe(),
+            "checkpoint": checkpoint_digest(scenario, job.method, None),
+            "machine": [platform.node(), platform.machine(), os.cpu_count()],
+            **code_key(scenario),
+        },
+        sort_keys=True,
+        default=str,
+    )
     return hashlib.sha256(key.encode()).hexdigest()[:20]
 
 
@@ -116,7 +148,9 @@ def runtime_path(cache_dir: Path, job: Job) -> Path:
     return Path(cache_dir) / "runtime" / f"{job.scenario}-{job.method}-{job.device}-{runtime_key(job)}.json"
 
 
-def run_job(job: Job, cache_dir: str | Path, threads: int = 1, plugins: tuple[str, ...] = (), *after: Any) -> dict[str, Any]:
+def run_job(
+    job: Job, cache_dir: str | Path, threads: int = 1, plugins: tuple[str, ...] = (), *after: Any
+) -> dict[str, Any]:
     """Do one job (or read its cached result). Returns ``{"job", "cached", "seconds", "result"}``:
     for ``evaluate`` the result is the run's report as JSON (:func:`neural_estimator.metrics.to_json`),
     for ``runtime`` ``{"it_per_s", "steps", "seconds"}``.
@@ -160,8 +194,17 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
         if not (ckpt / DONE_FILE).is_file():
             raise RuntimeError(f"{ckpt}: the model of {job.train_job.label} is not trained")
         checkpoints = {job.method: [str(ckpt)]}
-    res = evaluate(scenario, [job.method], seed=job.seed, datasets=[data], options=options, device=job.device,
-                   cache_dir=cache_dir, progress=False, checkpoints=checkpoints)[job.method]
+    res = evaluate(
+        scenario,
+        [job.method],
+        seed=job.seed,
+        datasets=[data],
+        options=options,
+        device=job.device,
+        cache_dir=cache_dir,
+        progress=False,
+        checkpoints=checkpoints,
+    )[job.method]
     return M.to_json(res.reports[0]), res.cached == 1
 
 
@@ -188,8 +231,12 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
     for k in range(job.warmup, job.warmup + job.steps):
         est.step(data.y[:, k], Uprev[:, k])
     seconds = time.perf_counter() - t0
-    result = {"it_per_s": job.steps / seconds if seconds > 0 else float("inf"), "steps": job.steps,
-              "seconds": seconds, "threads": threads}
+    result = {
+        "it_per_s": job.steps / seconds if seconds > 0 else float("inf"),
+        "steps": job.steps,
+        "seconds": seconds,
+        "threads": threads,
+    }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(result))

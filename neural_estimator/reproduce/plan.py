@@ -19,8 +19,16 @@ def train_job(scale: Scale, scenario: str, method: str, ratio: float, instance: 
     n = scale.train_trajectories(ratio)
     if n is not None:
         overrides["trajectories"] = n
-    return Job("train", scenario, method, seed=scale.seed, data_ratio=float(ratio), instance=instance,
-               train=tuple(sorted(overrides.items())), experiment="data_ratio")
+    return Job(
+        "train",
+        scenario,
+        method,
+        seed=scale.seed,
+        data_ratio=float(ratio),
+        instance=instance,
+        train=tuple(sorted(overrides.items())),
+        experiment="data_ratio",
+    )
 
 
 MAIN_RATIO = 20.0  # the paper's main tables: models trained at about 20:1
@@ -50,9 +58,20 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
         for m in methods:
             for tj in models(s, m):
                 for j in range(scale.sets):
-                    jobs.append(Job("evaluate", s, m, seed=scale.seed, set_index=j, trajectories=scale.trajectories,
-                                    horizon=scale.horizon, experiment="accuracy", train_job=tj,
-                                    instance=tj.instance if tj else 0))
+                    jobs.append(
+                        Job(
+                            "evaluate",
+                            s,
+                            m,
+                            seed=scale.seed,
+                            set_index=j,
+                            trajectories=scale.trajectories,
+                            horizon=scale.horizon,
+                            experiment="accuracy",
+                            train_job=tj,
+                            instance=tj.instance if tj else 0,
+                        )
+                    )
     for s in scenarios:
         for m in methods:
             for ns in scale.noise_scales:
@@ -60,9 +79,21 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
                     continue
                 for tj in models(s, m):
                     for j in range(scale.noise_sets):
-                        jobs.append(Job("evaluate", s, m, seed=scale.seed, noise_scale=float(ns), set_index=j,
-                                        trajectories=scale.noise_trajectories, horizon=scale.horizon, experiment="noise",
-                                        train_job=tj, instance=tj.instance if tj else 0))
+                        jobs.append(
+                            Job(
+                                "evaluate",
+                                s,
+                                m,
+                                seed=scale.seed,
+                                noise_scale=float(ns),
+                                set_index=j,
+                                trajectories=scale.noise_trajectories,
+                                horizon=scale.horizon,
+                                experiment="noise",
+                                train_job=tj,
+                                instance=tj.instance if tj else 0,
+                            )
+                        )
     for job in jobs:
         if job.train_job is not None:
             trainings.setdefault(job.train_job)
@@ -74,9 +105,21 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
                     tj = train_job(scale, s, m, ratio, i)
                     trainings.setdefault(tj)
                     for j in range(scale.sets):
-                        jobs.append(Job("evaluate", s, m, seed=scale.seed, set_index=j,
-                                        trajectories=scale.ratio_trajectories or scale.trajectories, horizon=scale.horizon,
-                                        experiment="data_ratio", data_ratio=float(ratio), instance=i, train_job=tj))
+                        jobs.append(
+                            Job(
+                                "evaluate",
+                                s,
+                                m,
+                                seed=scale.seed,
+                                set_index=j,
+                                trajectories=scale.ratio_trajectories or scale.trajectories,
+                                horizon=scale.horizon,
+                                experiment="data_ratio",
+                                data_ratio=float(ratio),
+                                instance=i,
+                                train_job=tj,
+                            )
+                        )
     jobs = list(trainings) + jobs  # trainings first (the engine submits them first anyway)
     devices = ["cpu"] + (["cuda"] if gpu else [])
     for device in devices:
@@ -84,6 +127,16 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
             for m in methods:
                 if device == "cuda" and m not in NEURAL_METHODS:
                     continue  # our classical filters are numpy: CPU only
-                jobs.append(Job("runtime", s, m, seed=scale.seed, steps=scale.runtime_steps, warmup=scale.runtime_warmup,
-                                device=device, experiment="runtime"))
+                jobs.append(
+                    Job(
+                        "runtime",
+                        s,
+                        m,
+                        seed=scale.seed,
+                        steps=scale.runtime_steps,
+                        warmup=scale.runtime_warmup,
+                        device=device,
+                        experiment="runtime",
+                    )
+                )
     return jobs

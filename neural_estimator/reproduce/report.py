@@ -17,11 +17,28 @@ import numpy as np
 from neural_estimator import metrics as M
 from neural_estimator.paper import paper_value
 
-PAPER_NAMES = {"ekf": "EKF", "ukf": "UKF", "enkf": "EnKF", "pf": "PF", "gru": "GRU", "lstm": "LSTM", "gpt2": "GPT-2",
-               "filterformer": "Filterformer", "mamba": "Mamba", "mamba2": "Mamba-2"}
-EXTENDED = (("rmse", "RMSE", 3, True), ("full_rmse", "Full RMSE", 3, True), ("nrmse", "NRMSE", 3, True),
-            ("mae", "MAE", 3, True), ("medae", "MedAE", 3, True), ("auc", "AUC", 1, True),
-            ("outlier_ratio", "Out.", 3, False), ("drift_ratio", "Drift", 3, False))
+PAPER_NAMES = {
+    "ekf": "EKF",
+    "ukf": "UKF",
+    "enkf": "EnKF",
+    "pf": "PF",
+    "gru": "GRU",
+    "lstm": "LSTM",
+    "gpt2": "GPT-2",
+    "filterformer": "Filterformer",
+    "mamba": "Mamba",
+    "mamba2": "Mamba-2",
+}
+EXTENDED = (
+    ("rmse", "RMSE", 3, True),
+    ("full_rmse", "Full RMSE", 3, True),
+    ("nrmse", "NRMSE", 3, True),
+    ("mae", "MAE", 3, True),
+    ("medae", "MedAE", 3, True),
+    ("auc", "AUC", 1, True),
+    ("outlier_ratio", "Out.", 3, False),
+    ("drift_ratio", "Drift", 3, False),
+)
 SEP = " · "  # between ours and the paper's
 
 
@@ -82,7 +99,9 @@ def accuracy_table(summ, scenarios, methods) -> list[str]:
         for s in scenarios:
             st = summ.get(s, {}).get(m)
             for k in ("rmse", "nrmse"):
-                cells.append(side(stat_cell(st and st[k], 3, False), paper_value("accuracy_main", s, m, k), 3, _in_paper(s, m)))
+                cells.append(
+                    side(stat_cell(st and st[k], 3, False), paper_value("accuracy_main", s, m, k), 3, _in_paper(s, m))
+                )
         lines.append(_row(cells))
     return lines
 
@@ -107,8 +126,15 @@ def relative_table(summ, scenarios, methods) -> list[str]:
     scores = relative_scores(summ, scenarios, methods)
     lines = _header(["Method"] + list(scenarios))
     for m in methods:
-        lines.append(_row([PAPER_NAMES.get(m, m)] + [side(num(scores[s][m], 1), paper_value("relative_score", s, m), 1, _in_paper(s, m))
-                                                    for s in scenarios]))
+        lines.append(
+            _row(
+                [PAPER_NAMES.get(m, m)]
+                + [
+                    side(num(scores[s][m], 1), paper_value("relative_score", s, m), 1, _in_paper(s, m))
+                    for s in scenarios
+                ]
+            )
+        )
     return lines
 
 
@@ -116,9 +142,15 @@ def extended_table(summ, s, methods) -> list[str]:
     lines = _header(["Method"] + [h for _, h, _, _ in EXTENDED])
     for m in methods:
         st = summ.get(s, {}).get(m)
-        lines.append(_row([PAPER_NAMES.get(m, m)] + [
-            side(stat_cell(st and st[k], d, iqr), paper_value("extended", s, m, k), d, _in_paper(s, m))
-            for k, _, d, iqr in EXTENDED]))
+        lines.append(
+            _row(
+                [PAPER_NAMES.get(m, m)]
+                + [
+                    side(stat_cell(st and st[k], d, iqr), paper_value("extended", s, m, k), d, _in_paper(s, m))
+                    for k, _, d, iqr in EXTENDED
+                ]
+            )
+        )
     return lines
 
 
@@ -130,8 +162,16 @@ def nrmse_avg_table(summ, scenarios, methods) -> list[str]:
         med, iqr = M.median_iqr(vals) if vals else (math.nan, math.nan)
         paper = paper_value("nrmse_avg_all", m) or {}
         known = m in PAPER_NAMES
-        lines.append(_row([PAPER_NAMES.get(m, m), side(num(med), paper.get("median"), 3, known),
-                           side(num(iqr), paper.get("iqr"), 3, known), str(len(vals))]))
+        lines.append(
+            _row(
+                [
+                    PAPER_NAMES.get(m, m),
+                    side(num(med), paper.get("median"), 3, known),
+                    side(num(iqr), paper.get("iqr"), 3, known),
+                    str(len(vals)),
+                ]
+            )
+        )
     return lines
 
 
@@ -143,7 +183,9 @@ def stability_table(summ, scenarios, methods) -> list[str]:
         for k in ("outlier_ratio", "drift_ratio"):
             for s in scenarios:
                 st = summ.get(s, {}).get(m)
-                cells.append(side(stat_cell(st and st[k], 3, False), paper_value("stability", s, m, k), 3, _in_paper(s, m)))
+                cells.append(
+                    side(stat_cell(st and st[k], 3, False), paper_value("stability", s, m, k), 3, _in_paper(s, m))
+                )
         lines.append(_row(cells))
     return lines
 
@@ -175,17 +217,22 @@ def runtime_table(rt: Mapping[str, Mapping[str, Mapping[str, float]]], scenarios
             continue
         known = [v for v in vals if v is not None]
         avg = sum(known) / len(known) if len(known) == len(vals) else None
-        cells = [side(num(v, 1), paper_value("runtime_full", paper_device, s, m), 1, m in PAPER_NAMES)
-                 for v, s in zip(vals, scenarios)]
+        cells = [
+            side(num(v, 1), paper_value("runtime_full", paper_device, s, m), 1, m in PAPER_NAMES)
+            for v, s in zip(vals, scenarios)
+        ]
         # the paper's average is over its five scenarios: shown only when we ran those five
         all_five = sorted(scenarios) == sorted(paper_value("runtime_full", "cpu") or {})
-        cells.append(side(num(avg, 1), paper_value("runtime_summary", m, paper_device), 1, m in PAPER_NAMES and all_five))
+        cells.append(
+            side(num(avg, 1), paper_value("runtime_summary", m, paper_device), 1, m in PAPER_NAMES and all_five)
+        )
         lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
     return lines
 
 
-def data_ratio_table(nrmse: Mapping[str, Mapping[str, Mapping[float, list[float]]]], scenarios, methods,
-                     ratios: Sequence[float]) -> list[str]:
+def data_ratio_table(
+    nrmse: Mapping[str, Mapping[str, Mapping[float, list[float]]]], scenarios, methods, ratios: Sequence[float]
+) -> list[str]:
     """Median across scenarios of each scenario's median NRMSE (over sets x instances), per ratio,
     beside tab:data_ratio_main: ``nrmse[scenario][method][ratio] = [NRMSE of each run]``."""
     lines = _header(["Method"] + [f"{r:g}:1" for r in ratios])
@@ -236,7 +283,9 @@ def plot_data_ratio(by_method: Mapping[str, Mapping[float, list[float]]], path: 
 def data_ratio_paper_table() -> list[str]:
     lines = _header(["Method", "20:1", "10:1", "5:1", "1:1"])
     for m in ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"):
-        lines.append(_row([PAPER_NAMES[m]] + [num(paper_value("data_ratio_main", r, m)) for r in ("20", "10", "5", "1")]))
+        lines.append(
+            _row([PAPER_NAMES[m]] + [num(paper_value("data_ratio_main", r, m)) for r in ("20", "10", "5", "1")])
+        )
     return lines
 
 
@@ -251,9 +300,13 @@ def plot_noise(curves: Mapping[str, Mapping[float, list[float]]], path: Path, ti
     for m, by_scale in curves.items():
         xs = sorted(by_scale)
         stats = [M.median_iqr(by_scale[x]) for x in xs]
-        q = [(np.nanpercentile(np.asarray(by_scale[x], float), 25), np.nanpercentile(np.asarray(by_scale[x], float), 75))
-             if np.isfinite(by_scale[x]).any() else (np.nan, np.nan) for x in xs]
-        line, = ax.plot(xs, [st[0] for st in stats], marker="o", label=PAPER_NAMES.get(m, m))
+        q = [
+            (np.nanpercentile(np.asarray(by_scale[x], float), 25), np.nanpercentile(np.asarray(by_scale[x], float), 75))
+            if np.isfinite(by_scale[x]).any()
+            else (np.nan, np.nan)
+            for x in xs
+        ]
+        (line,) = ax.plot(xs, [st[0] for st in stats], marker="o", label=PAPER_NAMES.get(m, m))
         ax.fill_between(xs, [a for a, _ in q], [b for _, b in q], color=line.get_color(), alpha=0.2)
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")

@@ -55,8 +55,12 @@ def _file_digest(path: str) -> str:
 
 def describe_settings(settings: Settings, n_jobs: int) -> str:
     sc = settings.scale
-    lines = [f"reproduce --scale {sc.name}: {n_jobs} jobs on Ray ({settings.address or 'local, ' + str(settings.num_cpus or 'default') + ' CPUs'})",
-             f"  scenarios: {', '.join(settings.scenarios)}", f"  methods: {', '.join(settings.methods)}"]
+    lines = [
+        f"reproduce --scale {sc.name}: {n_jobs} jobs on Ray "
+        f"({settings.address or 'local, ' + str(settings.num_cpus or 'default') + ' CPUs'})",
+        f"  scenarios: {', '.join(settings.scenarios)}",
+        f"  methods: {', '.join(settings.methods)}",
+    ]
     for k, v in sc.settings().items():
         if k not in ("name", "notes"):
             lines.append(f"  {k}: {'scenario default' if v is None else v}")
@@ -72,13 +76,18 @@ def check_out_dir(out: Path, settings: Settings, resume: bool) -> None:
     if not state.is_file():
         return
     if not resume:
-        raise ReproduceError(f"{out} holds a previous reproduce run ({STATE_FILE}); pass --resume to continue it, or choose another --out")
+        raise ReproduceError(
+            f"{out} holds a previous reproduce run ({STATE_FILE}); pass --resume to continue it, "
+            "or choose another --out"
+        )
     try:
         before = json.loads(state.read_text()).get("settings")
     except ValueError:
         raise ReproduceError(f"{state} is damaged; remove it or choose another --out") from None
     if before != json.loads(json.dumps(settings.to_json())):  # compared as stored (tuples read back as lists)
-        raise ReproduceError(f"--resume: {out} holds a run with other settings (scale, scenarios or methods); choose another --out")
+        raise ReproduceError(
+            f"--resume: {out} holds a run with other settings (scale, scenarios or methods); choose another --out"
+        )
 
 
 def reproduce(settings: Settings, out: str | Path, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
@@ -90,16 +99,30 @@ def reproduce(settings: Settings, out: str | Path, *, resume: bool = False, prog
     out.mkdir(parents=True, exist_ok=True)
     _write_state(out, settings, jobs, None, None)
     t0 = time.time()
-    outcome = run_jobs(jobs, settings.cache_dir, address=settings.address, num_cpus=settings.num_cpus, progress=progress,
-                       plugins=settings.plugins)
+    outcome = run_jobs(
+        jobs,
+        settings.cache_dir,
+        address=settings.address,
+        num_cpus=settings.num_cpus,
+        progress=progress,
+        plugins=settings.plugins,
+    )
     wall = time.time() - t0
     _write_state(out, settings, jobs, outcome, wall)
     write_report(out, settings, jobs, outcome, wall)
-    return {"jobs": len(jobs), "computed": outcome.computed, "cached": outcome.cached, "failed": len(outcome.failed),
-            "wall_s": wall, "report": str(out / "report.md")}
+    return {
+        "jobs": len(jobs),
+        "computed": outcome.computed,
+        "cached": outcome.cached,
+        "failed": len(outcome.failed),
+        "wall_s": wall,
+        "report": str(out / "report.md"),
+    }
 
 
-def _write_state(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Outcome | None, wall: float | None) -> None:
+def _write_state(
+    out: Path, settings: Settings, jobs: Sequence[Job], outcome: Outcome | None, wall: float | None
+) -> None:
     from neural_estimator.metrics import to_json
 
     rows = []
@@ -111,8 +134,14 @@ def _write_state(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
         elif outcome is not None and i in outcome.failed:
             row.update(status="failed", error=outcome.failed[i])
         rows.append(row)
-    payload = to_json({"settings": settings.to_json(), "complete": outcome is not None and not outcome.failed,
-                       "wall_s": wall, "jobs": rows})
+    payload = to_json(
+        {
+            "settings": settings.to_json(),
+            "complete": outcome is not None and not outcome.failed,
+            "wall_s": wall,
+            "jobs": rows,
+        }
+    )
     tmp = out / (STATE_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, allow_nan=False))
     tmp.replace(out / STATE_FILE)
@@ -125,16 +154,26 @@ def versions() -> dict[str, str]:
 
     from neural_estimator import __version__
 
-    return {"neural_estimator": __version__, "python": platform.python_version(), "numpy": numpy.__version__,
-            "torch": torch.__version__, "ray": ray.__version__, "platform": platform.platform()}
+    return {
+        "neural_estimator": __version__,
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "torch": torch.__version__,
+        "ray": ray.__version__,
+        "platform": platform.platform(),
+    }
 
 
 def git_commit() -> str:
     root = Path(__file__).resolve().parents[2]
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown (no git)"
     if head.returncode != 0:
@@ -167,14 +206,27 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
     summ = R.summaries(acc)
     figs = out / "figures"
     L: list[str] = [f"# Reproduction report: scale `{sc.name}`", ""]
-    L += ["Every table cell reads **ours · paper** (the paper's published value after the dot, `—` where the paper has "
-          "none). Ours are medians over the evaluation sets (± IQR where the paper gives one).", ""]
+    L += [
+        "Every table cell reads **ours · paper** (the paper's published value after the dot, `—` where the paper has "
+        "none). Ours are medians over the evaluation sets (± IQR where the paper gives one).",
+        "",
+    ]
     if sc.name == "smoke":
-        L += ["> **Smoke scale**: tiny sizes that check that every experiment runs; its numbers say nothing about the methods.", ""]
+        L += [
+            "> **Smoke scale**: tiny sizes that check that every experiment runs; "
+            "its numbers say nothing about the methods.",
+            "",
+        ]
     L += ["## Settings", "", "```", describe_settings(settings, len(jobs)), "```", ""]
-    L += ["| | |", "|---|---|", f"| git commit | {git_commit()} |", f"| wall time | {wall:.1f} s |",
-          f"| jobs | {len(jobs)}: {outcome.computed} computed, {outcome.cached} read from the cache, {len(outcome.failed)} failed |",
-          f"| seeds | evaluation sets and filters: {sc.seed}; neural models: {_neural_models(sc)} |"]
+    L += [
+        "| | |",
+        "|---|---|",
+        f"| git commit | {git_commit()} |",
+        f"| wall time | {wall:.1f} s |",
+        f"| jobs | {len(jobs)}: {outcome.computed} computed, {outcome.cached} read from the cache, "
+        f"{len(outcome.failed)} failed |",
+        f"| seeds | evaluation sets and filters: {sc.seed}; neural models: {_neural_models(sc)} |",
+    ]
     L += [f"| {k} | {v} |" for k, v in versions().items()] + [""]
     if outcome.failed:
         L += ["## Failed jobs", ""] + [f"- {jobs[i].label}: `{e}`" for i, e in sorted(outcome.failed.items())] + [""]
@@ -186,12 +238,26 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
     L += ["## Extended metrics per scenario (paper: Appendix tables *_extended)", ""]
     for s in scen:
         L += [f"### {s}", ""] + R.extended_table(summ, s, meth) + [""]
-    L += ["## Cross-scenario NRMSE (paper: Table nrmse_avg_all)", "",
-          "Median and IQR over the scenario-level median NRMSEs" + ("" if len(scen) == 5 else f" (only {len(scen)} of the paper's 5 scenarios run)") + ".", ""]
+    L += [
+        "## Cross-scenario NRMSE (paper: Table nrmse_avg_all)",
+        "",
+        "Median and IQR over the scenario-level median NRMSEs"
+        + ("" if len(scen) == 5 else f" (only {len(scen)} of the paper's 5 scenarios run)")
+        + ".",
+        "",
+    ]
     L += R.nrmse_avg_table(summ, scen, meth) + [""]
-    L += ["## Stability: outlier and drift ratios (paper: Table stability_summary_app)", ""] + R.stability_table(summ, scen, meth) + [""]
-    L += ["## Beyond the paper: covariance consistency (NEES median, 95 % coverage)", "",
-          "Methods that report a covariance; a consistent estimator has NEES ≈ dx and 95 % coverage ≈ 0.95.", ""]
+    L += (
+        ["## Stability: outlier and drift ratios (paper: Table stability_summary_app)", ""]
+        + R.stability_table(summ, scen, meth)
+        + [""]
+    )
+    L += [
+        "## Beyond the paper: covariance consistency (NEES median, 95 % coverage)",
+        "",
+        "Methods that report a covariance; a consistent estimator has NEES ≈ dx and 95 % coverage ≈ 0.95.",
+        "",
+    ]
     L += R.covariance_table(summ, scen, meth) + [""]
     L += ["## RMSE over time (paper: Appendix figures rmse_time_*)", ""]
     for s in scen:
@@ -200,18 +266,26 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
         if curves:
             p = plot_rmse_over_time(curves, figs / f"rmse_over_time_{s}.png", title=s, dt=make_scenario(s).dt)
             L += [f"![RMSE over time, {s}](figures/{p.name})", ""]
-    L += ["## Robustness to observation noise (paper: Appendix figures noise_*)", "",
-          f"RMSE against the observation-noise scale {list(sc.noise_scales)} (median over sets, IQR shaded); neural "
-          "models are the ones trained at the nominal noise. The paper does not publish its noise levels.", ""]
+    L += [
+        "## Robustness to observation noise (paper: Appendix figures noise_*)",
+        "",
+        f"RMSE against the observation-noise scale {list(sc.noise_scales)} (median over sets, IQR shaded); neural "
+        "models are the ones trained at the nominal noise. The paper does not publish its noise levels.",
+        "",
+    ]
     for s in scen:
         curves = {m: v for m, v in noise[s].items() if v}
         if curves:
             p = R.plot_noise(curves, figs / f"noise_{s}.png", title=s)
             L += [f"![noise robustness, {s}](figures/{p.name})", ""]
-    L += ["## Runtime: iterations per second at batch 1 (paper: Table runtime_full_app)", "",
-          "Each method's real per-step path (`reset(1)`, then one `step` per observation), "
-          f"{sc.runtime_steps} timed steps after {sc.runtime_warmup} untimed, one thread, the job alone on the Ray node. "
-          "Our hardware is not the paper's: compare orderings, not values.", ""]
+    L += [
+        "## Runtime: iterations per second at batch 1 (paper: Table runtime_full_app)",
+        "",
+        "Each method's real per-step path (`reset(1)`, then one `step` per observation), "
+        f"{sc.runtime_steps} timed steps after {sc.runtime_warmup} untimed, one thread, the job alone on the Ray node. "
+        "Our hardware is not the paper's: compare orderings, not values.",
+        "",
+    ]
     for device in rt:
         L += [f"### {device.upper()}", ""] + R.runtime_table(rt, scen, meth, device) + [""]
     from neural_estimator.estimators import NEURAL_METHODS
@@ -220,11 +294,20 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
     L += ["## Data efficiency (paper: Table data_ratio_main, figures data_ratio_*)", ""]
     if neural:
         n_train = sum(1 for j in jobs if j.kind == "train")
-        L += [f"Median NRMSE across scenarios of each scenario's median over sets × instances; {n_train} models trained "
-              f"({sc.train_instances} instance(s) per scenario, architecture and ratio; recipe: the paper's"
-              + (f" with {dict(sc.train_overrides)}" if sc.train_overrides else "")
-              + (f", {sc.train_trajectories_at_20} training trajectories at 20:1 scaled by the ratio" if sc.train_trajectories_at_20 else "")
-              + ")" + ("" if len(scen) == 5 else f"; only {len(scen)} of the paper's 5 scenarios run") + ".", ""]
+        L += [
+            f"Median NRMSE across scenarios of each scenario's median over sets × instances; {n_train} models trained "
+            f"({sc.train_instances} instance(s) per scenario, architecture and ratio; recipe: the paper's"
+            + (f" with {dict(sc.train_overrides)}" if sc.train_overrides else "")
+            + (
+                f", {sc.train_trajectories_at_20} training trajectories at 20:1 scaled by the ratio"
+                if sc.train_trajectories_at_20
+                else ""
+            )
+            + ")"
+            + ("" if len(scen) == 5 else f"; only {len(scen)} of the paper's 5 scenarios run")
+            + ".",
+            "",
+        ]
         L += R.data_ratio_table(ratio, scen, neural, sc.data_ratios) + [""]
         for s in scen:
             by_m = {m: ratio[s][m] for m in neural if ratio[s][m]}
@@ -232,7 +315,11 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
                 p = R.plot_data_ratio(by_m, figs / f"data_ratio_{s}.png", title=s)
                 L += [f"![data efficiency, {s}](figures/{p.name})", ""]
     else:
-        L += ["No neural method was run: no data-efficiency experiment. The paper's values:", ""] + R.data_ratio_paper_table() + [""]
+        L += (
+            ["No neural method was run: no data-efficiency experiment. The paper's values:", ""]
+            + R.data_ratio_paper_table()
+            + [""]
+        )
     path = out / "report.md"
     path.write_text("\n".join(L))
     return path
@@ -240,8 +327,10 @@ def write_report(out: Path, settings: Settings, jobs: Sequence[Job], outcome: Ou
 
 def _neural_models(sc) -> str:
     if sc.main_from_training:
-        return (f"{sc.train_instances} instances per architecture trained at 20:1 (init seeds 0-{sc.train_instances - 1}, "
-                f"data seed {sc.seed}) for the accuracy and noise tables; the shipped checkpoints for runtime")
+        return (
+            f"{sc.train_instances} instances per architecture trained at 20:1 (init seeds 0-{sc.train_instances - 1}, "
+            f"data seed {sc.seed}) for the accuracy and noise tables; the shipped checkpoints for runtime"
+        )
     return "the shipped checkpoints (one instance each) for accuracy, noise and runtime"
 
 

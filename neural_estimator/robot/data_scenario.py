@@ -45,19 +45,27 @@ class DataScenario(Scenario):
 
     def __init__(self, meta: dict[str, Any]) -> None:
         try:
-            names = {k: tuple(str(v) for v in meta.get(k, ())) for k in
-                     ("state_names", "state_units", "obs_names", "obs_units", "control_names", "control_units")}
+            names = {
+                k: tuple(str(v) for v in meta.get(k, ()))
+                for k in ("state_names", "state_units", "obs_names", "obs_units", "control_names", "control_units")
+            }
             angles = {k: tuple(int(i) for i in meta.get(k, ())) for k in ("angle_states", "angle_obs")}
-            cfg = DataConfig(dt=float(meta["dt"]), horizon=int(meta.get("horizon", 500)),
-                             spec_sha256=str(meta.get("spec_sha256", "")))
+            cfg = DataConfig(
+                dt=float(meta["dt"]),
+                horizon=int(meta.get("horizon", 500)),
+                spec_sha256=str(meta.get("spec_sha256", "")),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise ScenarioError(f"not the meta of a recorded dataset ({exc})") from None
         for k in ("state", "obs", "control"):
             if len(names[f"{k}_names"]) > MAX_DIMENSION:
-                raise ScenarioError(f"recorded data: {len(names[f'{k}_names'])} {k} components, more than {MAX_DIMENSION}")
+                raise ScenarioError(
+                    f"recorded data: {len(names[f'{k}_names'])} {k} components, more than {MAX_DIMENSION}"
+                )
             if len(names[f"{k}_units"]) != len(names[f"{k}_names"]):
-                raise ScenarioError(f"recorded data: {k} has {len(names[f'{k}_names'])} names but "
-                                    f"{len(names[f'{k}_units'])} units")
+                raise ScenarioError(
+                    f"recorded data: {k} has {len(names[f'{k}_names'])} names but {len(names[f'{k}_units'])} units"
+                )
         if not names["state_names"] or not names["obs_names"]:
             raise ScenarioError("recorded data: the state and the observation need at least one component")
         for key, n in (("angle_states", len(names["state_names"])), ("angle_obs", len(names["obs_names"]))):
@@ -76,8 +84,14 @@ class DataScenario(Scenario):
     def from_description(cls, desc: dict[str, Any]) -> "DataScenario":
         """The scenario a card's ``scenario`` entry describes (see :meth:`describe`)."""
         cfg = desc.get("config", {})
-        return cls({**desc, "dt": cfg.get("dt", desc.get("dt")), "horizon": cfg.get("horizon", 500),
-                    "spec_sha256": cfg.get("spec_sha256", "")})
+        return cls(
+            {
+                **desc,
+                "dt": cfg.get("dt", desc.get("dt")),
+                "horizon": cfg.get("horizon", 500),
+                "spec_sha256": cfg.get("spec_sha256", ""),
+            }
+        )
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "spec": self.spec}
@@ -90,8 +104,10 @@ class DataScenario(Scenario):
 
     # ---- no model ----------------------------------------------------------------------------
     def _no_model(self, what: str):
-        raise ScenarioError(f"recorded data have no {what}: only the neural estimators (trained on the data) apply; "
-                            "a classical filter needs the system's equations")
+        raise ScenarioError(
+            f"recorded data have no {what}: only the neural estimators (trained on the data) apply; "
+            "a classical filter needs the system's equations"
+        )
 
     def f(self, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
         self._no_model("dynamics f")

@@ -50,8 +50,10 @@ class BagSummary:
     remainder: int = 0  # valid ticks at the end of segments, fewer than a trajectory's length
 
     def line(self) -> str:
-        return (f"{self.bag}: {self.ticks} ticks -> {self.trajectories} trajectories from {self.segments} segments; "
-                f"dropped {self.stale} stale, {self.nonfinite} non-finite, {self.remainder} remainder ticks")
+        return (
+            f"{self.bag}: {self.ticks} ticks -> {self.trajectories} trajectories from {self.segments} segments; "
+            f"dropped {self.stale} stale, {self.nonfinite} non-finite, {self.remainder} remainder ticks"
+        )
 
 
 def bag_sha256(path: str | Path) -> str:
@@ -124,7 +126,9 @@ def tick_times(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec) ->
     return start + np.round(np.arange(n) * step).astype(np.int64)
 
 
-def sample(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec, ticks: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+def sample(
+    streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec, ticks: np.ndarray
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     """The three vectors at every tick, and the stale and non-finite masks (K,).
 
     Each topic contributes its latest message stamped at or before the tick, if no older than
@@ -157,8 +161,9 @@ def segments(valid: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
 
 
-def build_dataset(bags: Sequence[str | Path], spec: Spec, length: int, progress=None
-                  ) -> tuple[Trajectories, dict[str, np.ndarray], list[BagSummary]]:
+def build_dataset(
+    bags: Sequence[str | Path], spec: Spec, length: int, progress=None
+) -> tuple[Trajectories, dict[str, np.ndarray], list[BagSummary]]:
     """Trajectories of ``length`` steps from every bag (see the module docstring), and the spec's
     recorded estimates {name: x_hat (N, T, dx)} at the same ticks.
 
@@ -198,8 +203,10 @@ def build_dataset(bags: Sequence[str | Path], spec: Spec, length: int, progress=
         if progress:
             progress(summary.line())
     if not xs:
-        raise SpecError(f"no trajectory of {length} steps: the longest run of valid ticks is {longest} "
-                        f"(at {spec.rate:g} Hz); pass a smaller --length, or raise max_age in the spec")
+        raise SpecError(
+            f"no trajectory of {length} steps: the longest run of valid ticks is {longest} "
+            f"(at {spec.rate:g} Hz); pass a smaller --length, or raise max_age in the spec"
+        )
     meta = dataset_meta(spec, length, summaries)
     estimates = {name: np.stack(v) for name, v in est.items()}
     return Trajectories(np.stack(xs), np.stack(ys), np.stack(us), meta), estimates, summaries
@@ -214,13 +221,21 @@ def dataset_meta(spec: Spec, length: int, summaries: Sequence[BagSummary]) -> di
         "rate": spec.rate,
         "dt": spec.dt,
         "horizon": int(length),
-        "state_names": list(spec.names["state"]), "state_units": list(spec.units["state"]),
-        "obs_names": list(spec.names["observation"]), "obs_units": list(spec.units["observation"]),
-        "control_names": list(spec.names["control"]), "control_units": list(spec.units["control"]),
-        "angle_states": list(spec.angles("state")), "angle_obs": list(spec.angles("observation")),
-        "sources": [{"bag": Path(s.bag).name, "sha256": s.sha256, "messages": s.messages,
-                     "trajectories": s.trajectories} for s in summaries],
-        "dropped": {"stale_ticks": sum(s.stale for s in summaries),
-                    "nonfinite_ticks": sum(s.nonfinite for s in summaries),
-                    "remainder_ticks": sum(s.remainder for s in summaries)},
+        "state_names": list(spec.names["state"]),
+        "state_units": list(spec.units["state"]),
+        "obs_names": list(spec.names["observation"]),
+        "obs_units": list(spec.units["observation"]),
+        "control_names": list(spec.names["control"]),
+        "control_units": list(spec.units["control"]),
+        "angle_states": list(spec.angles("state")),
+        "angle_obs": list(spec.angles("observation")),
+        "sources": [
+            {"bag": Path(s.bag).name, "sha256": s.sha256, "messages": s.messages, "trajectories": s.trajectories}
+            for s in summaries
+        ],
+        "dropped": {
+            "stale_ticks": sum(s.stale for s in summaries),
+            "nonfinite_ticks": sum(s.nonfinite for s in summaries),
+            "remainder_ticks": sum(s.remainder for s in summaries),
+        },
     }

@@ -156,11 +156,12 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
         raise SpecError(f"{where}: stamp must be one of {list(STAMPS)}, got {stamp!r}")
     vectors = {}
     estimates = raw.get("estimates") or {}
-    if not isinstance(estimates, Mapping) or not all(isinstance(k, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", k)
-                                                      for k in estimates):
+    if not isinstance(estimates, Mapping) or not all(
+        isinstance(k, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", k) for k in estimates
+    ):
         raise SpecError(f"{where}: estimates must map names (letters, digits, _) to topic: [fields] mappings")
     for name in (*VECTORS, *(ESTIMATE_PREFIX + k for k in estimates)):
-        entry = raw.get(name) if name in VECTORS else estimates[name[len(ESTIMATE_PREFIX):]]
+        entry = raw.get(name) if name in VECTORS else estimates[name[len(ESTIMATE_PREFIX) :]]
         if entry is None:
             if name != "control":
                 raise SpecError(f"{where}: missing {name!r} (a mapping topic: [fields])")
@@ -182,8 +183,10 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
             raise SpecError(f"{where}: {name!r} has {len(fields)} components, more than {MAX_COMPONENTS}")
         vectors[name] = tuple(fields)
         if name.startswith(ESTIMATE_PREFIX) and len(fields) != len(vectors["state"]):
-            raise SpecError(f"{where}: {name} has {len(fields)} fields; an estimate needs one per state component "
-                            f"({len(vectors['state'])})")
+            raise SpecError(
+                f"{where}: {name} has {len(fields)} fields; an estimate needs one per state component "
+                f"({len(vectors['state'])})"
+            )
     names = _labels(raw.get("names"), "names", vectors, where, default=lambda f: f.expr)
     units = _labels(raw.get("units"), "units", vectors, where, default=lambda f: "rad" if f.is_angle else "")
     source = {k: raw[k] for k in sorted(raw)}
@@ -204,7 +207,9 @@ def _positive(value: Any, key: str, where: str) -> float:
     return v
 
 
-def _labels(raw: Any, key: str, vectors: dict[str, tuple[Field, ...]], where: str, default) -> dict[str, tuple[str, ...]]:
+def _labels(
+    raw: Any, key: str, vectors: dict[str, tuple[Field, ...]], where: str, default
+) -> dict[str, tuple[str, ...]]:
     raw = raw or {}
     if not isinstance(raw, Mapping) or set(raw) - set(VECTORS):
         raise SpecError(f"{where}: {key} must map some of {list(VECTORS)} to lists of strings")
@@ -214,7 +219,11 @@ def _labels(raw: Any, key: str, vectors: dict[str, tuple[Field, ...]], where: st
         if given is None:
             out[name] = tuple(default(f) for f in vectors[name])
             continue
-        if not isinstance(given, list) or len(given) != len(vectors[name]) or not all(isinstance(s, str) for s in given):
+        if (
+            not isinstance(given, list)
+            or len(given) != len(vectors[name])
+            or not all(isinstance(s, str) for s in given)
+        ):
             raise SpecError(f"{where}: {key}.{name} must list {len(vectors[name])} strings, one per field")
         out[name] = tuple(given)
     return out
@@ -257,8 +266,10 @@ def resolve(msg: Any, path: tuple[tuple[str, tuple[int, ...]], ...], field: Fiel
     for attr, indices in path:
         if not hasattr(obj, attr) or attr.startswith("_"):
             where = ".".join(walked) or "the message"
-            raise SpecError(f"topic {field.topic} ({msgtype}): no field {attr!r} in {where} (field {field.expr!r}); "
-                            f"fields there: {', '.join(message_fields(obj)) or 'none'}")
+            raise SpecError(
+                f"topic {field.topic} ({msgtype}): no field {attr!r} in {where} (field {field.expr!r}); "
+                f"fields there: {', '.join(message_fields(obj)) or 'none'}"
+            )
         obj = getattr(obj, attr)
         walked.append(attr)
         for i in indices:
@@ -266,8 +277,10 @@ def resolve(msg: Any, path: tuple[tuple[str, tuple[int, ...]], ...], field: Fiel
                 obj = obj[i]
             except (IndexError, TypeError, KeyError):
                 size = len(obj) if hasattr(obj, "__len__") else "not an array"
-                raise SpecError(f"topic {field.topic} ({msgtype}): {'.'.join(walked)}[{i}] is out of range "
-                                f"(length {size}) in field {field.expr!r}") from None
+                raise SpecError(
+                    f"topic {field.topic} ({msgtype}): {'.'.join(walked)}[{i}] is out of range "
+                    f"(length {size}) in field {field.expr!r}"
+                ) from None
             walked[-1] += f"[{i}]"
     return obj
 
@@ -277,16 +290,22 @@ def field_value(msg: Any, field: Field, msgtype: str) -> float:
     obj = resolve(msg, field.path, field, msgtype)
     try:
         if field.func in ("yaw", "roll", "pitch"):
-            return euler(float(obj.x), float(obj.y), float(obj.z), float(obj.w))[("roll", "pitch", "yaw").index(field.func)]
+            return euler(float(obj.x), float(obj.y), float(obj.z), float(obj.w))[
+                ("roll", "pitch", "yaw").index(field.func)
+            ]
         if field.func == "norm":
             return math.sqrt(float(obj.x) ** 2 + float(obj.y) ** 2 + float(obj.z) ** 2)
         return float(obj)
     except AttributeError as exc:
-        raise SpecError(f"topic {field.topic} ({msgtype}): {field.expr!r} needs a "
-                        f"{'quaternion (x, y, z, w)' if field.func != 'norm' else 'vector (x, y, z)'}: {exc}") from None
+        raise SpecError(
+            f"topic {field.topic} ({msgtype}): {field.expr!r} needs a "
+            f"{'quaternion (x, y, z, w)' if field.func != 'norm' else 'vector (x, y, z)'}: {exc}"
+        ) from None
     except (TypeError, ValueError):
-        raise SpecError(f"topic {field.topic} ({msgtype}): {field.expr!r} is not a number "
-                        f"(it is a {type(obj).__name__}); name one of its fields") from None
+        raise SpecError(
+            f"topic {field.topic} ({msgtype}): {field.expr!r} is not a number "
+            f"(it is a {type(obj).__name__}); name one of its fields"
+        ) from None
 
 
 def euler(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:

@@ -123,14 +123,17 @@ class Scenario(ABC):
         for field, per_unit in self.dimension_fields.items():
             value = getattr(self.config, field)
             if isinstance(value, (int, np.integer)) and int(value) * per_unit > MAX_DIMENSION:
-                raise ScenarioError(f"scenario {self.name!r}: {field} = {value} gives {int(value) * per_unit} dimensions, "
-                                    f"more than the {MAX_DIMENSION} this package accepts")
+                raise ScenarioError(
+                    f"scenario {self.name!r}: {field} = {value} gives {int(value) * per_unit} dimensions, "
+                    f"more than the {MAX_DIMENSION} this package accepts"
+                )
 
     def _check_dimensions(self) -> None:
         for what, n in (("state", self.dx), ("observation", self.dy), ("control", self.du)):
             if n > MAX_DIMENSION:
-                raise ScenarioError(f"scenario {self.name!r}: {n} {what} dimensions, more than the {MAX_DIMENSION} "
-                                    "this package accepts")
+                raise ScenarioError(
+                    f"scenario {self.name!r}: {n} {what} dimensions, more than the {MAX_DIMENSION} this package accepts"
+                )
 
     # ---- dimensions and timing -------------------------------------------------------------
     @property
@@ -309,9 +312,7 @@ def _coerce(value: Any, default: Any, name: str, scenario: str) -> Any:
                 raise TypeError
             return _to_tuple(arr)
     except (TypeError, ValueError):
-        raise ScenarioError(
-            f"scenario {scenario!r}: {name} must be like {default!r}, got {value!r}"
-        ) from None
+        raise ScenarioError(f"scenario {scenario!r}: {name} must be like {default!r}, got {value!r}") from None
     return value
 
 
@@ -325,9 +326,7 @@ def replace_config(cfg: Any, overrides: Mapping[str, Any], scenario: str = "") -
     changes = {}
     for name, value in overrides.items():
         if name not in fields:
-            raise ScenarioError(
-                f"scenario {scenario!r} has no constant {name!r}; valid: {', '.join(sorted(fields))}"
-            )
+            raise ScenarioError(f"scenario {scenario!r} has no constant {name!r}; valid: {', '.join(sorted(fields))}")
         changes[name] = _coerce(value, getattr(cfg, name), name, scenario)
     return dataclasses.replace(cfg, **changes)
 

@@ -92,9 +92,7 @@ class Bearings(Scenario):
 
     def _transition_matrix(self) -> np.ndarray:
         t = float(self.config.dt)
-        return np.array(
-            [[1.0, 0.0, t, 0.0], [0.0, 1.0, 0.0, t], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
-        )
+        return np.array([[1.0, 0.0, t, 0.0], [0.0, 1.0, 0.0, t], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
     def f(self, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
         """x_{k+1} = F x_k; (..., 4) -> (..., 4)."""

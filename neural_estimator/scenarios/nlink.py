@@ -252,7 +252,8 @@ class NLinkPendulum(Scenario):
 
         Blocks of ``_BLOCK`` states are transposed once to contiguous (2N, m) rows
         (:func:`by_component_blocks`), the whole RK4 runs on the angle and rate rows (the field
-        is (w, w'), so only w' needs :meth:`_accel_components`), and the result is transposed back. The stages are those of
+        is (w, w'), so only w' needs :meth:`_accel_components`), and the result is transposed back. The stages
+        are those of
         :func:`rk4`, x_i = x + c_i h k_{i-1}, with h/6 (k1 + 2 k2 + 2 k3 + k4) summed as they come.
         """
         cfg = self.config
