@@ -317,17 +317,15 @@ def _parse_checkpoints(items: list[str] | None) -> dict[str, list[str]]:
 
 
 def _parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
+    """{method: {name: text}}: the values stay text, parsed by the method against each option's type
+    (:mod:`neural_estimator.options`)."""
     out: dict[str, dict[str, Any]] = {}
     for item in items or ():
         key, sep, value = item.partition("=")
         method, dot, name = key.partition(".")
         if not sep or not dot or not name:
             raise CliError(f"--option expects METHOD.NAME=VALUE, got {item!r}")
-        try:
-            parsed = json.loads(value)
-        except json.JSONDecodeError:
-            parsed = value
-        out.setdefault(method.strip().lower(), {})[name.strip()] = parsed
+        out.setdefault(method.strip().lower(), {})[name.strip()] = value.strip()
     return out
 
 

@@ -50,6 +50,7 @@ from neural_estimator.estimators import (
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.filters.enkf import EnKFHyperParams
 from neural_estimator.filters.pf import PFHyperParams
+from neural_estimator.options import parse_value
 from neural_estimator.scenarios import Scenario
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
@@ -126,10 +127,12 @@ def chunk_size(
     dx, dy, du = scenario.dx, scenario.dy, scenario.du
     per = horizon * (dx + dx * dx + dy + du) * 8
     opts = options or {}
-    members = {
-        "pf": opts.get("n_particles", PFHyperParams.n_particles),
-        "enkf": opts.get("n_members", EnKFHyperParams.n_members),
-    }.get(method, 2 * dx + 1)
+    if method == "pf":
+        members = parse_value(opts.get("n_particles", PFHyperParams.n_particles), 1, "n_particles")
+    elif method == "enkf":
+        members = parse_value(opts.get("n_members", EnKFHyperParams.n_members), 1, "n_members")
+    else:
+        members = 2 * dx + 1
     per += members * (dx + dy) * 8 * 6
     return int(max(1, min(n, budget // per)))
 

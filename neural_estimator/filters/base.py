@@ -25,7 +25,6 @@ Subclasses implement ``_init_state(B)``, ``_predict(u)``, ``_update(y, skip)``, 
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import threading
 from abc import abstractmethod
@@ -37,6 +36,7 @@ import numpy as np
 
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
+from neural_estimator.options import OptionError, is_optional, parse_value
 from neural_estimator.scenarios import Scenario
 
 THREADS_ENV = "NEURAL_ESTIMATOR_THREADS"
@@ -104,13 +104,11 @@ def build_hyperparams(cls: type, method: str, hyperparams: Any, options: dict[st
     if not isinstance(base, cls):
         raise EstimatorError(f"{method}: hyperparams must be a {cls.__name__}, got {type(base).__name__}")
     values = {}
-    for name, value in options.items():
-        if isinstance(value, str):
-            try:
-                value = json.loads(value)
-            except json.JSONDecodeError:
-                raise EstimatorError(f"{method}: cannot parse {name}={value!r}") from None
-        values[name] = value
+    for name, value in options.items():  # text parsed by the field's type (neural_estimator.options)
+        try:
+            values[name] = parse_value(value, getattr(base, name), name, optional=is_optional(fields[name].type))
+        except OptionError as exc:
+            raise EstimatorError(f"{method}: {exc}") from None
     try:
         hp = dataclasses.replace(base, **values)
         hp.validate()

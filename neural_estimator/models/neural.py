@@ -24,6 +24,7 @@ from torch import nn
 
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.models.normalization import Normalizer
+from neural_estimator.options import OptionError, parse_bool
 from neural_estimator.scenarios import Scenario
 
 CHUNK_TIMESTEPS = 1 << 16  # sequences x steps per parallel forward in run(): bounds activation memory
@@ -94,12 +95,12 @@ class NeuralEstimator(Estimator):
         self.device = resolve_device(device)
         self.model = model.to(self.device).eval()  # serving is always eval mode (no dropout)
         self.dtype = next(self.model.parameters()).dtype
-        self.has_covariance = bool(covariance) and hasattr(model, "step_with_cov")
+        self.has_covariance = _as_bool(covariance, "covariance") and hasattr(model, "step_with_cov")
         self.card = dict(card or {})
         self.chunk_timesteps = int(chunk_timesteps)
         self._state: Any = None
         step_fn = model.step_with_cov if self.has_covariance else model.step
-        self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step) else step_fn
+        self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
 
     # ---- streaming -------------------------------------------------------------------------------
     def reset(self, batch: int = 1) -> None:
@@ -171,10 +172,9 @@ class NeuralEstimator(Estimator):
         return f"NeuralEstimator({self.method!r}, scenario={self.scenario.name!r}, device={str(self.device)!r})"
 
 
-def _as_bool(v: Any) -> bool:
-    """Options may arrive as strings from a command line or a node parameter."""
-    if isinstance(v, str):
-        if v.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
-            raise EstimatorError(f"expected a boolean, got {v!r}")
-        return v.strip().lower() in ("true", "1", "yes")
-    return bool(v)
+def _as_bool(v: Any, name: str = "option") -> bool:
+    """Options may arrive as strings from a command line or a node parameter (the package's grammar)."""
+    try:
+        return parse_bool(v, name)
+    except OptionError as exc:
+        raise EstimatorError(str(exc)) from None

@@ -23,6 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 
 from neural_estimator.bags.writer import Qos
 from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class
+from neural_estimator.options import OptionError, parse_value
 
 P = TypeVar("P")
 
@@ -72,35 +73,17 @@ def _type_name(kind: Any) -> str:
 
 
 def _coerce(name: str, value: Any, kind: Any, default: Any) -> Any:
+    """A parameter's value of its declared type, by the package's one grammar
+    (:mod:`neural_estimator.options`: ``true/yes/on/1`` are true for a bool, as on the command line)."""
     if value is None:
         return default
+    like = () if typing.get_origin(kind) is tuple else kind()  # a typed stand-in for the default
+    if isinstance(like, tuple) and not isinstance(value, str):
+        value = [str(v) for v in value]
     try:
-        if typing.get_origin(kind) is tuple:
-            if isinstance(value, str):
-                return tuple(v.strip() for v in value.split(",") if v.strip())
-            return tuple(str(v) for v in value)
-        if kind is bool:
-            if isinstance(value, bool):
-                return value
-            if isinstance(value, str) and value.lower() in ("true", "false"):
-                return value.lower() == "true"
-            raise ValueError
-        if kind is int:
-            if isinstance(value, bool) or float(value) != int(float(value)):
-                raise ValueError
-            return int(float(value))
-        if kind is float:
-            if isinstance(value, bool):
-                raise ValueError
-            return float(value)
-        if kind is str:
-            return str(value)
-    except (TypeError, ValueError):
-        pass
-    else:
-        return value
-    want = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, "a list of strings")
-    raise StartupError(f"parameter {name} must be {want}, got {value!r}")
+        return parse_value(value, like if not isinstance(like, tuple) else ("",), f"parameter {name}")
+    except OptionError as exc:
+        raise StartupError(str(exc)) from None
 
 
 # ---- QoS -----------------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from neural_estimator.angles import weighted_mean, wrap_components
+from neural_estimator.options import OptionError, parse_value
 
 # The largest state, observation or control dimension a scenario may have. A filter holds dx x dx
 # matrices (8 MiB each at 1024) and a scenario description can arrive from the ROS graph, so the
@@ -289,35 +290,12 @@ def _jsonable(v: Any) -> Any:
 
 
 def _coerce(value: Any, default: Any, name: str, scenario: str) -> Any:
-    """Convert ``value`` (often a command-line string) to the type of the field's default."""
-    if isinstance(value, str) and not isinstance(default, str):
-        try:
-            value = json.loads(value)
-        except json.JSONDecodeError as exc:
-            raise ScenarioError(f"scenario {scenario!r}: cannot parse {name}={value!r}: {exc.msg}") from None
+    """Convert ``value`` (often a command-line string) to the type of the field's default
+    (:func:`neural_estimator.options.parse_value`, the package's one grammar)."""
     try:
-        if isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise TypeError
-            return value
-        if isinstance(default, int):
-            if float(value) != int(value):
-                raise TypeError
-            return int(value)
-        if isinstance(default, float):
-            return float(value)
-        if isinstance(default, tuple):
-            arr = np.asarray(value, dtype=np.float64)
-            if arr.shape != np.asarray(default).shape:
-                raise TypeError
-            return _to_tuple(arr)
-    except (TypeError, ValueError):
-        raise ScenarioError(f"scenario {scenario!r}: {name} must be like {default!r}, got {value!r}") from None
-    return value
-
-
-def _to_tuple(arr: np.ndarray) -> Any:
-    return tuple(_to_tuple(a) for a in arr) if arr.ndim else float(arr)
+        return parse_value(value, default, name)
+    except OptionError as exc:
+        raise ScenarioError(f"scenario {scenario!r}: {exc}") from None
 
 
 def replace_config(cfg: Any, overrides: Mapping[str, Any], scenario: str = "") -> Any:
