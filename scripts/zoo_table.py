@@ -29,22 +29,16 @@ def main() -> None:
             mark = " (converged)" if c["training"].get("converged") else ""  # cards say so since the retraining
             cells.append(f"{met['rmse']:.4g} ({met['nrmse']:.3f}){mark}")
         print(f"| {m} | " + " | ".join(cells) + " |")
-    budgets = set()
+    budgets: dict[tuple, set[str]] = {}  # budget -> the scenarios whose models had it
     for card in (p for p in ZOO.glob("*-*/card.json") if "." not in p.parent.name):
         c = json.loads(card.read_text())
         r, m = c["training"]["recipe"], c["metrics"]["set"]
-        budgets.add(
-            (
-                c["scenario"]["scenario"] == "lorenz96",
-                r["epochs"],
-                c["data"]["windows_per_epoch"],
-                r["val_trajectories"],
-                m["trajectories"],
-            )
-        )
-    for l96, ep, w, v, n in sorted(budgets, reverse=True):
+        key = (r["epochs"], c["data"]["windows_per_epoch"], r["val_trajectories"], m["trajectories"])
+        budgets.setdefault(key, set()).add(c["scenario"]["scenario"])
+    for (ep, w, v, n), scenarios in sorted(budgets.items(), reverse=True):
+        names = ", ".join(s for s in BUILTIN_SCENARIOS if s in scenarios)
         print(
-            f"\n{'Lorenz 96' if l96 else 'other scenarios'}: {ep} epochs x {w} windows, {v} validation trajectories, "
+            f"\n{names}: {ep} epochs x {w} windows, {v} validation trajectories, "
             f"metrics on {n} trajectories of evaluation set 0.",
             end="",
         )
