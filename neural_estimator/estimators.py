@@ -51,7 +51,7 @@ def make_estimator(
     Classical filters take their settings from ``options`` (paper defaults otherwise) and ``seed``
     for their random draws. Neural models load ``checkpoint`` (a directory or its ``.json`` card),
     or the model shipped with the package for (scenario, method) when ``checkpoint`` is None;
-    their ``options`` go to :func:`~neural_estimator.models.checkpoint.load_neural_estimator`
+    their ``options`` go to :func:`~neural_estimator.models.serving.load_neural_estimator`
     (``covariance=False`` skips the Filterformer's per-step covariance).
     """
     m = check_method(method)
@@ -59,7 +59,7 @@ def make_estimator(
         return CLASSICAL_FILTERS[m](scenario, seed=seed, **options)
     # Imported here, not at the top: the neural side imports torch (1-2 s), which a process that
     # only runs filters (an EKF node, a classical evaluate) should not pay.
-    from neural_estimator.models.checkpoint import load_neural_estimator
+    from neural_estimator.models.serving import load_neural_estimator
 
     # an unknown option is the caller's one-line error, not a TypeError from deep inside
     valid = [

@@ -232,7 +232,8 @@ def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | 
     None); None for classical filters. A missing file hashes as "missing" (loading will fail)."""
     if method not in NEURAL_METHODS:
         return None
-    from neural_estimator.models.checkpoint import CARD_FILE, WEIGHTS_FILE, default_checkpoint
+    from neural_estimator.models.card import CARD_FILE, WEIGHTS_FILE
+    from neural_estimator.models.serving import default_checkpoint
 
     path = Path(checkpoint) if checkpoint is not None else default_checkpoint(scenario.name, method)
     directory = path.parent if path.suffix == ".json" else path

@@ -14,7 +14,8 @@ from safetensors.torch import load_file
 from neural_estimator.data import simulate
 from neural_estimator.estimators import EstimatorError, make_estimator
 from neural_estimator.models import ARCHITECTURES, build_model
-from neural_estimator.models.checkpoint import load_neural_estimator, save_checkpoint
+from neural_estimator.models.checkpoint import save_checkpoint
+from neural_estimator.models.serving import load_neural_estimator
 from neural_estimator.models.neural import NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import Normalizer
 from neural_estimator.models.training import TrainConfig, TrainingError, state_error, train, weighted_loss
@@ -400,7 +401,7 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     for k in range(40):
         b[:, k] = compiled.step(data.y[:2, k])
     np.testing.assert_allclose(a, b, atol=1e-5)
-    with pytest.raises(EstimatorError, match="expected a boolean"):
+    with pytest.raises(EstimatorError, match="compile_step must be true or false"):
         NeuralEstimator(oscillator, model, norm, "gru", compile_step="maybe")
 
 

@@ -24,7 +24,7 @@ def test_zoo_holds_only_weights_and_cards():
 def _changed_constants(card: dict, scenario) -> list[str]:
     """Constants (evaluation-only ones aside) whose default differs from the card's (issue 9's
     calibration changed some scenarios after the zoo was trained)."""
-    from neural_estimator.models.checkpoint import EVALUATION_CONSTANTS
+    from neural_estimator.models.serving import EVALUATION_CONSTANTS
 
     theirs, ours = card["scenario"]["config"], scenario.describe()["config"]
     return sorted(k for k in set(theirs) | set(ours) if k not in EVALUATION_CONSTANTS and theirs.get(k) != ours.get(k))

@@ -72,7 +72,8 @@ from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import compute_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, build_model
-from neural_estimator.models.checkpoint import json_ready, load_checkpoint, save_checkpoint
+from neural_estimator.models.card import json_ready
+from neural_estimator.models.checkpoint import load_checkpoint, save_checkpoint
 from neural_estimator.models.neural import NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import Normalizer
 from neural_estimator.scenarios import Scenario, make_scenario

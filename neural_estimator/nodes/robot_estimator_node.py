@@ -213,7 +213,7 @@ def _load(p: RobotEstimatorParams):
     from pathlib import Path
 
     from neural_estimator.estimators import EstimatorError, make_estimator
-    from neural_estimator.models.checkpoint import read_card
+    from neural_estimator.models.card import read_card
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.scenarios import ScenarioError
 
