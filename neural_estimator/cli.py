@@ -122,6 +122,13 @@ def _add_metrics(sub) -> None:
     )
     _bag_scenario_flags(p)
     p.add_argument(
+        "--spec",
+        metavar="SPEC.yaml",
+        help="a bag of a live run on recorded-data models (section 'Your own robot'): the ground truth is "
+        "the spec's state fields, each estimates/<method> stream is scored",
+    )
+    p.add_argument("--length", type=int, default=200, help="with --spec: steps per scored trajectory (default 200)")
+    p.add_argument(
         "--json", action="store_true", help="print JSON (RMSE-over-time curves, outlier and diverged indices)"
     )
     p.add_argument("--out", help="also write the table: .csv, .md or .json by extension")
@@ -183,7 +190,31 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
 
 
 def _cmd_metrics(args) -> int:
+    if args.spec:
+        return _print_spec_metrics(args)
     return _print_metrics(args.files, args, as_json=args.json, out=args.out)
+
+
+def _print_spec_metrics(args) -> int:
+    """The metrics of a recorded live run of recorded-data models, scored through a spec."""
+    from neural_estimator import metrics as M
+    from neural_estimator.robot import SpecError
+    from neural_estimator.robot.score import score_recording
+
+    if len(args.files) != 1 or not _is_bag(args.files[0]):
+        raise CliError("--spec scores one bag (a .mcap file or rosbag2 directory)")
+    try:
+        reports, truth = score_recording(args.files[0], args.spec, args.length, namespace=args.namespace or "/")
+    except SpecError as exc:
+        raise CliError(str(exc)) from None
+    if args.json:
+        print(json.dumps(M.to_json({"scenario": "data", "methods": reports}), indent=1, allow_nan=False))
+    else:
+        print(f"recorded run {args.files[0]}: {truth.n} trajectories x {truth.horizon} steps (spec {args.spec})")
+        print(M.format_reports(reports, fmt="text"), end="")
+    if args.out:
+        _write_table(args.out, reports)
+    return 0
 
 
 def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = False, out: str | None = None) -> int:

@@ -234,8 +234,6 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
     pytest.importorskip("rclpy")
     import random
 
-    import yaml
-
     from neural_estimator.bags import BagReader
     from neural_estimator.bags import messages as M
     from neural_estimator.nodes.launch import EVALUATOR, isolated_env, node_command, start_node
@@ -275,7 +273,14 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
             (
                 EVALUATOR,
                 "rec",
-                dict(output=str(rec), methods=["gru"], compute_metrics=False, idle_timeout=3.0, topics=["/mocap/pose"]),
+                dict(
+                    output=str(rec),
+                    methods=["gru"],
+                    idle_timeout=3.0,
+                    topics=["/mocap/pose"],
+                    spec=str(SPEC),
+                    spec_length=20,
+                ),
             ),
             ("neural_estimator.nodes.robot_estimator_node", "est", dict(checkpoint=str(model))),
             (
@@ -309,27 +314,15 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
     # 2 runs x 12 s played at 2x: ~12 s of 10 Hz ticks, minus the stale ones between runs and at the start
     assert 60 <= n_est <= 130, n_est
     assert list(first.name) == ["x", "y", "yaw"]
-    # score the live run through a spec: the truth from /mocap/pose, the estimates from the JointState
-    live_spec = tmp_path / "live.yaml"
-    live_spec.write_text(
-        yaml.safe_dump(
-            {
-                "rate": 10.0,
-                "max_age": 0.25,
-                "stamp": "log",
-                "observation": {"/estimates/gru": ["position[0]"]},
-                "state": {"/mocap/pose": ["pose.position.x", "pose.position.y", "yaw(pose.orientation)"]},
-                "estimates": {"gru": {"/estimates/gru": ["position[0]", "position[1]", "angle(position[2])"]}},
-            }
-        )
-    )
-    scored = tmp_path / "scored.npz"
-    assert main(["dataset", str(rec), "--spec", str(live_spec), "--length", "20", "--out", str(scored), "--quiet"]) == 0
-    truth, _ = load_trajectories(scored)
-    from neural_estimator.data.io import load_estimates
+    # the evaluator scored the run through the spec (truth from /mocap/pose, estimates from the JointState)
+    assert "gru" in rec.with_suffix(".metrics.md").read_text()
+    assert "trajectories x 20 steps" in (tmp_path / "rec.log").read_text()
+    # and so does the metrics verb, on the same bag
+    from neural_estimator.robot.score import score_recording
 
-    x_hat, _, _ = load_estimates(tmp_path / "scored.gru.npz", truth)
-    assert np.isfinite(x_hat).all() and truth.n >= 2
+    reports, truth = score_recording(rec, SPEC, length=20)
+    assert set(reports) == {"gru"} and truth.n >= 2 and np.isfinite(reports["gru"].rmse)
+    assert main(["metrics", str(rec), "--spec", str(SPEC), "--length", "20"]) == 0
 
 
 @pytest.mark.parametrize(

@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
+from pathlib import Path
 from datetime import datetime
 
 from rclpy.clock import Clock, ClockType
@@ -77,6 +78,12 @@ class EvaluatorParams:
     set: tuple[str, ...] = param((), "constants of that scenario as name=value")
     plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     compute_metrics: bool = param(True, "compute and write the metrics when the run ends")
+    spec: str = param(
+        "",
+        "a recorded-data spec (YAML): score every estimates/<method> stream against the spec's ground truth "
+        "(record its topics with 'topics'); '' = the scenario's ground_truth stream",
+    )
+    spec_length: int = param(200, "with spec: steps per scored trajectory")
     exit_when_done: bool = param(True, "shut down when the run is evaluated")
 
 
@@ -262,6 +269,8 @@ class EvaluatorNode(ManagedNode):
         from neural_estimator.bags.report import evaluate_bag, write_report
         from neural_estimator.metrics import MetricsError
 
+        if self.p.spec:
+            return self._evaluate_spec()
         try:
             report = evaluate_bag(self.bag.path, namespace=self.ns, description=self.description)
             paths = write_report(report)
@@ -270,6 +279,28 @@ class EvaluatorNode(ManagedNode):
             return 1
         print(report.summary(), end="", flush=True)
         self.get_logger().info("wrote " + ", ".join(str(p) for p in paths.values()))
+        return 0
+
+    def _evaluate_spec(self) -> int:
+        """Score the recorded estimate streams through the spec (recorded-data models: no scenario)."""
+        from neural_estimator import metrics as M
+        from neural_estimator.robot import SpecError
+        from neural_estimator.robot.score import score_recording
+
+        try:
+            reports, truth = score_recording(self.bag.path, self.p.spec, self.p.spec_length, namespace=self.ns)
+        except (BagError, SpecError, ValueError) as exc:
+            self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
+            return 1
+        table = M.format_reports(reports, fmt="text")
+        print(
+            f"recorded run {self.bag.path}: {truth.n} trajectories x {truth.horizon} steps\n" + table,
+            end="",
+            flush=True,
+        )
+        md = Path(str(self.bag.path)).with_suffix(".metrics.md")
+        md.write_text(M.format_reports(reports, fmt="markdown"))
+        self.get_logger().info(f"wrote {md}")
         return 0
 
     def on_shutdown(self) -> int:
