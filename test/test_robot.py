@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 import sys
 from pathlib import Path
 
@@ -344,3 +345,39 @@ def test_robot_estimator_refuses_to_start(checkpoint, text, tmp_path):
     cmd = node_command(sys.executable, "neural_estimator.nodes.robot_estimator_node", "est", {"checkpoint": checkpoint})
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1 and text in proc.stderr + proc.stdout, proc.stderr + proc.stdout
+
+
+def test_the_estimator_node_serves_a_recorded_data_checkpoint_without_a_scenario(tmp_path):
+    """`ros2 run neural_estimator estimator -p checkpoint:=DIR` with a `train --data` model starts the
+    robot estimator on the spec's topics (no scenario parameter, no scenario topic needed)."""
+    pytest.importorskip("rclpy")
+    import random
+    import signal
+
+    from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
+
+    bag = robot_bag.write_bag(tmp_path / "bag", runs=1, seconds=8.0, seed=4)
+    data = tmp_path / "data.npz"
+    assert main(["dataset", str(bag), "--spec", str(SPEC), "--length", "30", "--out", str(data), "--quiet"]) == 0
+    model = tmp_path / "gru"
+    args = ["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1"]
+    assert (
+        main(args + ["--windows-per-epoch", "8", "--window", "10", "--warmup", "2", "--val-fraction", "0.5", "--quiet"])
+        == 0
+    )
+    env = isolated_env(random.SystemRandom().randint(230, 232))
+    log = tmp_path / "est.log"
+    proc = start_node(node_command(sys.executable, ESTIMATOR, "est", {"checkpoint": str(model)}), log, env)
+    try:
+        deadline = time.monotonic() + 60
+        while "recorded-data spec" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert "recorded-data spec" in log.read_text(), log.read_text()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=10)
+    wrong = node_command(sys.executable, ESTIMATOR, "est", {"checkpoint": str(model), "method": "mamba"})
+    import subprocess
+
+    out = subprocess.run(wrong, env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and "holds a gru model" in out.stderr + out.stdout

@@ -540,8 +540,46 @@ def _exists(path: str) -> bool:
     return Path(path).exists()
 
 
+def _make_node() -> ManagedNode:
+    """The estimator node, or, when ``checkpoint`` is a model trained on recorded data (its card holds a
+    spec, README "Your own robot"), the robot estimator on the spec's own topics: a recorded-data model
+    needs no scenario. The parameters are looked at once by a short-lived probe node of the same name."""
+    import rclpy
+
+    probe = rclpy.create_node("estimator", automatically_declare_parameters_from_overrides=True)
+    try:
+        checkpoint = probe.get_parameter("checkpoint").value if probe.has_parameter("checkpoint") else ""
+        method = probe.get_parameter("method").value if probe.has_parameter("method") else ""
+        name = probe.get_name()
+    finally:
+        probe.destroy_node()
+    if checkpoint and _recorded_data_card(str(checkpoint)):
+        from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
+
+        node = RobotEstimatorNode(node_name=name)
+        try:
+            wrong = bool(method) and check_method(str(method)) != node.method
+        except EstimatorError as exc:
+            raise StartupError(str(exc)) from None
+        if wrong:
+            raise StartupError(f"parameter method is {method!r} but {checkpoint} holds a {node.method} model")
+        return node
+    return EstimatorNode()
+
+
+def _recorded_data_card(checkpoint: str) -> bool:
+    """True when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
+    from neural_estimator.models.card import read_card
+
+    try:
+        _, card = read_card(checkpoint)
+    except EstimatorError:
+        return False  # the estimator node reports a missing or corrupt checkpoint itself
+    return card.get("scenario", {}).get("scenario") == "data"
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node(EstimatorNode, "estimator", args)
+    return run_node(_make_node, "estimator", args)
 
 
 if __name__ == "__main__":

@@ -67,8 +67,8 @@ class RobotEstimatorParams:
 
 
 class RobotEstimatorNode(ManagedNode):
-    def __init__(self) -> None:
-        super().__init__("robot_estimator")
+    def __init__(self, node_name: str = "robot_estimator") -> None:
+        super().__init__(node_name)
         self.p = p = declare_params(self, RobotEstimatorParams)
         if p.input_qos not in ("sensor_data", "reliable"):
             raise StartupError(f"parameter input_qos must be sensor_data or reliable, got {p.input_qos!r}")
