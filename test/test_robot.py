@@ -29,6 +29,12 @@ def bag(tmp_path_factory) -> Path:
     return robot_bag.write_bag(tmp_path_factory.mktemp("robot") / "bag", runs=3, seconds=25.0, seed=1)
 
 
+def train_tiny(data: Path, out: Path, *extra: str) -> None:
+    """A GRU trained for one epoch of 16 windows on a recorded dataset (the verbs' plumbing, not accuracy)."""
+    args = ["train", "--data", str(data), "--model", "gru", "--out", str(out), "--epochs", "1"]
+    assert main(args + ["--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--quiet", *extra]) == 0
+
+
 def spec_dict(**changes):
     import yaml
 
@@ -153,29 +159,7 @@ def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     assert main(["dataset", str(bag), "--spec", str(spec), "--length", "50", "--out", str(data)]) == 0
     assert (tmp_path / "data.robot_filter.npz").is_file()
     out = tmp_path / "gru"
-    assert (
-        main(
-            [
-                "train",
-                "--data",
-                str(data),
-                "--model",
-                "gru",
-                "--out",
-                str(out),
-                "--epochs",
-                "1",
-                "--windows-per-epoch",
-                "16",
-                "--window",
-                "20",
-                "--warmup",
-                "2",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    train_tiny(data, out)
     import json
 
     card = json.loads((out / "card.json").read_text())
@@ -243,29 +227,7 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
     data = tmp_path / "data.npz"
     assert main(["dataset", str(bag), "--spec", str(SPEC), "--length", "40", "--out", str(data), "--quiet"]) == 0
     model = tmp_path / "gru"
-    assert (
-        main(
-            [
-                "train",
-                "--data",
-                str(data),
-                "--model",
-                "gru",
-                "--out",
-                str(model),
-                "--epochs",
-                "1",
-                "--windows-per-epoch",
-                "16",
-                "--window",
-                "20",
-                "--warmup",
-                "2",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    train_tiny(data, model)
     env = isolated_env(random.SystemRandom().randint(230, 232))  # test_nodes uses 200..229, FastDDS allows <= 232
     rec = tmp_path / "live.mcap"
     procs = []
@@ -360,11 +322,7 @@ def test_the_estimator_node_serves_a_recorded_data_checkpoint_without_a_scenario
     data = tmp_path / "data.npz"
     assert main(["dataset", str(bag), "--spec", str(SPEC), "--length", "30", "--out", str(data), "--quiet"]) == 0
     model = tmp_path / "gru"
-    args = ["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1"]
-    assert (
-        main(args + ["--windows-per-epoch", "8", "--window", "10", "--warmup", "2", "--val-fraction", "0.5", "--quiet"])
-        == 0
-    )
+    train_tiny(data, model, "--val-fraction", "0.5")
     env = isolated_env(random.SystemRandom().randint(230, 232))
     log = tmp_path / "est.log"
     proc = start_node(node_command(sys.executable, ESTIMATOR, "est", {"checkpoint": str(model)}), log, env)
