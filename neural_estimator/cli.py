@@ -163,8 +163,7 @@ def _is_bag(path: str) -> bool:
 
 def _estimates_from_files(files: list[str], args: argparse.Namespace | None = None):
     """(truth Trajectories, {method: (x_hat, P_hat or None)}, angle_states) from npz files or a bag."""
-    from neural_estimator.data import DataError, load_trajectories
-    from neural_estimator.data.io import load_estimates
+    from neural_estimator.data.io import load_truth_and_estimates
 
     if len(files) == 1 and _is_bag(files[0]):
         from neural_estimator.bags import load_bag_dataset
@@ -176,17 +175,7 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
         )
     if any(_is_bag(f) for f in files):
         raise CliError("a bag is scored on its own: pass one .mcap file or rosbag2 directory")
-    truth, extras = load_trajectories(files[0])
-    estimates = {}
-    if "x_hat" in extras:
-        estimates[truth.meta.get("method", Path(files[0]).stem)] = (extras["x_hat"], extras.get("P_hat"))
-    for f in files[1:]:
-        x_hat, P_hat, meta = load_estimates(f, truth)  # x_hat alone is enough (your own estimator's output)
-        name = meta.get("method", Path(f).stem)
-        estimates[name if name not in estimates else f"{name}:{Path(f).stem}"] = (x_hat, P_hat)
-    if not estimates:
-        raise DataError(f"{files[0]}: no 'x_hat' array and no estimate files given")
-    return truth, estimates, tuple(truth.meta.get("angle_states", ()))
+    return load_truth_and_estimates(files)
 
 
 def _cmd_metrics(args) -> int:

@@ -170,3 +170,26 @@ def load_estimates(path: str | Path, truth: Trajectories) -> tuple[np.ndarray, n
         if P.shape != xh.shape + (xh.shape[2],):
             raise DataError(f"{path}: P_hat has shape {P.shape}, expected {xh.shape + (xh.shape[2],)}")
     return xh, P, meta
+
+
+def load_truth_and_estimates(
+    files: list[str | Path],
+) -> tuple[Trajectories, dict[str, tuple[np.ndarray, np.ndarray | None]], tuple[int, ...]]:
+    """What ``metrics`` scores: a truth (or estimate) file followed by estimate files.
+
+    Returns (truth, {name: (x_hat, P_hat or None)}, angle_states). The first file's own ``x_hat``
+    counts when it has one. Each estimate is named by its meta's ``method``, else its file stem; a
+    name already taken gets ``:<stem>`` appended. Estimate files need only ``x_hat`` (see
+    :func:`load_estimates`).
+    """
+    truth, extras = load_trajectories(files[0])
+    estimates = {}
+    if "x_hat" in extras:
+        estimates[truth.meta.get("method", Path(files[0]).stem)] = (extras["x_hat"], extras.get("P_hat"))
+    for f in files[1:]:
+        x_hat, P_hat, meta = load_estimates(f, truth)  # x_hat alone is enough (your own estimator's output)
+        name = meta.get("method", Path(f).stem)
+        estimates[name if name not in estimates else f"{name}:{Path(f).stem}"] = (x_hat, P_hat)
+    if not estimates:
+        raise DataError(f"{files[0]}: no 'x_hat' array and no estimate files given")
+    return truth, estimates, tuple(truth.meta.get("angle_states", ()))
