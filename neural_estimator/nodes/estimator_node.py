@@ -28,7 +28,6 @@ method, scenario or a missing checkpoint is one fatal line at start-up and exit 
 
 from __future__ import annotations
 
-import array
 import dataclasses
 import sys
 import time
@@ -55,6 +54,7 @@ from neural_estimator.nodes.common import (
     run_node,
     stream_qos,
 )
+from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
 from neural_estimator.replay import DEFAULT_MAX_GAP, DEFAULT_MAX_GAP_SECONDS, OnlineEstimator
 
 OBSERVATION_QOS = ("reliable", "sensor_data")
@@ -137,7 +137,7 @@ class EstimatorNode(ManagedNode):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._sim_time_warned = False
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.stats = _Stats()
+        self.stats = EstimatorStats()
         self._last_log: dict[str, float] = {}
         self._foreign: set[str] = set()
         self._early: list[bytes] = []
@@ -365,54 +365,14 @@ class EstimatorNode(ManagedNode):
                 "still (timers here use the steady clock; start the simulator or player "
                 "with -p publish_clock:=true)"
             )
-        s = self.stats
-        now = time.monotonic()
-        window = s.window(now)
+        window = self.stats.window(time.monotonic())
+        level, problems = health(self.stats, window, waiting=self.online is None, foreign=self._foreign)
         status = DiagnosticStatus()
         status.name = f"{self.get_fully_qualified_name()}: {self.method} estimator"
         status.hardware_id = self.online.scenario.name if self.online else ""
-        problems = []
-        if s.diverged:
-            status.level, problems = DiagnosticStatus.ERROR, ["diverged (estimates NaN until reset)"]
-        else:
-            status.level = DiagnosticStatus.OK
-        if window["errors"]:
-            status.level = DiagnosticStatus.ERROR
-            problems.append(f"{window['errors']} failures inside the method (stream restarted)")
-        recent_bad = window["bad"] + window["early"]
-        if recent_bad or window["gap_steps"] or window["nonfinite"] or self._foreign:
-            status.level = max(status.level, DiagnosticStatus.WARN)
-            problems += [f"{recent_bad} bad messages"] * bool(recent_bad)
-            problems += [f"{window['gap_steps']} missing steps"] * bool(window["gap_steps"])
-            problems += [f"{window['nonfinite']} non-finite observations"] * bool(window["nonfinite"])
-            problems += [f"foreign publishers: {', '.join(sorted(self._foreign))}"] * bool(self._foreign)
-        if self.online is None:
-            status.level = DiagnosticStatus.WARN
-            problems.append("waiting for the scenario")
+        status.level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[level]
         status.message = "; ".join(problems) if problems else "ok"
-        p50, p99 = window["p50"], window["p99"]
-        a50, a99 = s.percentiles()
-        values = {
-            "method": self.method,
-            "update rate (Hz)": f"{window['rate']:.1f}",
-            "latency p50 (ms)": f"{p50 * 1e3:.3f}",
-            "latency p99 (ms)": f"{p99 * 1e3:.3f}",
-            "latency p50 since start (ms)": f"{a50 * 1e3:.3f}",
-            "latency p99 since start (ms)": f"{a99 * 1e3:.3f}",
-            "estimates published": str(s.estimated),
-            "bad messages": str(s.bad + s.early),
-            "method failures": str(s.errors),
-            "non-finite observations": str(s.nonfinite),
-            "duplicate steps": str(s.skipped["duplicate"]),
-            "out-of-order steps": str(s.skipped["stale"]),
-            "missing steps bridged": str(s.gap_steps),
-            "stream restarts": str(s.restarts),
-            "trajectory resets": str(s.resets),
-            "manual resets": str(s.manual_resets),
-            "diverged": str(s.diverged).lower(),
-            "trajectory": str(s.position[0]),
-            "step": str(s.position[1]),
-        }
+        values = diagnostic_values(self.stats, window, self.method)
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -437,29 +397,10 @@ class EstimatorNode(ManagedNode):
             import json
             from pathlib import Path
 
-            s = self.stats
-            lat = np.frombuffer(s.latency, dtype=np.float64)
-            pct = {f"latency_p{q}_ms": float(np.percentile(lat, q)) * 1e3 if lat.size else None for q in (50, 90, 99)}
-            out = {
-                "node": self.get_fully_qualified_name(),
-                "method": self.method,
-                "estimates": s.estimated,
-                "bad": s.bad + s.early,
-                "method_failures": s.errors,
-                "nonfinite": s.nonfinite,
-                "duplicates": s.skipped["duplicate"],
-                "out_of_order": s.skipped["stale"],
-                "gap_steps": s.gap_steps,
-                "restarts": s.restarts,
-                "resets": s.resets,
-                "diverged": s.diverged,
-                "latency_samples": int(lat.size),
-                "latency_max_ms": float(lat.max()) * 1e3 if lat.size else None,
-                **pct,
-            }
             path = Path(self.p.stats_file)
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(out, indent=1))
+            summary = stats_summary(self.stats, self.get_fully_qualified_name(), self.method)
+            path.write_text(json.dumps(summary, indent=1))
         return self.exit_code
 
     def _warn(self, kind: str, text: str) -> None:
@@ -467,71 +408,6 @@ class EstimatorNode(ManagedNode):
         if now - self._last_log.get(kind, -1e9) >= self.p.log_throttle:
             self._last_log[kind] = now
             self.get_logger().warning(text)
-
-
-@dataclasses.dataclass
-class _Stats:
-    """Counters of the node; ``window`` reports the part since the previous call."""
-
-    estimated: int = 0
-    bad: int = 0
-    errors: int = 0  # exceptions inside the method (stream restarted)
-    early: int = 0
-    nonfinite: int = 0
-    gap_steps: int = 0
-    restarts: int = 0
-    resets: int = 0
-    manual_resets: int = 0
-    diverged: bool = False
-    position: tuple[int, int] = (-1, -1)
-    skipped: dict = dataclasses.field(default_factory=lambda: {"duplicate": 0, "stale": 0})
-    latency: array.array = dataclasses.field(default_factory=lambda: array.array("d"))
-    _mark: dict = dataclasses.field(default_factory=dict)
-
-    _MAX_KEPT = 200_000  # latencies kept for the since-start percentiles (the most recent ones)
-
-    def window(self, now: float) -> dict:
-        m = self._mark or {
-            "t": now,
-            "estimated": 0,
-            "bad": 0,
-            "early": 0,
-            "gap_steps": 0,
-            "nonfinite": 0,
-            "errors": 0,
-            "n_lat": 0,
-        }
-        lat = np.frombuffer(self.latency, dtype=np.float64)[m["n_lat"] :]
-        dt = max(now - m["t"], 1e-9)
-        out = {
-            "rate": (self.estimated - m["estimated"]) / dt if self._mark else 0.0,
-            "bad": self.bad - m["bad"],
-            "early": self.early - m["early"],
-            "gap_steps": self.gap_steps - m["gap_steps"],
-            "nonfinite": self.nonfinite - m["nonfinite"],
-            "errors": self.errors - m["errors"],
-            "p50": float(np.percentile(lat, 50)) if lat.size else float("nan"),
-            "p99": float(np.percentile(lat, 99)) if lat.size else float("nan"),
-        }
-        if len(self.latency) > self._MAX_KEPT:
-            del self.latency[: len(self.latency) - self._MAX_KEPT // 2]
-        self._mark = {
-            "t": now,
-            "estimated": self.estimated,
-            "bad": self.bad,
-            "early": self.early,
-            "gap_steps": self.gap_steps,
-            "nonfinite": self.nonfinite,
-            "errors": self.errors,
-            "n_lat": len(self.latency),
-        }
-        return out
-
-    def percentiles(self) -> tuple[float, float]:
-        lat = np.frombuffer(self.latency, dtype=np.float64)
-        if not lat.size:
-            return float("nan"), float("nan")
-        return float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
 
 
 def _exists(path: str) -> bool:
