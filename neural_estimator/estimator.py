@@ -80,6 +80,11 @@ class Estimator(ABC):
     def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
         """Consume z_k = (y_k, u_{k-1}) for B streams and return x_hat_k (B, dx)."""
 
+    def start_streams_if_none(self, batch: int) -> None:
+        """What ``step`` does with no streams started: ``reset(batch)`` (see the module docstring)."""
+        if not self.batch:
+            self.reset(batch)
+
     def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
         """Estimate whole sequences: Y (B, T, dy), U (B, T, du) -> :class:`Estimates`.
 

@@ -25,21 +25,18 @@ Subclasses implement ``_init_state(B)``, ``_predict(u)``, ``_update(y, skip)``, 
 from __future__ import annotations
 
 import dataclasses
-import os
-import threading
 from abc import abstractmethod
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
 from typing import Any, ClassVar
 
 import numpy as np
 
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.filters import scheduler
 from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
+from neural_estimator.filters.scheduler import BlockScheduler
 from neural_estimator.options import OptionError, is_optional, parse_value
 from neural_estimator.scenarios import Scenario
-
-THREADS_ENV = "NEURAL_ESTIMATOR_THREADS"
 
 # Random draws, keyed by (seed, step, phase, block): see ClassicalFilter.block_rng.
 PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, PHASE_RESAMPLE, PHASE_REJUVENATE, PHASE_REGULARIZE = range(6)
@@ -47,48 +44,10 @@ PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, PHASE_RESAMPLE, PHASE_REJUVENATE, PHASE
 
 def default_threads() -> int:
     """Worker threads for the blocks of streams: $NEURAL_ESTIMATOR_THREADS, else the usable cores."""
-    env = os.environ.get(THREADS_ENV, "").strip()
-    if env:
-        return _check_threads(f"${THREADS_ENV}", env)
     try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - platforms without sched_getaffinity
-        return max(1, os.cpu_count() or 1)
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-_POOLS_LOCK = threading.Lock()
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """One shared pool per thread count (filters are built per chunk; their threads are not)."""
-    with _POOLS_LOCK:
-        pool = _POOLS.get(threads)
-        if pool is None:
-            pool = _POOLS[threads] = ThreadPoolExecutor(threads, thread_name_prefix="neural-estimator-filter")
-        return pool
-
-
-def _quiet(fn: Callable[[], Any]) -> Any:
-    """``fn()`` with numpy's floating-point warnings off: diverging streams overflow by design and
-    are flagged through ``diverged``; the error state is per thread, so workers set their own."""
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
-        return fn()
-
-
-def _ordered_map(pool: ThreadPoolExecutor, fn: Callable[[Any], Any], items: Sequence[Any], ahead: int) -> Iterator[Any]:
-    """``map(fn, items)`` on ``pool`` in order, at most ``ahead`` items in flight (bounded memory)."""
-    pending = []
-    it = iter(items)
-    for item in it:
-        pending.append(pool.submit(_quiet, lambda item=item: fn(item)))
-        if len(pending) >= ahead:
-            break
-    for item in it:
-        yield pending.pop(0).result()
-        pending.append(pool.submit(_quiet, lambda item=item: fn(item)))
-    for fut in pending:
-        yield fut.result()
+        return scheduler.default_threads()
+    except scheduler.ThreadsError as exc:
+        raise EstimatorError(str(exc)) from None
 
 
 def build_hyperparams(cls: type, method: str, hyperparams: Any, options: dict[str, Any]) -> Any:
@@ -147,8 +106,8 @@ class ClassicalFilter(Estimator):
 
     Blocks and threads. The B streams are processed in blocks of ``block_size`` consecutive
     streams, and the blocks of one phase of a step (predict, update, estimate) run concurrently
-    on ``threads`` threads (numpy releases the GIL in its array loops, LAPACK and BLAS calls).
-    B = 1, the live node's case, is one block on the calling thread.
+    on ``threads`` threads by :class:`~neural_estimator.filters.scheduler.BlockScheduler`, which
+    knows nothing of filtering. B = 1, the live node's case, is one block on the calling thread.
     """
 
     has_covariance: ClassVar[bool] = True
@@ -207,8 +166,8 @@ class ClassicalFilter(Estimator):
         self.diverged = np.zeros(B, dtype=bool)
         self.skipped = np.zeros(B, dtype=bool)
         self.covariance = None
-        size = self.block_size
-        self._blocks = [slice(i, min(i + size, B)) for i in range(0, B, size)]
+        self._scheduler = BlockScheduler(B, self.block_size, self.threads, self.seed)
+        self._blocks = self._scheduler.blocks
         self._init_state(B)
 
     def _check_initial_mean(self, initial_mean: np.ndarray | None, B: int) -> np.ndarray:
@@ -240,23 +199,19 @@ class ClassicalFilter(Estimator):
         batch of any size B > b: a stream's result depends on the seed and its index only.
         (SFC64: the fastest of numpy's generators for normal draws, a fifth faster than PCG64 here.)
         """
-        return np.random.Generator(
-            np.random.SFC64(np.random.SeedSequence(self.seed, spawn_key=(self._k, phase, block)))
-        )
+        return self._scheduler.rng(self._k, phase, block)
 
     def _draw_blockwise(self, phase: int, draw: Callable[[np.random.Generator, int], np.ndarray]) -> np.ndarray:
         """(B, ...) draws assembled from ``draw(rng, rows)`` block by block (on the calling thread)."""
-        parts = [draw(self.block_rng(i, phase), sl.stop - sl.start) for i, sl in enumerate(self._blocks)]
-        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
+        return self._scheduler.draw(self._k, phase, draw)
 
     def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
         """One step for B streams: (B, dy) y_k and (B, du) u_{k-1} -> (B, dx) posterior mean.
 
-        The first call after construction resets to the batch size of ``y``.
+        With no streams started, it first resets to the batch size of ``y`` (the interface's rule).
         """
         y, u = self.check_step(y, u_prev)
-        if not self.batch:
-            self.reset(y.shape[0])
+        self.start_streams_if_none(y.shape[0])
         mean, cov = self._advance(np.ascontiguousarray(y), np.ascontiguousarray(u))
         self.covariance = cov
         return mean
@@ -317,50 +272,18 @@ class ClassicalFilter(Estimator):
         cov.flags.writeable = False  # the filter's own array: read it, copy it, never write it
         return mean, cov
 
+    # ---- scheduling: the block scheduler of the current batch (filters/scheduler.py) -------------
     def _map_blocks(self, fn: Callable[[int], Any]) -> Iterator[Any]:
-        """fn(i) for every block i, in order: on the calling thread for one block or one thread,
-        else on the worker threads, at most two blocks per thread in flight (bounded memory)."""
-        n = len(self._blocks)
-        if n == 1 or self.threads == 1:
-            return map(fn, range(n))
-        return _ordered_map(_pool(self.threads), fn, range(n), ahead=2 * self.threads)
+        return self._scheduler.map(fn)
 
     def _for_blocks(self, kernel: Callable[[int, slice], Any]) -> list:
-        """[kernel(i, slice_i) for every block i]; for kernels that write their block in place."""
-        return list(self._map_blocks(lambda i: kernel(i, self._blocks[i])))
+        return self._scheduler.for_each(kernel)
 
     def _blockwise(self, kernel, *arrays: np.ndarray, phase: int | None = None) -> tuple:
-        """Apply ``kernel(*block_arrays) -> (out_1, ..., out_j, ok)`` block by block of streams.
-
-        Every array has the streams on axis 0; outputs are assembled to (B, ...) and ok flags to
-        (B,) (None when every stream is ok). One block: the kernel's own outputs, no copies.
-        With ``phase``, the kernel also gets the block's generator as ``rng=`` (:meth:`block_rng`).
-        Blocks run as :meth:`_map_blocks` schedules them.
-        """
-        blocks = self._blocks
-
-        def one(i: int) -> tuple:
-            sl = blocks[i]
-            views = (a if len(blocks) == 1 else a[sl] for a in arrays)
-            if phase is None:
-                return kernel(*views)
-            return kernel(*views, rng=self.block_rng(i, phase))
-
-        if len(blocks) == 1:
-            return one(0)
-        results = self._map_blocks(one)
-        outs: list = []
-        ok_full = None
-        for sl, (*res, ok) in zip(blocks, results):
-            if not outs:
-                outs = [np.empty((self.batch,) + r.shape[1:], dtype=r.dtype) for r in res]
-            for o, r in zip(outs, res):
-                o[sl] = r
-            if ok is not None and not ok.all():
-                if ok_full is None:
-                    ok_full = np.ones(self.batch, dtype=bool)
-                ok_full[sl] = ok
-        return (*outs, ok_full)
+        """:meth:`BlockScheduler.blockwise`; with ``phase`` the kernel gets the block's generator of
+        that phase of this step (:meth:`block_rng`) as ``rng=``."""
+        rng_for = None if phase is None else (lambda i: self.block_rng(i, phase))
+        return self._scheduler.blockwise(kernel, *arrays, rng_for=rng_for)
 
     def _stream_elements(self) -> int:
         """float64 numbers in the largest per-stream array of a step (sets the block size)."""
@@ -420,12 +343,9 @@ class ClassicalFilter(Estimator):
 def _check_threads(where: str, threads: int | str) -> int:
     """``threads`` as an int >= 1 (strings from the command line parse), else EstimatorError."""
     try:
-        n = int(threads)
-    except (TypeError, ValueError):
-        n = 0
-    if n < 1 or isinstance(threads, (bool, float)):
-        raise EstimatorError(f"{where}: threads must be an integer >= 1, got {threads!r}")
-    return n
+        return scheduler.check_threads(where, threads)
+    except scheduler.ThreadsError as exc:
+        raise EstimatorError(str(exc)) from None
 
 
 def check_inflation(inflation: float, q_inflation: float) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 from neural_estimator.filters.base import PHASE_INIT, PHASE_UPDATE, MemberFilter, check_inflation
 from neural_estimator.filters.localization import localization_tapers
 from neural_estimator.filters.numerics import (
+    ScenarioOps,
     gaussian,
     psd_solve,
     sqrt_factor,
@@ -40,6 +41,61 @@ class EnKFHyperParams:
         r = self.localization_radius
         if r is not None and (isinstance(r, bool) or not isinstance(r, (int, float)) or not 0.0 < r < float("inf")):
             raise ValueError(f"localization_radius must be a finite number > 0 or null, got {r!r}")
+
+
+# ---- the maths: plain functions on arrays of b streams (the class below only schedules them) ----------
+def _update(
+    X: np.ndarray,
+    y: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    ops: ScenarioOps,
+    R: np.ndarray,
+    sqrt_R: np.ndarray,
+    sd_R: np.ndarray | None,
+    inflation: float,
+    rho: tuple[np.ndarray, np.ndarray] | None,
+) -> np.ndarray:
+    """Update with perturbed observations: A_i = X_i - xbar (times ``inflation``), Z_i = h(X_i)
+    (unwrapped around y_k for angles), B_i = Z_i - zbar,
+
+        C = sum_i A_i B_i^T / (N - 1)            (o rho_xy with localisation)
+        S = sum_i B_i B_i^T / (N - 1) + R        (C_zz o rho_yy with localisation)
+        K = C S^{-1}                             (solved, never inverted)
+        X_i <- X_i + K (y_k + e_i - Z_i),  e_i ~ N(0, R)   (state angles wrapped after)
+
+    Args: X (b, N, n) members, y (b, dy), rng the block's generator. Returns X (b, N, n).
+    """
+    N = X.shape[1]
+    xbar = ops.state_mean(X)
+    A = ops.state_residual(X, xbar[:, None, :])  # (b, N, n)
+    if inflation != 1.0:
+        A = A * inflation
+        X = ops.normalize_state(xbar[:, None, :] + A)
+    Z = ops.scenario.h(X)  # (b, N, dy)
+    if not ops.plain_obs:
+        # Unwrap each member's predicted observation onto the branch around y_k, so that the
+        # anomalies (hence C and S) and the innovations use one continuous branch; the cut
+        # lies opposite the observation, where the likelihood is smallest.
+        Z = y[:, None, :] + ops.obs_residual(Z, y[:, None, :])
+    Bz = Z - Z.mean(axis=1, keepdims=True)
+    C = weighted_cross_covariance(A, Bz, None, N - 1)  # (b, n, dy)
+    Czz = weighted_covariance(Bz, None, N - 1)
+    if rho is not None:  # Schur-product localisation of both covariances
+        C = C * rho[0]
+        Czz = Czz * rho[1]
+    S = Czz + R
+    Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (b, dy, n) = K^T
+    E = gaussian(rng, Z.shape[:2], sqrt_R, sd_R)  # (b, N, dy)
+    innov = (y[:, None, :] + E) - Z
+    return ops.normalize_state(X + innov @ Kt)
+
+
+def _estimate(X: np.ndarray, ops: ScenarioOps) -> tuple[np.ndarray, np.ndarray]:
+    """The ensemble mean (b, n) and covariance sum_i A_i A_i^T / (N - 1) (b, n, n) of members X (b, N, n)."""
+    mean = ops.state_mean(X)
+    A = ops.state_residual(X, mean[:, None, :])
+    return mean, weighted_covariance(A, None, X.shape[1] - 1)
 
 
 class EnsembleKalmanFilter(MemberFilter):
@@ -104,44 +160,29 @@ class EnsembleKalmanFilter(MemberFilter):
         )
         self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
 
+    # The maths is the module-level _update / _estimate (the prediction is MemberFilter's); these
+    # hooks schedule it over the blocks of streams.
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
-        X_post, _ = self._blockwise(self._update_block, self._X, y, phase=PHASE_UPDATE)
+        X_post, _ = self._blockwise(self._update_kernel, self._X, y, phase=PHASE_UPDATE)
         self._X = self._keep(skip, self._X, X_post)
         return None
 
-    def _update_block(self, X: np.ndarray, y: np.ndarray, rng: np.random.Generator):
-        ops, N = self.ops, self.N
-        xbar = ops.state_mean(X)
-        A = ops.state_residual(X, xbar[:, None, :])  # (b, N, n)
-        if self.hp.inflation != 1.0:
-            A = A * self.hp.inflation
-            X = ops.normalize_state(xbar[:, None, :] + A)
-        Z = self.scenario.h(X)  # (b, N, dy)
-        if not ops.plain_obs:
-            # Unwrap each member's predicted observation onto the branch around y_k, so that the
-            # anomalies (hence C and S) and the innovations use one continuous branch; the cut
-            # lies opposite the observation, where the likelihood is smallest.
-            Z = y[:, None, :] + ops.obs_residual(Z, y[:, None, :])
-        Bz = Z - Z.mean(axis=1, keepdims=True)
-        C = weighted_cross_covariance(A, Bz, None, N - 1)  # (b, n, dy)
-        Czz = weighted_covariance(Bz, None, N - 1)
-        if self._rho is not None:  # Schur-product localisation of both covariances
-            C = C * self._rho[0]
-            Czz = Czz * self._rho[1]
-        S = Czz + self.R
-        Kt = psd_solve(S, np.swapaxes(C, -1, -2))  # (b, dy, n) = K^T
-        E = gaussian(rng, Z.shape[:2], self._sqrt_R, self._sd_R)  # (b, N, dy)
-        innov = (y[:, None, :] + E) - Z
-        return ops.normalize_state(X + innov @ Kt), None
+    def _update_kernel(self, X: np.ndarray, y: np.ndarray, rng: np.random.Generator):
+        return _update(
+            X,
+            y,
+            rng,
+            ops=self.ops,
+            R=self.R,
+            sqrt_R=self._sqrt_R,
+            sd_R=self._sd_R,
+            inflation=self.hp.inflation,
+            rho=self._rho,
+        ), None
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
-        mean, cov, _ = self._blockwise(self._estimate_block, self._X)
+        mean, cov, _ = self._blockwise(lambda X: (*_estimate(X, self.ops), None), self._X)
         return mean, cov
-
-    def _estimate_block(self, X: np.ndarray):
-        mean = self.ops.state_mean(X)
-        A = self.ops.state_residual(X, mean[:, None, :])
-        return mean, weighted_covariance(A, None, self.N - 1), None
 
     def _park(self, mask: np.ndarray) -> None:
         self._X = np.where(mask[:, None, None], self.m0, self._X)

@@ -117,8 +117,7 @@ class NeuralEstimator(Estimator):
 
     def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
         y, u_prev = self.check_step(y, u_prev)
-        if self._state is None:  # the first step after construction starts y's batch (as the filters do)
-            self.reset(y.shape[0])
+        self.start_streams_if_none(y.shape[0])  # the first step after construction starts y's batch
         z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():
