@@ -66,6 +66,42 @@ class PFHyperParams:
             raise ValueError(f"compiled must be true or false, got {self.compiled!r}")
 
 
+# ---- the maths: plain functions on the particles of b streams (the class below schedules them) --------
+def _log_likelihood(X: np.ndarray, y: np.ndarray, *, ops, inv_sd: np.ndarray | None, white: np.ndarray | None):
+    """log p(y | x_i) up to a constant, for particles X (b, N, n) and observations y (b, m):
+
+    r_i = y - h(x_i)              (angles wrapped)
+    l_i = -|W r_i|^2 / 2,         W = R^{-1/2}: 1 / sd for a diagonal R (inv_sd), else L_R^{-1} (white)
+    """
+    r = ops.obs_residual(y[:, None, :], ops.scenario.h(X))  # (b, N, m)
+    r = r * inv_sd if inv_sd is not None else r @ white.T
+    return -0.5 * np.einsum("bnm,bnm->bn", r, r)
+
+
+def _weighted_estimate(X: np.ndarray, w: np.ndarray, *, ops) -> tuple[np.ndarray, np.ndarray]:
+    """m = sum_i w_i x_i (circular for angles), P = sum_i w_i (x_i - m)(x_i - m)^T (residuals wrapped)."""
+    mean = ops.state_mean(X, w)
+    D = ops.state_residual(X, mean[:, None, :])
+    return mean, weighted_covariance(D, w)
+
+
+def _systematic_gather(X: np.ndarray, w: np.ndarray, offsets: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The resampled particles of streams ``rows``: x_{idx_i}, idx by systematic resampling with one
+    offset per stream (positions (u + i) / N against the cumulative weights); (r, N, n)."""
+    N, n = X.shape[1], X.shape[2]
+    idx = systematic_resample(w[rows], offsets[rows])  # (r, N) into each row's particles
+    flat = (idx + (rows * N)[:, None]).ravel()
+    return np.take(X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # one row gather: fast
+
+
+def _regularize(Xr: np.ndarray, P: np.ndarray, z: np.ndarray, scale: float, *, ops) -> np.ndarray:
+    """Musso's kernel jitter x_i <- x_i + scale S z_i, S S^T = P by eigendecomposition (a collapsed
+    ensemble's P is singular, and then the jitter stays in the span the particles still cover)."""
+    lam, V = np.linalg.eigh(P)
+    S = V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]
+    return ops.normalize_state(Xr + scale * (z @ np.swapaxes(S, -1, -2)))
+
+
 class ParticleFilter(MemberFilter):
     r"""Bootstrap particle filter with ESS-triggered systematic resampling.
 
@@ -190,9 +226,7 @@ class ParticleFilter(MemberFilter):
         return None
 
     def _update_block(self, X: np.ndarray, logw: np.ndarray, y: np.ndarray):
-        r = self.ops.obs_residual(y[:, None, :], self.scenario.h(X))  # (b, N, dy)
-        r = r * self._inv_sd_R if self._inv_sd_R is not None else r @ self._white_R.T
-        loglik = -0.5 * np.einsum("bnm,bnm->bn", r, r)
+        loglik = _log_likelihood(X, y, ops=self.ops, inv_sd=self._inv_sd_R, white=self._white_R)
         return (*normalize_log_weights(logw + loglik), None)
 
     def _update_block_compiled(self, X: np.ndarray, logw: np.ndarray, y: np.ndarray):
@@ -219,9 +253,7 @@ class ParticleFilter(MemberFilter):
             mean, D = np.empty(X.shape[::2]), np.empty_like(X)
             circular_mean_residuals(X, w, self._ck_angles, mean, D)
             return mean, weighted_covariance(D, w), None
-        mean = self.ops.state_mean(X, w)
-        D = self.ops.state_residual(X, mean[:, None, :])
-        return mean, weighted_covariance(D, w), None
+        return (*_weighted_estimate(X, w, ops=self.ops), None)
 
     def _park(self, mask: np.ndarray) -> None:
         self._X = np.where(mask[:, None, None], self.m0, self._X)
@@ -240,7 +272,7 @@ class ParticleFilter(MemberFilter):
         if not need.any():
             return
         rows = np.flatnonzero(need)
-        N, n = self.N, self.scenario.dx
+        N = self.N
         if self._compiled:  # the same systematic resampling, walked per row in place
             ck.systematic_resample_rows(X, w, offsets, need)
             if self.hp.rejuvenation_std <= 0 and self.hp.regularization <= 0:  # nothing else to do to X
@@ -249,20 +281,15 @@ class ParticleFilter(MemberFilter):
                 return
             Xr = X[rows]
         else:
-            idx = systematic_resample(w[rows], offsets[rows])  # (r, N) into each row's particles
-            flat = (idx + (rows * N)[:, None]).ravel()
-            Xr = np.take(X.reshape(-1, n), flat, axis=0).reshape(rows.size, N, n)  # row gather: fast
+            Xr = _systematic_gather(X, w, offsets, rows)
         if self.hp.rejuvenation_std > 0:
             # drawn for every stream of the block, so a stream's numbers do not depend on the others
             z = self.block_rng(block, PHASE_REJUVENATE).standard_normal(X.shape)[rows]
             Xr = self.ops.normalize_state(Xr + self.hp.rejuvenation_std * z)
         if self.hp.regularization > 0:
-            # S S^T = P by eigendecomposition: P of a collapsed ensemble is singular, and then the
-            # jitter stays in the span the particles still cover.
-            lam, V = np.linalg.eigh(self._spread[sl][rows])
-            S = V * np.sqrt(np.clip(lam, 0.0, None))[:, None, :]
             z = self.block_rng(block, PHASE_REGULARIZE).standard_normal(X.shape)[rows]
-            Xr = self.ops.normalize_state(Xr + (self.hp.regularization * self.bandwidth) * (z @ np.swapaxes(S, -1, -2)))
+            scale = self.hp.regularization * self.bandwidth
+            Xr = _regularize(Xr, self._spread[sl][rows], z, scale, ops=self.ops)
         X[rows] = Xr
         logw[rows] = -np.log(N)
         w[rows] = 1.0 / N
