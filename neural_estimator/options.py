@@ -109,7 +109,8 @@ def _parse_tuple(value: Any, like: tuple, name: str) -> tuple:
             value = [v.strip() for v in text.split(",") if v.strip()]
     if not isinstance(value, (list, tuple, np.ndarray)):
         value = [value]
-    if like and all(isinstance(v, str) for v in like) or (not like and all(isinstance(v, str) for v in value)):
+    of_text = like if like else value  # the default's elements say the type; an empty default, the value's
+    if all(isinstance(v, str) for v in of_text):
         return tuple(str(v) for v in value)
     try:
         arr = np.asarray(value, dtype=np.float64)

@@ -77,11 +77,10 @@ def _coerce(name: str, value: Any, kind: Any, default: Any) -> Any:
     (:mod:`neural_estimator.options`: ``true/yes/on/1`` are true for a bool, as on the command line)."""
     if value is None:
         return default
-    like = () if typing.get_origin(kind) is tuple else kind()  # a typed stand-in for the default
-    if isinstance(like, tuple) and not isinstance(value, str):
-        value = [str(v) for v in value]
+    # a typed stand-in for the default: the parameter kinds are bool, int, float, str and tuple[str, ...]
+    like = ("",) if typing.get_origin(kind) is tuple else kind()
     try:
-        return parse_value(value, like if not isinstance(like, tuple) else ("",), f"parameter {name}")
+        return parse_value(value, like, f"parameter {name}")
     except OptionError as exc:
         raise StartupError(str(exc)) from None
 

@@ -35,6 +35,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
+from neural_estimator.nodes.odometry import make_odometry
+from neural_estimator.robot.dataset import topic_fields
+from neural_estimator.robot.spec import SpecError, topic_values
 from neural_estimator.nodes.common import (
     ManagedNode,
     InterfaceError,
@@ -73,13 +76,16 @@ class RobotEstimatorNode(ManagedNode):
         if p.input_qos not in ("sensor_data", "reliable"):
             raise StartupError(f"parameter input_qos must be sensor_data or reliable, got {p.input_qos!r}")
         self.scenario, self.spec, self.method, self.est = _load(p)
-        from neural_estimator.robot.dataset import topic_fields
-
         fields = topic_fields(self.spec)
         inputs = [f.topic for name in ("observation", "control") for f in self.spec.vectors[name]]
         if self.spec.trigger:
             inputs.append(self.spec.trigger)
         self.fields = {t: fields.get(t, ()) for t in dict.fromkeys(inputs)}  # topic -> its fields, in order
+        # each vector's components as (topic, column of that topic's values), resolved once, not per tick
+        self.columns = {
+            name: [(f.topic, self.fields[f.topic].index(f)) for f in self.spec.vectors[name]]
+            for name in ("observation", "control")
+        }
         self.latest: dict[str, tuple[int, np.ndarray]] = {}  # topic -> (receipt time ns, values)
         self.subs: dict[str, object] = {}
         self.counts = {"ticks": 0, "estimates": 0, "stale": 0, "bad_messages": 0, "messages": 0}
@@ -138,8 +144,6 @@ class RobotEstimatorNode(ManagedNode):
             self.get_logger().info(f"subscribed to '{topic}' ({msgtype})")
 
     def _on_message(self, topic: str, msgtype: str, msg) -> None:
-        from neural_estimator.robot.spec import SpecError, topic_values
-
         self.counts["messages"] += 1
         try:
             values = topic_values(msg, self.fields[topic], msgtype)
@@ -174,8 +178,6 @@ class RobotEstimatorNode(ManagedNode):
         msg.position = x.tolist()
         self.pub_est.publish(msg)
         if self.pub_odom is not None:
-            from neural_estimator.nodes.odometry import make_odometry
-
             self.pub_odom.publish(
                 make_odometry(
                     self._odom_cls, stamp, self.p.frame_id, self.p.child_frame_id, x, None, self.scenario.pose_states
@@ -183,11 +185,7 @@ class RobotEstimatorNode(ManagedNode):
             )
 
     def _vector(self, name: str) -> np.ndarray:
-        out = []
-        for f in self.spec.vectors[name]:
-            values = self.latest[f.topic][1]
-            out.append(values[self.fields[f.topic].index(f)])
-        return np.array(out, dtype=np.float64)
+        return np.array([self.latest[topic][1][col] for topic, col in self.columns[name]], dtype=np.float64)
 
     # ---- reporting ------------------------------------------------------------------------------------
     def _warn(self, kind: str, text: str) -> None:
