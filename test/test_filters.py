@@ -823,18 +823,42 @@ def test_compiled_sincos_is_within_two_ulp():
         assert np.all((err <= 2.0) | (np.abs(got - want) < 2e-16)), err.max()
 
 
-def test_compiled_circular_mean_and_residuals_equal_numpy():
+@pytest.mark.parametrize("name", ["nlink", "lorenz96"])
+def test_compiled_weighted_moments_equal_numpy(name):
+    """The PF's compiled estimate: circular mean for angles (straddling the +-pi cut), plain mean
+    otherwise, and the weighted covariance of the wrapped residuals, against the numpy path."""
     from neural_estimator.filters import compiled_models as cm
+    from neural_estimator.filters.numerics import weighted_covariance
 
-    s = make_scenario("nlink")
+    s = make_scenario(name)
     rng = np.random.default_rng(3)
-    X = s.normalize_state(rng.normal(np.pi - 0.2, 0.3, (4, 50, 6)))  # straddles the +-pi cut
+    X = s.normalize_state(rng.normal(np.pi - 0.2, 0.3, (4, 50, s.dx)))
     w = rng.dirichlet(np.ones(50), 4)
-    mean, D = np.empty((4, 6)), np.empty_like(X)
-    cm.circular_mean_residuals(X, w, np.isin(np.arange(6), s.angle_states), mean, D)
+    mean, cov = np.empty((4, s.dx)), np.empty((4, s.dx, s.dx))
+    cm.weighted_moments(X, w, np.isin(np.arange(s.dx), s.angle_states), mean, cov)
     want = s.state_mean(X, w)
     np.testing.assert_allclose(s.state_residual(mean, want), 0.0, atol=1e-12)
-    np.testing.assert_allclose(s.state_residual(D, s.state_residual(X, want[:, None, :])), 0.0, atol=1e-12)
+    np.testing.assert_allclose(cov, weighted_covariance(s.state_residual(X, want[:, None, :]), w), atol=1e-12)
+    np.testing.assert_array_equal(cov, np.swapaxes(cov, 1, 2))
+
+
+def test_compiled_weight_normalisation_equals_numpy():
+    """log-sum-exp normalisation per row == numerics.normalize_log_weights, including the floor of
+    negligible weights (exactly 0) and the rows that must come back NaN (all -inf, or a NaN)."""
+    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.numerics import LOG_W_FLOOR, normalize_log_weights
+
+    logw = np.random.default_rng(2).normal(-5.0, 300.0, (5, 64))
+    logw[1, :] = -np.inf
+    logw[2, 7] = np.nan
+    logw[3, 3] = 1e6  # every other weight below the floor: exactly one particle left
+    with np.errstate(divide="ignore", invalid="ignore"):
+        want_l, want_w = normalize_log_weights(logw)
+    got_l, got_w = logw.copy(), np.empty_like(logw)
+    ck.normalize_log_weights_rows(got_l, got_w, LOG_W_FLOOR)
+    np.testing.assert_allclose(got_l, want_l, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got_w, want_w, rtol=1e-12, atol=1e-300)
+    assert np.isnan(got_w[1]).all() and np.isnan(got_w[2]).all() and np.count_nonzero(got_w[3]) == 1
 
 
 @pytest.mark.parametrize(

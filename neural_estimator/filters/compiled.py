@@ -326,6 +326,43 @@ def linear_log_likelihood(X, H, identity, y, inv_sd, logw):
             logw[r, i] += -0.5 * acc
 
 
+# ---- weights ---------------------------------------------------------------------------------------
+@nb.njit(nogil=True, cache=True)
+def normalize_log_weights_rows(logw, w, floor):
+    """In place, per row of logw (b, N): ``numerics.normalize_log_weights`` in one kernel.
+
+    m = max_i l_i, d_i = l_i - m, w_i = exp(d_i) / s with s = sum_j exp(d_j) (relative weights with
+    d_i <= floor are exactly 0: no subnormals), l_i <- d_i - log s. A row whose maximum is not
+    finite (all -inf, or a NaN) becomes NaN in both (the caller flags the stream as diverged).
+    """
+    b, N = logw.shape
+    for r in range(b):
+        m = -np.inf
+        nan = False
+        for i in range(N):
+            v = logw[r, i]
+            if v != v:
+                nan = True
+            elif v > m:
+                m = v
+        if nan or not (m > -np.inf and m < np.inf):
+            for i in range(N):
+                logw[r, i] = np.nan
+                w[r, i] = np.nan
+            continue
+        s = 0.0
+        for i in range(N):
+            d = logw[r, i] - m
+            e = math.exp(d) if d > floor else 0.0
+            logw[r, i] = d
+            w[r, i] = e
+            s += e
+        log_s = math.log(s)
+        for i in range(N):
+            w[r, i] /= s
+            logw[r, i] -= log_s
+
+
 # ---- systematic resampling ------------------------------------------------------------------------
 @nb.njit(nogil=True, cache=True)
 def systematic_resample_rows(X, w, offsets, need):

@@ -16,7 +16,7 @@ subclass may redefine f or h):
     nlink        RK4 of Euler-Lagrange, wrap    masses' positions
     ballistic    RK4 of the drag dynamics       range
     bearings     constant velocity              bearing (wrapped innovation)
-    quadrotor    numpy f, compiled noise        linear (compiled.linear_log_likelihood)
+    quadrotor    Euler step of the PVTOL body   linear (compiled.linear_log_likelihood)
 
 Process noise comes from the per-stream keyed generators of :mod:`.compiled` (results identical for
 any thread count or block size).
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from neural_estimator.filters.compiled import _add_noise, _seed_state, lorenz96_predict
+from neural_estimator.filters.compiled import _add_noise, _seed_state, lorenz96_predict, lorenz96_transition
 
 _TWO_PI = 2.0 * math.pi
 
@@ -225,7 +225,7 @@ _NLINK_ROWS = 1024  # states per pass of nlink_transition
 
 @nb.njit(nogil=True, cache=True, fastmath=_NLINK_FASTMATH)
 def nlink_transition(X, h, substeps, weights, neg_grav):
-    """X (M, 2N) <- f(X) (RK4 and wrapping, no noise); for the tests."""
+    """X (M, 2N) <- f(X) (RK4 and wrapping, no noise): the EnKF's members (and the tests)."""
     M, dx = X.shape
     n = dx // 2
     rows, a = _nlink_scratch(n, _NLINK_ROWS)
@@ -297,7 +297,7 @@ def _ballistic_rk4(x, g, kk, h, half, sixth, substeps):
 
 @nb.njit(nogil=True, cache=True)
 def ballistic_transition(X, g, kk, h, substeps):
-    """X (M, 3) <- f(X) (no noise); for the tests."""
+    """X (M, 3) <- f(X) (no noise): the EnKF's members (and the tests)."""
     for i in range(X.shape[0]):
         _ballistic_rk4(X[i], g, kk, h, 0.5 * h, h / 6.0, substeps)
 
@@ -342,23 +342,64 @@ def bearings_log_likelihood(X, y, inv_sd, logw):
             logw[r, i] += -0.5 * e * e
 
 
+# ---- planar quadrotor ------------------------------------------------------------------------------
+@nb.njit(nogil=True, cache=True)
+def quadrotor_predict(X, u, tau, g, mass, arm, inertia, keep, L, sd, seed, k, phase, first_stream):
+    """X (b, P, 6) <- f(X, u_b) + w per particle: ``PlanarQuadrotor.f``'s Euler step, term for term
+    (phi unwrapped, as there), with stream b's control u (b, 2)."""
+    b, P, n = X.shape
+    s = np.empty(4, dtype=np.uint64)
+    z = np.empty(n)
+    for r in range(b):
+        _seed_state(s, seed, k, phase, first_stream + r)
+        thrust = (u[r, 0] + u[r, 1]) / mass
+        torque = (u[r, 0] - u[r, 1]) * arm * tau / inertia
+        for i in range(P):
+            x = X[r, i]
+            px, pz, phi, vx, vz, rate = x[0], x[1], x[2], x[3], x[4], x[5]
+            c, sn = math.cos(phi), math.sin(phi)
+            x[0] = px + (vx * c - vz * sn) * tau
+            x[1] = pz + (vx * sn + vz * c) * tau
+            x[2] = phi + rate * tau
+            x[3] = vx + (vz * rate - g * sn) * tau
+            x[4] = vz + (-vx * rate - g * c + thrust) * tau
+            x[5] = keep * rate + torque
+            _add_noise(x, s, L, sd, z)
+
+
 # ---- selection ------------------------------------------------------------------------------------
-Predict = Callable[[np.ndarray, np.ndarray, np.ndarray, tuple], None]
+Predict = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple], None]
 LogLikelihood = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
+Transition = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
 class CompiledModel:
     """The kernels of one scenario instance, its constants bound.
 
-    predict(X, L, sd, key): X (b, P, n) <- normalize_state(f(X) + w) in place, key = (seed, k,
+    predict(X, u, L, sd, key): X (b, P, n) <- normalize_state(f(X, u) + w) in place, u (b, du)
+        the streams' controls u_{k-1}, key = (seed, k,
         phase, first_stream) of the keyed generators; None: numpy f, compiled noise.
     log_likelihood(X, y, inv_sd, logw): logw (b, P) += log N(y; h(x_i), diag(sd^2)) up to a
         constant, innovations wrapped where h is an angle; None: the generic linear kernel or numpy.
+    transition(X, u): f(X, u) as a new array, no noise (the EnKF's members); None: numpy f. Set
+        where numpy's f costs most: Lorenz 96 and ballistic (bit-equal to f), N-link (a few ulp).
     """
 
     predict: Predict | None = None
     log_likelihood: LogLikelihood | None = None
+    transition: Transition | None = None
+
+
+def _in_place_rows(kernel, *args) -> Transition:
+    """f(X, u) -> a new array from an in-place kernel on (M, n) rows (the EnKF's members)."""
+
+    def transition(X: np.ndarray, u: np.ndarray) -> np.ndarray:
+        Y = np.array(X, dtype=np.float64, order="C")
+        kernel(Y.reshape(-1, Y.shape[-1]), *args)
+        return Y
+
+    return transition
 
 
 def compiled_model(scenario) -> CompiledModel:
@@ -367,64 +408,102 @@ def compiled_model(scenario) -> CompiledModel:
     from neural_estimator.scenarios.bearings import Bearings
     from neural_estimator.scenarios.lorenz96 import Lorenz96
     from neural_estimator.scenarios.nlink import NLinkPendulum
+    from neural_estimator.scenarios.quadrotor import PlanarQuadrotor
 
     cls, cfg = type(scenario), scenario.config
     if cls is Lorenz96:
         args = (float(cfg.forcing), float(cfg.dt) / int(cfg.substeps), int(cfg.substeps))
-        return CompiledModel(predict=lambda X, L, sd, key: lorenz96_predict(X, *args, L, sd, *key))
+        return CompiledModel(
+            predict=lambda X, u, L, sd, key: lorenz96_predict(X, *args, L, sd, *key),
+            transition=_in_place_rows(lorenz96_transition, *args),
+        )
     if cls is NLinkPendulum:
         lengths, weights, grav = scenario._constants()
         args = (float(cfg.dt) / int(cfg.substeps), int(cfg.substeps), np.ascontiguousarray(weights), -grav)
         return CompiledModel(
-            predict=lambda X, L, sd, key: nlink_predict(X, *args, L, sd, *key),
+            predict=lambda X, u, L, sd, key: nlink_predict(X, *args, L, sd, *key),
             log_likelihood=lambda X, y, inv_sd, logw: nlink_log_likelihood(X, lengths, y, inv_sd, logw),
+            transition=_in_place_rows(nlink_transition, *args),
         )
     if cls is Ballistic:
         args = (float(cfg.g), float(cfg.k), float(cfg.dt) / int(cfg.substeps), int(cfg.substeps))
         r0, a_ref = float(cfg.r0), float(cfg.a_ref)
         return CompiledModel(
-            predict=lambda X, L, sd, key: ballistic_predict(X, *args, L, sd, *key),
+            predict=lambda X, u, L, sd, key: ballistic_predict(X, *args, L, sd, *key),
             log_likelihood=lambda X, y, inv_sd, logw: ballistic_log_likelihood(X, r0, a_ref, y, inv_sd, logw),
+            transition=_in_place_rows(ballistic_transition, *args),
         )
     if cls is Bearings:
         t = float(cfg.dt)
         return CompiledModel(
-            predict=lambda X, L, sd, key: bearings_predict(X, t, L, sd, *key),
+            predict=lambda X, u, L, sd, key: bearings_predict(X, t, L, sd, *key),
             log_likelihood=bearings_log_likelihood,
+        )
+    if cls is PlanarQuadrotor:
+        args = (float(cfg.dt), float(cfg.g), float(cfg.mass), float(cfg.arm), float(cfg.inertia))
+        keep = 1.0 if cfg.integrate_phi_rate else 0.0
+        return CompiledModel(
+            predict=lambda X, u, L, sd, key: quadrotor_predict(X, np.ascontiguousarray(u), *args, keep, L, sd, *key)
         )
     return CompiledModel()
 
 
-# ---- weighted estimate with angular components ----------------------------------------------------
-@nb.njit(nogil=True, cache=True)
-def circular_mean_residuals(X, w, is_angle, mean, D):
-    """mean (b, n) and residuals D (b, P, n) of the weighted particles X (b, P, n), weights w (b, P).
+# ---- the weighted estimate: mean (circular for angles) and covariance in one kernel ----------------
+# Sums over particles may be reassociated (SIMD lanes) and multiply-adds fused; NaN and infinity keep
+# their IEEE meaning, since a diverged stream is detected by its non-finite estimate.
+_MOMENTS_FASTMATH = {"reassoc", "contract"}
+
+
+@nb.njit(nogil=True, cache=True, fastmath=_MOMENTS_FASTMATH)
+def weighted_moments(X, w, is_angle, mean, cov):
+    """mean (b, n) and covariance (b, n, n) of the weighted particles X (b, P, n), weights w (b, P).
 
     Plain components: m = sum_i w_i x_i, d_i = x_i - m. Angular ones (is_angle): the circular mean
     m = atan2(sum_i w_i sin x_i, sum_i w_i cos x_i) and d_i = wrap(x_i - m), as
-    ``angles.weighted_mean`` and ``Scenario.state_residual``. The weighted covariance of D is left
-    to the caller (a BLAS product).
+    ``angles.weighted_mean`` and ``Scenario.state_residual``. Then P = sum_i w_i d_i d_i^T, one
+    dot product over the particles per entry of the upper triangle, mirrored (exactly symmetric, as
+    ``numerics.symmetrize`` makes the numpy product). A stream's particles are transposed into
+    component rows first, so every sum runs over contiguous memory and vectorises; at the paper's
+    sizes (n <= 10, 1,024 particles) this is 1.5-3.5x faster than the numpy path's residual array
+    and BLAS call.
     """
     b, P, n = X.shape
-    acc_s = np.empty(n)
-    acc_c = np.empty(n)
+    # rows padded by a cache line: at 1,024 particles an unpadded row is 8 KiB, and the transpose's
+    # n writes per particle would all fall in one L1 cache set (measured 2.3x slower at n = 10)
+    stride = P + 8
+    Dt = np.empty((n, stride))
+    Wd = np.empty((n, stride))
     for r in range(b):
-        for j in range(n):
-            acc_s[j] = 0.0
-            acc_c[j] = 0.0
-        for i in range(P):
-            wi = w[r, i]
-            for j in range(n):
-                v = X[r, i, j]
-                if is_angle[j]:
-                    sx, cx = _sincos(v)
-                    acc_s[j] += wi * sx
-                    acc_c[j] += wi * cx
-                else:
-                    acc_s[j] += wi * v
-        for j in range(n):
-            mean[r, j] = math.atan2(acc_s[j], acc_c[j]) if is_angle[j] else acc_s[j]
         for i in range(P):
             for j in range(n):
-                d = X[r, i, j] - mean[r, j]
-                D[r, i, j] = _wrap(d) if is_angle[j] else d
+                Dt[j, i] = X[r, i, j]
+        wr = w[r]
+        for j in range(n):
+            dj = Dt[j]
+            if is_angle[j]:
+                ss, cc = 0.0, 0.0
+                for i in range(P):
+                    sx, cx = _sincos(dj[i])
+                    ss += wr[i] * sx
+                    cc += wr[i] * cx
+                m = math.atan2(ss, cc)
+                for i in range(P):
+                    dj[i] = _wrap(dj[i] - m)
+            else:
+                m = 0.0
+                for i in range(P):
+                    m += wr[i] * dj[i]
+                for i in range(P):
+                    dj[i] = dj[i] - m
+            mean[r, j] = m
+            for i in range(P):
+                Wd[j, i] = wr[i] * dj[i]
+        for j in range(n):
+            wj = Wd[j]
+            for c in range(j, n):
+                dc = Dt[c]
+                acc = 0.0
+                for i in range(P):
+                    acc += wj[i] * dc[i]
+                cov[r, j, c] = acc
+                cov[r, c, j] = acc

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from neural_estimator.filters.base import PHASE_INIT, PHASE_UPDATE, MemberFilter, check_inflation
+from neural_estimator.filters.compiled_models import compiled_model
 from neural_estimator.filters.localization import localization_tapers
 from neural_estimator.filters.numerics import (
     ScenarioOps,
@@ -153,6 +154,9 @@ class EnsembleKalmanFilter(MemberFilter):
         self._rho = None
         if self.hp.localization_radius is not None:
             self._rho = localization_tapers(scenario, float(self.hp.localization_radius), self.method)
+        # f over the members: the scenario's compiled transition where it has one (N-link's RK4 in
+        # numpy is half the EnKF's time there), else its numpy f
+        self._transition = compiled_model(scenario).transition or scenario.f
 
     def _init_state(self, B: int) -> None:
         draws = self._draw_blockwise(
@@ -160,8 +164,14 @@ class EnsembleKalmanFilter(MemberFilter):
         )
         self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
 
-    # The maths is the module-level _update / _estimate (the prediction is MemberFilter's); these
-    # hooks schedule it over the blocks of streams.
+    def _predict_block(self, X: np.ndarray, u: np.ndarray, rng: np.random.Generator):
+        """x^i_{k+1} = f(x^i_k, u_k) + w^i_k,  w^i_k ~ N(0, Q), for every member i."""
+        X = self._transition(X, self._broadcast_u(u, self.N))
+        X += gaussian(rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
+        return self.ops.normalize_state(X), None
+
+    # The maths is the module-level _update / _estimate; these hooks schedule it over the blocks of
+    # streams.
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
         X_post, _ = self._blockwise(self._update_kernel, self._X, y, phase=PHASE_UPDATE)
         self._X = self._keep(skip, self._X, X_post)

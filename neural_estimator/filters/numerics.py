@@ -170,7 +170,7 @@ def gaussian(rng: np.random.Generator, shape: tuple[int, ...], L: np.ndarray, d:
 
 
 # ---- particle weights --------------------------------------------------------------------------
-_LOG_W_FLOOR = -600.0  # relative log-weight below which a normalised weight is exactly zero
+LOG_W_FLOOR = -600.0  # relative log-weight below which a normalised weight is exactly zero
 
 
 def normalize_log_weights(logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +189,7 @@ def normalize_log_weights(logw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # Relative weights below e^-600 (~1e-261) are set to exactly 0 rather than left to
         # underflow into subnormal numbers, which slow every later product with them ~50x on
         # x86 (the PF's weighted mean and covariance); they could not change any sum anyway.
-        w = np.exp(np.where(d > _LOG_W_FLOOR, d, -np.inf))
+        w = np.exp(np.where(d > LOG_W_FLOOR, d, -np.inf))
         s = w.sum(axis=-1, keepdims=True)
         w /= s
         return d - np.log(s), w

@@ -28,8 +28,9 @@ from neural_estimator.filters.base import (
     PHASE_RESAMPLE,
     MemberFilter,
 )
-from neural_estimator.filters.compiled_models import circular_mean_residuals, compiled_model
+from neural_estimator.filters.compiled_models import compiled_model, weighted_moments
 from neural_estimator.filters.numerics import (
+    LOG_W_FLOOR,
     effective_sample_size,
     gaussian,
     normalize_log_weights,
@@ -178,11 +179,12 @@ class ParticleFilter(MemberFilter):
         model = compiled_model(s)
         self._ck_predict = model.predict
         self._ck_loglik = model.log_likelihood if self._inv_sd_R is not None else None
-        # the weighted mean and residuals of angular states (the base class's circular semantics)
+        # the weighted mean (circular for angles) and covariance: plain states, or the base class's
+        # angle semantics (a scenario with its own mean or residual keeps the numpy path)
         cls, base = type(s), Scenario
         standard_angles = cls.state_mean is base.state_mean and cls.state_residual is base.state_residual
         self._ck_angles = None
-        if self._compiled and not self.ops.plain_state and standard_angles:
+        if self._compiled and (self.ops.plain_state or standard_angles):
             self._ck_angles = np.isin(np.arange(s.dx), list(s.angle_states))
         # likelihood otherwise: h(x) = H x, R diagonal, no angular observation
         H = s.obs_matrix()
@@ -211,7 +213,7 @@ class ParticleFilter(MemberFilter):
         X = self._X[sl]
         key = (self.seed, self._k, PHASE_PREDICT, sl.start)
         if self._ck_predict is not None:  # f, noise and the angle wrapping fused
-            self._ck_predict(X, self._ck_L, self._ck_sd, key)
+            self._ck_predict(X, u, self._ck_L, self._ck_sd, key)
             return
         X[...] = self.scenario.f(X, self._broadcast_u(u, self.N))
         ck.add_process_noise(X, self._ck_L, self._ck_sd, *key)
@@ -235,7 +237,9 @@ class ParticleFilter(MemberFilter):
             self._ck_loglik(X, y, self._inv_sd_R, logw)
         else:
             ck.linear_log_likelihood(X, self._ck_H[0], self._ck_H[1], y, self._inv_sd_R, logw)
-        return (*normalize_log_weights(logw), None)
+        w = np.empty_like(logw)
+        ck.normalize_log_weights_rows(logw, w, LOG_W_FLOOR)
+        return logw, w, None
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
         mean, cov, _ = self._blockwise(self._estimate_block, self._X, self._w)
@@ -250,9 +254,9 @@ class ParticleFilter(MemberFilter):
 
     def _estimate_block(self, X: np.ndarray, w: np.ndarray):
         if self._ck_angles is not None:
-            mean, D = np.empty(X.shape[::2]), np.empty_like(X)
-            circular_mean_residuals(X, w, self._ck_angles, mean, D)
-            return mean, weighted_covariance(D, w), None
+            mean, cov = np.empty(X.shape[::2]), np.empty(X.shape[:1] + X.shape[2:] * 2)
+            weighted_moments(X, w, self._ck_angles, mean, cov)
+            return mean, cov, None
         return (*_weighted_estimate(X, w, ops=self.ops), None)
 
     def _park(self, mask: np.ndarray) -> None:
