@@ -123,27 +123,67 @@ _MASK52 = np.uint64(0x000FFFFFFFFFFFFF)
 
 
 @nb.njit(inline="always")
+def _zig_slow(s, idx, rabs, x):
+    """The ziggurat's rare branches for a word that missed the rectangle test (about 1 % of draws):
+    the tail beyond r for layer 0, else the wedge test; NaN asks the caller for a new word."""
+    if idx == 0:  # the tail beyond r
+        while True:
+            xx = -math.log1p(-_next_double(s)) / _ZIG_R
+            yy = -math.log1p(-_next_double(s))
+            if yy + yy > xx * xx:
+                return -(_ZIG_R + xx) if (rabs >> 8) & 1 else _ZIG_R + xx
+    if (_FI[idx - 1] - _FI[idx]) * _next_double(s) + _FI[idx] < math.exp(-0.5 * x * x):
+        return x
+    return math.nan
+
+
+@nb.njit(inline="always")
+def _fill_normals(s, z, count):
+    """z[:count] <- standard normals from generator state s (ziggurat; tail by Marsaglia's 1964
+    method), s advanced in place.
+
+    The fast path (one 64-bit word: 8 bits of layer, a sign bit, a 52-bit abscissa, one compare)
+    keeps the xoshiro256** state in local variables over all ``count`` draws; it goes through the
+    array ``s`` only around the rare branches. With the state in memory, every draw's four loads
+    and stores sat on the generator's dependency chain (measured 9 ns a normal; now about half).
+    The numbers are those of drawing one at a time, in the same order.
+    """
+    s0, s1, s2, s3 = s[0], s[1], s[2], s[3]
+    for j in range(count):
+        while True:
+            r = _rotl(s1 * np.uint64(5), 7) * np.uint64(9)
+            t = s1 << np.uint64(17)
+            s2 ^= s0
+            s3 ^= s1
+            s1 ^= s2
+            s0 ^= s3
+            s2 ^= t
+            s3 = _rotl(s3, 45)
+            idx = np.int64(r & np.uint64(0xFF))
+            r = r >> np.uint64(8)
+            negative = (r & np.uint64(1)) != np.uint64(0)
+            rabs = np.int64((r >> np.uint64(1)) & _MASK52)  # 52 bits: int64 converts to float fast
+            x = float(rabs) * _WI[idx]
+            if negative:
+                x = -x
+            if rabs < _KI[idx]:
+                z[j] = x
+                break
+            s[0], s[1], s[2], s[3] = s0, s1, s2, s3
+            x = _zig_slow(s, idx, rabs, x)
+            s0, s1, s2, s3 = s[0], s[1], s[2], s[3]
+            if x == x:
+                z[j] = x
+                break
+    s[0], s[1], s[2], s[3] = s0, s1, s2, s3
+
+
+@nb.njit(inline="always")
 def _normal(s):
-    """A standard normal from generator state s (ziggurat; tail by Marsaglia's 1964 method)."""
-    while True:
-        r = _next_u64(s)
-        idx = np.int64(r & np.uint64(0xFF))
-        r = r >> np.uint64(8)
-        negative = (r & np.uint64(1)) != np.uint64(0)
-        rabs = np.int64((r >> np.uint64(1)) & _MASK52)  # 52 bits: int64 converts to float fast
-        x = float(rabs) * _WI[idx]
-        if negative:
-            x = -x
-        if rabs < _KI[idx]:
-            return x
-        if idx == 0:  # the tail beyond r
-            while True:
-                xx = -math.log1p(-_next_double(s)) / _ZIG_R
-                yy = -math.log1p(-_next_double(s))
-                if yy + yy > xx * xx:
-                    return -(_ZIG_R + xx) if (rabs >> 8) & 1 else _ZIG_R + xx
-        elif (_FI[idx - 1] - _FI[idx]) * _next_double(s) + _FI[idx] < math.exp(-0.5 * x * x):
-            return x
+    """One standard normal from generator state s (see :func:`_fill_normals`)."""
+    z = np.empty(1)
+    _fill_normals(s, z, 1)
+    return z[0]
 
 
 @nb.njit(nogil=True, cache=True)
@@ -152,8 +192,7 @@ def stream_normals(seed: int, k: int, phase: int, stream: int, count: int) -> np
     s = np.empty(4, dtype=np.uint64)
     _seed_state(s, seed, k, phase, stream)
     out = np.empty(count)
-    for i in range(count):
-        out[i] = _normal(s)
+    _fill_normals(s, out, count)
     return out
 
 
@@ -164,8 +203,7 @@ def _add_noise(x, s, L, sd, z):
     sqrt(Q)) replaces L when it is given (sd.size > 0), as ``numerics.gaussian`` does. L is any
     square root of Q (the scenarios' psd_sqrt is symmetric, not triangular)."""
     n = x.shape[0]
-    for j in range(n):
-        z[j] = _normal(s)
+    _fill_normals(s, z, n)
     if sd.size:
         for j in range(n):
             x[j] += z[j] * sd[j]
