@@ -1,0 +1,69 @@
+"""Ballistic hypothesis (issue #9): the classic Athans / Julier set-up, where the filters' prior on the
+drag coefficient is far from and much wider than the truth's, as the source of the paper's rows.
+
+    .venv/bin/python benchmarks/ballistic_classic_prior.py                    # EKF, UKF, EnKF, PF; 100 trajectories
+
+The paper's ballistic EKF (5.29) is 8x its UKF (0.63). Our scenario (the classic problem in km) has
+EKF = UKF. In the classic falling-body problem (Athans, Wishner & Bertolini 1968; Julier & Uhlmann
+2004) the truth has c = 1e-3 1/ft while the filters start from c = 3e-5 with a standard deviation
+of 1e-2: in km (c / 3.048e-4) truth 3.28 1/km, prior 0.098 +- 32.8. The truth here is drawn around
+x0 = (91.44 km, 6.096 km/s, c) with a tiny spread; the filters get the separate prior below. Prints
+RMSE over the non-diverged trajectories, the median absolute error and the diverged count.
+Output of the default run: benchmarks/results/ballistic_classic_prior.txt.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from neural_estimator.data.simulate import simulate
+from neural_estimator.estimators import make_estimator
+from neural_estimator.scenarios import make_scenario
+
+C_TRUE = 3.28  # 1e-3 1/ft in 1/km
+TRUTH_CLASSIC = dict(prior_mean=(91.44, 6.096, C_TRUE), prior_std=(0.01, 0.01, 0.001))
+CASES = {  # name: (the truth's initial distribution, the filters' prior)
+    "classic: filters' c prior 0.098 +- 32.8": (
+        TRUTH_CLASSIC,
+        dict(prior_mean=(91.44, 6.096, 0.098), prior_std=(0.3048, 0.6096, 32.8)),
+    ),
+    "classic, c prior 0.098 +- 3.28": (
+        TRUTH_CLASSIC,
+        dict(prior_mean=(91.44, 6.096, 0.098), prior_std=(0.3048, 0.6096, 3.28)),
+    ),
+    "our truth, filters' c prior 0.098 +- 1": (
+        {},
+        dict(prior_mean=(90.0, 6.0, 0.098), prior_std=(0.3048, 1.2192, 1.0)),
+    ),
+    "our truth, filters' P0 = I (x0 std 1.0)": ({}, dict(prior_std=(1.0, 1.0, 1.0))),
+}
+
+
+def summary(x: np.ndarray, xhat: np.ndarray) -> str:
+    err = xhat - x
+    ok = np.isfinite(err).all(axis=(1, 2))
+    rmse = float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else float("nan")
+    medae = float(np.median(np.abs(err[ok]))) if ok.any() else float("nan")
+    return f"{rmse:.3f} (MedAE {medae:.3f}, diverged {int((~ok).sum())})"
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--methods", default="ekf,ukf,enkf,pf")
+    p.add_argument("--trajectories", type=int, default=100)
+    p.add_argument("--seed", type=int, default=3)
+    args = p.parse_args(argv)
+    for name, (truth, prior) in CASES.items():
+        data = simulate(make_scenario("ballistic", **truth), args.trajectories, seed=args.seed)
+        filters = make_scenario("ballistic", **prior)
+        cells = [
+            f"{m.upper()} {summary(data.x, make_estimator(m, filters, seed=0).run(data.y, data.u).x)}"
+            for m in args.methods.split(",")
+        ]
+        print(f"{name}: " + "; ".join(cells), flush=True)
+
+
+if __name__ == "__main__":
+    main()
