@@ -140,9 +140,11 @@ class ParticleFilter(MemberFilter):
     Scott's rule N^(-1/(n+4)) instead: c = r N^(-1/(n+4)) / h_opt gives its jitter.
 
     Compiled kernels (``compiled=true``, the default): the predict step (f fused with the process
-    noise where the scenario has a kernel: Lorenz 96, N-link, ballistic, bearings; the process
-    noise everywhere), the likelihood (the scenario's h kernel, or any linear observation with
-    diagonal R) and, for angular states, the circular weighted mean run as numba kernels
+    noise where the scenario has a kernel: Lorenz 96, N-link, ballistic, bearings, quadrotor; the
+    process noise everywhere), the likelihood (the scenario's h kernel, or any linear observation
+    with diagonal R), the log-sum-exp normalisation of the weights, and the estimate (weighted mean,
+    circular for angular states, and covariance, for any scenario with the base class's angle
+    semantics) run as numba kernels
     (:mod:`neural_estimator.filters.compiled`, :mod:`neural_estimator.filters.compiled_models`),
     fused per particle or over a stream's particles. Their process noise comes from per-stream
     keyed generators, not numpy's, so the two paths agree in distribution, and to rounding given
