@@ -805,6 +805,13 @@ def _add_reproduce(sub) -> None:
         "on a cluster, a path every node sees)",
     )
     p.add_argument("--resume", action="store_true", help="continue the run in --out (finished jobs are read back)")
+    p.add_argument(
+        "--init",
+        choices=("prior", "truth"),
+        default="prior",
+        help="classical filters of the accuracy and noise experiments start from the scenario prior "
+        "(default, as live; expected failures are marked) or at each trajectory's true x0",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_reproduce)
 

@@ -32,6 +32,7 @@ def run_from_args(args, usage_error: type[Exception]) -> int:
             address=args.address,
             num_cpus=args.num_cpus,
             plugins=tuple(str(Path(p).resolve()) for p in (args.plugin or ())),
+            init=args.init,
         )
         summary = reproduce(settings, args.out, resume=args.resume, progress=not args.quiet)
     except ReproduceError as exc:

@@ -51,6 +51,7 @@ class Job:
     instance: int = 0  # train: the instance (its init_seed)
     train: tuple[tuple[str, Any], ...] = ()  # train: TrainConfig fields changed from the paper's recipe
     train_job: "Job | None" = None  # evaluate: evaluate the model this train job writes (None: the shipped one)
+    init: str = "prior"  # evaluate: how the classical filters start, "prior" or "truth" (evaluation.INIT_MODES)
 
     @property
     def label(self) -> str:
@@ -65,7 +66,10 @@ class Job:
         return f"{self.kind} {self.scenario} {self.method}{extra} {what}"
 
     def to_json(self) -> dict[str, Any]:
-        return asdict(self)
+        out = asdict(self)
+        if out["init"] == "prior":  # the default is left out: keys and states from before the option stay valid
+            del out["init"]
+        return out
 
 
 def make_job_scenario(job: Job):
@@ -204,6 +208,7 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
         cache_dir=cache_dir,
         progress=False,
         checkpoints=checkpoints,
+        init=job.init,
     )[job.method]
     return M.to_json(res.reports[0]), res.cached == 1
 

@@ -34,7 +34,9 @@ def train_job(scale: Scale, scenario: str, method: str, ratio: float, instance: 
 MAIN_RATIO = 20.0  # the paper's main tables: models trained at about 20:1
 
 
-def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool = False) -> list[Job]:
+def plan_jobs(
+    scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool = False, init: str = "prior"
+) -> list[Job]:
     """Accuracy (every method on every evaluation set), the noise sweep (same, per noise scale;
     models trained at the nominal noise), data efficiency (train every neural architecture at every
     ratio, then evaluate each trained instance on every set), runtime (batch-1 step throughput on CPU, and on GPU for
@@ -43,6 +45,9 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
     With ``scale.main_from_training`` (the paper scale) the accuracy and noise experiments evaluate
     each neural architecture's ``train_instances`` models trained at 20:1 (the same trainings as the
     data-efficiency experiment's 20:1 point) instead of the shipped model; each training is one job.
+
+    ``init`` (``"prior"`` or ``"truth"``): how the classical filters of the accuracy and noise
+    evaluations start (:func:`neural_estimator.evaluation.run_method`); neural methods ignore it.
     """
     from neural_estimator.estimators import NEURAL_METHODS
 
@@ -69,6 +74,7 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
                             horizon=scale.horizon,
                             experiment="accuracy",
                             train_job=tj,
+                            init=init,
                             instance=tj.instance if tj else 0,
                         )
                     )
@@ -91,6 +97,7 @@ def plan_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gp
                                 horizon=scale.horizon,
                                 experiment="noise",
                                 train_job=tj,
+                                init=init,
                                 instance=tj.instance if tj else 0,
                             )
                         )
