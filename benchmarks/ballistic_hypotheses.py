@@ -14,6 +14,9 @@ RMSE over the non-diverged trajectories, the median absolute error and the diver
 The last two cases keep our constants but sample every 0.5 s or 1 s, so that every body reaches
 a = 0 within the 500 steps (median step 153 and 77) and falls on below it at sea-level density:
 the EKF's Jacobian of E jumps there (from -k to 0) while the UKF's sigma points straddle the kink.
+The two after them put the radar under the flight path (r0 = 0: the range |a - a_ref| has a kink
+where every body passes a_ref = 30 km), the second with a 3 km range noise so that the filters are
+still uncertain when they reach it.
 Output of the default run: benchmarks/results/ballistic_hypotheses.txt.
 """
 
@@ -45,6 +48,8 @@ CASES = {  # name: (the truth's initial distribution, the filters' prior)
     "our truth, filters' P0 = I (x0 std 1.0)": ({}, dict(prior_std=(1.0, 1.0, 1.0))),
     "every body crosses a = 0 (dt 0.5 s)": (dict(dt=0.5), dict(dt=0.5)),
     "every body crosses a = 0 (dt 1 s)": (dict(dt=1.0), dict(dt=1.0)),
+    "range |a - a_ref| (r0 = 0)": (dict(r0=0.0), dict(r0=0.0)),
+    "r0 = 0.1 km, range noise 3 km": (dict(r0=0.1, obs_noise_std=3.0), dict(r0=0.1, obs_noise_std=3.0)),
 }
 
 
