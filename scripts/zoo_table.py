@@ -29,20 +29,31 @@ def main() -> None:
             mark = " (converged)" if c["training"].get("converged") else ""  # cards say so since the retraining
             cells.append(f"{met['rmse']:.4g} ({met['nrmse']:.3f}){mark}")
         print(f"| {m} | " + " | ".join(cells) + " |")
-    budgets: dict[tuple, set[str]] = {}  # budget -> the scenarios whose models had it
+    budgets: dict[tuple, set[tuple[str, str]]] = {}  # budget -> the (scenario, method) models that had it
     for card in (p for p in ZOO.glob("*-*/card.json") if "." not in p.parent.name):
         c = json.loads(card.read_text())
         r, m = c["training"]["recipe"], c["metrics"]["set"]
         key = (r["epochs"], c["data"]["windows_per_epoch"], r["val_trajectories"], m["trajectories"])
-        budgets.setdefault(key, set()).add(c["scenario"]["scenario"])
-    for (ep, w, v, n), scenarios in sorted(budgets.items(), reverse=True):
-        names = ", ".join(s for s in BUILTIN_SCENARIOS if s in scenarios)
+        budgets.setdefault(key, set()).add((c["scenario"]["scenario"], c["method"]))
+    for (ep, w, v, n), models in sorted(budgets.items(), reverse=True):
         print(
-            f"\n{names}: {ep} epochs x {w} windows, {v} validation trajectories, "
+            f"\n{_names(models)}: {ep} epochs x {w} windows, {v} validation trajectories, "
             f"metrics on {n} trajectories of evaluation set 0.",
             end="",
         )
     print()
+
+
+def _names(models: set[tuple[str, str]]) -> str:
+    """A scenario's name where all its models are in ``models``, else each model as scenario-method."""
+    out = []
+    for s in BUILTIN_SCENARIOS:
+        mine = [m for m in NEURAL_METHODS if (s, m) in models]
+        if len(mine) == len(NEURAL_METHODS):
+            out.append(s)
+        elif mine:
+            out += [f"{s}-{m}" for m in mine]
+    return ", ".join(out)
 
 
 if __name__ == "__main__":
