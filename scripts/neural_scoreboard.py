@@ -1,0 +1,173 @@
+"""The shipped neural models beside the paper's, at the issue's evaluation size: which is best per scenario.
+
+For every scenario, each shipped neural model (``neural_estimator/zoo/<scenario>-<method>/``) runs on
+``--sets`` independent evaluation sets of ``--trajectories`` trajectories (default 3 x 1,000; the
+paper: 3 x 8,000) through :func:`neural_estimator.evaluation.evaluate`, and the table prints
+
+    RMSE median ± IQR over the sets  ·  the paper's RMSE
+
+with the best neural model of each scenario in bold (ours and the paper's separately), the
+training budget of each model (``full`` = the paper's recipe from ``scripts/train_zoo.py``,
+``2 %`` = the CPU-budget models of 20 epochs x 2,000 windows), and the two figures issue 10
+asks for: the Lorenz 96 Mamba and Mamba-2 RMSE against 0.08, and in how many scenarios an SSM
+(Mamba or Mamba-2) is the best neural model (the paper: 5 of 5).
+
+Runs are cached by checkpoint digest (the evaluation result cache), so after a model is replaced
+only its rows are computed again.
+
+    python scripts/neural_scoreboard.py --out docs/results/neural_scoreboard.md
+    python scripts/neural_scoreboard.py --scenarios lorenz96 --trajectories 200   # a quick look
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from neural_estimator.estimators import NEURAL_METHODS
+from neural_estimator.evaluation import evaluate
+from neural_estimator.paper import paper_value
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
+
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+SSMS = ("mamba", "mamba2")
+L96_TARGET = 0.08
+
+
+def budget(card: dict) -> str:
+    """``full`` for a model trained with the paper's data sizes (20,000 windows an epoch), else its epochs x windows."""
+    windows = card["data"]["windows_per_epoch"]
+    epochs = card["training"].get("epochs_run") or card["training"]["recipe"]["epochs"]  # older cards lack epochs_run
+    if windows >= 20000:
+        return f"full ({epochs} ep)"
+    return f"{epochs} x {windows}"
+
+
+def best(rmse: dict[str, float | None]) -> list[str]:
+    """The methods with the lowest finite RMSE (several on a tie, as the paper's 0.052 for both SSMs)."""
+    finite = {m: v for m, v in rmse.items() if v is not None and math.isfinite(v)}
+    low = min(finite.values(), default=None)
+    return [m for m, v in finite.items() if v == low]
+
+
+def fmt(v: float | None, digits: int = 4) -> str:
+    """``digits`` significant digits, whole numbers from 10**digits on; – for None (the paper's N/A)."""
+    if v is None or not math.isfinite(v):
+        return "–" if v is None else str(v)
+    return f"{v:.{digits}g}" if abs(v) < 10**digits else f"{v:.0f}"
+
+
+def table(rows: dict[str, dict[str, dict]], methods: list[str]) -> str:
+    """Markdown: one row per method, one column per scenario; ``rows[scenario][method]`` holds
+    ``rmse``, ``iqr``, ``paper``, ``budget``."""
+    scenarios = list(rows)
+    out = ["| model | " + " | ".join(scenarios) + " |", "|---|" + "---:|" * len(scenarios)]
+    ours_best = {s: best({m: r["rmse"] for m, r in rows[s].items()}) for s in scenarios}
+    paper_best = {s: best({m: r["paper"] for m, r in rows[s].items()}) for s in scenarios}
+    for m in methods:
+        cells = []
+        for s in scenarios:
+            r = rows[s].get(m)
+            if r is None:
+                cells.append("–")
+                continue
+            ours = f"{fmt(r['rmse'])} ± {fmt(r['iqr'], 2)}"
+            ours = f"**{ours}**" if m in ours_best[s] else ours
+            paper = fmt(r["paper"])
+            paper = f"**{paper}**" if m in paper_best[s] else paper
+            cells.append(f"{ours} · {paper} <sub>{r['budget']}</sub>")
+        out.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def verdict(rows: dict[str, dict[str, dict]]) -> list[str]:
+    """The issue's two figures, stated with their distance to the targets."""
+    lines = []
+    ssm_best = [s for s in rows if set(best({m: r["rmse"] for m, r in rows[s].items()})) & set(SSMS)]
+    for s in rows:
+        b = best({m: r["rmse"] for m, r in rows[s].items()})
+        if b:
+            paper = " = ".join(best({m: r["paper"] for m, r in rows[s].items()})) or "–"
+            lines.append(f"- {s}: best neural {' = '.join(b)} ({fmt(rows[s][b[0]]['rmse'])}); the paper's: {paper}")
+    lines.append(
+        f"- an SSM is the best neural model in {len(ssm_best)} of {len(rows)} scenarios "
+        f"({', '.join(ssm_best) or 'none'}); target at least 4 of 5, the paper 5 of 5"
+    )
+    if "lorenz96" in rows:
+        for m in SSMS:
+            r = rows["lorenz96"].get(m)
+            if r is not None and r["rmse"] is not None:
+                state = "met" if r["rmse"] <= L96_TARGET else f"{100 * (r['rmse'] / L96_TARGET - 1):.0f} % above"
+                lines.append(
+                    f"- Lorenz 96 {m}: {fmt(r['rmse'])} against the target {L96_TARGET} ({state}; paper "
+                    f"{fmt(r['paper'])})"
+                )
+    return lines
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
+    p.add_argument("--methods", default=",".join(NEURAL_METHODS))
+    p.add_argument("--trajectories", type=int, default=1000, help="per evaluation set (issue 10: >= 1,000)")
+    p.add_argument("--sets", type=int, default=3)
+    p.add_argument("--zoo", default=str(ZOO), help="directory of <scenario>-<method>/ checkpoints")
+    p.add_argument("--out", default=None, help="write the markdown here (and a .json beside it)")
+    p.add_argument("--quiet", action="store_true")
+    a = p.parse_args(argv)
+    scenarios = [s for s in a.scenarios.split(",") if s]
+    methods = [m for m in a.methods.split(",") if m]
+    zoo = Path(a.zoo)
+    t0 = time.time()
+    rows: dict[str, dict[str, dict]] = {}
+    for s in scenarios:
+        scenario = make_scenario(s)
+        have = [m for m in methods if (zoo / f"{s}-{m}" / "card.json").exists()]
+        results = evaluate(
+            scenario,
+            have,
+            trajectories=a.trajectories,
+            sets=a.sets,
+            checkpoints={m: [zoo / f"{s}-{m}"] for m in have},
+            progress=not a.quiet,
+        )
+        rows[s] = {}
+        for m in have:
+            st = results[m].summary["rmse"]
+            card = json.loads((zoo / f"{s}-{m}" / "card.json").read_text())
+            rows[s][m] = {
+                "rmse": st.median,
+                "iqr": st.iqr,
+                "paper": paper_value("accuracy_main", s, m, "rmse"),
+                "budget": budget(card),
+            }
+        print(f"{s}: done ({time.time() - t0:.0f} s)", file=sys.stderr, flush=True)
+    md = "\n".join(
+        [
+            f"Neural models: RMSE median ± IQR over {a.sets} evaluation sets x {a.trajectories} trajectories "
+            "· the paper's RMSE (3 x 8,000); bold: the best neural model of the scenario (ours, paper); "
+            "below each cell the model's training budget (full = the paper's recipe, else epochs x windows).",
+            "",
+            table(rows, methods),
+            "",
+            *verdict(rows),
+            "",
+            f"`python scripts/neural_scoreboard.py --trajectories {a.trajectories} --sets {a.sets}`, "
+            f"{time.time() - t0:.0f} s (cached runs are read back).",
+        ]
+    )
+    print(md)
+    if a.out:
+        out = Path(a.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(md + "\n")
+        out.with_suffix(".json").write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

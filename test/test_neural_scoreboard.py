@@ -1,0 +1,54 @@
+"""scripts/neural_scoreboard.py: the issue-10 table of the shipped neural models beside the paper's."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def board():
+    path = Path(__file__).resolve().parents[1] / "scripts" / "neural_scoreboard.py"
+    spec = importlib.util.spec_from_file_location("neural_scoreboard", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(rmse, paper):
+    return {"rmse": rmse, "iqr": 0.001, "paper": paper, "budget": "20 x 2000"}
+
+
+def test_best_keeps_ties_and_skips_missing_and_infinite(board):
+    assert board.best({"mamba": 0.052, "mamba2": 0.052, "gru": 0.127}) == ["mamba", "mamba2"]
+    assert board.best({"gru": None, "lstm": float("inf"), "gpt2": 3.0}) == ["gpt2"]
+    assert board.best({"gru": None}) == []
+
+
+def test_verdict_counts_scenarios_where_an_ssm_leads_and_states_the_l96_distance(board):
+    rows = {
+        "lorenz96": {"gru": _row(0.15, 0.127), "mamba": _row(0.088, 0.052), "mamba2": _row(0.07, 0.052)},
+        "nlink": {"gru": _row(0.12, 0.40), "mamba2": _row(0.17, 0.092)},
+    }
+    text = "\n".join(board.verdict(rows))
+    assert "an SSM is the best neural model in 1 of 2 scenarios (lorenz96)" in text
+    assert "nlink: best neural gru (0.12); the paper's: mamba2" in text
+    assert "Lorenz 96 mamba: 0.088 against the target 0.08 (10 % above" in text
+    assert "Lorenz 96 mamba2: 0.07 against the target 0.08 (met" in text
+    md = board.table(rows, ["gru", "mamba", "mamba2"])
+    assert "| mamba2 | **0.07 ± 0.001** · **0.052**" in md  # ours and the paper's best both bold
+    assert "| mamba | – |" not in md and md.count("\n") == 4
+
+
+def test_runs_the_shipped_models_and_writes_markdown_and_json(board, tmp_path, monkeypatch):
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    out = tmp_path / "board.md"
+    args = ["--scenarios", "lorenz96", "--methods", "gru,mamba", "--trajectories", "2", "--sets", "2"]
+    assert board.main([*args, "--out", str(out), "--quiet"]) == 0
+    rows = json.loads(out.with_suffix(".json").read_text())
+    assert set(rows["lorenz96"]) == {"gru", "mamba"}
+    for r in rows["lorenz96"].values():
+        assert 0 < r["rmse"] < 3.62  # better than the prior mean (climatology) on Lorenz 96
+        assert r["paper"] in (0.127, 0.052)
+    assert "against the target 0.08" in out.read_text()
