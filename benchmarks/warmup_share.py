@@ -7,8 +7,8 @@ The paper's loss skips the first 10 timesteps of every window ("warm-up"); its R
 (neural_estimator.metrics: every timestep counts), covers the whole horizon. For each method this
 prints the RMSE over all steps (plain, before the outlier rule), over the first ``--warmup`` steps
 and over the rest, on evaluation set 0 (``--trajectories`` of them), so the part of the aggregate
-that the training never optimised is visible. Output of the default run (plus the in-progress
-Mamba-2): benchmarks/results/warmup_share.txt.
+that the training never optimised is visible. Output of the default run (the shipped models):
+benchmarks/results/warmup_share.txt.
 """
 
 from __future__ import annotations
