@@ -489,6 +489,38 @@ def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path
     assert all(torch.equal(w_ref[k], w_zoo[k]) for k in w_ref)
 
 
+def test_train_zoo_finish_installs_an_unfinished_model_as_it_stands(tmp_path, monkeypatch):
+    import time
+    from types import SimpleNamespace
+
+    import neural_estimator.models.training as training
+
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo)]
+    args += ["--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6"]
+    args += ["--eval-trajectories", "4", "--max-epochs", "50", "--quiet"]
+    work = state / "test_spinner-gru"
+    assert zoo_script.main([*args, "--finish"]) == 0  # not started: nothing to finish, nothing installed
+    assert not work.exists() and not zoo.exists()
+    checks = iter([0.0])  # one epoch starts, then the session's time is up
+    monkeypatch.setattr(
+        training, "time", SimpleNamespace(time=lambda: next(checks, 1e12), perf_counter=time.perf_counter)
+    )
+    monkeypatch.setattr(zoo_script.time, "time", lambda: 0.0)
+    assert zoo_script.main([*args, "--hours", "1"]) == 0
+    monkeypatch.undo()
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    assert zoo_script.resume_state(work)["epoch"] == 1 and not zoo_script.finished(work)
+    assert zoo_script.main([*args, "--finish"]) == 0
+    card = json.loads((zoo / work.name / "card.json").read_text())
+    t = card["training"]
+    assert len(t["history"]) == 1 and t["stopped"].startswith("finished by hand (--finish) after 1 epochs")
+    assert t["budget"]["max_epochs"] == 50 and card["metrics"]["set"]["trajectories"] == 4
+    assert zoo_script.finished(work)
+
+
 def test_converged_rule():
     from neural_estimator.models.training import converged, lr_reductions
 
