@@ -540,6 +540,7 @@ def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
     zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
     cards = sorted(zoo.glob("*/card.json"))
     assert cards
+    full = 0
     for path in cards:
         card = json.loads(path.read_text())
         t = card["training"]
@@ -554,6 +555,10 @@ def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
             best = min(range(len(hist)), key=lambda i: hist[i]["val_loss"])
             assert len(hist) - 1 - best >= patience, f"{path}: early stopping without {patience} epochs after the best"
         assert t["converged"] == converged(t["stopped"], hist, lr0), path
+        if t["budget"]["windows_per_epoch"] >= 20000:  # a full-recipe model (issue 10) ships only converged
+            assert t["converged"], f"{path}: a full-recipe model shipped before it converged"
+            full += 1
+    assert full >= 4  # the full-recipe models shipped so far (lorenz96 mamba, mamba2; quadrotor, bearings mamba)
 
 
 def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeypatch):
