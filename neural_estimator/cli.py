@@ -538,6 +538,10 @@ _TRAIN_FLAG_HELP = {
     "val_trajectories": "validation trajectories, run in full after every epoch (default: half the training "
     "trajectories, at most the paper's 8000; 20:1 -> 2000)",
 }
+_TRAIN_FLAG_HELP["loss_units"] = (
+    "units the loss weighs the state components in: normalised (each at unit variance; default) or state "
+    "(the states' own units, as RMSE counts them); the paper does not say which"
+)
 _TRAIN_DEFAULTS = {
     "eval_trajectories": 200,
     "val_trajectories": None,

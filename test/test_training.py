@@ -305,6 +305,37 @@ def test_wrapped_and_weighted_loss():
     assert loss.item() == pytest.approx((pred - target)[:, 2:].square().mean().item(), rel=1e-6)
 
 
+def test_loss_in_state_units_weighs_components_as_rmse_does():
+    from neural_estimator.models.training import component_weights
+
+    std = np.array([20.0, 2.0, 0.01])
+    assert component_weights("normalised", std, "cpu") is None
+    c = component_weights("state", std, "cpu")
+    assert c.tolist() == pytest.approx((std**2 / np.mean(std**2)).tolist(), rel=1e-6)
+    pred, target = torch.randn(3, 5, 3, dtype=torch.float64), torch.randn(3, 5, 3, dtype=torch.float64)
+    w = torch.rand(3, 5, dtype=torch.float64)
+    loss = weighted_loss(pred, target, w, torch.zeros(3, dtype=torch.bool), c.double())
+    raw = ((pred - target) * torch.as_tensor(std)).square()  # the errors in the states' own units
+    expected = (w.unsqueeze(-1) * raw).sum() / (w.sum() * 3) / float(np.mean(std**2))
+    assert loss.item() == pytest.approx(expected.item(), rel=1e-9)
+    ones = weighted_loss(pred, target, w, torch.zeros(3, dtype=torch.bool), torch.ones(3, dtype=torch.float64))
+    assert ones.item() == pytest.approx(weighted_loss(pred, target, w, torch.zeros(3, dtype=torch.bool)).item())
+    with pytest.raises(TrainingError, match="loss_units must be one of normalised, state, got 'raw'"):
+        TrainConfig(loss_units="raw")
+    assert "loss_units" not in TrainConfig().recipe()  # the default leaves old cards and resume states matching
+    assert TrainConfig(loss_units="state").recipe()["loss_units"] == "state"
+
+
+def test_training_in_state_units_records_it_and_differs(oscillator, tmp_path):
+    cfg = tiny_config(tmp_path / "cache", epochs=2)
+    a = train(oscillator, "gru", tmp_path / "a", cfg, progress=False)
+    b = train(oscillator, "gru", tmp_path / "b", replace(cfg, loss_units="state"), progress=False)
+    card = json.loads((b / "card.json").read_text())["training"]
+    assert card["recipe"]["loss_units"] == "state" and "loss_units=state" in card["loss"]
+    assert "loss_units" not in json.loads((a / "card.json").read_text())["training"]["recipe"]
+    assert not all(torch.equal(weights(a)[k], weights(b)[k]) for k in weights(a))
+
+
 def test_training_learns_is_deterministic_and_writes_a_card(oscillator, tmp_path):
     cfg = tiny_config(tmp_path / "cache", epochs=4, eval_trajectories=5)
     a = train(oscillator, "gru", tmp_path / "a", cfg, progress=False)

@@ -13,6 +13,9 @@ from typing import Any
 from neural_estimator.data.protocol import TRAIN_TRAJECTORY_LENGTH, VALIDATION_TRAJECTORIES, WARMUP_STEPS, WINDOW_LENGTH
 
 
+LOSS_UNITS = ("normalised", "state")
+
+
 class TrainingError(ValueError):
     """A training configuration or state that cannot be used; the message names the problem."""
 
@@ -30,6 +33,10 @@ class TrainConfig:
     train_length: int = TRAIN_TRAJECTORY_LENGTH  # length of training and validation trajectories (500)
     window: int = WINDOW_LENGTH  # training sub-trajectory length (100)
     warmup: int = WARMUP_STEPS  # leading steps of a window (and of a validation run) not in the loss
+    # the units the loss (and the validation loss) weighs the state components in: "normalised" (each
+    # component at unit variance, the default) or "state" (the states' own units, as RMSE counts them);
+    # the paper does not say which
+    loss_units: str = "normalised"
     windows_per_epoch: int | None = None  # None -> N x train_length / window (the set's steps once)
     # model
     init_seed: int = 0  # initial weights, dropout and window draws
@@ -78,18 +85,24 @@ class TrainConfig:
             raise TrainingError(f"warmup must be in [0, window={self.window}), got {self.warmup}")
         if not (self.lr > 0 and self.weight_decay >= 0 and self.grad_clip > 0 and 0 < self.lr_factor < 1):
             raise TrainingError("need lr > 0, weight_decay >= 0, grad_clip > 0 and 0 < lr_factor < 1")
+        if self.loss_units not in LOSS_UNITS:
+            raise TrainingError(f"loss_units must be one of {', '.join(LOSS_UNITS)}, got {self.loss_units!r}")
         if self.eval_trajectories < 0:
             raise TrainingError(f"eval_trajectories must be >= 0, got {self.eval_trajectories}")
 
     def recipe(self) -> dict[str, Any]:
         """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
 
-        Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what).
+        Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what), and
+        ``loss_units`` when it is the default (so cards and resume states written before it existed
+        still match).
         """
         d = dataclasses.asdict(self)
         d["model_overrides"] = dict(self.model_overrides)
         for key in ("cache_dir", "resume", "keep_resume"):
             d.pop(key)
+        if d["loss_units"] == "normalised":
+            d.pop("loss_units")
         return d
 
 

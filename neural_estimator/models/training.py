@@ -107,11 +107,35 @@ def state_error(pred: torch.Tensor, target: torch.Tensor, angle_mask: torch.Tens
 
 
 def weighted_loss(
-    pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, angle_mask: torch.Tensor
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    weights: torch.Tensor,
+    angle_mask: torch.Tensor,
+    component_weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """L = sum_{b,t,d} w_bt e_btd^2 / (dx sum_{b,t} w_bt); pred, target (B, L, dx), weights (B, L)."""
+    """L = sum_{b,t,d} w_bt c_d e_btd^2 / (sum_d c_d sum_{b,t} w_bt); pred, target (B, L, dx), weights (B, L).
+
+    ``component_weights`` c (dx,): None is c = 1 (every normalised component alike); see
+    :func:`component_weights`.
+    """
     e = state_error(pred, target, angle_mask)
-    return (weights.unsqueeze(-1) * e.square()).sum() / (weights.sum() * e.shape[-1])
+    if component_weights is None:
+        return (weights.unsqueeze(-1) * e.square()).sum() / (weights.sum() * e.shape[-1])
+    return (weights.unsqueeze(-1) * component_weights * e.square()).sum() / (weights.sum() * component_weights.sum())
+
+
+def component_weights(loss_units: str, state_std: np.ndarray, device) -> torch.Tensor | None:
+    """Per-component loss weights c_d for ``TrainConfig.loss_units``.
+
+    "normalised": None (c = 1). "state": c_d = sigma_d^2 / mean(sigma^2), so that c_d e_d^2 with e the
+    normalised error is the squared error in the state's own units up to one constant factor: the
+    loss then weighs the components as RMSE does (a component with a large spread, such as an
+    altitude in km, counts more than one with a tiny spread, such as a drag coefficient).
+    """
+    if loss_units == "normalised":
+        return None
+    s2 = np.square(np.asarray(state_std, dtype=np.float64))
+    return torch.as_tensor(s2 / s2.mean(), dtype=torch.float32, device=device)
 
 
 # ---- the training run ---------------------------------------------------------------------------------
@@ -219,6 +243,7 @@ def train(
     steps_per_epoch = math.ceil(n_windows / cfg.batch_size)
     angle_mask = torch.zeros(dx, dtype=torch.bool, device=device)
     angle_mask[list(scenario.angle_states)] = True
+    comp_w = component_weights(cfg.loss_units, norm.out_std, device)  # None: normalised units
     window_cols = np.arange(cfg.window)
 
     # ---- model, optimiser, scheduler, RNG ----
@@ -258,7 +283,10 @@ def train(
         for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
             pred = model(Z_val[b0 : b0 + cfg.val_batch_size])  # (b, T, dx)
             e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
-            total += float(e.double().square().sum())
+            e2 = e.double().square()
+            if comp_w is not None:  # the same component weights as the training loss
+                e2 = e2 * (comp_w.double() * (e.shape[-1] / float(comp_w.sum())))
+            total += float(e2.sum())
             count += e.numel()
             bar.update(1)
         model.train()
@@ -284,7 +312,12 @@ def train(
                 "device": str(device),
                 "steps_per_epoch": steps_per_epoch,
                 "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "
-                "e = normalised error, angles wrapped",
+                "e = normalised error, angles wrapped"
+                + (
+                    ""
+                    if comp_w is None
+                    else "; each component weighted by sigma_d^2 / mean(sigma^2) (loss_units=state: the states' units)"
+                ),
                 "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode",
                 "epochs_run": run["epoch"],
                 "best_epoch": run["best_epoch"],
@@ -335,7 +368,7 @@ def train(
         )
         for it in range(steps_per_epoch):
             z, x, w = get_batch()
-            loss = weighted_loss(model(z), x, w, angle_mask)
+            loss = weighted_loss(model(z), x, w, angle_mask, comp_w)
             loss_value = loss.item()
             if not math.isfinite(loss_value):
                 raise TrainingError(
@@ -560,4 +593,5 @@ __all__ = [
     "state_error",
     "train",
     "weighted_loss",
+    "component_weights",
 ]
