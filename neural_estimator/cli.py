@@ -539,8 +539,9 @@ _TRAIN_FLAG_HELP = {
     "trajectories, at most the paper's 8000; 20:1 -> 2000)",
 }
 _TRAIN_FLAG_HELP["loss_units"] = (
-    "units the loss weighs the state components in: normalised (each at unit variance; default) or state "
-    "(the states' own units, as RMSE counts them); the paper does not say which"
+    "units the loss weighs the state components in: state (the states' own units, as RMSE counts them; "
+    "default) or normalised (each at unit variance; the models trained before session 8); the paper does "
+    "not say which"
 )
 _TRAIN_DEFAULTS = {
     "eval_trajectories": 200,

@@ -39,12 +39,13 @@ L96_TARGET = 0.08
 
 
 def budget(card: dict) -> str:
-    """``full`` for a model trained with the paper's data sizes (20,000 windows an epoch), else its epochs x windows."""
+    """``full`` for a model trained with the paper's data sizes (20,000 windows an epoch), else its epochs x
+    windows; and the units of its loss (``norm.``: normalised components, ``state``: the states' own units)."""
     windows = card["data"]["windows_per_epoch"]
     epochs = card["training"].get("epochs_run") or card["training"]["recipe"]["epochs"]  # older cards lack epochs_run
-    if windows >= 20000:
-        return f"full ({epochs} ep)"
-    return f"{epochs} x {windows}"
+    units = card["training"]["recipe"].get("loss_units", "normalised")  # absent: trained before the option
+    size = f"full ({epochs} ep)" if windows >= 20000 else f"{epochs} x {windows}"
+    return f"{size}, {'norm.' if units == 'normalised' else 'state'} loss"
 
 
 def best(rmse: dict[str, float | None]) -> list[str]:

@@ -116,6 +116,12 @@ def main(argv=None) -> int:
     p.add_argument("--trajectories", type=int, default=None, help="training trajectories (default: 20:1 -> 4000)")
     p.add_argument("--windows-per-epoch", type=int, default=None, help="default: the set's steps once (20:1 -> 20000)")
     p.add_argument("--eval-trajectories", type=int, default=1000, help="card metrics of a finished model")
+    p.add_argument(
+        "--loss-units",
+        default=TrainConfig.loss_units,
+        choices=("state", "normalised"),
+        help="units the loss weighs the state components in (default: state, as RMSE; see the README)",
+    )
     p.add_argument("--threads", type=int, default=1, help="torch and kernel threads (1: see the README's figures)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--state", default=str(STATE), help="directory of the resumable training states")
@@ -153,6 +159,7 @@ def main(argv=None) -> int:
                 windows_per_epoch=a.windows_per_epoch,
                 device=a.device,
                 eval_trajectories=a.eval_trajectories,
+                loss_units=a.loss_units,
                 resume=True,
                 keep_resume=True,
             )

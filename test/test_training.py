@@ -322,14 +322,15 @@ def test_loss_in_state_units_weighs_components_as_rmse_does():
     assert ones.item() == pytest.approx(weighted_loss(pred, target, w, torch.zeros(3, dtype=torch.bool)).item())
     with pytest.raises(TrainingError, match="loss_units must be one of normalised, state, got 'raw'"):
         TrainConfig(loss_units="raw")
-    assert "loss_units" not in TrainConfig().recipe()  # the default leaves old cards and resume states matching
-    assert TrainConfig(loss_units="state").recipe()["loss_units"] == "state"
+    assert TrainConfig().loss_units == "state" and TrainConfig().recipe()["loss_units"] == "state"
+    # a recipe without the field is one written before it existed: normalised, so old states still match
+    assert "loss_units" not in TrainConfig(loss_units="normalised").recipe()
 
 
 def test_training_in_state_units_records_it_and_differs(oscillator, tmp_path):
     cfg = tiny_config(tmp_path / "cache", epochs=2)
-    a = train(oscillator, "gru", tmp_path / "a", cfg, progress=False)
-    b = train(oscillator, "gru", tmp_path / "b", replace(cfg, loss_units="state"), progress=False)
+    a = train(oscillator, "gru", tmp_path / "a", replace(cfg, loss_units="normalised"), progress=False)
+    b = train(oscillator, "gru", tmp_path / "b", cfg, progress=False)
     card = json.loads((b / "card.json").read_text())["training"]
     assert card["recipe"]["loss_units"] == "state" and "loss_units=state" in card["loss"]
     assert "loss_units" not in json.loads((a / "card.json").read_text())["training"]["recipe"]
