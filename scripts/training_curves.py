@@ -60,7 +60,7 @@ def summary(name: str, hist: list[dict], why: str, window: int) -> str:
     flat = flatness(val, window)
     flat_text = "–" if math.isnan(flat) else f"{100 * flat:+.1f} %"
     return (
-        f"{name:<20} {len(hist):>4} epochs {hours:5.2f} h  best val {val[best]:.4g} at epoch {hist[best]['epoch']:>3}"
+        f"{name:<28} {len(hist):>4} epochs {hours:5.2f} h  best val {val[best]:.4g} at epoch {hist[best]['epoch']:>3}"
         f"  lr reductions {len(reductions(hist)):>2} (lr {hist[-1]['lr']:.3g})"
         f"  flat over last {window}: {flat_text}  [{why}]"
     )
@@ -73,11 +73,14 @@ def main(argv=None) -> int:
     p.add_argument("--window", type=int, default=10, help="epochs of the plateau figure")
     a = p.parse_args(argv)
     runs = []
-    for work in sorted(Path(a.state).glob("*-*")):
+    root = Path(a.state)
+    # <pair>/ and one level below (zoo_training/normalised/<pair>/: runs of the earlier loss units)
+    for work in sorted([*root.glob("*-*"), *root.glob("*/*-*")], key=lambda w: (len(w.parts), str(w))):
         hist, why = history(work)
         if hist:
-            runs.append((work.name, hist, why))
-            print(summary(work.name, hist, why, a.window))
+            name = str(work.relative_to(root))
+            runs.append((name, hist, why))
+            print(summary(name, hist, why, a.window))
     if not runs:
         print(f"no training histories under {a.state}", file=sys.stderr)
         return 1

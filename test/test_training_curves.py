@@ -38,10 +38,13 @@ def test_reads_finished_and_in_progress_pairs_and_plots(curves, tmp_path, capsys
     state = {"run": {"history": _hist([0.05, 0.04], [2e-3, 2e-3])}}
     (running / "resume" / "state.json").write_text(json.dumps(state))
     (tmp_path / "quadrotor-gru").mkdir()  # not started: no line
+    older = tmp_path / "normalised" / "bearings-mamba"  # a run of the earlier loss units, one level down
+    older.mkdir(parents=True)
+    (older / "card.json").write_text(json.dumps(card))
     out = tmp_path / "curves.png"
     assert curves.main(["--state", str(tmp_path), "--out", str(out), "--window", "2"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert len(lines) == 2
+    assert len(lines) == 3 and lines[2].startswith("normalised/bearings-mamba")
     assert lines[0].startswith("lorenz96-mamba") and "best val 1.49 at epoch   5" in lines[0]
     assert "lr reductions  3" in lines[0] and "flat over last 2: -0.7 %" in lines[0] and "finished by hand" in lines[0]
     assert lines[1].startswith("nlink-mamba2") and "flat over last 2: –" in lines[1] and "[in progress]" in lines[1]
