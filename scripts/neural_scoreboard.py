@@ -151,7 +151,8 @@ def main(argv=None) -> int:
         [
             f"Neural models: RMSE median ± IQR over {a.sets} evaluation sets x {a.trajectories} trajectories "
             "· the paper's RMSE (3 x 8,000); bold: the best neural model of the scenario (ours, paper); "
-            "below each cell the model's training budget (full = the paper's recipe, else epochs x windows).",
+            "below each cell the model's training budget (full = the paper's recipe, else epochs x windows) and the "
+            "units of its loss (norm.: normalised components; state: the states' own units).",
             "",
             table(rows, methods),
             "",
