@@ -25,12 +25,17 @@ What :func:`train` does, in order:
    and w_bt = inverse sampling frequency of the window's timestep x warm-up mask
    (``ChunkSampler.loss_weights``):
 
-       L_train = sum_{b,t,d} w_bt e_btd^2 / (dx sum_{b,t} w_bt)
+       L_train = sum_{b,t,d} w_bt c_d e_btd^2 / (sum_d c_d sum_{b,t} w_bt)
+
+   with c_d the component weights of ``loss_units`` (:func:`component_weights`): "state" (the
+   default) c_d = sigma_d^2 / mean(sigma^2), the squared error in the states' own units up to one
+   constant, as RMSE weighs the components; "normalised" c_d = 1.
 
 5. Validation after each epoch (the paper does not define it; this is our definition): the model
    in eval mode runs every validation trajectory from t = 0 over its full length (500) and
 
-       L_val = mean of e_ntd^2 over trajectories n, timesteps t >= warm-up (10), components d.
+       L_val = mean of c_d e_ntd^2 over trajectories n, timesteps t >= warm-up (10), components d
+               (c_d scaled to mean 1).
 
    Full trajectories rather than windows: every timestep appears once, so no sampling weights are
    needed, and the model is judged the way it is evaluated, run from the start over a horizon five
