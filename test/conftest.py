@@ -20,6 +20,17 @@ def _load_example():
 EXAMPLE = _load_example()
 
 
+def load_script(relative: str):
+    """A repository script (``scripts/...``, ``benchmarks/...``) loaded afresh as a module, so its
+    functions and ``main`` are tested in-process (each call gives a new module: monkeypatching one
+    test's copy leaves the others alone)."""
+    path = ROOT / relative
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.fixture
 def oscillator():
     """The README's custom scenario: linear-Gaussian, so the Kalman filter is exact."""

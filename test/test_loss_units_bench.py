@@ -1,20 +1,14 @@
 """benchmarks/loss_units.py: a state-unit training is compared only with a model of the same recipe."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
 from neural_estimator.data.recipe import TrainConfig
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "loss_units.py"
-    spec = importlib.util.spec_from_file_location("loss_units", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/loss_units.py")
 
 
 def _card(**kw):

@@ -1,19 +1,14 @@
 """scripts/neural_scoreboard.py: the issue-10 table of the shipped neural models beside the paper's."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def board():
-    path = Path(__file__).resolve().parents[1] / "scripts" / "neural_scoreboard.py"
-    spec = importlib.util.spec_from_file_location("neural_scoreboard", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/neural_scoreboard.py")
 
 
 def _row(rmse, paper):

@@ -20,6 +20,7 @@ from neural_estimator.models.neural import NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import Normalizer
 from neural_estimator.models.training import TrainConfig, TrainingError, state_error, train, weighted_loss
 from neural_estimator.scenarios import Scenario, make_scenario, register_scenario
+from conftest import load_script
 
 ARCHS = sorted(ARCHITECTURES)
 TOL = 1e-5  # run vs a loop of step, float32 models
@@ -439,14 +440,7 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
 
 # ---- the zoo script: resumable across runs, cards with budget and convergence ---------------------
 def _train_zoo():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "train_zoo.py"
-    spec = importlib.util.spec_from_file_location("train_zoo", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/train_zoo.py")
 
 
 def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path, monkeypatch):

@@ -1,20 +1,15 @@
 """scripts/training_curves.py: the plateau figure and the plot of the zoo's full-recipe training curves."""
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pytest
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def curves():
-    path = Path(__file__).resolve().parents[1] / "scripts" / "training_curves.py"
-    spec = importlib.util.spec_from_file_location("training_curves", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/training_curves.py")
 
 
 def _hist(vals, lrs):

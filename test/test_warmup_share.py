@@ -1,19 +1,13 @@
 """benchmarks/warmup_share.py: RMSE split at the warm-up and over segments of the horizon."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def share():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "warmup_share.py"
-    spec = importlib.util.spec_from_file_location("warmup_share", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/warmup_share.py")
 
 
 def test_splits_pool_trajectories_and_components_and_wrap_angles(share):
