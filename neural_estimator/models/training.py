@@ -289,8 +289,8 @@ def train(
             pred = model(Z_val[b0 : b0 + cfg.val_batch_size])  # (b, T, dx)
             e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
             e2 = e.double().square()
-            if comp_w is not None:  # the same component weights as the training loss
-                e2 = e2 * (comp_w.double() * (e.shape[-1] / float(comp_w.sum())))
+            if comp_w is not None:  # the same component weights as the training loss (mean 1)
+                e2 = e2 * comp_w.double()
             total += float(e2.sum())
             count += e.numel()
             bar.update(1)
