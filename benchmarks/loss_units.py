@@ -29,7 +29,7 @@ ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
 
 
 def same_recipe(a: dict, b: dict) -> bool:
-    """Two cards' recipes equal up to the loss units (and the card-metrics size, which only measures)."""
+    """Two cards' recipes equal up to the loss units (a recipe without the field is normalised)."""
     ra, rb = dict(a["training"]["recipe"]), dict(b["training"]["recipe"])
     for r in (ra, rb):
         r.pop("loss_units", None)
