@@ -18,12 +18,15 @@ from typing import Any, TypeVar
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
 from neural_estimator.bags.writer import Qos
 from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class
 from neural_estimator.options import OptionError, parse_value
+
+RCLError = _rclpy.RCLError  # rclpy's error type for rcl failures (not exported elsewhere in rclpy 7.1)
 
 P = TypeVar("P")
 
@@ -223,6 +226,13 @@ def run_node(factory: Callable[[], ManagedNode], name: str, args: list[str] | No
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        # SIGTERM shuts the context down from rclpy's signal handler; landing while the executor
+        # builds its wait set, that surfaces as "context is not valid" instead of
+        # ExternalShutdownException. The same shutdown, so the same clean exit; a real error
+        # (context still valid) is raised.
+        if node.context.ok():
+            raise
     finally:
         code = int(node.on_shutdown() or node.exit_code)
         node.destroy_node()
