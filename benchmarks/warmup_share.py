@@ -4,8 +4,9 @@
     .venv/bin/python benchmarks/warmup_share.py --checkpoint mamba2=zoo_training/lorenz96-mamba2
     .venv/bin/python benchmarks/warmup_share.py --scenario nlink --segments 0,10,100,200,300,400,500
 
-The paper's loss skips the first 10 timesteps of every window ("warm-up"); its RMSE, and ours
-(neural_estimator.metrics: every timestep counts), covers the whole horizon. For each method this
+The paper's loss skips the first 10 timesteps of every window ("warm-up"), and so do the package's
+metrics since session 9 (neural_estimator.metrics, "Effective trajectory length"; before, every
+step counted). For each method this
 prints the RMSE over all steps (plain, before the outlier rule), over the first ``--warmup`` steps
 and over the rest, on evaluation set 0 (``--trajectories`` of them), so the part of the aggregate
 that the training never optimised is visible. Output of the default run (the shipped models):

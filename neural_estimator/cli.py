@@ -128,11 +128,26 @@ def _add_metrics(sub) -> None:
         "the spec's state fields, each estimates/<method> stream is scored",
     )
     p.add_argument("--length", type=int, default=200, help="with --spec: steps per scored trajectory (default 200)")
+    _warmup_flag(p)
     p.add_argument(
         "--json", action="store_true", help="print JSON (RMSE-over-time curves, outlier and diverged indices)"
     )
     p.add_argument("--out", help="also write the table: .csv, .md or .json by extension")
     p.set_defaults(func=_cmd_metrics)
+
+
+def _warmup_flag(p: argparse.ArgumentParser) -> None:
+    """``--warmup N``: leading timesteps of every trajectory that are not scored (metrics verbs)."""
+    from neural_estimator.metrics import EVALUATION_WARMUP
+
+    p.add_argument(
+        "--warmup",
+        type=int,
+        default=EVALUATION_WARMUP,
+        metavar="N",
+        help=f"leading timesteps of every trajectory not scored, for every method alike (default "
+        f"{EVALUATION_WARMUP}: the paper's warm-up, its 'effective trajectory length'; 0 scores every step)",
+    )
 
 
 def _bag_scenario_flags(p: argparse.ArgumentParser) -> None:
@@ -193,7 +208,9 @@ def _print_spec_metrics(args) -> int:
     if len(args.files) != 1 or not _is_bag(args.files[0]):
         raise CliError("--spec scores one bag (a .mcap file or rosbag2 directory)")
     try:
-        reports, truth = score_recording(args.files[0], args.spec, args.length, namespace=args.namespace or "/")
+        reports, truth = score_recording(
+            args.files[0], args.spec, args.length, namespace=args.namespace or "/", warmup=args.warmup
+        )
     except SpecError as exc:
         raise CliError(str(exc)) from None
     if args.json:
@@ -211,7 +228,13 @@ def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = F
     from neural_estimator import metrics as M
 
     truth, estimates, angles = _estimates_from_files(files, args)
-    reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
+    warmup = getattr(args, "warmup", M.EVALUATION_WARMUP)
+    if not 0 <= warmup < truth.horizon:
+        raise CliError(
+            f"--warmup {warmup} leaves no step of {truth.horizon}-step trajectories to score: pass a smaller "
+            "--warmup (0 scores every step)"
+        )
+    reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()}
     note = ""
     if "bag" in truth.meta:
         from neural_estimator.bags.dataset import left_out_note
@@ -230,7 +253,7 @@ def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = F
             )
         )
     else:
-        print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps")
+        print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps{_scored(warmup)}")
         print(M.format_reports(reports, fmt="text"), end="")
     if out:
         _write_table(out, reports)
@@ -306,6 +329,7 @@ def _add_evaluate(sub) -> None:
         help="classical filters start from the scenario prior (default, as live) or at each "
         "trajectory's true x0 (mean only; P0 and the PF's init_std unchanged)",
     )
+    _warmup_flag(p)
     p.add_argument("--device", default="cpu")
     p.add_argument(
         "--no-cache",
@@ -431,6 +455,7 @@ def _cmd_evaluate(args) -> int:
             seed=None,
             init="recorded",
             data=str(args.data),
+            warmup=args.warmup,
         )
     else:
         info = dict(
@@ -439,6 +464,7 @@ def _cmd_evaluate(args) -> int:
             sets=args.sets,
             seed=args.seed,
             init=args.init,
+            warmup=args.warmup,
         )
     out = Path(args.out) if args.out else None
     expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
@@ -464,20 +490,25 @@ def _cmd_evaluate(args) -> int:
         on_result=write_partial,
         init=args.init,
         datasets=datasets,
+        warmup=args.warmup,
     )
     if recorded:
         from neural_estimator.evaluation import recorded_result
 
         for name, x_hat in recorded.items():
-            results[name] = recorded_result(scenario, datasets[0], x_hat, name)
+            results[name] = recorded_result(scenario, datasets[0], x_hat, name, warmup=args.warmup)
     if args.json:
         print(json.dumps(results_json(scenario, results, complete=True, **info), indent=1, allow_nan=False))
     else:
         if datasets is not None:
-            print(f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps")
+            print(
+                f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps"
+                + _scored(args.warmup)
+            )
         else:
             print(
-                f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps, "
+                f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps"
+                f"{_scored(args.warmup)}, "
                 f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)"
             )
         print(mark_rows(results_table(results, fmt="text"), scenario.name), end="")
@@ -496,6 +527,11 @@ def _cmd_evaluate(args) -> int:
         _write_evaluation(out, scenario, results, info, expected_runs, plot=True)
         print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
     return 0
+
+
+def _scored(warmup: int) -> str:
+    """' (steps 10.. scored)' for a table's heading; nothing when every step is."""
+    return f" (steps {warmup}.. scored)" if warmup else ""
 
 
 def _write_evaluation(
@@ -521,6 +557,7 @@ def _write_evaluation(
             out / "rmse_over_time.png",
             title=scenario.name,
             dt=scenario.dt,
+            first_step=info.get("warmup", 0),
         )
 
 
@@ -728,6 +765,7 @@ def _add_replay(sub) -> None:
     p.add_argument("--no-covariance", action="store_true", help="do not write covariance streams")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--metrics", action="store_true", help="print the metrics table of the output bag")
+    _warmup_flag(p)
     p.set_defaults(func=_cmd_replay)
 
 

@@ -5,8 +5,9 @@ trajectories each. The default evaluation horizon is 500." Results are "summariz
 independent datasets and random initializations using medians with interquartile ranges".
 
 For each method, every evaluation set (and, for neural methods, every checkpoint given: the paper
-trains 15 instances per architecture) is one *run*; metrics are computed per run on every timestep,
-then summarised as median and IQR across runs.
+trains 15 instances per architecture) is one *run*; metrics are computed per run on the timesteps
+after the paper's 10-step warm-up (``warmup``; see :mod:`neural_estimator.metrics`, "Effective
+trajectory length"), then summarised as median and IQR across runs.
 
 Memory: the batch is cut into chunks so that no chunk holds more than ``memory_budget`` bytes of
 outputs (the per-step covariances dominate: T dx^2 8 bytes per trajectory, 6.4 MB for Lorenz 96)
@@ -101,12 +102,16 @@ class MethodResult:
         return self.steps / self.seconds if self.seconds > 0 else float("nan")
 
 
-def recorded_result(scenario: Scenario, data: Trajectories, x_hat: np.ndarray, name: str) -> MethodResult:
+def recorded_result(
+    scenario: Scenario, data: Trajectories, x_hat: np.ndarray, name: str, warmup: int = M.EVALUATION_WARMUP
+) -> MethodResult:
     """The metrics of estimates that were recorded, not computed here (a robot's own filter): one run,
-    no time spent, so no speed is reported."""
+    no time spent, so no speed is reported. ``warmup``: leading steps not scored (see :func:`evaluate`)."""
     if x_hat.shape != data.x.shape:
         raise DataError(f"recorded estimate {name!r} has shape {x_hat.shape}, the states have {data.x.shape}")
-    report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)))
+    report = M.compute_metrics(
+        data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)), warmup=warmup
+    )
     return MethodResult(name, [report])
 
 
@@ -254,6 +259,7 @@ def run_key(
     device: str,
     data: Trajectories | str,
     init: str = "prior",
+    warmup: int = 0,
 ) -> str:
     """Hex digest of everything that defines one run's result.
 
@@ -262,7 +268,9 @@ def run_key(
     ``threads``, left out), the checkpoint's content hash, the filters' seed, the device, the
     evaluation set's content (:func:`dataset_digest`, or a digest given as a string) and, for
     classical filters, how they start (``init``; neural methods ignore it, so it is not keyed), and a
-    plugin scenario's source file (:func:`~neural_estimator.scenarios.code_digest`).
+    plugin scenario's source file (:func:`~neural_estimator.scenarios.code_digest`), and the
+    unscored leading steps (``warmup``; keyed only when nonzero, so results of every step made before
+    it existed stay valid).
     """
     opts = {k: v for k, v in sorted((options or {}).items()) if k not in _SPEED_ONLY_OPTIONS}
     key = json.dumps(
@@ -278,6 +286,7 @@ def run_key(
             "device": str(device),
             "data": data if isinstance(data, str) else dataset_digest(data),
             **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}),
+            **({"warmup": int(warmup)} if warmup else {}),
             **code_key(scenario),
         },
         sort_keys=True,
@@ -344,6 +353,7 @@ def evaluate(
     recompute: bool = False,
     on_result: Callable[[dict[str, MethodResult]], None] | None = None,
     init: str = "prior",
+    warmup: int = M.EVALUATION_WARMUP,
 ) -> dict[str, MethodResult]:
     """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
 
@@ -364,6 +374,8 @@ def evaluate(
         on_result: called with the results so far after every run (the CLI writes partial
             outputs with it).
         init: how the classical filters start, ``"prior"`` or ``"truth"`` (:data:`INIT_MODES`).
+        warmup: leading timesteps not scored, for every method alike (default: the paper's 10,
+            :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
 
     Returns:
         {method: MethodResult} in the order given.
@@ -371,6 +383,8 @@ def evaluate(
     methods = [check_method(m) for m in methods]
     check_init(init)
     T = scenario.horizon if horizon is None else int(horizon)
+    if not 0 <= int(warmup) < T:
+        raise ValueError(f"warmup must be in [0, {T}) for a horizon of {T} steps, got {warmup}")
     data_sets = (
         list(datasets)
         if datasets is not None
@@ -392,7 +406,10 @@ def evaluate(
             path = None
             if cache_root is not None:
                 path = result_path(
-                    cache_root, scenario, m, run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init)
+                    cache_root,
+                    scenario,
+                    m,
+                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init, warmup),
                 )
                 hit = None if recompute else load_run(path)
                 if hit is not None:
@@ -422,7 +439,9 @@ def evaluate(
                 )
             finally:
                 bar.close()
-            report = M.compute_metrics(data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt)
+            report = M.compute_metrics(
+                data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt, warmup=warmup
+            )
             r.reports.append(report)
             r.seconds += secs
             r.steps += data.n * data.horizon

@@ -14,6 +14,7 @@ def plot_rmse_over_time(
     title: str = "",
     dt: float | None = None,
     logy: bool = True,
+    first_step: int = 0,
 ) -> Path:
     """Write a PNG of RMSE_t per method: the median over runs, with the interquartile range shaded.
 
@@ -23,6 +24,7 @@ def plot_rmse_over_time(
         title: figure title (e.g. the scenario).
         dt: sampling period; when given the x axis is time in seconds instead of steps.
         logy: logarithmic RMSE axis (methods differ by orders of magnitude in some scenarios).
+        first_step: the step of each curve's first value (the unscored warm-up before it).
     """
     import matplotlib
 
@@ -34,7 +36,7 @@ def plot_rmse_over_time(
         R = np.asarray([np.asarray(r, dtype=float) for r in runs])  # (runs, T)
         if R.size == 0:
             continue
-        t = np.arange(R.shape[1]) * (dt if dt else 1.0)
+        t = (first_step + np.arange(R.shape[1])) * (dt if dt else 1.0)
         with np.errstate(invalid="ignore"):
             med = np.nanmedian(R, axis=0)
             lo, hi = np.nanpercentile(R, 25, axis=0), np.nanpercentile(R, 75, axis=0)

@@ -459,6 +459,26 @@ def test_load_bag_dataset_and_report(tmp_path):
     paths = write_report(report)
     assert paths["markdown"].name == "run.metrics.md" and paths["png"].stat().st_size > 0
     assert json.loads(paths["json"].read_text())["methods"]["a"]["rmse"] == pytest.approx(0.05)
+    assert report.warmup == 10 and report.reports["a"].rmse_t.shape == (10,)  # steps 10..19 scored
+    assert "(steps 10.. scored)" in report.summary() and json.loads(paths["json"].read_text())["warmup"] == 10
+
+
+def test_bag_report_warmup_and_runs_shorter_than_it(tmp_path):
+    from neural_estimator.bags.report import evaluate_bag
+    from neural_estimator.metrics import MetricsError
+
+    s = Cart()
+    data = simulate(s, 2, 8, seed=1)
+    est = data.x.copy()
+    est[:, :2] += 1.0  # large errors in the first two steps only
+    path = arrays_to_bag(tmp_path / "short.mcap", s, data.x, data.y, data.u, estimates={"a": est})
+    assert evaluate_bag(path, warmup=2).reports["a"].rmse == pytest.approx(0.0)
+    assert evaluate_bag(path, warmup=0).reports["a"].rmse == pytest.approx(np.sqrt(2 / 8))
+    with pytest.raises(MetricsError, match="warmup must be an integer in \\[0, 8\\)"):
+        evaluate_bag(path)  # 8 steps: nothing left after the 10-step warm-up
+    short = evaluate_bag(path, short_runs="score_all")  # the evaluator node: say so, keep the table
+    assert short.warmup == 0 and short.reports["a"].rmse == pytest.approx(np.sqrt(2 / 8))
+    assert "every step scored: the run has 8 steps, not more than the 10-step warm-up" in short.summary()
 
 
 def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):

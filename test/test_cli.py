@@ -72,7 +72,12 @@ def test_metrics_on_truth_and_estimate_files(tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)["methods"]["biased"]
     assert report["rmse"] == pytest.approx(np.sqrt(0.125))
     assert report["drift_ratio"] == pytest.approx(1.0) and report["outlier_ratio"] == 0
-    assert len(report["rmse_t"]) == 16
+    assert len(report["rmse_t"]) == 16 - 10 and report["warmup"] == 10  # the paper's warm-up is not scored
+    assert main(["metrics", *PLUGIN, str(truth), str(tmp_path / "a.npz"), "--json", "--warmup", "0"]) == 0
+    every = json.loads(capsys.readouterr().out)["methods"]["biased"]
+    assert len(every["rmse_t"]) == 16 and every["warmup"] == 0 and every["rmse"] == pytest.approx(np.sqrt(0.125))
+    assert main(["metrics", *PLUGIN, str(truth), str(tmp_path / "a.npz"), "--warmup", "16"]) == 2
+    assert "--warmup 16 leaves no step of 16-step trajectories" in capsys.readouterr().err
     # one file holding both, and a CSV table
     assert main(["metrics", str(tmp_path / "a.npz"), "--out", str(tmp_path / "t.csv")]) == 0
     text = capsys.readouterr().out
@@ -146,7 +151,7 @@ def test_metrics_scores_an_estimate_file_holding_only_x_hat(tmp_path, capsys):
             "--trajectories",
             "3",
             "--horizon",
-            "5",
+            "15",
             "--out",
             str(tmp_path / "d.npz"),
         ]
@@ -159,4 +164,4 @@ def test_metrics_scores_an_estimate_file_holding_only_x_hat(tmp_path, capsys):
     assert "mine" in out and "0.500" in out
     save_npz(tmp_path / "bad.npz", {"x_hat": np.zeros((3, 4, 2))}, {})
     assert main(["metrics", str(tmp_path / "d.npz"), str(tmp_path / "bad.npz")]) == 2
-    assert "x_hat has shape (3, 4, 2), the truth's x has (3, 5, 2)" in capsys.readouterr().err
+    assert "x_hat has shape (3, 4, 2), the truth's x has (3, 15, 2)" in capsys.readouterr().err

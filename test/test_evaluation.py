@@ -270,6 +270,16 @@ def test_cached_runs_are_reused_and_keyed(oscillator, tmp_path, monkeypatch):
     evaluate(oscillator, ["ekf"], **{**kw, "trajectories": 21})
     evaluate(oscillator, ["ekf"], recompute=True, **kw)  # forced
     assert built == ["ekf", "ekf"]
+    built.clear()
+    every = evaluate(oscillator, ["ekf"], warmup=0, **kw)["ekf"]  # the scored steps are keyed too
+    again = evaluate(oscillator, ["ekf"], warmup=0, **kw)["ekf"]
+    assert built == ["ekf"] and again.cached == 2
+    scored = evaluate(oscillator, ["ekf"], **kw)["ekf"]  # the default: the paper's warm-up left out
+    assert [r.warmup for r in scored.reports] == [10, 10] and [r.warmup for r in every.reports] == [0, 0]
+    assert scored.reports[0].rmse_t.shape == (5,) and every.reports[0].rmse_t.shape == (15,)
+    np.testing.assert_allclose(scored.reports[0].rmse_t, every.reports[0].rmse_t[10:])
+    with pytest.raises(ValueError, match="warmup must be in \\[0, 15\\)"):
+        evaluate(oscillator, ["ekf"], warmup=15, **kw)
     # a damaged cache entry is recomputed, not trusted
     built.clear()
     for f in (tmp_path / "results").glob("oscillator-ekf-*.npz"):
@@ -296,7 +306,7 @@ def test_interrupted_evaluate_resumes_from_finished_runs(tmp_path, capsys, monke
         "--trajectories",
         "15",
         "--horizon",
-        "10",
+        "20",
         "--sets",
         "2",
         "--quiet",
@@ -346,7 +356,7 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
         # the shipped GRU's own constants (issue 9 recalibrated some scenarios after the zoo was trained)
         card = json.loads((ZOO / f"{name}-gru" / "card.json").read_text())
         sc = make_scenario(name, **card["scenario"]["config"])
-        res = evaluate(sc, ["ekf", "gru"], trajectories=3, horizon=8, sets=1, cache_dir=False, progress=False)
+        res = evaluate(sc, ["ekf", "gru"], trajectories=3, horizon=14, sets=1, cache_dir=False, progress=False)
         headers.add(results_table(res, fmt="markdown").splitlines()[0])
         headers.add(results_table(res, fmt="csv").splitlines()[0])
         payload = json.loads(json.dumps(results_json(sc, res, complete=True), allow_nan=False))  # strict JSON

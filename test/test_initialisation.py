@@ -69,7 +69,7 @@ def test_bad_initial_means_are_refused():
 
 def test_evaluate_init_option_and_its_check(tmp_path):
     s = make_scenario("bearings")
-    kw = dict(trajectories=6, horizon=10, sets=1, seed=2, cache_dir=False, progress=False)
+    kw = dict(trajectories=6, horizon=10, sets=1, seed=2, cache_dir=False, progress=False, warmup=0)
     prior = evaluate(s, ["ekf"], **kw)["ekf"].reports[0].rmse
     truth = evaluate(s, ["ekf"], init="truth", **kw)["ekf"].reports[0].rmse
     assert truth < prior

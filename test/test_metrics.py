@@ -172,6 +172,36 @@ def test_compute_metrics_by_hand():
     assert all(scalars[k] is None for k in M.COVARIANCE_METRICS)
 
 
+def test_warmup_scores_the_later_steps_only():
+    """compute_metrics(warmup=k) equals compute_metrics of the steps k.. (covariances too); a
+    trajectory that diverged during the warm-up stays diverged."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(6, 30, 3))
+    x_hat = x + rng.normal(scale=0.1, size=x.shape)
+    x_hat[:, :10] += 5.0  # a large warm-up error, as a model whose loss skipped those steps has
+    A = rng.normal(size=(6, 30, 3, 3))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)
+    r = compute_metrics(x, x_hat, P_hat=P, warmup=10)
+    ref = compute_metrics(x[:, 10:], x_hat[:, 10:], P_hat=P[:, 10:])
+    for k in M.SCALAR_METRICS:
+        assert getattr(r, k) == pytest.approx(getattr(ref, k)), k
+    np.testing.assert_allclose(r.rmse_t, ref.rmse_t)
+    assert r.warmup == 10 and ref.warmup == 0 and r.rmse_t.shape == (20,)
+    assert compute_metrics(x, x_hat).rmse > 10 * r.rmse  # every step: the warm-up dominates
+    x_hat[2, 3] = np.nan  # diverged in the warm-up: still diverged, left out
+    d = compute_metrics(x, x_hat, warmup=10)
+    assert d.n_diverged == 1 and list(d.diverged_idx) == [2] and d.full_rmse == math.inf
+    for bad in (-1, 30, 2.5, True):
+        with pytest.raises(MetricsError, match="warmup must be an integer in \\[0, 30\\)"):
+            compute_metrics(x, x_hat, warmup=bad)
+
+
+def test_evaluation_warmup_is_the_training_warmup():
+    from neural_estimator.data.protocol import WARMUP_STEPS
+
+    assert M.EVALUATION_WARMUP == WARMUP_STEPS == 10  # the paper: "The first 10 timesteps are ignored"
+
+
 def test_compute_metrics_drift_on_growing_curve_t8():
     t = np.arange(1.0, 9.0)
     e = np.broadcast_to(t[None, :, None], (4, 8, 1))  # every trajectory has RMSE_t = t

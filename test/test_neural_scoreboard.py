@@ -46,4 +46,7 @@ def test_runs_the_shipped_models_and_writes_markdown_and_json(board, tmp_path, m
     for r in rows["lorenz96"].values():
         assert 0 < r["rmse"] < 3.62  # better than the prior mean (climatology) on Lorenz 96
         assert r["paper"] in (0.127, 0.052)
-    assert "against the target 0.08" in out.read_text()
+    text = out.read_text()
+    assert "against the target 0.08" in text and "steps 10.. scored" in text
+    assert rows["lorenz96"]["mamba"]["rmse_every_step"] > 0  # the Lorenz 96 SSMs also over every step
+    assert "over every step" in text and "rmse_every_step" not in rows["lorenz96"]["gru"]

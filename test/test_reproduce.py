@@ -160,8 +160,8 @@ def test_a_failed_job_is_reported_and_the_others_go_on(tmp_path):
     from neural_estimator.reproduce.engine import run_jobs
 
     jobs = [
-        Job("evaluate", "ballistic", "no-such-method", trajectories=2, horizon=5),
-        Job("evaluate", "ballistic", "ekf", trajectories=2, horizon=5),
+        Job("evaluate", "ballistic", "no-such-method", trajectories=2, horizon=15),
+        Job("evaluate", "ballistic", "ekf", trajectories=2, horizon=15),
     ]
     outcome = run_jobs(jobs, tmp_path, num_cpus=2, progress=False)
     assert list(outcome.failed) == [0] and "no-such-method" in outcome.failed[0]

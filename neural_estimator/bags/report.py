@@ -27,6 +27,8 @@ class BagReport:
     dt: float
     reports: dict[str, metrics_mod.MetricReport]
     bag: dict[str, Any]  # received / missing / duplicates / rejected / left_out / complete
+    warmup: int = 0  # leading steps of every trajectory not scored
+    note: str = ""  # why the warm-up differs from the one asked for (a run too short for it)
 
     def table(self, fmt: str = "text") -> str:
         """The paper's table, one row per method ("markdown", "text" or "csv").
@@ -42,29 +44,55 @@ class BagReport:
                 "scenario": self.scenario,
                 "trajectories": self.n_trajectories,
                 "horizon": self.horizon,
+                "warmup": self.warmup,
                 "streams": self.bag,
                 "methods": self.reports,
             }
         )
 
+    def heading(self) -> str:
+        scored = f" (steps {self.warmup}.. scored)" if self.warmup else ""
+        return f"{self.scenario}: {self.n_trajectories} trajectories x {self.horizon} steps{scored}"
+
     def summary(self) -> str:
         """A heading line and the text table."""
-        note = left_out_note(self.bag)
+        note = "; ".join(n for n in (left_out_note(self.bag), self.note) if n)
         extra = f"; {note}" if note else ""
         lines = notes(self.scenario, sorted(self.reports))
         return (
-            f"{self.scenario}: {self.n_trajectories} trajectories x {self.horizon} steps from {self.path.name}{extra}\n"
+            f"{self.heading()} from {self.path.name}{extra}\n"
             + mark_rows(self.table("text"), self.scenario)
             + "".join(line + "\n" for line in lines)
         )
 
 
-def evaluate_bag(path: str | Path, *, namespace: str = "/", description: dict[str, Any] | None = None) -> BagReport:
+def evaluate_bag(
+    path: str | Path,
+    *,
+    namespace: str = "/",
+    description: dict[str, Any] | None = None,
+    warmup: int = metrics_mod.EVALUATION_WARMUP,
+    short_runs: str = "error",
+) -> BagReport:
     """Metrics of each ``estimates/<method>`` stream against ``ground_truth`` (NEES where the
     method published covariances). Trajectories missing a message in any stream are left out for
-    every method, so that all methods are scored on the same trajectories."""
+    every method, so that all methods are scored on the same trajectories.
+
+    ``warmup``: leading steps of every trajectory not scored (the protocol's 10 by default). A run
+    with no more steps than that raises :class:`~neural_estimator.metrics.MetricsError` when
+    ``short_runs`` is "error"; with "score_all" (the evaluator node, which must not lose a short
+    run's table) every step is scored and the report says so in its heading.
+    """
+    if short_runs not in ("error", "score_all"):
+        raise ValueError(f"short_runs must be 'error' or 'score_all', got {short_runs!r}")
     truth, estimates, angles = load_bag_dataset(path, namespace=namespace, description=description)
-    reports = {m: metrics_mod.compute_metrics(truth.x, xh, angles, P_hat=P) for m, (xh, P) in estimates.items()}
+    note = ""
+    if warmup >= truth.horizon and short_runs == "score_all":
+        note = f"every step scored: the run has {truth.horizon} steps, not more than the {warmup}-step warm-up"
+        warmup = 0
+    reports = {
+        m: metrics_mod.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()
+    }
     return BagReport(
         path=Path(path),
         scenario=str(truth.meta.get("scenario", "?")),
@@ -73,6 +101,8 @@ def evaluate_bag(path: str | Path, *, namespace: str = "/", description: dict[st
         dt=float(truth.meta.get("dt", 1.0)),
         reports=reports,
         bag=truth.meta["bag"],
+        warmup=warmup,
+        note=note,
     )
 
 
@@ -87,9 +117,7 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
         "json": base.with_name(base.name + ".metrics.json"),
         "png": base.with_name(base.name + ".rmse.png"),
     }
-    heading = (
-        f"# {report.scenario}: {report.n_trajectories} trajectories x {report.horizon} steps ({report.path.name})\n\n"
-    )
+    heading = f"# {report.heading()} ({report.path.name})\n\n"
     paths["markdown"].write_text(heading + report.table("markdown"))
     paths["json"].write_text(json.dumps(report.to_json(), indent=1))
     if report.reports:
@@ -98,6 +126,7 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
             paths["png"],
             title=f"{report.scenario} ({report.path.name})",
             dt=report.dt,
+            first_step=report.warmup,
         )
     else:
         paths.pop("png")

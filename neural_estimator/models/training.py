@@ -75,7 +75,7 @@ from neural_estimator.data.protocol import ChunkSampler, dataset, training_traje
 from neural_estimator.data.recipe import TrainConfig, TrainingError  # noqa: F401  (re-exported)
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
-from neural_estimator.metrics import compute_metrics, to_json
+from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.card import json_ready
 from neural_estimator.models.checkpoint import load_checkpoint, save_checkpoint
@@ -453,7 +453,8 @@ def evaluate(
     data: Trajectories | None = None,
 ) -> dict[str, Any]:
     """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon), or of
-    ``data`` (recorded data: the validation set)."""
+    ``data`` (recorded data: the validation set), the first :data:`EVALUATION_WARMUP` steps not scored
+    (as every evaluation; the card's ``set.warmup`` says so; cards without it scored every step)."""
     role = "eval" if data is None else "val (recorded)"
     data = (
         dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir)
@@ -462,9 +463,17 @@ def evaluate(
     )
     est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False)
     out = est.run(data.y, data.u)
-    report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged)
+    warmup = EVALUATION_WARMUP if data.horizon > EVALUATION_WARMUP else 0
+    report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged, warmup=warmup)
     return {
-        "set": {"role": role, "index": 0, "seed": seed, "trajectories": data.n, "horizon": data.horizon},
+        "set": {
+            "role": role,
+            "index": 0,
+            "seed": seed,
+            "trajectories": data.n,
+            "horizon": data.horizon,
+            "warmup": warmup,
+        },
         **to_json(report.scalars()),
     }
 

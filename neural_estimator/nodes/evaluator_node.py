@@ -38,6 +38,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
+from neural_estimator.metrics import EVALUATION_WARMUP
 from neural_estimator.nodes.common import (
     ManagedNode,
     InterfaceError,
@@ -84,6 +85,11 @@ class EvaluatorParams:
         "(record its topics with 'topics'); '' = the scenario's ground_truth stream",
     )
     spec_length: int = param(200, "with spec: steps per scored trajectory")
+    warmup: int = param(
+        EVALUATION_WARMUP,
+        "leading steps of every trajectory not scored (the paper's warm-up; 0 = every step; a run no longer "
+        "than that is scored on every step and the table says so)",
+    )
     exit_when_done: bool = param(True, "shut down when the run is evaluated")
 
 
@@ -91,6 +97,8 @@ class EvaluatorNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("evaluator")
         self.p = p = declare_params(self, EvaluatorParams)
+        if p.warmup < 0:
+            raise StartupError(f"warmup must be >= 0 (steps not scored), got {p.warmup}")
         out = p.output or f"runs/run-{datetime.now():%Y%m%d-%H%M%S}.mcap"
         try:
             self.bag = BagWriter(out, overwrite=p.overwrite, chunk_size=p.chunk_size).open()
@@ -272,7 +280,13 @@ class EvaluatorNode(ManagedNode):
         if self.p.spec:
             return self._evaluate_spec()
         try:
-            report = evaluate_bag(self.bag.path, namespace=self.ns, description=self.description)
+            report = evaluate_bag(
+                self.bag.path,
+                namespace=self.ns,
+                description=self.description,
+                warmup=self.p.warmup,
+                short_runs="score_all",
+            )
             paths = write_report(report)
         except (BagError, MetricsError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
@@ -288,7 +302,10 @@ class EvaluatorNode(ManagedNode):
         from neural_estimator.robot.score import score_recording
 
         try:
-            reports, truth = score_recording(self.bag.path, self.p.spec, self.p.spec_length, namespace=self.ns)
+            warmup = min(self.p.warmup, self.p.spec_length - 1)  # a spec's trajectories have spec_length steps
+            reports, truth = score_recording(
+                self.bag.path, self.p.spec, self.p.spec_length, namespace=self.ns, warmup=warmup
+            )
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
             return 1

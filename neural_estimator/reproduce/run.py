@@ -222,6 +222,7 @@ def write_report(
 ) -> Path:
     """report.md with every table beside the paper's and the figures (figures/*.png); ``before``:
     (seconds, invocations) of the earlier invocations of a resumed run, added to the wall time."""
+    from neural_estimator.metrics import EVALUATION_WARMUP
     from neural_estimator.plots import plot_rmse_over_time
     from neural_estimator.scenarios import make_scenario
 
@@ -271,7 +272,11 @@ def write_report(
         L += ["## Failed jobs", ""] + [f"- {jobs[i].label}: `{e}`" for i, e in sorted(outcome.failed.items())] + [""]
     marked = settings.init == "prior"  # the expected failures were measured from the prior (the live protocol)
     L += ["## Main accuracy (paper: Table accuracy_main)", ""]
-    L += [f"Filters start: {settings.init} ({INIT_WORDS[settings.init]}).", ""]
+    L += [
+        f"Filters start: {settings.init} ({INIT_WORDS[settings.init]}). Every metric scores the steps after "
+        f"the paper's {EVALUATION_WARMUP}-step warm-up (README, Metrics, 'Scored steps').",
+        "",
+    ]
     L += R.accuracy_table(summ, scen, meth, mark_expected=marked) + [""]
     if marked:
         L += R.expected_failure_notes(scen, meth)
@@ -307,8 +312,11 @@ def write_report(
     for s in scen:
         curves = {m: [_floats(r["rmse_t"]) for r in acc[s][m] if r.get("rmse_t")] for m in meth}
         curves = {m: c for m, c in curves.items() if c}
+        first = max((int(r.get("warmup", 0)) for m in meth for r in acc[s][m]), default=0)
         if curves:
-            p = plot_rmse_over_time(curves, figs / f"rmse_over_time_{s}.png", title=s, dt=make_scenario(s).dt)
+            p = plot_rmse_over_time(
+                curves, figs / f"rmse_over_time_{s}.png", title=s, dt=make_scenario(s).dt, first_step=first
+            )
             L += [f"![RMSE over time, {s}](figures/{p.name})", ""]
     L += [
         "## Robustness to observation noise (paper: Appendix figures noise_*)",

@@ -57,14 +57,18 @@ def scoring_spec(spec: Spec, topics: list[str], namespace: str = "/") -> tuple[S
 
 
 def score_recording(
-    bag: str | Path, spec: Spec | str | Path, length: int = 200, namespace: str = "/"
+    bag: str | Path,
+    spec: Spec | str | Path,
+    length: int = 200,
+    namespace: str = "/",
+    warmup: int = M.EVALUATION_WARMUP,
 ) -> tuple[dict[str, Any], Any]:
     """({method: MetricReport}, the truth Trajectories) of every estimate stream of a recorded run,
-    against the spec's ground truth."""
+    against the spec's ground truth; the first ``warmup`` steps of every trajectory are not scored."""
     spec = spec if isinstance(spec, Spec) else load_spec(spec)
     with open_bag(bag) as reader:
         topics = list(reader.topics)
     scoring, _ = scoring_spec(spec, topics, namespace)
     truth, estimates, _ = build_dataset([bag], scoring, length)
     angles = scoring.angles("state")
-    return {m: M.compute_metrics(truth.x, x_hat, angles) for m, x_hat in estimates.items()}, truth
+    return {m: M.compute_metrics(truth.x, x_hat, angles, warmup=warmup) for m, x_hat in estimates.items()}, truth
