@@ -18,17 +18,17 @@ EXPECTED_FAILURES: dict[tuple[str, str], str] = {
         "from the prior (the live pipeline's only start) the bootstrap PF's N(m0, 1.0^2 I) particles around "
         "the climatological mean (std 3.6) rarely cover the true state and the cloud collapses (RMSE 4.2, "
         "100 x 3 trajectories); started at the true x0 (evaluate --init truth, the reading that makes the "
-        "paper's row possible) it tracks: 0.067 against the paper's 0.065, 7 % of trajectories lost"
+        "paper's row possible) it tracks: 0.056 against the paper's 0.065, 15 % of trajectories flagged as outliers"
     ),
     ("ballistic", "pf"): (
         "particles N(m0, 1.0^2 I) spread the drag coefficient 1.5 +- 1.0 where the prior's std is 0.01: "
-        "particles with negative drag accelerate without bound (6 % of streams diverge from the prior, "
-        "9 % from the true x0); the paper's units, where a unit spread fits, are not known"
+        "particles with negative drag accelerate without bound (7 % of streams diverge from the prior, "
+        "8 % from the true x0); the paper's units, where a unit spread fits, are not known"
     ),
     ("nlink", "pf"): (
         "the bootstrap PF degenerates: the process noise (q = 0.01, 0.01 rad/s per step) is too small to "
-        "refresh 1,024 particles against 0.02 m observations (RMSE 0.80 from the prior, 0.69 from the true "
-        "x0, NEES ~5e4); the paper's PF keeps 0.086 on the 73 % of trajectories it does not flag"
+        "refresh 1,024 particles against 0.02 m observations (RMSE 0.83 from the prior, 0.75 from the true "
+        "x0, median NEES ~3e3); the paper's PF keeps 0.086 on the 73 % of trajectories it does not flag"
     ),
     ("quadrotor", "pf"): (
         "as the paper's (RMSE 128): the process noise acts on the velocities only, so resampled particles "
@@ -38,7 +38,7 @@ EXPECTED_FAILURES: dict[tuple[str, str], str] = {
 
 CAVEATS: dict[tuple[str, str], str] = {
     ("quadrotor", "enkf"): (
-        "4x the EKF and over-confident (NEES ~ 27,000), as the paper's is far worse than its EKF (9.96 "
+        "4x the EKF and over-confident (mean NEES ~ 28,000), as the paper's is far worse than its EKF (9.96 "
         "against 0.287): velocity-only process noise leaves the 50 members no spread in position"
     ),
 }
