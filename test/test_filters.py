@@ -785,7 +785,9 @@ def test_compiled_model_likelihood_equals_numpy(name):
 
 
 def test_compiled_model_transitions_match_the_scenarios():
-    """N-link (own sine and cosine: a few ulp) and ballistic (bit-equal, also below ground) kernels."""
+    """N-link (own sine and cosine: a few ulp) and ballistic (also below ground) kernels. The ballistic
+    kernel calls libm's exp; numpy's f is bit-equal to it where numpy's exp is libm's, and within a few
+    ulp on CPUs where numpy takes its own AVX-512 exp (last place differs on about 5 % of arguments)."""
     from neural_estimator.filters import compiled_models as cm
 
     rng = np.random.default_rng(0)
@@ -801,7 +803,7 @@ def test_compiled_model_transitions_match_the_scenarios():
     X = x.copy()
     cfg = b.config
     cm.ballistic_transition(X, cfg.g, cfg.k, cfg.dt / cfg.substeps, cfg.substeps)
-    np.testing.assert_array_equal(X, b.f(x))
+    np.testing.assert_allclose(X, b.f(x), rtol=1e-14, atol=1e-13)
 
 
 def test_compiled_sincos_is_within_two_ulp():

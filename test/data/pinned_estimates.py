@@ -1,6 +1,7 @@
-"""Estimates pinned before the issue #14 restructuring, so the refactor is held bit-identical
-(the PF's re-pinned once since, when its weights and estimate became compiled kernels: a change of
-summation order, 3e-15 relative).
+"""Estimates pinned before the issue #14 restructuring, so the refactor is held to them (bit-identical
+on the CPU that made the pin, to round-off on others: see test/test_pinned_estimates.py; the PF's
+re-pinned once since, when its weights and estimate became compiled kernels: a change of summation
+order, 3e-15 relative).
 
 ``compute()`` runs the four filters and three neural estimators (freshly initialised from a fixed
 torch seed, so no shipped checkpoint is involved) on small stored inputs. ``pinned_estimates.npz``
