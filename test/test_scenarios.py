@@ -206,6 +206,42 @@ def test_bearings_constant_velocity_and_noise():
     assert s.state_names == ("px", "py", "vx", "vy")
 
 
+def principal_root(vals, R):
+    """The analytic principal square root of R diag(vals) R^T."""
+    return (R * np.sqrt(vals)) @ R.T
+
+
+def test_psd_sqrt_of_a_singular_covariance_is_its_unique_principal_root():
+    """A repeated eigenvalue leaves LAPACK free to return any basis of its eigenspace (and different
+    CPUs do): psd_sqrt must give the one root that does not depend on that choice, so the same seed
+    simulates the same noise everywhere."""
+    rng = np.random.default_rng(3)
+    for vals in ([0.0, 0.0, 2.0, 2.0], [0.0, 1.0, 1.0, 1.0, 5.0]):
+        vals = np.array(vals)
+        for _ in range(5):
+            R, _ = np.linalg.qr(rng.standard_normal((vals.size, vals.size)))
+            cov = (R * vals) @ R.T
+            L = psd_sqrt(cov)
+            np.testing.assert_allclose(L, principal_root(vals, R), atol=1e-12)
+            np.testing.assert_allclose(L @ L.T, cov, atol=1e-12)
+    # The bearings white-noise-acceleration Q = 0.1125 (u1 u1^T + u2 u2^T): its root is Q / sqrt(0.1125).
+    Q = make_scenario("bearings").process_cov()
+    lam = np.linalg.eigvalsh(Q).max()
+    np.testing.assert_allclose(psd_sqrt(Q), Q / np.sqrt(lam), atol=1e-15)
+
+
+def test_psd_sqrt_diagonal_cholesky_and_refusals():
+    np.testing.assert_array_equal(psd_sqrt(np.diag([0.0, 4.0, 0.0, 9.0])), np.diag([0.0, 2.0, 0.0, 3.0]))
+    A = np.array([[4.0, 2.0], [2.0, 5.0]])
+    np.testing.assert_array_equal(psd_sqrt(A), np.linalg.cholesky(A))
+    with pytest.raises(ScenarioError, match="not positive semi-definite"):
+        psd_sqrt(np.diag([1.0, -1.0]))
+    with pytest.raises(ScenarioError, match="not positive semi-definite"):
+        psd_sqrt(np.array([[1.0, 2.0], [2.0, 1.0]]))
+    with pytest.raises(ScenarioError, match="square matrix"):
+        psd_sqrt(np.ones((2, 3)))
+
+
 # ---- Lorenz 96 -----------------------------------------------------------------------------------
 def test_lorenz96_known_answers():
     s = make_scenario("lorenz96")

@@ -40,24 +40,55 @@ from neural_estimator.options import OptionError, parse_value
 MAX_DIMENSION = 1024
 
 
+# Smallest Cholesky pivot^2, relative to the largest variance, taken as positive definite (round-off
+# of a singular matrix leaves ~1e-16; the built-in scenarios' smallest is N-link's 8e-6).
+CHOLESKY_MIN_PIVOT = 1e-12
+
+
 class ScenarioError(ValueError):
     """A scenario name, constant or input that cannot be used; the message names the problem."""
 
 
 def psd_sqrt(cov: np.ndarray) -> np.ndarray:
-    """A square root L with L L^T = cov for a symmetric positive semi-definite matrix.
+    """A square root L with L L^T = cov for a symmetric positive semi-definite matrix, the same on
+    every CPU (up to round-off).
 
-    Cholesky where it succeeds; otherwise the symmetric eigen-decomposition with negative round-off
-    eigenvalues clipped to zero (a singular Q, for example a noise-free velocity, is legitimate).
+    * diagonal cov: diag(sqrt(c_ii)), exactly;
+    * positive definite: the Cholesky factor (unique: lower triangular, positive diagonal), when
+      every pivot^2 exceeds CHOLESKY_MIN_PIVOT of the largest variance;
+    * singular (a noise-free velocity, a white-noise-acceleration Q of rank dx/2): the principal,
+      symmetric square root V diag(sqrt(lambda)) V^T of the eigen-decomposition cov = V diag(lambda)
+      V^T, with eigenvalues below dx * eps * max(lambda) (round-off) set to 0.
+
+    Why not V diag(sqrt(lambda)) itself: where an eigenvalue repeats (the bearings Q has 0.1125 twice,
+    one per axis), its eigenvectors are any orthonormal basis of the eigenspace, and LAPACK picks a
+    different one on different CPUs (seen between two AVX-512 machines). Every such V sqrt(Lambda) is
+    a valid square root, but the noise eps L^T it turns the same standard normals into differs, so
+    the same seed simulated different trajectories on different machines. The principal root depends
+    only on the eigenspaces' projectors V_k V_k^T, which are unique.
     """
     cov = np.asarray(cov, dtype=np.float64)
+    if cov.ndim != 2 or cov.shape[0] != cov.shape[1]:
+        raise ScenarioError(f"covariance must be a square matrix, got shape {cov.shape}")
+    scale = max(1.0, float(np.abs(cov).max(initial=0.0)))
+    diag = np.diag(cov)
+    if np.count_nonzero(cov - np.diag(diag)) == 0:
+        if diag.size and diag.min() < -1e-9 * scale:
+            raise ScenarioError(f"covariance is not positive semi-definite (diagonal entry {diag.min():.3g})")
+        return np.diag(np.sqrt(np.clip(diag, 0.0, None)))
     try:
-        return np.linalg.cholesky(cov)
+        L = np.linalg.cholesky(cov)
+        # A singular matrix can pass Cholesky on round-off (a last pivot of ~1e-8 of the scale);
+        # such a factor is as CPU-dependent as the round-off it divides by, so it counts as singular.
+        if np.diag(L).min() ** 2 > CHOLESKY_MIN_PIVOT * diag.max():
+            return L
     except np.linalg.LinAlgError:
-        vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
-        if vals.min() < -1e-9 * max(1.0, abs(vals.max())):
-            raise ScenarioError(f"covariance is not positive semi-definite (eigenvalue {vals.min():.3g})")
-        return vecs * np.sqrt(np.clip(vals, 0.0, None))
+        pass
+    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    if vals.min() < -1e-9 * max(1.0, abs(vals.max())):
+        raise ScenarioError(f"covariance is not positive semi-definite (eigenvalue {vals.min():.3g})")
+    vals = np.where(vals > cov.shape[0] * np.finfo(np.float64).eps * vals.max(), vals, 0.0)
+    return (vecs * np.sqrt(vals)) @ vecs.T
 
 
 def complex_step_jacobian(fn, x: np.ndarray, *args, h: float = 1e-30) -> np.ndarray:

@@ -1,7 +1,9 @@
 """Estimates pinned before the issue #14 restructuring, so the refactor is held to them (bit-identical
 on the CPU that made the pin, to round-off on others: see test/test_pinned_estimates.py; the PF's
 re-pinned once since, when its weights and estimate became compiled kernels: a change of summation
-order, 3e-15 relative).
+order, 3e-15 relative; the bearings EnKF and PF re-pinned when ``psd_sqrt`` became the principal root
+of a singular covariance: their process noise is drawn through the square root of the bearings Q,
+whose eigenvector basis, and so the noise, differed between CPUs before).
 
 ``compute()`` runs the four filters and three neural estimators (freshly initialised from a fixed
 torch seed, so no shipped checkpoint is involved) on small stored inputs. ``pinned_estimates.npz``
