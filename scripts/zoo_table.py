@@ -1,6 +1,7 @@
 """Print the README's table of the shipped models: RMSE (NRMSE) on evaluation set 0, as measured at
 the end of training and recorded in each card, "(converged)" where the card says training converged,
-and the training budgets.
+"†" where the card scored the steps after its warm-up (cards made since the warm-up rule record
+``metrics.set.warmup``; older ones scored every step), and the training budgets.
 
     python scripts/zoo_table.py
 """
@@ -27,13 +28,19 @@ def main() -> None:
             c = json.loads(card.read_text())
             met = c["metrics"]
             mark = " (converged)" if c["training"].get("converged") else ""  # cards say so since the retraining
-            cells.append(f"{met['rmse']:.4g} ({met['nrmse']:.3f}){mark}")
+            scored = "†" if met["set"].get("warmup") else ""
+            cells.append(f"{met['rmse']:.4g}{scored} ({met['nrmse']:.3f}){mark}")
         print(f"| {m} | " + " | ".join(cells) + " |")
     budgets: dict[tuple, set[tuple[str, str]]] = {}  # budget -> the (scenario, method) models that had it
     for card in (p for p in ZOO.glob("*-*/card.json") if "." not in p.parent.name):
         c = json.loads(card.read_text())
         r, m = c["training"]["recipe"], c["metrics"]["set"]
-        key = (r["epochs"], c["data"]["windows_per_epoch"], r["val_trajectories"], m["trajectories"])
+        key = (
+            c["training"].get("epochs_run", r["epochs"]),
+            c["data"]["windows_per_epoch"],
+            r["val_trajectories"],
+            m["trajectories"],
+        )
         budgets.setdefault(key, set()).add((c["scenario"]["scenario"], c["method"]))
     for (ep, w, v, n), models in sorted(budgets.items(), reverse=True):
         print(
@@ -41,7 +48,7 @@ def main() -> None:
             f"metrics on {n} trajectories of evaluation set 0.",
             end="",
         )
-    print()
+    print("\n\n† the card's warm-up steps (metrics.set.warmup, 10) left out; the others scored over every step.")
 
 
 def _names(models: set[tuple[str, str]]) -> str:
