@@ -1,5 +1,6 @@
 """Neural estimators: normalisation, run == step, checkpoints (safetensors + JSON), training protocol."""
 
+import dataclasses
 import json
 import math
 import pickle
@@ -554,6 +555,92 @@ def test_converged_rule():
     assert lr_reductions(hist, 2e-3) == 3 and converged(None, hist, 2e-3)
     assert not converged("max epochs", hist[:3], 2e-3)
     assert converged("early stopping: no lower validation loss in 30 epochs", [], 2e-3)
+
+
+def _history(vals, lrs):
+    return [{"epoch": i + 1, "val_loss": v, "lr": lr} for i, (v, lr) in enumerate(zip(vals, lrs))]
+
+
+def test_plateau_rule_stops_flat_curves_after_three_halvings_only():
+    from neural_estimator.models.training import plateau_rule
+
+    stop = plateau_rule(2e-3, epochs=4, tol=0.01)
+    halved = [2e-3] * 2 + [1e-3] * 2 + [5e-4] * 2 + [2.5e-4] * 2  # 3 reductions within 8 epochs
+    flat = _history([1.0, 0.8, 0.6, 0.5, 0.5, 0.499, 0.5, 0.4996], halved)
+    assert "plateau" in stop(flat) and "3 learning-rate reductions" in stop(flat)
+    assert stop(flat[:7]) is None  # fewer than 2 x 4 epochs
+    assert stop(_history([v for v in (1.0, 0.8, 0.6, 0.5, 0.5, 0.499, 0.5, 0.4996)], [2e-3] * 4 + [1e-3] * 4)) is None
+    # still falling by more than 1 % window on window
+    assert stop(_history([1.0, 0.8, 0.6, 0.5, 0.49, 0.48, 0.47, 0.46], halved)) is None
+    # a lucky first epoch, then a curve coming down from a high: improving, not flat (a rule against
+    # the best so far, 0.5, would stop it)
+    lucky = _history([0.5, 0.9, 0.88, 0.85, 0.8, 0.75, 0.7, 0.65, 0.6], [2e-3, 1e-3, 5e-4] + [2.5e-4] * 6)
+    assert plateau_rule(2e-3, epochs=3, tol=0.01)(lucky) is None
+    # rising after an early best: the last window is worse than the one before, so it is a plateau
+    assert stop(_history([0.5, 0.4, 0.45, 0.5, 0.6, 0.7, 0.8, 0.9], halved)) is not None
+    with pytest.raises(TrainingError, match="plateau rule"):
+        plateau_rule(2e-3, epochs=0)
+    with pytest.raises(TrainingError, match="plateau rule"):
+        plateau_rule(2e-3, tol=1.5)
+
+
+def test_train_ends_where_stop_when_says_and_a_resume_without_it_goes_on(tmp_path):
+    cfg = TrainConfig(
+        trajectories=12,
+        windows_per_epoch=48,
+        val_trajectories=6,
+        epochs=4,
+        eval_trajectories=4,
+        keep_resume=True,
+        cache_dir=str(tmp_path / "cache"),
+    )
+    seen = []
+
+    def stop_when(history):
+        seen.append(len(history))
+        return "stopped by the test rule" if len(history) == 2 else None
+
+    out = train("test_spinner", "gru", tmp_path / "run", cfg, progress=False, stop_when=stop_when)
+    card = json.loads((out / "card.json").read_text())
+    assert seen == [1, 2] and card["training"]["stopped"] == "stopped by the test rule"
+    assert card["training"]["epochs_run"] == 2 and card["metrics"]["set"]["trajectories"] == 4
+    # resumed without the rule: the rule's stop does not hold, training continues to the epoch budget
+    cfg = dataclasses.replace(cfg, resume=True)
+    train("test_spinner", "gru", tmp_path / "run", cfg, progress=False)
+    card = json.loads((out / "card.json").read_text())
+    assert card["training"]["epochs_run"] == 4 and card["training"]["stopped"] == "max epochs"
+
+
+def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    calls = []
+
+    def fake_rule(initial_lr, epochs, tol):
+        calls.append((initial_lr, epochs, tol))
+        return lambda history: "plateau (test)" if len(history) == 2 else None
+
+    monkeypatch.setattr(zoo_script, "plateau_rule", fake_rule)
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo)]
+    args += ["--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6"]
+    args += ["--eval-trajectories", "4", "--max-epochs", "6", "--quiet"]
+    assert zoo_script.main(args) == 0
+    assert calls == [(2e-3, 10, 0.01)]  # the defaults: 10 epochs, 1 %
+    t = json.loads((zoo / "test_spinner-gru" / "card.json").read_text())["training"]
+    assert t["stopped"] == "plateau (test)" and t["epochs_run"] == 2
+    assert zoo_script.finished(state / "test_spinner-gru")
+    # --plateau-epochs 0: no rule at all
+    calls.clear()
+    assert (
+        zoo_script.main(
+            [*args, "--scenarios", "test_spinner", "--state", str(tmp_path / "s2"), "--plateau-epochs", "0"]
+        )
+        == 0
+    )
+    assert calls == []
+    t = json.loads((zoo / "test_spinner-gru" / "card.json").read_text())["training"]
+    assert t["stopped"] == "max epochs" and t["epochs_run"] == 6
 
 
 def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
