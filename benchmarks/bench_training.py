@@ -11,9 +11,12 @@ validation steps).
     python benchmarks/bench_training.py                      # all six, CPU
     python benchmarks/bench_training.py --archs gru,mamba --device cuda --iters 50
 
-Mamba and Mamba-2 are measured twice in the same run: ``(before)`` is the previous CPU training
-path (Mamba: the stepwise torch scan; Mamba-2: the chunked torch SSD, both with autograd graphs),
-``(fused)`` the numba kernels with hand-written backward (:mod:`neural_estimator.models.cpu_scan`).
+Mamba, Mamba-2, GPT-2 and the Filterformer are measured twice in the same run: ``(before)`` is the
+previous CPU training path (Mamba: the stepwise torch scan; Mamba-2: the chunked torch SSD, both with
+autograd graphs; GPT-2 and Filterformer: attention on torch's unfused math path), ``fused`` the
+current one (the SSMs: the numba kernels with hand-written backward,
+:mod:`neural_estimator.models.cpu_scan`; the attention models: torch's fused CPU attention kernel,
+which the 4-D operands and mask of :func:`~neural_estimator.models.layers.window_attention` admit).
 
 Achieved GFLOP/s = model FLOPs of one training step / its time. Model FLOPs are counted by torch's
 FlopCounterMode over forward + backward on the *before* path (matmuls, convolutions and the scans'
@@ -50,14 +53,18 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-BEFORE = {"mamba": "stepwise", "mamba2": "chunked"}  # the previous CPU scan of each SSM
+# The previous CPU path of each architecture: the SSMs' scans, the attention models' unfused SDPA.
+BEFORE = {"mamba": "stepwise", "mamba2": "chunked", "gpt2": "math", "filterformer": "math"}
 
 
 def set_scan(model: torch.nn.Module, scan: str) -> None:
-    """Select the CPU training scan of every SSM mixer in ``model``."""
+    """Select the CPU training path of every SSM mixer (``cpu_scan``) and attention layer
+    (``attention_path``) in ``model``: "fused" or the architecture's BEFORE path."""
     for m in model.modules():
         if hasattr(m, "cpu_scan"):
             m.cpu_scan = scan
+        if hasattr(m, "attention_path"):
+            m.attention_path = scan
 
 
 def step_flops(arch: str, args: argparse.Namespace) -> float:

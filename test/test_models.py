@@ -164,13 +164,14 @@ def test_known_parameter_counts_lorenz96():
 
 
 # ---- attention ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("fused", [True, False])
 @pytest.mark.parametrize("T,W", [(1, 4), (9, 16), (16, 16), (17, 16), (50, 7), (64, 16)])
-def test_window_attention_matches_naive(T, W):
+def test_window_attention_matches_naive(T, W, fused):
     torch.manual_seed(1)
     B, nh, hs = 2, 4, 5
     q, k, v = (torch.randn(B, nh, T, hs, dtype=torch.float64) for _ in range(3))
     slopes = alibi_slopes(nh).double()
-    y = window_attention(q, k, v, slopes, W)
+    y = window_attention(q, k, v, slopes, W, fused=fused)
     ref = torch.empty_like(y)
     for t in range(T):
         s0 = max(0, t - W + 1)
@@ -179,6 +180,42 @@ def test_window_attention_matches_naive(T, W):
         w = torch.softmax(scores - slopes[:, None, None] * dist, dim=-1)
         ref[:, :, t] = (w @ v[:, :, s0 : t + 1])[:, :, 0]
     torch.testing.assert_close(y, ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("T,W", [(12, 16), (40, 16)])  # one block, and the blocked form
+def test_window_attention_fused_gradients_equal_the_math_path(T, W):
+    """The fused kernel (forced: the test fails if torch cannot take it) equals the unfused path,
+    value and gradients, float64."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    torch.manual_seed(2)
+    B, nh, hs = 3, 4, 6
+    base = [torch.randn(B, nh, T, hs, dtype=torch.float64) for _ in range(3)]
+    slopes = alibi_slopes(nh).double()
+    out = {}
+    for fused in (True, False):
+        q, k, v = (t.clone().requires_grad_() for t in base)
+        backends = [SDPBackend.FLASH_ATTENTION] if fused else [SDPBackend.MATH]
+        with sdpa_kernel(backends):
+            y = window_attention(q, k, v, slopes, W, fused=fused)
+            (y * torch.linspace(-1, 1, hs, dtype=torch.float64)).sum().backward()
+        out[fused] = (y.detach(), q.grad, k.grad, v.grad)
+    for a, b in zip(out[True], out[False]):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["gpt2", "filterformer"])
+def test_attention_models_fused_equals_math_path(name):
+    torch.manual_seed(3)
+    model = build_model(name, 3, 2).double().eval()
+    z = torch.randn(2, 300, 3, dtype=torch.float64)  # longer than GPT-2's window: the blocked form too
+    with torch.no_grad():
+        fused = model(z)
+        for m in model.modules():
+            if hasattr(m, "attention_path"):
+                m.attention_path = "math"
+        math_path = model(z)
+    torch.testing.assert_close(fused, math_path, rtol=0, atol=1e-10)
 
 
 def test_alibi_slopes():

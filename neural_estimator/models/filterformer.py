@@ -82,13 +82,14 @@ class PrefixAttention(nn.Module):
         self.qkv = nn.Linear(cfg.d_model, 3 * cfg.d_model)
         self.proj = nn.Linear(cfg.d_model, cfg.d_model)
         self.drop = nn.Dropout(cfg.dropout)
+        self.attention_path = "fused"  # or "math": torch's unfused path (layers.window_attention)
 
     def forward(self, x: Tensor, slopes: Tensor) -> Tensor:
         B, T, D = x.shape
         q, k, v = self.qkv(x).split(D, dim=2)  # 3 x (B, T, D)
         q, k, v = (t.view(B, T, self.n_head, self.head_size).transpose(1, 2) for t in (q, k, v))  # (B, nh, T, hs)
         p = self.dropout if self.training else 0.0
-        y = window_attention(q, k, v, slopes, self.window, dropout_p=p)  # (B, nh, T, hs)
+        y = window_attention(q, k, v, slopes, self.window, p, self.attention_path == "fused")  # (B, nh, T, hs)
         return self.drop(self.proj(y.transpose(1, 2).reshape(B, T, D)))
 
     def step(self, x: Tensor, kv_cache: Tensor, attn_bias: Tensor) -> tuple[Tensor, Tensor]:

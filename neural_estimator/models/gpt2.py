@@ -63,13 +63,14 @@ class CausalSelfAttention(nn.Module):
         self.c_attn = nn.Linear(cfg.n_embd, 3 * cfg.n_embd)  # q, k, v for all heads
         self.c_proj = nn.Linear(cfg.n_embd, cfg.n_embd)
         self.resid_drop = nn.Dropout(cfg.dropout)
+        self.attention_path = "fused"  # or "math": torch's unfused path (layers.window_attention)
 
     def forward(self, x: Tensor, slopes: Tensor) -> Tensor:
         B, T, D = x.shape
         q, k, v = self.c_attn(x).split(D, dim=2)  # 3 x (B, T, D)
         q, k, v = (t.view(B, T, self.n_head, self.head_size).transpose(1, 2) for t in (q, k, v))  # (B, nh, T, hs)
         p = self.dropout if self.training else 0.0
-        y = window_attention(q, k, v, slopes, self.window, dropout_p=p)  # (B, nh, T, hs)
+        y = window_attention(q, k, v, slopes, self.window, p, self.attention_path == "fused")  # (B, nh, T, hs)
         y = y.transpose(1, 2).reshape(B, T, D)
         return self.resid_drop(self.c_proj(y))
 
