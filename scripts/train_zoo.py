@@ -19,7 +19,8 @@ finishes the selected unfinished models as they stand, without another epoch (fo
 validation loss has been flat at a learning rate halved many times, where waiting for the paper's
 30-epoch early stopping costs an hour of CPU per model and changes nothing); the card says so.
 A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 and installed
-into neural_estimator/zoo/ with its card, which records the budget and whether training converged
+into neural_estimator/zoo/ with its card (unless its best epoch is its first: then the shipped model
+stays and the script says so), which records the budget and whether training converged
 (early stopping triggered, or the learning rate reduced at least three times).
 
 The plateau rule (a stated budget, on by default; --plateau-epochs 0 turns it off): a model is finished
@@ -88,6 +89,18 @@ def install(work: Path, zoo: Path) -> Path:
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
     return dest
+
+
+def not_installable(work: Path) -> str | None:
+    """Why a finished model must not replace the shipped one, or None: after more than one epoch its
+    validation loss never went below its first epoch's (the best weights are epoch 1's: the recipe did
+    not train it; the shipped models are held to the same rule by test/test_zoo.py)."""
+    card = json.loads((work / "card.json").read_text())
+    history = card["training"]["history"]
+    first = history[0]["val_loss"]
+    if len(history) > 1 and not card["validation_loss"] < first:
+        return f"its validation loss never went below its first epoch's ({first:.4g}); the shipped model stays"
+    return None
 
 
 def status_line(work: Path) -> str:
@@ -204,7 +217,8 @@ def main(argv=None) -> int:
                 card["training"]["budget"]["max_epochs"] = a.max_epochs
                 (work / "card.json").write_text(json.dumps(card, indent=2) + "\n")
             if finished(work):
-                print(f"installed {install(work, zoo)}", flush=True)
+                why = not_installable(work)
+                print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0
 

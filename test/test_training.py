@@ -611,6 +611,22 @@ def test_train_ends_where_stop_when_says_and_a_resume_without_it_goes_on(tmp_pat
     assert card["training"]["epochs_run"] == 4 and card["training"]["stopped"] == "max epochs"
 
 
+def test_train_zoo_does_not_install_a_model_that_never_beat_its_first_epoch(tmp_path):
+    zoo_script = _train_zoo()
+    work = tmp_path / "s-m"
+    work.mkdir()
+    card = {"validation_loss": 0.5, "training": {"history": [{"val_loss": 0.5}, {"val_loss": 0.7}]}}
+    (work / "card.json").write_text(json.dumps(card))
+    assert "never went below its first epoch" in zoo_script.not_installable(work)
+    card["validation_loss"] = 0.4
+    card["training"]["history"].append({"val_loss": 0.4})
+    (work / "card.json").write_text(json.dumps(card))
+    assert zoo_script.not_installable(work) is None
+    card = {"validation_loss": 0.5, "training": {"history": [{"val_loss": 0.5}]}}  # --finish after one epoch
+    (work / "card.json").write_text(json.dumps(card))
+    assert zoo_script.not_installable(work) is None
+
+
 def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
