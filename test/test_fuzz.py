@@ -40,7 +40,16 @@ def test_the_regression_corpus_is_not_empty():
 
 @pytest.mark.parametrize("target", ["mcap", "rosbag2", "cdr", "scenario"])
 def test_a_short_fuzzing_run_finds_nothing(target, tmp_path):
-    """A few hundred mutated inputs per target (a few seconds): the longer campaign is the script's."""
+    """A few hundred mutated inputs per target (a few seconds): the longer campaign is the script's.
+
+    Memory: libFuzzer reads its RSS as getrusage's ru_maxrss, which on Linux a forked child starts at
+    its parent's resident size and keeps across exec; spawned from this pytest process (torch and the
+    earlier tests' data resident, over 1 GB late in a full run) the fuzzer would start "over" a fixed
+    1,024 MB limit. So the limit is 1,024 MB above this process's peak, and a single allocation over
+    1,024 MB fails on its own (-malloc_limit_mb)."""
+    import resource
+
+    parent_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024  # kB on Linux
     proc = subprocess.run(
         [
             sys.executable,
@@ -48,7 +57,8 @@ def test_a_short_fuzzing_run_finds_nothing(target, tmp_path):
             target,
             "-runs=400",
             "-timeout=10",
-            "-rss_limit_mb=1024",
+            f"-rss_limit_mb={1024 + parent_mb}",
+            "-malloc_limit_mb=1024",
             f"-artifact_prefix={tmp_path}/",
         ],
         capture_output=True,
