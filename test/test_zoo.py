@@ -66,3 +66,15 @@ def test_shipped_model_on_the_default_constants_loads_or_is_refused_naming_them(
     assert "\n" not in message and "other constants" in message
     for k in changed:
         assert f"{k}=" in message, (k, message)
+
+
+def test_a_shipped_model_says_how_many_leading_steps_its_training_skipped():
+    """The estimator node warns about them (a neural model's first estimates were never optimised)."""
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    est = make_estimator("mamba2", make_scenario("lorenz96"))
+    assert est.untrained_steps == 10
+    est.card = {}
+    assert est.untrained_steps == 0
+    assert not hasattr(make_estimator("ukf", make_scenario("lorenz96")), "untrained_steps")

@@ -102,6 +102,15 @@ class NeuralEstimator(Estimator):
         step_fn = model.step_with_cov if self.has_covariance else model.step
         self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
 
+    @property
+    def untrained_steps(self) -> int:
+        """How many leading steps of a trajectory the model's training loss skipped (the paper's
+        warm-up, the card's ``training.recipe.warmup``; 0 when the card does not say). Its estimates
+        there were never optimised and can be far off (the ballistic Mamba-2: 13.7 km over steps 0-9,
+        0.027 after); the metrics leave those steps out, and the estimator node says so at start-up."""
+        recipe = (self.card.get("training") or {}).get("recipe") or {}
+        return int(recipe.get("warmup") or 0)
+
     # ---- streaming -------------------------------------------------------------------------------
     def reset(self, batch: int = 1) -> None:
         batch = int(batch)

@@ -232,6 +232,13 @@ class EstimatorNode(ManagedNode):
             + (f"/{self.depths['covariance']}" if self.pub_cov else "")
             + " msgs)"
         )
+        untrained = getattr(est, "untrained_steps", 0)
+        if untrained:
+            self.get_logger().warning(
+                f"{self.method}: the first {untrained} estimates of every trajectory are steps this model's "
+                "training loss skipped (the paper's warm-up); they can be far off, and the evaluator does not "
+                "score them"
+            )
 
     def _depth(self, n_values: int) -> int:
         """History depth of a stream of ``n_values`` labelled float64s within ``history_mb``
