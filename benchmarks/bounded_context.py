@@ -18,8 +18,9 @@ model two ways on evaluation set 0 and prints the RMSE per segment of the horizo
   K times the compute. (A bounded context is what the paper's GPT-2 has by construction: its
   attention window is 256 steps.)
 
-It is an offline diagnostic on the model's parallel form, not an estimator option: the verbs and
-nodes run every model continuously.
+The same bounding is the neural estimators' ``context`` option (``--option mamba2.context=100`` on
+evaluate / replay, ``options:=['context=100']`` on the estimator node; off by default, see
+:mod:`neural_estimator.models.context`); this script runs it on any weights, e.g. a run's last epoch.
 """
 
 from __future__ import annotations
@@ -33,40 +34,8 @@ from safetensors.torch import load_file
 from neural_estimator.data import evaluation_sets
 from neural_estimator.estimator import previous_controls
 from neural_estimator.models.checkpoint import load_checkpoint
+from neural_estimator.models.context import bounded_forward
 from neural_estimator.scenarios import make_scenario
-
-
-def restart_of(t: int, length: int, copies: int) -> int:
-    """The restart step of the copy whose context at step t is the longest (at most ``length``).
-
-    Copy k restarts at k * length / copies + j * length (j >= 0); the copy started at 0 is used until
-    step ``length`` - 1 (no copy has a longer context then)."""
-    if t < length:
-        return 0
-    stride = length / copies
-    starts = [int(round(k * stride)) for k in range(copies)]
-    best = t
-    for off in starts:
-        if t >= off:
-            s = off + ((t - off) // length) * length
-            best = min(best, s)  # the oldest restart = the longest context
-    return best
-
-
-def bounded_forward(model: torch.nn.Module, z: torch.Tensor, length: int, copies: int) -> torch.Tensor:
-    """Outputs (B, T, d_out) of ``model`` over z (B, T, d_in) with the context bounded as above: every
-    step's output is the model's output at that step on the window z[:, restart_of(t):t + 1]."""
-    T = z.shape[1]
-    groups: dict[int, list[int]] = {}
-    for t in range(T):
-        groups.setdefault(restart_of(t, length, copies), []).append(t)
-    out = None
-    for start, steps in groups.items():
-        y = model(z[:, start : steps[-1] + 1])  # (B, len, d_out)
-        if out is None:
-            out = y.new_empty(z.shape[0], T, y.shape[-1])
-        out[:, steps] = y[:, [t - start for t in steps]]
-    return out
 
 
 def segment_rmse(x: np.ndarray, x_hat: np.ndarray, bounds: list[int], angle_states=()) -> list[float]:

@@ -1,10 +1,17 @@
-"""benchmarks/bounded_context.py: an SSM run with its context bounded by staggered restarts."""
+"""Bounded context (neural_estimator.models.context, the estimators' context option) and
+benchmarks/bounded_context.py."""
 
 import pytest
 import torch
 from conftest import load_script
 
+import numpy as np
+
+from neural_estimator.estimator import EstimatorError
+from neural_estimator.estimators import make_estimator
 from neural_estimator.models import build_model
+from neural_estimator.models.context import bounded_forward, restart_of
+from neural_estimator.scenarios import make_scenario
 
 
 @pytest.fixture(scope="module")
@@ -13,26 +20,56 @@ def bc():
 
 
 @pytest.mark.parametrize("length,copies", [(10, 1), (10, 3), (10, 10), (7, 2)])
-def test_every_step_sees_at_most_length_steps_and_nearly_that_many(bc, length, copies):
+def test_every_step_sees_at_most_length_steps_and_nearly_that_many(length, copies):
     for t in range(60):
-        s = bc.restart_of(t, length, copies)
+        s = restart_of(t, length, copies)
         assert 0 <= s <= t and t - s + 1 <= length
         if t < length:
             assert s == 0
         else:
-            assert t - s + 1 >= length - -(-length // copies)  # at least L - ceil(L / K) steps of context
+            assert t - s + 1 >= length - -(-length // copies) + 1  # at least L - ceil(L / K) + 1 steps
 
 
-def test_bounded_forward_is_the_model_on_each_steps_window(bc):
+def test_bounded_forward_is_the_model_on_each_steps_window():
     torch.manual_seed(0)
     model = build_model("mamba2", 3, 2).double().eval()
     z = torch.randn(2, 37, 3, dtype=torch.float64)
     with torch.no_grad():
-        y = bc.bounded_forward(model, z, 10, 3)
+        y = bounded_forward(model, z, 10, 3)
         for t in (0, 5, 9, 10, 17, 29, 36):
-            s = bc.restart_of(t, 10, 3)
+            s = restart_of(t, 10, 3)
             torch.testing.assert_close(y[:, t], model(z[:, s : t + 1])[:, -1], rtol=0, atol=1e-12)
-        torch.testing.assert_close(bc.bounded_forward(model, z, 37, 4), model(z), rtol=0, atol=1e-12)
+        torch.testing.assert_close(bounded_forward(model, z, 37, 4), model(z), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["gru", "mamba2"])
+def test_the_context_option_streams_what_it_runs(method):
+    """step() with context=L equals run() with it (float32 round-off), and differs from unbounded."""
+    from neural_estimator.data import simulate
+
+    scenario = make_scenario("nlink")
+    data = simulate(scenario, 2, 45, seed=5)
+    bounded = make_estimator(method, scenario, context=12, context_copies=3)
+    whole = bounded.run(data.y, data.u).x
+    bounded.reset(2)
+    stepped = np.stack([bounded.step(data.y[:, t], data.u[:, t - 1] if t else None) for t in range(45)], axis=1)
+    np.testing.assert_allclose(stepped, whole, rtol=0, atol=1e-4 * np.abs(whole).max())
+    free = make_estimator(method, scenario).run(data.y, data.u).x
+    np.testing.assert_allclose(whole[:, :12], free[:, :12], rtol=0, atol=1e-5)  # before step L: the same copy
+    assert np.abs(whole[:, 12:] - free[:, 12:]).max() > 1e-4
+
+
+def test_the_context_option_refuses_what_it_cannot_do():
+    scenario = make_scenario("nlink")
+    with pytest.raises(EstimatorError, match="context applies to gru, lstm, mamba, mamba2"):
+        make_estimator("gpt2", scenario, context=100)
+    with pytest.raises(EstimatorError, match="context must be >= 0"):
+        make_estimator("mamba2", scenario, context=-1)
+    with pytest.raises(EstimatorError, match="context_copies .20. must not exceed context .10."):
+        make_estimator("mamba2", scenario, context=10, context_copies=20)
+    with pytest.raises(EstimatorError, match="context"):
+        make_estimator("mamba2", scenario, context="ten")
+    assert make_estimator("mamba2", scenario, context="100").context == 100  # command-line strings
 
 
 def test_runs_on_a_shipped_model(bc, capsys):

@@ -23,9 +23,12 @@ import torch
 from torch import nn
 
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.models.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.models.normalization import Normalizer
-from neural_estimator.options import OptionError, parse_bool
+from neural_estimator.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
+
+RECURRENT = ("gru", "lstm", "mamba", "mamba2")  # the methods whose context can be bounded (option context)
 
 CHUNK_TIMESTEPS = 1 << 16  # sequences x steps per parallel forward in run(): bounds activation memory
 
@@ -69,6 +72,10 @@ class NeuralEstimator(Estimator):
         compile_step: serve :meth:`step` through ``torch.compile`` of the model's step (fewer Python
             dispatches per message: Mamba-2's p99 goes from ~1.1 ms to ~0.5 ms of CPU on the
             development machine); the first steps pay a one-off compilation of seconds.
+        context: bound every estimate's context to this many steps (0: unbounded, the paper's way);
+            GRU, LSTM, Mamba, Mamba-2 only. ``context_copies`` copies of the model restart at
+            staggered steps, see :mod:`neural_estimator.models.context`; K times the compute.
+        context_copies: K, the copies (more: contexts closer to ``context``).
     """
 
     def __init__(
@@ -82,6 +89,8 @@ class NeuralEstimator(Estimator):
         card: dict[str, Any] | None = None,
         chunk_timesteps: int = CHUNK_TIMESTEPS,
         compile_step: bool = False,
+        context: int = 0,
+        context_copies: int = 10,
     ) -> None:
         super().__init__(scenario)
         self.method = method  # instance attribute: one class serves the six methods
@@ -98,7 +107,15 @@ class NeuralEstimator(Estimator):
         self.has_covariance = _as_bool(covariance, "covariance") and hasattr(model, "step_with_cov")
         self.card = dict(card or {})
         self.chunk_timesteps = int(chunk_timesteps)
+        self.context, self.context_copies = _as_int(context, "context", 0), _as_int(context_copies, "context_copies", 1)
+        if self.context and self.context_copies > self.context:
+            raise EstimatorError(f"context_copies ({self.context_copies}) must not exceed context ({self.context})")
+        if self.context and method not in RECURRENT:
+            raise EstimatorError(
+                f"{method}: context applies to {', '.join(RECURRENT)} (the attention models' window bounds theirs)"
+            )
         self._state: Any = None
+        self._t = 0  # steps since reset (bounded context: which copies restart)
         step_fn = model.step_with_cov if self.has_covariance else model.step
         self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
 
@@ -119,6 +136,9 @@ class NeuralEstimator(Estimator):
         self.model.eval()
         with torch.inference_mode():
             self._state = self.model.init_state(batch, device=self.device, dtype=self.dtype)
+        if self.context:  # one state per copy, None until the copy's first restart
+            self._state = [None] * self.context_copies
+        self._t = 0
         self.batch = batch
         self.covariance = None
         self.diverged = np.zeros(batch, dtype=bool)
@@ -130,10 +150,13 @@ class NeuralEstimator(Estimator):
         z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():
-            if self.has_covariance:
+            if self.context:
+                mean = self._bounded_step(z_t)
+            elif self.has_covariance:
                 mean, cov, self._state = self._step_fn(z_t, self._state)  # (B, dx), (B, dx, dx)
             else:
                 mean, self._state = self._step_fn(z_t, self._state)
+        self._t += 1
         x = self.normalizer.denormalize_states(mean.cpu().double().numpy())  # (B, dx) float64
         bad = ~np.all(np.isfinite(x), axis=-1)
         if self.has_covariance:
@@ -141,6 +164,20 @@ class NeuralEstimator(Estimator):
             bad |= ~np.all(np.isfinite(self.covariance), axis=(-2, -1))
         self.diverged = self.diverged | bad
         return x
+
+    def _bounded_step(self, z_t: torch.Tensor) -> torch.Tensor:
+        """One step of every started copy (a copy restarts from a zero state at o_k + j L); the mean of
+        the copy with the oldest restart, s(t) of :mod:`neural_estimator.models.context`."""
+        t, L = self._t, self.context
+        means = {}
+        for k, o in enumerate(copy_offsets(L, self.context_copies)):
+            if t < o:
+                continue
+            if (t - o) % L == 0:
+                self._state[k] = self.model.init_state(z_t.shape[0], device=self.device, dtype=self.dtype)
+            mean, self._state[k] = self._step_fn(z_t, self._state[k])
+            means[o + ((t - o) // L) * L] = mean
+        return means[restart_of(t, L, self.context_copies)]
 
     # ---- whole sequences -------------------------------------------------------------------------
     def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
@@ -164,6 +201,8 @@ class NeuralEstimator(Estimator):
                     if covs is not None:
                         mean, cov = self.model.forward_with_cov(z)  # (b, T, dx), (b, T, dx, dx)
                         covs[b0 : b0 + chunk] = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
+                    elif self.context:
+                        mean = bounded_forward(self.model, z, self.context, self.context_copies)  # (b, T, dx)
                     else:
                         mean = self.model(z)  # (b, T, dx)
                     xs[b0 : b0 + chunk] = self.normalizer.denormalize_states(mean.cpu().double().numpy())
@@ -178,6 +217,16 @@ class NeuralEstimator(Estimator):
 
     def __repr__(self) -> str:
         return f"NeuralEstimator({self.method!r}, scenario={self.scenario.name!r}, device={str(self.device)!r})"
+
+
+def _as_int(v: Any, name: str, minimum: int) -> int:
+    try:
+        n = parse_value(v, 0, name)
+    except OptionError as exc:
+        raise EstimatorError(str(exc)) from None
+    if n < minimum:
+        raise EstimatorError(f"{name} must be >= {minimum}, got {n}")
+    return n
 
 
 def _as_bool(v: Any, name: str = "option") -> bool:

@@ -78,6 +78,8 @@ def load_neural_estimator(
     device: str = "cpu",
     covariance: bool = True,
     compile_step: bool = False,
+    context: int = 0,
+    context_copies: int = 10,
 ):
     """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
@@ -89,6 +91,8 @@ def load_neural_estimator(
         device: cpu, cuda, cuda:N or auto.
         covariance: report Filterformer's covariance (False saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
+        context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
+            :mod:`neural_estimator.models.context`); 0 = unbounded, the paper's way.
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
@@ -110,5 +114,14 @@ def load_neural_estimator(
     check_scenario(card["scenario"], scenario, str(directory))
     model, normalizer, card = load_checkpoint(directory, device)
     return NeuralEstimator(
-        scenario, model, normalizer, m, device=device, covariance=covariance, card=card, compile_step=compile_step
+        scenario,
+        model,
+        normalizer,
+        m,
+        device=device,
+        covariance=covariance,
+        card=card,
+        compile_step=compile_step,
+        context=context,
+        context_copies=context_copies,
     )

@@ -75,7 +75,9 @@ class EstimatorParams:
         1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default"
     )
     options: tuple[str, ...] = param(
-        (), "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true"
+        (),
+        "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true, "
+        "context=100 (bounded context, GRU/LSTM/Mamba/Mamba-2)",
     )
     observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
