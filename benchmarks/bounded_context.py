@@ -31,18 +31,18 @@ import numpy as np
 import torch
 from safetensors.torch import load_file
 
+from neural_estimator.angles import wrap_components
 from neural_estimator.data import evaluation_sets
 from neural_estimator.estimator import previous_controls
+from neural_estimator.metrics import rmse_over_time
 from neural_estimator.models.checkpoint import load_checkpoint
 from neural_estimator.models.context import bounded_forward
 from neural_estimator.scenarios import make_scenario
 
 
 def segment_rmse(x: np.ndarray, x_hat: np.ndarray, bounds: list[int], angle_states=()) -> list[float]:
-    e = np.asarray(x_hat, dtype=np.float64) - x
-    for i in angle_states:
-        e[..., i] = np.pi - np.mod(np.pi - e[..., i], 2 * np.pi)
-    e2 = (e**2).mean(axis=(0, 2))
+    """RMSE over each segment [bounds[i], bounds[i+1]) of the horizon, from the RMSE-time curve."""
+    e2 = rmse_over_time(wrap_components(np.asarray(x_hat, dtype=np.float64) - x, angle_states)) ** 2  # (T,)
     return [float(np.sqrt(e2[a:b].mean())) for a, b in zip(bounds, bounds[1:])]
 
 

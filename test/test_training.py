@@ -584,29 +584,21 @@ def test_plateau_rule_stops_flat_curves_after_three_halvings_only():
         plateau_rule(2e-3, tol=1.5)
 
 
-def test_train_ends_where_stop_when_says_and_a_resume_without_it_goes_on(tmp_path):
-    cfg = TrainConfig(
-        trajectories=12,
-        windows_per_epoch=48,
-        val_trajectories=6,
-        epochs=4,
-        eval_trajectories=4,
-        keep_resume=True,
-        cache_dir=str(tmp_path / "cache"),
-    )
+def test_train_ends_where_stop_when_says_and_a_resume_without_it_goes_on(tmp_path, spinner):
+    cfg = tiny_config(tmp_path / "cache", epochs=4, eval_trajectories=4, keep_resume=True)
     seen = []
 
     def stop_when(history):
         seen.append(len(history))
         return "stopped by the test rule" if len(history) == 2 else None
 
-    out = train("test_spinner", "gru", tmp_path / "run", cfg, progress=False, stop_when=stop_when)
+    out = train(spinner, "gru", tmp_path / "run", cfg, progress=False, stop_when=stop_when)
     card = json.loads((out / "card.json").read_text())
     assert seen == [1, 2] and card["training"]["stopped"] == "stopped by the test rule"
     assert card["training"]["epochs_run"] == 2 and card["metrics"]["set"]["trajectories"] == 4
     # resumed without the rule: the rule's stop does not hold, training continues to the epoch budget
     cfg = dataclasses.replace(cfg, resume=True)
-    train("test_spinner", "gru", tmp_path / "run", cfg, progress=False)
+    train(spinner, "gru", tmp_path / "run", cfg, progress=False)
     card = json.loads((out / "card.json").read_text())
     assert card["training"]["epochs_run"] == 4 and card["training"]["stopped"] == "max epochs"
 

@@ -116,6 +116,7 @@ class NeuralEstimator(Estimator):
             )
         self._state: Any = None
         self._t = 0  # steps since reset (bounded context: which copies restart)
+        self._offsets = copy_offsets(self.context, self.context_copies) if self.context else []
         step_fn = model.step_with_cov if self.has_covariance else model.step
         self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
 
@@ -170,7 +171,7 @@ class NeuralEstimator(Estimator):
         the copy with the oldest restart, s(t) of :mod:`neural_estimator.models.context`."""
         t, L = self._t, self.context
         means = {}
-        for k, o in enumerate(copy_offsets(L, self.context_copies)):
+        for k, o in enumerate(self._offsets):
             if t < o:
                 continue
             if (t - o) % L == 0:
