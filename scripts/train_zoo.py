@@ -19,9 +19,11 @@ finishes the selected unfinished models as they stand, without another epoch (fo
 validation loss has been flat at a learning rate halved many times, where waiting for the paper's
 30-epoch early stopping costs an hour of CPU per model and changes nothing); the card says so.
 A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 and installed
-into neural_estimator/zoo/ with its card (unless its best epoch is its first: then the shipped model
-stays and the script says so), which records the budget and whether training converged
-(early stopping triggered, or the learning rate reduced at least three times).
+into neural_estimator/zoo/ with its card, which records the budget and whether training converged
+(early stopping triggered, or the learning rate reduced at least three times). It is not installed,
+and the shipped model stays (the script says why), when its best epoch is its first (the recipe did
+not train it), or when the shipped model, scored afresh on the same evaluation set (the cards of
+older models were scored on other sets), has the lower RMSE; --no-compare skips that comparison.
 
 The plateau rule (a stated budget, on by default; --plateau-epochs 0 turns it off): a model is finished
 once its learning rate has been reduced at least 3 times and its last --plateau-epochs (N = 10) epochs
@@ -49,7 +51,8 @@ from pathlib import Path
 
 import torch
 
-from neural_estimator.models.training import RESUME_DIR, TrainConfig, plateau_rule, train
+from neural_estimator.models.checkpoint import load_checkpoint
+from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
 from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
 
@@ -101,6 +104,37 @@ def not_installable(work: Path) -> str | None:
     if len(history) > 1 and not card["validation_loss"] < first:
         return f"its validation loss never went below its first epoch's ({first:.4g}); the shipped model stays"
     return None
+
+
+def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float | None:
+    """RMSE of the model shipped in ``zoo`` for this pair, on the set the finished model's card was scored
+    on (evaluation set 0, as many trajectories, same seed and warm-up), or None when nothing ships there.
+
+    Scored afresh, not read from the shipped card: older cards were scored on other sets (400
+    trajectories, every step), so their figures do not compare."""
+    shipped = zoo / work.name
+    if not (shipped / "card.json").is_file():
+        return None
+    card = json.loads((work / "card.json").read_text())
+    scored = (card.get("metrics") or {}).get("set") or {}
+    if scored.get("role") != "eval":
+        return None  # recorded data (no evaluation set to score the shipped model on): nothing to compare
+    model, norm, shipped_card = load_checkpoint(shipped, device)
+    metrics = evaluate(
+        scenario, model, norm, shipped_card["architecture"]["name"], scored["trajectories"], scored["seed"], device
+    )
+    if metrics["set"]["warmup"] != scored.get("warmup", 0):
+        return None  # the finished card was scored over another range of steps: not comparable
+    return metrics["rmse"]
+
+
+def not_better(work: Path, shipped: float | None) -> str | None:
+    """Why a finished model must not replace the shipped one by its RMSE, or None: it must be lower than
+    the shipped model's on the same evaluation set (:func:`shipped_rmse`)."""
+    rmse = (json.loads((work / "card.json").read_text()).get("metrics") or {}).get("rmse")
+    if shipped is None or rmse is None or rmse < shipped:
+        return None
+    return f"its RMSE {rmse:.4g} is not below the shipped model's {shipped:.4g} on the same set; the shipped model stays"
 
 
 def status_line(work: Path) -> str:
@@ -161,6 +195,11 @@ def main(argv=None) -> int:
         action="store_true",
         help="finish the selected unfinished models as they stand (no more epochs): evaluate, install",
     )
+    p.add_argument(
+        "--no-compare",
+        action="store_true",
+        help="install a finished model even if the shipped one scores a lower RMSE on the same set",
+    )
     p.add_argument("--status", action="store_true", help="print each model's state and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
@@ -217,7 +256,9 @@ def main(argv=None) -> int:
                 card["training"]["budget"]["max_epochs"] = a.max_epochs
                 (work / "card.json").write_text(json.dumps(card, indent=2) + "\n")
             if finished(work):
-                why = not_installable(work)
+                why = not_installable(work) or (
+                    None if a.no_compare else not_better(work, shipped_rmse(work, zoo, scenario, a.device))
+                )
                 print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0

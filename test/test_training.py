@@ -619,6 +619,47 @@ def test_train_zoo_does_not_install_a_model_that_never_beat_its_first_epoch(tmp_
     assert zoo_script.not_installable(work) is None
 
 
+def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_the_same_set(
+    tmp_path, monkeypatch, capsys
+):
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    zoo = tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--zoo", str(zoo)]
+    args += ["--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6"]
+    args += ["--eval-trajectories", "4", "--max-epochs", "2", "--quiet"]
+    assert zoo_script.main([*args, "--state", str(tmp_path / "a")]) == 0
+    shipped = zoo / "test_spinner-gru"
+    first = json.loads((shipped / "card.json").read_text())
+    stamp = (shipped / "card.json").stat().st_mtime_ns  # install copies the card with its mtime
+    # the shipped model scored afresh on the card's set reproduces the card's own figure
+    work = tmp_path / "a" / "test_spinner-gru"
+    rmse = zoo_script.shipped_rmse(work, zoo, make_scenario("test_spinner"))
+    assert rmse == pytest.approx(first["metrics"]["rmse"], rel=1e-6)
+    # the same recipe again trains the same model: not lower, so the shipped one stays
+    capsys.readouterr()
+    assert zoo_script.main([*args, "--state", str(tmp_path / "b")]) == 0
+    assert "is not below the shipped model's" in capsys.readouterr().out
+    assert (shipped / "card.json").stat().st_mtime_ns == stamp
+    # --no-compare installs it regardless
+    assert zoo_script.main([*args, "--state", str(tmp_path / "c"), "--no-compare"]) == 0
+    assert "installed" in capsys.readouterr().out
+    assert (shipped / "card.json").stat().st_mtime_ns != stamp
+
+
+def test_train_zoo_not_better_compares_rmse_only_when_both_exist(tmp_path):
+    zoo_script = _train_zoo()
+    work = tmp_path / "s-m"
+    work.mkdir()
+    (work / "card.json").write_text(json.dumps({"metrics": {"rmse": 0.5}}))
+    assert zoo_script.not_better(work, None) is None  # nothing shipped
+    assert zoo_script.not_better(work, 0.6) is None
+    assert "0.5 is not below the shipped model's 0.4" in zoo_script.not_better(work, 0.4)
+    assert "not below" in zoo_script.not_better(work, 0.5)  # a tie keeps the shipped model
+    (work / "card.json").write_text(json.dumps({"metrics": None}))  # no card metrics: nothing to compare
+    assert zoo_script.not_better(work, 0.4) is None
+
+
 def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
