@@ -580,6 +580,12 @@ _TRAIN_FLAG_HELP["loss_units"] = (
     "default) or normalised (each at unit variance; the models trained before session 8); the paper does "
     "not say which"
 )
+_TRAIN_FLAG_HELP["val_context"] = (
+    "> 0: validate (and so choose the checkpoint) with the context bounded to this many steps, "
+    "--val-context-copies copies restarted at staggered steps (gru, lstm, mamba, mamba2; not the paper's "
+    "recipe); the model then serves bounded by default (default: 0, the paper's continuous validation)"
+)
+_TRAIN_FLAG_HELP["val_context_copies"] = "copies for --val-context (K times the validation compute; default: 4)"
 _TRAIN_DEFAULTS = {
     "eval_trajectories": 200,
     "val_trajectories": None,

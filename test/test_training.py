@@ -439,6 +439,49 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
         NeuralEstimator(oscillator, model, norm, "gru", compile_step="maybe")
 
 
+# ---- bounded-context validation (a variant of the recipe, not the paper's) --------------------------
+def test_val_context_recipe_is_checked_and_recorded_only_when_set():
+    assert "val_context" not in TrainConfig().recipe() and "val_context_copies" not in TrainConfig().recipe()
+    r = TrainConfig(val_context=100, val_context_copies=4).recipe()
+    assert (r["val_context"], r["val_context_copies"]) == (100, 4)
+    with pytest.raises(TrainingError, match="val_context must be >= 0"):
+        TrainConfig(val_context=-1)
+    with pytest.raises(TrainingError, match="must not exceed val_context"):
+        TrainConfig(val_context=3, val_context_copies=4)
+
+
+def test_val_context_validates_bounded_and_the_model_serves_bounded(tmp_path, spinner, monkeypatch):
+    import neural_estimator.models.training as training
+
+    calls = []
+    real = training.bounded_forward
+
+    def spy(model, z, length, copies):
+        calls.append((z.shape[1], length, copies))
+        return real(model, z, length, copies)
+
+    monkeypatch.setattr(training, "bounded_forward", spy)
+    cfg = tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=4)
+    plain = train(spinner, "gru", tmp_path / "plain", cfg, progress=False)
+    assert calls == []
+    cfg_bounded = replace(cfg, val_context=10, val_context_copies=2)
+    bounded = train(spinner, "gru", tmp_path / "bounded", cfg_bounded, progress=False)
+    assert calls and all(c[1:] == (10, 2) and c[0] == cfg.train_length for c in calls)
+    a, b = (json.loads((d / "card.json").read_text()) for d in (plain, bounded))
+    # the same training (validation draws nothing), another validation loss
+    assert a["training"]["history"][0]["train_loss"] == b["training"]["history"][0]["train_loss"]
+    assert a["validation_loss"] != b["validation_loss"]
+    assert b["metrics"]["set"]["context"] == 10 and "context" not in a["metrics"]["set"]
+    assert "bounded to 10 steps" in b["training"]["validation"]
+    est = load_neural_estimator("gru", spinner, checkpoint=bounded)
+    assert (est.context, est.context_copies) == (10, 2)  # as it was validated
+    assert load_neural_estimator("gru", spinner, checkpoint=bounded, context=0).context == 0
+    assert load_neural_estimator("gru", spinner, checkpoint=plain).context == 0
+    assert load_neural_estimator("gru", spinner, checkpoint=plain, context=10).context_copies == 10
+    with pytest.raises(TrainingError, match="val_context applies to"):
+        train(spinner, "gpt2", tmp_path / "g", replace(cfg, val_context=10), progress=False)
+
+
 # ---- the zoo script: resumable across runs, cards with budget and convergence ---------------------
 def _train_zoo():
     return load_script("scripts/train_zoo.py")
@@ -645,6 +688,19 @@ def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_th
     assert zoo_script.main([*args, "--state", str(tmp_path / "c"), "--no-compare"]) == 0
     assert "installed" in capsys.readouterr().out
     assert (shipped / "card.json").stat().st_mtime_ns != stamp
+
+
+def test_train_zoo_val_context_trains_a_variant_that_replaces_no_shipped_model(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    monkeypatch.setattr(zoo_script, "ZOO", tmp_path / "zoo")  # the default zoo, were it used
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(tmp_path / "s")]
+    args += ["--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6"]
+    args += ["--eval-trajectories", "4", "--max-epochs", "1", "--quiet", "--val-context", "10"]
+    assert zoo_script.main(args) == 0
+    assert "not installed without --zoo" in capsys.readouterr().out and not (tmp_path / "zoo").exists()
+    card = json.loads((tmp_path / "s" / "test_spinner-gru" / "card.json").read_text())
+    assert card["training"]["recipe"]["val_context"] == 10 and card["metrics"]["set"]["context"] == 10
 
 
 def test_train_zoo_not_better_compares_rmse_only_when_both_exist(tmp_path):

@@ -53,6 +53,12 @@ class TrainConfig:
     patience: int = 30  # early stopping: epochs without a lower validation loss
     # validation and evaluation
     val_batch_size: int = 500  # validation trajectories per forward pass (memory only)
+    # > 0: validate (and so choose the checkpoint, and score the card) with the model's context bounded
+    # to this many steps, val_context_copies copies restarted at staggered steps (GRU, LSTM, Mamba,
+    # Mamba-2; models.context); the model then serves bounded by default. 0: the paper's continuous
+    # validation. Not the paper's: for recurrent models whose state drifts past the training windows.
+    val_context: int = 0
+    val_context_copies: int = 4
     eval_trajectories: int = 0  # > 0: metrics of the best model on that many trajectories of eval set 0
     # runtime
     device: str = "cpu"  # cpu, cuda, cuda:N or auto
@@ -88,6 +94,15 @@ class TrainConfig:
             raise TrainingError("need lr > 0, weight_decay >= 0, grad_clip > 0 and 0 < lr_factor < 1")
         if self.loss_units not in LOSS_UNITS:
             raise TrainingError(f"loss_units must be one of {', '.join(LOSS_UNITS)}, got {self.loss_units!r}")
+        if self.val_context < 0 or self.val_context_copies < 1:
+            raise TrainingError(
+                f"val_context must be >= 0 and val_context_copies >= 1, got {self.val_context}, "
+                f"{self.val_context_copies}"
+            )
+        if self.val_context and self.val_context_copies > self.val_context:
+            raise TrainingError(
+                f"val_context_copies ({self.val_context_copies}) must not exceed val_context ({self.val_context})"
+            )
         if self.eval_trajectories < 0:
             raise TrainingError(f"eval_trajectories must be >= 0, got {self.eval_trajectories}")
 
@@ -96,7 +111,8 @@ class TrainConfig:
 
         Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what), and
         ``loss_units`` when it is "normalised": every card and resume state written before the field
-        existed was trained so, and a recipe without it still means that.
+        existed was trained so, and a recipe without it still means that; likewise ``val_context`` and
+        ``val_context_copies`` when the context is unbounded (0).
         """
         d = dataclasses.asdict(self)
         d["model_overrides"] = dict(self.model_overrides)
@@ -104,6 +120,9 @@ class TrainConfig:
             d.pop(key)
         if d["loss_units"] == "normalised":
             d.pop("loss_units")
+        if not d["val_context"]:
+            d.pop("val_context")
+            d.pop("val_context_copies")
         return d
 
 

@@ -78,8 +78,8 @@ def load_neural_estimator(
     device: str = "cpu",
     covariance: bool = True,
     compile_step: bool = False,
-    context: int = 0,
-    context_copies: int = 10,
+    context: int | None = None,
+    context_copies: int | None = None,
 ):
     """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
@@ -92,7 +92,10 @@ def load_neural_estimator(
         covariance: report Filterformer's covariance (False saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
         context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
-            :mod:`neural_estimator.models.context`); 0 = unbounded, the paper's way.
+            :mod:`neural_estimator.models.context`); 0 = unbounded, the paper's way. None: as the
+            model was validated (the card's ``training.recipe.val_context`` and
+            ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
+            when only ``context`` is given.
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
@@ -113,6 +116,13 @@ def load_neural_estimator(
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
     model, normalizer, card = load_checkpoint(directory, device)
+    recipe = (card.get("training") or {}).get("recipe") or {}
+    if context is None:  # as the checkpoint was chosen: bounded if its validation was
+        context = recipe.get("val_context", 0)
+        if context and context_copies is None:
+            context_copies = recipe.get("val_context_copies", 10)
+    if context_copies is None:
+        context_copies = 10
     return NeuralEstimator(
         scenario,
         model,

@@ -80,7 +80,8 @@ from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.card import json_ready
 from neural_estimator.models.checkpoint import load_checkpoint, save_checkpoint
-from neural_estimator.models.neural import NeuralEstimator, resolve_device
+from neural_estimator.models.context import bounded_forward
+from neural_estimator.models.neural import RECURRENT, NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import Normalizer
 from neural_estimator.scenarios import Scenario, make_scenario
 
@@ -236,6 +237,10 @@ def train(
     arch = check_method(arch)
     if arch not in NEURAL_METHODS:
         raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(NEURAL_METHODS)}")
+    if cfg.val_context and arch not in RECURRENT:
+        raise TrainingError(
+            f"val_context applies to {', '.join(RECURRENT)}; {arch}'s attention window bounds its context already"
+        )
     known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
     unknown = sorted(set(cfg.model_overrides) - known)
     if unknown:  # before any data are simulated
@@ -335,7 +340,8 @@ def train(
         total, count = 0.0, 0
         bar.set_description_str(f"{scenario.name}/{arch} epoch {run['epoch'] + 1} validation")
         for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
-            pred = model(Z_val[b0 : b0 + cfg.val_batch_size])  # (b, T, dx)
+            z = Z_val[b0 : b0 + cfg.val_batch_size]
+            pred = bounded_forward(model, z, cfg.val_context, cfg.val_context_copies) if cfg.val_context else model(z)
             e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
             e2 = e.double().square()
             if comp_w is not None:  # the same component weights as the training loss (mean 1)
@@ -372,7 +378,12 @@ def train(
                     if comp_w is None
                     else "; each component weighted by sigma_d^2 / mean(sigma^2) (loss_units=state: the states' units)"
                 ),
-                "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode",
+                "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode"
+                + (
+                    f", context bounded to {cfg.val_context} steps ({cfg.val_context_copies} copies)"
+                    if cfg.val_context
+                    else ""
+                ),
                 "epochs_run": run["epoch"],
                 "best_epoch": run["best_epoch"],
                 "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
@@ -484,7 +495,17 @@ def train(
     metrics = None
     if cfg.eval_trajectories:
         metrics = evaluate(
-            scenario, best_model, norm, arch, cfg.eval_trajectories, cfg.data_seed, device, cache, data=eval_data
+            scenario,
+            best_model,
+            norm,
+            arch,
+            cfg.eval_trajectories,
+            cfg.data_seed,
+            device,
+            cache,
+            data=eval_data,
+            context=cfg.val_context,
+            context_copies=cfg.val_context_copies,
         )
     save_checkpoint(out_dir, best_model, norm, card(metrics))
     if not cfg.keep_resume:
@@ -502,17 +523,21 @@ def evaluate(
     device: str | torch.device = "cpu",
     cache_dir: str | None = None,
     data: Trajectories | None = None,
+    context: int = 0,
+    context_copies: int = 4,
 ) -> dict[str, Any]:
     """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon), or of
     ``data`` (recorded data: the validation set), the first :data:`EVALUATION_WARMUP` steps not scored
-    (as every evaluation; the card's ``set.warmup`` says so; cards without it scored every step)."""
+    (as every evaluation; the card's ``set.warmup`` says so; cards without it scored every step);
+    ``context`` > 0 runs it with its context bounded (the card's ``set.context`` says so)."""
     role = "eval" if data is None else "val (recorded)"
     data = (
         dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir)
         if data is None
         else data.subset(slice(0, trajectories))
     )
-    est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False)
+    bounded = dict(context=context, context_copies=context_copies) if context else {}
+    est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False, **bounded)
     out = est.run(data.y, data.u)
     warmup = EVALUATION_WARMUP if data.horizon > EVALUATION_WARMUP else 0
     report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged, warmup=warmup)
@@ -524,6 +549,7 @@ def evaluate(
             "trajectories": data.n,
             "horizon": data.horizon,
             "warmup": warmup,
+            **({"context": context, "context_copies": context_copies} if context else {}),
         },
         **to_json(report.scalars()),
     }

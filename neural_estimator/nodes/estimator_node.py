@@ -234,6 +234,11 @@ class EstimatorNode(ManagedNode):
             + (f"/{self.depths['covariance']}" if self.pub_cov else "")
             + " msgs)"
         )
+        if getattr(est, "context", 0):
+            self.get_logger().info(
+                f"{self.method}: context bounded to {est.context} steps ({est.context_copies} copies, "
+                f"{est.context_copies}x the compute per message)"
+            )
         untrained = getattr(est, "untrained_steps", 0)
         if untrained:
             self.get_logger().warning(
