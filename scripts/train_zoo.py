@@ -59,6 +59,7 @@ from pathlib import Path
 import torch
 
 from neural_estimator.models.checkpoint import load_checkpoint
+from neural_estimator.models.serving import validated_context
 from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
 from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
@@ -127,9 +128,6 @@ def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float 
     if scored.get("role") != "eval":
         return None  # recorded data (no evaluation set to score the shipped model on): nothing to compare
     model, norm, shipped_card = load_checkpoint(shipped, device)
-    recipe = shipped_card["training"].get("recipe") or {}  # as it serves: bounded if it was validated so
-    context = recipe.get("val_context", 0)
-    bounded = {"context": context, "context_copies": recipe["val_context_copies"]} if context else {}
     metrics = evaluate(
         scenario,
         model,
@@ -138,7 +136,7 @@ def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float 
         scored["trajectories"],
         scored["seed"],
         device,
-        **bounded,
+        **validated_context(shipped_card),  # as it serves: bounded if it was validated so
     )
     if metrics["set"]["warmup"] != scored.get("warmup", 0):
         return None  # the finished card was scored over another range of steps: not comparable

@@ -71,6 +71,16 @@ def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None
         )
 
 
+def validated_context(card: dict[str, Any]) -> dict[str, int]:
+    """The bounded context a checkpoint was validated with, as ``NeuralEstimator`` keywords
+    (``context``, ``context_copies``), or {} for a model validated the paper's way (continuously):
+    the context it serves with by default (``training.recipe.val_context``)."""
+    recipe = (card.get("training") or {}).get("recipe") or {}
+    if not recipe.get("val_context"):
+        return {}
+    return {"context": recipe["val_context"], "context_copies": recipe.get("val_context_copies", 10)}
+
+
 def load_neural_estimator(
     method: str,
     scenario: Scenario,
@@ -116,11 +126,10 @@ def load_neural_estimator(
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
     model, normalizer, card = load_checkpoint(directory, device)
-    recipe = (card.get("training") or {}).get("recipe") or {}
     if context is None:  # as the checkpoint was chosen: bounded if its validation was
-        context = recipe.get("val_context", 0)
-        if context and context_copies is None:
-            context_copies = recipe.get("val_context_copies", 10)
+        validated = validated_context(card)
+        context = validated.get("context", 0)
+        context_copies = validated.get("context_copies") if context_copies is None else context_copies
     if context_copies is None:
         context_copies = 10
     return NeuralEstimator(

@@ -536,8 +536,16 @@ def evaluate(
         if data is None
         else data.subset(slice(0, trajectories))
     )
-    bounded = dict(context=context, context_copies=context_copies) if context else {}
-    est = NeuralEstimator(scenario, model, normalizer, arch, device=device, covariance=False, **bounded)
+    est = NeuralEstimator(
+        scenario,
+        model,
+        normalizer,
+        arch,
+        device=device,
+        covariance=False,
+        context=context,
+        context_copies=context_copies,
+    )
     out = est.run(data.y, data.u)
     warmup = EVALUATION_WARMUP if data.horizon > EVALUATION_WARMUP else 0
     report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged, warmup=warmup)
