@@ -16,7 +16,9 @@ previous CPU training path (Mamba: the stepwise torch scan; Mamba-2: the chunked
 autograd graphs; GPT-2 and Filterformer: attention on torch's unfused math path), ``fused`` the
 current one (the SSMs: the numba kernels with hand-written backward,
 :mod:`neural_estimator.models.cpu_scan`; the attention models: torch's fused CPU attention kernel,
-which the 4-D operands and mask of :func:`~neural_estimator.models.layers.window_attention` admit).
+which the 4-D operands and mask of :func:`~neural_estimator.models.layers.window_attention` admit,
+for validation, and in training the written-out attention and dropout with the cheaper CPU mask of
+:mod:`neural_estimator.models.dropout`; ``(before)`` there is torch's dropout and math path).
 
 Achieved GFLOP/s = model FLOPs of one training step / its time. Model FLOPs are counted by torch's
 FlopCounterMode over forward + backward on the *before* path (matmuls, convolutions and the scans'
@@ -40,6 +42,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from neural_estimator.models import ARCHITECTURES, build_model
+from neural_estimator.models.dropout import Dropout
 from neural_estimator.models.neural import resolve_device
 from neural_estimator.models.training import weighted_loss
 from neural_estimator.runtime import tune_allocator
@@ -58,13 +61,16 @@ BEFORE = {"mamba": "stepwise", "mamba2": "chunked", "gpt2": "math", "filterforme
 
 
 def set_scan(model: torch.nn.Module, scan: str) -> None:
-    """Select the CPU training path of every SSM mixer (``cpu_scan``) and attention layer
-    (``attention_path``) in ``model``: "fused" or the architecture's BEFORE path."""
+    """Select the CPU training path of every SSM mixer (``cpu_scan``), attention layer
+    (``attention_path``) and dropout (``Dropout.fast``) in ``model``: "fused" or the
+    architecture's BEFORE path."""
     for m in model.modules():
         if hasattr(m, "cpu_scan"):
             m.cpu_scan = scan
         if hasattr(m, "attention_path"):
             m.attention_path = scan
+        if isinstance(m, Dropout):
+            m.fast = scan == "fused"
 
 
 def step_flops(arch: str, args: argparse.Namespace) -> float:

@@ -47,6 +47,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from neural_estimator.models.dropout import Dropout
 from neural_estimator.models.layers import (
     advance_mask,
     alibi_slopes,
@@ -81,7 +82,7 @@ class PrefixAttention(nn.Module):
         self.dropout = cfg.dropout
         self.qkv = nn.Linear(cfg.d_model, 3 * cfg.d_model)
         self.proj = nn.Linear(cfg.d_model, cfg.d_model)
-        self.drop = nn.Dropout(cfg.dropout)
+        self.drop = Dropout(cfg.dropout)
         self.attention_path = "fused"  # or "math": torch's unfused path (layers.window_attention)
 
     def forward(self, x: Tensor, slopes: Tensor) -> Tensor:
@@ -135,12 +136,12 @@ class FilterformerModel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.input_proj = nn.Linear(cfg.d_in, cfg.d_model)
-        self.drop = nn.Dropout(cfg.dropout)
+        self.drop = Dropout(cfg.dropout)
         self.ln_1 = nn.LayerNorm(cfg.d_model)
         self.attn = PrefixAttention(cfg)
         self.ln_2 = nn.LayerNorm(cfg.d_model)
         self.mlp = nn.Sequential(
-            nn.Linear(cfg.d_model, cfg.d_mlp), nn.GELU(), nn.Linear(cfg.d_mlp, cfg.d_model), nn.Dropout(cfg.dropout)
+            nn.Linear(cfg.d_model, cfg.d_mlp), nn.GELU(), nn.Linear(cfg.d_mlp, cfg.d_model), Dropout(cfg.dropout)
         )
         self.ln_f = nn.LayerNorm(cfg.d_model)
         self.head = GeometricAttentionHead(cfg)

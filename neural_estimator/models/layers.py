@@ -27,6 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from neural_estimator.models.dropout import keep_mask
+
 
 def alibi_slopes(n_heads: int) -> Tensor:
     """ALiBi head slopes m_h (Press et al., section 3): the geometric sequence 2^(-8 h / n), h = 1..n.
@@ -67,10 +69,12 @@ def window_attention(
             its fused CPU kernel (flash attention: scores never materialised); False passes the 3-D
             mask (and, blocked, 5-D operands) of the code before session 11, which torch can only
             run on its unfused math path. Same result to float rounding; False is kept as the
-            benchmark's "before" and the tests' reference. The fused kernel has no dropout, so a
-            training step with attention dropout takes the math path either way: the gain is in
-            evaluation, validation and replay (one thread, Lorenz 96 sizes, 500 x 500 steps:
-            GPT-2 9.2k -> 33k steps/s, Filterformer 12.9k -> 40k; bench_training.py's val steps/s).
+            benchmark's "before" and the tests' reference. The fused kernel has no dropout, so with
+            attention dropout on the CPU (a training step) ``fused`` takes :func:`_attention_dropout`
+            instead (the math path without torch's per-element mask draws and softmax guards). The
+            fused kernel's gain is in evaluation, validation and replay (one thread, Lorenz 96
+            sizes, 500 x 500 steps: GPT-2 9.2k -> 33k steps/s, Filterformer 12.9k -> 40k;
+            bench_training.py's val steps/s).
 
     Returns:
         (B, nh, T, hs) attention output.
@@ -83,7 +87,9 @@ def window_attention(
         bias = _bias(slopes, dist, dist >= 0)  # (nh, T, T)
         # A 4-D mask: torch's fused CPU (flash) kernel takes 2-D or 4-D masks only, and falls back
         # to the unfused math path (scores materialised, 3.5x slower here) for any other shape.
-        return F.scaled_dot_product_attention(q, k, v, attn_mask=bias[None] if fused else bias, dropout_p=dropout_p)
+        if not fused:
+            return F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=dropout_p)
+        return _attention(q, k, v, bias[None], dropout_p)
 
     # Blocked form: query block i (positions iW..iW+W-1) sees key blocks i-1 and i.
     W = window
@@ -107,14 +113,38 @@ def window_attention(
         y = F.scaled_dot_product_attention(qb, k2, v2, attn_mask=bias, dropout_p=dropout_p)  # (B, nh, nb, W, hs)
         return y.reshape(B, nh, nb * W, hs)[:, :, :T]
     # Heads and blocks folded into one axis: 4-D operands and mask, for the fused kernel (above).
-    y = F.scaled_dot_product_attention(
+    y = _attention(
         qb.reshape(B, nh * nb, W, hs),
         k2.reshape(B, nh * nb, 2 * W, hs),
         v2.reshape(B, nh * nb, 2 * W, hs),
-        attn_mask=bias.reshape(1, nh * nb, W, 2 * W),
-        dropout_p=dropout_p,
+        bias.reshape(1, nh * nb, W, 2 * W),
+        dropout_p,
     )  # (B, nh * nb, W, hs)
     return y.reshape(B, nh, nb * W, hs)[:, :, :T]
+
+
+def _attention(q: Tensor, k: Tensor, v: Tensor, bias: Tensor, dropout_p: float) -> Tensor:
+    """softmax(q k^T / sqrt(hs) + bias) v with 4-D operands: torch's fused kernel, or on the CPU with
+    attention dropout :func:`_attention_dropout`."""
+    if dropout_p > 0.0 and q.device.type == "cpu":
+        return _attention_dropout(q, k, v, bias, dropout_p)
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=dropout_p)
+
+
+def _attention_dropout(q: Tensor, k: Tensor, v: Tensor, bias: Tensor, dropout_p: float) -> Tensor:
+    """Attention with dropout on its weights, written out: (softmax(q k^T / sqrt(hs) + bias) * mask) v.
+
+    What torch's math path computes, less two costs of its CPU training step (GPT-2, one thread:
+    a fifth of the step): the mask is :func:`~neural_estimator.models.dropout.keep_mask` (four
+    elements per random draw, not one), and the softmax is the plain one, not torch's guarded
+    "safe" softmax for rows whose every key is masked (isneginf/all/where passes over the scores):
+    no row here is, since each query sees at least its own key.
+
+    Shapes: q (..., T, hs), k and v (..., S, hs), bias broadcastable to (..., T, S).
+    """
+    scores = torch.matmul(q, k.transpose(-2, -1)).mul_(q.shape[-1] ** -0.5) + bias  # (..., T, S)
+    weights = torch.softmax(scores, dim=-1)
+    return torch.matmul(weights * keep_mask(weights.shape, dropout_p, weights.device, weights.dtype), v)
 
 
 def window_alibi(slopes: Tensor, window: int) -> Tensor:
