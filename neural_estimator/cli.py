@@ -581,9 +581,10 @@ _TRAIN_FLAG_HELP["loss_units"] = (
     "not say which"
 )
 _TRAIN_FLAG_HELP["val_context"] = (
-    "> 0: validate (and so choose the checkpoint) with the context bounded to this many steps, "
-    "--val-context-copies copies restarted at staggered steps (gru, lstm, mamba, mamba2; not the paper's "
-    "recipe); the model then serves bounded by default (default: 0, the paper's continuous validation)"
+    "> 0: validate (and so choose the checkpoint) with the context bounded to this many steps: "
+    "--val-context-copies copies restarted at staggered steps (gru, lstm, mamba, mamba2), the attention "
+    "window (gpt2, filterformer); not the paper's recipe; the model then serves bounded by default "
+    "(default: 0, the paper's validation)"
 )
 _TRAIN_FLAG_HELP["val_context_copies"] = "copies for --val-context (K times the validation compute; default: 4)"
 _TRAIN_DEFAULTS = {

@@ -41,8 +41,10 @@ Order: Mamba and Mamba-2 on every scenario first, then GRU, LSTM, GPT-2, Filterf
     python scripts/train_zoo.py --scenarios nlink --methods mamba2 --val-context 100   # a variant
 
 --val-context N (not the paper's recipe) validates, and so chooses the checkpoint, with the model's
-context bounded to N steps (models.context; for the recurrent models whose state drifts past the
-training windows: the N-link SSMs, see the README); the card records it and the model then serves
+context bounded to N steps (the recurrent models by restarted copies, models.context, for states
+that drift past the training windows: the N-link SSMs; GPT-2 and Filterformer by an attention
+window of N instead of the paper's 256, which on ballistic and bearings lets them attend to more
+steps than they were trained on; see the README); the card records it and the model then serves
 bounded by default. Such variants train in zoo_training/context<N>/ and replace no shipped model
 unless --zoo is given.
 """
@@ -209,8 +211,9 @@ def main(argv=None) -> int:
         "--val-context",
         type=int,
         default=0,
-        help="validate with the context bounded to N steps (GRU, LSTM, Mamba, Mamba-2; not the paper's): a "
-        "variant, trained in STATE/context<N>/ and installed nowhere unless --zoo is given",
+        help="validate with the context bounded to N steps (restarted copies for GRU, LSTM, Mamba, Mamba-2; "
+        "the attention window for GPT-2, Filterformer; not the paper's): a variant, trained in "
+        "STATE/context<N>/ and installed nowhere unless --zoo is given",
     )
     p.add_argument("--val-context-copies", type=int, default=TrainConfig.val_context_copies)
     p.add_argument(

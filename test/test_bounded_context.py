@@ -59,10 +59,38 @@ def test_the_context_option_streams_what_it_runs(method):
     assert np.abs(whole[:, 12:] - free[:, 12:]).max() > 1e-4
 
 
+@pytest.mark.parametrize("method,key", [("gpt2", "decode_chunk"), ("filterformer", "window")])
+def test_the_context_option_of_an_attention_model_is_its_window(method, key):
+    """context=L serves the same weights with attention window L: equal to a model built with that
+    window, step equal to run, and different from the paper's window of 256 past step L."""
+    from neural_estimator.data import simulate
+    from neural_estimator.models.normalization import Normalizer
+    from neural_estimator.models.neural import NeuralEstimator
+
+    scenario = make_scenario("nlink")
+    data = simulate(scenario, 2, 40, seed=7)
+    norm = Normalizer.from_data(scenario, data)
+    torch.manual_seed(0)
+    model = build_model(method, norm.d_in, scenario.dx)
+    narrow = build_model(method, norm.d_in, scenario.dx, **{key: 12})
+    narrow.load_state_dict(model.state_dict())
+    free = NeuralEstimator(scenario, model, norm, method, covariance=False).run(data.y, data.u).x
+    bounded_est = NeuralEstimator(scenario, model, norm, method, covariance=False, context=12)
+    assert getattr(model.cfg, key) == 12 and not bounded_est.context_by_copies
+    bounded = bounded_est.run(data.y, data.u).x
+    built = NeuralEstimator(scenario, narrow, norm, method, covariance=False).run(data.y, data.u).x
+    np.testing.assert_allclose(bounded, built, rtol=0, atol=1e-6 * np.abs(built).max())
+    bounded_est.reset(2)
+    stepped = np.stack([bounded_est.step(data.y[:, t], data.u[:, t - 1] if t else None) for t in range(40)], axis=1)
+    np.testing.assert_allclose(stepped, bounded, rtol=0, atol=1e-4 * np.abs(bounded).max())
+    np.testing.assert_allclose(bounded[:, :12], free[:, :12], rtol=0, atol=1e-5)  # the window has not bound yet
+    assert np.abs(bounded[:, 12:] - free[:, 12:]).max() > 1e-4
+
+
 def test_the_context_option_refuses_what_it_cannot_do():
     scenario = make_scenario("nlink")
-    with pytest.raises(EstimatorError, match="context applies to gru, lstm, mamba, mamba2"):
-        make_estimator("gpt2", scenario, context=100)
+    with pytest.raises(ValueError, match="attention window must be >= 1"):
+        build_model("gpt2", 3, 2).set_window(0)
     with pytest.raises(EstimatorError, match="context must be >= 0"):
         make_estimator("mamba2", scenario, context=-1)
     with pytest.raises(EstimatorError, match="context_copies .20. must not exceed context .10."):

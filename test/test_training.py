@@ -478,8 +478,28 @@ def test_val_context_validates_bounded_and_the_model_serves_bounded(tmp_path, sp
     assert load_neural_estimator("gru", spinner, checkpoint=bounded, context=0).context == 0
     assert load_neural_estimator("gru", spinner, checkpoint=plain).context == 0
     assert load_neural_estimator("gru", spinner, checkpoint=plain, context=10).context_copies == 10
-    with pytest.raises(TrainingError, match="val_context applies to"):
-        train(spinner, "gpt2", tmp_path / "g", replace(cfg, val_context=10), progress=False)
+    with pytest.raises(TrainingError, match="sets gpt2's attention window decode_chunk"):
+        cfg_conflict = replace(cfg, val_context=10, model_overrides={"decode_chunk": 20})
+        train(spinner, "gpt2", tmp_path / "g", cfg_conflict, progress=False)
+
+
+def test_val_context_of_an_attention_model_is_its_window(tmp_path, spinner):
+    """GPT-2 with val_context=L: the model is built, validated, scored and served with attention
+    window L (the paper's 256 otherwise); with L >= the training windows its training is the paper's."""
+    cfg = tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=4, model_overrides={"n_embd": 8})
+    plain = train(spinner, "gpt2", tmp_path / "plain", cfg, progress=False)
+    bounded = train(spinner, "gpt2", tmp_path / "bounded", replace(cfg, val_context=8), progress=False)
+    a, b = (json.loads((d / "card.json").read_text()) for d in (plain, bounded))
+    assert a["architecture"]["config"]["decode_chunk"] == 256 and b["architecture"]["config"]["decode_chunk"] == 8
+    assert "its attention window" in b["training"]["validation"] and b["metrics"]["set"]["context"] == 8
+    assert cfg.window > 8  # here the window binds in training too: another run
+    assert a["training"]["history"][0]["train_loss"] != b["training"]["history"][0]["train_loss"]
+    est = load_neural_estimator("gpt2", spinner, checkpoint=bounded)
+    assert est.context == 8 and est.model.cfg.decode_chunk == 8
+    wide = replace(cfg, val_context=cfg.window)  # the window never binds in training: the same training
+    same = train(spinner, "gpt2", tmp_path / "same", wide, progress=False)
+    c = json.loads((same / "card.json").read_text())
+    assert c["training"]["history"][0]["train_loss"] == a["training"]["history"][0]["train_loss"]
 
 
 # ---- the zoo script: resumable across runs, cards with budget and convergence ---------------------

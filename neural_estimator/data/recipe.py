@@ -54,9 +54,11 @@ class TrainConfig:
     # validation and evaluation
     val_batch_size: int = 500  # validation trajectories per forward pass (memory only)
     # > 0: validate (and so choose the checkpoint, and score the card) with the model's context bounded
-    # to this many steps, val_context_copies copies restarted at staggered steps (GRU, LSTM, Mamba,
-    # Mamba-2; models.context); the model then serves bounded by default. 0: the paper's continuous
-    # validation. Not the paper's: for recurrent models whose state drifts past the training windows.
+    # to this many steps: GRU, LSTM, Mamba, Mamba-2 by val_context_copies copies restarted at staggered
+    # steps (models.context); GPT-2 and Filterformer by their attention window, set to val_context
+    # (models.ATTENTION_WINDOW; the same training when val_context >= window). The model then serves
+    # bounded by default. 0: the paper's validation (recurrent models run continuously, attention
+    # windows of 256). Not the paper's: for models whose estimates degrade past the training windows.
     val_context: int = 0
     val_context_copies: int = 4
     eval_trajectories: int = 0  # > 0: metrics of the best model on that many trajectories of eval set 0

@@ -28,6 +28,10 @@ from neural_estimator.models.lstm import LSTMConfig, LSTMModel
 from neural_estimator.models.mamba import MambaConfig, MambaModel
 from neural_estimator.models.mamba2 import Mamba2Config, Mamba2Model
 
+# The attention models' window hyperparameter (W: the steps a query sees), which bounds their
+# context; the estimators' ``context`` option and ``TrainConfig.val_context`` set it.
+ATTENTION_WINDOW = {"gpt2": "decode_chunk", "filterformer": "window"}
+
 ARCHITECTURES: dict[str, tuple[type, type[nn.Module]]] = {
     "gru": (GRUConfig, GRUModel),
     "lstm": (LSTMConfig, LSTMModel),

@@ -40,7 +40,7 @@ Adaptation to causal discrete-time filtering (what differs from the paper's cons
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn as nn
@@ -148,6 +148,16 @@ class FilterformerModel(nn.Module):
         slopes = alibi_slopes(cfg.n_head)
         self.register_buffer("slopes", slopes, persistent=False)  # (nh,)
         self.register_buffer("slot_alibi", window_alibi(slopes, cfg.window), persistent=False)  # (nh, 1, W)
+
+    def set_window(self, window: int) -> None:
+        """Serve (and train) with attention window W = ``window`` instead of the config's (no weight
+        depends on W; see :meth:`neural_estimator.models.gpt2.GPT2Model.set_window`). Reset any step
+        state afterwards."""
+        if int(window) < 1:
+            raise ValueError(f"attention window must be >= 1, got {window}")
+        self.cfg = replace(self.cfg, window=int(window))
+        self.attn.window = self.cfg.window
+        self.slot_alibi = window_alibi(self.slopes, self.cfg.window)
 
     def encode(self, z: Tensor) -> Tensor:
         e = self.drop(self.input_proj(z))  # (B, T, D)

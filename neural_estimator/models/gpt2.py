@@ -22,7 +22,7 @@ when T > W) and in the step form (a KV cache of the last W steps), so ``forward`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch.nn as nn
 import torch.nn.functional as F
@@ -140,6 +140,17 @@ class GPT2Model(nn.Module):
         for name, p in self.named_parameters():
             if name.endswith("c_proj.weight"):  # GPT-2's scaled init of the residual projections
                 nn.init.normal_(p, mean=0.0, std=0.02 / (2 * cfg.n_layer) ** 0.5)
+
+    def set_window(self, window: int) -> None:
+        """Serve (and train) with attention window W = ``window`` instead of the config's: no weight
+        depends on W, so this is the same model seeing at most ``window`` steps (what the estimators'
+        ``context`` option does for the attention models). Reset any step state afterwards."""
+        if int(window) < 1:
+            raise ValueError(f"attention window must be >= 1, got {window}")
+        self.cfg = replace(self.cfg, decode_chunk=int(window))
+        for block in self.blocks:
+            block.attn.window = self.cfg.decode_chunk
+        self.slot_alibi = window_alibi(self.slopes, self.cfg.decode_chunk)
 
     @staticmethod
     def _init_weights(module: nn.Module) -> None:

@@ -72,9 +72,12 @@ class NeuralEstimator(Estimator):
         compile_step: serve :meth:`step` through ``torch.compile`` of the model's step (fewer Python
             dispatches per message: Mamba-2's p99 goes from ~1.1 ms to ~0.5 ms of CPU on the
             development machine); the first steps pay a one-off compilation of seconds.
-        context: bound every estimate's context to this many steps (0: unbounded, the paper's way);
-            GRU, LSTM, Mamba, Mamba-2 only. ``context_copies`` copies of the model restart at
+        context: bound every estimate's context to this many steps (0: as trained, the paper's
+            way). GRU, LSTM, Mamba, Mamba-2: ``context_copies`` copies of the model restart at
             staggered steps, see :mod:`neural_estimator.models.context`; K times the compute.
+            GPT-2, Filterformer: their attention window W becomes ``context`` (``set_window``; the
+            paper's W is 256, and a model trained on length-100 windows has never seen more than
+            100 keys), at no extra compute; ``context_copies`` does not apply.
         context_copies: K, the copies (more: contexts closer to ``context``).
     """
 
@@ -108,15 +111,19 @@ class NeuralEstimator(Estimator):
         self.card = dict(card or {})
         self.chunk_timesteps = int(chunk_timesteps)
         self.context, self.context_copies = _as_int(context, "context", 0), _as_int(context_copies, "context_copies", 1)
-        if self.context and self.context_copies > self.context:
+        self.context_by_copies = bool(self.context) and method in RECURRENT  # bounded by restarted copies
+        if self.context_by_copies and self.context_copies > self.context:
             raise EstimatorError(f"context_copies ({self.context_copies}) must not exceed context ({self.context})")
-        if self.context and method not in RECURRENT:
-            raise EstimatorError(
-                f"{method}: context applies to {', '.join(RECURRENT)} (the attention models' window bounds theirs)"
-            )
+        if self.context and not self.context_by_copies:
+            if not hasattr(self.model, "set_window"):
+                raise EstimatorError(
+                    f"{method}: context applies to {', '.join(RECURRENT)} (restarted copies) and to the "
+                    "attention models gpt2, filterformer (their window)"
+                )
+            self.model.set_window(self.context)  # the attention models: the window is the bound
         self._state: Any = None
         self._t = 0  # steps since reset (bounded context: which copies restart)
-        self._offsets = copy_offsets(self.context, self.context_copies) if self.context else []
+        self._offsets = copy_offsets(self.context, self.context_copies) if self.context_by_copies else []
         step_fn = model.step_with_cov if self.has_covariance else model.step
         self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
 
@@ -137,7 +144,7 @@ class NeuralEstimator(Estimator):
         self.model.eval()
         with torch.inference_mode():
             self._state = self.model.init_state(batch, device=self.device, dtype=self.dtype)
-        if self.context:  # one state per copy, None until the copy's first restart
+        if self.context_by_copies:  # one state per copy, None until the copy's first restart
             self._state = [None] * self.context_copies
         self._t = 0
         self.batch = batch
@@ -151,7 +158,7 @@ class NeuralEstimator(Estimator):
         z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():
-            if self.context:
+            if self.context_by_copies:
                 mean = self._bounded_step(z_t)
             elif self.has_covariance:
                 mean, cov, self._state = self._step_fn(z_t, self._state)  # (B, dx), (B, dx, dx)
@@ -202,7 +209,7 @@ class NeuralEstimator(Estimator):
                     if covs is not None:
                         mean, cov = self.model.forward_with_cov(z)  # (b, T, dx), (b, T, dx, dx)
                         covs[b0 : b0 + chunk] = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
-                    elif self.context:
+                    elif self.context_by_copies:
                         mean = bounded_forward(self.model, z, self.context, self.context_copies)  # (b, T, dx)
                     else:
                         mean = self.model(z)  # (b, T, dx)

@@ -77,11 +77,11 @@ from neural_estimator.data.recipe import TrainConfig, TrainingError  # noqa: F40
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
-from neural_estimator.models import ARCHITECTURES, build_model
+from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
 from neural_estimator.models.card import json_ready
 from neural_estimator.models.checkpoint import load_checkpoint, save_checkpoint
 from neural_estimator.models.context import bounded_forward
-from neural_estimator.models.neural import RECURRENT, NeuralEstimator, resolve_device
+from neural_estimator.models.neural import NeuralEstimator, resolve_device
 from neural_estimator.models.normalization import Normalizer
 from neural_estimator.scenarios import Scenario, make_scenario
 
@@ -237,9 +237,11 @@ def train(
     arch = check_method(arch)
     if arch not in NEURAL_METHODS:
         raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(NEURAL_METHODS)}")
-    if cfg.val_context and arch not in RECURRENT:
+    window_key = ATTENTION_WINDOW.get(arch)  # the attention models bound their context by their window
+    if cfg.val_context and window_key and cfg.model_overrides.get(window_key, cfg.val_context) != cfg.val_context:
         raise TrainingError(
-            f"val_context applies to {', '.join(RECURRENT)}; {arch}'s attention window bounds its context already"
+            f"val_context={cfg.val_context} sets {arch}'s attention window {window_key}, "
+            f"which the model overrides set to {cfg.model_overrides[window_key]}: give one of them"
         )
     known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
     unknown = sorted(set(cfg.model_overrides) - known)
@@ -304,7 +306,8 @@ def train(
 
     # ---- model, optimiser, scheduler, RNG ----
     torch.manual_seed(cfg.init_seed)  # initial weights and dropout
-    model = build_model(arch, norm.d_in, dx, **cfg.model_overrides).to(device)
+    overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
+    model = build_model(arch, norm.d_in, dx, **overrides).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
@@ -341,7 +344,10 @@ def train(
         bar.set_description_str(f"{scenario.name}/{arch} epoch {run['epoch'] + 1} validation")
         for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
             z = Z_val[b0 : b0 + cfg.val_batch_size]
-            pred = bounded_forward(model, z, cfg.val_context, cfg.val_context_copies) if cfg.val_context else model(z)
+            if cfg.val_context and not window_key:
+                pred = bounded_forward(model, z, cfg.val_context, cfg.val_context_copies)
+            else:  # an attention model's window, val_context when set, bounds it already
+                pred = model(z)
             e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
             e2 = e.double().square()
             if comp_w is not None:  # the same component weights as the training loss (mean 1)
@@ -380,9 +386,11 @@ def train(
                 ),
                 "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode"
                 + (
-                    f", context bounded to {cfg.val_context} steps ({cfg.val_context_copies} copies)"
-                    if cfg.val_context
-                    else ""
+                    ""
+                    if not cfg.val_context
+                    else f", context bounded to {cfg.val_context} steps (its attention window)"
+                    if window_key
+                    else f", context bounded to {cfg.val_context} steps ({cfg.val_context_copies} copies)"
                 ),
                 "epochs_run": run["epoch"],
                 "best_epoch": run["best_epoch"],

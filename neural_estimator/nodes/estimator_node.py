@@ -77,7 +77,8 @@ class EstimatorParams:
     options: tuple[str, ...] = param(
         (),
         "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true, "
-        "context=100 (bounded context, GRU/LSTM/Mamba/Mamba-2)",
+        "context=100 (bounded context: restarted copies for GRU/LSTM/Mamba/Mamba-2, "
+        "the attention window for GPT-2/Filterformer)",
     )
     observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
@@ -235,10 +236,12 @@ class EstimatorNode(ManagedNode):
             + " msgs)"
         )
         if getattr(est, "context", 0):
-            self.get_logger().info(
-                f"{self.method}: context bounded to {est.context} steps ({est.context_copies} copies, "
-                f"{est.context_copies}x the compute per message)"
+            how = (
+                f"{est.context_copies} copies, {est.context_copies}x the compute per message"
+                if getattr(est, "context_by_copies", True)
+                else "its attention window"
             )
+            self.get_logger().info(f"{self.method}: context bounded to {est.context} steps ({how})")
         untrained = getattr(est, "untrained_steps", 0)
         if untrained:
             self.get_logger().warning(
