@@ -35,3 +35,15 @@ def load_script(relative: str):
 def oscillator():
     """The README's custom scenario: linear-Gaussian, so the Kalman filter is exact."""
     return EXAMPLE.Oscillator()
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Small models on a shared 2-core machine: one intra-op thread avoids spin-wait contention
+    (a test module opts in with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -13,12 +13,7 @@ from neural_estimator.models.dropout import Dropout, dropped_fraction, keep_mask
 from neural_estimator.models.layers import alibi_slopes, window_attention
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tiny tensors: one intra-op thread
 
 
 @pytest.mark.parametrize("p", [0.1, 0.5, 0.03])

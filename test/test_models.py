@@ -31,13 +31,7 @@ SCENARIO_DIMS = {"ballistic": (1, 3), "bearings": (1, 4), "lorenz96": (10, 10), 
 SMALL_WINDOW = {"gpt2": {"decode_chunk": 32}, "filterformer": {"window": 32}}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny tensors: a second intra-op thread only adds synchronisation, badly so on a busy machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tiny tensors: one intra-op thread
 
 
 def make(name: str, d_in: int = 5, d_out: int = 3, seed: int = 0, **overrides) -> torch.nn.Module:

@@ -27,13 +27,7 @@ ARCHS = sorted(ARCHITECTURES)
 TOL = 1e-5  # run vs a loop of step, float32 models
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Small models on a shared 2-core machine: one intra-op thread avoids spin-wait contention."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tiny tensors: one intra-op thread
 
 
 # ---- a small controlled system with an angular state (exercises u_{k-1} inputs and wrapping) ------
