@@ -75,9 +75,10 @@ class NeuralEstimator(Estimator):
         context: bound every estimate's context to this many steps (0: as trained, the paper's
             way). GRU, LSTM, Mamba, Mamba-2: ``context_copies`` copies of the model restart at
             staggered steps, see :mod:`neural_estimator.models.context`; K times the compute.
-            GPT-2, Filterformer: their attention window W becomes ``context`` (``set_window``; the
-            paper's W is 256, and a model trained on length-100 windows has never seen more than
-            100 keys), at no extra compute; ``context_copies`` does not apply.
+            GPT-2, Filterformer: their attention window W becomes ``context`` (``set_window`` on
+            ``model`` itself, which then keeps it; the paper's W is 256, and a model trained on
+            length-100 windows has never seen more than 100 keys), at no extra compute;
+            ``context_copies`` does not apply.
         context_copies: K, the copies (more: contexts closer to ``context``).
     """
 
