@@ -43,12 +43,14 @@ L96_TARGET = 0.08
 
 def budget(card: dict) -> str:
     """``full`` for a model trained with the paper's data sizes (20,000 windows an epoch), else its epochs x
-    windows; and the units of its loss (``norm.``: normalised components, ``state``: the states' own units)."""
+    windows; the units of its loss (``norm.``: normalised components, ``state``: the states' own units); and
+    ``ctx N`` for a variant validated, and served, with its context bounded to N steps (``--val-context``)."""
     windows = card["data"]["windows_per_epoch"]
     epochs = card["training"].get("epochs_run") or card["training"]["recipe"]["epochs"]  # older cards lack epochs_run
     units = card["training"]["recipe"].get("loss_units", "normalised")  # absent: trained before the option
     size = f"full ({epochs} ep)" if windows >= 20000 else f"{epochs} x {windows}"
-    return f"{size}, {'norm.' if units == 'normalised' else 'state'} loss"
+    ctx = card["training"]["recipe"].get("val_context")
+    return f"{size}, {'norm.' if units == 'normalised' else 'state'} loss" + (f", ctx {ctx}" if ctx else "")
 
 
 def best(rmse: dict[str, float | None]) -> list[str]:
@@ -165,7 +167,8 @@ def main(argv=None) -> int:
             + (f"steps {a.warmup}.. scored (the paper's warm-up left out) " if a.warmup else "every step scored ")
             + "· the paper's RMSE (3 x 8,000); bold: the best neural model of the scenario (ours, paper); "
             "below each cell the model's training budget (full = the paper's recipe, else epochs x windows) and the "
-            "units of its loss (norm.: normalised components; state: the states' own units).",
+            "units of its loss (norm.: normalised components; state: the states' own units); ctx N: validated and "
+            "served with its context bounded to N steps (not the paper's protocol, see the README).",
             "",
             table(rows, methods),
             "",

@@ -46,7 +46,13 @@ that drift past the training windows: the N-link SSMs; GPT-2 and Filterformer by
 window of N instead of the paper's 256, which on ballistic and bearings lets them attend to more
 steps than they were trained on; see the README); the card records it and the model then serves
 bounded by default. Such variants train in zoo_training/context<N>/ and replace no shipped model
-unless --zoo is given.
+unless --zoo or --install is given.
+
+--install installs the selected models that are already finished (no training), under the same rules
+as at the end of a run (not its first epoch; lower RMSE than the shipped model on the same set
+unless --no-compare): for a variant that finished in an earlier run, e.g.
+
+    python scripts/train_zoo.py --scenarios bearings --methods gru --val-context 100 --install
 """
 
 from __future__ import annotations
@@ -145,6 +151,16 @@ def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float 
     return metrics["rmse"]
 
 
+def install_if_better(work: Path, zoo: Path, scenario, a: argparse.Namespace) -> None:
+    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` or, without
+    ``--no-compare``, :func:`not_better` says why not; print which."""
+    scenario = make_scenario(scenario) if isinstance(scenario, str) else scenario
+    why = not_installable(work) or (
+        None if a.no_compare else not_better(work, shipped_rmse(work, zoo, scenario, a.device))
+    )
+    print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
+
+
 def not_better(work: Path, shipped: float | None) -> str | None:
     """Why a finished model must not replace the shipped one by its RMSE, or None: it must be lower than
     the shipped model's on the same evaluation set (:func:`shipped_rmse`)."""
@@ -233,13 +249,19 @@ def main(argv=None) -> int:
         action="store_true",
         help="install a finished model even if the shipped one scores a lower RMSE on the same set",
     )
+    p.add_argument(
+        "--install",
+        action="store_true",
+        help="install the selected finished models (no training; a --val-context variant into the shipped zoo)",
+    )
     p.add_argument("--status", action="store_true", help="print each model's state and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     tune_allocator()
     state = Path(a.state) if a.state else STATE / f"context{a.val_context}" if a.val_context else STATE
-    zoo = Path(a.zoo) if a.zoo else None if a.val_context else ZOO  # a variant replaces no shipped model
+    # a variant replaces no shipped model unless asked to
+    zoo = Path(a.zoo) if a.zoo else ZOO if a.install or not a.val_context else None
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     scenarios = [s.strip() for s in a.scenarios.split(",") if s.strip()]
     stop_at = time.time() + 3600 * a.hours if a.hours else None
@@ -248,6 +270,12 @@ def main(argv=None) -> int:
             work = state / f"{scenario_name}-{method}"
             if a.status:
                 print(status_line(work))
+                continue
+            if a.install:
+                if finished(work):
+                    install_if_better(work, zoo, scenario_name, a)
+                else:
+                    print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
             if finished(work):
                 continue
@@ -294,10 +322,7 @@ def main(argv=None) -> int:
             if finished(work) and zoo is None:
                 print(f"{work.name}: finished in {work} (a --val-context variant: not installed without --zoo)")
             elif finished(work):
-                why = not_installable(work) or (
-                    None if a.no_compare else not_better(work, shipped_rmse(work, zoo, scenario, a.device))
-                )
-                print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
+                install_if_better(work, zoo, scenario, a)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0
 

@@ -1,6 +1,7 @@
 """Print the README's table of the shipped models: RMSE (NRMSE) on evaluation set 0, as measured at
 the end of training and recorded in each card, "(converged)" where the card says training converged,
-"†" where the card scored the steps after its warm-up (cards made since the warm-up rule record
+"(ctx N)" for a variant validated and served with its context bounded to N steps, "†" where the card
+scored the steps after its warm-up (cards made since the warm-up rule record
 ``metrics.set.warmup``; older ones scored every step), and the training budgets.
 
     python scripts/zoo_table.py
@@ -29,6 +30,8 @@ def main() -> None:
             met = c["metrics"]
             mark = " (converged)" if c["training"].get("converged") else ""  # cards say so since the retraining
             scored = "†" if met["set"].get("warmup") else ""
+            ctx = c["training"]["recipe"].get("val_context")
+            mark += f" (ctx {ctx})" if ctx else ""  # validated and served with a bounded context
             cells.append(f"{met['rmse']:.4g}{scored} ({met['nrmse']:.3f}){mark}")
         print(f"| {m} | " + " | ".join(cells) + " |")
     budgets: dict[tuple, set[tuple[str, str]]] = {}  # budget -> the (scenario, method) models that had it

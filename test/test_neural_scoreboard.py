@@ -50,3 +50,15 @@ def test_runs_the_shipped_models_and_writes_markdown_and_json(board, tmp_path, m
     assert "against the target 0.08" in text and "steps 10.. scored" in text
     assert rows["lorenz96"]["mamba"]["rmse_every_step"] > 0  # the Lorenz 96 SSMs also over every step
     assert "over every step" in text and "rmse_every_step" not in rows["lorenz96"]["gru"]
+
+
+def test_budget_names_the_recipe_the_loss_units_and_a_bounded_context(board):
+    card = {
+        "data": {"windows_per_epoch": 20000},
+        "training": {"epochs_run": 59, "recipe": {"epochs": 500, "loss_units": "state", "val_context": 100}},
+    }
+    assert board.budget(card) == "full (59 ep), state loss, ctx 100"
+    card["training"]["recipe"]["val_context"] = 0  # validated the paper's way
+    assert board.budget(card) == "full (59 ep), state loss"
+    small = {"data": {"windows_per_epoch": 2000}, "training": {"recipe": {"epochs": 20}}}  # an older card
+    assert board.budget(small) == "20 x 2000, norm. loss"

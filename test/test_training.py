@@ -715,6 +715,19 @@ def test_train_zoo_val_context_trains_a_variant_that_replaces_no_shipped_model(t
     assert "not installed without --zoo" in capsys.readouterr().out and not (tmp_path / "zoo").exists()
     card = json.loads((tmp_path / "s" / "test_spinner-gru" / "card.json").read_text())
     assert card["training"]["recipe"]["val_context"] == 10 and card["metrics"]["set"]["context"] == 10
+    # --install puts the finished variant into the shipped zoo without training it again
+    stamp = (tmp_path / "s" / "test_spinner-gru" / "card.json").stat().st_mtime_ns
+    assert zoo_script.main([*args, "--install"]) == 0
+    assert "installed" in capsys.readouterr().out
+    shipped = json.loads((tmp_path / "zoo" / "test_spinner-gru" / "card.json").read_text())
+    assert shipped == card and (tmp_path / "s" / "test_spinner-gru" / "card.json").stat().st_mtime_ns == stamp
+    # installed again, the same model does not score lower than itself: the shipped one stays
+    assert zoo_script.main([*args, "--install"]) == 0
+    assert "is not below the shipped model's" in capsys.readouterr().out
+    # a model that has not finished (here: never started) is not installed
+    lstm = ["--state", str(tmp_path / "s"), "--scenarios", "test_spinner", "--methods", "lstm"]
+    assert zoo_script.main([*lstm, "--val-context", "10", "--install", "--quiet"]) == 0
+    assert "not finished, nothing to install" in capsys.readouterr().out
 
 
 def test_train_zoo_not_better_compares_rmse_only_when_both_exist(tmp_path):
