@@ -62,3 +62,17 @@ def test_budget_names_the_recipe_the_loss_units_and_a_bounded_context(board):
     assert board.budget(card) == "full (59 ep), state loss"
     small = {"data": {"windows_per_epoch": 2000}, "training": {"recipe": {"epochs": 20}}}  # an older card
     assert board.budget(small) == "20 x 2000, norm. loss"
+
+
+def test_verdict_names_the_best_continuous_model_where_a_bounded_variant_leads(board):
+    rows = {
+        "bearings": {"gru": {**_row(272.0, 191.9), "context": 100}, "mamba2": _row(297.0, 177.8)},
+        "lorenz96": {"gru": _row(0.07, 0.127), "mamba": _row(0.051, 0.052)},
+    }
+    text = "\n".join(board.verdict(rows))
+    assert "bearings: best neural gru (272, context 100; run continuously: mamba2 297); the paper's: mamba2" in text
+    assert "an SSM is the best neural model in 1 of 2 scenarios (lorenz96)" in text
+    assert "among the models run continuously, as the paper runs them" in text and "2 of 2 (bearings, lorenz96)" in text
+    rows["bearings"]["gru"]["context"] = 0  # the same figures, both run the paper's way: one count, no second line
+    text = "\n".join(board.verdict(rows))
+    assert "run continuously" not in text and "1 of 2 scenarios" in text
