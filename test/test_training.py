@@ -704,7 +704,9 @@ def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_th
     assert (shipped / "card.json").stat().st_mtime_ns != stamp
 
 
-def test_train_zoo_val_context_trains_a_variant_that_replaces_no_shipped_model(tmp_path, monkeypatch, capsys):
+def test_train_zoo_val_context_trains_a_variant_that_replaces_no_shipped_model_until_installed(
+    tmp_path, monkeypatch, capsys
+):
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
     monkeypatch.setattr(zoo_script, "ZOO", tmp_path / "zoo")  # the default zoo, were it used
