@@ -151,13 +151,10 @@ def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float 
     return metrics["rmse"]
 
 
-def install_if_better(work: Path, zoo: Path, scenario, a: argparse.Namespace) -> None:
-    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` or, without
-    ``--no-compare``, :func:`not_better` says why not; print which."""
-    scenario = make_scenario(scenario) if isinstance(scenario, str) else scenario
-    why = not_installable(work) or (
-        None if a.no_compare else not_better(work, shipped_rmse(work, zoo, scenario, a.device))
-    )
+def install_if_better(work: Path, zoo: Path, scenario, compare: bool = True, device: str = "cpu") -> None:
+    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` or, with
+    ``compare``, :func:`not_better` says why not; print which."""
+    why = not_installable(work) or (not_better(work, shipped_rmse(work, zoo, scenario, device)) if compare else None)
     print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
 
 
@@ -273,7 +270,7 @@ def main(argv=None) -> int:
                 continue
             if a.install:
                 if finished(work):
-                    install_if_better(work, zoo, scenario_name, a)
+                    install_if_better(work, zoo, make_scenario(scenario_name), not a.no_compare, a.device)
                 else:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
@@ -322,7 +319,7 @@ def main(argv=None) -> int:
             if finished(work) and zoo is None:
                 print(f"{work.name}: finished in {work} (a --val-context variant: not installed without --zoo)")
             elif finished(work):
-                install_if_better(work, zoo, scenario, a)
+                install_if_better(work, zoo, scenario, not a.no_compare, a.device)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0
 
