@@ -777,23 +777,20 @@ def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
     assert t["stopped"] == "max epochs" and t["epochs_run"] == 6
 
 
-def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
-    """A zoo card's "converged" must follow from its own history: early stopping (patience epochs after the
-    best one, none lower) or >= 3 learning-rate reductions. Cards written before the rule carry no claim."""
+def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
+    """Issue 10's bar: every shipped model had the paper's budget (20,000 windows per epoch) and converged,
+    and its card's "converged" follows from its own history: early stopping (patience epochs after the
+    best one, none lower) or >= 3 learning-rate reductions."""
     from pathlib import Path
 
     from neural_estimator.models.training import converged, lr_reductions
 
     zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
     cards = sorted(zoo.glob("*/card.json"))
-    assert cards
-    full = 0
     for path in cards:
         card = json.loads(path.read_text())
         t = card["training"]
-        if "converged" not in t:  # trained before the convergence rule existed: no claim to check
-            continue
-        for key in ("budget", "lr_reductions", "convergence_rule", "history", "stopped"):
+        for key in ("converged", "budget", "lr_reductions", "convergence_rule", "history", "stopped"):
             assert key in t, f"{path}: training.{key} missing"
         hist, lr0 = t["history"], t["recipe"]["lr"]
         assert t["lr_reductions"] == lr_reductions(hist, lr0), path
@@ -802,10 +799,9 @@ def test_every_shipped_card_that_claims_convergence_shows_it_in_its_curve():
             best = min(range(len(hist)), key=lambda i: hist[i]["val_loss"])
             assert len(hist) - 1 - best >= patience, f"{path}: early stopping without {patience} epochs after the best"
         assert t["converged"] == converged(t["stopped"], hist, lr0), path
-        if t["budget"]["windows_per_epoch"] >= 20000:  # a full-recipe model (issue 10) ships only converged
-            assert t["converged"], f"{path}: a full-recipe model shipped before it converged"
-            full += 1
-    assert full >= 4  # the full-recipe models shipped so far (lorenz96 mamba, mamba2; quadrotor, bearings mamba)
+        assert t["budget"]["windows_per_epoch"] >= 20000, f"{path}: not the paper's 20,000 windows per epoch"
+        assert t["converged"], f"{path}: shipped before it converged"
+    assert len(cards) == 30  # five scenarios x six methods
 
 
 def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeypatch):
