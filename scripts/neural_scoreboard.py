@@ -112,7 +112,7 @@ def verdict(rows: dict[str, dict[str, dict]]) -> list[str]:
             if rows[s][b[0]].get("context"):
                 c = leaders(s, continuous=True)
                 ours += f", context {rows[s][b[0]]['context']}; run continuously: " + (
-                    f"{' = '.join(c)} {fmt(rows[s][c[0]]['rmse'])}" if c else "none"
+                    f"{' = '.join(c)} {fmt(rows[s][c[0]]['rmse'])}" if c else "none in this selection"
                 )
             lines.append(f"- {s}: best neural {ours}); the paper's: {paper}")
     ssm_best, ssm_continuous = ssm_count(False), ssm_count(True)

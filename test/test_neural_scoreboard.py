@@ -73,6 +73,8 @@ def test_verdict_names_the_best_continuous_model_where_a_bounded_variant_leads(b
     assert "bearings: best neural gru (272, context 100; run continuously: mamba2 297); the paper's: mamba2" in text
     assert "an SSM is the best neural model in 1 of 2 scenarios (lorenz96)" in text
     assert "among the models run continuously, as the paper runs them" in text and "2 of 2 (bearings, lorenz96)" in text
+    only_variant = {"bearings": {"gru": rows["bearings"]["gru"]}}  # e.g. --methods gru: no continuous model to name
+    assert "run continuously: none in this selection" in "\n".join(board.verdict(only_variant))
     rows["bearings"]["gru"]["context"] = 0  # the same figures, both run the paper's way: one count, no second line
     text = "\n".join(board.verdict(rows))
     assert "run continuously" not in text and "1 of 2 scenarios" in text
