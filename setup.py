@@ -1,10 +1,24 @@
 """ament_python package; also installs with pip (``pip install -e .``) and exposes ``neural-estimator``."""
 
+import sys
 from glob import glob
 
 from setuptools import find_packages, setup
 
 package_name = "neural_estimator"
+
+# The node executables go where `ros2 run neural_estimator <name>` finds them: lib/neural_estimator
+# (setup.cfg), which is what colcon's `setup.py install|develop` makes of console scripts. A wheel
+# (pip) would put them into bin/ under generic names, so pip gets only `neural-estimator`; there
+# the nodes run as `neural-estimator ros2 run neural_estimator <name>` (neural_estimator/ros2_shim.py).
+_NODES = [
+    "simulator = neural_estimator.nodes.entry:simulator",
+    "estimator = neural_estimator.nodes.entry:estimator",
+    "evaluator = neural_estimator.nodes.entry:evaluator",
+    "player = neural_estimator.nodes.entry:player",
+    "robot_estimator = neural_estimator.nodes.entry:robot_estimator",
+]
+_WHEEL = any(cmd in sys.argv for cmd in ("bdist_wheel", "editable_wheel", "dist_info"))
 
 setup(
     name=package_name,
@@ -17,9 +31,9 @@ setup(
         (f"share/{package_name}/params", glob("params/*.yaml")),
         (f"share/{package_name}/bags", glob("bags/*.mcap")),
     ],
-    # What `pip install .` needs for every verb but `reproduce` and the nodes. The README's install
-    # (scripts/requirements.txt) pins torch to the CPU build on disk; here a range, so that an
-    # existing torch (CPU or CUDA) is kept. test/test_package.py checks every import is declared.
+    # What `pip install .` needs for every verb but `reproduce` and the nodes (the "ros" extra). The
+    # main job's install (scripts/requirements.txt) pins torch to the CPU build; here a range, so
+    # that an existing torch (CPU or CUDA) is kept. test/test_package.py checks every import is declared.
     install_requires=[
         "numpy>=1.26",
         "scipy>=1.11",
@@ -35,11 +49,26 @@ setup(
     ],
     extras_require={
         # the nodes: from the ROS 2 install on a ROS machine, or these wheels in a plain venv
-        "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "ros-jazzy-diagnostic-msgs",
-                "ros-jazzy-std-srvs"],
+        "ros": [
+            "ros-jazzy-rclpy[fastrtps]",
+            "ros-jazzy-common-interfaces",
+            "ros-jazzy-diagnostic-msgs",
+            "ros-jazzy-std-srvs",
+        ],
         "reproduce": ["ray==2.60.0"],
         "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
-        "test": ["pytest>=8", "atheris==3.0.0", "ruff==0.14.14", "filterpy>=1.4.5", "dapper==1.7.1"],
+        "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5"],
+        "test": [
+            "pytest>=8",
+            "atheris==3.0.0",
+            "ruff==0.14.14",
+            "filterpy>=1.4.5",
+            "dapper==1.7.1",
+            "mcap-ros2-support>=0.5",
+            "ray==2.60.0",
+            "mkdocs>=1.6",
+            "mkdocs-material>=9.5",
+        ],
     },
     zip_safe=False,
     maintainer="neural_estimator maintainers",
@@ -48,16 +77,6 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     entry_points={
-        "console_scripts": [
-            "neural-estimator = neural_estimator.cli:main",
-            # the minimal `ros2 run` for pip environments; hands over to a real ros2 when installed
-            "ros2 = neural_estimator.ros2_shim:main",
-            # ROS 2 nodes (`ros2 run neural_estimator <name>`)
-            "simulator = sim_nodes.simulator:main",
-            "estimator = neural_estimator.nodes.estimator_node:main",
-            "evaluator = neural_estimator.nodes.evaluator_node:main",
-            "player = neural_estimator.nodes.player_node:main",
-            "robot_estimator = neural_estimator.nodes.robot_estimator_node:main",
-        ],
+        "console_scripts": ["neural-estimator = neural_estimator.cli:main", *([] if _WHEEL else _NODES)],
     },
 )

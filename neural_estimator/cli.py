@@ -11,6 +11,7 @@ Verbs (``neural-estimator VERB --help`` for each):
     scenarios  list the registered scenarios and their constants
     reproduce  the paper's experiments on Ray, with a report beside the paper's numbers
     dataset    recorded bags of a robot -> a dataset (.npz), through a spec of message fields
+    ros2       the minimal ``ros2 run`` / ``ros2 pkg executables`` of pip environments
 
 ``train`` and ``evaluate`` take ``--data FILE.npz`` (a recorded dataset) instead of ``--scenario``.
 
@@ -946,6 +947,10 @@ def main(argv: list[str] | None = None) -> int:
     from neural_estimator.runtime import tune_allocator
 
     tune_allocator()  # batched numpy work is up to 2x faster (see neural_estimator/runtime.py)
+    if argv[:1] == ["ros2"]:  # the minimal `ros2 run` of pip environments (neural_estimator/ros2_shim.py)
+        from neural_estimator.ros2_shim import main as ros2_main
+
+        return ros2_main(argv[1:])
     if argv[:1] == ["live"]:  # its own parser (neural_estimator.nodes.launch); argparse.REMAINDER drops --help
         return _cmd_live(argparse.Namespace(rest=argv[1:]))
     # Plugins must be imported before parsing so their scenario names show up in --help.

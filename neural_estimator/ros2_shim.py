@@ -1,7 +1,8 @@
-"""The smallest ``ros2 run``: lets the README's commands work the same in a pip virtual environment.
+"""The smallest ``ros2 run``: lets the documented commands work the same in a pip virtual environment.
 
 pip installs of ROS 2 (the ros-jazzy-* wheels) have no ``ros2`` command line. This module is
-installed as ``ros2`` in the virtual environment and understands
+reached as ``neural-estimator ros2 ...`` (or ``python -m neural_estimator.ros2_shim``; pip puts no
+generic ``ros2`` into ``bin/``) and understands
 
     ros2 run <package> <executable> [args ...]      (e.g. --ros-args -p method:=mamba)
     ros2 pkg executables [<package>]
@@ -9,29 +10,28 @@ installed as ``ros2`` in the virtual environment and understands
 Whenever a real ``ros2`` is on PATH (a ROS 2 install has been sourced), every call is handed to it
 unchanged, so on a real Jazzy install nothing here is used. Executables are looked up in the
 package's install prefix (``<prefix>/lib/<package>/<executable>``, found through
-AMENT_PREFIX_PATH, as colcon installs them) and then beside this script (pip's ``bin/``).
+AMENT_PREFIX_PATH, as colcon installs them); this package's nodes are otherwise run as
+``python -m neural_estimator.nodes.entry <name>`` with this interpreter.
 """
 
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 from pathlib import Path
 
 USAGE = (
-    "usage: ros2 run <package> <executable> [args ...]\n"
-    "       ros2 pkg executables [<package>]\n"
+    "usage: neural-estimator ros2 run <package> <executable> [args ...]\n"
+    "       neural-estimator ros2 pkg executables [<package>]\n"
     "(this is neural_estimator's minimal ros2 for pip environments; source a ROS 2 install for the full CLI)"
 )
 
 
 def _real_ros2() -> str | None:
-    """A ``ros2`` on PATH that is not this shim."""
-    me = Path(sys.argv[0]).resolve() if sys.argv and sys.argv[0] else None
+    """A ``ros2`` on PATH that is not a copy of this shim (older installs put one into ``bin/``)."""
     for d in os.environ.get("PATH", "").split(os.pathsep):
         cand = Path(d) / "ros2"
-        if cand.is_file() and os.access(cand, os.X_OK) and cand.resolve() != me:
+        if cand.is_file() and os.access(cand, os.X_OK):
             try:
                 head = cand.read_bytes()[:4096]
             except OSError:
@@ -41,28 +41,21 @@ def _real_ros2() -> str | None:
     return None
 
 
-def _package_executables(package: str) -> dict[str, str]:
-    """{executable name: path} of ``package`` from ament prefixes, then console scripts beside us."""
-    found: dict[str, str] = {}
+def _package_executables(package: str) -> dict[str, list[str]]:
+    """{executable name: command} of ``package`` from ament prefixes, then this package's own."""
+    found: dict[str, list[str]] = {}
     for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
         lib = Path(prefix) / "lib" / package
         if lib.is_dir():
             for f in sorted(lib.iterdir()):
                 if f.is_file() and os.access(f, os.X_OK):
-                    found.setdefault(f.name, str(f))
+                    found.setdefault(f.name, [str(f)])
     if package == "neural_estimator":
-        from importlib import metadata
+        from neural_estimator.nodes.entry import NODES
 
-        bindir = Path(sys.argv[0]).resolve().parent if sys.argv and sys.argv[0] else Path(sys.prefix) / "bin"
-        try:
-            eps = metadata.distribution("neural_estimator").entry_points
-        except metadata.PackageNotFoundError:
-            eps = []
-        for ep in eps:
-            if ep.group == "console_scripts" and ep.name not in ("ros2",):
-                path = bindir / ep.name
-                if path.exists() or shutil.which(ep.name):
-                    found.setdefault(ep.name, str(path if path.exists() else shutil.which(ep.name)))
+        for name in NODES:
+            found.setdefault(name, [sys.executable, "-m", "neural_estimator.nodes.entry", name])
+        found.setdefault("neural-estimator", [sys.executable, "-m", "neural_estimator.cli"])
     return found
 
 
@@ -78,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
             known = ", ".join(sorted(exes)) or "none found"
             print(f"ros2 run: no executable {exe!r} in package {package!r} (executables: {known})", file=sys.stderr)
             return 1
-        os.execv(exes[exe], [exes[exe], *rest])
+        cmd = exes[exe]
+        os.execv(cmd[0], [*cmd, *rest])
     if len(argv) >= 2 and argv[:2] == ["pkg", "executables"]:
         for package in argv[2:] or ["neural_estimator"]:
             for name in sorted(_package_executables(package)):

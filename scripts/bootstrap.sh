@@ -1,9 +1,22 @@
 #!/usr/bin/env bash
 # Creates .venv (once) and installs what is missing into it. Idempotent: a second run that finds
-# everything in place does nothing but a quick import check. Sourced by scripts/run_demo.sh and
-# scripts/run_tests.sh; may also be run directly.
+# everything in place does nothing but a quick import check.
+#
+#   scripts/bootstrap.sh [runtime|test]
+#
+# runtime (the default; scripts/run_demo.sh): what the package, its nodes and the live pipeline run
+#   (scripts/requirements.txt).
+# test (scripts/run_tests.sh): runtime plus the references, fuzzing, lint, tests, docs, colcon and
+#   Ray (scripts/requirements-test.txt).
+# NEURAL_ESTIMATOR_VENV=DIR puts the environment elsewhere; PYTHON=python3.X picks the interpreter.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+mode="${1:-runtime}"
+case "$mode" in
+  runtime) reqs="$root/scripts/requirements.txt"; check="import neural_estimator, torch, rclpy" ;;
+  test) reqs="$root/scripts/requirements-test.txt"; check="import neural_estimator, torch, rclpy, pytest, ray, mkdocs" ;;
+  *) echo "bootstrap.sh: unknown mode '$mode' (runtime or test)" >&2; exit 2 ;;
+esac
 venv="${NEURAL_ESTIMATOR_VENV:-$root/.venv}"
 py="${PYTHON:-python3}"
 
@@ -13,18 +26,23 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 vpy="$venv/bin/python"
 
-# The stamp records the hash of the requirement list and of setup.py: when either changes, reinstall.
-# The import check runs from / so that a checkout on the path cannot hide a stale editable install.
-stamp="$venv/.neural_estimator_stamp"
-want="$(cat "$root/scripts/requirements.txt" "$root/setup.py" | sha256sum | cut -d' ' -f1)"
-if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && (cd / && "$vpy" -c "import neural_estimator, torch, rclpy") 2>/dev/null; then
+# One stamp per mode records the hash of its requirement lists and of setup.py: when one changes,
+# reinstall. The import check runs from / so that a checkout on the path cannot hide a stale
+# editable install. A test environment also satisfies the runtime mode.
+want="$(cat "$root/scripts/requirements.txt" "$reqs" "$root/setup.py" | sha256sum | cut -d' ' -f1)"
+stamp="$venv/.neural_estimator_stamp.$mode"
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && (cd / && "$vpy" -c "$check") 2>/dev/null; then
+  exit 0
+fi
+if [ "$mode" = runtime ] && [ -f "$venv/.neural_estimator_stamp.test" ] \
+  && [ "$(cat "$venv/.neural_estimator_stamp.test")" = "$(cat "$root/scripts/requirements.txt" "$root/scripts/requirements-test.txt" "$root/setup.py" | sha256sum | cut -d' ' -f1)" ] \
+  && (cd / && "$vpy" -c "$check") 2>/dev/null; then
   exit 0
 fi
 
-echo "[bootstrap] installing dependencies into $venv (first run takes a minute)"
+echo "[bootstrap] installing the $mode dependencies into $venv (first run takes a few minutes)"
 "$vpy" -m pip install -q --disable-pip-version-check --upgrade pip
-# torch is pinned: the CPU build of 2.13.0 is on disk here; an unpinned torch pulls several GB of CUDA.
-"$vpy" -m pip install -q --disable-pip-version-check -r "$root/scripts/requirements.txt"
+"$vpy" -m pip install -q --disable-pip-version-check -r "$reqs"
 "$vpy" -m pip install -q --disable-pip-version-check --no-deps -e "$root"
 echo "$want" > "$stamp"
 echo "[bootstrap] ready"

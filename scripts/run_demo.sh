@@ -5,14 +5,14 @@
 # one MCAP bag, then prints the paper's metrics table. Ends with the table and the bag's path.
 #
 #   scripts/run_demo.sh                          # lorenz96: ekf, ukf, enkf, pf, gru, mamba
-#   scripts/run_demo.sh --scenario bearings --methods ukf,pf,enkf --trajectories 4
-# (the shipped neural models of bearings, nlink and quadrotor were trained on the constants before
-# the calibration of issue 9 and are refused on the new defaults; see the README)
+#   scripts/run_demo.sh --scenario bearings --methods ukf,pf,gru --trajectories 4
 #
-# Any argument is passed to `neural-estimator live` (see its --help).
+# Any argument is passed to `neural-estimator live` (see its --help). It installs only what it
+# runs (scripts/bootstrap.sh runtime); the test command adds the test and docs tools.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$root/scripts/bootstrap.sh"
+bash "$root/scripts/bootstrap.sh" runtime
+venv="${NEURAL_ESTIMATOR_VENV:-$root/.venv}"
 cd "$root"
 args=("$@")
 has() { local f; for f in "${args[@]}"; do [ "$f" = "$1" ] && return 0; done; return 1; }
@@ -21,4 +21,4 @@ has --methods || args+=(--methods ekf,ukf,enkf,pf,gru,mamba)
 has --trajectories || args+=(--trajectories 4)
 has --rate-hz || args+=(--rate-hz 200)
 has --output || args+=(--output "runs/demo-$(date +%Y%m%d-%H%M%S).mcap")
-exec "$root/.venv/bin/neural-estimator" live "${args[@]}"
+exec "$venv/bin/neural-estimator" live "${args[@]}"

@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# The README's test command: installs what is missing into .venv, then runs the whole test suite.
-# Extra arguments go to pytest (e.g. scripts/run_tests.sh -k metrics).
+# The test command: installs what is missing into .venv (scripts/bootstrap.sh test: the runtime set
+# plus the test, lint, docs and reference tools), then lints, builds the documentation site and runs
+# the whole test suite. Extra arguments go to pytest (e.g. scripts/run_tests.sh -k metrics).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$root/scripts/bootstrap.sh"
+bash "$root/scripts/bootstrap.sh" test
+venv="${NEURAL_ESTIMATOR_VENV:-$root/.venv}"
 cd "$root"
 # Each test file gets its own ROS domain inside the tests; keep this run off any user's graph.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-77}"
@@ -12,6 +14,8 @@ export MPLBACKEND=Agg
 # (one of them also running the test's ROS nodes) only contend.
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
 # Lint and formatting first (ruff.toml; under a second): a style slip fails the run like a test.
-"$root/.venv/bin/ruff" check neural_estimator sim_nodes test scripts benchmarks examples
-"$root/.venv/bin/ruff" format --check --quiet neural_estimator sim_nodes test scripts benchmarks examples
-exec "$root/.venv/bin/python" -m pytest -q test "$@"
+"$venv/bin/ruff" check neural_estimator sim_nodes test scripts benchmarks examples docs
+"$venv/bin/ruff" format --check --quiet neural_estimator sim_nodes test scripts benchmarks examples docs
+# The documentation site (mkdocs.yml): a broken link, a missing page or a failing generator fails the run.
+"$venv/bin/python" -m mkdocs build --strict --quiet --site-dir "$root/.cache/site"
+exec "$venv/bin/python" -m pytest -q test "$@"

@@ -1,21 +1,17 @@
-"""The minimal `ros2 run` of pip environments: finds the package's executables, and hands over
-to a real ros2 whenever one is on PATH."""
+"""The minimal `ros2 run` of pip environments (`neural-estimator ros2 ...`): finds the package's
+executables, runs the nodes with this interpreter, and hands over to a real ros2 whenever one is on
+PATH."""
 
 import os
 import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
-SHIM = Path(sys.executable).with_name("ros2")
-pytestmark = pytest.mark.skipif(
-    not SHIM.exists(), reason="package not installed in this environment (pip install -e .)"
-)
+SHIM = [sys.executable, "-m", "neural_estimator.cli", "ros2"]
 
 
 def _run(args, env=None, **kw):
-    return subprocess.run([str(SHIM), *args], capture_output=True, text=True, timeout=120, env=env, **kw)
+    return subprocess.run([*SHIM, *args], capture_output=True, text=True, timeout=120, env=env, **kw)
 
 
 def test_lists_the_package_executables():
@@ -43,3 +39,44 @@ def test_hands_over_to_a_real_ros2(tmp_path):
     env = dict(os.environ, PATH=f"{fake.parent}{os.pathsep}{os.environ.get('PATH', '')}")
     res = _run(["run", "neural_estimator", "estimator", "--ros-args", "-p", "method:=mamba"], env=env)
     assert res.stdout.strip() == "real ros2: run neural_estimator estimator --ros-args -p method:=mamba"
+
+
+def test_a_node_without_rclpy_names_the_extra_to_install(tmp_path):
+    """An install without the ROS 2 wheels: one line naming the [ros] extra, exit status 1."""
+    fake = tmp_path / "rclpy"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('no rclpy here')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    res = _run(["run", "neural_estimator", "estimator", "--ros-args", "-p", "method:=ukf"], env=env)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 1 and len(lines) == 1, res.stderr
+    assert "pip install 'neural_estimator[ros]'" in lines[0]
+
+
+def test_a_wheel_puts_no_generic_command_into_bin(tmp_path):
+    """pip's bin/ gets `neural-estimator` only; colcon (setup.py install) still gets the nodes."""
+    import configparser
+    import shutil
+
+    root = Path(__file__).resolve().parents[1]
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("setup.py", "setup.cfg", "package.xml", "resource", "neural_estimator", "sim_nodes", "params"):
+        (shutil.copytree if (root / name).is_dir() else shutil.copy)(
+            root / name,
+            src / name,
+            **({"ignore": shutil.ignore_patterns("zoo", "__pycache__")} if name == "neural_estimator" else {}),
+        )
+    (tmp_path / "meta").mkdir()
+    res = subprocess.run(
+        [sys.executable, "setup.py", "-q", "dist_info", "--output-dir", str(tmp_path / "meta")],
+        cwd=src,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr
+    (meta,) = (tmp_path / "meta").glob("*.dist-info")
+    eps = configparser.ConfigParser()
+    eps.read(meta / "entry_points.txt")
+    assert list(eps["console_scripts"]) == ["neural-estimator"]
