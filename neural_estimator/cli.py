@@ -36,6 +36,45 @@ class CliError(Exception):
     """A command-line usage problem (message shown to the user, exit status 2)."""
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line (no usage block) and suggest the closest verb or flag
+    to a mistyped one ("did you mean"), with exit status 2. Sub-parsers inherit the class."""
+
+    _argv: list[str] = []
+
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 - argparse's
+        self._argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_args(args, namespace)
+
+    def _flags(self) -> list[str]:
+        """The option strings of this parser, or of the verb named on the command line."""
+        parser = self
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                verb = next((a for a in self._argv if a in action.choices), None)
+                if verb is not None:
+                    parser = action.choices[verb]
+        return [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+
+    def error(self, message: str):  # noqa: D102 - argparse's
+        import re
+
+        from neural_estimator.options import did_you_mean
+
+        m = re.match(r"unrecognized arguments: (.*)", message)
+        if m:
+            flags = [w.split("=", 1)[0] for w in m.group(1).split() if w.startswith("-")]
+            if flags:
+                message = f"unrecognized option {flags[0]}{did_you_mean(flags[0], self._flags())}"
+                if len(flags) > 1:
+                    message += f" (and {', '.join(flags[1:])})"
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            choices = re.findall(r"'([^']*)'", m.group(2))
+            message = message.replace(f"'{m.group(1)}'", f"'{m.group(1)}'{did_you_mean(m.group(1), choices)}", 1)
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def scenario_from_args(args: argparse.Namespace):
     """The scenario named by ``--scenario`` with ``--set`` overrides and ``--noise-scale``."""
     overrides: dict[str, Any] = parse_assignments(getattr(args, "set", None))
@@ -467,6 +506,16 @@ def _cmd_evaluate(args) -> int:
             init=args.init,
             warmup=args.warmup,
         )
+    if args.horizon is not None and args.horizon < 1:
+        raise CliError(f"--horizon must be >= 1 step, got {args.horizon}")
+    if not 0 <= args.warmup < info["horizon"]:
+        raise CliError(
+            f"--horizon {info['horizon']} leaves no step to score after --warmup {args.warmup}: pass a --horizon "
+            f"above {args.warmup}, or a smaller --warmup (0 scores every step)"
+            if args.horizon is not None
+            else f"--warmup {args.warmup} leaves no step of {info['horizon']}-step trajectories to score: pass a "
+            "smaller --warmup (0 scores every step)"
+        )
     out = Path(args.out) if args.out else None
     expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
     expected_runs.update({name: 1 for name in recorded})
@@ -785,6 +834,7 @@ def _cmd_replay(args) -> int:
     ckpts = {m: paths[-1] for m, paths in _parse_checkpoints(args.checkpoint).items()}
     if args.threads < 0:
         raise CliError(f"--threads must be >= 0 (0 = torch's default), got {args.threads}")
+    _check_out(args.out, args.overwrite)
     res = replay(
         args.bag,
         methods,
@@ -815,6 +865,12 @@ def _cmd_replay(args) -> int:
     return 0
 
 
+def _check_out(out: str, overwrite: bool) -> None:
+    """An existing ``--out`` is replaced only with ``--overwrite`` (the flag's name in the message)."""
+    if Path(out).exists() and not overwrite:
+        raise CliError(f"{out}: file exists; pass --overwrite to replace it")
+
+
 # ---- recover ------------------------------------------------------------------------------------
 def _add_recover(sub) -> None:
     p = sub.add_parser(
@@ -829,6 +885,7 @@ def _add_recover(sub) -> None:
 def _cmd_recover(args) -> int:
     from neural_estimator.bags.recover import recover_bag
 
+    _check_out(args.out, args.overwrite)
     res = recover_bag(args.bag, args.out, overwrite=args.overwrite)
     lost = f"; the input had lost: {res.damage}" if res.damage is not None else "; the input was intact"
     print(f"wrote {res.path}: {res.messages} messages on {res.topics} topics{lost}")
@@ -932,7 +989,7 @@ _VERBS: list[Callable] = [
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of every verb (none imports torch to build its flags)."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="neural-estimator",
         description="Model-free neural estimators beside model-based nonlinear filters (paper reproduction).",
     )
@@ -942,8 +999,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_warnings() -> None:
+    """The package's own warnings (a truncated bag, ...) as ``neural-estimator: warning: ...``, one
+    line without the Python-warnings prefix of a source path and line number."""
+    import warnings
+
+    default = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if category.__module__.startswith("neural_estimator"):
+            print(f"neural-estimator: warning: {message}", file=file or sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    _one_line_warnings()
     from neural_estimator.runtime import tune_allocator
 
     tune_allocator()  # batched numpy work is up to 2x faster (see neural_estimator/runtime.py)

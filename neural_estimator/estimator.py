@@ -33,6 +33,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from neural_estimator.scenarios import Scenario
+from neural_estimator.options import did_you_mean
 
 
 class EstimatorError(ValueError):
@@ -149,5 +150,7 @@ def check_method(method: str) -> str:
     """Return ``method`` lower-cased if known; otherwise an error listing the ten valid names."""
     m = str(method).strip().lower().replace("-", "")
     if m not in METHODS:
-        raise EstimatorError(f"unknown method {method!r}; choose one of: {', '.join(METHODS)}")
+        raise EstimatorError(
+            f"unknown method {method!r}{did_you_mean(method, METHODS)}; choose one of: {', '.join(METHODS)}"
+        )
     return m

@@ -27,6 +27,7 @@ from neural_estimator.filters.enkf import EnsembleKalmanFilter
 from neural_estimator.filters.pf import ParticleFilter
 from neural_estimator.filters.ukf import UnscentedKalmanFilter
 from neural_estimator.scenarios import Scenario
+from neural_estimator.options import did_you_mean
 
 CLASSICAL_FILTERS: dict[str, type[Estimator]] = {
     "ekf": ExtendedKalmanFilter,
@@ -70,7 +71,7 @@ def make_estimator(
     unknown = sorted(set(options) - set(valid))
     if unknown:
         raise EstimatorError(
-            f"{m}: unknown option(s) {', '.join(unknown)}; valid: {', '.join(valid)}"
+            f"{m}: unknown option(s) {', '.join(unknown)}{did_you_mean(unknown[-1], valid)}; valid: {', '.join(valid)}"
             + (" (torch threads: the threads setting, not an option)" if "threads" in unknown else "")
         )
     return load_neural_estimator(m, scenario, checkpoint=checkpoint, device=device, **options)

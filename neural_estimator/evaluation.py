@@ -473,7 +473,14 @@ def _progress(total: int, enabled: bool, desc: str):
     from tqdm import tqdm
 
     return tqdm(
-        total=total, desc=desc, unit="traj-step", unit_scale=True, dynamic_ncols=True, leave=False, mininterval=0.5
+        total=total,
+        desc=desc,
+        unit="traj-step",
+        unit_scale=True,
+        dynamic_ncols=True,
+        leave=False,
+        mininterval=0.5,
+        disable=None,  # only on a terminal: no carriage-return progress in logs and pipes
     )
 
 

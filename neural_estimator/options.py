@@ -34,6 +34,15 @@ class OptionError(ValueError):
     """An option value that does not fit its field; the message names the option."""
 
 
+def did_you_mean(word: str, choices: Any) -> str:
+    """``" (did you mean 'ukf'?)"`` for the closest of ``choices`` to a mistyped ``word``, or ``""``
+    when none is close (difflib's ratio of at least 0.6), for one-line errors on unknown names."""
+    import difflib
+
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def parse_bool(value: Any, name: str = "option") -> bool:
     if isinstance(value, (bool, np.bool_)):
         return bool(value)

@@ -91,7 +91,7 @@ def test_metrics_on_truth_and_estimate_files(tmp_path, capsys):
         (["simulate", "--scenario", "nope", "--out", "x.npz"], "unknown scenario 'nope'; choose one of: ballistic"),
         (
             ["simulate", *PLUGIN, "--scenario", "oscillator", "--set", "omegaa=1", "--out", "x.npz"],
-            "no constant 'omegaa'; valid:",
+            "no constant 'omegaa' (did you mean 'omega'?); valid:",
         ),
         (
             ["simulate", *PLUGIN, "--scenario", "oscillator", "--set", "omega", "--out", "x.npz"],

@@ -35,7 +35,7 @@ from neural_estimator.estimator import Estimates, Estimator, EstimatorError, pre
 from neural_estimator.filters import scheduler
 from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
 from neural_estimator.filters.scheduler import BlockScheduler
-from neural_estimator.options import OptionError, is_optional, parse_value
+from neural_estimator.options import OptionError, did_you_mean, is_optional, parse_value
 from neural_estimator.scenarios import Scenario
 
 # Random draws, keyed by (seed, step, phase, block): see ClassicalFilter.block_rng.
@@ -58,7 +58,8 @@ def build_hyperparams(cls: type, method: str, hyperparams: Any, options: dict[st
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(options) - set(fields))
     if unknown:
-        raise EstimatorError(f"{method}: unknown option(s) {', '.join(unknown)}; valid: {', '.join(fields)}")
+        hint = did_you_mean(unknown[-1], fields)
+        raise EstimatorError(f"{method}: unknown option(s) {', '.join(unknown)}{hint}; valid: {', '.join(fields)}")
     base = hyperparams if hyperparams is not None else cls()
     if not isinstance(base, cls):
         raise EstimatorError(f"{method}: hyperparams must be a {cls.__name__}, got {type(base).__name__}")

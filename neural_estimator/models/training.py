@@ -415,7 +415,7 @@ def train(
     bar = tqdm(
         total=cfg.epochs,
         initial=run["epoch"],
-        disable=not progress,
+        disable=None if progress else True,
         unit="epoch",
         desc=f"{scenario.name}/{arch}",
         dynamic_ncols=True,
@@ -432,7 +432,7 @@ def train(
         # inside the epoch: batches of windows, then validation batches (rate and time left)
         inner = tqdm(
             total=steps_per_epoch,
-            disable=not progress,
+            disable=None if progress else True,
             unit="batch",
             leave=False,
             position=1,
@@ -462,7 +462,12 @@ def train(
         inner.close()
         train_loss /= steps_per_epoch
         inner = tqdm(
-            total=n_val_batches, disable=not progress, unit="batch", leave=False, position=1, dynamic_ncols=True
+            total=n_val_batches,
+            disable=None if progress else True,
+            unit="batch",
+            leave=False,
+            position=1,
+            dynamic_ncols=True,
         )
         val_loss = estimate_loss(inner)
         inner.close()

@@ -99,7 +99,18 @@ class EvaluatorNode(ManagedNode):
         self.p = p = declare_params(self, EvaluatorParams)
         if p.warmup < 0:
             raise StartupError(f"warmup must be >= 0 (steps not scored), got {p.warmup}")
+        if p.spec:  # checked now, not when the run ends: a bad spec would otherwise record a run for nothing
+            from neural_estimator.robot import SpecError, load_spec
+
+            if p.spec_length < 2:
+                raise StartupError(f"spec_length must be at least 2 steps, got {p.spec_length}")
+            try:
+                load_spec(p.spec)
+            except (SpecError, OSError) as exc:
+                raise StartupError(f"spec: {exc}") from None
         out = p.output or f"runs/run-{datetime.now():%Y%m%d-%H%M%S}.mcap"
+        if Path(out).exists() and not p.overwrite:
+            raise StartupError(f"{out}: file exists; pass -p overwrite:=true to replace it")
         try:
             self.bag = BagWriter(out, overwrite=p.overwrite, chunk_size=p.chunk_size).open()
         except BagError as exc:
@@ -304,7 +315,12 @@ class EvaluatorNode(ManagedNode):
         try:
             warmup = min(self.p.warmup, self.p.spec_length - 1)  # a spec's trajectories have spec_length steps
             reports, truth = score_recording(
-                self.bag.path, self.p.spec, self.p.spec_length, namespace=self.ns, warmup=warmup
+                self.bag.path,
+                self.p.spec,
+                self.p.spec_length,
+                namespace=self.ns,
+                warmup=warmup,
+                length_name="spec_length (-p spec_length:=N)",
             )
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")

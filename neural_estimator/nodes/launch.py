@@ -300,7 +300,9 @@ def _table_from_log(path: Path) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    from neural_estimator.cli import OneLineParser  # one-line usage errors with "did you mean"
+
+    p = OneLineParser(
         prog="neural-estimator live", description="Live comparison on ROS 2: simulator -> estimators -> evaluator."
     )
     p.add_argument("--scenario", required=True)
@@ -322,8 +324,33 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_arguments(a: argparse.Namespace) -> None:
+    """Scenario, constants and methods checked before any node starts (a bad name is the command
+    line's one-line error, not a node's fatal log after start-up)."""
+    from neural_estimator.estimator import check_method
+    from neural_estimator.scenarios import load_plugins, make_scenario, parse_assignments
+
+    load_plugins(a.plugin)
+    make_scenario(a.scenario, **parse_assignments(a.set))
+    for m in a.methods.split(","):
+        if m.strip():
+            check_method(m)
+    if a.horizon < 0 or a.trajectories < 1:
+        raise ValueError(
+            f"--trajectories must be >= 1 and --horizon >= 0 (0 = the scenario's), got {a.trajectories} and {a.horizon}"
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
+    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.scenarios import ScenarioError
+
     a = build_parser().parse_args(argv)
+    try:
+        check_arguments(a)
+    except (ScenarioError, EstimatorError, ValueError) as exc:
+        print(f"neural-estimator live: error: {exc}", file=sys.stderr)
+        return 2
     cfg = PipelineConfig(
         scenario=a.scenario,
         methods=tuple(m.strip() for m in a.methods.split(",") if m.strip()),

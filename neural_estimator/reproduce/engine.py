@@ -156,4 +156,5 @@ def _bar(total: int, enabled: bool):
         return _NoBar()
     from tqdm import tqdm
 
-    return tqdm(total=total, desc="reproduce", unit="job", dynamic_ncols=True, mininterval=0.5)
+    # disable=None: only on a terminal (no carriage-return progress in logs and pipes)
+    return tqdm(total=total, desc="reproduce", unit="job", dynamic_ncols=True, mininterval=0.5, disable=None)

@@ -162,10 +162,11 @@ def segments(valid: np.ndarray) -> list[tuple[int, int]]:
 
 
 def build_dataset(
-    bags: Sequence[str | Path], spec: Spec, length: int, progress=None
+    bags: Sequence[str | Path], spec: Spec, length: int, progress=None, length_name: str = "--length"
 ) -> tuple[Trajectories, dict[str, np.ndarray], list[BagSummary]]:
     """Trajectories of ``length`` steps from every bag (see the module docstring), and the spec's
-    recorded estimates {name: x_hat (N, T, dx)} at the same ticks.
+    recorded estimates {name: x_hat (N, T, dx)} at the same ticks. ``length_name`` names the
+    setting in the error (``--length`` on the command line, ``spec_length`` on the evaluator node).
 
     Raises:
         SpecError: a topic or field the spec names is missing, or no trajectory of ``length`` steps
@@ -205,7 +206,7 @@ def build_dataset(
     if not xs:
         raise SpecError(
             f"no trajectory of {length} steps: the longest run of valid ticks is {longest} "
-            f"(at {spec.rate:g} Hz); pass a smaller --length, or raise max_age in the spec"
+            f"(at {spec.rate:g} Hz); pass a smaller {length_name}, or raise max_age in the spec"
         )
     meta = dataset_meta(spec, length, summaries)
     estimates = {name: np.stack(v) for name, v in est.items()}

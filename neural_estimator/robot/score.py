@@ -62,13 +62,16 @@ def score_recording(
     length: int = 200,
     namespace: str = "/",
     warmup: int = M.EVALUATION_WARMUP,
+    length_name: str = "--length",
 ) -> tuple[dict[str, Any], Any]:
     """({method: MetricReport}, the truth Trajectories) of every estimate stream of a recorded run,
-    against the spec's ground truth; the first ``warmup`` steps of every trajectory are not scored."""
+    against the spec's ground truth; the first ``warmup`` steps of every trajectory are not scored.
+    ``length_name`` is how the caller's user sets ``length`` (a CLI flag, a node parameter), for the
+    error when no trajectory that long can be cut."""
     spec = spec if isinstance(spec, Spec) else load_spec(spec)
     with open_bag(bag) as reader:
         topics = list(reader.topics)
     scoring, _ = scoring_spec(spec, topics, namespace)
-    truth, estimates, _ = build_dataset([bag], scoring, length)
+    truth, estimates, _ = build_dataset([bag], scoring, length, length_name=length_name)
     angles = scoring.angles("state")
     return {m: M.compute_metrics(truth.x, x_hat, angles, warmup=warmup) for m, x_hat in estimates.items()}, truth

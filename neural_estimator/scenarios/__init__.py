@@ -24,6 +24,7 @@ from neural_estimator.scenarios.base import (
     parse_assignments,
     psd_sqrt,
 )
+from neural_estimator.options import did_you_mean
 
 # name -> "module:Class" for the built-ins (imported on first use) or a Scenario subclass.
 _REGISTRY: dict[str, Any] = {
@@ -89,7 +90,9 @@ def scenario_class(name: str) -> type[Scenario]:
     try:
         entry = _REGISTRY[name]
     except KeyError:
-        raise ScenarioError(f"unknown scenario {name!r}; choose one of: {', '.join(_REGISTRY)}") from None
+        raise ScenarioError(
+            f"unknown scenario {name!r}{did_you_mean(name, _REGISTRY)}; choose one of: {', '.join(_REGISTRY)}"
+        ) from None
     if isinstance(entry, str):
         module, _, attr = entry.partition(":")
         entry = getattr(importlib.import_module(module), attr)

@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from neural_estimator.angles import weighted_mean, wrap_components
-from neural_estimator.options import OptionError, parse_value
+from neural_estimator.options import OptionError, did_you_mean, parse_value
 
 # The largest state, observation or control dimension a scenario may have. A filter holds dx x dx
 # matrices (8 MiB each at 1024) and a scenario description can arrive from the ROS graph, so the
@@ -335,7 +335,10 @@ def replace_config(cfg: Any, overrides: Mapping[str, Any], scenario: str = "") -
     changes = {}
     for name, value in overrides.items():
         if name not in fields:
-            raise ScenarioError(f"scenario {scenario!r} has no constant {name!r}; valid: {', '.join(sorted(fields))}")
+            hint = did_you_mean(name, fields)
+            raise ScenarioError(
+                f"scenario {scenario!r} has no constant {name!r}{hint}; valid: {', '.join(sorted(fields))}"
+            )
         changes[name] = _coerce(value, getattr(cfg, name), name, scenario)
     return dataclasses.replace(cfg, **changes)
 
