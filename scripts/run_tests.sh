@@ -17,5 +17,5 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_
 "$venv/bin/ruff" check neural_estimator sim_nodes test scripts benchmarks examples docs
 "$venv/bin/ruff" format --check --quiet neural_estimator sim_nodes test scripts benchmarks examples docs
 # The documentation site (mkdocs.yml): a broken link, a missing page or a failing generator fails the run.
-"$venv/bin/python" -m mkdocs build --strict --quiet --site-dir "$root/.cache/site"
+NO_MKDOCS_2_WARNING=1 "$venv/bin/python" -m mkdocs build --strict --quiet --site-dir "$root/.cache/site"
 exec "$venv/bin/python" -m pytest -q test "$@"

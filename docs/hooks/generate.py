@@ -1,0 +1,233 @@
+"""MkDocs hook: the generated parts of the documentation site.
+
+A page holds a marker, an HTML comment ``<!-- generate: NAME [ARG] -->`` on its own line, and the
+hook replaces it with text generated from the code or from committed result files, so that no
+reference table or result is typed by hand:
+
+    node-params NODE     the parameter table of a ROS 2 node, from its parameter dataclass
+    cli VERB             ``neural-estimator VERB --help``
+    scoreboard           the neural scoreboard, from docs/results/neural_scoreboard.json
+    headline             the README's headline table (RMSE, ours · the paper's), from the small report
+    report-section TITLE a section of the committed small-scale report (docs/results/small/report.md)
+    fidelity             the classical rows against the paper, from benchmarks/results/fidelity/*.txt
+                         and neural_estimator/paper/paper_results.json
+
+The node parameters are read from the source with ``ast`` (the node modules import rclpy; the
+site builds without it). ``test/test_docs.py`` holds the params/*.yaml files to the same dataclasses.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# node executable -> (source file, parameter dataclass)
+NODE_PARAMS = {
+    "simulator": ("sim_nodes/simulator.py", "SimulatorParams"),
+    "estimator": ("neural_estimator/nodes/estimator_node.py", "EstimatorParams"),
+    "evaluator": ("neural_estimator/nodes/evaluator_node.py", "EvaluatorParams"),
+    "player": ("neural_estimator/nodes/player_node.py", "PlayerParams"),
+    "robot_estimator": ("neural_estimator/nodes/robot_estimator_node.py", "RobotEstimatorParams"),
+}
+
+MARKER = re.compile(r"^<!-- generate: ([a-z-]+)(?: (.*?))? -->$", re.M)
+
+
+# ---- node parameters ----------------------------------------------------------------------------
+def _name(name: str, tree: ast.Module) -> Any:
+    """A module-level name of a node module: imported from a module that does not import rclpy, or
+    assigned a literal there."""
+    for stmt in tree.body:
+        if isinstance(stmt, ast.ImportFrom) and any(a.name == name for a in stmt.names):
+            return getattr(importlib.import_module(stmt.module), name)
+        if isinstance(stmt, ast.Assign) and any(getattr(t, "id", None) == name for t in stmt.targets):
+            return ast.literal_eval(stmt.value)
+    raise ValueError(f"cannot resolve {name!r}")
+
+
+def _value(node: ast.expr, tree: ast.Module) -> Any:
+    """A default or a help text: a literal, or an expression over module-level names (an f-string)."""
+    try:
+        return ast.literal_eval(node)
+    except ValueError:
+        pass
+    names = {n.id: _name(n.id, tree) for n in ast.walk(node) if isinstance(n, ast.Name)}
+    return eval(compile(ast.Expression(body=node), "<param>", "eval"), {"__builtins__": {}}, names)  # noqa: S307
+
+
+def node_params(node: str) -> list[dict[str, Any]]:
+    """[{name, type, default, help}] of a node's parameter dataclass, in declaration order (read from
+    the source: the node modules import rclpy, and the site builds without it)."""
+    path, cls = NODE_PARAMS[node]
+    tree = ast.parse((ROOT / path).read_text())
+    klass = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == cls)
+    out = []
+    for stmt in klass.body:
+        if not (isinstance(stmt, ast.AnnAssign) and isinstance(stmt.value, ast.Call)):
+            continue
+        call = stmt.value
+        if getattr(call.func, "id", None) != "param":
+            continue
+        out.append(
+            {
+                "name": stmt.target.id,
+                "type": ast.unparse(stmt.annotation),
+                "default": _value(call.args[0], tree),
+                "help": _value(call.args[1], tree),
+            }
+        )
+    return out
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return json.dumps(list(value))
+    return repr(value)
+
+
+def params_table(node: str) -> str:
+    rows = ["| parameter | type | default | meaning |", "|---|---|---|---|"]
+    for p in node_params(node):
+        rows.append(f"| `{p['name']}` | {p['type']} | `{_show(p['default'])}` | {p['help'].replace('|', '/')} |")
+    return "\n".join(rows)
+
+
+# ---- command line ---------------------------------------------------------------------------------
+def cli_help(verb: str) -> str:
+    import contextlib
+    import io
+
+    if verb == "live":
+        from neural_estimator.nodes.launch import build_parser as live_parser
+
+        parser = live_parser()
+    else:
+        from neural_estimator.cli import build_parser
+
+        top = build_parser()
+        sub = next(a for a in top._actions if a.__class__.__name__ == "_SubParsersAction")
+        parser = top if verb == "-" else sub.choices[verb]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        parser.print_help()
+    return "```text\n" + buf.getvalue().rstrip() + "\n```"
+
+
+# ---- results ----------------------------------------------------------------------------------------
+def _num(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def scoreboard() -> str:
+    data = json.loads((ROOT / "docs/results/neural_scoreboard.json").read_text())
+    scenarios = list(data)
+    models = list(next(iter(data.values())))
+    rows = [
+        "| model | " + " | ".join(scenarios) + " |",
+        "|---|" + "---:|" * len(scenarios),
+    ]
+    for m in models:
+        cells = []
+        for s in scenarios:
+            c = data[s][m]
+            cells.append(f"{_num(c['rmse'])} ± {c['iqr']:.2g} · {c['paper']} <sub>{c['budget']}</sub>")
+        rows.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+def report_section(title: str) -> str:
+    """The body of the committed small-scale report's section whose heading starts with ``title``
+    (its figure links rewritten to the report's folder)."""
+    text = (ROOT / "docs/results/small/report.md").read_text()
+    m = re.search(rf"^## {re.escape(title)}.*?\n(.*?)(?=^## |\Z)", text, re.M | re.S)
+    if not m:
+        raise ValueError(f"docs/results/small/report.md has no section {title!r}")
+    body = m.group(1).strip()
+    return re.sub(r"\]\((figures/[^)]+)\)", r"](results/small/\1)", body)
+
+
+def headline_table() -> str:
+    """The main accuracy table of the committed small-scale report, RMSE only, three significant
+    digits: *ours · the paper's*, ``(!)`` where a method is expected to fail (README, results page)."""
+    rows = [ln for ln in report_section("Main accuracy").splitlines() if ln.startswith("| ")]
+    header = [c.strip() for c in rows[0].strip("|").split("|")]
+    scenarios = [h.split()[0] for h in header[1:] if h.endswith(" RMSE") and not h.endswith("NRMSE")]
+
+    def fmt(cell: str) -> str:
+        def n(x: str) -> str:
+            x = x.strip()
+            return x if x in ("∞", "N/A", "—") else f"{float(x):.3g}"
+
+        mark = " (!)" if "(!)" in cell else ""
+        ours, paper = cell.replace("(!)", "").split("·")
+        return f"{n(ours)}{mark} · {n(paper)}"
+
+    out = ["| method | " + " | ".join(scenarios) + " |", "|---|" + "---|" * len(scenarios)]
+    for row in rows[2:]:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        out.append(f"| {cells[0]} | " + " | ".join(fmt(cells[1 + 2 * i]) for i in range(len(scenarios))) + " |")
+    return "\n".join(out)
+
+
+FIDELITY_LINE = re.compile(r"^(ekf|ukf|enkf|pf)\s+(\S+)")
+
+
+def fidelity() -> str:
+    """Classical RMSE, median ± IQR over 3 sets, from the prior and from the truth, beside the paper's."""
+    paper = json.loads((ROOT / "neural_estimator/paper/paper_results.json").read_text())["accuracy_main"]
+    folder = ROOT / "benchmarks/results/fidelity"
+    rows = [
+        "| scenario | filters start | EKF | UKF | EnKF | PF |",
+        "|---|---|---|---|---|---|",
+    ]
+    for scenario in sorted({p.name.split("-")[0] for p in folder.glob("*.txt")}):
+        for init in ("prior", "truth"):
+            found: dict[str, str] = {}
+            for path in sorted(folder.glob(f"{scenario}-*-{init}-*.txt")):
+                for line in path.read_text().splitlines():
+                    m = FIDELITY_LINE.match(line)
+                    if m:
+                        found[m.group(1)] = m.group(2)
+            cells = []
+            for method in ("ekf", "ukf", "enkf", "pf"):
+                ours = found.get(method, "—")
+                theirs = paper[scenario][method]["rmse"]
+                cells.append(f"{ours} · {theirs}" if init == "prior" else ours)
+            rows.append(f"| {scenario} | {init} | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
+GENERATORS = {
+    "node-params": params_table,
+    "cli": cli_help,
+    "scoreboard": lambda _=None: scoreboard(),
+    "headline": lambda _=None: headline_table(),
+    "report-section": report_section,
+    "fidelity": lambda _=None: fidelity(),
+}
+
+
+def expand(markdown: str) -> str:
+    """Every marker of ``markdown`` replaced by its generated text."""
+
+    def one(m: re.Match) -> str:
+        name, arg = m.group(1), m.group(2)
+        if name not in GENERATORS:
+            raise ValueError(f"unknown generator {name!r} (known: {', '.join(GENERATORS)})")
+        return GENERATORS[name](arg) if arg is not None else GENERATORS[name]()
+
+    return MARKER.sub(one, markdown)
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 - MkDocs' hook signature
+    return expand(markdown)
