@@ -1,4 +1,4 @@
-"""Ballistic hypotheses (issue #9) for the paper's EKF/UKF split: the classic Athans / Julier set-up,
+"""Ballistic hypotheses for the paper's EKF/UKF split: the classic Athans / Julier set-up,
 where the filters' prior on the drag coefficient is far from and much wider than the truth's; and
 bodies that cross the ground, where the paper's E(a) = min(exp(-k a), 1) has its kink.
 

@@ -1,6 +1,6 @@
 """Our EnKF beside DAPPER's EnKF ('PertObs') on identical Lorenz 96 truth and observations.
 
-Answers issue 9's question about the EnKF's long-horizon drift at the paper's settings: is it a
+Answers a question about the EnKF's long-horizon drift at the paper's settings: is it a
 bug (DAPPER would not drift on the same data) or the known need for inflation (DAPPER drifts too)?
 
     python benchmarks/enkf_vs_dapper.py --obs-std 0.25 --members 50 --inflation 1.0 --horizon 1000

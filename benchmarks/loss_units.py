@@ -7,7 +7,7 @@ RMSE on evaluation set 0 with the shipped model trained on normalised units, whe
 the same recipe otherwise (same budget, data and seeds: the same window stream), so the loss units
 are the only difference:
 
-    python benchmarks/loss_units.py --pairs ballistic-mamba2,quadrotor-mamba2 --out /work/exp/lossunits
+    python benchmarks/loss_units.py --pairs ballistic-mamba2,quadrotor-mamba2 --out runs/lossunits
 
 Each training goes to OUT/<scenario>-<model>-state/ and is skipped when its card is already
 there (so the script can be run again to extend the table). Defaults are the shipped 2 %-budget

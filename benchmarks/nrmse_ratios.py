@@ -1,4 +1,4 @@
-"""RMSE / NRMSE of our filters on each scenario, beside the paper's ranges (issue #16).
+"""RMSE / NRMSE of our filters on each scenario, beside the paper's ranges.
 
     .venv/bin/python benchmarks/nrmse_ratios.py                      # EKF, UKF; 30 trajectories, seed 7
     .venv/bin/python benchmarks/nrmse_ratios.py --trajectories 100 --methods ekf,ukf,enkf

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Experiment (issue 9, item 2): can float32 arithmetic explain the paper's quadrotor UKF?
+"""Experiment: can float32 arithmetic explain the paper's quadrotor UKF?
 
 The paper's planar-quadrotor rows have the UKF (RMSE 8.04) and the EnKF (9.96) at 28-35x its EKF
 (0.287), although the observation y = C x is linear, where the UKF's update is exactly the Kalman

@@ -2,7 +2,7 @@
 # The README's "Fidelity to the paper" rows: the classical filters on the given scenarios, 3 sets,
 # seed 1, for each initialisation reading in $INITS. EKF/UKF/EnKF at $N trajectories per set, the PF
 # at $NPF (it is far slower). Scored from step $WARMUP (default 10, the paper's warm-up; WARMUP=0 scores
-# every step, as the rows made before session 9 did).
+# every step).
 # Outputs: benchmarks/results/fidelity/<scenario>-<methods>-<init>-<n>.txt
 #   N=1000 NPF=100 INITS="prior truth" nice -n 10 bash benchmarks/run_fidelity.sh bearings nlink
 set -uo pipefail

@@ -5,8 +5,8 @@
     .venv/bin/python benchmarks/warmup_share.py --scenario nlink --segments 0,10,100,200,300,400,500
 
 The paper's loss skips the first 10 timesteps of every window ("warm-up"), and so do the package's
-metrics since session 9 (neural_estimator.metrics, "Effective trajectory length"; before, every
-step counted). For each method this
+metrics (neural_estimator.metrics, "Effective trajectory length"; `--warmup 0` counts every
+step). For each method this
 prints the RMSE over all steps (plain, before the outlier rule), over the first ``--warmup`` steps
 and over the rest, on evaluation set 0 (``--trajectories`` of them), so the part of the aggregate
 that the training never optimised is visible. Output of the default run (the shipped models):

@@ -627,7 +627,7 @@ _TRAIN_FLAG_HELP = {
 }
 _TRAIN_FLAG_HELP["loss_units"] = (
     "units the loss weighs the state components in: state (the states' own units, as RMSE counts them; "
-    "default) or normalised (each at unit variance; the models trained before session 8); the paper does "
+    "default) or normalised (each at unit variance; cards without the field); the paper does "
     "not say which"
 )
 _TRAIN_FLAG_HELP["val_context"] = (

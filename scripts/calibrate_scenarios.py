@@ -9,7 +9,7 @@ filters, and prints every method's RMSE beside the paper's together with
 
     distance = max over EKF and UKF of |log(ours / paper)|      (log 1.5 = 0.405: the target)
 
-Candidates come from the literature each system descends from (``../shared/scenarios.md``); the
+Candidates come from the literature each system descends from (cited in each scenario module); the
 chosen one of each scenario is the default of its ``Config`` and is documented in its docstring.
 
 Usage (small default sizes, minutes on a loaded 2-core machine):

@@ -1,4 +1,4 @@
-"""The calibrated scenario constants (issue 9): recorded, the previous ones one --set away, the
+"""The calibrated scenario constants: recorded, the previous ones one --set away, the
 dataset cache keyed by the new revision, and the calibration script's distance."""
 
 import importlib.util

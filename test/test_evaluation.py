@@ -353,7 +353,7 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
     headers, report_keys, summary_keys = set(), set(), set()
     for name in ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor"):
         assert name in scenario_names()
-        # the shipped GRU's own constants (issue 9 recalibrated some scenarios after the zoo was trained)
+        # the shipped GRU's own constants (the calibration changed some scenarios after the zoo was trained)
         card = json.loads((ZOO / f"{name}-gru" / "card.json").read_text())
         sc = make_scenario(name, **card["scenario"]["config"])
         res = evaluate(sc, ["ekf", "gru"], trajectories=3, horizon=14, sets=1, cache_dir=False, progress=False)

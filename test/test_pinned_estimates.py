@@ -1,4 +1,4 @@
-"""Estimates equal those of the code before the issue #14 restructuring, to round-off.
+"""Estimates equal those of the code before the layering restructuring, to round-off.
 
 The pin file holds the four filters' and three freshly initialised neural estimators' outputs on
 small stored inputs (see ``test/data/pinned_estimates.py``); any change to the arithmetic or the

@@ -778,7 +778,7 @@ def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
 
 
 def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
-    """Issue 10's bar: every shipped model had the paper's budget (20,000 windows per epoch) and converged,
+    """The zoo's bar: every shipped model had the paper's budget (20,000 windows per epoch) and converged,
     and its card's "converged" follows from its own history: early stopping (patience epochs after the
     best one, none lower) or >= 3 learning-rate reductions."""
     from pathlib import Path

@@ -22,7 +22,7 @@ def test_zoo_holds_only_weights_and_cards():
 
 
 def _changed_constants(card: dict, scenario) -> list[str]:
-    """Constants (evaluation-only ones aside) whose default differs from the card's (issue 9's
+    """Constants (evaluation-only ones aside) whose default differs from the card's (the
     calibration changed some scenarios after the zoo was trained)."""
     from neural_estimator.models.serving import EVALUATION_CONSTANTS
 

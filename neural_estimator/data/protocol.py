@@ -132,7 +132,7 @@ class ChunkSampler:
 # Part of the cache key: bump it whenever a scenario's arithmetic changes, round-off included (the
 # chaotic systems turn a last-bit difference into another trajectory within the horizon), so no
 # cached set from older code is mixed with freshly simulated ones. 2: nlink's component-form RK4.
-# 3: the calibrated scenario constants of issue 9 (the constants are in the key too; bumped so
+# 3: the calibrated scenario constants (the constants are in the key too; bumped so
 # that no set from before the calibration is ever mixed in). 4: Lorenz 96 recalibrated (J = 10).
 # 5: psd_sqrt's principal root of a singular covariance (the bearings process noise; the others
 # are bit-identical).

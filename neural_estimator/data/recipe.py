@@ -34,7 +34,7 @@ class TrainConfig:
     window: int = WINDOW_LENGTH  # training sub-trajectory length (100)
     warmup: int = WARMUP_STEPS  # leading steps of a window (and of a validation run) not in the loss
     # the units the loss (and the validation loss) weighs the state components in: "state" (the states'
-    # own units, as the paper's RMSE counts them; the default since session 8) or "normalised" (each
+    # own units, as the paper's RMSE counts them; the default) or "normalised" (each
     # component at unit variance, every model trained before); the paper does not say which, and on
     # ballistic and the quadrotor "state" gave 2.2x and 1.5x lower RMSE (benchmarks/loss_units.py)
     loss_units: str = "state"

@@ -67,7 +67,7 @@ def window_attention(
         dropout_p: attention dropout probability (pass 0.0 in eval mode).
         fused: pass 4-D operands and mask to ``scaled_dot_product_attention``, which lets torch take
             its fused CPU kernel (flash attention: scores never materialised); False passes the 3-D
-            mask (and, blocked, 5-D operands) of the code before session 11, which torch can only
+            mask (and, blocked, 5-D operands) of the earlier code, which torch can only
             run on its unfused math path. Same result to float rounding; False is kept as the
             benchmark's "before" and the tests' reference. The fused kernel has no dropout, so with
             attention dropout on the CPU (a training step) ``fused`` takes :func:`_attention_dropout`

@@ -167,8 +167,8 @@ def plateau_rule(
 
     Window against window, not against the best so far: a curve whose first epoch was a lucky low
     and which is still coming down from a later high (the bearings Mamba: 0.52 at epoch 1, above it
-    until epoch 14, 0.41 at epoch 28) is improving, not flat. Replayed on the full-recipe histories of
-    sessions 7-11 (N = 10, tol = 1 %), the rule stops no run at a validation loss more than 1.1 %
+    until epoch 14, 0.41 at epoch 28) is improving, not flat. Replayed on the first full-recipe
+    histories (N = 10, tol = 1 %), the rule stops no run at a validation loss more than 1.1 %
     above the run's final best, and saves 0.5-0.7 h of CPU on the Lorenz 96 SSMs and the N-link
     Mamba-2.
 

@@ -1,8 +1,8 @@
 """Ballistic re-entry: a body falling through an exponential atmosphere, tracked by range.
 
 Athans, Wishner & Bertolini (1968), Julier & Uhlmann (2004), in the km scaling of SSMToybox
-(jacobnzw/SSMToybox, ``ssmtoybox/dynsys.py``, reentry vehicle); constants from
-``../shared/scenarios.md`` ("Ballistic re-entry").
+(jacobnzw/SSMToybox, ``ssmtoybox/dynsys.py``, reentry vehicle); the constants and the reason for
+each are in :class:`BallisticConfig` below (docs/systems.md has the table).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ class Ballistic(Scenario):
     discrete map); h's analytically. The code is also complex-step safe (E uses ``np.where`` on
     the real part instead of ``min``), so the base class's complex-step Jacobian agrees.
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario ballistic``, issue 9): not reached,
+    Calibration (``scripts/calibrate_scenarios.py --scenario ballistic``): not reached,
     constants unchanged. The paper's rows (EKF 5.29, UKF 0.63, EnKF 0.82, PF 0.66; EKF MedAE 0.90
     against the UKF's 0.15, EKF drift 3.8) need a regime where the EKF's linearisation fails and
     the UKF's does not. With these km constants the EKF and UKF agree to three digits

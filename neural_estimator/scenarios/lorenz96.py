@@ -1,8 +1,8 @@
 """Lorenz 96 with every variable observed, in DAPPER's standard setup.
 
 Lorenz (1996), "Predictability: a problem partly solved"; DAPPER (nansencenter/DAPPER,
-``dapper/mods/Lorenz96/sakov2008.py``) for J = 40, F = 8, RK4 with dt = 0.05 and H = I;
-constants from ``../shared/scenarios.md`` ("Lorenz 96").
+``dapper/mods/Lorenz96/sakov2008.py``) for J = 40, F = 8, RK4 with dt = 0.05 and H = I; the
+calibrated constants and the reason for each are in :class:`Lorenz96Config` below.
 """
 
 from __future__ import annotations

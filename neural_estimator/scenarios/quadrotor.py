@@ -2,7 +2,7 @@
 
 Singh et al. (2023), "Robust feedback motion planning via contraction theory", for the model and
 its constants (StanfordASL/RobustMP, ``PVTOL/Sim/load_PVTOL_config.m``); the discrete equations
-of paper.tex ("Planar Quadrotor"); see ``../shared/scenarios.md`` ("Planar quadrotor").
+of the paper ("Planar Quadrotor"); the calibrated constants are in the config class below.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ class PlanarQuadrotor(Scenario):
 
     Jacobians are analytic.
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario quadrotor``, issue 9). The paper's
+    Calibration (``scripts/calibrate_scenarios.py --scenario quadrotor``). The paper's
     EKF row (RMSE 0.287, MedAE 0.044) fixes the noise level; the other constants are the PVTOL
     model's. Measured at seed 1, 200 trajectories, filters from the prior (EKF / UKF RMSE):
     process_noise_std 0.001 (the previous default, scenarios.md's "0.1 tau"): 0.093 / 0.093

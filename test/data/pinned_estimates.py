@@ -1,4 +1,4 @@
-"""Estimates pinned before the issue #14 restructuring, so the refactor is held to them (bit-identical
+"""Estimates pinned before the layering restructuring, so the refactor is held to them (bit-identical
 on the CPU that made the pin, to round-off on others: see test/test_pinned_estimates.py; the PF's
 re-pinned once since, when its weights and estimate became compiled kernels: a change of summation
 order, 3e-15 relative; the bearings EnKF and PF re-pinned when ``psd_sqrt`` became the principal root
