@@ -9,6 +9,7 @@ reference table or result is typed by hand:
     scoreboard           the neural scoreboard, from docs/results/neural_scoreboard.json
     headline             the README's headline table (RMSE, ours · the paper's), from the small report
     report-section TITLE a section of the committed small-scale report (docs/results/small/report.md)
+    zoo                  the shipped models, from their cards (neural_estimator/zoo/*/card.json)
     fidelity             the classical rows against the paper, from benchmarks/results/fidelity/*.txt
                          and neural_estimator/paper/paper_results.json
 
@@ -179,6 +180,30 @@ def headline_table() -> str:
     return "\n".join(out)
 
 
+def zoo() -> str:
+    """The shipped models, one row per card of neural_estimator/zoo: budget, stop, card metrics."""
+    rows = [
+        "| model | loss units | epochs (best) | CPU hours | lr reductions | stopped | RMSE (NRMSE), card |",
+        "|---|---|---:|---:|---:|---|---:|",
+    ]
+    for card_path in sorted((ROOT / "neural_estimator" / "zoo").glob("*/card.json")):
+        card = json.loads(card_path.read_text())
+        t = card["training"]
+        recipe = t.get("recipe", {})
+        ctx = f", ctx {recipe['val_context']}" if recipe.get("val_context") else ""
+        hours = t.get("budget", {}).get("wall_seconds", 0) / 3600
+        metrics = card.get("metrics", {})
+        rmse = metrics.get("rmse")
+        score = f"{rmse:.4g} ({metrics.get('nrmse', float('nan')):.3f})" if isinstance(rmse, (int, float)) else "—"
+        stopped = str(t.get("stopped", "")).split(":")[0].replace("|", "/")
+        rows.append(
+            f"| {card_path.parent.name}{ctx} | {recipe.get('loss_units', 'normalised')} | "
+            f"{t.get('epochs_run')} ({t.get('best_epoch')}) | {hours:.2f} | {t.get('lr_reductions')} | "
+            f"{stopped} | {score} |"
+        )
+    return "\n".join(rows)
+
+
 FIDELITY_LINE = re.compile(r"^(ekf|ukf|enkf|pf)\s+(\S+)")
 
 
@@ -214,6 +239,7 @@ GENERATORS = {
     "headline": lambda _=None: headline_table(),
     "report-section": report_section,
     "fidelity": lambda _=None: fidelity(),
+    "zoo": lambda _=None: zoo(),
 }
 
 
