@@ -114,3 +114,25 @@ def test_node_bad_start_up_is_one_line_and_status_1(node, params, text, tmp):
     assert res.returncode == 1, res.stdout + res.stderr
     assert len(fatal) == 1 and text in fatal[0], res.stdout + res.stderr
     assert "Traceback" not in res.stderr
+
+
+def test_recorded_data_length_errors_name_the_setting_the_user_has(tmp):
+    """Too long a trajectory for a recording: the CLI names --length, the evaluator node spec_length."""
+    sys.path.insert(0, str(ROOT / "examples"))
+    import robot_bag
+
+    from neural_estimator.robot import SpecError, build_dataset, load_spec
+
+    bag = robot_bag.write_bag(tmp / "robot_bag", runs=1, seconds=3.0, seed=2)
+    spec = load_spec(SPEC)
+    with pytest.raises(SpecError, match=r"pass a smaller --length"):
+        build_dataset([bag], spec, 10_000)
+    with pytest.raises(SpecError, match=r"pass a smaller spec_length \(-p spec_length:=N\)"):
+        build_dataset([bag], spec, 10_000, length_name="spec_length (-p spec_length:=N)")
+    res = subprocess.run(
+        CLI + ["dataset", str(bag), "--spec", SPEC, "--length", "10000", "--out", str(tmp / "d.npz")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 2 and "pass a smaller --length" in res.stderr, res.stderr
