@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's "Fidelity to the paper" rows: the classical filters on the given scenarios, 3 sets,
+# The classical rows of docs/fidelity.md: the classical filters on the given scenarios, 3 sets,
 # seed 1, for each initialisation reading in $INITS. EKF/UKF/EnKF at $N trajectories per set, the PF
 # at $NPF (it is far slower). Scored from step $WARMUP (default 10, the paper's warm-up; WARMUP=0 scores
 # every step).

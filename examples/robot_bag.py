@@ -1,5 +1,5 @@
 """Write a recording of a ground robot made of standard ROS 2 messages only (the worked example of
-"Your own robot" in the README).
+docs/robot.md).
 
 A unicycle robot drives on a plane (position x, y, heading yaw, speed v, turn rate w; v and w
 wander as Ornstein-Uhlenbeck processes, the robot turns back towards the origin when it strays).

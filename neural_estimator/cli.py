@@ -689,7 +689,7 @@ def _add_train(sub) -> None:
         default=1,
         metavar="N",
         help="CPU threads for torch and the fused scan kernels (default 1: on this project's 2-core "
-        "machine one process per core beats two threads in one; see the README)",
+        "machine one process per core beats two threads in one; see docs/performance.md)",
     )
     p.set_defaults(func=_cmd_train)
 
@@ -895,7 +895,9 @@ def _cmd_recover(args) -> int:
 # ---- reproduce ----------------------------------------------------------------------------------
 def _add_reproduce(sub) -> None:
     p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
-    p.add_argument("--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (README, 'Reproduce')")
+    p.add_argument(
+        "--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (docs/reproduce-guide.md)"
+    )
     p.add_argument(
         "--plugin",
         action="append",
@@ -939,7 +941,7 @@ def _add_dataset(sub) -> None:
         required=True,
         metavar="SPEC.yaml",
         help="the observation, control and state as message "
-        "fields on topics, the rate and the alignment (README, 'Your own robot')",
+        "fields on topics, the rate and the alignment (docs/robot.md)",
     )
     p.add_argument("--out", required=True, metavar="DATA.npz")
     p.add_argument(

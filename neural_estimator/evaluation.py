@@ -70,7 +70,7 @@ INIT_MODES = ("prior", "truth")
 - ``"truth"``: each trajectory's filters start at its true initial state x_0 (the mean only:
   covariance P0 and the PF's init_std spread unchanged), i.e. the PF's particles are
   N(x_0, init_std^2 I). This is the reading of the paper's "x_0 std = 1.0" under which a PF with a
-  fixed unit spread can lock on in every scenario (see the README, "Fidelity to the paper").
+  fixed unit spread can lock on in every scenario (see docs/fidelity.md).
   Neural methods read observations only; the option does not concern them.
 """
 
@@ -489,11 +489,11 @@ def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown") ->
     return M.format_table({m: r.summary for m, r in results.items()}, fmt=fmt)
 
 
-RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see README, "Metrics"
+RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see docs/metrics-reference.md
 
 
 def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info: Any) -> dict[str, Any]:
-    """Everything measured, strict-JSON-ready (schema :data:`RESULTS_SCHEMA`, README "Metrics").
+    """Everything measured, strict-JSON-ready (schema :data:`RESULTS_SCHEMA`, docs/metrics-reference.md).
 
     Every method has the same keys: its ``summary`` has every metric of
     :data:`~neural_estimator.metrics.SCALAR_METRICS` (``applies`` false and null numbers for the

@@ -3,8 +3,7 @@
 The live pipeline (and ``evaluate --init prior``) starts every filter from the scenario prior.
 Where a method is expected to fail there, as the paper's EnKF fails on bearings-only tracking, the
 tables printed by the main job mark its row and say why in one line, so a collapsed estimator
-is never shown as if it were a result. Each entry was measured; the README's "Fidelity to the
-paper" section gives the commands.
+is never shown as if it were a result. Each entry was measured; docs/fidelity.md section gives the commands.
 """
 
 from __future__ import annotations

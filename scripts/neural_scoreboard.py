@@ -12,8 +12,8 @@ training budget of each model (``full`` = the paper's recipe from ``scripts/trai
 project tracks: the Lorenz 96 Mamba and Mamba-2 RMSE against 0.08, and in how many scenarios an SSM
 (Mamba or Mamba-2) is the best neural model (the paper: 5 of 5).
 
-Scored like every evaluation over t >= ``--warmup`` (default the paper's 10 warm-up steps, see README,
-"Metrics"); the Lorenz 96 verdict also gives the SSMs' RMSE over every step. Runs are cached by
+Scored like every evaluation over t >= ``--warmup`` (default the paper's 10 warm-up steps, see
+docs/metrics-reference.md); the Lorenz 96 verdict also gives the SSMs' RMSE over every step. Runs are cached by
 checkpoint digest (the evaluation result cache), so after a model is replaced only its rows are
 computed again.
 
@@ -191,7 +191,7 @@ def main(argv=None) -> int:
             + "· the paper's RMSE (3 x 8,000); bold: the best neural model of the scenario (ours, paper); "
             "below each cell the model's training budget (full = the paper's recipe, else epochs x windows) and the "
             "units of its loss (norm.: normalised components; state: the states' own units); ctx N: validated and "
-            "served with its context bounded to N steps (not the paper's protocol, see the README).",
+            "served with its context bounded to N steps (not the paper's protocol, see docs/methods.md).",
             "",
             table(rows, methods),
             "",

@@ -1,4 +1,4 @@
-"""Print the README's parameter tables from params/*.yaml (the documented source of truth).
+"""Print the nodes' parameter tables from params/*.yaml (the documented source of truth).
 
 python scripts/params_tables.py > /tmp/params.md
 """

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The README's main job: installs what is missing into .venv, then runs the live ROS 2 pipeline on
-# the default scenario: a simulator node publishes noisy observations and ground truth, estimator
-# nodes (classical and neural) update once per message, and the evaluator records every stream into
-# one MCAP bag, then prints the paper's metrics table. Ends with the table and the bag's path.
+# The main job (README, docs/getting-started.md): installs what is missing into .venv, then runs the
+# live ROS 2 pipeline on the default scenario: a simulator node publishes noisy observations and ground
+# truth, estimator nodes (classical and neural) update once per message, and the evaluator records
+# every stream into one MCAP bag, then prints the paper's metrics table. Ends with the table and the
+# bag's path.
 #
 #   scripts/run_demo.sh                          # lorenz96: ekf, ukf, enkf, pf, gru, mamba
 #   scripts/run_demo.sh --scenario bearings --methods ukf,pf,gru --trajectories 4

@@ -1,4 +1,4 @@
-"""Print the README's table of the shipped models: RMSE (NRMSE) on evaluation set 0, as measured at
+"""Print a table of the shipped models: RMSE (NRMSE) on evaluation set 0, as measured at
 the end of training and recorded in each card, "(converged)" where the card says training converged,
 "(ctx N)" for a variant validated and served with its context bounded to N steps, "†" where the card
 scored the steps after its warm-up (cards made since the warm-up rule record

@@ -33,7 +33,7 @@ def load_script(relative: str):
 
 @pytest.fixture
 def oscillator():
-    """The README's custom scenario: linear-Gaussian, so the Kalman filter is exact."""
+    """The documented custom scenario (docs/systems.md): linear-Gaussian, so the Kalman filter is exact."""
     return EXAMPLE.Oscillator()
 
 

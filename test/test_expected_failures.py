@@ -32,5 +32,5 @@ def test_bag_summary_marks_the_expected_failure_and_says_why(tmp_path):
 
 def test_no_marks_where_nothing_is_expected_to_fail():
     table = "Method RMSE\npf 0.1\n"
-    assert mark_rows(table, "bearings") == table  # the bearings PF works (README, "Fidelity to the paper")
+    assert mark_rows(table, "bearings") == table  # the bearings PF works (docs/fidelity.md)
     assert notes("bearings", ["ekf", "pf"]) == []

@@ -2,7 +2,7 @@
 
 The end-to-end run uses a subset (2 scenarios x 4 methods: two filters, two neural models; 16 tiny
 trainings for the data-efficiency table) so the suite stays fast; the full smoke scale (5 x 10)
-is the same code with more jobs (README, "Reproduce").
+is the same code with more jobs (docs/reproduce-guide.md).
 """
 
 from __future__ import annotations
@@ -222,7 +222,7 @@ def test_init_truth_starts_the_filters_at_the_true_state(tmp_path):
     truth = Job("evaluate", "lorenz96", "pf", trajectories=4, horizon=20, init="truth")
     a, b = run_job(prior, tmp_path), run_job(truth, tmp_path)
     assert not a["cached"] and not b["cached"]  # two results, not one read back as the other
-    # the README's measurement in small: the unit cloud collapses around the prior mean, tracks from x0
+    # the measurement in docs/fidelity.md, in small: the unit cloud collapses around the prior mean, tracks from x0
     assert b["result"]["rmse"] < 0.25 * a["result"]["rmse"]
     bad = Job("evaluate", "lorenz96", "ekf", trajectories=4, horizon=20, init="oracle")
     with pytest.raises(ValueError, match="init must be one of"):

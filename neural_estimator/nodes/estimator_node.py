@@ -435,7 +435,7 @@ def _exists(path: str) -> bool:
 
 def _make_node() -> ManagedNode:
     """The estimator node, or, when ``checkpoint`` is a model trained on recorded data (its card holds a
-    spec, README "Your own robot"), the robot estimator on the spec's own topics: a recorded-data model
+    spec, docs/robot.md), the robot estimator on the spec's own topics: a recorded-data model
     needs no scenario. The parameters are looked at once by a short-lived probe node of the same name."""
     import rclpy
 

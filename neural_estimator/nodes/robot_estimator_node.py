@@ -4,7 +4,7 @@
     python -m neural_estimator.nodes.robot_estimator_node --ros-args -p checkpoint:=runs/robot-mamba
 
 The checkpoint's card (``neural-estimator train --data``) carries the spec the model was trained
-with (README, "Your own robot"). The node needs no scenario: it subscribes to the spec's
+with (docs/robot.md). The node needs no scenario: it subscribes to the spec's
 observation and control topics with their own message types (found on the graph when a publisher
 appears, and checked as the evaluator checks foreign types: ``neural_estimator.interfaces``),
 reads the spec's fields from every message, and at every tick of the spec's rate (or on every

@@ -76,7 +76,7 @@ class Bearings(Scenario):
     crossing slowly past it ((-200, 400, 2, 0), (400, 400, 0, -1)). Chosen: prior mean
     (-200, 400, 2, 0), std (10, 10, 1, 1) m, m/s, acceleration noise 0.3 m/s^2, bearing noise
     0.01 rad: EKF 324 (paper x1.05), UKF 204 (x1.13), EnKF 244, MedAE 4.5 (seed 1): the paper's
-    EKF / UKF ratio (1.7; here 1.6). The paper's EnKF "diverges"; ours does not (see the README,
+    EKF / UKF ratio (1.7; here 1.6). The paper's EnKF "diverges"; ours does not (see docs/fidelity.md,
     "Fidelity to the paper"). ``--set prior_mean=[0,400,0,-50] --set prior_std=[500,300,5,10]
     --set accel_noise_std=1.0 --set obs_noise_std=0.005`` gives the previous constants.
     """

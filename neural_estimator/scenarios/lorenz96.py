@@ -99,7 +99,7 @@ class Lorenz96(Scenario):
     obs std 0.07, process std 0.05 reproduces the whole row (1,000 trajectories x 3 sets, EKF /
     UKF / EnKF, filters started at the true x0: 0.049 / 0.049 / 0.052; NRMSE 0.014 (paper
     0.013-0.015), AUC 24.6 / 24.6 / 26.0 (paper 23.7 / 23.2 / 26.1), NEES median 9.3 for dx = 10;
-    the PF 0.07 on 20 trajectories, see the README's "Fidelity to the paper" for the full row).
+    the PF 0.07 on 20 trajectories, see docs/fidelity.md for the full row).
     From the prior (climatology, std 3.6) EKF, UKF and EnKF are unchanged but the PF's
     N(m0, 1.0^2 I) particles cover the truth too rarely: the paper's PF row needs the truth
     reading of its initialisation (``evaluate --init truth``). The previous constants stay

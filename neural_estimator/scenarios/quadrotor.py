@@ -111,7 +111,7 @@ class PlanarQuadrotor(Scenario):
     with q = 0.001) reaches 0.14 and 0.24 only. Chosen: process_noise_std = 0.1 (scenarios.md's
     "about 0.1" read as a std per step, not 0.1 tau). ``--set process_noise_std=0.001`` gives the
     previous constants. The paper's UKF (8.0) and EnKF (10.0) at 28-35x its EKF on a linear
-    observation are not explained by the system: here the UKF equals the EKF (see the README,
+    observation are not explained by the system: here the UKF equals the EKF (see docs/fidelity.md,
     "Fidelity to the paper").
     """
 
