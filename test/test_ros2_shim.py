@@ -53,6 +53,17 @@ def test_a_node_without_rclpy_names_the_extra_to_install(tmp_path):
     assert "pip install 'neural_estimator[ros]'" in lines[0]
 
 
+def test_live_without_rclpy_names_the_extra_to_install(tmp_path):
+    fake = tmp_path / "rclpy"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('no rclpy here')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    cmd = [sys.executable, "-m", "neural_estimator.cli", "live", "--scenario", "lorenz96", "--methods", "ukf"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    assert res.returncode == 1 and res.stderr.strip().count("\n") == 0, res.stderr
+    assert "pip install 'neural_estimator[ros]'" in res.stderr
+
+
 def test_a_wheel_puts_no_generic_command_into_bin(tmp_path):
     """pip's bin/ gets `neural-estimator` only; colcon (setup.py install) still gets the nodes."""
     import configparser

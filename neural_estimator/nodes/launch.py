@@ -346,6 +346,11 @@ def main(argv: list[str] | None = None) -> int:
     from neural_estimator.scenarios import ScenarioError
 
     a = build_parser().parse_args(argv)
+    from neural_estimator.nodes.entry import NO_RCLPY, rclpy_missing
+
+    if rclpy_missing():
+        print(NO_RCLPY.format(name="neural-estimator live"), file=sys.stderr)
+        return 1
     try:
         check_arguments(a)
     except (ScenarioError, EstimatorError, ValueError) as exc:
