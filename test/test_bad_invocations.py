@@ -136,3 +136,37 @@ def test_recorded_data_length_errors_name_the_setting_the_user_has(tmp):
         timeout=300,
     )
     assert res.returncode == 2 and "pass a smaller --length" in res.stderr, res.stderr
+
+
+def test_progress_bars_only_on_terminals(tmp):
+    """evaluate's progress bar draws on a terminal and stays out of pipes and logs."""
+    import os
+    import pty
+
+    argv = CLI + ["evaluate", "--scenario", "lorenz96", "--methods", "ukf", "--trajectories", "2", "--sets", "1"]
+    argv += ["--horizon", "200", "--no-cache"]
+    piped = subprocess.run(argv, capture_output=True, text=True, timeout=300, cwd=tmp)
+    assert piped.returncode == 0, piped.stderr
+    assert "\r" not in piped.stderr and "traj-step" not in piped.stderr, piped.stderr
+    import fcntl
+    import struct
+    import termios
+
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a 100-column terminal
+    try:
+        proc = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=follower, timeout=300, cwd=tmp)
+        os.close(follower)
+        chunks = []
+        while True:
+            try:
+                data = os.read(leader, 65536)
+            except OSError:
+                break
+            if not data:
+                break
+            chunks.append(data)
+    finally:
+        os.close(leader)
+    assert proc.returncode == 0
+    assert b"traj-step" in b"".join(chunks)
