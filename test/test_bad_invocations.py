@@ -170,3 +170,17 @@ def test_progress_bars_only_on_terminals(tmp):
         os.close(leader)
     assert proc.returncode == 0
     assert b"traj-step" in b"".join(chunks)
+
+
+def test_reproduce_without_ray_names_the_extra_to_install(tmp):
+    fake = tmp / "no_ray"
+    (fake / "ray").mkdir(parents=True, exist_ok=True)
+    (fake / "ray" / "__init__.py").write_text("raise ImportError('no ray here')\n")
+    import os
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(fake), os.environ.get("PYTHONPATH", "")]))
+    res = subprocess.run(
+        CLI + ["reproduce", "--scale", "smoke", "--out", str(tmp / "rp")], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "pip install 'neural_estimator[reproduce]'" in res.stderr
