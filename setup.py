@@ -15,6 +15,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
         (f"share/{package_name}", ["package.xml"]),
         (f"share/{package_name}/params", glob("params/*.yaml")),
+        (f"share/{package_name}/launch", glob("launch/*.launch.py")),
         (f"share/{package_name}/bags", glob("bags/*.mcap")),
     ],
     # What `pip install .` needs for every verb but `reproduce` and the nodes. The README's install

@@ -35,7 +35,16 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
-from neural_estimator.nodes.odometry import make_odometry
+from neural_estimator.nodes.diagnostics import (
+    OK,
+    WARN,
+    InputDiagnosticsParams,
+    hardware_id,
+    merge,
+    parse_rates,
+    status_message,
+)
+from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
 from neural_estimator.robot.dataset import topic_fields
 from neural_estimator.robot.spec import SpecError, topic_values
 from neural_estimator.nodes.common import (
@@ -58,7 +67,7 @@ class RobotEstimatorParams:
     device: str = param("cpu", "torch device: cpu, cuda, cuda:N, auto")
     threads: int = param(1, "torch intra-op threads (one suits one-step updates); 0 = torch's default")
     output_topic: str = param("", "estimate topic; empty = estimates/<method>")
-    publish_odometry: bool = param(True, "publish nav_msgs/Odometry on <output>/odometry when the state is a pose")
+    publish_odometry: bool = param(True, "publish the pose output (pose_output) when the state is a pose")
     frame_id: str = param("map", "header.frame_id of the estimates and the odometry")
     child_frame_id: str = param("base_link", "child_frame_id of the odometry")
     input_qos: str = param(
@@ -66,6 +75,9 @@ class RobotEstimatorParams:
     )
     discovery_period: float = param(0.2, "seconds between looks at the graph for the spec's topics")
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
+    expected_rates: tuple[str, ...] = param(
+        (), "expected rate of each input as topic=Hz (e.g. /imu=100): WARN outside the band; others: expected_rate"
+    )
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
 
 
@@ -73,6 +85,12 @@ class RobotEstimatorNode(ManagedNode):
     def __init__(self, node_name: str = "robot_estimator") -> None:
         super().__init__(node_name)
         self.p = p = declare_params(self, RobotEstimatorParams)
+        self.po = declare_params(self, OutputParams)
+        self.pd = declare_params(self, InputDiagnosticsParams)
+        try:
+            rates = parse_rates(p.expected_rates)
+        except ValueError as exc:
+            raise StartupError(str(exc)) from None
         if p.input_qos not in ("sensor_data", "reliable"):
             raise StartupError(f"parameter input_qos must be sensor_data or reliable, got {p.input_qos!r}")
         self.scenario, self.spec, self.method, self.est = _load(p)
@@ -93,24 +111,40 @@ class RobotEstimatorNode(ManagedNode):
         self._refused: set[str] = set()
         self._u_prev = np.zeros((1, self.scenario.du))
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        # On sim time (a bag played with /clock), ticks follow the player's clock: at every tick time
+        # T_k = k * dt of the sim clock passed, so a bag played at any rate gives the same ticks.
+        self.sim_time = bool(self.get_parameter("use_sim_time").value)
+        self._clock = self.get_clock() if self.sim_time else self._steady
+        self._next_tick: int | None = None  # sim time [ns] of the next tick
+        now = time.monotonic()
+        self.monitors = {t: self.pd.monitor(t, now, rates.get(t)) for t in self.fields}
         self.est.reset(1)
         out = p.output_topic or M.estimate_topic(self.method)
         self.pub_est = self.create_publisher(JointState, out, stream_qos(1000))
-        self.pub_odom = None
-        if p.publish_odometry and self.scenario.pose_states:
-            from nav_msgs.msg import Odometry
-
-            self._odom_cls = Odometry
-            self.pub_odom = self.create_publisher(Odometry, f"{out}/odometry", stream_qos(1000))
+        try:
+            self.outputs = Outputs(
+                self,
+                self.po,
+                out,
+                stream_qos(1000),
+                p.frame_id,
+                p.child_frame_id,
+                self.scenario.state_names,
+                self.scenario.pose_states,
+                p.publish_odometry,
+            )
+        except OutputError as exc:
+            raise StartupError(str(exc)) from None
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(p.discovery_period, self._discover, clock=self._steady)
         self.create_timer(p.diagnostics_period, self._diagnostics, clock=self._steady)
-        if not self.spec.trigger:
+        if not self.spec.trigger and not self.sim_time:
             self.create_timer(self.spec.dt, self._tick, clock=self._steady)
         self.get_logger().info(
             f"{self.method} on recorded-data spec {self.spec.digest()[:12]}: {', '.join(self.fields)} -> '{out}'"
-            + (" + odometry" if self.pub_odom else "")
+            + self.outputs.describe()
             + f" at {self.spec.rate:g} Hz"
+            + (" of the sim clock (/clock)" if self.sim_time and not self.spec.trigger else "")
             + (f" (on {self.spec.trigger})" if self.spec.trigger else "")
         )
         self._discover()
@@ -145,20 +179,40 @@ class RobotEstimatorNode(ManagedNode):
 
     def _on_message(self, topic: str, msgtype: str, msg) -> None:
         self.counts["messages"] += 1
+        self.monitors[topic].tick(time.monotonic())
+        if self.sim_time and not self.spec.trigger:
+            self._sim_ticks()
         try:
             values = topic_values(msg, self.fields[topic], msgtype)
         except SpecError as exc:
             self.counts["bad_messages"] += 1
             self._warn(f"field:{topic}", str(exc))
             return
-        self.latest[topic] = (self._steady.now().nanoseconds, values)
+        self.latest[topic] = (self._clock.now().nanoseconds, values)
         if self.spec.trigger == topic:
             self._tick()
 
     # ---- one estimate per tick ------------------------------------------------------------------------
-    def _tick(self) -> None:
+    def _sim_ticks(self) -> None:
+        """Run every tick of the sim-time grid (multiples of dt) that the sim clock has passed."""
+        now = self.get_clock().now().nanoseconds
+        if now <= 0:
+            return  # no /clock yet
+        period = int(round(self.spec.dt * 1e9))
+        if self._next_tick is None:
+            self._next_tick = -(-now // period) * period
+        if now - self._next_tick > int(self.spec.max_age * 1e9) + period:  # a jump (a gap between runs):
+            skipped = (now - self._next_tick) // period  # every input is stale at those ticks
+            self.counts["ticks"] += int(skipped)
+            self.counts["stale"] += int(skipped)
+            self._next_tick += int(skipped) * period
+        while self._next_tick <= now:
+            self._tick(self._next_tick)
+            self._next_tick += period
+
+    def _tick(self, stamp: int | None = None) -> None:
         self.counts["ticks"] += 1
-        now = self._steady.now().nanoseconds
+        now = self._clock.now().nanoseconds if stamp is None else stamp
         max_age = int(self.spec.max_age * 1e9)
         if any(t not in self.latest or now - self.latest[t][0] > max_age for t in self.fields):
             self.counts["stale"] += 1
@@ -170,19 +224,15 @@ class RobotEstimatorNode(ManagedNode):
         x = np.asarray(self.est.step(y[None], self._u_prev), dtype=np.float64)[0]
         self._u_prev = u[None]
         self.counts["estimates"] += 1
-        stamp = self.get_clock().now().nanoseconds
+        stamp = self.get_clock().now().nanoseconds if stamp is None else stamp
         msg = JointState()
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
         msg.header.frame_id = self.p.frame_id
         msg.name = list(self.scenario.state_names)
         msg.position = x.tolist()
         self.pub_est.publish(msg)
-        if self.pub_odom is not None:
-            self.pub_odom.publish(
-                make_odometry(
-                    self._odom_cls, stamp, self.p.frame_id, self.p.child_frame_id, x, None, self.scenario.pose_states
-                )
-            )
+        cov = self.est.covariance
+        self.outputs.publish(stamp, x, None if cov is None else cov[0])
 
     def _vector(self, name: str) -> np.ndarray:
         return np.array([self.latest[topic][1][col] for topic, col in self.columns[name]], dtype=np.float64)
@@ -195,14 +245,21 @@ class RobotEstimatorNode(ManagedNode):
             self.get_logger().warning(text)
 
     def _diagnostics(self) -> None:
-        status = DiagnosticStatus(name=f"{self.get_name()}: {self.method} (recorded-data spec)", hardware_id="cpu")
+        hwid = hardware_id(self.get_fully_qualified_name(), self.method)
+        status = DiagnosticStatus(name=f"{self.get_name()}: {self.method} (recorded-data spec)", hardware_id=hwid)
         missing = [t for t in self.fields if t not in self.subs]
-        status.level = DiagnosticStatus.OK if not missing else DiagnosticStatus.WARN
-        status.message = "running" if not missing else f"waiting for {', '.join(missing)}"
+        now = time.monotonic()
+        inputs = [m.status(now) for m in self.monitors.values()]
+        level, message = merge(
+            [(WARN if missing else OK, f"waiting for {', '.join(missing)}")]
+            + [(st.level, f"{st.name}: {st.message}") for st in inputs]
+        )
+        status.level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[level]
+        status.message = "running" if message == "ok" else message
         status.values = [KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [status]
+        arr.status = [status] + [status_message(st, status.name, hwid, DiagnosticStatus, KeyValue) for st in inputs]
         self.pub_diag.publish(arr)
 
 
