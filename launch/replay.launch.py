@@ -1,7 +1,7 @@
 """The replay graph (neural_estimator.nodes.graph.GRAPHS["replay"]: arguments and nodes).
 
-ros2 launch neural_estimator replay.launch.py bag:=bags/bearings.mcap methods:=ekf,ukf,mamba rate:=2.0
-ros2 launch neural_estimator replay.launch.py --show-args
+    ros2 launch neural_estimator replay.launch.py bag:=bags/bearings.mcap methods:=ekf,ukf,mamba rate:=2.0
+    ros2 launch neural_estimator replay.launch.py --show-args
 """
 
 from neural_estimator.nodes.graph import launch_description
