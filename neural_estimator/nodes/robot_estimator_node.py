@@ -12,18 +12,27 @@ message of its ``trigger`` topic) assembles the observation from each topic's la
 steps the estimator once. A tick at which some topic has no message received within the spec's
 ``max_age`` is skipped and counted (the model was trained on ticks with every input fresh).
 Live, ages are measured on receipt (the node's steady clock), since a recording's header stamps
-are of another clock when a bag is played.
+are of another clock when a bag is played without ``/clock``.
+
+On sim time (``use_sim_time:=true``, a player with ``publish_clock:=true``: launch/robot_estimator.launch.py
+with ``bag:=``) the ticks are the multiples of dt of the recording's clock, each run once every input
+has delivered a message stamped after it (or the clock is ``sim_delay`` past it), on every input's
+latest message stamped (header, as the spec says) at or before the tick: the dataset builder's
+rule, so a bag played at 4x gives the estimates of 1x.
 
 Publishes ``estimates/<method>`` (sensor_msgs/JointState with the spec's state names, stamped at
-the tick) and, when the state is named like a pose (x, y, yaw, ...), ``estimates/<method>/odometry``
-(nav_msgs/Odometry, unknown components with variance 1e6); ``/diagnostics`` every
-``diagnostics_period`` s. A message missing a field the spec names is counted and logged
+the tick), the standard outputs of :mod:`neural_estimator.nodes.outputs` (Odometry or
+PoseWithCovarianceStamped when the state is named like a pose (x, y, yaw, ...), unknown components
+with variance 1e6; the state vector; optional /tf); ``/diagnostics`` every ``diagnostics_period`` s
+(with each input's frequency and staleness, :mod:`neural_estimator.nodes.diagnostics`). A message
+missing a field the spec names is counted and logged
 (throttled), never fatal; a missing checkpoint, a checkpoint without a spec or an unknown method
 is one fatal line at start-up (exit status 1).
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import sys
 import time
@@ -74,6 +83,12 @@ class RobotEstimatorParams:
         "sensor_data", "input subscriptions' reliability: sensor_data (best effort, matches any publisher) or reliable"
     )
     discovery_period: float = param(0.2, "seconds between looks at the graph for the spec's topics")
+    queue_depth: int = param(1000, "input subscriptions' depth (KEEP_LAST): messages buffered while busy")
+    sim_delay: float = param(
+        2.0,
+        "on sim time: a tick at T waits for a message stamped after T on every input, or for the clock to "
+        "reach T + sim_delay (s) when an input is silent",
+    )
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     expected_rates: tuple[str, ...] = param(
         (), "expected rate of each input as topic=Hz (e.g. /imu=100): WARN outside the band; others: expected_rate"
@@ -105,6 +120,7 @@ class RobotEstimatorNode(ManagedNode):
             for name in ("observation", "control")
         }
         self.latest: dict[str, tuple[int, np.ndarray]] = {}  # topic -> (receipt time ns, values)
+        self.history: dict[str, collections.deque] = {}  # on sim time: topic -> (stamp ns, values) not yet used
         self.subs: dict[str, object] = {}
         self.counts = {"ticks": 0, "estimates": 0, "stale": 0, "bad_messages": 0, "messages": 0}
         self._last_log: dict[str, float] = {}
@@ -166,7 +182,7 @@ class RobotEstimatorNode(ManagedNode):
                 self.get_logger().error(f"'{topic}': {exc}; not subscribed")
                 continue
             qos = QoSProfile(
-                depth=100,
+                depth=max(1, self.p.queue_depth),
                 durability=DurabilityPolicy.VOLATILE,
                 reliability=ReliabilityPolicy.BEST_EFFORT
                 if self.p.input_qos == "sensor_data"
@@ -180,44 +196,68 @@ class RobotEstimatorNode(ManagedNode):
     def _on_message(self, topic: str, msgtype: str, msg) -> None:
         self.counts["messages"] += 1
         self.monitors[topic].tick(time.monotonic())
-        if self.sim_time and not self.spec.trigger:
-            self._sim_ticks()
         try:
             values = topic_values(msg, self.fields[topic], msgtype)
         except SpecError as exc:
             self.counts["bad_messages"] += 1
             self._warn(f"field:{topic}", str(exc))
             return
-        self.latest[topic] = (self._clock.now().nanoseconds, values)
-        if self.spec.trigger == topic:
+        now = self._clock.now().nanoseconds
+        self.latest[topic] = (now, values)
+        if self.sim_time and not self.spec.trigger:
+            header = getattr(msg, "header", None)
+            stamp = now
+            if self.spec.stamp == "header" and header is not None:
+                stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+            self.history.setdefault(topic, collections.deque()).append((stamp, values))
+            self._sim_ticks()
+        elif self.spec.trigger == topic:
             self._tick()
 
     # ---- one estimate per tick ------------------------------------------------------------------------
     def _sim_ticks(self) -> None:
-        """Run every tick of the sim-time grid (multiples of dt) that the sim clock has passed."""
-        now = self.get_clock().now().nanoseconds
-        if now <= 0:
-            return  # no /clock yet
+        """Run every tick T of the sim-time grid (multiples of dt) that is settled, on each input's latest
+        message stamped at or before T (the dataset builder's rule). T is settled when every input has
+        delivered a message stamped after T (messages of one topic arrive in order), or when the sim
+        clock is ``sim_delay`` past T (an input that went silent). Neither depends on the playback rate,
+        so a bag played at 4x gives the ticks and inputs of 1x."""
         period = int(round(self.spec.dt * 1e9))
         if self._next_tick is None:
-            self._next_tick = -(-now // period) * period
-        if now - self._next_tick > int(self.spec.max_age * 1e9) + period:  # a jump (a gap between runs):
-            skipped = (now - self._next_tick) // period  # every input is stale at those ticks
+            first = min(q[0][0] for q in self.history.values())
+            self._next_tick = -(-first // period) * period
+        marks = [self.history[t][-1][0] if self.history.get(t) else None for t in self.fields]
+        settled = min(marks) if None not in marks else -1
+        clock = self.get_clock().now().nanoseconds - int(self.p.sim_delay * 1e9)
+        until = max(settled, clock)
+        if (until - self._next_tick) // period > 100_000:  # a jump of the clock: no input at those ticks
+            skipped = (until - self._next_tick) // period
             self.counts["ticks"] += int(skipped)
             self.counts["stale"] += int(skipped)
             self._next_tick += int(skipped) * period
-        while self._next_tick <= now:
+        while self._next_tick <= until:
             self._tick(self._next_tick)
             self._next_tick += period
+
+    def _at(self, tick: int) -> dict[str, tuple[int, np.ndarray]]:
+        """{topic: (stamp, values)} of each input's latest message stamped at or before ``tick``;
+        older messages that no later tick can use are dropped."""
+        out = {}
+        for topic, queue in self.history.items():
+            while len(queue) > 1 and queue[1][0] <= tick:
+                queue.popleft()
+            if queue and queue[0][0] <= tick:
+                out[topic] = queue[0]
+        return out
 
     def _tick(self, stamp: int | None = None) -> None:
         self.counts["ticks"] += 1
         now = self._clock.now().nanoseconds if stamp is None else stamp
+        latest = self._at(stamp) if self.sim_time and stamp is not None else self.latest
         max_age = int(self.spec.max_age * 1e9)
-        if any(t not in self.latest or now - self.latest[t][0] > max_age for t in self.fields):
+        if any(t not in latest or now - latest[t][0] > max_age for t in self.fields):
             self.counts["stale"] += 1
             return
-        y, u = self._vector("observation"), self._vector("control")
+        y, u = self._vector("observation", latest), self._vector("control", latest)
         if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
             self.counts["stale"] += 1
             return
@@ -234,8 +274,8 @@ class RobotEstimatorNode(ManagedNode):
         cov = self.est.covariance
         self.outputs.publish(stamp, x, None if cov is None else cov[0])
 
-    def _vector(self, name: str) -> np.ndarray:
-        return np.array([self.latest[topic][1][col] for topic, col in self.columns[name]], dtype=np.float64)
+    def _vector(self, name: str, latest: dict[str, tuple[int, np.ndarray]]) -> np.ndarray:
+        return np.array([latest[topic][1][col] for topic, col in self.columns[name]], dtype=np.float64)
 
     # ---- reporting ------------------------------------------------------------------------------------
     def _warn(self, kind: str, text: str) -> None:
