@@ -36,8 +36,10 @@ setup(
     ],
     extras_require={
         # the nodes: from the ROS 2 install on a ROS machine, or these wheels in a plain venv
+        # (tf2_msgs, launch and launch_ros have no wheel: publish_tf and `ros2 launch` need a ROS install)
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "ros-jazzy-diagnostic-msgs",
-                "ros-jazzy-std-srvs"],
+                "ros-jazzy-std-srvs", "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-lifecycle-msgs",
+                "ros-jazzy-ament-index-python"],
         "reproduce": ["ray==2.60.0"],
         "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
         "test": ["pytest>=8", "atheris==3.0.0", "ruff==0.14.14", "filterpy>=1.4.5", "dapper==1.7.1"],
@@ -59,6 +61,7 @@ setup(
             "evaluator = neural_estimator.nodes.evaluator_node:main",
             "player = neural_estimator.nodes.player_node:main",
             "robot_estimator = neural_estimator.nodes.robot_estimator_node:main",
+            "lifecycle_estimator = neural_estimator.nodes.lifecycle_estimator_node:main",
         ],
     },
 )
