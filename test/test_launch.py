@@ -171,3 +171,43 @@ def test_bad_launch_arguments_are_one_line(graph, args, message):
     with pytest.raises(G.GraphError, match=message.replace("(", r"\(").replace(")", r"\)")) as err:
         G.build(graph, args)
     assert "\n" not in str(err.value)
+
+
+def test_replay_graph_runs_player_estimators_and_evaluator(tmp_path):
+    """The replay graph's nodes, started as processes from the description (what replay.launch.py starts):
+    a sample bag played into two estimators, recorded and scored by the evaluator."""
+    pytest.importorskip("rclpy")
+    import random
+    import signal
+
+    from neural_estimator.bags import BagReader
+    from neural_estimator.nodes.launch import isolated_env, start_node
+
+    out = tmp_path / "replay.mcap"
+    specs = G.build(
+        "replay", {"bag": str(ROOT / "bags" / "bearings.mcap"), "methods": "ekf,ukf", "rate": "20", "output": str(out)}
+    )
+    env = isolated_env(random.SystemRandom().randint(200, 229))
+    procs = {}
+    try:
+        for s in specs:
+            procs[s.name] = start_node(G.command(sys.executable, s), tmp_path / f"{s.name}.log", env)
+        code = procs["evaluator"].wait(timeout=240)
+        assert code == 0, "".join((tmp_path / f"{n}.log").read_text() for n in procs)
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+    with BagReader(out) as reader:
+        n_obs = reader.topics["/observation"].msgcount
+        for m in ("ekf", "ukf"):
+            assert reader.topics[f"/estimates/{m}"].msgcount == n_obs
+            assert reader.topics[f"/estimates/{m}/odometry"].msgcount == n_obs  # bearings has a pose
+            assert reader.topics[f"/estimates/{m}/state"].msgcount == n_obs
+    table = out.with_name(out.stem + ".metrics.md").read_text()
+    assert "ekf" in table and "ukf" in table
