@@ -211,3 +211,11 @@ def test_replay_graph_runs_player_estimators_and_evaluator(tmp_path):
             assert reader.topics[f"/estimates/{m}/state"].msgcount == n_obs
     table = out.with_name(out.stem + ".metrics.md").read_text()
     assert "ekf" in table and "ukf" in table
+
+
+def test_graph_command_prints_the_pip_path_of_a_graph(capsys):
+    assert G.main(["replay", "bag:=bags/bearings.mcap", "methods:=ekf"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 3 and "neural_estimator.nodes.player_node" in lines[-1] and "__node:=estimator_ekf" in lines[1]
+    assert G.main(["replay"]) == 2 and "bag is required" in capsys.readouterr().err
+    assert G.main(["live", "methods=ekf"]) == 2 and "expected name:=value" in capsys.readouterr().err

@@ -447,3 +447,38 @@ def command(python: str, spec: NodeSpec) -> list[str]:
     for k, v in spec.ros_params().items():
         cmd += ["-p", f"{k}:={ros_arg(v)}"]
     return cmd
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m neural_estimator.nodes.graph GRAPH [name:=value ...]``: print the pip path's command
+    of every node of a graph (what its launch file starts), one per line, in start order."""
+    import shlex
+
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print("usage: python -m neural_estimator.nodes.graph GRAPH [name:=value ...]\ngraphs:")
+        for name, g in GRAPHS.items():
+            print(
+                f"  {name}: {g.doc}; arguments: "
+                + ", ".join(f"{k} ({d or 'empty'})" for k, (d, _) in g.arguments.items())
+            )
+        return 0 if argv else 2
+    overrides = {}
+    for item in argv[1:]:
+        key, sep, value = item.partition(":=")
+        if not sep:
+            print(f"graph: error: expected name:=value, got {item!r}", file=sys.stderr)
+            return 2
+        overrides[key] = value
+    try:
+        specs = build(argv[0], overrides)
+    except GraphError as exc:
+        print(f"graph: error: {exc}", file=sys.stderr)
+        return 2
+    for spec in specs:
+        print(shlex.join(command(sys.executable, spec)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
