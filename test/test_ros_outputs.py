@@ -198,3 +198,102 @@ def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_f
         if P is not None:
             assert np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
             assert P[0, 0] == pytest.approx(ekf_cov[0, 0])
+
+
+def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatch):
+    """estimator (ukf, bearings) <- 5 observations, a set_pose, one more observation: the last estimate
+    equals the UKF restarted at the pose (velocities kept) and updated with that observation; a
+    set_pose to a GRU node is refused in the log and the node goes on."""
+    pytest.importorskip("rclpy")
+    import random
+    import signal
+    import sys
+    import time
+
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    from neural_estimator.bags import messages as M
+    from neural_estimator.data import simulate
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.nodes.common import stream_qos
+    from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
+    from neural_estimator.replay import OnlineEstimator
+    from neural_estimator.scenarios import make_scenario
+
+    domain = random.SystemRandom().randint(200, 229)
+    env = isolated_env(domain)
+    procs = [
+        start_node(
+            node_command(sys.executable, ESTIMATOR, f"est_{m}", {"method": m, "scenario": "bearings"}),
+            tmp_path / f"{m}.log",
+            env,
+        )
+        for m in ("ukf", "gru")
+    ]
+    scen = make_scenario("bearings")
+    data = simulate(scen, 1, 10, seed=5)
+
+    def obs(k):
+        return M.encode_observation(scen, M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0))
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = rclpy.create_node("tester", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        est = {"ukf": [], "gru": []}
+        for m in est:
+            node.create_subscription(
+                JointState,
+                f"estimates/{m}",
+                lambda raw, m=m: est[m].append(M.decode_vector(raw)),
+                stream_qos(100),
+                raw=True,
+            )
+        pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
+        pose_pub = node.create_publisher(PoseWithCovarianceStamped, "set_pose", 10)
+
+        def spin_until(pred, timeout=60.0):
+            t0 = time.monotonic()
+            while not pred():
+                if time.monotonic() - t0 > timeout:
+                    raise AssertionError(
+                        "timed out; logs:\n" + "".join((tmp_path / f"{m}.log").read_text() for m in est)
+                    )
+                ex.spin_once(timeout_sec=0.05)
+
+        spin_until(lambda: pub.get_subscription_count() >= 2 and pose_pub.get_subscription_count() >= 2)
+        spin_until(lambda: node.count_publishers("estimates/ukf") >= 1 and node.count_publishers("estimates/gru") >= 1)
+        for k in range(5):
+            pub.publish(obs(k))
+        spin_until(lambda: len(est["ukf"]) >= 5 and len(est["gru"]) >= 5)
+        pose = PoseWithCovarianceStamped()
+        pose.pose.pose.position.x, pose.pose.pose.position.y = 40.0, -25.0
+        pose.pose.pose.orientation.w = 1.0
+        pose_pub.publish(pose)
+        spin_until(lambda: "set_pose: state restarted" in (tmp_path / "ukf.log").read_text())
+        spin_until(lambda: "filters only" in (tmp_path / "gru.log").read_text())
+        pub.publish(obs(5))
+        spin_until(lambda: len(est["ukf"]) >= 6 and len(est["gru"]) >= 6)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+    ref = OnlineEstimator(make_estimator("ukf", scen), "ukf")
+    for k in range(5):
+        last = ref.process(obs(k)).x_hat
+    start = np.array([40.0, -25.0, last[2], last[3]])
+    ref.estimator.reset(1, initial_mean=start[None])
+    expected = ref.process(obs(5)).x_hat
+    np.testing.assert_allclose(est["ukf"][5].values, expected, rtol=0, atol=1e-9)
+    assert abs(est["ukf"][5].values[0] - est["ukf"][4].values[0]) > 1.0  # the pose moved the estimate
