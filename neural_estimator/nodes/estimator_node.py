@@ -5,9 +5,13 @@
 
 Subscribes ``observation`` (raw CDR, sensor_msgs/JointState); publishes ``estimates/<method>`` and,
 where the method has one, ``estimates/<method>/covariance`` with the observation's stamp and
-identity (header.frame_id = ``frame_id``); where the scenario declares a pose
-(``Scenario.pose_states``) also ``estimates/<method>/odometry`` (nav_msgs/Odometry with
-covariance); ``/diagnostics`` every ``diagnostics_period`` s; service ``~/reset`` (std_srvs/Trigger).
+identity (header.frame_id = ``frame_id``); the standard outputs of
+:mod:`neural_estimator.nodes.outputs` by parameter (where the scenario declares a pose,
+``Scenario.pose_states``: ``<output>/odometry`` nav_msgs/Odometry and/or ``<output>/pose``
+PoseWithCovarianceStamped with the method's covariance; ``<output>/state`` for every method;
+optional ``/tf``); ``/diagnostics`` every ``diagnostics_period`` s (with the observation input's
+frequency and staleness, :mod:`neural_estimator.nodes.diagnostics`); service ``~/reset``
+(std_srvs/Trigger) and topic ``set_pose`` (PoseWithCovarianceStamped, filters).
 
 Nothing lost when started by hand: the observation subscription is created when the first
 publisher of the topic appears, with that publisher's durability (transient_local when every
