@@ -238,6 +238,7 @@ class EstimatorNode(ManagedNode):
                 scenario.state_names,
                 getattr(scenario, "pose_states", {}),
                 p.publish_odometry,
+                state_qos=stream_qos(self._depth(dx * (dx + 1))),
             )
         except OutputError as exc:
             raise StartupError(str(exc)) from None

@@ -174,6 +174,8 @@ class Outputs:
         state_names: the state's component names (dx).
         pose_states: {pose key: state index} (empty: no pose outputs, no TF).
         publish_odometry: the older on/off switch of the pose output (False = none).
+        state_qos: the QoS of the state stream (default ``qos``; its messages hold dx * (dx + 1)
+            numbers, so a memory-bounded history is shorter).
     """
 
     def __init__(
@@ -187,6 +189,7 @@ class Outputs:
         state_names: Sequence[str],
         pose_states: Mapping[str, int],
         publish_odometry: bool = True,
+        state_qos=None,
     ) -> None:
         check_output_params(p)
         self.frame_id, self.child_frame_id = frame_id, child_frame_id
@@ -209,7 +212,7 @@ class Outputs:
             from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
             self._state_cls, self._dim_cls = Float64MultiArray, MultiArrayDimension
-            self.pub_state = node.create_publisher(Float64MultiArray, f"{out_topic}/state", qos)
+            self.pub_state = node.create_publisher(Float64MultiArray, f"{out_topic}/state", state_qos or qos)
         if p.publish_tf:
             if not pose:
                 raise OutputError("publish_tf: the state has no pose components to broadcast")
