@@ -113,6 +113,49 @@ def test_output_topics_the_evaluator_records():
         O.check_output_params(O.OutputParams(pose_output="Odometry"))
 
 
+class Transform:  # geometry_msgs/TransformStamped's shape
+    def __init__(self):
+        self.header = _stamped().header
+        self.child_frame_id = ""
+        self.transform = _msg(translation=_msg(x=0.0, y=0.0, z=0.0), rotation=_msg(x=0.0, y=0.0, z=0.0, w=1.0))
+
+
+def test_transform_at_the_estimated_pose():
+    quad = {"x": 0, "z": 1, "pitch": 2, "vx": 3, "vz": 4, "wy": 5}  # the quadrotor's pose states
+    x = np.array([1.0, 2.0, 0.3, 0.0, 0.0, 0.0])
+    t = O.make_transform(Transform, 2_000_000_001, "odom", "base_link", x, quad)
+    assert (t.header.frame_id, t.child_frame_id, t.header.stamp.sec, t.header.stamp.nanosec) == (
+        "odom",
+        "base_link",
+        2,
+        1,
+    )
+    tr, r = t.transform.translation, t.transform.rotation
+    assert (tr.x, tr.y, tr.z) == (1.0, 0.0, 2.0)
+    assert np.allclose(O.euler(r.x, r.y, r.z, r.w), (0.0, 0.3, 0.0))
+
+
+def test_publish_tf_is_refused_in_one_line_without_tf2_msgs():
+    import importlib.util
+
+    pytest.importorskip("geometry_msgs")
+
+    class FakeNode:
+        def create_publisher(self, cls, topic, qos):
+            return (cls.__name__, topic)
+
+    p = O.OutputParams(pose_output="none", publish_state=False, publish_tf=True)
+    args = (FakeNode(), p, "estimates/ekf", 10, "map", "base_link", ["px", "py", "vx", "vy"])
+    with pytest.raises(O.OutputError, match="no pose components"):
+        O.Outputs(*args, {})
+    if importlib.util.find_spec("tf2_msgs") is None:  # pip: no wheel
+        with pytest.raises(O.OutputError, match="publish_tf needs the tf2_msgs package") as err:
+            O.Outputs(*args, BEARINGS_POSE)
+        assert "\n" not in str(err.value)
+    else:  # a ROS install
+        assert O.Outputs(*args, BEARINGS_POSE).pub_tf == ("TFMessage", "/tf")
+
+
 # ---- diagnostics ----------------------------------------------------------------------------------------
 def test_frequency_band_and_staleness_like_diagnostic_updater():
     m = D.InputMonitor("/observation", expected_rate=10.0, tolerance=0.1, stale_after=1.0, window=2.0, start=0.0)
