@@ -209,7 +209,7 @@ class RobotEstimatorNode(ManagedNode):
             stamp = now
             if self.spec.stamp == "header" and header is not None:
                 stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-            self.history.setdefault(topic, collections.deque()).append((stamp, values))
+            self.history.setdefault(topic, collections.deque(maxlen=10_000)).append((stamp, values))
             self._sim_ticks()
         elif self.spec.trigger == topic:
             self._tick()
