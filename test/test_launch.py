@@ -173,36 +173,28 @@ def test_bad_launch_arguments_are_one_line(graph, args, message):
     assert "\n" not in str(err.value)
 
 
-def test_replay_graph_runs_player_estimators_and_evaluator(tmp_path):
-    """The replay graph's nodes, started as processes from the description (what replay.launch.py starts):
-    a sample bag played into two estimators, recorded and scored by the evaluator."""
+def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch, capsys):
+    """`ros2 launch neural_estimator replay.launch.py ...` in a pip environment (the ros2 shim): the
+    replay graph's nodes started from the description, a sample bag played into two estimators,
+    recorded and scored by the evaluator (the required node: its exit ends the launch)."""
     pytest.importorskip("rclpy")
     import random
-    import signal
 
+    from neural_estimator import ros2_shim
     from neural_estimator.bags import BagReader
-    from neural_estimator.nodes.launch import isolated_env, start_node
 
+    monkeypatch.setattr(ros2_shim, "_real_ros2", lambda: None)
+    assert ros2_shim.main(["launch", "neural_estimator", "replay.launch.py", "--show-args"]) == 0
+    assert "'bag':" in capsys.readouterr().out
+    assert ros2_shim.main(["launch", "neural_estimator", "nope.launch.py"]) == 1
+    assert ros2_shim.main(["launch", "neural_estimator", "replay.launch.py", "bag=x"]) == 2
+    assert "expected <name>:=<value>" in capsys.readouterr().err
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(200, 229)))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     out = tmp_path / "replay.mcap"
-    specs = G.build(
-        "replay", {"bag": str(ROOT / "bags" / "bearings.mcap"), "methods": "ekf,ukf", "rate": "20", "output": str(out)}
-    )
-    env = isolated_env(random.SystemRandom().randint(200, 229))
-    procs = {}
-    try:
-        for s in specs:
-            procs[s.name] = start_node(G.command(sys.executable, s), tmp_path / f"{s.name}.log", env)
-        code = procs["evaluator"].wait(timeout=240)
-        assert code == 0, "".join((tmp_path / f"{n}.log").read_text() for n in procs)
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for p in procs.values():
-            try:
-                p.wait(timeout=10)
-            except Exception:
-                p.kill()
+    bag = ROOT / "bags" / "bearings.mcap"
+    args = [f"bag:={bag}", "methods:=ekf,ukf", "rate:=20", f"output:={out}"]
+    assert ros2_shim.main(["launch", "neural_estimator", "replay.launch.py", *args]) == 0
     with BagReader(out) as reader:
         n_obs = reader.topics["/observation"].msgcount
         for m in ("ekf", "ukf"):

@@ -188,6 +188,29 @@ def _table_from_log(path: Path) -> str:
     return "\n".join(keep) + "\n" if keep else ""
 
 
+def run_graph(specs: list[NodeSpec], python: str = sys.executable, poll: float = 0.1) -> int:
+    """Start a graph's nodes as processes in this ROS environment (no domain of their own, output to
+    this terminal, as ``ros2 launch`` does) and wait: until a required node exits (then the others
+    get SIGINT), or, with none required, until every node exited. Ctrl-C / SIGTERM stop them all.
+    Returns the first non-zero exit status of a required node (else 0)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    procs = {s.name: subprocess.Popen(command(python, s), env=env, preexec_fn=die_with_parent) for s in specs}
+    required = [s.name for s in specs if s.required]
+    try:
+        while True:
+            if required and any(procs[n].poll() is not None for n in required):
+                break
+            if not required and all(p.poll() is not None for p in procs.values()):
+                break
+            time.sleep(poll)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        _stop_all(procs)
+    codes = [procs[n].returncode for n in required if procs[n].returncode not in (None, 0)]
+    return codes[0] if codes else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="neural-estimator live", description="Live comparison on ROS 2: simulator -> estimators -> evaluator."
