@@ -11,7 +11,7 @@ DOCS = README + "".join(p.read_text() for p in sorted((ROOT / "docs").rglob("*.m
 def test_every_node_parameter_is_in_the_readme():
     for yaml in sorted((ROOT / "params").glob("*.yaml")):
         for key in re.findall(r"^\s{4}(\w+):", yaml.read_text(), re.M):
-            assert f"| `{key}` |" in DOCS, f"{yaml.name}: parameter {key!r} is documented neither in README.md nor docs/"
+            assert f"| `{key}` |" in DOCS, f"{yaml.name}: parameter {key!r} is in neither README.md nor docs/"
 
 
 def test_every_cli_verb_is_in_the_readme():
