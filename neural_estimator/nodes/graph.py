@@ -226,7 +226,7 @@ def _estimator(args: Mapping[str, str]) -> list[NodeSpec]:
     for name in ("method", "scenario"):
         if args[name]:
             params[name] = args[name]
-    name = args["node_name"] or f"estimator_{args['method'] or 'ukf'}"
+    name = args["node_name"] or (f"estimator_{args['method']}" if args["method"] else "estimator")
     return [NodeSpec(name, ESTIMATOR, params, params_files=(args["params_file"] or params_file("estimator"),))]
 
 
@@ -351,7 +351,7 @@ GRAPHS: dict[str, Graph] = {
             "params_file": ("", "params file (default: the installed params/estimator.yaml)"),
             "method": ("", "overrides the params file's method"),
             "scenario": ("", "overrides the params file's scenario"),
-            "node_name": ("", "node name (default estimator_<method>)"),
+            "node_name": ("", "node name (default estimator_<method>, or estimator when method is empty)"),
             "use_sim_time": ("false", "run on /clock"),
         },
         _estimator,
