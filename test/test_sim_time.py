@@ -70,5 +70,5 @@ def test_a_bag_replayed_at_4x_scores_within_one_percent_of_1x(tmp_path):
         assert truth.n >= 4
     print(f"robot estimator on /clock: RMSE at 1x {scores[1.0]:.4f}, at 4x {scores[4.0]:.4f}; estimates {counts}")
     # 2 runs x 12 s at 10 Hz on the bag's clock, whatever the speed (a few ticks stale at each start)
-    assert 200 <= counts[1.0] <= 240 and abs(counts[4.0] - counts[1.0]) <= 2, counts
+    assert 200 <= counts[1.0] <= 240 and abs(counts[4.0] - counts[1.0]) <= 5, counts
     assert np.isfinite(scores[1.0]) and abs(scores[4.0] - scores[1.0]) <= 0.01 * scores[1.0], scores
