@@ -17,6 +17,7 @@ _NODES = [
     "evaluator = neural_estimator.nodes.entry:evaluator",
     "player = neural_estimator.nodes.entry:player",
     "robot_estimator = neural_estimator.nodes.entry:robot_estimator",
+    "lifecycle_estimator = neural_estimator.nodes.entry:lifecycle_estimator",
 ]
 _WHEEL = any(cmd in sys.argv for cmd in ("bdist_wheel", "editable_wheel", "dist_info"))
 
@@ -29,6 +30,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
         (f"share/{package_name}", ["package.xml"]),
         (f"share/{package_name}/params", glob("params/*.yaml")),
+        (f"share/{package_name}/launch", glob("launch/*.launch.py")),
         (f"share/{package_name}/bags", glob("bags/*.mcap")),
     ],
     # What `pip install .` needs for every verb but `reproduce` and the nodes (the "ros" extra). The
@@ -49,11 +51,16 @@ setup(
     ],
     extras_require={
         # the nodes: from the ROS 2 install on a ROS machine, or these wheels in a plain venv
+        # (tf2_msgs, launch and launch_ros have no wheel: publish_tf and `ros2 launch` need a ROS install)
         "ros": [
             "ros-jazzy-rclpy[fastrtps]",
             "ros-jazzy-common-interfaces",
             "ros-jazzy-diagnostic-msgs",
             "ros-jazzy-std-srvs",
+            "ros-jazzy-nav-msgs",
+            "ros-jazzy-rosgraph-msgs",
+            "ros-jazzy-lifecycle-msgs",
+            "ros-jazzy-ament-index-python",
         ],
         "reproduce": ["ray==2.60.0"],
         "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references

@@ -6,7 +6,10 @@ generic ``ros2`` into ``bin/``) and understands
 
     ros2 run <package> <executable> [args ...]      (e.g. --ros-args -p method:=mamba)
     ros2 pkg executables [<package>]
+    ros2 launch neural_estimator <graph>.launch.py [name:=value ...] [--show-args]
 
+``ros2 launch`` starts the nodes of the package's launch files from their description
+(:mod:`neural_estimator.nodes.graph`) as processes, without the ``launch`` package (not on PyPI).
 Whenever a real ``ros2`` is on PATH (a ROS 2 install has been sourced), every call is handed to it
 unchanged, so on a real Jazzy install nothing here is used. Executables are looked up in the
 package's install prefix (``<prefix>/lib/<package>/<executable>``, found through
@@ -23,6 +26,7 @@ from pathlib import Path
 USAGE = (
     "usage: neural-estimator ros2 run <package> <executable> [args ...]\n"
     "       neural-estimator ros2 pkg executables [<package>]\n"
+    "       neural-estimator ros2 launch neural_estimator <graph>.launch.py [name:=value ...] [--show-args]\n"
     "(this is neural_estimator's minimal ros2 for pip environments; source a ROS 2 install for the full CLI)"
 )
 
@@ -59,6 +63,36 @@ def _package_executables(package: str) -> dict[str, list[str]]:
     return found
 
 
+def _launch(package: str, file: str, rest: list[str]) -> int:
+    """``ros2 launch neural_estimator <graph>.launch.py [name:=value ...]`` from the graph description."""
+    from neural_estimator.nodes.graph import GRAPHS, GraphError, build
+    from neural_estimator.nodes.launch import run_graph
+
+    graph = Path(file).name.removesuffix(".launch.py")
+    if package != "neural_estimator" or graph not in GRAPHS:
+        files = ", ".join(f"{g}.launch.py" for g in GRAPHS)
+        print(f"ros2 launch: no launch file {file!r} in package {package!r} (launch files: {files})", file=sys.stderr)
+        return 1
+    if "--show-args" in rest or "-s" in rest:
+        print("Arguments (pass arguments as '<name>:=<value>'):")
+        for name, (default, help_) in GRAPHS[graph].arguments.items():
+            print(f"\n    '{name}':\n        {help_}\n        (default: '{default}')")
+        return 0
+    overrides = {}
+    for item in rest:
+        key, sep, value = item.partition(":=")
+        if not sep:
+            print(f"ros2 launch: expected <name>:=<value>, got {item!r}", file=sys.stderr)
+            return 2
+        overrides[key] = value
+    try:
+        specs = build(graph, overrides)
+    except GraphError as exc:
+        print(f"ros2 launch: {exc}", file=sys.stderr)
+        return 2
+    return run_graph(specs)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     real = _real_ros2()
@@ -73,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         cmd = exes[exe]
         os.execv(cmd[0], [*cmd, *rest])
+    if len(argv) >= 3 and argv[0] == "launch":
+        return _launch(argv[1], argv[2], argv[3:])
     if len(argv) >= 2 and argv[:2] == ["pkg", "executables"]:
         for package in argv[2:] or ["neural_estimator"]:
             for name in sorted(_package_executables(package)):

@@ -45,6 +45,13 @@ def test_colcon_lists_and_builds_the_package(tmp_path):
     lib = ws / "install" / "neural_estimator" / "lib" / "neural_estimator"
     for exe in ("neural-estimator", "simulator", "estimator", "evaluator", "player", "robot_estimator"):
         assert (lib / exe).exists(), exe  # where `ros2 run neural_estimator <exe>` looks
+    launch = ws / "install" / "neural_estimator" / "share" / "neural_estimator" / "launch"
+    assert {p.name for p in launch.glob("*.launch.py")} == {
+        "live.launch.py",
+        "estimator.launch.py",
+        "robot_estimator.launch.py",
+        "replay.launch.py",
+    }
     params = ws / "install" / "neural_estimator" / "share" / "neural_estimator" / "params"
     assert {p.name for p in params.glob("*.yaml")} == {
         "simulator.yaml",
@@ -72,6 +79,11 @@ ROS_PACKAGES = {
     "rosgraph_msgs",
     "builtin_interfaces",
     "geometry_msgs",
+    "lifecycle_msgs",
+    "tf2_msgs",  # publish_tf (no wheel: a ROS install's)
+    "ament_index_python",
+    "launch",  # the launch files (a ROS install's; not on PyPI)
+    "launch_ros",
 }
 
 

@@ -18,6 +18,7 @@ NODES = {
     "evaluator": "neural_estimator.nodes.evaluator_node",
     "player": "neural_estimator.nodes.player_node",
     "robot_estimator": "neural_estimator.nodes.robot_estimator_node",
+    "lifecycle_estimator": "neural_estimator.nodes.lifecycle_estimator_node",
 }
 
 NO_RCLPY = (
@@ -60,6 +61,10 @@ def player() -> int:
 
 def robot_estimator() -> int:
     return run("robot_estimator")
+
+
+def lifecycle_estimator() -> int:
+    return run("lifecycle_estimator")
 
 
 def main(argv: list[str] | None = None) -> int:

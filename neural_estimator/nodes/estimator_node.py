@@ -5,9 +5,13 @@
 
 Subscribes ``observation`` (raw CDR, sensor_msgs/JointState); publishes ``estimates/<method>`` and,
 where the method has one, ``estimates/<method>/covariance`` with the observation's stamp and
-identity (header.frame_id = ``frame_id``); where the scenario declares a pose
-(``Scenario.pose_states``) also ``estimates/<method>/odometry`` (nav_msgs/Odometry with
-covariance); ``/diagnostics`` every ``diagnostics_period`` s; service ``~/reset`` (std_srvs/Trigger).
+identity (header.frame_id = ``frame_id``); the standard outputs of
+:mod:`neural_estimator.nodes.outputs` by parameter (where the scenario declares a pose,
+``Scenario.pose_states``: ``<output>/odometry`` nav_msgs/Odometry and/or ``<output>/pose``
+PoseWithCovarianceStamped with the method's covariance; ``<output>/state`` for every method;
+optional ``/tf``); ``/diagnostics`` every ``diagnostics_period`` s (with the observation input's
+frequency and staleness, :mod:`neural_estimator.nodes.diagnostics`); service ``~/reset``
+(std_srvs/Trigger) and topic ``set_pose`` (PoseWithCovarianceStamped, filters).
 
 Nothing lost when started by hand: the observation subscription is created when the first
 publisher of the topic appears, with that publisher's durability (transient_local when every
@@ -54,7 +58,9 @@ from neural_estimator.nodes.common import (
     run_node,
     stream_qos,
 )
+from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
+from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
 from neural_estimator.replay import DEFAULT_MAX_GAP, DEFAULT_MAX_GAP_SECONDS, OnlineEstimator
 
 OBSERVATION_QOS = ("reliable", "sensor_data")
@@ -117,6 +123,8 @@ class EstimatorNode(ManagedNode):
     def __init__(self) -> None:
         super().__init__("estimator")
         self.p = p = declare_params(self, EstimatorParams)
+        self.po = declare_params(self, OutputParams)
+        self.pd = declare_params(self, InputDiagnosticsParams)
         try:
             self.method = check_method(p.method)
         except EstimatorError as exc:
@@ -134,13 +142,15 @@ class EstimatorNode(ManagedNode):
         self.out_topic = p.output_topic or M.estimate_topic(self.method)
         self.pub_est = None  # created with the scenario: their depth depends on the message size
         self.pub_cov = None  # (and a covariance topic that never carries a message would keep a
-        self.pub_odom = None  # recorder waiting for it)
+        self.outputs = None  # recorder waiting for it)
         self.obs_topic = self.resolve_topic_name(p.observation_topic)
         self.sub_obs = None  # created when the topic's first publisher appears (see the docstring)
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._sim_time_warned = False
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.stats = EstimatorStats()
+        self.input_monitor = self.pd.monitor(self.obs_topic, time.monotonic())
+        self.set_pose = SetPose(self, self.po.set_pose_topic, lambda: self.online)
         self._last_log: dict[str, float] = {}
         self._foreign: set[str] = set()
         self._early: list[bytes] = []
@@ -217,20 +227,27 @@ class EstimatorNode(ManagedNode):
             self.pub_cov = self.create_publisher(
                 JointState, f"{self.out_topic}/{M.COVARIANCE_SUFFIX}", stream_qos(self.depths["covariance"])
             )
-        from neural_estimator.nodes.odometry import has_pose
-
-        self.pose_states = dict(getattr(scenario, "pose_states", {}) or {})
-        if p.publish_odometry and has_pose(self.pose_states):
-            from nav_msgs.msg import Odometry
-
-            self._odom_cls = Odometry
-            self.pub_odom = self.create_publisher(Odometry, f"{self.out_topic}/odometry", stream_qos(self._depth(90)))
+        try:
+            self.outputs = Outputs(
+                self,
+                self.po,
+                self.out_topic,
+                stream_qos(self._depth(90)),
+                p.frame_id,
+                p.child_frame_id,
+                scenario.state_names,
+                getattr(scenario, "pose_states", {}),
+                p.publish_odometry,
+                state_qos=stream_qos(self._depth(dx * (dx + 1))),
+            )
+        except OutputError as exc:
+            raise StartupError(str(exc)) from None
         self.get_logger().info(
             f"{self.method} on {scenario.name} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}): "
             f"'{self.resolve_topic_name(p.observation_topic)}' -> "
             f"'{self.pub_est.topic_name}'"
             + (" + covariance" if self.online.publish_covariance else "")
-            + (" + odometry" if self.pub_odom is not None else "")
+            + self.outputs.describe()
             + f" (history {self.depths['estimates']}"
             + (f"/{self.depths['covariance']}" if self.pub_cov else "")
             + " msgs)"
@@ -287,6 +304,7 @@ class EstimatorNode(ManagedNode):
     # ---- per message -------------------------------------------------------------------------------
     def _on_observation(self, raw: bytes) -> None:
         t0 = time.perf_counter()
+        self.input_monitor.tick(time.monotonic())
         if self.online is None:  # kept until the scenario arrives (messages on two topics race)
             if len(self._early) < self.p.queue_depth:
                 self._early.append(bytes(raw))
@@ -319,21 +337,9 @@ class EstimatorNode(ManagedNode):
         self.pub_est.publish(res.estimate)
         if res.covariance is not None and self.pub_cov is not None:
             self.pub_cov.publish(res.covariance)
-        if self.pub_odom is not None:
-            from neural_estimator.nodes.odometry import make_odometry
-
-            cov = self.online.estimator.covariance
-            self.pub_odom.publish(
-                make_odometry(
-                    self._odom_cls,
-                    res.stamp_ns,
-                    self.p.frame_id,
-                    self.p.child_frame_id,
-                    res.x_hat,
-                    None if cov is None else cov[0],
-                    self.pose_states,
-                )
-            )
+        cov = self.online.estimator.covariance
+        self.outputs.publish(res.stamp_ns, res.x_hat, None if cov is None else cov[0])
+        self.set_pose.last = res.x_hat
         s = self.stats
         s.latency.append(time.perf_counter() - t0)
         s.estimated += 1
@@ -386,14 +392,15 @@ class EstimatorNode(ManagedNode):
         level, problems = health(self.stats, window, waiting=self.online is None, foreign=self._foreign)
         status = DiagnosticStatus()
         status.name = f"{self.get_fully_qualified_name()}: {self.method} estimator"
-        status.hardware_id = self.online.scenario.name if self.online else ""
+        status.hardware_id = hardware_id(self.get_fully_qualified_name(), self.method)
         status.level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[level]
         status.message = "; ".join(problems) if problems else "ok"
         values = diagnostic_values(self.stats, window, self.method)
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [status]
+        inputs = self.input_monitor.status(time.monotonic())
+        msg.status = [status, status_message(inputs, status.name, status.hardware_id, DiagnosticStatus, KeyValue)]
         self.pub_diag.publish(msg)
 
     def _check_foreign_publishers(self) -> None:

@@ -4,7 +4,8 @@
     python -m neural_estimator.nodes.evaluator_node --ros-args -p output:=runs/l96.mcap
 
 Recording: ``scenario``, ``run_status``, ``observation``, ``ground_truth`` and every
-``estimates/<method>`` (and ``/covariance``) topic in the node's namespace, found by polling the
+``estimates/<method>`` (and ``/covariance``; ``/odometry``, ``/pose`` and ``/state`` recorded, not
+scored) topic in the node's namespace, found by polling the
 graph every ``discovery_period`` s (plus ``topics``), from raw subscriptions: the bytes on the wire
 go to the file unchanged (rclpy's serialize_message would pad empty sequences with junk that
 rosbags rejects). Like ``ros2 bag record`` it subscribes with the QoS the publishers offer
@@ -39,6 +40,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.metrics import EVALUATION_WARMUP
+from neural_estimator.nodes.outputs import is_output_topic
 from neural_estimator.nodes.common import (
     ManagedNode,
     InterfaceError,
@@ -116,6 +118,7 @@ class EvaluatorNode(ManagedNode):
         except BagError as exc:
             raise StartupError(str(exc)) from None
         self.ns = self.get_namespace()
+        self.sim_time = bool(self.get_parameter("use_sim_time").value)
         self.extra = {self.resolve_topic_name(t) for t in p.topics}
         self.required_methods = tuple(p.methods)
         self.subs: dict = {}
@@ -149,7 +152,7 @@ class EvaluatorNode(ManagedNode):
             if name in self.subs:
                 continue
             role = M.topic_role(name, self.ns)
-            if role is None and name not in self.extra:
+            if role is None and name not in self.extra and not is_output_topic(name, self.ns):
                 continue
             pubs = self.get_publishers_info_by_topic(name)
             if not pubs:
@@ -195,7 +198,9 @@ class EvaluatorNode(ManagedNode):
         def record(raw: bytes, info) -> None:
             if self.closed:
                 return
-            self.bag.write(name, info["received_timestamp"], raw, publish_time_ns=info["source_timestamp"])
+            t = self.get_clock().now().nanoseconds if self.sim_time else 0
+            # like `ros2 bag record --use-sim-time`: log times on the sim clock (receipt time until /clock)
+            self.bag.write(name, t or info["received_timestamp"], raw, publish_time_ns=info["source_timestamp"])
             self.counts[name] += 1
             if is_stream:
                 self._last_stream = time.monotonic()
@@ -321,6 +326,7 @@ class EvaluatorNode(ManagedNode):
                 namespace=self.ns,
                 warmup=warmup,
                 length_name="spec_length (-p spec_length:=N)",
+                stamp="header" if self.sim_time else "log",  # on sim time, estimates carry the bag's clock
             )
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")

@@ -10,7 +10,9 @@ then the simulator, told to wait for ``len(methods) + 1`` observation subscriber
 everybody listens. The launcher then waits for the evaluator (which exits after writing the bag
 and the metrics), stops the estimators with SIGINT and reports. A node that dies early stops the
 run with its log in the error. This module does not import rclpy: nodes run as
-``python -m <module> --ros-args ...``.
+``python -m <module> --ros-args ...``. The nodes and their parameters come from
+:mod:`neural_estimator.nodes.graph`, the description ``ros2 launch neural_estimator
+live.launch.py`` starts too.
 """
 
 from __future__ import annotations
@@ -28,39 +30,21 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-SIMULATOR = "sim_nodes.simulator"
-ESTIMATOR = "neural_estimator.nodes.estimator_node"
-EVALUATOR = "neural_estimator.nodes.evaluator_node"
-MAX_DEPTH = 100_000  # queue depth cap (about 30 MB per transient_local stream)
+from neural_estimator.nodes.graph import (  # noqa: F401 - re-exported: the one description of the graph
+    ESTIMATOR,
+    EVALUATOR,
+    MAX_DEPTH,
+    SIMULATOR,
+    NodeSpec,
+    PipelineConfig,
+    command,
+    live_nodes,
+    ros_arg,
+)
 
 
 class PipelineError(RuntimeError):
     """The run could not complete; the message names the node and ends with its log."""
-
-
-@dataclasses.dataclass(frozen=True)
-class PipelineConfig:
-    """One live run (the simulator's, estimators' and evaluator's parameters that matter)."""
-
-    scenario: str
-    methods: tuple[str, ...]
-    trajectories: int = 2
-    horizon: int = 0  # 0 = the scenario's
-    rate_hz: float = 0.0  # 0 = real time (1 / dt)
-    seed: int = 0
-    set: tuple[str, ...] = ()  # scenario constants name=value
-    plugins: tuple[str, ...] = ()  # files registering user scenarios
-    noise_scale: float = -1.0  # negative = the scenario's
-    checkpoints: tuple[str, ...] = ()  # method=path for neural methods
-    options: tuple[str, ...] = ()  # method.name=value filter hyperparameters
-    device: str = "cpu"
-    publish_covariance: bool = True
-    output: str = ""  # bag path; empty = runs/<scenario>-<date>-<time>.mcap
-    domain_id: int | None = None
-    timeout: float = 600.0  # s for the whole run
-    record_topics: tuple[str, ...] = ()  # extra topics for the evaluator to record (e.g. /diagnostics)
-    stats_dir: str = ""  # each estimator writes <stats_dir>/<method>.json at shutdown ('' = no)
-    python: str = sys.executable
 
 
 @dataclasses.dataclass
@@ -77,26 +61,10 @@ class PipelineResult:
         return json.loads(self.reports["json"].read_text())
 
 
-def ros_arg(value: Any) -> str:
-    """A parameter value as ``--ros-args -p name:=VALUE`` parses it (YAML)."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, (list, tuple)):
-        return json.dumps([str(v) for v in value]) if value else "[]"
-    return json.dumps(str(value))  # a quoted YAML string: "123" stays a string
-
-
 def node_command(python: str, module: str, name: str, params: dict[str, Any]) -> list[str]:
     """``python -m module --ros-args -r __node:=name -p k:=v ...`` (empty lists are left out: an
     empty YAML list has no type)."""
-    cmd = [python, "-m", module, "--ros-args", "-r", f"__node:={name}"]
-    for k, v in params.items():
-        if isinstance(v, (list, tuple)) and not v:
-            continue
-        cmd += ["-p", f"{k}:={ros_arg(v)}"]
-    return cmd
+    return command(python, NodeSpec(name, module, params))
 
 
 def pick_domain_id() -> int:
@@ -147,86 +115,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
     log_dir.mkdir(parents=True, exist_ok=True)
     domain = cfg.domain_id if cfg.domain_id is not None else pick_domain_id()
     env = isolated_env(domain)
-    ckpt = dict(c.split("=", 1) for c in cfg.checkpoints)
-    opts: dict[str, list[str]] = {}
-    for item in cfg.options:
-        key, _, value = item.partition("=")
-        method, _, name = key.partition(".")
-        opts.setdefault(method, []).append(f"{name}={value}")
-
-    # Every queue holds the whole run (up to MAX_DEPTH messages): a node that falls behind catches
-    # up later instead of losing messages (reliable, KEEP_LAST; transient_local publishers keep
-    # this many messages in memory).
-    depth = int(min(MAX_DEPTH, max(10_000, cfg.trajectories * (cfg.horizon or 10_000) + 100)))
-    nodes: list[tuple[str, list[str]]] = [
-        (
-            "evaluator",
-            node_command(
-                cfg.python,
-                EVALUATOR,
-                "evaluator",
-                {
-                    "output": str(bag),
-                    "overwrite": True,
-                    "methods": list(cfg.methods),
-                    "completion_timeout": 60.0,
-                    "topics": list(cfg.record_topics),
-                    "queue_depth": depth,
-                },
-            ),
-        ),
-    ]
-    for m in cfg.methods:
-        nodes.append(
-            (
-                f"estimator_{m}",
-                node_command(
-                    cfg.python,
-                    ESTIMATOR,
-                    f"estimator_{m}",
-                    {
-                        "method": m,
-                        "scenario": cfg.scenario,
-                        "set": list(cfg.set),
-                        "plugins": list(cfg.plugins),
-                        "checkpoint": ckpt.get(m, ""),
-                        "device": cfg.device,
-                        "seed": cfg.seed,
-                        "options": opts.get(m, []),
-                        "publish_covariance": cfg.publish_covariance,
-                        "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
-                        "queue_depth": depth,
-                        "history_depth": depth,
-                    },
-                ),
-            )
-        )
-    nodes.append(
-        (
-            "simulator",
-            node_command(
-                cfg.python,
-                SIMULATOR,
-                "simulator",
-                {
-                    "scenario": cfg.scenario,
-                    "set": list(cfg.set),
-                    "plugins": list(cfg.plugins),
-                    "noise_scale": float(cfg.noise_scale),
-                    "seed": cfg.seed,
-                    "trajectories": cfg.trajectories,
-                    "horizon": cfg.horizon,
-                    "rate_hz": float(cfg.rate_hz),
-                    "wait_for_subscribers": len(cfg.methods) + 1,
-                    "wait_timeout": 120.0,
-                    "start_delay": 1.0,
-                    "history_depth": depth,
-                    "linger": 120.0,
-                    "stay_after_run": 0.0,
-                },
-            ),
-        )
-    )
+    nodes = [(spec.name, command(cfg.python, spec)) for spec in live_nodes(cfg, str(bag))]
 
     procs: dict[str, subprocess.Popen] = {}
     logs: dict[str, Path] = {}
@@ -297,6 +186,29 @@ def _table_from_log(path: Path) -> str:
         return ""
     keep = [ln for ln in text.splitlines() if ln and not ln.startswith("[")]
     return "\n".join(keep) + "\n" if keep else ""
+
+
+def run_graph(specs: list[NodeSpec], python: str = sys.executable, poll: float = 0.1) -> int:
+    """Start a graph's nodes as processes in this ROS environment (no domain of their own, output to
+    this terminal, as ``ros2 launch`` does) and wait: until a required node exits (then the others
+    get SIGINT), or, with none required, until every node exited. Ctrl-C / SIGTERM stop them all.
+    Returns the first non-zero exit status of a required node (else 0)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    procs = {s.name: subprocess.Popen(command(python, s), env=env, preexec_fn=die_with_parent) for s in specs}
+    required = [s.name for s in specs if s.required]
+    try:
+        while True:
+            if required and any(procs[n].poll() is not None for n in required):
+                break
+            if not required and all(p.poll() is not None for p in procs.values()):
+                break
+            time.sleep(poll)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        _stop_all(procs)
+    codes = [procs[n].returncode for n in required if procs[n].returncode not in (None, 0)]
+    return codes[0] if codes else 0
 
 
 def build_parser() -> argparse.ArgumentParser:

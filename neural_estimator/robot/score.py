@@ -21,8 +21,12 @@ from neural_estimator.robot.spec import Spec, SpecError, load_spec
 ESTIMATES_PREFIX = "estimates/"
 
 
-def scoring_spec(spec: Spec, topics: list[str], namespace: str = "/") -> tuple[Spec, dict[str, str]]:
-    """A spec that reads the ground truth of ``spec`` and every estimate topic among ``topics``.
+def scoring_spec(
+    spec: Spec, topics: list[str], namespace: str = "/", stamp: str = "log"
+) -> tuple[Spec, dict[str, str]]:
+    """A spec that reads the ground truth of ``spec`` and every estimate topic among ``topics``,
+    sampled by log time (``stamp="log"``) or by header stamps (``"header"``: a run on sim time,
+    where the estimates are stamped on the recording's clock).
 
     Returns the spec and {method: topic}.
     """
@@ -46,7 +50,7 @@ def scoring_spec(spec: Spec, topics: list[str], namespace: str = "/") -> tuple[S
     raw = {
         "rate": spec.rate,
         "max_age": spec.max_age,
-        "stamp": "log",
+        "stamp": stamp,
         "observation": state,  # unused by the scoring; the builder wants one
         "state": state,
         "estimates": {m: {topic: fields} for m, topic in methods.items()},
@@ -63,15 +67,17 @@ def score_recording(
     namespace: str = "/",
     warmup: int = M.EVALUATION_WARMUP,
     length_name: str = "--length",
+    stamp: str = "log",
 ) -> tuple[dict[str, Any], Any]:
     """({method: MetricReport}, the truth Trajectories) of every estimate stream of a recorded run,
     against the spec's ground truth; the first ``warmup`` steps of every trajectory are not scored.
     ``length_name`` is how the caller's user sets ``length`` (a CLI flag, a node parameter), for the
-    error when no trajectory that long can be cut."""
+    error when no trajectory that long can be cut. ``stamp``: "log" (receipt times, one clock for
+    every stream) or "header" (a run on sim time)."""
     spec = spec if isinstance(spec, Spec) else load_spec(spec)
     with open_bag(bag) as reader:
         topics = list(reader.topics)
-    scoring, _ = scoring_spec(spec, topics, namespace)
+    scoring, _ = scoring_spec(spec, topics, namespace, stamp)
     truth, estimates, _ = build_dataset([bag], scoring, length, length_name=length_name)
     angles = scoring.angles("state")
     return {m: M.compute_metrics(truth.x, x_hat, angles, warmup=warmup) for m, x_hat in estimates.items()}, truth

@@ -1,0 +1,192 @@
+"""Lifecycle estimator node: the estimator as a managed node, for teams that bring nodes up with a
+lifecycle manager (nav2's lifecycle_manager, ``ros2 lifecycle set``).
+
+    ros2 run neural_estimator lifecycle_estimator --ros-args -p method:=ukf -p scenario:=bearings
+    ros2 lifecycle set /lifecycle_estimator configure   # builds the filter / loads the model
+    ros2 lifecycle set /lifecycle_estimator activate    # subscribes and publishes
+
+Transitions (rclpy.lifecycle, ``lifecycle_msgs``): **configure** checks the parameters and builds
+the method (a filter, or a neural model from its checkpoint: the slow part, done before the robot
+needs it); a bad method, scenario or checkpoint fails the transition in one logged line and the
+node stays unconfigured. **activate** creates the estimate publishers (the estimator node's
+topics and standard outputs, :mod:`neural_estimator.nodes.outputs`) and the observation
+subscription; **deactivate** destroys them (observations are not received while inactive);
+**cleanup** drops the method; **shutdown** from any state. Same parameters as the estimator node
+(``params/estimator.yaml``), except that ``scenario`` must be given: configure needs the system.
+The per-message work is :class:`neural_estimator.replay.OnlineEstimator`, as in the estimator node.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from neural_estimator.bags import messages as M
+from neural_estimator.bags.errors import MessageError
+from neural_estimator.estimators import EstimatorError, check_method, make_estimator
+from neural_estimator.nodes.common import StartupError, build_scenario, declare_params, load_plugins, stream_qos
+from neural_estimator.nodes.estimator_node import EstimatorParams
+from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
+from neural_estimator.replay import OnlineEstimator
+
+
+class LifecycleEstimatorNode(LifecycleNode):
+    def __init__(self, node_name: str = "lifecycle_estimator") -> None:
+        super().__init__(node_name)
+        self.p = declare_params(self, EstimatorParams)
+        self.po = declare_params(self, OutputParams)
+        self.online: OnlineEstimator | None = None
+        self.entities: list = []  # publishers and the subscription of the active state
+        self.outputs: Outputs | None = None
+        self.counts = {"estimates": 0, "bad": 0, "skipped": 0}
+        self._last_log = 0.0
+
+    # ---- transitions ---------------------------------------------------------------------------------
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        p = self.p
+        try:
+            method = check_method(p.method)
+            if not p.scenario:
+                raise StartupError("parameter scenario is required by the lifecycle estimator (configure builds it)")
+            load_plugins(p.plugins)
+            scenario = build_scenario(p.scenario, p.set)
+            options = dict(item.split("=", 1) for item in p.options)
+            est = make_estimator(
+                method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options
+            )
+        except (EstimatorError, StartupError, ValueError) as exc:
+            self.get_logger().error(f"configure failed: {exc}")
+            return TransitionCallbackReturn.FAILURE
+        self.method = method
+        self.online = OnlineEstimator(
+            est,
+            method,
+            publish_covariance=p.publish_covariance,
+            max_gap=p.max_gap,
+            max_gap_seconds=p.max_gap_seconds,
+            frame_id=p.frame_id,
+        )
+        self.get_logger().info(f"configured: {method} on {scenario.name}")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        p, scenario = self.p, self.online.scenario
+        out = p.output_topic or M.estimate_topic(self.method)
+        qos = stream_qos(p.history_depth)
+        try:
+            self.outputs = Outputs(
+                self,
+                self.po,
+                out,
+                qos,
+                p.frame_id,
+                p.child_frame_id,
+                scenario.state_names,
+                getattr(scenario, "pose_states", {}),
+                p.publish_odometry,
+            )
+        except OutputError as exc:
+            self.get_logger().error(f"activate failed: {exc}")
+            return TransitionCallbackReturn.FAILURE
+        self.pub_est = self.create_publisher(JointState, out, qos)
+        self.pub_cov = None
+        if self.online.publish_covariance:
+            self.pub_cov = self.create_publisher(JointState, f"{out}/{M.COVARIANCE_SUFFIX}", qos)
+        sub_qos = QoSProfile(
+            depth=max(1, p.queue_depth),
+            reliability=ReliabilityPolicy.RELIABLE
+            if p.observation_qos == "reliable"
+            else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.VOLATILE,  # matches any publisher; history is not replayed here
+        )
+        self.sub = self.create_subscription(JointState, p.observation_topic, self._on_observation, sub_qos, raw=True)
+        o = self.outputs
+        self.entities = [self.pub_est, self.pub_cov, self.sub, o.pub_odom, o.pub_pose, o.pub_state, o.pub_tf]
+        self.get_logger().info(f"active: '{self.sub.topic_name}' -> '{self.pub_est.topic_name}'{o.describe()}")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy_entities()
+        self.get_logger().info("inactive: unsubscribed, publishers destroyed")
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy_entities()
+        self.online = None
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy_entities()
+        self.online = None
+        return TransitionCallbackReturn.SUCCESS
+
+    def _destroy_entities(self) -> None:
+        for e in self.entities:
+            if e is None:
+                continue
+            if e is getattr(self, "sub", None):
+                self.destroy_subscription(e)
+            else:
+                self.destroy_publisher(e)
+        self.entities = []
+        self.sub = None
+
+    # ---- per message ---------------------------------------------------------------------------------
+    def _on_observation(self, raw: bytes) -> None:
+        if self.online is None:
+            return
+        try:
+            res = self.online.process(raw)
+        except MessageError as exc:
+            self.counts["bad"] += 1
+            self._warn(f"bad observation dropped: {exc}")
+            return
+        except Exception as exc:  # a failure inside a method must not take the node down
+            self.online.reset()
+            self.get_logger().error(f"{self.method} failed on an observation ({exc!r}); restarting from the prior")
+            return
+        if res.status != "estimated":
+            self.counts["skipped"] += 1
+            return
+        self.pub_est.publish(res.estimate)
+        if res.covariance is not None and self.pub_cov is not None:
+            self.pub_cov.publish(res.covariance)
+        cov = self.online.estimator.covariance
+        self.outputs.publish(res.stamp_ns, res.x_hat, None if cov is None else cov[0])
+        self.counts["estimates"] += 1
+
+    def _warn(self, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last_log >= self.p.log_throttle:
+            self._last_log = now
+            self.get_logger().warning(text)
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = LifecycleEstimatorNode()
+    except StartupError as exc:
+        rclpy.logging.get_logger("lifecycle_estimator").fatal(str(exc))
+        rclpy.try_shutdown()
+        return 1
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

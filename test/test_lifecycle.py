@@ -1,0 +1,116 @@
+"""The lifecycle estimator: configure builds the method (a bad one fails the transition), activate
+subscribes and publishes, deactivate stops both; driven through lifecycle_msgs services as
+`ros2 lifecycle set` and nav2's lifecycle manager drive it."""
+
+from __future__ import annotations
+
+import random
+import signal
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from neural_estimator.bags import messages as M
+
+MODULE = "neural_estimator.nodes.lifecycle_estimator_node"
+
+
+def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
+    pytest.importorskip("rclpy.lifecycle")
+    import rclpy
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    from neural_estimator.data import simulate
+    from neural_estimator.nodes.common import stream_qos
+    from neural_estimator.nodes.launch import isolated_env, node_command, start_node
+    from neural_estimator.scenarios import make_scenario
+
+    domain = random.SystemRandom().randint(200, 229)
+    env = isolated_env(domain)
+    scen = make_scenario("bearings")
+    data = simulate(scen, 1, 20, seed=2)
+    good = start_node(
+        node_command(sys.executable, MODULE, "lc", {"method": "ekf", "scenario": "bearings"}), tmp_path / "lc.log", env
+    )
+    bad = start_node(
+        node_command(sys.executable, MODULE, "lc_bad", {"method": "ekf", "scenario": "nope"}), tmp_path / "bad.log", env
+    )
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = rclpy.create_node("tester", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+
+        def spin_until(pred, timeout=60.0):
+            t0 = time.monotonic()
+            while not pred():
+                if time.monotonic() - t0 > timeout:
+                    raise AssertionError(f"timed out; log:\n{(tmp_path / 'lc.log').read_text()}")
+                ex.spin_once(timeout_sec=0.05)
+
+        def call(name, srv, request):
+            client = node.create_client(srv, name)
+            spin_until(lambda: client.service_is_ready())
+            future = client.call_async(request)
+            spin_until(future.done)
+            return future.result()
+
+        def change(target, transition):
+            return call(
+                f"/{target}/change_state", ChangeState, ChangeState.Request(transition=Transition(id=transition))
+            ).success
+
+        def state(target):
+            return call(f"/{target}/get_state", GetState, GetState.Request()).current_state.label
+
+        assert state("lc") == "unconfigured"
+        assert change("lc_bad", Transition.TRANSITION_CONFIGURE) is False  # unknown scenario: stays unconfigured
+        assert state("lc_bad") == "unconfigured"
+        assert change("lc", Transition.TRANSITION_CONFIGURE) and state("lc") == "inactive"
+        estimates, odoms = [], []
+        node.create_subscription(
+            JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
+        )
+        node.create_subscription(Odometry, "estimates/ekf/odometry", odoms.append, stream_qos(100))
+        pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
+        assert node.count_publishers("estimates/ekf") == 0  # inactive: nothing published
+        assert change("lc", Transition.TRANSITION_ACTIVATE) and state("lc") == "active"
+        spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ekf") >= 1)
+
+        def obs(k):
+            return M.encode_observation(
+                scen, M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0)
+            )
+
+        for k in range(10):
+            pub.publish(obs(k))
+        spin_until(lambda: len(estimates) >= 10 and len(odoms) >= 10)
+        assert [e.step for e in estimates] == list(range(10))
+        assert odoms[-1].pose.covariance[0] > 0  # the EKF's own covariance
+        assert change("lc", Transition.TRANSITION_DEACTIVATE) and state("lc") == "inactive"
+        spin_until(lambda: pub.get_subscription_count() == 0)
+        for k in range(10, 15):
+            pub.publish(obs(k))
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.0:
+            ex.spin_once(timeout_sec=0.05)
+        assert len(estimates) == 10  # inactive: no estimate
+        assert change("lc", Transition.TRANSITION_CLEANUP) and state("lc") == "unconfigured"
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        for p in (good, bad):
+            p.send_signal(signal.SIGINT)
+        for p in (good, bad):
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+    assert "configure failed" in (tmp_path / "bad.log").read_text()

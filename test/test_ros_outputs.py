@@ -1,0 +1,342 @@
+"""Standard outputs (pose, state vector, TF, set_pose) and input diagnostics, as plain code; and a live
+run that records them."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+import pytest
+
+from neural_estimator.nodes import diagnostics as D
+from neural_estimator.nodes import outputs as O
+from neural_estimator.nodes.odometry import UNKNOWN_VARIANCE, quaternion
+
+
+def _msg(**fields):
+    return types.SimpleNamespace(**fields)
+
+
+def _stamped():
+    return _msg(header=_msg(stamp=_msg(sec=0, nanosec=0), frame_id=""))
+
+
+class Pose:  # geometry_msgs/PoseWithCovarianceStamped's shape
+    def __init__(self):
+        self.header = _stamped().header
+        self.pose = _msg(
+            pose=_msg(position=_msg(x=0.0, y=0.0, z=0.0), orientation=_msg(x=0.0, y=0.0, z=0.0, w=1.0)),
+            covariance=[0.0] * 36,
+        )
+
+
+class Dim:
+    def __init__(self, label="", size=0, stride=0):
+        self.label, self.size, self.stride = label, size, stride
+
+
+class MultiArray:
+    def __init__(self):
+        self.layout = _msg(dim=[], data_offset=0)
+        self.data = []
+
+
+BEARINGS_POSE = {"x": 0, "y": 1, "vx": 2, "vy": 3}
+
+
+def test_pose_message_carries_the_methods_covariance_or_unknown_never_zeros():
+    x = np.array([1.0, 2.0, 0.5, -0.5])
+    P = np.diag([0.1, 0.2, 0.3, 0.4])
+    P[0, 1] = P[1, 0] = 0.05
+    msg = O.make_pose(Pose, 1_500_000_000, "odom", x, P, BEARINGS_POSE)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (1, 500_000_000, "odom")
+    assert (msg.pose.pose.position.x, msg.pose.pose.position.y) == (1.0, 2.0)
+    cov = np.array(msg.pose.covariance).reshape(6, 6)
+    assert cov[0, 0] == 0.1 and cov[1, 1] == 0.2 and cov[0, 1] == 0.05
+    assert cov[2, 2] == UNKNOWN_VARIANCE and cov[5, 5] == UNKNOWN_VARIANCE  # z, yaw: not in this state
+    none = np.array(O.make_pose(Pose, 0, "odom", x, None, BEARINGS_POSE).pose.covariance).reshape(6, 6)
+    assert np.all(np.diag(none) == UNKNOWN_VARIANCE) and np.count_nonzero(none - np.diag(np.diag(none))) == 0
+
+
+def test_state_vector_message_round_trips_with_and_without_covariance():
+    x = np.array([1.0, -2.0, 3.0])
+    P = np.arange(9.0).reshape(3, 3)
+    msg = O.make_state(MultiArray, Dim, x, P, ["a", "b", "c"])
+    assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [("state:a,b,c", 3, 12), ("mean|covariance", 4, 4)]
+    names, x2, P2 = O.read_state(msg.data, [(d.label, d.size) for d in msg.layout.dim])
+    assert names == ["a", "b", "c"] and np.array_equal(x2, x) and np.array_equal(P2, P)
+    bare = O.make_state(MultiArray, Dim, x, None, ["a", "b", "c"])
+    assert len(bare.data) == 3 and bare.layout.dim[1].label == "mean"
+    assert O.read_state(bare.data, [(d.label, d.size) for d in bare.layout.dim])[2] is None
+
+
+def test_euler_inverts_quaternion_and_set_pose_values():
+    for rpy in [(0.1, -0.2, 0.3), (0.0, 0.0, -3.0), (-0.5, 0.4, 2.5)]:
+        assert np.allclose(O.euler(*quaternion(*rpy)), rpy)
+    msg = Pose()
+    msg.pose.pose.position.x = 4.0
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = quaternion(0.0, 0.0, 1.0)
+    assert O.pose_values(msg)["yaw"] == pytest.approx(1.0) and O.pose_values(msg)["x"] == 4.0
+    o.x = o.y = o.z = o.w = 0.0
+    with pytest.raises(O.OutputError, match="zero or non-finite norm"):
+        O.pose_values(msg)
+
+
+def test_set_pose_restarts_a_filter_at_the_pose_and_refuses_neural_models():
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scen = make_scenario("bearings")
+    ekf = make_estimator("ekf", scen)
+    ekf.reset(1)
+    last = np.array([10.0, 20.0, 1.0, 2.0])
+    mean = O.set_pose(ekf, {"x": -3.0, "y": 7.0, "z": 0, "roll": 0, "pitch": 0, "yaw": 0}, scen.pose_states, last)
+    assert np.allclose(mean, [-3.0, 7.0, 1.0, 2.0])  # pose replaced, velocities kept
+    # the next step is an update of the set state: with a huge R it stays near the set pose
+    ref = make_estimator("ekf", scen)
+    ref.reset(1, initial_mean=mean[None])
+    y = np.zeros((1, scen.dy))
+    assert np.allclose(ekf.step(y), ref.step(y))
+    gru = make_estimator("gru", scen)
+    with pytest.raises(O.OutputError, match="filters only"):
+        O.set_pose(gru, {"x": 0.0}, scen.pose_states, None)
+    with pytest.raises(O.OutputError, match="no pose components"):
+        O.state_at_pose(np.zeros(3), {"x": 0.0}, {})
+
+
+def test_output_topics_the_evaluator_records():
+    assert O.is_output_topic("/estimates/ekf/odometry") and O.is_output_topic("/r1/estimates/gru/state", "/r1")
+    assert not O.is_output_topic("/estimates/ekf/covariance") and not O.is_output_topic("/estimates/ekf")
+    assert not O.is_output_topic("/r1/estimates/ekf/pose") and not O.is_output_topic("/estimates//pose")
+    with pytest.raises(O.OutputError, match="pose_output must be one of"):
+        O.check_output_params(O.OutputParams(pose_output="Odometry"))
+
+
+class Transform:  # geometry_msgs/TransformStamped's shape
+    def __init__(self):
+        self.header = _stamped().header
+        self.child_frame_id = ""
+        self.transform = _msg(translation=_msg(x=0.0, y=0.0, z=0.0), rotation=_msg(x=0.0, y=0.0, z=0.0, w=1.0))
+
+
+def test_transform_at_the_estimated_pose():
+    quad = {"x": 0, "z": 1, "pitch": 2, "vx": 3, "vz": 4, "wy": 5}  # the quadrotor's pose states
+    x = np.array([1.0, 2.0, 0.3, 0.0, 0.0, 0.0])
+    t = O.make_transform(Transform, 2_000_000_001, "odom", "base_link", x, quad)
+    assert (t.header.frame_id, t.child_frame_id, t.header.stamp.sec, t.header.stamp.nanosec) == (
+        "odom",
+        "base_link",
+        2,
+        1,
+    )
+    tr, r = t.transform.translation, t.transform.rotation
+    assert (tr.x, tr.y, tr.z) == (1.0, 0.0, 2.0)
+    assert np.allclose(O.euler(r.x, r.y, r.z, r.w), (0.0, 0.3, 0.0))
+
+
+def test_publish_tf_is_refused_in_one_line_without_tf2_msgs():
+    import importlib.util
+
+    pytest.importorskip("geometry_msgs")
+
+    class FakeNode:
+        def create_publisher(self, cls, topic, qos):
+            return (cls.__name__, topic)
+
+    p = O.OutputParams(pose_output="none", publish_state=False, publish_tf=True)
+    args = (FakeNode(), p, "estimates/ekf", 10, "map", "base_link", ["px", "py", "vx", "vy"])
+    with pytest.raises(O.OutputError, match="no pose components"):
+        O.Outputs(*args, {})
+    if importlib.util.find_spec("tf2_msgs") is None:  # pip: no wheel
+        with pytest.raises(O.OutputError, match="publish_tf needs the tf2_msgs package") as err:
+            O.Outputs(*args, BEARINGS_POSE)
+        assert "\n" not in str(err.value)
+    else:  # a ROS install
+        assert O.Outputs(*args, BEARINGS_POSE).pub_tf == ("TFMessage", "/tf")
+
+
+# ---- diagnostics ----------------------------------------------------------------------------------------
+def test_frequency_band_and_staleness_like_diagnostic_updater():
+    m = D.InputMonitor("/observation", expected_rate=10.0, tolerance=0.1, stale_after=1.0, window=2.0, start=0.0)
+    st = m.status(0.5)
+    assert st.level == D.OK  # not stale yet, and no full window to judge the band
+    assert m.status(1.5).level == D.ERROR and m.status(1.5).message == "no message yet"
+    for k in range(1, 41):  # 10 Hz for 4 s
+        m.tick(1.5 + 0.1 * k)
+    assert m.status(5.5).level == D.OK and float(m.status(5.5).values["frequency (Hz)"]) == pytest.approx(10, rel=0.06)
+    for k in range(1, 41):  # then 5 Hz
+        m.tick(5.5 + 0.2 * k)
+    st = m.status(13.5)
+    assert st.level == D.WARN and st.message.startswith("frequency too low")
+    for k in range(1, 61):  # then 30 Hz
+        m.tick(13.5 + k / 30)
+    assert m.status(15.5).message.startswith("frequency too high")
+    st = m.status(17.0)
+    assert st.level == D.ERROR and st.message.startswith("stale: no message for 1.5 s")
+    free = D.InputMonitor("/x", expected_rate=0.0, stale_after=1.0, start=0.0)
+    free.tick(0.1)
+    assert free.status(0.5).level == D.OK and free.status(0.5).values["expected frequency (Hz)"] == "any"
+
+
+def test_merge_rates_and_hardware_id():
+    assert D.merge([(D.OK, "ok"), (D.WARN, "slow"), (D.ERROR, "stale")]) == (D.ERROR, "slow; stale")
+    assert D.merge([(D.OK, "ok")]) == (D.OK, "ok")
+    assert D.parse_rates(["/imu=100", "/gps/fix=5"]) == {"/imu": 100.0, "/gps/fix": 5.0}
+    with pytest.raises(ValueError, match="'/imu' is not topic=Hz"):
+        D.parse_rates(["/imu"])
+    assert D.hardware_id("/robot1/estimator_ukf", "ukf") == "/robot1/estimator_ukf/ukf"
+    with pytest.raises(ValueError, match="stale_after and window > 0"):
+        D.InputMonitor("/x", stale_after=0)
+
+
+# ---- live: what a run records ------------------------------------------------------------------------------
+def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_for_every_method(tmp_path):
+    """simulator -> ekf, gru -> evaluator, started from the graph description (`neural-estimator live`):
+    the bag holds Odometry with the EKF's covariance, Odometry with "unknown" variances for the GRU
+    (no covariance yet), and a state vector for both, each matching the estimate stream."""
+    pytest.importorskip("rclpy")
+    from neural_estimator.bags import BagReader
+    from neural_estimator.bags import messages as M
+    from neural_estimator.nodes.launch import PipelineConfig, run_pipeline
+
+    cfg = PipelineConfig(
+        scenario="bearings",
+        methods=("ekf", "gru"),
+        trajectories=1,
+        horizon=30,
+        rate_hz=100.0,
+        output=str(tmp_path / "b.mcap"),
+    )
+    res = run_pipeline(cfg)
+    with BagReader(res.bag) as reader:
+        topics = set(reader.topics)
+        assert {
+            "/estimates/ekf/odometry",
+            "/estimates/ekf/state",
+            "/estimates/gru/odometry",
+            "/estimates/gru/state",
+        } <= topics
+
+        def read(topic, msgtype):
+            return [M.TYPESTORE.deserialize_cdr(raw, msgtype) for _, _, raw in reader.messages([topic])]
+
+        est = {m: read(f"/estimates/{m}", M.JOINT_STATE) for m in ("ekf", "gru")}
+        odom = {m: read(f"/estimates/{m}/odometry", "nav_msgs/msg/Odometry") for m in ("ekf", "gru")}
+        state = {m: read(f"/estimates/{m}/state", "std_msgs/msg/Float64MultiArray") for m in ("ekf", "gru")}
+    for m in ("ekf", "gru"):
+        assert len(odom[m]) == len(state[m]) == len(est[m]) == 30
+    ekf_cov = np.array(odom["ekf"][-1].pose.covariance).reshape(6, 6)
+    assert ekf_cov[0, 0] > 0 and ekf_cov[1, 1] > 0 and ekf_cov[0, 0] < UNKNOWN_VARIANCE
+    assert odom["ekf"][-1].header.frame_id == "map" and odom["ekf"][-1].child_frame_id == "base_link"
+    gru_cov = np.array(odom["gru"][-1].pose.covariance).reshape(6, 6)
+    assert np.all(np.diag(gru_cov) == UNKNOWN_VARIANCE)
+    for m, cols in (("ekf", 5), ("gru", 1)):
+        msg = state[m][-1]
+        dims = [(d.label, d.size) for d in msg.layout.dim]
+        names, x, P = O.read_state(msg.data, dims)
+        assert names == ["px", "py", "vx", "vy"] and dims[1][1] == cols
+        assert np.allclose(x, est[m][-1].position[2:])  # the JointState carries trajectory, step first
+        assert (P is None) == (m == "gru")
+        if P is not None:
+            assert np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
+            assert P[0, 0] == pytest.approx(ekf_cov[0, 0])
+
+
+def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatch):
+    """estimator (ukf, bearings) <- 5 observations, a set_pose, one more observation: the last estimate
+    equals the UKF restarted at the pose (velocities kept) and updated with that observation; a
+    set_pose to a GRU node is refused in the log and the node goes on."""
+    pytest.importorskip("rclpy")
+    import random
+    import signal
+    import sys
+    import time
+
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    from neural_estimator.bags import messages as M
+    from neural_estimator.data import simulate
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.nodes.common import stream_qos
+    from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
+    from neural_estimator.replay import OnlineEstimator
+    from neural_estimator.scenarios import make_scenario
+
+    domain = random.SystemRandom().randint(200, 229)
+    env = isolated_env(domain)
+    procs = [
+        start_node(
+            node_command(sys.executable, ESTIMATOR, f"est_{m}", {"method": m, "scenario": "bearings"}),
+            tmp_path / f"{m}.log",
+            env,
+        )
+        for m in ("ukf", "gru")
+    ]
+    scen = make_scenario("bearings")
+    data = simulate(scen, 1, 10, seed=5)
+
+    def obs(k):
+        return M.encode_observation(scen, M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0))
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = rclpy.create_node("tester", context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        est = {"ukf": [], "gru": []}
+        for m in est:
+            node.create_subscription(
+                JointState,
+                f"estimates/{m}",
+                lambda raw, m=m: est[m].append(M.decode_vector(raw)),
+                stream_qos(100),
+                raw=True,
+            )
+        pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
+        pose_pub = node.create_publisher(PoseWithCovarianceStamped, "set_pose", 10)
+
+        def spin_until(pred, timeout=60.0):
+            t0 = time.monotonic()
+            while not pred():
+                if time.monotonic() - t0 > timeout:
+                    raise AssertionError(
+                        "timed out; logs:\n" + "".join((tmp_path / f"{m}.log").read_text() for m in est)
+                    )
+                ex.spin_once(timeout_sec=0.05)
+
+        spin_until(lambda: pub.get_subscription_count() >= 2 and pose_pub.get_subscription_count() >= 2)
+        spin_until(lambda: node.count_publishers("estimates/ukf") >= 1 and node.count_publishers("estimates/gru") >= 1)
+        for k in range(5):
+            pub.publish(obs(k))
+        spin_until(lambda: len(est["ukf"]) >= 5 and len(est["gru"]) >= 5)
+        pose = PoseWithCovarianceStamped()
+        pose.pose.pose.position.x, pose.pose.pose.position.y = 40.0, -25.0
+        pose.pose.pose.orientation.w = 1.0
+        pose_pub.publish(pose)
+        spin_until(lambda: "set_pose: state restarted" in (tmp_path / "ukf.log").read_text())
+        spin_until(lambda: "filters only" in (tmp_path / "gru.log").read_text())
+        pub.publish(obs(5))
+        spin_until(lambda: len(est["ukf"]) >= 6 and len(est["gru"]) >= 6)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+    ref = OnlineEstimator(make_estimator("ukf", scen), "ukf")
+    for k in range(5):
+        last = ref.process(obs(k)).x_hat
+    start = np.array([40.0, -25.0, last[2], last[3]])
+    ref.estimator.reset(1, initial_mean=start[None])
+    expected = ref.process(obs(5)).x_hat
+    np.testing.assert_allclose(est["ukf"][5].values, expected, rtol=0, atol=1e-9)
+    assert abs(est["ukf"][5].values[0] - est["ukf"][4].values[0]) > 1.0  # the pose moved the estimate
