@@ -123,6 +123,7 @@ def test_every_documented_command_line_parses(path):
         node = words[words.index("neural_estimator") + 1]
         if node == "neural-estimator":
             continue
+        node = GENERATE.NODE_ALIASES.get(node, node)
         assert node in GENERATE.NODE_PARAMS, f"{path.name}: no node {node!r}: {line}"
         known = {p["name"] for p in GENERATE.node_params(node)} | {"use_sim_time"}
         for i, w in enumerate(words):
@@ -174,9 +175,10 @@ def test_params_file_agrees_with_the_node_dataclass(node):
     import dataclasses
     import importlib
 
-    path, cls = GENERATE.NODE_PARAMS[node]
-    module = importlib.import_module(path[:-3].replace("/", "."))
-    fields = {f.name: f for f in dataclasses.fields(getattr(module, cls))}
+    fields = {}
+    for path, cls in GENERATE.NODE_PARAMS[node]:
+        module = importlib.import_module(path[:-3].replace("/", "."))
+        fields |= {f.name: f for f in dataclasses.fields(getattr(module, cls))}
     doc = yaml.safe_load((ROOT / "params" / f"{node}.yaml").read_text())
     (params,) = [v["ros__parameters"] for v in doc.values()]
     assert list(params) == list(fields), f"params/{node}.yaml: names or order differ from {cls}"

@@ -28,14 +28,23 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
 
-# node executable -> (source file, parameter dataclass)
+# the parameter groups shared by the estimator nodes: standard outputs and input diagnostics
+_OUTPUTS = ("neural_estimator/nodes/outputs.py", "OutputParams")
+_INPUTS = ("neural_estimator/nodes/diagnostics.py", "InputDiagnosticsParams")
+# node executable -> the (source file, parameter dataclass) pairs it declares, in declaration order
 NODE_PARAMS = {
-    "simulator": ("sim_nodes/simulator.py", "SimulatorParams"),
-    "estimator": ("neural_estimator/nodes/estimator_node.py", "EstimatorParams"),
-    "evaluator": ("neural_estimator/nodes/evaluator_node.py", "EvaluatorParams"),
-    "player": ("neural_estimator/nodes/player_node.py", "PlayerParams"),
-    "robot_estimator": ("neural_estimator/nodes/robot_estimator_node.py", "RobotEstimatorParams"),
+    "simulator": (("sim_nodes/simulator.py", "SimulatorParams"),),
+    "estimator": (("neural_estimator/nodes/estimator_node.py", "EstimatorParams"), _OUTPUTS, _INPUTS),
+    "evaluator": (("neural_estimator/nodes/evaluator_node.py", "EvaluatorParams"),),
+    "player": (("neural_estimator/nodes/player_node.py", "PlayerParams"),),
+    "robot_estimator": (
+        ("neural_estimator/nodes/robot_estimator_node.py", "RobotEstimatorParams"),
+        _OUTPUTS,
+        _INPUTS,
+    ),
 }
+# executables that declare another node's parameters (the lifecycle estimator: the estimator's)
+NODE_ALIASES = {"lifecycle_estimator": "estimator"}
 
 MARKER = re.compile(r"^<!-- generate: ([a-z-]+)(?: (.*?))? -->$", re.M)
 
@@ -63,9 +72,12 @@ def _value(node: ast.expr, tree: ast.Module) -> Any:
 
 
 def node_params(node: str) -> list[dict[str, Any]]:
-    """[{name, type, default, help}] of a node's parameter dataclass, in declaration order (read from
-    the source: the node modules import rclpy, and the site builds without it)."""
-    path, cls = NODE_PARAMS[node]
+    """[{name, type, default, help}] of a node's parameter dataclasses, in declaration order (read
+    from the source: the node modules import rclpy, and the site builds without it)."""
+    return [p for path, cls in NODE_PARAMS[node] for p in _dataclass_params(path, cls)]
+
+
+def _dataclass_params(path: str, cls: str) -> list[dict[str, Any]]:
     tree = ast.parse((ROOT / path).read_text())
     klass = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == cls)
     out = []
@@ -73,7 +85,7 @@ def node_params(node: str) -> list[dict[str, Any]]:
         if not (isinstance(stmt, ast.AnnAssign) and isinstance(stmt.value, ast.Call)):
             continue
         call = stmt.value
-        if getattr(call.func, "id", None) != "param":
+        if getattr(call.func, "id", None) not in ("param", "_param"):
             continue
         out.append(
             {
