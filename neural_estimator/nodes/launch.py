@@ -31,6 +31,7 @@ from typing import Any
 SIMULATOR = "sim_nodes.simulator"
 ESTIMATOR = "neural_estimator.nodes.estimator_node"
 EVALUATOR = "neural_estimator.nodes.evaluator_node"
+CLASSICAL = ("ekf", "ukf", "enkf", "pf")  # the methods a start mode (--init) concerns
 MAX_DEPTH = 100_000  # queue depth cap (about 30 MB per transient_local stream)
 
 
@@ -53,6 +54,7 @@ class PipelineConfig:
     noise_scale: float = -1.0  # negative = the scenario's
     checkpoints: tuple[str, ...] = ()  # method=path for neural methods
     options: tuple[str, ...] = ()  # method.name=value filter hyperparameters
+    init: str = "prior"  # how the classical filters start: prior (the paper's) or observation
     device: str = "cpu"
     publish_covariance: bool = True
     output: str = ""  # bag path; empty = runs/<scenario>-<date>-<time>.mcap
@@ -172,6 +174,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
                     "completion_timeout": 60.0,
                     "topics": list(cfg.record_topics),
                     "queue_depth": depth,
+                    "starts": [f"{m}={cfg.init}" for m in cfg.methods if m in CLASSICAL and cfg.init != "prior"],
                 },
             ),
         ),
@@ -192,6 +195,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
                         "checkpoint": ckpt.get(m, ""),
                         "device": cfg.device,
                         "seed": cfg.seed,
+                        **({"init": cfg.init} if m in CLASSICAL else {}),
                         "options": opts.get(m, []),
                         "publish_covariance": cfg.publish_covariance,
                         "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
@@ -314,6 +318,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-scale", type=float, default=-1.0)
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=DIR")
     p.add_argument("--option", action="append", default=[], metavar="METHOD.NAME=VALUE")
+    p.add_argument(
+        "--init",
+        choices=("prior", "observation"),
+        default="prior",
+        help="how the classical filters start: prior (default, the paper's start) or observation (the state the "
+        "first observation determines where h is invertible; Lorenz 96: x0 = y0)",
+    )
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-covariance", action="store_true", help="do not publish covariances")
     p.add_argument("--output", default="", help="bag path (default runs/<scenario>-<date>-<time>.mcap)")
@@ -336,6 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         noise_scale=a.noise_scale,
         checkpoints=tuple(a.checkpoint),
         options=tuple(a.option),
+        init=a.init,
         device=a.device,
         publish_covariance=not a.no_covariance,
         output=a.output,
