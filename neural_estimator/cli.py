@@ -592,7 +592,16 @@ def _write_evaluation(
     done = {m: r for m, r in results.items() if r.reports}
     complete = all(len(results[m].reports) == n for m, n in expected_runs.items())
     out.mkdir(parents=True, exist_ok=True)
-    (out / "table.md").write_text(results_table(done, fmt="markdown"))
+    from neural_estimator import departures as D
+    from neural_estimator.evaluation import departure_marks
+
+    _, _, used = departure_marks(done)
+    legend = [f"- {line}" for line in D.legend(used, [r.context for r in done.values()])]
+    (out / "table.md").write_text(
+        results_table(done, fmt="markdown", marked=True)
+        + "".join(f"\n{line}" for line in legend)
+        + f"\n\n{D.scored_steps(info.get('warmup', 0))}\n"
+    )
     (out / "table.csv").write_text(results_table(done, fmt="csv"))
     payload = results_json(scenario, done, complete=complete, **info)
     tmp = out / "results.json.tmp"

@@ -143,7 +143,12 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
         "png": base.with_name(base.name + ".rmse.png"),
     }
     heading = f"# {report.heading()} ({report.path.name})\n\n"
-    paths["markdown"].write_text(heading + report.table("markdown"))
+    _, _, used = report.marks()
+    legend = "".join(f"- {line}\n" for line in D.legend(used))
+    steps = D.scored_steps(report.warmup, "--every-step (evaluator: warmup:=0)")
+    paths["markdown"].write_text(
+        heading + report.table("markdown", marked=True) + (f"\n{legend}" if legend else "") + f"\n{steps}\n"
+    )
     paths["json"].write_text(json.dumps(report.to_json(), indent=1))
     if report.reports:
         plot_rmse_over_time(
