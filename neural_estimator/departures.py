@@ -50,7 +50,7 @@ LEGEND = {
     "the paper's tables start from the prior",
     FROM_OBSERVATION: "filter started from the first observation where h is invertible (--init observation), "
     "the live pipeline's practical start; the paper's tables start from the prior",
-    EXPECTED_MARK: "expected to fail here when started from the prior (the reason is given below the table)",
+    EXPECTED_MARK: "expected to fail here under the filters' start (the reason is given below the table)",
 }
 ORDER = (BOUNDED, OUTLIERS, FROM_TRUTH, FROM_OBSERVATION, EXPECTED_MARK)
 
