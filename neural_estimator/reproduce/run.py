@@ -23,7 +23,7 @@ from neural_estimator.reproduce.scales import Scale
 
 STATE_FILE = "reproduce.json"  # in --out: the run's settings and every job's status
 INIT_WORDS = {
-    "prior": "classical filters start from the scenario prior, as the live pipeline does",
+    "prior": "classical filters start from the scenario prior, the paper's start",
     "truth": "classical filters start at each trajectory's true x0 (mean only), the reading that makes the "
     "paper's PF rows possible",
     "observation": "classical filters start at the state the first observation determines where h is invertible "
