@@ -575,7 +575,11 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
-_START_WORDS = {"prior": "prior", "truth": "true x0", "observation": "first observation"}
+_START_WORDS = {
+    "prior": "prior",
+    "truth": "true x0",
+    "observation": "first observation where it determines state components, else the prior",
+}
 
 
 def _scored(warmup: int) -> str:

@@ -83,6 +83,20 @@ Neural methods read observations only; the option does not concern them.
 """
 
 
+def effective_init(scenario: Scenario, method: str, init: str) -> str:
+    """The start ``method`` really gets on ``scenario`` under the protocol's ``init``: ``"observation"``
+    is the prior where one observation determines no state component (bearings, ballistic, quadrotor:
+    the same computation, so the same cached result), and neural methods always read ``"prior"``."""
+    check_init(init)
+    if method not in CLASSICAL_METHODS:
+        return "prior"
+    if init == "observation":
+        from neural_estimator.filters.base import observation_determines_state
+
+        return init if observation_determines_state(scenario) else "prior"
+    return init
+
+
 def check_init(init: str) -> str:
     """``init`` if it is one of :data:`INIT_MODES`, else a one-line ValueError naming the choices."""
     if init not in INIT_MODES:
@@ -404,7 +418,8 @@ def evaluate(
         on_result: called with the results so far after every run (the CLI writes partial
             outputs with it).
         init: how the classical filters start, ``"prior"``, ``"truth"`` or ``"observation"``
-            (:data:`INIT_MODES`).
+            (:data:`INIT_MODES`; ``"observation"`` is the prior where h determines nothing, see
+            :func:`effective_init`, and each result's ``init`` says which start it got).
         warmup: leading timesteps not scored, for every method alike (default: the paper's 10,
             :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
 
@@ -424,7 +439,7 @@ def evaluate(
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
     plan = [(m, c) for m in methods for c in list((checkpoints or {}).get(m) or [None])]
-    results = {m: MethodResult(m, init=init if m in CLASSICAL_METHODS else "prior") for m in methods}
+    results = {m: MethodResult(m, init=effective_init(scenario, m, init)) for m in methods}
     n_runs = len(plan) * len(data_sets)
     run_no = 0
     for m, ckpt in plan:
@@ -441,7 +456,7 @@ def evaluate(
                     cache_root,
                     scenario,
                     m,
-                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init, warmup),
+                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup),
                 )
                 hit = None if recompute else load_run(path)
                 if hit is not None:
@@ -458,11 +473,7 @@ def evaluate(
                         on_result(results)
                     continue
             if est is None:
-                start = (
-                    {"init": "observation"}
-                    if init == "observation" and m in CLASSICAL_METHODS and "init" not in opts
-                    else {}
-                )
+                start = {"init": "observation"} if results[m].init == "observation" and "init" not in opts else {}
                 est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts, **start)
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
             bar = _progress(
@@ -472,7 +483,7 @@ def evaluate(
             )
             try:
                 x_hat, nees_nt, diverged, secs = run_method(
-                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=init
+                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=results[m].init
                 )
             finally:
                 bar.close()

@@ -189,6 +189,8 @@ def _fake_run(tmp_path, init="prior"):
         for m in meth:
             res = M.to_json(_report(rng, 0.05 if m != "pf" else 0.5, outliers=6 if m == "pf" else 0))
             res["context"] = 100 if (s, m) == ("lorenz96", "gru") else 0
+            # the start each filter got: --init observation is the prior where h determines nothing (ballistic)
+            res["start"] = init if m in ("ekf", "pf") and (init != "observation" or s == "lorenz96") else "prior"
             jobs.append(Job("evaluate", s, m, trajectories=40, init=init))
             outcome.results[len(jobs) - 1] = {"cached": False, "seconds": 0.1, "result": res}
             for mode, rate in (
@@ -228,13 +230,17 @@ def test_report_main_table_marks_departures_and_shows_the_every_step_rmse(tmp_pa
     assert every.strip().endswith("· —") and float(every.split("·")[0]) > 0  # ours, and the paper has none
 
 
-def test_report_marks_the_start_and_keeps_only_start_independent_failures(tmp_path):
+def test_report_marks_the_start_where_it_applied_and_keeps_only_start_independent_failures(tmp_path):
     _, main_table, rows = _fake_run(tmp_path, init="observation")
-    assert f"PF {D.FROM_OBSERVATION}" in rows and f"EKF {D.FROM_OBSERVATION}" in rows
-    assert "GRU" in rows and "Mamba-2" in rows  # networks carry no start mark
-    pf = rows[f"PF {D.FROM_OBSERVATION}"].split("|")
+    pf, ekf, gru = rows["PF"].split("|"), rows["EKF"].split("|"), rows["GRU"].split("|")
+    # columns: 2-4 ballistic (RMSE, all steps, NRMSE), 5-7 lorenz96; h inverts nothing on ballistic
+    assert D.FROM_OBSERVATION in pf[5] and D.FROM_OBSERVATION in ekf[5]
+    assert D.FROM_OBSERVATION not in pf[2] and D.FROM_OBSERVATION not in ekf[2]  # started from the prior there
+    assert D.FROM_OBSERVATION not in rows["GRU"]  # networks carry no start mark
     assert MARK in pf[2] and MARK not in pf[5]  # ballistic PF fails from any start; Lorenz 96's only from the prior
+    assert D.BOUNDED in gru[5]
     assert any(line.startswith(f"- {D.FROM_OBSERVATION}") for line in main_table.splitlines())
+    assert "- lorenz96: (!) pf" not in main_table and "- ballistic: (!) pf" in main_table
 
 
 def test_report_times_both_ways_and_says_which_ordering_each_supports(tmp_path):

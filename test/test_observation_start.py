@@ -145,3 +145,13 @@ def test_the_main_job_runs_all_ten_methods_with_none_expected_to_fail():
     assert sorted(methods) == sorted(METHODS)
     assert [m for m in methods if expected_to_fail("lorenz96", m, "observation")] == []
     assert [m for m in methods if expected_to_fail("lorenz96", m, "prior")] == ["pf"]  # the paper's start
+
+
+def test_the_protocol_starts_from_the_prior_where_the_observation_determines_nothing(tmp_path):
+    """evaluate / reproduce --init observation on bearings: the prior (the same run, read from the cache)."""
+    s = make_scenario("bearings")
+    kw = dict(trajectories=3, horizon=15, sets=1, cache_dir=tmp_path, progress=False)
+    prior = evaluate(s, ["ekf"], **kw)
+    obs = evaluate(s, ["ekf"], init="observation", **kw)
+    assert obs["ekf"].init == "prior" and obs["ekf"].cached == 1
+    assert obs["ekf"].reports[0].rmse == prior["ekf"].reports[0].rmse

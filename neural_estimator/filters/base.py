@@ -368,19 +368,23 @@ class ClassicalFilter(Estimator):
         return np.broadcast_to(u[:, None, :], (u.shape[0], N, u.shape[1]))
 
 
+def observation_determines_state(scenario: Scenario) -> bool:
+    """True when one observation determines some state components (``init="observation"`` applies)."""
+    m0 = np.asarray(scenario.prior()[0], dtype=np.float64)
+    with np.errstate(all="ignore"):
+        return scenario.state_from_observation(scenario.h(m0[None])) is not None
+
+
 def check_filter_init(method: str, scenario: Scenario, init: str) -> str:
     """``init`` if it is one of :data:`FILTER_INITS` and usable on ``scenario``, else a one-line
     EstimatorError (``"observation"`` needs an h invertible on some observed component)."""
     if init not in FILTER_INITS:
         raise EstimatorError(f"{method}: init must be one of {', '.join(FILTER_INITS)}, got {init!r}")
-    if init == "observation":
-        m0 = np.asarray(scenario.prior()[0], dtype=np.float64)
-        with np.errstate(all="ignore"):
-            if scenario.state_from_observation(scenario.h(m0[None])) is None:
-                raise EstimatorError(
-                    f"{method}: init=observation needs an observation that determines some state components; "
-                    f"{scenario.name}'s h is invertible on none (use init=prior)"
-                )
+    if init == "observation" and not observation_determines_state(scenario):
+        raise EstimatorError(
+            f"{method}: init=observation needs an observation that determines some state components; "
+            f"{scenario.name}'s h is invertible on none (use init=prior)"
+        )
     return init
 
 

@@ -220,8 +220,9 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
         init=job.init,
     )
     res = result[job.method]
-    # the context it was served with (read from its card, so known for cached runs): the report marks it
-    return {**M.to_json(res.reports[0]), "context": res.context}, res.cached == 1
+    # the context it was served with (read from its card, so known for cached runs) and the start the filters
+    # really got (the prior where --init observation cannot apply): the report marks both
+    return {**M.to_json(res.reports[0]), "context": res.context, "start": res.init}, res.cached == 1
 
 
 def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:

@@ -84,20 +84,24 @@ def _in_paper(s: str, m: str) -> bool:
     return paper_value("accuracy_main", s, m) is not None
 
 
-def rmse_marks(summ, s: str, m: str, contexts=None) -> list[str]:
-    """The marks of the RMSE cell of ``m`` on ``s``: [c] (bounded context, ``contexts[s][m]`` > 0) and
-    [o] (the outlier rule decides it: :func:`neural_estimator.departures.rests_on_outliers`)."""
+def cell_start(s: str, m: str, init: str = "prior", starts=None) -> str:
+    """The start the filter ``m`` really got on ``s``: ``starts[s][m]`` when recorded (``--init observation``
+    is the prior where h determines nothing), else the run's ``init``."""
+    return (starts or {}).get(s, {}).get(m, init)
+
+
+def rmse_marks(summ, s: str, m: str, contexts=None, init: str = "prior", starts=None) -> list[str]:
+    """The marks of the RMSE cell of ``m`` on ``s``: [c] (bounded context, ``contexts[s][m]`` > 0), [t] / [y]
+    (a filter started from the truth / the first observation) and [o] (the outlier rule decides it:
+    :func:`neural_estimator.departures.rests_on_outliers`)."""
     st = summ.get(s, {}).get(m)
     marks = [D.BOUNDED] if (contexts or {}).get(s, {}).get(m) else []
+    start = D.start_mark(m, cell_start(s, m, init, starts))
+    if start:
+        marks.append(start)
     if st is not None and D.rests_on_outliers(st["rmse"].median, st["full_rmse"].median):
         marks.append(D.OUTLIERS)
     return marks
-
-
-def method_name(m: str, init: str = "prior") -> str:
-    """The row name: the paper's name, with [t] / [y] for a filter not started from the prior."""
-    mark = D.start_mark(m, init)
-    return PAPER_NAMES.get(m, m) + (f" {mark}" if mark else "")
 
 
 def accuracy_table(
@@ -109,29 +113,30 @@ def accuracy_table(
     init: str = "prior",
     contexts=None,
     every_step=None,
+    starts=None,
 ) -> list[str]:
     """The main table, every departure from the paper's protocol marked where the number is printed.
 
     Columns per scenario: RMSE (the scored steps), RMSE over every step (``every_step[s][m]``: the
     median over runs; N/A where not measured), NRMSE. Marks (:mod:`neural_estimator.departures`):
     [c] on a bounded-context cell (``contexts[s][m]`` > 0), [o] with the Full RMSE beside an RMSE
-    the outlier rule decides, [t] / [y] on the row of a filter started from the truth / the first
-    observation (``init``); with ``mark_expected`` the RMSE of an expected failure under that start
+    the outlier rule decides, [t] / [y] on a filter started from the truth / the first observation
+    (``starts[s][m]``, else ``init``); with ``mark_expected`` the RMSE of an expected failure under that start
     (:mod:`neural_estimator.expected_failures`) ends with its mark, just before the paper's value.
     """
     cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("RMSE", "RMSE all steps", "NRMSE")]
     lines = _header(cols)
     for m in methods:
-        cells = [method_name(m, init)]
+        cells = [PAPER_NAMES.get(m, m)]
         for s in scenarios:
             st = summ.get(s, {}).get(m)
             ours = stat_cell(st and st["rmse"], 3, False)
-            marks = rmse_marks(summ, s, m, contexts)
+            marks = rmse_marks(summ, s, m, contexts, init, starts)
             if marks:
                 ours += " " + " ".join(marks)
             if D.OUTLIERS in marks:
                 ours += f" (full {num(st['full_rmse'].median)})"
-            if mark_expected and expected_to_fail(s, m, init):
+            if mark_expected and expected_to_fail(s, m, cell_start(s, m, init, starts)):
                 ours += f" {MARK}"
             cells.append(side(ours, paper_value("accuracy_main", s, m, "rmse"), 3, _in_paper(s, m)))
             every = (every_step or {}).get(s, {}).get(m)
@@ -149,12 +154,13 @@ def accuracy_table(
 
 
 def used_marks(
-    summ, scenarios, methods, *, init: str = "prior", contexts=None, mark_expected: bool = False
+    summ, scenarios, methods, *, init: str = "prior", contexts=None, mark_expected: bool = False, starts=None
 ) -> set[str]:
     """Every mark :func:`accuracy_table` prints for these arguments (for the legend)."""
-    used = {mk for s in scenarios for m in methods for mk in rmse_marks(summ, s, m, contexts)}
-    used |= {mk for m in methods if (mk := D.start_mark(m, init))}
-    if mark_expected and any(expected_to_fail(s, m, init) for s in scenarios for m in methods):
+    used = {mk for s in scenarios for m in methods for mk in rmse_marks(summ, s, m, contexts, init, starts)}
+    if mark_expected and any(
+        expected_to_fail(s, m, cell_start(s, m, init, starts)) for s in scenarios for m in methods
+    ):
         used.add(MARK)
     return used
 
@@ -165,9 +171,13 @@ def marks_legend(used: set[str], contexts=None) -> list[str]:
     return [f"- {line}" for line in D.legend(used, ctx)]
 
 
-def expected_failure_notes(scenarios, methods, init: str = "prior") -> list[str]:
-    """One bullet per expected failure (under the start ``init``) or caveat in the table, with its measured reason."""
-    lines = [f"- {s}: {note}" for s in scenarios for note in notes(s, methods, init)]
+def expected_failure_notes(scenarios, methods, init: str = "prior", starts=None) -> list[str]:
+    """One bullet per expected failure (under the start each cell got) or caveat in the table, with its reason."""
+    lines = [
+        f"- {s}: {note}"
+        for s in scenarios
+        for note in notes(s, methods, {m: cell_start(s, m, init, starts) for m in methods})
+    ]
     return lines + [""] if lines else []
 
 
@@ -203,20 +213,20 @@ def relative_table(summ, scenarios, methods) -> list[str]:
     return lines
 
 
-def extended_table(summ, s, methods, *, init: str = "prior", contexts=None) -> list[str]:
-    """One scenario's extended table; the RMSE cell carries the main table's [c] / [o] marks and the
-    row name the start's [t] / [y] (the Full RMSE is the next column)."""
+def extended_table(summ, s, methods, *, init: str = "prior", contexts=None, starts=None) -> list[str]:
+    """One scenario's extended table; the RMSE cell carries the main table's [c] / [t] / [y] / [o] marks
+    (the Full RMSE is the next column)."""
     lines = _header(["Method"] + [h for _, h, _, _ in EXTENDED])
     for m in methods:
         st = summ.get(s, {}).get(m)
-        marks = " ".join(rmse_marks(summ, s, m, contexts))
+        marks = " ".join(rmse_marks(summ, s, m, contexts, init, starts))
         cells = []
         for k, _, d, iqr in EXTENDED:
             ours = stat_cell(st and st[k], d, iqr)
             if k == "rmse" and marks:
                 ours += f" {marks}"
             cells.append(side(ours, paper_value("extended", s, m, k), d, _in_paper(s, m)))
-        lines.append(_row([method_name(m, init)] + cells))
+        lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
     return lines
 
 

@@ -242,12 +242,14 @@ def write_report(
     rt: dict[str, dict[str, dict[str, dict[str, float]]]] = {}  # {mode: {device: {scenario: {method: it/s}}}}
     every: dict[str, dict[str, list[float]]] = {s: {m: [] for m in meth} for s in scen}  # every-step RMSE per run
     contexts: dict[str, dict[str, int]] = {s: {} for s in scen}  # bounded context of each neural cell
+    starts: dict[str, dict[str, str]] = {s: {} for s in scen}  # the start each classical cell really got
     ratio: dict[str, dict[str, dict[float, list[float]]]] = {s: {m: {} for m in meth} for s in scen}
     for i, r in outcome.results.items():
         job, res = jobs[i], r["result"]
         if job.experiment == "accuracy":
             acc[job.scenario][job.method].append(res)
             every[job.scenario][job.method] += _floats([res.get("rmse_every_step")])
+            starts[job.scenario][job.method] = res.get("start", job.init)
             if res.get("context"):
                 contexts[job.scenario][job.method] = max(contexts[job.scenario].get(job.method, 0), int(res["context"]))
             if noise_reuses_accuracy(sc) and 1.0 in sc.noise_scales:
@@ -287,7 +289,7 @@ def write_report(
     if outcome.failed:
         L += ["## Failed jobs", ""] + [f"- {jobs[i].label}: `{e}`" for i, e in sorted(outcome.failed.items())] + [""]
     every_med = {s: {m: M.median_iqr(v)[0] for m, v in by_m.items() if v} for s, by_m in every.items()}
-    marking = dict(init=settings.init, contexts=contexts)
+    marking = dict(init=settings.init, contexts=contexts, starts=starts)
     L += ["## Main accuracy (paper: Table accuracy_main)", ""]
     L += [
         f"Filters start: {settings.init} ({INIT_WORDS[settings.init]}). "
@@ -299,7 +301,7 @@ def write_report(
     used = R.used_marks(summ, scen, meth, mark_expected=True, **marking)
     if used:
         L += ["Marks, each a departure from the paper's protocol:", ""] + R.marks_legend(used, contexts) + [""]
-    L += R.expected_failure_notes(scen, meth, settings.init)
+    L += R.expected_failure_notes(scen, meth, settings.init, starts)
     L += ["## Relative score, 100 RMSE(Mamba-2) / RMSE (paper: Table relative_score)", ""]
     if "mamba2" not in meth:
         L += ["Mamba-2 was not run: no relative score (N/A).", ""]
