@@ -13,7 +13,8 @@ every import of the package against this list):
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
 5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2)
 6. ``estimators``: the registry (``make_estimator``)
-7. ``bags``, ``evaluation``, ``replay``, ``robot``: MCAP I/O, the evaluation protocol, bag replay, recorded robot data
+7. ``bags``, ``evaluation``, ``replay``, ``robot``, ``departures``: MCAP I/O, the evaluation protocol, bag
+   replay, recorded robot data, the marks of departures from the paper's protocol
 8. ``reproduce``: the paper's experiments on Ray
 9. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
 """

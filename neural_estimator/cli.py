@@ -170,6 +170,13 @@ def _add_metrics(sub) -> None:
     p.add_argument("--length", type=int, default=200, help="with --spec: steps per scored trajectory (default 200)")
     _warmup_flag(p)
     p.add_argument(
+        "--start",
+        action="append",
+        metavar="METHOD=MODE",
+        help="how a recorded filter started (prior, truth, observation; default prior): marks the departures "
+        "from the paper's start and the expected failures by the start (repeatable)",
+    )
+    p.add_argument(
         "--json", action="store_true", help="print JSON (RMSE-over-time curves, outlier and diverged indices)"
     )
     p.add_argument("--out", help="also write the table: .csv, .md or .json by extension")
@@ -186,7 +193,15 @@ def _warmup_flag(p: argparse.ArgumentParser) -> None:
         default=EVALUATION_WARMUP,
         metavar="N",
         help=f"leading timesteps of every trajectory not scored, for every method alike (default "
-        f"{EVALUATION_WARMUP}: the paper's warm-up, its 'effective trajectory length'; 0 scores every step)",
+        f"{EVALUATION_WARMUP}: this project's choice; the paper states its {EVALUATION_WARMUP}-step warm-up for "
+        "the training loss only; 0 scores every step)",
+    )
+    p.add_argument(
+        "--every-step",
+        dest="warmup",
+        action="store_const",
+        const=0,
+        help="score every step of every trajectory (the same as --warmup 0)",
     )
 
 
@@ -263,9 +278,18 @@ def _print_spec_metrics(args) -> int:
     return 0
 
 
-def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = False, out: str | None = None) -> int:
-    """The metrics table of ``files`` (the ``metrics`` verb, and ``replay --metrics`` on its output)."""
+def _print_metrics(
+    files: list[str],
+    args: argparse.Namespace,
+    as_json: bool = False,
+    out: str | None = None,
+    starts: dict[str, str] | None = None,
+) -> int:
+    """The metrics table of ``files`` (the ``metrics`` verb, and ``replay --metrics`` on its output);
+    ``starts``: {method: start mode} of the filters that made the estimates (default: the prior)."""
+    from neural_estimator import departures as D
     from neural_estimator import metrics as M
+    from neural_estimator.expected_failures import mark_rows, notes
 
     truth, estimates, angles = _estimates_from_files(files, args)
     warmup = getattr(args, "warmup", M.EVALUATION_WARMUP)
@@ -293,8 +317,24 @@ def _print_metrics(files: list[str], args: argparse.Namespace, as_json: bool = F
             )
         )
     else:
-        print(f"{truth.meta.get('scenario', '?')}: {truth.n} trajectories x {truth.horizon} steps{_scored(warmup)}")
-        print(M.format_reports(reports, fmt="text"), end="")
+        starts = dict(starts or {})
+        for item in getattr(args, "start", None) or ():
+            method, sep, mode = item.partition("=")
+            if not sep or mode not in ("prior", "truth", "observation"):
+                raise CliError(f"--start expects METHOD=prior|truth|observation, got {item!r}")
+            starts[method.strip()] = mode
+        scenario_name = str(truth.meta.get("scenario", "?"))
+        rows = {m: D.row_marks(m, init=starts.get(m, "prior")) for m in reports}
+        cells = {m: {"rmse": D.OUTLIERS} for m, r in reports.items() if D.rests_on_outliers(r.rmse, r.full_rmse)}
+        named = D.marked_names(reports, rows)
+        table = M.format_reports(
+            {named[m]: r for m, r in reports.items()}, fmt="text", marks={named[m]: c for m, c in cells.items()}
+        )
+        print(f"{scenario_name}: {truth.n} trajectories x {truth.horizon} steps{_scored(warmup)}")
+        print(mark_rows(table, scenario_name, starts), end="")
+        used = {x for v in rows.values() for x in v} | ({D.OUTLIERS} if cells else set())
+        for line in notes(scenario_name, list(reports), starts) + D.legend_text(used) + [D.scored_steps(warmup)]:
+            print(line)
     if out:
         _write_table(out, reports)
     return 0
@@ -364,10 +404,11 @@ def _add_evaluate(sub) -> None:
     )
     p.add_argument(
         "--init",
-        choices=("prior", "truth"),
+        choices=("prior", "truth", "observation"),
         default="prior",
-        help="classical filters start from the scenario prior (default, as live) or at each "
-        "trajectory's true x0 (mean only; P0 and the PF's init_std unchanged)",
+        help="how the classical filters start: from the scenario prior (default, the paper's start), at each "
+        "trajectory's true x0, or at the state the first observation determines where h is invertible "
+        "(Lorenz 96: x0 = y0); mean only, P0 and the PF's init_std unchanged",
     )
     _warmup_flag(p)
     p.add_argument("--device", default="cpu")
@@ -451,7 +492,8 @@ def _recorded_estimates(items: list[str] | None, truth) -> dict[str, Any]:
 
 def _cmd_evaluate(args) -> int:
     from neural_estimator.estimators import CLASSICAL_METHODS, check_method
-    from neural_estimator.evaluation import evaluate, results_json, results_table
+    from neural_estimator import departures as D
+    from neural_estimator.evaluation import departure_legend, evaluate, results_json, results_table
     from neural_estimator.expected_failures import mark_rows, notes
 
     scenario, datasets = _scenario_or_data(args)
@@ -559,11 +601,15 @@ def _cmd_evaluate(args) -> int:
             print(
                 f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps"
                 f"{_scored(args.warmup)}, "
-                f"filters start from the {'true x0' if args.init == 'truth' else 'prior'} (median ± IQR over runs)"
+                f"filters start from the {_START_WORDS[args.init]} (median ± IQR over runs)"
             )
-        print(mark_rows(results_table(results, fmt="text"), scenario.name), end="")
-        for line in notes(scenario.name, list(results)) if args.init == "prior" else ():
+        starts = {m: r.init for m, r in results.items()}
+        print(mark_rows(results_table(results, fmt="text", marked=True), scenario.name, starts), end="")
+        for line in notes(scenario.name, list(results), starts):
             print(line)
+        for line in departure_legend(results):
+            print(line)
+        print(D.scored_steps(args.warmup))
         print(
             "speed: "
             + ", ".join(
@@ -577,6 +623,13 @@ def _cmd_evaluate(args) -> int:
         _write_evaluation(out, scenario, results, info, expected_runs, plot=True)
         print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
     return 0
+
+
+_START_WORDS = {
+    "prior": "prior",
+    "truth": "true x0",
+    "observation": "first observation where it determines state components, else the prior",
+}
 
 
 def _scored(warmup: int) -> str:
@@ -593,7 +646,16 @@ def _write_evaluation(
     done = {m: r for m, r in results.items() if r.reports}
     complete = all(len(results[m].reports) == n for m, n in expected_runs.items())
     out.mkdir(parents=True, exist_ok=True)
-    (out / "table.md").write_text(results_table(done, fmt="markdown"))
+    from neural_estimator import departures as D
+    from neural_estimator.evaluation import departure_marks
+
+    _, _, used = departure_marks(done)
+    legend = [f"- {line}" for line in D.legend(used, [r.context for r in done.values()])]
+    (out / "table.md").write_text(
+        results_table(done, fmt="markdown", marked=True)
+        + "".join(f"\n{line}" for line in legend)
+        + f"\n\n{D.scored_steps(info.get('warmup', 0))}\n"
+    )
     (out / "table.csv").write_text(results_table(done, fmt="csv"))
     payload = results_json(scenario, done, complete=complete, **info)
     tmp = out / "results.json.tmp"
@@ -820,6 +882,13 @@ def _add_replay(sub) -> None:
         "by (trajectory, step) for bags recorded out of order",
     )
     p.add_argument("--no-covariance", action="store_true", help="do not write covariance streams")
+    p.add_argument(
+        "--init",
+        choices=("prior", "observation"),
+        default="prior",
+        help="how the classical filters start each trajectory: prior (default, the paper's start) or observation "
+        "(the state the first observation determines where h is invertible; Lorenz 96: x0 = y0)",
+    )
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--metrics", action="store_true", help="print the metrics table of the output bag")
     _warmup_flag(p)
@@ -827,11 +896,18 @@ def _add_replay(sub) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from neural_estimator.estimators import check_method
+    from neural_estimator.estimators import CLASSICAL_METHODS, check_method
     from neural_estimator.replay import replay
 
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
     ckpts = {m: paths[-1] for m, paths in _parse_checkpoints(args.checkpoint).items()}
+    options = _parse_options(args.option)
+    starts = {}
+    if args.init != "prior":
+        for m in methods:
+            if m in CLASSICAL_METHODS:
+                options.setdefault(m, {}).setdefault("init", args.init)
+                starts[m] = options[m]["init"]
     if args.threads < 0:
         raise CliError(f"--threads must be >= 0 (0 = torch's default), got {args.threads}")
     _check_out(args.out, args.overwrite)
@@ -843,7 +919,7 @@ def _cmd_replay(args) -> int:
         device=args.device,
         seed=args.seed,
         namespace=args.namespace,
-        options=_parse_options(args.option),
+        options=options,
         publish_covariance=not args.no_covariance,
         overwrite=args.overwrite,
         description=_bag_description(args),
@@ -861,7 +937,7 @@ def _cmd_replay(args) -> int:
         )
     )
     if args.metrics:
-        return _print_metrics([str(res.path)], args)
+        return _print_metrics([str(res.path)], args, starts=starts)
     return 0
 
 
@@ -917,10 +993,11 @@ def _add_reproduce(sub) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run in --out (finished jobs are read back)")
     p.add_argument(
         "--init",
-        choices=("prior", "truth"),
+        choices=("prior", "truth", "observation"),
         default="prior",
         help="classical filters of the accuracy and noise experiments start from the scenario prior "
-        "(default, as live; expected failures are marked) or at each trajectory's true x0",
+        "(default, the paper's start; expected failures are marked), at each trajectory's true x0, or at the "
+        "state the first observation determines where h is invertible",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_reproduce)

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from neural_estimator import departures as D
 from neural_estimator import metrics as M
 from neural_estimator import __version__
 from neural_estimator.data import Trajectories, evaluation_sets
@@ -56,12 +57,13 @@ from neural_estimator.scenarios import Scenario
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
 # Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
-# changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns.
-RESULTS_REVISION = 2
+# changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns;
+# 3: every report carries the every-step RMSE beside the scored one (rmse_every_step).
+RESULTS_REVISION = 3
 # Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
 _SPEED_ONLY_OPTIONS = frozenset({"threads"})
 
-INIT_MODES = ("prior", "truth")
+INIT_MODES = ("prior", "truth", "observation")
 """How the classical filters start in the offline protocol (``init``):
 
 - ``"prior"`` (default; the live node's only choice, it never knows the truth): every filter
@@ -71,8 +73,28 @@ INIT_MODES = ("prior", "truth")
   covariance P0 and the PF's init_std spread unchanged), i.e. the PF's particles are
   N(x_0, init_std^2 I). This is the reading of the paper's "x_0 std = 1.0" under which a PF with a
   fixed unit spread can lock on in every scenario (see docs/fidelity.md).
-  Neural methods read observations only; the option does not concern them.
+- ``"observation"``: the start the live pipeline offers a practitioner (the filters' ``init``
+  option, :data:`neural_estimator.filters.base.FILTER_INITS`): at step 0 each stream's mean is
+  the state its first observation determines where h is invertible on the observed components
+  (Lorenz 96: x = y_0), the prior mean elsewhere; P0 and init_std unchanged. Needs no truth, so
+  the live node, replay and ``neural-estimator live`` use it too.
+
+Neural methods read observations only; the option does not concern them.
 """
+
+
+def effective_init(scenario: Scenario, method: str, init: str) -> str:
+    """The start ``method`` really gets on ``scenario`` under the protocol's ``init``: ``"observation"``
+    is the prior where one observation determines no state component (bearings, ballistic, quadrotor:
+    the same computation, so the same cached result), and neural methods always read ``"prior"``."""
+    check_init(init)
+    if method not in CLASSICAL_METHODS:
+        return "prior"
+    if init == "observation":
+        from neural_estimator.filters.base import observation_determines_state
+
+        return init if observation_determines_state(scenario) else "prior"
+    return init
 
 
 def check_init(init: str) -> str:
@@ -91,6 +113,8 @@ class MethodResult:
     seconds: float = 0.0  # wall time spent estimating (excludes data generation and metrics)
     steps: int = 0  # trajectory-steps estimated
     cached: int = 0  # runs read from the result cache (their seconds are those of the run that made them)
+    context: int = 0  # neural: the bounded context it was served with (0: continuous, the paper's way)
+    init: str = "prior"  # classical: how the filters started (INIT_MODES); neural methods ignore it
 
     @property
     def summary(self) -> dict[str, M.Stat]:
@@ -230,6 +254,26 @@ def run_stepwise(
 
 
 # ---- the result cache --------------------------------------------------------------------------------
+
+
+def served_context(
+    scenario: Scenario, method: str, checkpoint: str | Path | None, options: Mapping[str, Any] | None = None
+) -> int:
+    """The bounded context a neural method is served with: the ``context`` option when given, else
+    the one its card was validated with (``training.recipe.val_context``); 0 = continuous (the
+    paper's way), and 0 for classical filters. Read from the card, so known for cached runs too."""
+    if method not in NEURAL_METHODS:
+        return 0
+    if options and options.get("context") not in (None, ""):
+        return int(parse_value(options["context"], 0, "context"))
+    from neural_estimator.models.card import read_card
+    from neural_estimator.models.serving import default_checkpoint, validated_context
+
+    try:
+        _, card = read_card(checkpoint if checkpoint is not None else default_checkpoint(scenario.name, method))
+    except Exception:  # a missing card fails at loading, with its own message
+        return 0
+    return int(validated_context(card).get("context", 0))
 
 
 def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | None) -> str | None:
@@ -373,7 +417,9 @@ def evaluate(
         recompute: compute every run even if a cached result exists (and overwrite it).
         on_result: called with the results so far after every run (the CLI writes partial
             outputs with it).
-        init: how the classical filters start, ``"prior"`` or ``"truth"`` (:data:`INIT_MODES`).
+        init: how the classical filters start, ``"prior"``, ``"truth"`` or ``"observation"``
+            (:data:`INIT_MODES`; ``"observation"`` is the prior where h determines nothing, see
+            :func:`effective_init`, and each result's ``init`` says which start it got).
         warmup: leading timesteps not scored, for every method alike (default: the paper's 10,
             :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
 
@@ -393,13 +439,14 @@ def evaluate(
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
     plan = [(m, c) for m in methods for c in list((checkpoints or {}).get(m) or [None])]
-    results = {m: MethodResult(m) for m in methods}
+    results = {m: MethodResult(m, init=effective_init(scenario, m, init)) for m in methods}
     n_runs = len(plan) * len(data_sets)
     run_no = 0
     for m, ckpt in plan:
         opts = dict((options or {}).get(m, {}))
         est = None  # built on the first run that is not cached (loading a model takes seconds)
         ckpt_hash = checkpoint_digest(scenario, m, ckpt) if cache_root is not None else None
+        results[m].context = max(results[m].context, served_context(scenario, m, ckpt, opts))
         for j, data in enumerate(data_sets):
             run_no += 1
             r = results[m]
@@ -409,7 +456,7 @@ def evaluate(
                     cache_root,
                     scenario,
                     m,
-                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], init, warmup),
+                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup),
                 )
                 hit = None if recompute else load_run(path)
                 if hit is not None:
@@ -426,7 +473,8 @@ def evaluate(
                         on_result(results)
                     continue
             if est is None:
-                est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts)
+                start = {"init": "observation"} if results[m].init == "observation" and "init" not in opts else {}
+                est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts, **start)
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
             bar = _progress(
                 data.n * data.horizon,
@@ -435,7 +483,7 @@ def evaluate(
             )
             try:
                 x_hat, nees_nt, diverged, secs = run_method(
-                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=init
+                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=results[m].init
                 )
             finally:
                 bar.close()
@@ -484,9 +532,45 @@ def _progress(total: int, enabled: bool, desc: str):
     )
 
 
-def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown") -> str:
-    """The paper's per-scenario table (median +- IQR over runs) for these results."""
-    return M.format_table({m: r.summary for m, r in results.items()}, fmt=fmt)
+def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown", marked: bool = False) -> str:
+    """The paper's per-scenario table (median +- IQR over runs) for these results; ``marked``: rows
+    and cells that depart from the paper's protocol carry their marks (:func:`departure_marks`)."""
+    summaries = {m: r.summary for m, r in results.items()}
+    if not marked:
+        return M.format_table(summaries, fmt=fmt)
+    rows, cells, _ = departure_marks(results)
+    named = D.marked_names(summaries, rows)
+    return M.format_table(
+        {named[m]: s for m, s in summaries.items()}, fmt=fmt, marks={named[m]: c for m, c in cells.items()}
+    )
+
+
+def departure_marks(
+    results: Mapping[str, MethodResult],
+) -> tuple[dict[str, list[str]], dict[str, dict[str, str]], set[str]]:
+    """(row marks {method: [mark]}, cell marks {method: {metric: mark}}, every mark used): [c] for a
+    bounded context, [t] / [y] for filters started from the truth / the first observation, [o] on the
+    RMSE when the outlier rule decides it (:mod:`neural_estimator.departures`)."""
+    rows: dict[str, list[str]] = {}
+    cells: dict[str, dict[str, str]] = {}
+    used: set[str] = set()
+    for m, r in results.items():
+        marks = D.row_marks(m, context=r.context, init=r.init)
+        if marks:
+            rows[m] = marks
+            used.update(marks)
+        if r.reports:
+            s = r.summary
+            if D.rests_on_outliers(s["rmse"].median, s["full_rmse"].median):
+                cells[m] = {"rmse": D.OUTLIERS}
+                used.add(D.OUTLIERS)
+    return rows, cells, used
+
+
+def departure_legend(results: Mapping[str, MethodResult], extra: set[str] = frozenset()) -> list[str]:
+    """The legend of the marks :func:`results_table` prints for ``results`` (plus ``extra`` marks)."""
+    _, _, used = departure_marks(results)
+    return D.legend_text(used | set(extra), [r.context for r in results.values()])
 
 
 RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see docs/metrics-reference.md
@@ -509,6 +593,14 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
                     "summary": r.summary,
                     "runs": r.reports,
                     "cached_runs": r.cached,
+                    "context": r.context,
+                    "start": r.init,
+                    "marks": D.row_marks(m, context=r.context, init=r.init)
+                    + (
+                        [D.OUTLIERS]
+                        if r.reports and D.rests_on_outliers(r.summary["rmse"].median, r.summary["full_rmse"].median)
+                        else []
+                    ),
                     "seconds": r.seconds,
                     "trajectory_steps_per_second": r.throughput,
                 }

@@ -433,6 +433,10 @@ class MetricReport:
     coverage95: float | None = None  # share of kept (n, t) with NEES <= chi2_{dx}(0.95); degenerate P: not covered
     cov_degenerate: float | None = None  # share of kept (n, t) whose P is degenerate (see nees())
     warmup: int = 0  # leading timesteps not evaluated: rmse_t[k] is the RMSE of step warmup + k
+    # RMSE over every step (warm-up included, the outlier rule applied on every step's M_n): the
+    # figure beside ``rmse`` when steps are left out; equal to ``rmse`` when warmup = 0. None:
+    # a result stored before this field existed.
+    rmse_every_step: float | None = None
 
     @property
     def has_covariance(self) -> bool:
@@ -503,7 +507,9 @@ def compute_metrics(
     if isinstance(warmup, bool) or int(warmup) != warmup or not 0 <= int(warmup) < t:
         raise MetricsError(f"warmup must be an integer in [0, {t}) for {t} timesteps, got {warmup!r}")
     warmup = int(warmup)
+    every_step = None
     if warmup:
+        every_step = kept_rmse(errors(x_true, x_hat, angle_states), diverged, threshold)
         # A trajectory that diverged during the warm-up stays diverged; then score steps warmup.. only.
         early = diverged_mask(x_hat[:, :warmup])
         diverged = early if diverged is None else (np.asarray(diverged, dtype=bool) | early)
@@ -554,6 +560,8 @@ def compute_metrics(
         diverged_idx=np.flatnonzero(div),
         warmup=warmup,
     )
+    rmse_kept = math.inf if not kept.any() else float(np.sqrt(Md[kept].mean(axis=0).mean()))
+    common["rmse_every_step"] = rmse_kept if every_step is None else every_step
 
     if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
         has_p = P_hat is not None or nees_values is not None
@@ -574,7 +582,7 @@ def compute_metrics(
             **common,
         )
 
-    msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories
+    msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories (rmse = rmse_kept)
     abs_e = np.abs(e[kept])  # (|K|, T, dx)
     rmse_t = np.sqrt(sq[kept].mean(axis=(0, 2)))  # (T,)
     cov_metrics: dict[str, float | None] = dict.fromkeys(COVARIANCE_METRICS)
@@ -600,6 +608,23 @@ def compute_metrics(
         **cov_metrics,
         **common,
     )
+
+
+def kept_rmse(e: np.ndarray, diverged: np.ndarray | None = None, threshold: float = OUTLIER_Z) -> float:
+    """The main RMSE of errors ``e`` (N, T, dx) on their own steps: sqrt of the mean M_n over the
+    trajectories the outlier rule keeps (``diverged`` (N,) and non-finite M_n always flagged);
+    inf when none is kept. :func:`compute_metrics` uses it for ``rmse_every_step``."""
+    e = _check_errors(e)
+    with np.errstate(over="ignore", invalid="ignore"):
+        M = np.mean(e * e, axis=(1, 2))  # (N,)
+    div = ~np.isfinite(M)
+    if diverged is not None:
+        extra = np.asarray(diverged, dtype=bool)
+        if extra.shape != M.shape:
+            raise MetricsError(f"diverged must be ({M.shape[0]},), got {extra.shape}")
+        div = div | extra
+    kept = ~outlier_mask(np.where(div, np.inf, M), threshold)
+    return float(np.sqrt(M[kept].mean())) if kept.any() else math.inf
 
 
 def trajectory_mean_nrmse(Md: np.ndarray, spread: np.ndarray) -> float:
@@ -713,7 +738,12 @@ NOT_APPLICABLE = "—"  # table cell of a metric that does not apply (NEES of a 
 DEGENERATE = "degen."  # table cell of a NEES made infinite by degenerate covariances
 
 
-def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", iqr_everywhere: bool = False) -> str:
+def format_table(
+    rows: Mapping[str, Mapping[str, Any]],
+    fmt: str = "markdown",
+    iqr_everywhere: bool = False,
+    marks: Mapping[str, Mapping[str, str]] | None = None,
+) -> str:
     """The paper's extended-metrics table, one row per method, always the same columns.
 
     Columns :data:`TABLE_COLUMNS`: the appendix tables' RMSE, Full RMSE, NRMSE, MAE, MedAE, AUC,
@@ -731,6 +761,8 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", i
             a key that is absent or None does not apply.
         fmt: "markdown", "text" or "csv".
         iqr_everywhere: also print the IQR of the median-only columns.
+        marks: {method: {metric key: mark}}: a mark printed after that cell (markdown and text;
+            :mod:`neural_estimator.departures`), e.g. ``{"pf": {"rmse": "[o]"}}``.
     """
     if fmt not in ("markdown", "text", "csv"):
         raise MetricsError(f"fmt must be 'markdown', 'text' or 'csv', got {fmt!r}")
@@ -754,7 +786,9 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", i
     for method, s in stats.items():
         cells = [method]
         for key, _, dec, show_iqr in cols:
-            cells.append(_cell(s[key], dec, show_iqr or iqr_everywhere, nees=key.startswith("nees")))
+            cell = _cell(s[key], dec, show_iqr or iqr_everywhere, nees=key.startswith("nees"))
+            mark = ((marks or {}).get(method) or {}).get(key)
+            cells.append(f"{cell} {mark}" if mark else cell)
         body.append(cells)
     if fmt == "markdown":
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * len(cols)) + "|"]
@@ -768,11 +802,13 @@ def format_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown", i
     return "\n".join(aligned(r) for r in [header] + body) + "\n"
 
 
-def format_reports(reports: Mapping[str, MetricReport], fmt: str = "text") -> str:
+def format_reports(
+    reports: Mapping[str, MetricReport], fmt: str = "text", marks: Mapping[str, Mapping[str, str]] | None = None
+) -> str:
     """:func:`format_table` of one run per method: one run has no spread, so the IQR is NaN and the
-    cells show the value alone (no fake "±0.000")."""
+    cells show the value alone (no fake "±0.000"); ``marks`` as in :func:`format_table`."""
     rows = {m: {k: (None if v is None else (v, math.nan)) for k, v in r.scalars().items()} for m, r in reports.items()}
-    return format_table(rows, fmt=fmt)
+    return format_table(rows, fmt=fmt, marks=marks)
 
 
 def to_json(obj: Any) -> Any:

@@ -364,7 +364,17 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
         for m, entry in payload["methods"].items():
             summary_keys.add(tuple(entry["summary"]))
             report_keys.add(tuple(entry["runs"][0]))
-            assert set(entry) == {"summary", "runs", "cached_runs", "seconds", "trajectory_steps_per_second"}
+            assert set(entry) == {
+                "summary",
+                "runs",
+                "cached_runs",
+                "seconds",
+                "trajectory_steps_per_second",
+                "context",  # the bounded context served (0: continuous)
+                "start",  # how a filter started (neural: prior, unused)
+                "marks",  # the departures from the paper's protocol (neural_estimator/departures.py)
+            }
+            assert entry["runs"][0]["rmse_every_step"] >= 0
             assert all(set(stat) == {"median", "iqr", "n", "max", "applies"} for stat in entry["summary"].values())
         assert payload["methods"]["ekf"]["summary"]["nees_median"]["applies"] is True
         gru = payload["methods"]["gru"]

@@ -47,7 +47,7 @@ def test_runs_the_shipped_models_and_writes_markdown_and_json(board, tmp_path, m
         assert 0 < r["rmse"] < 3.62  # better than the prior mean (climatology) on Lorenz 96
         assert r["paper"] in (0.127, 0.052)
     text = out.read_text()
-    assert "against the target 0.08" in text and "steps 10.. scored" in text
+    assert "against the target 0.08" in text and "Scored steps: 10.." in text and "this project's choice" in text
     assert rows["lorenz96"]["mamba"]["rmse_every_step"] > 0  # the Lorenz 96 SSMs also over every step
     assert "over every step" in text and "rmse_every_step" not in rows["lorenz96"]["gru"]
 
@@ -78,3 +78,21 @@ def test_verdict_names_the_best_continuous_model_where_a_bounded_variant_leads(b
     rows["bearings"]["gru"]["context"] = 0  # the same figures, both run the paper's way: one count, no second line
     text = "\n".join(board.verdict(rows))
     assert "run continuously" not in text and "1 of 2 scenarios" in text
+
+
+def test_bounded_context_and_outlier_cells_are_marked_and_explained_once(board):
+    rows = {
+        "bearings": {
+            "gru": {**_row(272.4, 191.9), "context": 100, "full_rmse": 272.4},
+            "mamba2": {**_row(296.6, 177.8), "context": 0, "full_rmse": 296.6},
+        },
+        "nlink": {"mamba": {**_row(0.11, 0.093), "context": 0, "full_rmse": 0.43}},
+    }
+    md = board.table(rows, ["gru", "mamba", "mamba2"])
+    row = {line.split("|")[1].strip(): line for line in md.splitlines()[2:]}
+    assert "[c]" in row["gru"] and "[o]" not in row["gru"]
+    assert "[o] (full 0.43)" in row["mamba"] and "[c]" not in row["mamba"]
+    assert "[c]" not in row["mamba2"] and "[o]" not in row["mamba2"]
+    legend = board.legend(rows)
+    assert [line.split()[1] for line in legend] == ["[c]", "[o]"] and "at most 100 steps" in legend[0]
+    assert board.legend({"nlink": {"gru": {**_row(0.1, 0.4), "full_rmse": 0.1}}}) == []

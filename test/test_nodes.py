@@ -362,6 +362,8 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         ({"method": "mamba", "options": ["threads=1"]}, "mamba: unknown option(s) threads"),
         ({"method": "ukf", "options": ["noequals"]}, "options must be name=value"),
         ({"method": "ukf", "observation_qos": "fast"}, "observation_qos must be one of reliable, sensor_data"),
+        ({"method": "ukf", "init": "sideways"}, "ukf: init must be one of prior, observation"),
+        ({"method": "pf", "scenario": "bearings", "init": "observation"}, "pf: init=observation needs an observation"),
     ],
 )
 def test_estimator_refuses_to_start(params, text, nodes):

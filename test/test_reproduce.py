@@ -37,7 +37,7 @@ SECTIONS = (
     "## RMSE over time",
     "## Robustness to observation noise",
     "## Runtime",
-    "### CPU",
+    "#### CPU",
     "## Data efficiency",
 )
 FIGURES = (
@@ -106,6 +106,8 @@ def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
     assert " · 5.289±0.004 |" in text  # extended, with the paper's IQR
     assert " · 1.087 |" in text  # stability: Lorenz 96 PF drift
     assert " · 1,029.4 |" in text  # runtime_full_app: ballistic EKF on CPU
+    assert "### Step mode" in text and "### Sequence mode" in text  # the runtime both ways
+    assert "RMSE all steps" in text and "this project's choice" in text
     # filters start from the prior (the default): the PF's expected failures are marked, with the reason
     main_table = text.split("## Main accuracy")[1].split("## Relative score")[0]
     assert "Filters start: prior" in main_table
@@ -131,9 +133,9 @@ def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
     assert main(_args(out, cache)) == 2  # an --out holding a run needs --resume
     assert "--resume" in capsys.readouterr().err
     # "interrupt": lose two evaluation results and one timing, as if their jobs never finished
-    lost = sorted((cache / "results").glob("lorenz96-gru-*.npz"))[:2] + sorted(
-        (cache / "runtime").glob("ballistic-ekf-*.json")
-    )
+    lost = sorted((cache / "results").glob("lorenz96-gru-*.npz"))[:2] + [
+        p for p in sorted((cache / "runtime").glob("ballistic-ekf-cpu-*.json")) if "-sequence-" not in p.name
+    ]
     assert len(lost) == 3
     for f in lost:
         f.unlink()
@@ -207,7 +209,8 @@ def test_plan_has_one_job_per_method_set_noise_level_and_runtime():
     assert kinds.count(("data_ratio", "cpu")) == len(sc.data_ratios) * sc.sets  # each trained model on every set
     assert kinds.count(("accuracy", "cpu")) == 2 * sc.sets
     assert kinds.count(("noise", "cpu")) == 2 * (len(sc.noise_scales) - 1) * sc.noise_sets  # nominal reused
-    assert kinds.count(("runtime", "cpu")) == 2 and kinds.count(("runtime", "cuda")) == 1  # filters: CPU only
+    # both timing modes (step by step, whole sequences); filters: CPU only
+    assert kinds.count(("runtime", "cpu")) == 4 and kinds.count(("runtime", "cuda")) == 2
     assert len(set(jobs)) == len(jobs)
 
 

@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from neural_estimator import departures as D
 from neural_estimator import metrics as metrics_mod
 from neural_estimator.bags.dataset import left_out_note, load_bag_dataset
 from neural_estimator.expected_failures import mark_rows, notes
@@ -29,13 +30,30 @@ class BagReport:
     bag: dict[str, Any]  # received / missing / duplicates / rejected / left_out / complete
     warmup: int = 0  # leading steps of every trajectory not scored
     note: str = ""  # why the warm-up differs from the one asked for (a run too short for it)
+    starts: dict[str, str] = dataclasses.field(default_factory=dict)  # {method: "prior" | "observation"}; absent: prior
 
-    def table(self, fmt: str = "text") -> str:
+    def table(self, fmt: str = "text", marked: bool = False) -> str:
         """The paper's table, one row per method ("markdown", "text" or "csv").
 
-        One run has no spread: the IQR is given as NaN, so cells show the value alone.
+        One run has no spread: the IQR is given as NaN, so cells show the value alone. ``marked``:
+        rows and cells that depart from the paper's protocol carry their marks (:meth:`marks`).
         """
-        return metrics_mod.format_reports(self.reports, fmt=fmt)
+        if not marked or fmt == "csv":
+            return metrics_mod.format_reports(self.reports, fmt=fmt)
+        rows, cells, _ = self.marks()
+        named = D.marked_names(self.reports, rows)
+        return metrics_mod.format_reports(
+            {named[m]: r for m, r in self.reports.items()}, fmt=fmt, marks={named[m]: c for m, c in cells.items()}
+        )
+
+    def marks(self) -> tuple[dict[str, list[str]], dict[str, dict[str, str]], set[str]]:
+        """(row marks, cell marks, marks used): [y] / [t] on filters not started from the prior,
+        [o] on an RMSE the outlier rule decides (:mod:`neural_estimator.departures`)."""
+        rows = {m: D.row_marks(m, init=self.starts.get(m, "prior")) for m in self.reports}
+        rows = {m: v for m, v in rows.items() if v}
+        cells = {m: {"rmse": D.OUTLIERS} for m, r in self.reports.items() if D.rests_on_outliers(r.rmse, r.full_rmse)}
+        used = {x for v in rows.values() for x in v} | ({D.OUTLIERS} if cells else set())
+        return rows, cells, used
 
     def to_json(self) -> dict[str, Any]:
         return metrics_mod.to_json(
@@ -58,10 +76,12 @@ class BagReport:
         """A heading line and the text table."""
         note = "; ".join(n for n in (left_out_note(self.bag), self.note) if n)
         extra = f"; {note}" if note else ""
-        lines = notes(self.scenario, sorted(self.reports))
+        lines = notes(self.scenario, sorted(self.reports), self.starts)
+        _, _, used = self.marks()
+        lines += D.legend_text(used) + [D.scored_steps(self.warmup, "--every-step (evaluator: warmup:=0)")]
         return (
             f"{self.heading()} from {self.path.name}{extra}\n"
-            + mark_rows(self.table("text"), self.scenario)
+            + mark_rows(self.table("text", marked=True), self.scenario, self.starts)
             + "".join(line + "\n" for line in lines)
         )
 
@@ -73,6 +93,7 @@ def evaluate_bag(
     description: dict[str, Any] | None = None,
     warmup: int = metrics_mod.EVALUATION_WARMUP,
     short_runs: str = "error",
+    starts: dict[str, str] | None = None,
 ) -> BagReport:
     """Metrics of each ``estimates/<method>`` stream against ``ground_truth`` (NEES where the
     method published covariances). Trajectories missing a message in any stream are left out for
@@ -82,6 +103,9 @@ def evaluate_bag(
     with no more steps than that raises :class:`~neural_estimator.metrics.MetricsError` when
     ``short_runs`` is "error"; with "score_all" (the evaluator node, which must not lose a short
     run's table) every step is scored and the report says so in its heading.
+
+    ``starts``: {method: "prior" | "observation" | "truth"}, how the recorded filters started (the
+    launcher knows it; a bag does not record it); absent methods started from the prior.
     """
     if short_runs not in ("error", "score_all"):
         raise ValueError(f"short_runs must be 'error' or 'score_all', got {short_runs!r}")
@@ -103,6 +127,7 @@ def evaluate_bag(
         bag=truth.meta["bag"],
         warmup=warmup,
         note=note,
+        starts=dict(starts or {}),
     )
 
 
@@ -118,7 +143,12 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
         "png": base.with_name(base.name + ".rmse.png"),
     }
     heading = f"# {report.heading()} ({report.path.name})\n\n"
-    paths["markdown"].write_text(heading + report.table("markdown"))
+    _, _, used = report.marks()
+    legend = "".join(f"- {line}\n" for line in D.legend(used))
+    steps = D.scored_steps(report.warmup, "--every-step (evaluator: warmup:=0)")
+    paths["markdown"].write_text(
+        heading + report.table("markdown", marked=True) + (f"\n{legend}" if legend else "") + f"\n{steps}\n"
+    )
     paths["json"].write_text(json.dumps(report.to_json(), indent=1))
     if report.reports:
         plot_rmse_over_time(

@@ -38,6 +38,19 @@ from neural_estimator.filters.scheduler import BlockScheduler
 from neural_estimator.options import OptionError, did_you_mean, is_optional, parse_value
 from neural_estimator.scenarios import Scenario
 
+FILTER_INITS = ("prior", "observation")
+"""How a filter starts its streams (the ``init`` argument of :class:`ClassicalFilter`):
+
+- ``"prior"`` (default; the paper's start): from the scenario prior, mean m0 and covariance P0
+  (the PF's particles N(m0, init_std^2 I), the EnKF's members N(m0, P0)).
+- ``"observation"``: at step 0 the mean is replaced, stream by stream, by the state the first
+  observation determines where h is invertible on the observed components
+  (:meth:`~neural_estimator.scenarios.base.Scenario.state_from_observation`; Lorenz 96, H = I:
+  x = y_0; N-link: the angles from the mass positions), the prior mean elsewhere; the covariance
+  P0 and the PF's ``init_std`` are unchanged, and y_0 then updates it as usual. What a
+  practitioner does when the prior is climatological: the particles start where the truth is.
+"""
+
 # Random draws, keyed by (seed, step, phase, block): see ClassicalFilter.block_rng.
 PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, PHASE_RESAMPLE, PHASE_REJUVENATE, PHASE_REGULARIZE = range(6)
 
@@ -102,6 +115,7 @@ class ClassicalFilter(Estimator):
         scenario: the system (f, h, Jacobians, Q, R = ``obs_cov()``, prior, angle handling).
         seed: seed of the filter's random draws (EnKF, PF); equal inputs give equal outputs.
         hyperparams: a ``HyperParams`` instance; ``options`` override its fields by name.
+        init: how the streams start, ``"prior"`` or ``"observation"`` (:data:`FILTER_INITS`).
         threads: worker threads over blocks of streams (None: :func:`default_threads`). Not a
             hyperparameter: results do not depend on it (see :meth:`block_rng`).
 
@@ -126,9 +140,11 @@ class ClassicalFilter(Estimator):
         seed: int = 0,
         hyperparams: Any = None,
         threads: int | str | None = None,
+        init: str = "prior",
         **options: Any,
     ) -> None:
         super().__init__(scenario)
+        self.init = check_filter_init(self.method, scenario, init)
         self.hp = build_hyperparams(self.HyperParams, self.method, hyperparams, options)
         self.seed = int(seed)
         self.threads = default_threads() if threads is None else _check_threads(self.method, threads)
@@ -149,6 +165,16 @@ class ClassicalFilter(Estimator):
             self.Q = self.Q * float(q_inflation)
         self._sqrt_Q, self._sd_Q = sqrt_factor(self.Q)
         self._k = 0
+
+    def _start_from_observation(self, y: np.ndarray, finite: np.ndarray) -> None:
+        """``init="observation"``, step 0: restart the streams whose y_0 is finite at the state it
+        determines (the other components, and the other streams, keep their starting mean)."""
+        x, observed = self.scenario.state_from_observation(y)  # (B, n), (n,)
+        use = finite[:, None] & observed[None, :] & np.isfinite(x)
+        if not use.any():
+            return
+        self._init_mean = self.ops.normalize_state(np.where(use, x, self._init_mean))
+        self._init_state(self.batch)
 
     # ---- the Estimator contract --------------------------------------------------------------
     def reset(self, batch: int = 1, initial_mean: np.ndarray | None = None) -> None:
@@ -252,6 +278,8 @@ class ClassicalFilter(Estimator):
             skip = ~finite
             y = np.where(finite[:, None], y, 0.0)  # placeholder; these rows' updates are discarded
         self.skipped = ~finite
+        if self._k == 0 and self.init == "observation":
+            self._start_from_observation(y, finite)
         ok = self._predict_update(u, y, skip)
         self._k += 1
         mean, cov = self._estimate()
@@ -339,6 +367,26 @@ class ClassicalFilter(Estimator):
     def _broadcast_u(self, u: np.ndarray, N: int) -> np.ndarray:
         """u (B, du) as a (B, N, du) view for members, particles or sigma points."""
         return np.broadcast_to(u[:, None, :], (u.shape[0], N, u.shape[1]))
+
+
+def observation_determines_state(scenario: Scenario) -> bool:
+    """True when one observation determines some state components (``init="observation"`` applies)."""
+    m0 = np.asarray(scenario.prior()[0], dtype=np.float64)
+    with np.errstate(all="ignore"):
+        return scenario.state_from_observation(scenario.h(m0[None])) is not None
+
+
+def check_filter_init(method: str, scenario: Scenario, init: str) -> str:
+    """``init`` if it is one of :data:`FILTER_INITS` and usable on ``scenario``, else a one-line
+    EstimatorError (``"observation"`` needs an h invertible on some observed component)."""
+    if init not in FILTER_INITS:
+        raise EstimatorError(f"{method}: init must be one of {', '.join(FILTER_INITS)}, got {init!r}")
+    if init == "observation" and not observation_determines_state(scenario):
+        raise EstimatorError(
+            f"{method}: init=observation needs an observation that determines some state components; "
+            f"{scenario.name}'s h is invertible on none (use init=prior)"
+        )
+    return init
 
 
 def _check_threads(where: str, threads: int | str) -> int:

@@ -77,6 +77,11 @@ class EstimatorParams:
     checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
     device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
     seed: int = param(0, "seed of the random draws of the EnKF and PF")
+    init: str = param(
+        "prior",
+        "how a classical filter starts each trajectory: prior (the paper's start) or observation (the state the "
+        "first observation determines where h is invertible, e.g. Lorenz 96 x0 = y0; prior mean elsewhere)",
+    )
     threads: int = param(
         1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default"
     )
@@ -206,6 +211,8 @@ class EstimatorNode(ManagedNode):
             import torch
 
             torch.set_num_threads(p.threads)
+        if p.init != "prior" and self.method not in NEURAL_METHODS:
+            options.setdefault("init", p.init)
         try:
             est = make_estimator(
                 self.method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options

@@ -89,10 +89,16 @@ class EvaluatorParams:
     spec_length: int = param(200, "with spec: steps per scored trajectory")
     warmup: int = param(
         EVALUATION_WARMUP,
-        "leading steps of every trajectory not scored (the paper's warm-up; 0 = every step; a run no longer "
-        "than that is scored on every step and the table says so)",
+        "leading steps of every trajectory not scored (this project's choice: the paper states its 10-step warm-up "
+        "for the training loss only; 0 = every step; a run no longer than that is scored on every step and the "
+        "table says so)",
     )
     exit_when_done: bool = param(True, "shut down when the run is evaluated")
+    starts: tuple[str, ...] = param(
+        (),
+        "how the recorded filters started, as method=mode (prior, observation): the table marks the departures "
+        "from the paper's prior start and marks expected failures by the start; absent = prior",
+    )
 
 
 class EvaluatorNode(ManagedNode):
@@ -302,6 +308,7 @@ class EvaluatorNode(ManagedNode):
                 description=self.description,
                 warmup=self.p.warmup,
                 short_runs="score_all",
+                starts=dict(item.split("=", 1) for item in self.p.starts if "=" in item),
             )
             paths = write_report(report)
         except (BagError, MetricsError) as exc:

@@ -40,6 +40,7 @@ EXECUTABLES = {
     PLAYER: "player",
     ROBOT_ESTIMATOR: "robot_estimator",
 }
+CLASSICAL = ("ekf", "ukf", "enkf", "pf")  # the methods a start mode (--init) concerns
 MAX_DEPTH = 100_000  # queue depth cap (about 30 MB per transient_local stream)
 
 
@@ -81,6 +82,7 @@ class PipelineConfig:
     noise_scale: float = -1.0  # negative = the scenario's
     checkpoints: tuple[str, ...] = ()  # method=path for neural methods
     options: tuple[str, ...] = ()  # method.name=value filter hyperparameters
+    init: str = "prior"  # how the classical filters start: prior (the paper's) or observation
     device: str = "cpu"
     publish_covariance: bool = True
     output: str = ""  # bag path; empty = runs/<scenario>-<date>-<time>.mcap
@@ -119,6 +121,7 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
                 "completion_timeout": 60.0,
                 "topics": list(cfg.record_topics),
                 "queue_depth": depth,
+                "starts": [f"{m}={cfg.init}" for m in cfg.methods if m in CLASSICAL and cfg.init != "prior"],
             },
             required=True,
         )
@@ -136,6 +139,7 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
                     "checkpoint": ckpt.get(m, ""),
                     "device": cfg.device,
                     "seed": cfg.seed,
+                    **({"init": cfg.init} if m in CLASSICAL else {}),
                     "options": opts.get(m, []),
                     "publish_covariance": cfg.publish_covariance,
                     "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
@@ -209,6 +213,12 @@ def _bool(args: Mapping[str, str], name: str) -> bool:
     raise GraphError(f"launch argument {name} must be true or false, got {args[name]!r}")
 
 
+def _init(value: str) -> str:
+    if value not in ("prior", "observation"):
+        raise GraphError(f"launch argument init must be prior or observation, got {value!r}")
+    return value
+
+
 def _live(args: Mapping[str, str]) -> list[NodeSpec]:
     cfg = PipelineConfig(
         scenario=args["scenario"],
@@ -217,6 +227,7 @@ def _live(args: Mapping[str, str]) -> list[NodeSpec]:
         horizon=_number(args, "horizon", int),
         rate_hz=_number(args, "rate_hz", float),
         seed=_number(args, "seed", int),
+        init=_init(args["init"]),
     )
     return live_nodes(cfg, args["output"] or f"runs/{cfg.scenario}-live.mcap")
 
@@ -341,6 +352,7 @@ GRAPHS: dict[str, Graph] = {
             "trajectories": ("2", "trajectories simulated"),
             "horizon": ("0", "steps per trajectory (0 = the scenario's)"),
             "seed": ("0", "simulation and filter seed"),
+            "init": ("prior", "how the classical filters start: prior (the paper's) or observation"),
             "output": ("", "bag the evaluator writes (default runs/<scenario>-live.mcap)"),
         },
         _live,

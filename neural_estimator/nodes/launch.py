@@ -228,6 +228,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-scale", type=float, default=-1.0)
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=DIR")
     p.add_argument("--option", action="append", default=[], metavar="METHOD.NAME=VALUE")
+    p.add_argument(
+        "--init",
+        choices=("prior", "observation"),
+        default="prior",
+        help="how the classical filters start: prior (default, the paper's start) or observation (the state the "
+        "first observation determines where h is invertible; Lorenz 96: x0 = y0)",
+    )
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-covariance", action="store_true", help="do not publish covariances")
     p.add_argument("--output", default="", help="bag path (default runs/<scenario>-<date>-<time>.mcap)")
@@ -280,6 +287,7 @@ def main(argv: list[str] | None = None) -> int:
         noise_scale=a.noise_scale,
         checkpoints=tuple(a.checkpoint),
         options=tuple(a.option),
+        init=a.init,
         device=a.device,
         publish_covariance=not a.no_covariance,
         output=a.output,

@@ -6,9 +6,12 @@ Three kinds:
   its result is the run's :class:`~neural_estimator.metrics.MetricReport`, stored by
   :mod:`neural_estimator.evaluation`'s result cache (the same cache ``neural-estimator evaluate``
   uses, so either command reuses the other's runs);
-* ``runtime``: batch-1 iterations per second of one method on one scenario through its real
-  per-step path (``reset(1)`` then ``step`` once per observation, as the ROS 2 estimator node
-  does), timed after a few untimed warm-up steps; stored as JSON under ``runtime/``;
+* ``runtime``: batch-1 iterations (time steps) per second of one method on one scenario, in one of
+  two modes (:data:`RUNTIME_MODES`): ``step``, its real per-step path (``reset(1)`` then ``step``
+  once per observation, as the ROS 2 estimator node does), timed after a few untimed warm-up
+  steps; or ``sequence``, whole trajectories per call (``run`` on one (1, T) sequence: the
+  networks' parallel form, the filters' loop over time), the paper's apparent method; stored as
+  JSON under ``runtime/``;
 * ``train``: one instance of one architecture on one scenario at one data-to-parameter ratio
   (:func:`neural_estimator.models.training.train`), written under ``models/`` in a directory
   named by the recipe's hash; an ``evaluate`` job with ``train_job`` set evaluates that model.
@@ -29,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 JOB_KINDS = ("evaluate", "runtime", "train")
+RUNTIME_MODES = ("step", "sequence")  # runtime: one step per call (live) or one whole trajectory per call (run)
+SEQUENCE_REPEATS = 3  # sequence mode: timed calls of run(); the median is reported
 RUNTIME_REVISION = 1  # part of runtime keys: bump when the timing procedure changes
 DONE_FILE = "reproduce-done.json"  # written in a train job's directory once its training finished
 
@@ -51,14 +56,15 @@ class Job:
     instance: int = 0  # train: the instance (its init_seed)
     train: tuple[tuple[str, Any], ...] = ()  # train: TrainConfig fields changed from the paper's recipe
     train_job: "Job | None" = None  # evaluate: evaluate the model this train job writes (None: the shipped one)
-    init: str = "prior"  # evaluate: how the classical filters start, "prior" or "truth" (evaluation.INIT_MODES)
+    init: str = "prior"  # evaluate: how the classical filters start, "prior", "truth" or "observation" (INIT_MODES)
+    mode: str = "step"  # runtime: "step" (one step per call, as live) or "sequence" (run on a whole trajectory)
 
     @property
     def label(self) -> str:
         extra = f" noise x{self.noise_scale:g}" if self.noise_scale != 1.0 else ""
         what = {
             "evaluate": f"set {self.set_index}",
-            "runtime": f"{self.device} batch 1",
+            "runtime": f"{self.device} batch 1" + (f" {self.mode}" if self.mode != "step" else ""),
             "train": f"ratio {self.data_ratio:g}:1 instance {self.instance}",
         }[self.kind]
         if self.train_job is not None:
@@ -69,6 +75,8 @@ class Job:
         out = asdict(self)
         if out["init"] == "prior":  # the default is left out: keys and states from before the option stay valid
             del out["init"]
+        if out["mode"] == "step":  # likewise
+            del out["mode"]
         return out
 
 
@@ -149,7 +157,8 @@ def runtime_key(job: Job) -> str:
 
 
 def runtime_path(cache_dir: Path, job: Job) -> Path:
-    return Path(cache_dir) / "runtime" / f"{job.scenario}-{job.method}-{job.device}-{runtime_key(job)}.json"
+    mode = "" if job.mode == "step" else f"-{job.mode}"
+    return Path(cache_dir) / "runtime" / f"{job.scenario}-{job.method}-{job.device}{mode}-{runtime_key(job)}.json"
 
 
 def run_job(
@@ -198,7 +207,7 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
         if not (ckpt / DONE_FILE).is_file():
             raise RuntimeError(f"{ckpt}: the model of {job.train_job.label} is not trained")
         checkpoints = {job.method: [str(ckpt)]}
-    res = evaluate(
+    result = evaluate(
         scenario,
         [job.method],
         seed=job.seed,
@@ -209,8 +218,11 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
         progress=False,
         checkpoints=checkpoints,
         init=job.init,
-    )[job.method]
-    return M.to_json(res.reports[0]), res.cached == 1
+    )
+    res = result[job.method]
+    # the context it was served with (read from its card, so known for cached runs) and the start the filters
+    # really got (the prior where --init observation cannot apply): the report marks both
+    return {**M.to_json(res.reports[0]), "context": res.context, "start": res.init}, res.cached == 1
 
 
 def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
@@ -228,25 +240,45 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
     data = dataset(scenario, "eval", 0, 1, job.warmup + job.steps, job.seed, cache_dir)
     opts = {"threads": threads} if job.method in CLASSICAL_METHODS else {}
     est = make_estimator(job.method, scenario, device=job.device, seed=job.seed, **opts)
-    Uprev = previous_controls(data.u)
-    est.reset(1)
-    for k in range(job.warmup):
-        est.step(data.y[:, k], Uprev[:, k])
-    t0 = time.perf_counter()
-    for k in range(job.warmup, job.warmup + job.steps):
-        est.step(data.y[:, k], Uprev[:, k])
-    seconds = time.perf_counter() - t0
+    if job.mode == "sequence":
+        seconds = _time_sequence(est, data, job)
+    elif job.mode == "step":
+        Uprev = previous_controls(data.u)
+        est.reset(1)
+        for k in range(job.warmup):
+            est.step(data.y[:, k], Uprev[:, k])
+        t0 = time.perf_counter()
+        for k in range(job.warmup, job.warmup + job.steps):
+            est.step(data.y[:, k], Uprev[:, k])
+        seconds = time.perf_counter() - t0
+    else:
+        raise ValueError(f"unknown runtime mode {job.mode!r}; expected one of {RUNTIME_MODES}")
     result = {
         "it_per_s": job.steps / seconds if seconds > 0 else float("inf"),
         "steps": job.steps,
         "seconds": seconds,
         "threads": threads,
+        "mode": job.mode,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(result))
     tmp.replace(path)
     return result, False
+
+
+def _time_sequence(est, data, job: Job) -> float:
+    """Seconds of one ``run`` over the (1, steps) sequence after the warm-up steps (the median of
+    :data:`SEQUENCE_REPEATS` calls, after one untimed call on the warm-up steps)."""
+    Y, U = data.y[:, job.warmup :], data.u[:, job.warmup :]
+    if job.warmup:
+        est.run(data.y[:, : job.warmup], data.u[:, : job.warmup])  # first-call costs (allocation, compilation)
+    times = []
+    for _ in range(SEQUENCE_REPEATS):
+        t0 = time.perf_counter()
+        est.run(Y, U)
+        times.append(time.perf_counter() - t0)
+    return sorted(times)[len(times) // 2]
 
 
 def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from neural_estimator.reproduce.jobs import Job
+from neural_estimator.reproduce.jobs import RUNTIME_MODES, Job
 from neural_estimator.reproduce.scales import Scale
 
 
@@ -39,14 +39,14 @@ def plan_jobs(
 ) -> list[Job]:
     """Accuracy (every method on every evaluation set), the noise sweep (same, per noise scale;
     models trained at the nominal noise), data efficiency (train every neural architecture at every
-    ratio, then evaluate each trained instance on every set), runtime (batch-1 step throughput on CPU, and on GPU for
-    the neural methods when ``gpu``).
+    ratio, then evaluate each trained instance on every set), runtime (batch-1 throughput on CPU, and on GPU for
+    the neural methods when ``gpu``, in both modes: step by step and whole sequences per call).
 
     With ``scale.main_from_training`` (the paper scale) the accuracy and noise experiments evaluate
     each neural architecture's ``train_instances`` models trained at 20:1 (the same trainings as the
     data-efficiency experiment's 20:1 point) instead of the shipped model; each training is one job.
 
-    ``init`` (``"prior"`` or ``"truth"``): how the classical filters of the accuracy and noise
+    ``init`` (``"prior"``, ``"truth"`` or ``"observation"``): how the classical filters of the accuracy and noise
     evaluations start (:func:`neural_estimator.evaluation.run_method`); neural methods ignore it.
     """
     from neural_estimator.estimators import NEURAL_METHODS
@@ -134,16 +134,18 @@ def plan_jobs(
             for m in methods:
                 if device == "cuda" and m not in NEURAL_METHODS:
                     continue  # our classical filters are numpy: CPU only
-                jobs.append(
-                    Job(
-                        "runtime",
-                        s,
-                        m,
-                        seed=scale.seed,
-                        steps=scale.runtime_steps,
-                        warmup=scale.runtime_warmup,
-                        device=device,
-                        experiment="runtime",
+                for mode in RUNTIME_MODES:
+                    jobs.append(
+                        Job(
+                            "runtime",
+                            s,
+                            m,
+                            seed=scale.seed,
+                            steps=scale.runtime_steps,
+                            warmup=scale.runtime_warmup,
+                            device=device,
+                            experiment="runtime",
+                            mode=mode,
+                        )
                     )
-                )
     return jobs

@@ -14,8 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from neural_estimator import departures as D
 from neural_estimator import metrics as M
-from neural_estimator.expected_failures import EXPECTED_FAILURES, MARK, notes
+from neural_estimator.expected_failures import MARK, expected_to_fail, notes
 from neural_estimator.paper import paper_value
 
 PAPER_NAMES = {
@@ -83,27 +84,100 @@ def _in_paper(s: str, m: str) -> bool:
     return paper_value("accuracy_main", s, m) is not None
 
 
-def accuracy_table(summ, scenarios, methods, mark_expected: bool = False) -> list[str]:
-    """The main table; with ``mark_expected`` the RMSE cell of an expected failure (filters started
-    from the prior, :mod:`neural_estimator.expected_failures`) ends with its mark."""
-    cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("RMSE", "NRMSE")]
+def cell_start(s: str, m: str, init: str = "prior", starts=None) -> str:
+    """The start the filter ``m`` really got on ``s``: ``starts[s][m]`` when recorded (``--init observation``
+    is the prior where h determines nothing), else the run's ``init``."""
+    return (starts or {}).get(s, {}).get(m, init)
+
+
+def rmse_marks(summ, s: str, m: str, contexts=None, init: str = "prior", starts=None) -> list[str]:
+    """The marks of the RMSE cell of ``m`` on ``s``: [c] (bounded context, ``contexts[s][m]`` > 0), [t] / [y]
+    (a filter started from the truth / the first observation) and [o] (the outlier rule decides it:
+    :func:`neural_estimator.departures.rests_on_outliers`)."""
+    st = summ.get(s, {}).get(m)
+    marks = [D.BOUNDED] if (contexts or {}).get(s, {}).get(m) else []
+    start = D.start_mark(m, cell_start(s, m, init, starts))
+    if start:
+        marks.append(start)
+    if st is not None and D.rests_on_outliers(st["rmse"].median, st["full_rmse"].median):
+        marks.append(D.OUTLIERS)
+    return marks
+
+
+def accuracy_table(
+    summ,
+    scenarios,
+    methods,
+    mark_expected: bool = False,
+    *,
+    init: str = "prior",
+    contexts=None,
+    every_step=None,
+    starts=None,
+) -> list[str]:
+    """The main table, every departure from the paper's protocol marked where the number is printed.
+
+    Columns per scenario: RMSE (the scored steps), RMSE over every step (``every_step[s][m]``: the
+    median over runs; N/A where not measured), NRMSE. Marks (:mod:`neural_estimator.departures`):
+    [c] on a bounded-context cell (``contexts[s][m]`` > 0), [o] with the Full RMSE beside an RMSE
+    the outlier rule decides, [t] / [y] on a filter started from the truth / the first observation
+    (``starts[s][m]``, else ``init``); with ``mark_expected`` the RMSE of an expected failure under that start
+    (:mod:`neural_estimator.expected_failures`) ends with its mark, just before the paper's value.
+    """
+    cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("RMSE", "RMSE all steps", "NRMSE")]
     lines = _header(cols)
     for m in methods:
         cells = [PAPER_NAMES.get(m, m)]
         for s in scenarios:
             st = summ.get(s, {}).get(m)
-            for k in ("rmse", "nrmse"):
-                ours = stat_cell(st and st[k], 3, False)
-                if k == "rmse" and mark_expected and (s, m) in EXPECTED_FAILURES:
-                    ours += f" {MARK}"
-                cells.append(side(ours, paper_value("accuracy_main", s, m, k), 3, _in_paper(s, m)))
+            ours = stat_cell(st and st["rmse"], 3, False)
+            marks = rmse_marks(summ, s, m, contexts, init, starts)
+            if marks:
+                ours += " " + " ".join(marks)
+            if D.OUTLIERS in marks:
+                ours += f" (full {num(st['full_rmse'].median)})"
+            if mark_expected and expected_to_fail(s, m, cell_start(s, m, init, starts)):
+                ours += f" {MARK}"
+            cells.append(side(ours, paper_value("accuracy_main", s, m, "rmse"), 3, _in_paper(s, m)))
+            every = (every_step or {}).get(s, {}).get(m)
+            cells.append(side(num(every), None, 3, False))
+            cells.append(
+                side(
+                    stat_cell(st and st["nrmse"], 3, False),
+                    paper_value("accuracy_main", s, m, "nrmse"),
+                    3,
+                    _in_paper(s, m),
+                )
+            )
         lines.append(_row(cells))
     return lines
 
 
-def expected_failure_notes(scenarios, methods) -> list[str]:
-    """One bullet per expected failure or caveat in the table, with its measured reason."""
-    lines = [f"- {s}: {note}" for s in scenarios for note in notes(s, methods)]
+def used_marks(
+    summ, scenarios, methods, *, init: str = "prior", contexts=None, mark_expected: bool = False, starts=None
+) -> set[str]:
+    """Every mark :func:`accuracy_table` prints for these arguments (for the legend)."""
+    used = {mk for s in scenarios for m in methods for mk in rmse_marks(summ, s, m, contexts, init, starts)}
+    if mark_expected and any(
+        expected_to_fail(s, m, cell_start(s, m, init, starts)) for s in scenarios for m in methods
+    ):
+        used.add(MARK)
+    return used
+
+
+def marks_legend(used: set[str], contexts=None) -> list[str]:
+    """The legend of the marks in ``used``, one bullet each."""
+    ctx = [c for by_m in (contexts or {}).values() for c in by_m.values()]
+    return [f"- {line}" for line in D.legend(used, ctx)]
+
+
+def expected_failure_notes(scenarios, methods, init: str = "prior", starts=None) -> list[str]:
+    """One bullet per expected failure (under the start each cell got) or caveat in the table, with its reason."""
+    lines = [
+        f"- {s}: {note}"
+        for s in scenarios
+        for note in notes(s, methods, {m: cell_start(s, m, init, starts) for m in methods})
+    ]
     return lines + [""] if lines else []
 
 
@@ -139,19 +213,20 @@ def relative_table(summ, scenarios, methods) -> list[str]:
     return lines
 
 
-def extended_table(summ, s, methods) -> list[str]:
+def extended_table(summ, s, methods, *, init: str = "prior", contexts=None, starts=None) -> list[str]:
+    """One scenario's extended table; the RMSE cell carries the main table's [c] / [t] / [y] / [o] marks
+    (the Full RMSE is the next column)."""
     lines = _header(["Method"] + [h for _, h, _, _ in EXTENDED])
     for m in methods:
         st = summ.get(s, {}).get(m)
-        lines.append(
-            _row(
-                [PAPER_NAMES.get(m, m)]
-                + [
-                    side(stat_cell(st and st[k], d, iqr), paper_value("extended", s, m, k), d, _in_paper(s, m))
-                    for k, _, d, iqr in EXTENDED
-                ]
-            )
-        )
+        marks = " ".join(rmse_marks(summ, s, m, contexts, init, starts))
+        cells = []
+        for k, _, d, iqr in EXTENDED:
+            ours = stat_cell(st and st[k], d, iqr)
+            if k == "rmse" and marks:
+                ours += f" {marks}"
+            cells.append(side(ours, paper_value("extended", s, m, k), d, _in_paper(s, m)))
+        lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
     return lines
 
 
@@ -206,6 +281,49 @@ def covariance_table(summ, scenarios, methods) -> list[str]:
         if any_applies:
             lines.append(_row(cells))
     return lines
+
+
+def _family_averages(
+    rt_device: Mapping[str, Mapping[str, float]], scenarios, methods
+) -> tuple[list[float], list[float]]:
+    """(filters, networks): each method's mean it/s over the scenarios it ran on."""
+    from neural_estimator.estimator import CLASSICAL_METHODS
+
+    avg: dict[str, float] = {}
+    for m in methods:
+        vals = [rt_device.get(s, {}).get(m) for s in scenarios]
+        vals = [v for v in vals if v is not None and math.isfinite(v)]
+        if vals:
+            avg[m] = sum(vals) / len(vals)
+    filters = [v for m, v in avg.items() if m in CLASSICAL_METHODS]
+    networks = [v for m, v in avg.items() if m not in CLASSICAL_METHODS]
+    return filters, networks
+
+
+def runtime_ordering(
+    rt_device: Mapping[str, Mapping[str, float]], scenarios, methods, paper_device: str = "cpu"
+) -> str:
+    """One sentence: which family is faster in these timings (median over methods of each method's mean
+    it/s over the scenarios), and whether that is the paper's ordering on ``paper_device``."""
+    filters, networks = _family_averages(rt_device, scenarios, methods)
+    if not filters or not networks:
+        return "Only one family was timed: no ordering between filters and networks."
+    f, n = float(np.median(filters)), float(np.median(networks))
+    paper = paper_value("runtime_full", paper_device) or {}
+    pf, pn = _family_averages(paper, list(paper), list(PAPER_NAMES))
+    ours = "the networks ahead of the filters" if n > f else "the filters ahead of the networks"
+    verdict = ""
+    if pf and pn:
+        paper_f, paper_n = float(np.median(pf)), float(np.median(pn))
+        same = (paper_n > paper_f) == (n > f)
+        verdict = (
+            f"; {'the' if same else 'against the'} paper's ordering "
+            f"(paper {paper_device.upper()}: filters {paper_f:,.0f}, networks {paper_n:,.0f})"
+        )
+    return (
+        f"This mode supports {ours}: filters {f:,.0f} it/s, networks {n:,.0f} it/s "
+        f"(median over methods of each one's mean over scenarios){verdict}."
+    )
 
 
 def runtime_table(rt: Mapping[str, Mapping[str, Mapping[str, float]]], scenarios, methods, device: str) -> list[str]:

@@ -216,6 +216,33 @@ class Scenario(ABC):
         """
         return None
 
+    def state_from_observation(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The state components one observation determines, for starting a filter at it.
+
+        Returns ``(x, observed)``: ``x`` (..., dx) holds h's inverse on the components it
+        determines and the prior mean m0 elsewhere; ``observed`` (dx,) bool says which are which.
+        None where h is invertible on no component (a bearing alone fixes no coordinate).
+
+        Default: an exactly linear h = H x (:meth:`obs_matrix`): the components whose columns of
+        H are nonzero, solved by least squares, x_o = H_o^+ (y - H_u m0_u), when those columns have
+        full rank (Lorenz 96: H = I, x = y). Scenarios with a nonlinear h that is invertible on
+        some components override it.
+        """
+        H = self.obs_matrix()
+        if H is None:
+            return None
+        H = np.asarray(H, dtype=np.float64)
+        observed = np.any(H != 0.0, axis=0)  # (dx,)
+        Ho = H[:, observed]
+        if not observed.any() or np.linalg.matrix_rank(Ho) < Ho.shape[1]:
+            return None
+        m0 = np.asarray(self.prior()[0], dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        rhs = y - m0[~observed] @ H[:, ~observed].T  # (..., dy)
+        x = np.broadcast_to(m0, y.shape[:-1] + (self.dx,)).copy()
+        x[..., observed] = rhs @ np.linalg.pinv(Ho).T
+        return x, observed
+
     @abstractmethod
     def process_cov(self) -> np.ndarray:
         """Q, the (dx, dx) covariance of w_k."""

@@ -312,6 +312,19 @@ class NLinkPendulum(Scenario):
         pz = -np.cumsum(lengths * np.cos(th), axis=-1)
         return np.stack([px, pz], axis=-1).reshape(x.shape[:-1] + (2 * self.n_links,))
 
+    def state_from_observation(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The angles from the mass positions, th_j = atan2(dx_j, -dz_j) with (dx_j, dz_j) the
+        j-th link's vector p_j - p_{j-1} (p_0 the pivot); the rates are not observed (prior mean)."""
+        y = np.asarray(y, dtype=np.float64)
+        n = self.n_links
+        p = y.reshape(y.shape[:-1] + (n, 2))  # (..., N, [x, z])
+        d = np.diff(p, axis=-2, prepend=np.zeros_like(p[..., :1, :]))  # link vectors
+        x = np.broadcast_to(np.asarray(self.prior()[0], dtype=np.float64), y.shape[:-1] + (2 * n,)).copy()
+        x[..., :n] = np.arctan2(d[..., 0], -d[..., 1])
+        observed = np.zeros(2 * n, dtype=bool)
+        observed[:n] = True
+        return x, observed
+
     def jac_h(self, x: np.ndarray) -> np.ndarray:
         """d x_i / d th_j = R_j cos th_j, d z_i / d th_j = R_j sin th_j for j <= i; (..., 2N, 2N)."""
         x = np.asarray(x, dtype=np.float64)
