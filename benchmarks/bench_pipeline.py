@@ -79,6 +79,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-covariance", action="store_true", help="estimators publish no covariance streams")
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_pipeline"))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--estimator-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a parameter of every estimator node, e.g. drain=false (one wake-up per message) or max_delay=0.05",
+    )
     a = ap.parse_args(argv)
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
@@ -99,10 +106,12 @@ def main(argv: list[str] | None = None) -> int:
         output=str(out / "run.mcap"),
         timeout=max(120.0, 6 * a.seconds + 60),
         stats_dir=str(stats_dir),
+        estimator_params=tuple(a.estimator_param),
     )
     print(
         f"{a.scenario}: {methods} at {a.rate_hz:g} Hz, {a.trajectories} x {horizon} steps "
-        f"({a.trajectories * horizon} observations), {os.cpu_count()} cores",
+        f"({a.trajectories * horizon} observations), {os.cpu_count()} cores"
+        + (f", estimator parameters {a.estimator_param}" if a.estimator_param else ""),
         flush=True,
     )
     load_before = os.getloadavg()[0]
