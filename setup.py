@@ -38,6 +38,8 @@ setup(
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces", "ros-jazzy-diagnostic-msgs",
                 "ros-jazzy-std-srvs"],
         "reproduce": ["ray==2.60.0"],
+        # ONNX Runtime serving of the recurrent models' steps (backend=onnxruntime); onnx exports them
+        "onnx": ["onnxruntime>=1.20", "onnx>=1.16"],
         "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
         "test": ["pytest>=8", "atheris==3.0.0", "ruff==0.14.14", "filterpy>=1.4.5", "dapper==1.7.1"],
     },
