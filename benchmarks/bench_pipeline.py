@@ -86,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
         metavar="NAME=VALUE",
         help="a parameter of every estimator node, e.g. drain=false (one wake-up per message) or max_delay=0.05",
     )
+    ap.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="METHOD.NAME=VALUE",
+        help="a method option, e.g. gru.backend=onnxruntime (ONNX Runtime serving of the neural step)",
+    )
     a = ap.parse_args(argv)
 
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
@@ -107,11 +114,13 @@ def main(argv: list[str] | None = None) -> int:
         timeout=max(120.0, 6 * a.seconds + 60),
         stats_dir=str(stats_dir),
         estimator_params=tuple(a.estimator_param),
+        options=tuple(a.option),
     )
     print(
         f"{a.scenario}: {methods} at {a.rate_hz:g} Hz, {a.trajectories} x {horizon} steps "
         f"({a.trajectories * horizon} observations), {os.cpu_count()} cores"
-        + (f", estimator parameters {a.estimator_param}" if a.estimator_param else ""),
+        + (f", estimator parameters {a.estimator_param}" if a.estimator_param else "")
+        + (f", options {a.option}" if a.option else ""),
         flush=True,
     )
     load_before = os.getloadavg()[0]

@@ -943,9 +943,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    from neural_estimator.runtime import tune_allocator
+    from neural_estimator.runtime import cooperative_threads, tune_allocator
 
     tune_allocator()  # batched numpy work is up to 2x faster (see neural_estimator/runtime.py)
+    cooperative_threads()  # --threads 2 never slower than one on a busy machine (before torch loads)
     if argv[:1] == ["live"]:  # its own parser (neural_estimator.nodes.launch); argparse.REMAINDER drops --help
         return _cmd_live(argparse.Namespace(rest=argv[1:]))
     # Plugins must be imported before parsing so their scenario names show up in --help.
