@@ -8,9 +8,13 @@ For every shipped model of the scenario (the paper's sizes), in one process, in 
 
 - ``torch step``: ``model.step`` on a float32 tensor (inference mode), the network alone;
 - ``node step (torch)``: ``Estimator.step`` with numpy in and out, the live node's call, torch backend;
-- ``ORT step``: the same step exported to ONNX (``models/onnx_step.py``) run by ONNX Runtime, one thread;
-- ``node step (ORT)``: ``Estimator.step`` with ``backend=onnxruntime``;
-- ``wrapper``: node step (ORT) minus ORT step, p50 (normalise, checks, denormalise: the wrapper's own cost);
+- ``ORT step``: the same step exported to ONNX (``models/onnx_step.py``) run by ONNX Runtime, one thread,
+  through preallocated bound buffers (``run_with_iobinding``: the fastest call ONNX Runtime offers);
+- ``ORT run()``: the same graph through the plain ``session.run(None, feed)`` call (numpy in and out);
+- ``node step (ORT)``: ``Estimator.step`` with ``backend=onnxruntime`` (its graph also normalises and
+  denormalises, in float64);
+- ``wrapper``: node step (ORT) minus ORT step, p50 (normalise, checks, denormalise, copies: everything
+  the node's call adds to the network's step);
 - ``GEMV limit``: 2 x parameters / the single-core float32 GEMV rate measured here (the time a step
   would take if it only streamed its weights once through the fastest matrix-vector product).
 
@@ -33,8 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def gemv_rate(seconds: float = 0.5) -> float:
-    """Single-thread float32 GEMV rate (FLOP/s), the best of matrix sizes 256-1024."""
+def gemv_rate(bursts: int = 200) -> float:
+    """Single-thread float32 GEMV rate (FLOP/s): the fastest of many short bursts (a burst that the
+    scheduler interrupted is slower, so the fastest one is the core's rate), matrix sizes 256-1024."""
     import torch
 
     best = 0.0
@@ -42,12 +47,11 @@ def gemv_rate(seconds: float = 0.5) -> float:
         a, x = torch.randn(n, n), torch.randn(n)
         for _ in range(20):
             torch.mv(a, x)
-        reps, t0 = 0, time.perf_counter()
-        while time.perf_counter() - t0 < seconds / 3:
-            for _ in range(50):
+        for _ in range(bursts):
+            t0 = time.perf_counter()
+            for _ in range(5):
                 torch.mv(a, x)
-            reps += 50
-        best = max(best, 2 * n * n * reps / (time.perf_counter() - t0))
+            best = max(best, 2 * n * n * 5 / (time.perf_counter() - t0))
     return best
 
 
@@ -88,18 +92,24 @@ def main(argv: list[str] | None = None) -> int:
         + f"; single-core GEMV {rate / 1e9:.1f} GFLOP/s; load average {load0:.1f} at start"
     )
     print()
-    heads = ["torch step", "node (torch)", "ORT step", "node (ORT)"]
+    heads = ["torch step", "node (torch)", "ORT step", "ORT run()", "node (ORT)"]
     print(
         "| model | params | GEMV limit | "
         + " | ".join(f"{h} p50 / p99" for h in heads)
-        + " | wrapper p50 | node (ORT) / ORT | node (torch) / ORT |"
+        + " | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step |"
     )
-    print("|---|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|")
+    print("|---|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|")
     per_round = max(1, a.steps // a.rounds)
     for m in a.methods:
         est_t = load_neural_estimator(m, scen, context=0)
         est_o = load_neural_estimator(m, scen, context=0, backend="onnxruntime")
-        ort = est_o._ort
+        from neural_estimator.models.onnx_step import OrtStep, export_step
+
+        graph = export_step(est_t.model, m)  # the network alone, as the torch step column
+        ort = OrtStep(graph)
+        plain = OrtStep(graph).session
+        names_out = [o.name for o in plain.get_outputs()]
+        feed = {i.name: np.zeros([int(d) for d in i.shape], dtype=np.float32) for i in plain.get_inputs()}
         model = est_t.model
         params = count_parameters(model)
         limit = 2 * params / rate * 1e6
@@ -126,6 +136,13 @@ def main(argv: list[str] | None = None) -> int:
                         t0 = time.perf_counter()
                         ort.step(z32[j])
                         dt = time.perf_counter() - t0
+                    elif h == "ORT run()":
+                        t0 = time.perf_counter()
+                        feed["z"] = z32[j]
+                        res = plain.run(names_out, feed)
+                        for i, name in enumerate(names_out[1:], 1):
+                            feed[name.replace("new_", "")] = res[i]
+                        dt = time.perf_counter() - t0
                     else:
                         est = est_t if h == "node (torch)" else est_o
                         y, u = Y[j : j + 1], U[j : j + 1]
@@ -140,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         cells = " | ".join(f"{p[h][0]:.1f} / {p[h][1]:.1f}" for h in heads)
         print(
             f"| {m} | {params:,} | {limit:.1f} | {cells} | {wrapper:.1f} | "
-            f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (torch)'][0] / p['ORT step'][0]:.2f}x |",
+            f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (ORT)'][0] / p['ORT run()'][0]:.2f}x | "
+            f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x |",
             flush=True,
         )
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end (microseconds, wall clock)")

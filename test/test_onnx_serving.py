@@ -72,3 +72,21 @@ def test_export_is_reproducible_from_the_checkpoint(tmp_path, l96):
     out2 = step.step(np.ones((1, step.d_in), dtype=np.float32)).copy()
     np.testing.assert_array_equal(out1, out2)
     assert not np.array_equal(out1, step.step(np.ones((1, step.d_in), dtype=np.float32)))  # the state moved
+
+
+def test_normalised_graph_is_the_whole_estimator_step(l96):
+    """With the card's normalisation inside, the graph alone (numpy + onnxruntime, no torch at serving)
+    gives the estimator's estimates, a missing observation included."""
+    scen, data = l96
+    est = load_neural_estimator("mamba", scen, context=0)
+    step = OrtStep(export_step(est.model, "mamba", normalizer=est.normalizer))
+    assert step.normalized and set(step.outputs) == {"x", "skipped"}
+    y = data.y[0, :40].copy()
+    y[7, 3] = np.inf
+    est.reset(1)
+    for k in range(len(y)):
+        np.copyto(step.inputs["y"], y[k : k + 1])
+        step.run()
+        want = est.step(y[k : k + 1])
+        np.testing.assert_allclose(step.outputs["x"], want, rtol=1e-5, atol=1e-5)
+        assert bool(step.outputs["skipped"][0, 0]) == (k == 7)

@@ -39,8 +39,18 @@ def _flatten(state: Any) -> list:
     return list(state) if isinstance(state, (tuple, list)) else [state]
 
 
-def export_step(model: Any, method: str, path: str | Path | None = None) -> bytes:
-    """The ONNX graph of ``model.step`` at batch 1 (float32), written to ``path`` when given.
+def export_step(model: Any, method: str, path: str | Path | None = None, normalizer: Any = None) -> bytes:
+    """The ONNX graph of ``model.step`` at batch 1, written to ``path`` when given.
+
+    Without ``normalizer`` the graph is the network alone (z float32 in, mean float32 out). With the
+    checkpoint's :class:`~neural_estimator.models.normalization.Normalizer` it is the whole estimator
+    step of :class:`~neural_estimator.models.neural.NeuralEstimator`, in the same arithmetic::
+
+        inputs:  y (1, dy) float64, u (1, du) float64 (absent when du = 0), state_0 ... state_{S-1}
+        outputs: x (1, dx) float64 (denormalised, angles not yet wrapped), skipped (1, 1) bool
+                 (y had NaN or inf: its part of z was the training mean 0), new_state_0 ...
+
+    so a robot serves it with numpy and onnxruntime only (:class:`OrtStep`), without torch.
 
     Raises:
         OnnxError: ``method`` is not one of :data:`EXPORTABLE`, or torch's exporter is missing.
@@ -54,28 +64,62 @@ def export_step(model: Any, method: str, path: str | Path | None = None) -> byte
     state0 = model.init_state(1, device=p.device, dtype=torch.float32)
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
+    d_in = model.input_proj.in_features
 
-    class Step(torch.nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.model = model
+    def network(z, state):
+        mean, new = model.step(z, tuple(state) if structured else state[0])
+        return mean, _flatten(new)
 
-        def forward(self, z, *state):
-            mean, new = self.model.step(z, tuple(state) if structured else state[0])
-            return (mean, *_flatten(new))
+    if normalizer is None:
+
+        class Step(torch.nn.Module):
+            def __init__(self) -> None:
+                super().__init__()
+                self.model = model
+
+            def forward(self, z, *state):
+                mean, new = network(z, state)
+                return (mean, *new)
+
+        args: tuple = (torch.zeros(1, d_in), *flat)
+        names_in, names_out = ["z"], ["mean"]
+    else:
+        n = normalizer
+        dy, du = int(n.dy), int(n.du)
+
+        def t(a):
+            return torch.as_tensor(np.asarray(a, dtype=np.float64)).reshape(1, -1)
+
+        in_mean, in_std, out_mean, out_std = t(n.in_mean), t(n.in_std), t(n.out_mean), t(n.out_std)
+
+        class Step(torch.nn.Module):  # the arithmetic of Normalizer.normalize_inputs / denormalize_states
+            def __init__(self) -> None:
+                super().__init__()
+                self.model = model
+
+            def forward(self, y, *rest):
+                u, state = (rest[0], rest[1:]) if du else (None, rest)
+                finite = torch.isfinite(y).all(dim=-1, keepdim=True)  # (1, 1)
+                zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], torch.zeros_like(y))
+                z = torch.cat([zy, (u - in_mean[:, dy:]) / in_std[:, dy:]], dim=-1) if du else zy
+                mean, new = network(z.float(), state)
+                return (mean.double() * out_std + out_mean, ~finite, *new)
+
+        args = (torch.zeros(1, dy, dtype=torch.float64),)
+        args += (torch.zeros(1, du, dtype=torch.float64),) if du else ()
+        args += tuple(flat)
+        names_in, names_out = ["y"] + (["u"] if du else []), ["x", "skipped"]
 
     _register_symbolics()
-    d_in = model.input_proj.in_features
-    z = torch.zeros(1, d_in)
-    names_in = ["z"] + [f"state_{i}" for i in range(len(flat))]
-    names_out = ["mean"] + [f"new_state_{i}" for i in range(len(flat))]
+    names_in = names_in + [f"state_{i}" for i in range(len(flat))]
+    names_out = names_out + [f"new_state_{i}" for i in range(len(flat))]
     buf = io.BytesIO()
     try:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the exporter's notes on batch sizes and its deprecation
             torch.onnx.export(
                 Step().eval(),
-                (z, *flat),
+                args,
                 buf,
                 input_names=names_in,
                 output_names=names_out,
@@ -121,10 +165,15 @@ def _register_symbolics() -> None:
 
 
 class OrtStep:
-    """A stateful batch-1 step over an exported graph: ``reset()``, ``step(z) -> mean``.
+    """A stateful batch-1 step over an exported graph: ``reset()``, ``step()``.
+
+    Every input and output is a preallocated numpy buffer bound once (no allocation, no dict per step):
+    write the inputs into :attr:`inputs` (by name: ``z``, or ``y`` and ``u``), call :meth:`run`, read
+    :attr:`outputs` (``mean``, or ``x`` and ``skipped``); the next run overwrites them. The state
+    lives in two sets of buffers that swap roles every step (a run reads one and writes the other).
 
     Args:
-        graph: the ``.onnx`` bytes or a path to them.
+        graph: the ``.onnx`` bytes or a path to them (:func:`export_step`).
         threads: ONNX Runtime intra-op threads (1: the live node's case).
     """
 
@@ -141,22 +190,29 @@ class OrtStep:
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # never spin on a busy core
         model = graph if isinstance(graph, bytes) else Path(graph).read_bytes()
         self.session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
-        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
-        self.d_in = int(inputs[0].shape[1])
-        self.d_out = int(outputs[0].shape[1])
-        shapes = [tuple(int(d) for d in i.shape) for i in inputs[1:]]
-        # Preallocated buffers bound once (no allocation, no dict per step): z, the mean, and two sets of
-        # state buffers that swap roles every step (the step reads one set and writes the other).
-        self.z = np.zeros((1, self.d_in), dtype=np.float32)
-        self.mean = np.zeros((1, self.d_out), dtype=np.float32)
-        self._sets = [[np.zeros(sh, dtype=np.float32) for sh in shapes] for _ in range(2)]
+        dtypes = {"tensor(float)": np.float32, "tensor(double)": np.float64, "tensor(bool)": np.bool_}
+
+        def buffer(arg) -> np.ndarray:
+            return np.zeros(tuple(int(d) for d in arg.shape), dtype=dtypes[arg.type])
+
+        ins, outs = self.session.get_inputs(), self.session.get_outputs()
+        state_in = [i for i in ins if i.name.startswith("state_")]
+        state_out = [o for o in outs if o.name.startswith("new_state_")]
+        self.inputs = {i.name: buffer(i) for i in ins if not i.name.startswith("state_")}
+        self.outputs = {o.name: buffer(o) for o in outs if not o.name.startswith("new_state_")}
+        self.normalized = "y" in self.inputs
+        first = self.inputs["y" if self.normalized else "z"]
+        self.d_in = int(first.shape[1])
+        self._sets = [[buffer(i) for i in state_in] for _ in range(2)]
         value = ort.OrtValue.ortvalue_from_numpy
         self._bindings = []
         for src, dst in ((0, 1), (1, 0)):
             b = self.session.io_binding()
-            b.bind_ortvalue_input(inputs[0].name, value(self.z))
-            b.bind_ortvalue_output(outputs[0].name, value(self.mean))
-            for i, o, a, c in zip(inputs[1:], outputs[1:], self._sets[src], self._sets[dst]):
+            for name, a in self.inputs.items():
+                b.bind_ortvalue_input(name, value(a))
+            for name, a in self.outputs.items():
+                b.bind_ortvalue_output(name, value(a))
+            for i, o, a, c in zip(state_in, state_out, self._sets[src], self._sets[dst]):
                 b.bind_ortvalue_input(i.name, value(a))
                 b.bind_ortvalue_output(o.name, value(c))
             self._bindings.append(b)
@@ -174,11 +230,14 @@ class OrtStep:
                 a.fill(0.0)
         self._current = 0
 
-    def step(self, z: np.ndarray | None = None) -> np.ndarray:
-        """z (1, d_in) -> mean (1, d_out) float32, a view of a buffer the next step overwrites (copy it
-        to keep it); the state advances. Without ``z``, the step reads :attr:`z` as written in place."""
-        if z is not None:
-            np.copyto(self.z, z, casting="same_kind")
+    def run(self) -> None:
+        """One step on what :attr:`inputs` hold; the state advances."""
         self._run(self._bindings[self._current])
         self._current ^= 1
-        return self.mean
+
+    def step(self, z: np.ndarray) -> np.ndarray:
+        """A network-only graph: z (1, d_in) -> mean (1, d_out) float32, a view of a buffer the next
+        step overwrites (copy it to keep it)."""
+        np.copyto(self.inputs["z"], z, casting="same_kind")
+        self.run()
+        return self.outputs["mean"]
