@@ -1,6 +1,6 @@
 """Training with two threads beside one, on a busy machine: the OpenMP wait policy's effect.
 
-    .venv/bin/python benchmarks/bench_threads.py                      # gru and mamba, with a busy neighbour
+    .venv/bin/python benchmarks/bench_threads.py                      # gru, with a busy neighbour
     .venv/bin/python benchmarks/bench_threads.py --archs mamba2 --no-busy --rounds 3
 
 Every configuration (architecture x threads 1 or 2 x wait policy) is a fresh process that times
@@ -69,8 +69,8 @@ def run_child(arch: str, threads: int, policy: str, iters: int) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--archs", nargs="+", default=["gru", "mamba"])
-    ap.add_argument("--iters", type=int, default=6, help="timed training steps per process")
+    ap.add_argument("--archs", nargs="+", default=["gru"])
+    ap.add_argument("--iters", type=int, default=4, help="timed training steps per process")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--busy", action=argparse.BooleanOptionalAction, default=True)
     a = ap.parse_args(argv)
@@ -81,9 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     configs = [(arch, th, pol) for arch in a.archs for pol in ("spin", "passive") for th in (1, 2)]
     res: dict[tuple, list[float]] = {c: [] for c in configs}
     try:
-        for _ in range(a.rounds):
+        for r in range(a.rounds):
             for c in configs:
                 res[c].append(run_child(*c, a.iters))
+                print(f"round {r + 1}: {c[0]}, {c[1]} thread(s), {c[2]}: {res[c][-1]:.1f} windows/s", flush=True)
     finally:
         if busy is not None:
             busy.kill()
