@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 from neural_estimator.bags import bag_to_arrays  # noqa: E402
 from neural_estimator.bags import messages as M  # noqa: E402
-from neural_estimator.nodes.launch import PipelineConfig, run_pipeline  # noqa: E402
+from neural_estimator.nodes.launch import PipelineConfig, PipelineError, PipelineResult, run_pipeline  # noqa: E402
 
 
 def end_to_end_ms(bag: Path, methods: list[str]) -> dict[str, dict[str, float]]:
@@ -155,7 +155,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     load_before = os.getloadavg()[0]
     t0 = time.monotonic()
-    res = run_pipeline(cfg)
+    try:
+        res = run_pipeline(cfg)
+    except PipelineError as exc:
+        bag = out / "run.mcap"
+        if not bag.exists():
+            raise
+        # The evaluator found no complete trajectory to score (estimators that dropped late observations):
+        # the recording is there, so the latencies and losses still are.
+        print(f"(the evaluator scored nothing: {str(exc).splitlines()[0]}; the bag is analysed anyway)")
+        logs = {n: out / "run.logs" / f"{n}.log" for n in ("simulator", "evaluator")}
+        res = PipelineResult(bag, -1, {}, logs, {}, 0.0)
     wall = time.monotonic() - t0
 
     expected = a.trajectories * horizon

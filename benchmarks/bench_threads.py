@@ -6,7 +6,8 @@
 Every configuration (architecture x threads 1 or 2 x wait policy) is a fresh process that times
 training steps (forward, backward, AdamW at the paper's batch of 64 windows of 100 steps, Lorenz 96
 widths) after two warm-up steps; configurations alternate in rounds so that a changing machine load
-touches them alike, and the median over rounds is printed. ``--busy`` (default) runs a spinning
+touches them alike, and the median over rounds is printed. A configuration still running after
+``--timeout`` s is stopped and reported as a bound ("< x windows/s"). ``--busy`` (default) runs a spinning
 process beside them (a second job on another core, as when two trainings share this machine).
 
 Wait policies: ``spin`` is OpenMP's default (libgomp's workers spin for a while before sleeping;
@@ -53,18 +54,31 @@ print(json.dumps({"windows_per_s": 64 / times[len(times) // 2]}))
 BUSY = "import time\nx = 0\nwhile True:\n    x += 1\n"
 
 
-def run_child(arch: str, threads: int, policy: str, iters: int) -> float:
+def run_child(arch: str, threads: int, policy: str, iters: int, timeout: float) -> float:
+    """Training windows/s of one configuration; a run past ``timeout`` s counts as the bound
+    (iters + 2) x 64 / timeout (negative: "slower than this")."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     for var in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "OMP_NUM_THREADS"):
         env.pop(var, None)
     if policy == "passive":
         env["OMP_WAIT_POLICY"] = "PASSIVE"
-    out = subprocess.run(
-        [sys.executable, "-c", CHILD, arch, str(threads), str(iters)], env=env, capture_output=True, text=True
-    )
+    try:
+        out = subprocess.run(
+            [sys.executable, "-c", CHILD, arch, str(threads), str(iters)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+    except subprocess.TimeoutExpired:
+        return -(iters + 2) * 64 / timeout
     if out.returncode:
         raise RuntimeError(out.stderr[-2000:])
     return json.loads(out.stdout.strip().splitlines()[-1])["windows_per_s"]
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.1f}" if v > 0 else f"< {-v:.1f} (timed out)"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--archs", nargs="+", default=["gru"])
     ap.add_argument("--iters", type=int, default=4, help="timed training steps per process")
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--timeout", type=float, default=240.0, help="seconds per configuration (then a bound)")
     ap.add_argument("--busy", action=argparse.BooleanOptionalAction, default=True)
     a = ap.parse_args(argv)
     print(f"command: python benchmarks/bench_threads.py {' '.join(argv if argv is not None else sys.argv[1:])}")
@@ -83,8 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for r in range(a.rounds):
             for c in configs:
-                res[c].append(run_child(*c, a.iters))
-                print(f"round {r + 1}: {c[0]}, {c[1]} thread(s), {c[2]}: {res[c][-1]:.1f} windows/s", flush=True)
+                res[c].append(run_child(*c, a.iters, a.timeout))
+                print(f"round {r + 1}: {c[0]}, {c[1]} thread(s), {c[2]}: {_fmt(res[c][-1])} windows/s", flush=True)
     finally:
         if busy is not None:
             busy.kill()
@@ -99,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     for arch in a.archs:
         for pol in ("spin", "passive"):
             one, two = (statistics.median(res[(arch, th, pol)]) for th in (1, 2))
-            print(f"| {arch} | {pol} | {one:.1f} | {two:.1f} | {two / one:.2f}x |", flush=True)
+            ratio = f"{two / one:.2f}x" if one > 0 and two > 0 else f"< {abs(two) / abs(one):.2f}x"
+            print(f"| {arch} | {pol} | {_fmt(one)} | {_fmt(two)} | {ratio} |", flush=True)
     return 0
 
 
