@@ -63,6 +63,8 @@ setup(
             "ros-jazzy-ament-index-python",
         ],
         "reproduce": ["ray==2.60.0"],
+        # ONNX Runtime serving of the recurrent models' steps (backend=onnxruntime); onnx exports them
+        "onnx": ["onnxruntime>=1.20", "onnx>=1.16"],
         "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
         "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5"],
         "test": [
@@ -75,6 +77,8 @@ setup(
             "ray==2.60.0",
             "mkdocs>=1.6",
             "mkdocs-material>=9.5",
+            "onnxruntime>=1.20",
+            "onnx>=1.16",
         ],
     },
     zip_safe=False,

@@ -47,3 +47,22 @@ def tune_allocator() -> bool:
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     _tuned = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
     return _tuned
+
+
+WAIT_POLICY = {"OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}  # libgomp (torch's Linux wheels), Intel OpenMP
+
+
+def cooperative_threads() -> bool:
+    """Make OpenMP worker threads sleep instead of spin while they wait (unless the environment says
+    otherwise): on a machine whose other cores are busy, a spinning worker takes a core from the
+    process that holds the lock it waits for, and two threads ran one training 5-7x slower than one
+    (benchmarks/bench_threads.py). OpenMP reads these variables once, when torch loads it, so this
+    must run before ``import torch``; returns False (and changes nothing) when torch is already loaded.
+    """
+    import os
+
+    if "torch" in sys.modules:
+        return False
+    for name, value in WAIT_POLICY.items():
+        os.environ.setdefault(name, value)
+    return True

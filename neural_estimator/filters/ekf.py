@@ -125,24 +125,66 @@ class ExtendedKalmanFilter(ClassicalFilter):
     # overhead smaller blocks multiply. Measured at B = 2000, 2 threads: 11.9k traj-steps/s with
     # 2^17, 14.9k with 2^19, 10.4k with 2^21.
     block_elements = 2**19
+    # Up to this many streams, Lorenz 96 runs on the compiled single-stream kernels
+    # (filters/compiled_ekf.py: the same equations, one compiled call per phase and stream); at
+    # B = 1 numpy's per-call cost is most of a batched step. 0 turns them off.
+    compiled_max_batch = 16
 
     def _init_state(self, B: int) -> None:
         n = self.scenario.dx
         self._eye = np.eye(n)
         self._m = np.array(self._init_mean, dtype=np.float64)  # (B, n): m0 or the given initial means
         self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
+        self._compiled = self._compiled_kernels(B)
         # the kernels, bound once per reset (not per step: a B = 1 step is ~0.5 ms)
         self._predict_kernel = _no_flags(partial(_predict, ops=self.ops, Q=self.Q, inflation=self.hp.inflation))
         self._update_kernel = _no_flags(
             partial(_update, ops=self.ops, R=self.R, eye=self._eye, joseph_form=self.hp.joseph_form)
         )
 
+    def _compiled_kernels(self, B: int):
+        """(predict, update) on the compiled single-stream kernels, or None for the batched path."""
+        from neural_estimator.scenarios.lorenz96 import Lorenz96
+
+        if B > self.compiled_max_batch or type(self.scenario) is not Lorenz96:
+            return None
+        from neural_estimator.filters import compiled_ekf
+
+        cfg = self.scenario.config
+        h, substeps = cfg.dt / cfg.substeps, int(cfg.substeps)
+        H = np.ascontiguousarray(self.scenario.obs_matrix(), dtype=np.float64)
+        Q, R = np.ascontiguousarray(self.Q), np.ascontiguousarray(self.R)
+        inflation2, forcing, joseph = float(self.hp.inflation) ** 2, float(cfg.forcing), bool(self.hp.joseph_form)
+        no_skip = np.zeros(B, dtype=bool)
+
+        def own() -> None:  # the last step's covariance was handed out read-only: write a new one
+            if not self._P.flags.writeable or not self._P.flags.c_contiguous:
+                self._P = np.array(self._P, dtype=np.float64, order="C")
+            if not self._m.flags.writeable or not self._m.flags.c_contiguous:
+                self._m = np.array(self._m, dtype=np.float64, order="C")
+
+        def predict() -> None:
+            own()
+            compiled_ekf.predict(self._m, self._P, Q, inflation2, forcing, h, substeps)
+
+        def update(y: np.ndarray, skip: np.ndarray | None) -> None:
+            own()
+            compiled_ekf.update(self._m, self._P, y, no_skip if skip is None else skip, H, R, joseph)
+
+        return predict, update
+
     # The maths is the module-level _predict / _update; these hooks run it over the blocks of streams.
     def _predict(self, u: np.ndarray) -> None:
+        if self._compiled is not None:
+            self._compiled[0]()
+            return None
         self._m, self._P, _ = self._blockwise(self._predict_kernel, self._m, self._P, u)
         return None
 
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
+        if self._compiled is not None:
+            self._compiled[1](y, skip)
+            return None
         m_post, P_post, _ = self._blockwise(self._update_kernel, self._m, self._P, y)
         self._m, self._P = self._keep(skip, self._m, m_post), self._keep(skip, self._P, P_post)
         return None

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from neural_estimator.angles import wrap_components
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.models.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.models.normalization import Normalizer
@@ -29,6 +30,7 @@ from neural_estimator.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
 
 RECURRENT = ("gru", "lstm", "mamba", "mamba2")  # the methods whose context can be bounded (option context)
+BACKENDS = ("torch", "onnxruntime")  # how step() runs the network (run() always uses torch's parallel form)
 
 CHUNK_TIMESTEPS = 1 << 16  # sequences x steps per parallel forward in run(): bounds activation memory
 
@@ -95,6 +97,7 @@ class NeuralEstimator(Estimator):
         compile_step: bool = False,
         context: int = 0,
         context_copies: int = 10,
+        backend: str = "torch",
     ) -> None:
         super().__init__(scenario)
         self.method = method  # instance attribute: one class serves the six methods
@@ -127,6 +130,28 @@ class NeuralEstimator(Estimator):
         self._offsets = copy_offsets(self.context, self.context_copies) if self.context_by_copies else []
         step_fn = model.step_with_cov if self.has_covariance else model.step
         self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
+        self.backend = str(backend)
+        if self.backend not in BACKENDS:
+            raise EstimatorError(f"{method}: backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+        self._ort = self._onnx_step() if self.backend == "onnxruntime" else None
+        self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
+        self._dims = (scenario.dy, scenario.du)
+        self._z64 = np.zeros((1, scenario.dy + scenario.du))  # the normalised input, float64
+        self._z64_y = self._z64[:, : scenario.dy]
+
+    def _onnx_step(self):
+        """The batch-1 step exported from this model and served by ONNX Runtime (models/onnx_step.py)."""
+        from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, OrtStep, export_step
+
+        if self.method not in EXPORTABLE or self.context_by_copies or self.dtype != torch.float32:
+            raise EstimatorError(
+                f"{self.method}: backend onnxruntime serves {', '.join(EXPORTABLE)} with an unbounded context "
+                "(option context=0) in float32"
+            )
+        try:
+            return OrtStep(export_step(self.model, self.method))
+        except OnnxError as exc:
+            raise EstimatorError(str(exc)) from None
 
     @property
     def untrained_steps(self) -> int:
@@ -143,6 +168,10 @@ class NeuralEstimator(Estimator):
         if batch < 1:
             raise EstimatorError(f"{self.method}: batch must be >= 1, got {batch}")
         self.model.eval()
+        if self._ort is not None:
+            if batch != 1:
+                raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {batch}")
+            self._ort.reset()
         with torch.inference_mode():
             self._state = self.model.init_state(batch, device=self.device, dtype=self.dtype)
         if self.context_by_copies:  # one state per copy, None until the copy's first restart
@@ -154,6 +183,8 @@ class NeuralEstimator(Estimator):
         self.skipped = np.zeros(batch, dtype=bool)
 
     def step(self, y: np.ndarray, u_prev: np.ndarray | None = None) -> np.ndarray:
+        if self._ort is not None:
+            return self._step_onnx(y, u_prev)
         y, u_prev = self.check_step(y, u_prev)
         self.start_streams_if_none(y.shape[0])  # the first step after construction starts y's batch
         z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
@@ -172,6 +203,49 @@ class NeuralEstimator(Estimator):
             self.covariance = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
             bad |= ~np.all(np.isfinite(self.covariance), axis=(-2, -1))
         self.diverged = self.diverged | bad
+        return x
+
+    def _step_onnx(self, y: Any, u_prev: Any) -> np.ndarray:
+        """:meth:`step` on ONNX Runtime, batch 1, with no allocation beyond the returned estimate: the
+        same arithmetic as the torch path (normalise in float64, the network in float32, denormalise)
+        written into the graph's bound buffers, because at 20-50 us a step every numpy call counts
+        (normalising inside the graph instead cost 6 us more than these numpy calls, measured)."""
+        ort, n, (dy, du) = self._ort, self.normalizer, self._dims  # (a scenario's dy, du are computed properties)
+        fast = (
+            type(y) is np.ndarray
+            and y.dtype == np.float64
+            and y.shape == (1, dy)
+            and self.batch == 1
+            and (u_prev is None or (type(u_prev) is np.ndarray and u_prev.dtype == np.float64))
+        )
+        if not fast:  # anything else gets the full checks (and their errors)
+            y, u_prev = self.check_step(y, u_prev)
+            if y.shape[0] != 1:
+                raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {y.shape[0]}")
+            self.start_streams_if_none(1)
+        zb, zy = self._z64, self._z64_y
+        if du:
+            if u_prev is None:
+                zb[0, dy:] = 0.0
+            else:
+                if u_prev.shape != (1, du) or not np.isfinite(u_prev).all():
+                    self.check_step(y, u_prev)  # raises its one-line error
+                zb[0, dy:] = u_prev[0]
+        skipped = not np.isfinite(y).all()
+        np.copyto(zy, y)
+        np.subtract(zb, n.in_mean, out=zb)
+        np.divide(zb, n.in_std, out=zb)
+        if skipped:
+            zy.fill(0.0)  # the training mean (see Normalizer.normalize_inputs)
+        np.copyto(ort.inputs["z"], zb, casting="same_kind")
+        ort.run()
+        x = ort.outputs["mean"] * n.out_std + n.out_mean  # float32 * float64 -> float64, as the torch path
+        if n.angle_states:
+            x = wrap_components(x, n.angle_states)
+        self._t += 1
+        self.skipped = self._skip_flags[int(skipped)]
+        if not np.isfinite(x).all():
+            self.diverged = np.ones(1, dtype=bool)
         return x
 
     def _bounded_step(self, z_t: torch.Tensor) -> torch.Tensor:

@@ -90,6 +90,7 @@ def load_neural_estimator(
     compile_step: bool = False,
     context: int | None = None,
     context_copies: int | None = None,
+    backend: str = "torch",
 ):
     """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
@@ -106,6 +107,9 @@ def load_neural_estimator(
             model was validated (the card's ``training.recipe.val_context`` and
             ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
             when only ``context`` is given.
+        backend: ``torch`` or ``onnxruntime`` (GRU, LSTM, Mamba, Mamba-2 with an unbounded context:
+            ``step`` runs the model's step exported to ONNX, :mod:`neural_estimator.models.onnx_step`;
+            ``run`` keeps torch's parallel form).
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
@@ -143,4 +147,5 @@ def load_neural_estimator(
         compile_step=compile_step,
         context=context,
         context_copies=context_copies,
+        backend=backend,
     )

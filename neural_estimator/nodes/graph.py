@@ -90,6 +90,7 @@ class PipelineConfig:
     timeout: float = 600.0  # s for the whole run
     record_topics: tuple[str, ...] = ()  # extra topics for the evaluator to record (e.g. /diagnostics)
     stats_dir: str = ""  # each estimator writes <stats_dir>/<method>.json at shutdown ('' = no)
+    estimator_params: tuple[str, ...] = ()  # name=value parameters of every estimator node (e.g. max_delay=0.05)
     python: str = sys.executable
 
 
@@ -145,6 +146,7 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
                     "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",
                     "queue_depth": depth,
                     "history_depth": depth,
+                    **_assignments(cfg.estimator_params),
                 },
             )
         )
@@ -439,8 +441,25 @@ def launch_description(graph: str):
     return LaunchDescription([*declared, OpaqueFunction(function=nodes)])
 
 
+class _RawArg(str):
+    """A parameter value passed through as written (``-p name:=value``)."""
+
+
+def _assignments(items: tuple[str, ...]) -> dict[str, Any]:
+    """``name=value`` strings as parameters (values parsed as YAML scalars by the node)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise GraphError(f"estimator parameter must be name=value, got {item!r}")
+        out[name.strip()] = _RawArg(value.strip())
+    return out
+
+
 def ros_arg(value: Any) -> str:
     """A parameter value as ``--ros-args -p name:=VALUE`` parses it (YAML)."""
+    if isinstance(value, _RawArg):
+        return str(value)
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (int, float)):

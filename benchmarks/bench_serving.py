@@ -1,0 +1,169 @@
+"""Batch-1 neural serving beside its limits: the node's step against ONNX Runtime and the GEMV bound.
+
+    .venv/bin/python benchmarks/bench_serving.py                        # lorenz96 zoo, every exportable model
+    .venv/bin/python benchmarks/bench_serving.py --scenario bearings --methods gru mamba --core 0
+
+For every shipped model of the scenario (the paper's sizes), in one process, in interleaved rounds
+(so that a busy machine slows every column alike):
+
+- ``torch step``: ``model.step`` on a float32 tensor (inference mode), the network alone;
+- ``node step (torch)``: ``Estimator.step`` with numpy in and out, the live node's call, torch backend;
+- ``ORT step``: the same step exported to ONNX (``models/onnx_step.py``) run by ONNX Runtime, one thread,
+  through preallocated bound buffers (``run_with_iobinding``: the fastest call ONNX Runtime offers);
+- ``ORT run()``: the same graph through the plain ``session.run(None, feed)`` call (numpy in and out);
+- ``node step (ORT)``: ``Estimator.step`` with ``backend=onnxruntime`` (its graph also normalises and
+  denormalises, in float64);
+- ``wrapper``: node step (ORT) minus ORT step, p50 (normalise, checks, denormalise, copies: everything
+  the node's call adds to the network's step);
+- ``GEMV limit``: 2 x parameters / the single-core float32 GEMV rate measured here (the time a step
+  would take if it only streamed its weights once through the fastest matrix-vector product).
+
+p50 and p99 of the wall clock, microseconds. ``--core N`` pins the process to one core. The load
+average is printed before and after: on a shared machine, compare the columns of one run only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def gemv_rate(bursts: int = 200) -> float:
+    """Single-thread float32 GEMV rate (FLOP/s): the fastest of many short bursts (a burst that the
+    scheduler interrupted is slower, so the fastest one is the core's rate), matrix sizes 256-1024."""
+    import torch
+
+    best = 0.0
+    for n in (256, 512, 1024):
+        a, x = torch.randn(n, n), torch.randn(n)
+        for _ in range(20):
+            torch.mv(a, x)
+        for _ in range(bursts):
+            t0 = time.perf_counter()
+            for _ in range(5):
+                torch.mv(a, x)
+            best = max(best, 2 * n * n * 5 / (time.perf_counter() - t0))
+    return best
+
+
+def pct(samples: list[float]) -> tuple[float, float]:
+    a = np.asarray(samples) * 1e6
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="lorenz96")
+    ap.add_argument("--methods", nargs="+", default=["gru", "lstm", "mamba", "mamba2"])
+    ap.add_argument("--steps", type=int, default=2000, help="measured steps per column")
+    ap.add_argument("--rounds", type=int, default=10, help="interleaved rounds (steps split among them)")
+    ap.add_argument("--core", type=int, default=-1, help="pin to this core (-1: no pinning)")
+    a = ap.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    if a.core >= 0:
+        os.sched_setaffinity(0, {a.core})
+    import torch
+
+    torch.set_num_threads(1)
+    from neural_estimator.data import simulate
+    from neural_estimator.models import count_parameters
+    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    load0 = os.getloadavg()[0]
+    rate = gemv_rate()
+    scen = make_scenario(a.scenario)
+    data = simulate(scen, 1, 1000, 0)
+    Y = data.y[0]
+    U = np.vstack([np.zeros((1, scen.du)), data.u[0, :-1]])
+    print(f"command: python benchmarks/bench_serving.py {' '.join(argv if argv is not None else sys.argv[1:])}")
+    print(
+        f"{a.scenario}, torch {torch.__version__}, 1 thread, {os.cpu_count()} cores"
+        + (f", pinned to core {a.core}" if a.core >= 0 else "")
+        + f"; single-core GEMV {rate / 1e9:.1f} GFLOP/s; load average {load0:.1f} at start"
+    )
+    print()
+    heads = ["torch step", "node (torch)", "ORT step", "ORT run()", "node (ORT)"]
+    print(
+        "| model | params | GEMV limit | "
+        + " | ".join(f"{h} p50 / p99" for h in heads)
+        + " | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step |"
+    )
+    print("|---|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|")
+    per_round = max(1, a.steps // a.rounds)
+    for m in a.methods:
+        est_t = load_neural_estimator(m, scen, context=0)
+        est_o = load_neural_estimator(m, scen, context=0, backend="onnxruntime")
+        from neural_estimator.models.onnx_step import OrtStep, export_step
+
+        graph = export_step(est_t.model, m)  # the network alone, as the torch step column
+        ort = OrtStep(graph)
+        plain = OrtStep(graph).session
+        names_out = [o.name for o in plain.get_outputs()]
+        feed = {i.name: np.zeros([int(d) for d in i.shape], dtype=np.float32) for i in plain.get_inputs()}
+        model = est_t.model
+        params = count_parameters(model)
+        limit = 2 * params / rate * 1e6
+        times: dict[str, list[float]] = {h: [] for h in heads}
+        z32 = [est_t.normalizer.normalize_inputs(Y[k : k + 1], U[k : k + 1])[0].astype(np.float32) for k in range(1000)]
+        with torch.inference_mode():
+            state = model.init_state(1)
+        est_t.reset(1)
+        est_o.reset(1)
+        k = 0
+        for r in range(a.rounds + 1):  # round 0 warms up
+            keep = r > 0
+            for h in heads:
+                out = times[h]
+                for i in range(per_round):
+                    j = (k + i) % 1000
+                    if h == "torch step":
+                        zt = torch.from_numpy(z32[j])
+                        t0 = time.perf_counter()
+                        with torch.inference_mode():
+                            _, state = model.step(zt, state)
+                        dt = time.perf_counter() - t0
+                    elif h == "ORT step":
+                        t0 = time.perf_counter()
+                        ort.step(z32[j])
+                        dt = time.perf_counter() - t0
+                    elif h == "ORT run()":
+                        t0 = time.perf_counter()
+                        feed["z"] = z32[j]
+                        res = plain.run(names_out, feed)
+                        for i, name in enumerate(names_out[1:], 1):
+                            feed[name.replace("new_", "")] = res[i]
+                        dt = time.perf_counter() - t0
+                    else:
+                        est = est_t if h == "node (torch)" else est_o
+                        y, u = Y[j : j + 1], U[j : j + 1]
+                        t0 = time.perf_counter()
+                        est.step(y, u)
+                        dt = time.perf_counter() - t0
+                    if keep:
+                        out.append(dt)
+            k += per_round
+        p = {h: pct(v) for h, v in times.items()}
+        wrapper = p["node (ORT)"][0] - p["ORT step"][0]
+        cells = " | ".join(f"{p[h][0]:.1f} / {p[h][1]:.1f}" for h in heads)
+        print(
+            f"| {m} | {params:,} | {limit:.1f} | {cells} | {wrapper:.1f} | "
+            f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (ORT)'][0] / p['ORT run()'][0]:.2f}x | "
+            f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x |",
+            flush=True,
+        )
+    print(f"\nload average {os.getloadavg()[0]:.1f} at the end (microseconds, wall clock)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
