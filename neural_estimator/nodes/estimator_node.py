@@ -335,7 +335,7 @@ class EstimatorNode(ManagedNode):
                 )
             )
         s = self.stats
-        s.latency.append(time.perf_counter() - t0)
+        s.record(time.perf_counter() - t0)
         s.estimated += 1
         s.resets += res.reset
         s.gap_steps += res.filled
