@@ -804,7 +804,7 @@ def _cmd_replay(args) -> int:
         + ", ".join(
             f"{m} {res.estimates[m]} estimates ({res.per_step_us(m):.0f} us/step"
             + (f", {res.rejected[m]} rejected" if res.rejected.get(m) else "")
-            + (f", {res.skipped[m]} duplicate or stale skipped" if res.skipped.get(m) else "")
+            + (f", {res.skipped[m]} duplicate, stale or unconfirmed skipped" if res.skipped.get(m) else "")
             + ")"
             for m in methods
         )
