@@ -1,0 +1,344 @@
+"""Soak: the live chain for N minutes, memory (RSS) of every node over time and the losses of each.
+
+    nice -n 5 .venv/bin/python benchmarks/soak.py --minutes 60 --rate-hz 500 --methods ekf,ukf,gru
+    .venv/bin/python benchmarks/soak.py --minutes 1                      # a quick check
+
+Starts the evaluator (recording ``/diagnostics`` too), one estimator node per method (each writes
+its counters to a stats file at shutdown) and the simulator publishing ``rate`` x 60 x ``minutes``
+observations (trajectories of ``--horizon`` steps), exactly as ``neural-estimator live`` does, in an
+isolated ROS domain. Every ``--sample-s`` seconds it records each node's resident memory (VmRSS)
+and the load average. At the end it reports, per node:
+
+- RSS at the end of the warm-up (the first ``--warmup-s`` seconds fill the bounded DDS histories),
+  at the end of the stream and the maximum, and the growth after the warm-up (MiB, and MiB/hour);
+- losses: for each estimator, the observations it never estimated and why (its stats file: bad,
+  oversize, duplicate, out of order, unconfirmed jumps, missing steps, method failures); for the
+  evaluator, the (trajectory, step) cells of each stream the run announced that are not in the
+  bag (a streaming count over the bag, no dense arrays); the /diagnostics windows at WARN/ERROR.
+
+Prints a table and writes ``soak.json`` and ``rss.csv`` in ``--out``. A soak is a measurement, not a
+test: the figures depend on the machine and its load (recorded beside them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from neural_estimator.nodes.launch import (  # noqa: E402
+    ESTIMATOR,
+    EVALUATOR,
+    SIMULATOR,
+    _stop_all,
+    isolated_env,
+    node_command,
+    pick_domain_id,
+    start_node,
+)
+
+
+def rss_mib(pid: int) -> float | None:
+    """Resident memory of a process in MiB (None once it exited)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def stream_losses(bag: Path, expected: int) -> tuple[dict[str, dict[str, int]], dict[str, dict[str, int]]]:
+    """Per stream of the bag: messages, distinct (trajectory, step) cells, cells lost against
+    ``expected``; and per /diagnostics status name, the count of each level. Streamed: bounded memory
+    (one bit set per stream)."""
+    from mcap.reader import make_reader
+
+    from neural_estimator.bags import messages as M
+
+    codec = M.VectorCodec("", ())
+    seen: dict[str, bytearray] = {}
+    counts: dict[str, int] = {}
+    diag: dict[str, dict[str, int]] = {}
+    with open(bag, "rb") as fh:
+        for _, channel, message in make_reader(fh).iter_messages():
+            topic = channel.topic
+            if topic == "/diagnostics":
+                msg = M.TYPESTORE.deserialize_cdr(message.data, "diagnostic_msgs/msg/DiagnosticArray")
+                for st in msg.status:
+                    lv = {0: "OK", 1: "WARN", 2: "ERROR"}.get(int(st.level), "STALE")
+                    d = diag.setdefault(st.name, {"OK": 0, "WARN": 0, "ERROR": 0, "STALE": 0})
+                    d[lv] += 1
+                continue
+            role = M.topic_role(topic)
+            if role is None or role.kind in (M.SCENARIO, M.RUN_STATUS):
+                continue
+            counts[topic] = counts.get(topic, 0) + 1
+            try:
+                vec = codec.decode(message.data)
+            except Exception:  # counted as a message, not as a cell
+                continue
+            bits = seen.setdefault(topic, bytearray(expected))
+            g = vec.trajectory * HORIZON + vec.step
+            if 0 <= g < expected:
+                bits[g] = 1
+    out = {}
+    for topic, n in sorted(counts.items()):
+        cells = sum(seen.get(topic, b""))
+        out[topic] = {"messages": n, "cells": cells, "lost": expected - cells}
+    return out, diag
+
+
+HORIZON = 1000
+
+
+def main(argv: list[str] | None = None) -> int:
+    global HORIZON
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--minutes", type=float, default=1.0)
+    ap.add_argument("--rate-hz", type=float, default=500.0)
+    ap.add_argument("--methods", default="ekf,ukf,gru")
+    ap.add_argument("--scenario", default="bearings")
+    ap.add_argument("--horizon", type=int, default=1000, help="steps per trajectory")
+    ap.add_argument("--sample-s", type=float, default=10.0, help="seconds between RSS samples")
+    ap.add_argument("--warmup-s", type=float, default=0.0, help="0 = 10%% of the run, at least 30 s")
+    ap.add_argument("--metrics", action="store_true", help="let the evaluator compute the paper's metrics at the end")
+    ap.add_argument("--out", default="", help="directory for the bag, logs, soak.json (default /tmp/soak-<time>)")
+    args = ap.parse_args(argv)
+    HORIZON = args.horizon
+    methods = [m for m in args.methods.split(",") if m]
+    total = int(round(args.rate_hz * 60 * args.minutes))
+    trajectories = max(1, math.ceil(total / args.horizon))
+    total = trajectories * args.horizon
+    out = Path(args.out or f"/tmp/soak-{time.strftime('%Y%m%d-%H%M%S')}")
+    out.mkdir(parents=True, exist_ok=True)
+    bag = out / "soak.mcap"
+    domain = pick_domain_id()
+    env = isolated_env(domain)
+    depth = 100_000  # the bounded DDS histories (as neural-estimator live): filled in the warm-up
+    py = sys.executable
+    nodes = {
+        "evaluator": node_command(
+            py,
+            EVALUATOR,
+            "evaluator",
+            {
+                "output": str(bag),
+                "overwrite": True,
+                "methods": methods,
+                "topics": ["/diagnostics"],
+                "queue_depth": depth,
+                "completion_timeout": 120.0,
+                "compute_metrics": bool(args.metrics),
+            },
+        )
+    }
+    for m in methods:
+        nodes[f"estimator_{m}"] = node_command(
+            py,
+            ESTIMATOR,
+            f"estimator_{m}",
+            {
+                "method": m,
+                "scenario": args.scenario,
+                "stats_file": str(out / f"{m}.json"),
+                "queue_depth": depth,
+                "history_depth": depth,
+            },
+        )
+    nodes["simulator"] = node_command(
+        py,
+        SIMULATOR,
+        "simulator",
+        {
+            "scenario": args.scenario,
+            "trajectories": trajectories,
+            "horizon": args.horizon,
+            "rate_hz": float(args.rate_hz),
+            "wait_for_subscribers": len(methods) + 1,
+            "wait_timeout": 120.0,
+            "start_delay": 1.0,
+            "history_depth": depth,
+            "linger": 120.0,
+            "stay_after_run": 0.0,
+        },
+    )
+    print(
+        f"soak: {args.scenario}, {', '.join(methods)}, {total} observations at {args.rate_hz:g} Hz "
+        f"({trajectories} x {args.horizon}), {args.minutes:g} min; domain {domain}; {out}",
+        flush=True,
+    )
+    procs = {}
+    samples: list[dict] = []
+    t0 = time.monotonic()
+    streaming_end = None
+    timeout = 60 * args.minutes * 3 + 600
+    try:
+        for name, cmd in nodes.items():
+            procs[name] = start_node(cmd, out / f"{name}.log", env)
+        next_sample = t0
+        while procs["evaluator"].poll() is None:
+            now = time.monotonic()
+            if now >= next_sample:
+                row = {"t": round(now - t0, 1), "load1": os.getloadavg()[0]}
+                row.update({n: rss_mib(p.pid) for n, p in procs.items()})
+                samples.append(row)
+                next_sample += args.sample_s
+            if streaming_end is None and procs["simulator"].poll() is not None:
+                streaming_end = now - t0
+            if now - t0 > timeout:
+                print(f"soak: no end after {timeout:.0f} s; stopping", flush=True)
+                break
+            for name, p in procs.items():
+                if name != "evaluator" and p.poll() not in (None, 0):
+                    print(f"soak: {name} exited with status {p.returncode}", flush=True)
+            time.sleep(0.5)
+        run_end = time.monotonic() - t0
+    finally:
+        _stop_all(procs)
+    codes = {n: p.returncode for n, p in procs.items()}
+
+    # ---- memory ----------------------------------------------------------------------------------
+    warm = args.warmup_s or max(30.0, 0.1 * 60 * args.minutes)
+    end = streaming_end or run_end
+    with open(out / "rss.csv", "w") as fh:
+        cols = ["t", "load1", *nodes]
+        fh.write(",".join(cols) + "\n")
+        for r in samples:
+            fh.write(",".join("" if r.get(c) is None else f"{r[c]:.1f}" for c in cols) + "\n")
+    memory = {}
+    for name in nodes:
+        during = [(r["t"], r[name]) for r in samples if r.get(name) is not None and r["t"] <= end]
+        after_warm = [v for t, v in during if t >= warm]
+        if not after_warm:
+            memory[name] = None
+            continue
+        first, last = after_warm[0], after_warm[-1]
+        span_h = max((during[-1][0] - warm) / 3600, 1e-9)
+        memory[name] = {
+            "rss_warm_mib": round(first, 1),
+            "rss_end_mib": round(last, 1),
+            "rss_max_mib": round(max(v for _, v in during), 1),
+            "growth_mib": round(last - first, 1),
+            "growth_mib_per_h": round((last - first) / span_h, 1),
+        }
+    loads = [r["load1"] for r in samples]
+
+    # ---- losses ----------------------------------------------------------------------------------
+    estimators = {}
+    for m in methods:
+        try:
+            s = json.loads((out / f"{m}.json").read_text())
+        except (OSError, ValueError):
+            estimators[m] = None
+            continue
+        lost = {
+            k: s.get(k, 0)
+            for k in ("bad", "oversize", "duplicates", "out_of_order", "unconfirmed", "gap_steps", "method_failures")
+        }
+        estimators[m] = {
+            "estimates": s["estimates"],
+            "not_estimated": total - s["estimates"],
+            **lost,
+            "quarantined": s.get("quarantined", 0),
+            "restarts": s.get("restarts", 0),
+            "latency_p50_ms": s.get("latency_p50_ms"),
+            "latency_p99_ms": s.get("latency_p99_ms"),
+        }
+    streams, diag = ({}, {})
+    if bag.exists():
+        try:
+            streams, diag = stream_losses(bag, total)
+        except Exception as exc:  # a bag cut short by a crash: say so, keep the memory figures
+            streams = {"error": str(exc)}
+    sim_log = (out / "simulator.log").read_text(errors="replace") if (out / "simulator.log").exists() else ""
+    achieved = [ln.split("run complete: ", 1)[1] for ln in sim_log.splitlines() if "run complete:" in ln]
+    result = {
+        "command": "benchmarks/soak.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "scenario": args.scenario,
+        "methods": methods,
+        "rate_hz": args.rate_hz,
+        "minutes": args.minutes,
+        "observations": total,
+        "streaming_s": round(end, 1),
+        "run_s": round(run_end, 1),
+        "simulator": achieved[0] if achieved else "no 'run complete' line",
+        "returncodes": codes,
+        "load1": {
+            "min": round(min(loads), 2) if loads else None,
+            "mean": round(sum(loads) / len(loads), 2) if loads else None,
+            "max": round(max(loads), 2) if loads else None,
+        },
+        "cores": os.cpu_count(),
+        "warmup_s": warm,
+        "memory": memory,
+        "estimators": estimators,
+        "streams": streams,
+        "diagnostics": diag,
+    }
+    (out / "soak.json").write_text(json.dumps(result, indent=1))
+    print(report(result), flush=True)
+    return 0 if all(c == 0 for c in codes.values()) else 1
+
+
+def report(r: dict) -> str:
+    lines = [
+        f"# soak: {r['command']}",
+        f"{r['scenario']}, {', '.join(r['methods'])}: {r['observations']} observations at {r['rate_hz']:g} Hz; "
+        f"streaming {r['streaming_s']:.0f} s, run {r['run_s']:.0f} s; simulator: {r['simulator']}",
+        f"load average (1 min) during the run: min {r['load1']['min']}, mean {r['load1']['mean']}, "
+        f"max {r['load1']['max']} on {r['cores']} cores; exit codes {r['returncodes']}",
+        "",
+        f"| node | RSS after warm-up ({r['warmup_s']:.0f} s) MiB | RSS at end MiB | max MiB | growth MiB | MiB/h |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, m in r["memory"].items():
+        if m is None:
+            lines.append(f"| {name} | - | - | - | - | - |")
+        else:
+            lines.append(
+                f"| {name} | {m['rss_warm_mib']} | {m['rss_end_mib']} | {m['rss_max_mib']} | "
+                f"{m['growth_mib']} | {m['growth_mib_per_h']} |"
+            )
+    lines += [
+        "",
+        "| estimator | estimates | not estimated | bad | oversize | dup | out of order | unconfirmed | "
+        "missing steps | failures | quarantined | restarts | p50 ms | p99 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for m, e in r["estimators"].items():
+        if e is None:
+            lines.append(f"| {m} | no stats file |")
+            continue
+        lines.append(
+            f"| {m} | {e['estimates']} | {e['not_estimated']} | {e['bad']} | {e['oversize']} | {e['duplicates']} | "
+            f"{e['out_of_order']} | {e['unconfirmed']} | {e['gap_steps']} | {e['method_failures']} | "
+            f"{e['quarantined']} | {e['restarts']} | {_ms(e['latency_p50_ms'])} | {_ms(e['latency_p99_ms'])} |"
+        )
+    lines += ["", "| recorded stream (evaluator) | messages | cells | lost cells |", "|---|---|---|---|"]
+    for topic, s in r["streams"].items():
+        if isinstance(s, dict):
+            lines.append(f"| {topic} | {s['messages']} | {s['cells']} | {s['lost']} |")
+        else:
+            lines.append(f"| {topic} | {s} | | |")
+    if r["diagnostics"]:
+        lines += ["", "| /diagnostics status | OK | WARN | ERROR |", "|---|---|---|---|"]
+        for name, d in sorted(r["diagnostics"].items()):
+            lines.append(f"| {name} | {d['OK']} | {d['WARN']} | {d['ERROR']} |")
+    return "\n".join(lines) + "\n"
+
+
+def _ms(v) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
