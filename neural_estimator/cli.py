@@ -830,7 +830,8 @@ def _cmd_recover(args) -> int:
 
     res = recover_bag(args.bag, args.out, overwrite=args.overwrite)
     lost = f"; the input had lost: {res.damage}" if res.damage is not None else "; the input was intact"
-    print(f"wrote {res.path}: {res.messages} messages on {res.topics} topics{lost}")
+    note = f"; {res.lost_note()}" if res.lost else ""
+    print(f"wrote {res.path}: {res.messages} messages on {res.topics} topics{lost}{note}")
     return 0
 
 

@@ -67,3 +67,81 @@ def test_an_announced_run_too_large_is_refused_before_allocation(scen, tmp_path,
         BagError, match=r"the run announces .* over the bound of 4.0 GiB \(NEURAL_ESTIMATOR_MAX_ARRAY_GB\)"
     ):
         bag_to_arrays(bag, description=desc)
+
+
+# ---- full disks and read-only outputs ------------------------------------------------------------------------
+def test_a_full_disk_is_one_line_not_a_traceback(scen, tmp_path):
+    full = tmp_path / "full.mcap"
+    full.symlink_to("/dev/full")  # every write: ENOSPC
+    w = BagWriter(full, overwrite=True, chunk_size=1024).open()
+    w.add_topic("/observation", M.JOINT_STATE)
+    with pytest.raises(BagError) as e:
+        for k in range(10_000):
+            w.write("/observation", k, M.encode_observation(scen, k, 0, k, [0.0], []))
+    assert str(e.value) == f"{full}: cannot write: No space left on device"
+    with pytest.raises(BagError, match="cannot finish the bag: No space left on device"):
+        w.close()
+    assert w.closed
+
+
+def _short_run_bag(path, scen, n_obs):
+    """A bag announcing 2 x 6 steps that holds only ``n_obs`` observations (a recorder that died)."""
+    with BagWriter(path) as w:
+        w.add_topic("/scenario", M.STRING)
+        w.add_topic("/observation", M.JOINT_STATE)
+        w.write("/scenario", 0, M.encode_scenario(scen.describe(), trajectories=2, horizon=6))
+        for g in range(n_obs):
+            w.write("/observation", g + 1, M.encode_observation(scen, g + 1, g // 6, g % 6, [0.0], []))
+    return path
+
+
+def test_recover_counts_lost_messages_not_only_chunks(scen, tmp_path):
+    from neural_estimator.bags.recover import recover_bag
+
+    res = recover_bag(_short_run_bag(tmp_path / "short.mcap", scen, 9), tmp_path / "fixed.mcap")
+    assert res.lost == {"/observation": 3} and "/observation 3" in res.lost_note()
+
+
+def test_recover_onto_a_full_disk_leaves_no_file(scen, tmp_path, monkeypatch):
+    """It left a 0-byte file and a traceback."""
+    import builtins
+    import errno
+
+    from neural_estimator.bags import writer as writer_module
+    from neural_estimator.bags.recover import recover_bag
+
+    src = _short_run_bag(tmp_path / "src.mcap", scen, 12)
+
+    class Full:
+        def __init__(self, f):
+            self.f = f
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+    monkeypatch.setattr(writer_module, "open", lambda *a, **k: Full(builtins.open(*a, **k)), raising=False)
+    out = tmp_path / "out" / "fixed.mcap"
+    with pytest.raises(BagError) as e:
+        recover_bag(src, out)
+    assert "No space left on device" in str(e.value) and "\n" not in str(e.value)
+    assert not out.exists() and list(out.parent.iterdir()) == []
+
+
+def test_the_loss_lines_say_what_each_stream_lost_and_why():
+    from neural_estimator.bags.report import loss_lines
+
+    bag = {
+        "received": {"observation": 98, "estimates/ukf": 90},
+        "missing": {"observation": 2, "estimates/ukf": 10},
+        "rejected": {"estimates/ukf": 1},
+        "outside": {"observation": 1},
+        "duplicates": {},
+    }
+    lines = loss_lines(bag, {"estimates/ukf": {"oversize (dropped by the evaluator)": 2}})
+    assert lines == [
+        "estimates/ukf: 90 received, 10 lost; not used: 1 malformed, 2 oversize (dropped by the evaluator)",
+        "observation: 98 received, 2 lost; not used: 1 outside the announced run",
+    ]

@@ -413,6 +413,19 @@ def test_evaluator_signals_and_crash_recovery(plugin, nodes, tmp_path):
     assert np.array_equal(got[0, : got.sum()], np.ones(got.sum(), dtype=bool))  # a prefix, no holes
 
 
+def test_evaluator_on_a_full_disk_exits_with_one_line(plugin, nodes, tmp_path):
+    """It printed two OSError tracebacks; now: one error line, the bag closed as far as possible, exit 1."""
+    full = tmp_path / "full.mcap"
+    full.symlink_to("/dev/full")  # every write: ENOSPC
+    nodes.start(EVALUATOR, "rec", output=str(full), overwrite=True, chunk_size=2048)
+    nodes.start(
+        SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=2, horizon=200, rate_hz=400.0
+    )
+    assert nodes.wait("rec", 60) == 1
+    log = nodes.log("rec")
+    assert "recording stopped" in log and "No space left on device" in log and "Traceback" not in log
+
+
 # ---- playing a bag into a live estimator ----------------------------------------------------------------------
 def test_player_feeds_live_estimator_like_replay(plugin, cart, nodes, tmp_path):
     data = simulate(cart, 2, 30, seed=7)
