@@ -145,3 +145,100 @@ def test_the_loss_lines_say_what_each_stream_lost_and_why():
         "estimates/ukf: 90 received, 10 lost; not used: 1 malformed, 2 oversize (dropped by the evaluator)",
         "observation: 98 received, 2 lost; not used: 1 outside the announced run",
     ]
+
+
+# ---- decompressed chunk sizes ---------------------------------------------------------------------------------
+def _mcap(path, compression, payload=b"\0" * 1000, n=3):
+    """A one-topic MCAP written by the mcap library with ``compression`` (zstd or lz4)."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}[compression])
+        w.start(profile="ros2")
+        sid = w.register_schema("std_msgs/msg/String", "ros2msg", b"string data")
+        cid = w.register_channel("/blob", "cdr", sid)
+        for i in range(n):
+            w.add_message(cid, log_time=i, data=payload, publish_time=i)
+        w.finish()
+    return path
+
+
+def _declare_chunk_size(path, usize):
+    """Rewrite the uncompressed_size field of the file's first chunk record (a crafted header)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    at = 8  # after the magic: records of opcode (1 byte), length (8), body
+    while data[at] != 0x06:
+        at += 9 + struct.unpack_from("<Q", data, at + 1)[0]
+    struct.pack_into("<Q", data, at + 9 + 16, usize)  # body: start, end (8 each), uncompressed_size
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_a_chunk_declaring_gigabytes_is_not_decompressed(tmp_path, compression):
+    """zstd: 2.25 GB and 100 s before a clean error; lz4: no bound at all."""
+    import time
+    import warnings
+
+    from neural_estimator.bags import BagReader, BagWarning
+
+    path = _mcap(tmp_path / f"{compression}.mcap", compression)
+    _declare_chunk_size(path, 2**31)
+    t0 = time.monotonic()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with BagReader(path) as bag:
+            assert list(bag.messages()) == []  # the chunk is lost, not inflated
+    assert time.monotonic() - t0 < 10
+    text = " ".join(str(w.message) for w in caught if issubclass(w.category, BagWarning))
+    assert "over the bound of 67108864 bytes (NEURAL_ESTIMATOR_MAX_CHUNK_MB, MiB)" in text
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_a_chunk_holding_more_than_it_declares_stops_at_the_declared_size(tmp_path, compression, monkeypatch):
+    import tracemalloc
+    import warnings
+
+    from neural_estimator.bags import BagReader
+
+    path = _mcap(tmp_path / f"{compression}.mcap", compression, payload=b"\0" * 40_000_000, n=1)  # 40 MB of zeros
+    _declare_chunk_size(path, 1000)
+    tracemalloc.start()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with BagReader(path) as bag:
+            assert list(bag.messages()) == []
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 10_000_000  # the file itself is small; nothing near the 40 MB it inflates to
+
+
+def test_a_rosbag2_directory_listing_more_files_than_can_be_open_is_one_line(tmp_path, scen):
+    """30,000 listed files gave a ``Too many open files`` traceback in three tools; now the listing
+    is refused before any file is opened, the bound named (here the open-file limit, set to 256)."""
+    import resource
+
+    import yaml
+
+    from neural_estimator.bags.reader import open_bag
+
+    bag = tmp_path / "many"
+    bag.mkdir()
+    one = _short_run_bag(tmp_path / "one.mcap", scen, 2).read_bytes()
+    names = [f"part_{i}.mcap" for i in range(300)]
+    for name in names:
+        (bag / name).write_bytes(one)
+    (bag / "metadata.yaml").write_text(
+        yaml.safe_dump({"rosbag2_bagfile_information": {"storage_identifier": "mcap", "relative_file_paths": names}})
+    )
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (256, hard))
+    try:
+        with pytest.raises(BagError) as e:
+            with open_bag(bag):
+                pass
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    assert "lists 300 files, over the bound of 192 files open at once" in str(e.value)
+    assert "\n" not in str(e.value)
