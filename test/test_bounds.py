@@ -242,3 +242,43 @@ def test_a_rosbag2_directory_listing_more_files_than_can_be_open_is_one_line(tmp
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
     assert "lists 300 files, over the bound of 192 files open at once" in str(e.value)
     assert "\n" not in str(e.value)
+
+
+# ---- checkpoint cards ------------------------------------------------------------------------------------------
+def _card(tmp_path, edit):
+    import json
+    import shutil
+
+    from neural_estimator.models.serving import default_checkpoint
+
+    src = default_checkpoint("bearings", "gru")
+    dst = tmp_path / "ckpt"
+    shutil.copytree(src, dst)
+    card = json.loads((dst / "card.json").read_text())
+    edit(card)
+    (dst / "card.json").write_text(json.dumps(card))
+    return dst
+
+
+@pytest.mark.parametrize(
+    "edit, text",
+    [
+        (lambda c: c.update(format_version="abc"), "format_version 'abc' is not a version number"),
+        (lambda c: c.update(weights=[]), "'weights' is a list, not an object"),
+        (lambda c: c.update(architecture="gru"), "'architecture' is a str, not an object"),
+        (lambda c: c["architecture"].update(config=None), "architecture needs a name and a config object"),
+        (lambda c: c["architecture"]["config"].update(layers=200_000), "layers=200000; at most 256"),
+    ],
+)
+def test_a_corrupt_card_is_one_line(tmp_path, edit, text):
+    """``"format_version": "abc"`` and ``"weights": []`` gave 20-line tracebacks; ``"layers": 200000``
+    hung the size check for over 300 s (200,000 modules built on the meta device)."""
+    import time
+
+    from neural_estimator.estimators import EstimatorError, make_estimator
+
+    ckpt = _card(tmp_path, edit)
+    t0 = time.monotonic()
+    with pytest.raises(EstimatorError) as e:
+        make_estimator("gru", make_scenario("bearings"), checkpoint=str(ckpt))
+    assert text in str(e.value) and "\n" not in str(e.value) and time.monotonic() - t0 < 30
