@@ -426,6 +426,7 @@ def replay(
             bag.connection(scen_topic, M.STRING)
             for _, _, raw in bag.messages([scen_topic]):
                 desc = M.decode_scenario(raw)
+                break  # the first announcement defines the run
         kept_topics = [c for c in bag.connections if c.topic not in replaced]
         passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
     if desc is None:

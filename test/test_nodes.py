@@ -418,9 +418,7 @@ def test_evaluator_on_a_full_disk_exits_with_one_line(plugin, nodes, tmp_path):
     full = tmp_path / "full.mcap"
     full.symlink_to("/dev/full")  # every write: ENOSPC
     nodes.start(EVALUATOR, "rec", output=str(full), overwrite=True, chunk_size=2048)
-    nodes.start(
-        SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=2, horizon=200, rate_hz=400.0
-    )
+    nodes.start(SIMULATOR, "sim", scenario="nodecart", plugins=[plugin], trajectories=2, horizon=200, rate_hz=400.0)
     assert nodes.wait("rec", 60) == 1
     log = nodes.log("rec")
     assert "recording stopped" in log and "No space left on device" in log and "Traceback" not in log

@@ -123,7 +123,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
             key = _stream_key(role)
             try:
                 if role.kind == M.SCENARIO:
-                    if description is None:
+                    if desc is None:  # the first announcement defines the run: a later one cannot resize it
                         desc = M.decode_scenario(raw)
                     continue
                 if role.kind == M.RUN_STATUS:

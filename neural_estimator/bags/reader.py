@@ -68,6 +68,8 @@ def _read_at_most(reader, n: int) -> bytes:
         parts.append(piece)
         got += len(piece)
     return b"".join(parts)
+
+
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _MSG_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc

@@ -301,13 +301,11 @@ class EstimatorNode(ManagedNode):
                 self._on_observation(raw_obs)
             return
         if start is not None and start != self._run_start:  # the publisher restarted: a new run
-            if self._run_start is not None:
-                self.stats.publisher_restarts += 1
-                self.get_logger().warning(
+            if self._run_start is not None:  # the stream switches once the new run's messages confirm it
+                self.get_logger().warning(  # (a forged announcement alone resets nothing)
                     f"a new run was announced (start_ns {self._run_start} -> {start}): the publisher "
-                    "restarted, its stream starts fresh from the prior"
+                    "restarted; its stream starts fresh once its first messages confirm each other"
                 )
-                self.online.reset()
             self._run_start = start
             self.online.horizon = horizon
         if (
