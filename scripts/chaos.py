@@ -16,7 +16,8 @@ and what it says it lost, tracebacks in any log, and a verdict against the case'
 - a forged or corrupted message costs itself only: every real observation is estimated, the
   diagnostics say WARN (or ERROR) with the count, and the metrics are computed;
 - a restarted publisher's new run starts a fresh stream: UKF RMSE as in the clean run;
-- oversize messages are dropped unread and counted.
+- oversize messages are dropped unread and counted, and their memory is not kept (each estimator's
+  resident memory grows less than 20 MiB over the three 20 MB messages).
 
 Only this script and the nodes it starts use rclpy; the verdicts are assertions on what the nodes
 did, not on timings.
@@ -166,6 +167,7 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
     dt_ns = M.dt_ns(scen.dt)
     levels: dict[str, int] = {}
     rss: dict[str, float | None] = {}
+    rss_before: dict[str, float | None] = {}
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     t_start = time.monotonic()
@@ -213,6 +215,7 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
                 if n < first_trajectory:
                     continue
                 if fault and (n, k) == INJECT_AT:
+                    rss_before.update({m: _rss_mib(procs[m].pid) for m in METHODS})
                     for topic, raw in _fault(case.name, scen, data, start_ns, dt_ns):
                         bad_pubs[topic].publish(raw)
                 pubs["observation"].publish(obs)
@@ -248,6 +251,13 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
                 p.kill()
     row = _summarize(case, d, procs, levels)
     row["rss_mib"] = rss  # each estimator's resident memory at the end of the run
+    row["rss_growth_mib"] = {  # ... less what it held just before the fault
+        m: round(rss[m] - rss_before[m], 1) if rss.get(m) and rss_before.get(m) else None for m in METHODS
+    }
+    if case.expect == "oversize" and not all(g is not None and g < 20 for g in row["rss_growth_mib"].values()):
+        row["verdict"] = ("FAIL: " if row["verdict"] == "PASS" else row["verdict"] + "; ") + (
+            f"memory kept after the oversize messages: {row['rss_growth_mib']} MiB"
+        )
     return row
 
 
@@ -325,7 +335,7 @@ def _verdict(case: Case, r: dict) -> str:
 def table(rows: list[dict]) -> str:
     lines = [
         "| case | fault | estimates ekf / ukf | held / dropped (ukf) | worst diagnostics | evaluator exit | "
-        "UKF RMSE | evaluator says lost | UKF RSS MiB | verdict |",
+        "UKF RMSE | evaluator says lost | UKF RSS MiB (growth after the fault) | verdict |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     names = {-1: "none", 0: "OK", 1: "WARN", 2: "ERROR"}
@@ -338,7 +348,8 @@ def table(rows: list[dict]) -> str:
         rmse = f"{r['ukf_rmse']:.4f}" if r["ukf_rmse"] is not None else "-"
         lines.append(
             f"| {r['case']} | {r['fault']} | {est} | {sk.get('quarantined', '-')} / {dropped} | {worst} | "
-            f"{r['returncodes'].get('evaluator')} | {rmse} | {lost} | {r.get('rss_mib', {}).get('ukf')} | "
+            f"{r['returncodes'].get('evaluator')} | {rmse} | {lost} | {r.get('rss_mib', {}).get('ukf')} "
+            f"({r.get('rss_growth_mib', {}).get('ukf')}) | "
             f"{r['verdict']} |"
         )
     return "\n".join(lines) + "\n"

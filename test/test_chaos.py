@@ -1,6 +1,6 @@
-"""The fault-injection harness (scripts/chaos.py), short: three of its cases through the live chain.
+"""The fault-injection harness (scripts/chaos.py), short: four of its cases through the live chain.
 
-Marked slow (about a minute on 2 cores): ``pytest -m "not slow"`` leaves it out. The whole harness:
+Marked slow (about two minutes on 2 cores): ``pytest -m "not slow"`` leaves it out. The whole harness:
 ``python scripts/chaos.py`` (every case, a table).
 """
 
@@ -14,7 +14,7 @@ pytest.importorskip("rclpy")
 pytestmark = pytest.mark.slow
 
 
-@pytest.mark.parametrize("case", ["forged-trajectory", "step-1e9", "restart"])
+@pytest.mark.parametrize("case", ["forged-trajectory", "step-1e9", "restart", "oversize"])
 def test_the_live_chain_survives_the_case(case, tmp_path):
     chaos = load_script("scripts/chaos.py")
     (spec,) = [c for c in chaos.CASES if c.name == case]
