@@ -34,7 +34,7 @@ def bag_files(path: str | Path) -> list[Path]:
         import yaml
 
         try:
-            info = yaml.safe_load(meta.read_text(errors="replace"))
+            info = yaml.load(meta.read_text(errors="replace"), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
         except (yaml.YAMLError, RecursionError, ValueError) as exc:
             raise BagError(
                 f"{meta}: unreadable rosbag2 metadata ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
