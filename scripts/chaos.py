@@ -26,13 +26,13 @@ did, not on timings.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import re
 import signal
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -58,8 +58,7 @@ RATE_HZ = 300.0
 INJECT_AT = (1, 40)  # the fault goes out just before this (trajectory, step)
 
 
-@dataclasses.dataclass
-class Case:
+class Case(NamedTuple):
     name: str
     what: str
     expect: str  # "estimated-all", "restart", "disk-full", "oversize"
