@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -56,10 +57,10 @@ def rss_mib(pid: int) -> float | None:
     return None
 
 
-def stream_losses(bag: Path, expected: int) -> tuple[dict[str, dict[str, int]], dict[str, dict[str, int]]]:
-    """Per stream of the bag: messages, distinct (trajectory, step) cells, cells lost against
-    ``expected``; and per /diagnostics status name, the count of each level. Streamed: bounded memory
-    (one bit set per stream)."""
+def stream_losses(bag: Path, expected: int, horizon: int) -> dict:
+    """Streamed over the bag (bounded memory, one byte per expected cell and stream): per stream its
+    messages, distinct (trajectory, step) cells and the highest; per /diagnostics status the count
+    of each level; and the span of the observations' publish (source) times."""
     from mcap.reader import make_reader
 
     from neural_estimator.bags import messages as M
@@ -67,7 +68,9 @@ def stream_losses(bag: Path, expected: int) -> tuple[dict[str, dict[str, int]], 
     codec = M.VectorCodec("", ())
     seen: dict[str, bytearray] = {}
     counts: dict[str, int] = {}
+    highest: dict[str, int] = {}
     diag: dict[str, dict[str, int]] = {}
+    first_pub = last_pub = None
     with open(bag, "rb") as fh:
         for _, channel, message in make_reader(fh).iter_messages():
             topic = channel.topic
@@ -82,26 +85,77 @@ def stream_losses(bag: Path, expected: int) -> tuple[dict[str, dict[str, int]], 
             if role is None or role.kind in (M.SCENARIO, M.RUN_STATUS):
                 continue
             counts[topic] = counts.get(topic, 0) + 1
+            if role.kind == M.OBSERVATION:
+                first_pub = message.publish_time if first_pub is None else min(first_pub, message.publish_time)
+                last_pub = message.publish_time if last_pub is None else max(last_pub, message.publish_time)
             try:
                 vec = codec.decode(message.data)
             except Exception:  # counted as a message, not as a cell
                 continue
             bits = seen.setdefault(topic, bytearray(expected))
-            g = vec.trajectory * HORIZON + vec.step
+            g = vec.trajectory * horizon + vec.step
             if 0 <= g < expected:
                 bits[g] = 1
-    out = {}
-    for topic, n in sorted(counts.items()):
-        cells = sum(seen.get(topic, b""))
-        out[topic] = {"messages": n, "cells": cells, "lost": expected - cells}
-    return out, diag
+                highest[topic] = max(highest.get(topic, -1), g)
+    streams = {
+        topic: {"messages": n, "cells": sum(seen.get(topic, b"")), "highest": highest.get(topic, -1)}
+        for topic, n in sorted(counts.items())
+    }
+    return {"streams": streams, "diagnostics": diag, "publish_span_ns": (first_pub, last_pub)}
 
 
-HORIZON = 1000
+def losses(out: Path, methods: list[str], total: int, horizon: int) -> dict:
+    """What each node lost: the estimators (their stats files) and the recorded streams (the bag),
+    against the observations the publisher got out (the highest step recorded on any stream + 1:
+    a run stopped at its wall-clock limit published fewer than it planned)."""
+    bag = out / "soak.mcap"
+    rec = {"streams": {}, "diagnostics": {}, "publish_span_ns": (None, None)}
+    if bag.exists():
+        try:
+            rec = stream_losses(bag, total, horizon)
+        except Exception as exc:  # a bag cut short by a crash: say so, keep the other figures
+            rec["streams"] = {"error": str(exc)}
+    stats = {}
+    for m in methods:
+        try:
+            stats[m] = json.loads((out / f"{m}.json").read_text())
+        except (OSError, ValueError):
+            stats[m] = None
+    streams = {k: v for k, v in rec["streams"].items() if isinstance(v, dict)}
+    published = max(
+        [v["highest"] + 1 for v in streams.values()] + [(s or {}).get("estimates", 0) for s in stats.values()]
+    )
+    published = min(published, total)
+    for v in streams.values():
+        v["lost"] = published - v["cells"]
+    estimators = {}
+    for m, s in stats.items():
+        if s is None:
+            estimators[m] = None
+            continue
+        keys = ("bad", "oversize", "duplicates", "out_of_order", "unconfirmed", "gap_steps", "method_failures")
+        estimators[m] = {
+            "estimates": s["estimates"],
+            "not_estimated": published - s["estimates"],
+            **{k: s.get(k, 0) for k in keys},
+            "quarantined": s.get("quarantined", 0),
+            "restarts": s.get("restarts", 0),
+            "latency_p50_ms": s.get("latency_p50_ms"),
+            "latency_p99_ms": s.get("latency_p99_ms"),
+        }
+    a, b = rec["publish_span_ns"]
+    obs = next((v for k, v in streams.items() if k.endswith("/observation")), None)
+    rate = obs["messages"] / ((b - a) / 1e9) if obs and a is not None and b > a else None
+    return {
+        "published": published,
+        "recorded_observation_rate_hz": round(rate, 1) if rate else None,
+        "estimators": estimators,
+        "streams": rec["streams"],
+        "diagnostics": rec["diagnostics"],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
-    global HORIZON
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=1.0)
     ap.add_argument("--rate-hz", type=float, default=500.0)
@@ -112,8 +166,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup-s", type=float, default=0.0, help="0 = 10%% of the run, at least 30 s")
     ap.add_argument("--metrics", action="store_true", help="let the evaluator compute the paper's metrics at the end")
     ap.add_argument("--out", default="", help="directory for the bag, logs, soak.json (default /tmp/soak-<time>)")
+    ap.add_argument(
+        "--wall-limit-min",
+        type=float,
+        default=0.0,
+        help="stop the run (simulator, then evaluator) after this many minutes even if the publisher is behind "
+        "(default: minutes + 10); the report then counts against what was published",
+    )
+    ap.add_argument("--analyze", default="", help="recompute the report of a finished soak directory (its soak.json)")
     args = ap.parse_args(argv)
-    HORIZON = args.horizon
+    if args.analyze:
+        return analyze(Path(args.analyze))
     methods = [m for m in args.methods.split(",") if m]
     total = int(round(args.rate_hz * 60 * args.minutes))
     trajectories = max(1, math.ceil(total / args.horizon))
@@ -180,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     samples: list[dict] = []
     t0 = time.monotonic()
     streaming_end = None
-    timeout = 60 * args.minutes * 3 + 600
+    wall_limit = 60 * (args.wall_limit_min or args.minutes + 10)
+    stopped = False
     try:
         for name, cmd in nodes.items():
             procs[name] = start_node(cmd, out / f"{name}.log", env)
@@ -194,9 +258,13 @@ def main(argv: list[str] | None = None) -> int:
                 next_sample += args.sample_s
             if streaming_end is None and procs["simulator"].poll() is not None:
                 streaming_end = now - t0
-            if now - t0 > timeout:
-                print(f"soak: no end after {timeout:.0f} s; stopping", flush=True)
-                break
+            if now - t0 > wall_limit and not stopped:  # the publisher is behind: end it, then the recording
+                print(f"soak: wall-clock limit of {wall_limit:.0f} s reached; stopping the run", flush=True)
+                stopped = True
+                streaming_end = streaming_end or now - t0
+                for name in ("simulator", "evaluator"):
+                    if procs[name].poll() is None:
+                        procs[name].send_signal(signal.SIGINT)
             for name, p in procs.items():
                 if name != "evaluator" and p.poll() not in (None, 0):
                     print(f"soak: {name} exited with status {p.returncode}", flush=True)
@@ -233,32 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     loads = [r["load1"] for r in samples]
 
     # ---- losses ----------------------------------------------------------------------------------
-    estimators = {}
-    for m in methods:
-        try:
-            s = json.loads((out / f"{m}.json").read_text())
-        except (OSError, ValueError):
-            estimators[m] = None
-            continue
-        lost = {
-            k: s.get(k, 0)
-            for k in ("bad", "oversize", "duplicates", "out_of_order", "unconfirmed", "gap_steps", "method_failures")
-        }
-        estimators[m] = {
-            "estimates": s["estimates"],
-            "not_estimated": total - s["estimates"],
-            **lost,
-            "quarantined": s.get("quarantined", 0),
-            "restarts": s.get("restarts", 0),
-            "latency_p50_ms": s.get("latency_p50_ms"),
-            "latency_p99_ms": s.get("latency_p99_ms"),
-        }
-    streams, diag = ({}, {})
-    if bag.exists():
-        try:
-            streams, diag = stream_losses(bag, total)
-        except Exception as exc:  # a bag cut short by a crash: say so, keep the memory figures
-            streams = {"error": str(exc)}
+    lost = losses(out, methods, total, args.horizon)
     sim_log = (out / "simulator.log").read_text(errors="replace") if (out / "simulator.log").exists() else ""
     achieved = [ln.split("run complete: ", 1)[1] for ln in sim_log.splitlines() if "run complete:" in ln]
     result = {
@@ -270,7 +313,9 @@ def main(argv: list[str] | None = None) -> int:
         "observations": total,
         "streaming_s": round(end, 1),
         "run_s": round(run_end, 1),
-        "simulator": achieved[0] if achieved else "no 'run complete' line",
+        "simulator": achieved[0] if achieved else "stopped before its 'run complete'",
+        "stopped_at_wall_limit": stopped,
+        "horizon": args.horizon,
         "returncodes": codes,
         "load1": {
             "min": round(min(loads), 2) if loads else None,
@@ -280,13 +325,23 @@ def main(argv: list[str] | None = None) -> int:
         "cores": os.cpu_count(),
         "warmup_s": warm,
         "memory": memory,
-        "estimators": estimators,
-        "streams": streams,
-        "diagnostics": diag,
+        **lost,
     }
     (out / "soak.json").write_text(json.dumps(result, indent=1))
     print(report(result), flush=True)
     return 0 if all(c == 0 for c in codes.values()) else 1
+
+
+def analyze(out: Path) -> int:
+    """The report of a finished soak, its losses recomputed from its directory (the memory samples
+    and load from its soak.json)."""
+    r = json.loads((out / "soak.json").read_text())
+    horizon = int(r.get("horizon", 1000))
+    r.update(losses(out, r["methods"], r["observations"], horizon))
+    r["command"] += f"  (losses recomputed: benchmarks/soak.py --analyze {out})"
+    (out / "soak-analyzed.json").write_text(json.dumps(r, indent=1))
+    print(report(r), flush=True)
+    return 0
 
 
 def report(r: dict) -> str:
@@ -296,6 +351,10 @@ def report(r: dict) -> str:
         f"streaming {r['streaming_s']:.0f} s, run {r['run_s']:.0f} s; simulator: {r['simulator']}",
         f"load average (1 min) during the run: min {r['load1']['min']}, mean {r['load1']['mean']}, "
         f"max {r['load1']['max']} on {r['cores']} cores; exit codes {r['returncodes']}",
+        f"published: {r.get('published')} of {r['observations']} observations"
+        + (" (stopped at the wall-clock limit)" if r.get("stopped_at_wall_limit") else "")
+        + f"; the observations' publish times span a mean rate of {r.get('recorded_observation_rate_hz')} Hz; "
+        "losses below count against what was published",
         "",
         f"| node | RSS after warm-up ({r['warmup_s']:.0f} s) MiB | RSS at end MiB | max MiB | growth MiB | MiB/h |",
         "|---|---|---|---|---|---|",
@@ -326,7 +385,7 @@ def report(r: dict) -> str:
     lines += ["", "| recorded stream (evaluator) | messages | cells | lost cells |", "|---|---|---|---|"]
     for topic, s in r["streams"].items():
         if isinstance(s, dict):
-            lines.append(f"| {topic} | {s['messages']} | {s['cells']} | {s['lost']} |")
+            lines.append(f"| {topic} | {s['messages']} | {s['cells']} | {s.get('lost')} |")
         else:
             lines.append(f"| {topic} | {s} | | |")
     if r["diagnostics"]:
