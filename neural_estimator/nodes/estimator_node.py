@@ -21,8 +21,12 @@ Timers run on the steady clock, so ``use_sim_time`` without ``/clock`` silences 
 The per-message work is :class:`neural_estimator.replay.OnlineEstimator` (the same code as offline
 replay); this node only wires it to topics. Parameters: ``params/estimator.yaml``.
 
-A message that cannot be used (wrong width or names, NaN control, empty, unparsable) is logged
-(throttled), counted in the diagnostics and dropped; the node never stops on one. An unknown
+A message that cannot be used (wrong width or names, NaN control, empty, unparsable, larger than
+any valid one) is logged (throttled), counted in the diagnostics and dropped; the node never stops
+on one. No single message moves the stream: a jump in trajectory or step (or stamps that go back,
+a restarted publisher) is held until the next message confirms it (``confirm``) or the stream
+falls silent (``quarantine_seconds``); see :mod:`neural_estimator.replay`. Diagnostics are WARN
+whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An unknown
 method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
 

@@ -18,7 +18,10 @@ foreign bag played, your own nodes), when no stream message arrived for ``idle_t
 bag is closed, the paper's metrics are
 computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
-status 0 (1 if no metrics could be computed). Ctrl-C / SIGTERM close the bag properly too. A bag
+status 0 (1 if no metrics could be computed). After the table it prints, per stream, the messages
+received and lost and why (malformed, outside the announced run, duplicates, over ``max_message_mb``,
+which are dropped unrecorded). A full or read-only disk stops the recording with one error line,
+closes the bag as far as possible and exits 1. Ctrl-C / SIGTERM close the bag properly too. A bag
 without ``/scenario`` is scored with the ``scenario`` (+ ``set``, ``plugins``) parameters. Timers run
 on the steady clock, so ``use_sim_time:=true`` records like the default.
 Parameters: ``params/evaluator.yaml``.
