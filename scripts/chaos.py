@@ -167,6 +167,7 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
     levels: dict[str, int] = {}
     rss: dict[str, float | None] = {}
     rss_before: dict[str, float | None] = {}
+    worst_msg: dict[str, str] = {}
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     t_start = time.monotonic()
@@ -178,6 +179,8 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
         def on_diag(msg) -> None:
             for st in msg.status:
                 lv = int.from_bytes(st.level, "little") if isinstance(st.level, bytes) else int(st.level)
+                if lv > levels.get(st.name, -1):
+                    worst_msg[st.name] = st.message
                 levels[st.name] = max(levels.get(st.name, 0), lv)
 
         node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 50)
@@ -249,6 +252,7 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
             except Exception:
                 p.kill()
     row = _summarize(case, d, procs, levels)
+    row["worst_diagnostics"] = worst_msg  # the message of each status at its worst level
     row["rss_mib"] = rss  # each estimator's resident memory at the end of the run
     row["rss_growth_mib"] = {  # ... less what it held just before the fault
         m: round(rss[m] - rss_before[m], 1) if rss.get(m) and rss_before.get(m) else None for m in METHODS

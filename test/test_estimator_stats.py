@@ -97,6 +97,10 @@ def test_drops_quarantine_and_falling_behind_are_never_ok():
     s.estimated += 10
     level, problems = health(s, s.window(2.0), waiting=False, foreign=set())
     assert level == WARN and problems == ["falling behind: busy 95% of the time"]
+    s.waited(2.5)  # a message sent 2.5 s before it was processed
+    level, problems = health(s, s.window(2.5), waiting=False, foreign=set())
+    assert level == WARN and problems == ["falling behind: a message waited 2.5 s in the queue"]
+    assert s.window(2.6)["lag"] == 0.0  # per window
     s.skipped["unconfirmed"] += 40
     s.oversize += 1
     s.estimated += 20

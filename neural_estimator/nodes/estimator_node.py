@@ -201,7 +201,9 @@ class EstimatorNode(ManagedNode):
             else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
-        self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observation, qos, raw=True)
+        self.sub_obs = self.create_subscription(
+            JointState, p.observation_topic, lambda raw, info: self._on_observation(raw, info), qos, raw=True
+        )  # (two parameters: rclpy passes the message info, whose source timestamp gives the wait)
         self.get_logger().info(
             f"subscribed to '{self.obs_topic}' ({p.observation_qos}, "
             f"{'transient_local: the publishers history is received' if transient else 'volatile'})"
@@ -323,8 +325,10 @@ class EstimatorNode(ManagedNode):
             )
 
     # ---- per message -------------------------------------------------------------------------------
-    def _on_observation(self, raw: bytes) -> None:
+    def _on_observation(self, raw: bytes, info=None) -> None:
         t0 = time.perf_counter()
+        if info is not None and info.get("source_timestamp"):  # how long it waited (same clock, same machine)
+            self.stats.waited(max(0.0, (time.time_ns() - info["source_timestamp"]) * 1e-9))
         if self.online is None:  # kept until the scenario arrives (messages on two topics race)
             if len(raw) > EARLY_MAX_BYTES:
                 self.stats.oversize += 1

@@ -72,11 +72,16 @@ class EstimatorStats:
     oversize: int = 0  # messages over the size bound, dropped unread
     publisher_restarts: int = 0  # new runs detected (announcement or stamp epoch)
     busy: float = 0.0  # seconds spent processing messages
+    lag: float = 0.0  # the longest a message waited (sent -> processing started) in the current window
     diverged: bool = False
     position: tuple[int, int] = (-1, -1)
     skipped: dict = dataclasses.field(default_factory=lambda: dict.fromkeys(SKIP_REASONS, 0))
     latency: LatencyRing = dataclasses.field(default_factory=LatencyRing)
     _mark: dict = dataclasses.field(default_factory=dict)
+
+    def waited(self, seconds: float) -> None:
+        """A message reached the node ``seconds`` after it was sent (queued in DDS meanwhile)."""
+        self.lag = max(self.lag, seconds)
 
     def record(self, seconds: float) -> None:
         """One processed message took ``seconds``."""
@@ -103,10 +108,12 @@ class EstimatorStats:
             rate=out["estimated"] / dt if self._mark else 0.0,
             skipped=sum(self.skipped.values()) - m["skipped"],
             busy=(self.busy - m["busy"]) / dt if self._mark else 0.0,
+            lag=self.lag,
             p50=float(np.percentile(lat, 50)) if lat.size else float("nan"),
             p99=float(np.percentile(lat, 99)) if lat.size else float("nan"),
         )
         self._mark = self._snapshot(now)
+        self.lag = 0.0
         return out
 
     def percentiles(self) -> tuple[float, float]:
@@ -117,6 +124,7 @@ class EstimatorStats:
 
 
 BUSY_WARN = 0.9  # a node busy more than this share of the wall time is falling behind
+LAG_WARN = 1.0  # s: a message that waited longer than this in the queue means the node is behind
 
 
 def health(stats: EstimatorStats, window: dict, *, waiting: bool, foreign: set[str]) -> tuple[int, list[str]]:
@@ -125,9 +133,10 @@ def health(stats: EstimatorStats, window: dict, *, waiting: bool, foreign: set[s
     ERROR: the estimate diverged, the method failed (its stream restarted), or the window lost at
     least as many messages as it estimated. WARN: any message dropped, skipped or held in the window
     (bad, oversize, duplicate, out of order, unconfirmed, quarantined, waiting for the scenario),
-    missing steps, stream restarts, non-finite observations, busy more than 90 % of the time
-    (falling behind: the queue grows and DDS drops the oldest), publishers of the wrong type, or
-    still waiting for the scenario. Every problem names its count.
+    missing steps, stream restarts, non-finite observations, busy more than 90 % of the time or a
+    message that waited more than 1 s in the queue (falling behind: the queue grows and DDS drops
+    the oldest), publishers of the wrong type, or still waiting for the scenario. Every problem
+    names its count.
     """
     problems = []
     level = ERROR if stats.diverged else OK
@@ -154,6 +163,9 @@ def health(stats: EstimatorStats, window: dict, *, waiting: bool, foreign: set[s
     if window["busy"] > BUSY_WARN:
         level = max(level, WARN)
         problems.append(f"falling behind: busy {100 * window['busy']:.0f}% of the time")
+    if window.get("lag", 0.0) > LAG_WARN:
+        level = max(level, WARN)
+        problems.append(f"falling behind: a message waited {window['lag']:.1f} s in the queue")
     if foreign:
         level = max(level, WARN)
         problems.append(f"foreign publishers: {', '.join(sorted(foreign))}")
@@ -173,6 +185,7 @@ def diagnostic_values(stats: EstimatorStats, window: dict, method: str) -> dict[
         "method": method,
         "update rate (Hz)": f"{window['rate']:.1f}",
         "busy (%)": f"{100 * window['busy']:.1f}",
+        "longest wait in the queue (s)": f"{window.get('lag', 0.0):.3f}",
         "latency p50 (ms)": f"{window['p50'] * 1e3:.3f}",
         "latency p99 (ms)": f"{window['p99'] * 1e3:.3f}",
         "latency p50 since start (ms)": f"{a50 * 1e3:.3f}",
