@@ -25,7 +25,9 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(include=["neural_estimator", "neural_estimator.*", "sim_nodes", "sim_nodes.*"]),
-    package_data={"neural_estimator": ["zoo/*/*.safetensors", "zoo/*/*.json", "paper/paper_results.json"]},
+    package_data={
+        "neural_estimator": ["zoo/*/*.safetensors", "zoo/*/*.json", "paper/paper_results.json", "nodes/*.xml"]
+    },
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),
         (f"share/{package_name}", ["package.xml"]),

@@ -931,7 +931,7 @@ def _cmd_replay(args) -> int:
         + ", ".join(
             f"{m} {res.estimates[m]} estimates ({res.per_step_us(m):.0f} us/step"
             + (f", {res.rejected[m]} rejected" if res.rejected.get(m) else "")
-            + (f", {res.skipped[m]} duplicate or stale skipped" if res.skipped.get(m) else "")
+            + (f", {res.skipped[m]} duplicate, stale or unconfirmed skipped" if res.skipped.get(m) else "")
             + ")"
             for m in methods
         )
@@ -964,7 +964,8 @@ def _cmd_recover(args) -> int:
     _check_out(args.out, args.overwrite)
     res = recover_bag(args.bag, args.out, overwrite=args.overwrite)
     lost = f"; the input had lost: {res.damage}" if res.damage is not None else "; the input was intact"
-    print(f"wrote {res.path}: {res.messages} messages on {res.topics} topics{lost}")
+    note = f"; {res.lost_note()}" if res.lost else ""
+    print(f"wrote {res.path}: {res.messages} messages on {res.topics} topics{lost}{note}")
     return 0
 
 

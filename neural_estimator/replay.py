@@ -8,17 +8,27 @@ observation of a bag at full speed, without DDS. Same bytes in, same calls, same
 Stream rules (one estimator, B = 1), applied in arrival order (replay uses the bag's order, the
 order a live node received the messages in, so both give the same estimates):
 
-- the first message, a message of a later trajectory, or a step 0 stamped after the last processed
-  message (a new run that restarts its trajectory indices) starts a new stream: the estimator is
-  reset to its prior;
-- a message of an earlier trajectory (a stray message arriving late), or a step at or before the
-  last one processed in the current trajectory, is skipped (``stale`` or ``duplicate``, the
-  caller counts and logs it); the estimator state is untouched. A stray message never resets;
-- a step later than the next one means observations were lost: the missing steps are run as
+- the first message (or the first after a reset) starts a stream: the estimator is reset to its prior;
+- the natural successor of the last processed message (the next step of its trajectory, or, where
+  the run's horizon is known, step 0 of the next trajectory after the last step), stamped later,
+  is estimated at once; an exact repeat (same identity and stamp) is skipped as ``duplicate``;
+- anything else is a jump (a later or earlier trajectory, a step forward past a gap or back, a
+  stamp that went back) and no single message is trusted with one: it is *held* (quarantined,
+  at most ``confirm - 1`` messages) until the following messages agree with it (``confirm``
+  messages in all: a later step of its trajectory or its successor), or ``quarantine_seconds``
+  pass with nothing refuting it (:meth:`OnlineEstimator.poll`; :meth:`OnlineEstimator.flush` at
+  the end of the input). If instead the current stream goes on ``confirm`` more messages, the
+  held ones are dropped (``stale`` when they were older than the stream, late deliveries;
+  ``unconfirmed`` otherwise); a held message that becomes the next step of the current stream
+  (reordered delivery) is estimated in order. An accepted jump within the trajectory is a gap;
+  any other starts a new stream from the prior (``new_run`` when its stamps went back: a
+  restarted publisher). So one stray, forged or corrupted identity costs at most itself, never
+  the real stream, and a restarted publisher's new run takes over after ``confirm`` messages;
+- a gap (a step later than the next one, accepted) means observations were lost: the missing steps are run as
   predict-only steps (observation NaN, the last received control held), so that the estimate of
   step k is still an estimate of x_k. The bridge is bounded: more than ``max_gap`` missing steps,
   or predict-only steps running longer than ``max_gap_seconds``, restart the stream from the prior
-  at this message, so one message with a huge step jump costs at most about ``max_gap_seconds``;
+  at this message, so one accepted step jump costs at most about ``max_gap_seconds``;
 - a non-finite value in y_k is used as "no observation" (filters predict only, neural models see
   their training mean, per the estimator contract) and reported; a non-finite control, wrong names
   or widths, an empty or unparsable message raise :class:`~neural_estimator.bags.errors.MessageError`
@@ -31,7 +41,7 @@ import dataclasses
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -43,13 +53,15 @@ from neural_estimator.estimators import NEURAL_METHODS, Estimator, EstimatorErro
 
 DEFAULT_MAX_GAP = 1_000
 DEFAULT_MAX_GAP_SECONDS = 0.25
+DEFAULT_CONFIRM = 2  # a jump is accepted when the message after it agrees
+DEFAULT_QUARANTINE_SECONDS = 0.5  # ... or when nothing refuted it for this long
 
 
 @dataclasses.dataclass(frozen=True)
 class StepResult:
-    """Outcome of one observation message."""
+    """Outcome of one observation message (a held message has two: ``held``, then its release)."""
 
-    status: str  # "estimated", "duplicate" or "stale" (out of order, or of an earlier trajectory)
+    status: str  # see STATUSES
     trajectory: int
     step: int
     stamp_ns: int
@@ -61,6 +73,25 @@ class StepResult:
     restarted: bool = False  # the gap exceeded max_gap (or max_gap_seconds): the stream restarted here
     nonfinite: bool = False  # y_k had NaN/inf: predict only
     diverged: bool = False  # the estimator's stream is diverged (estimates NaN until reset)
+    new_run: bool = False  # the stream started here is a new run of the publisher (its stamps went back)
+    P: np.ndarray | None = None  # (dx, dx) the method's covariance of this estimate, where it has one
+
+
+STATUSES = (
+    "estimated",  # estimate (and covariance) computed
+    "duplicate",  # same identity and stamp as the last processed message: skipped
+    "held",  # a jump in the stream, quarantined until the following messages confirm it
+    "stale",  # a held message behind the current stream that nothing confirmed (a late message): dropped
+    "unconfirmed",  # a held jump that the following messages did not confirm: dropped
+)
+
+
+class _Obs(NamedTuple):
+    trajectory: int
+    step: int
+    stamp_ns: int
+    y: np.ndarray  # (1, dy)
+    u_prev: np.ndarray  # (1, du)
 
 
 class OnlineEstimator:
@@ -73,6 +104,11 @@ class OnlineEstimator:
         max_gap: the most missing steps filled with predict-only steps.
         max_gap_seconds: the most seconds spent filling one gap (0 = no time bound).
         frame_id: header.frame_id of the estimate and covariance messages (default: the method).
+        confirm: messages that must agree before a jump in the stream is accepted (the jump itself
+            included; 1 = accept every jump at once, the rule before quarantine existed).
+        quarantine_seconds: the most seconds a jump is held unconfirmed before it is accepted anyway.
+        horizon: steps per trajectory where known (the run's announcement): then step 0 of the next
+            trajectory right after the last step is the natural successor, not a jump.
     """
 
     def __init__(
@@ -84,13 +120,23 @@ class OnlineEstimator:
         max_gap: int = DEFAULT_MAX_GAP,
         max_gap_seconds: float = DEFAULT_MAX_GAP_SECONDS,
         frame_id: str | None = None,
+        confirm: int = DEFAULT_CONFIRM,
+        quarantine_seconds: float = DEFAULT_QUARANTINE_SECONDS,
+        horizon: int | None = None,
     ) -> None:
+        if confirm < 1 or quarantine_seconds < 0:
+            raise EstimatorError(
+                f"confirm must be >= 1 and quarantine_seconds >= 0, got {confirm} and {quarantine_seconds}"
+            )
         self.estimator = estimator
         self.scenario = estimator.scenario
         self.method = method
         self.publish_covariance = bool(publish_covariance and estimator.has_covariance)
         self.max_gap = int(max_gap)
         self.max_gap_seconds = float(max_gap_seconds)
+        self.confirm = int(confirm)
+        self.quarantine_seconds = float(quarantine_seconds)
+        self.horizon = int(horizon) if horizon else None
         self._obs_labels = M.observation_labels(self.scenario)
         self._obs_codec = M.VectorCodec(self.scenario.name, self._obs_labels)
         frame = method if frame_id is None else frame_id
@@ -101,28 +147,147 @@ class OnlineEstimator:
         self.step = -1
         self._u_hold = np.zeros((1, self.scenario.du))
         self._last_stamp: int | None = None  # stamp of the last processed message
+        self._held: list[_Obs] = []  # the quarantined jump (at most ``confirm - 1`` messages)
+        self._held_since = 0.0  # when its first message arrived (the caller's clock)
+        self._since_held = 0  # messages of the current stream processed since then
+        self._last_arrival: float | None = None  # when the current stream's last message arrived
+        self._interval: float | None = None  # its typical inter-arrival time (running mean)
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The size bound of an observation message: larger ones are refused before decoding."""
+        return self._obs_codec.max_bytes
+
+    @property
+    def held(self) -> int:
+        """Messages now in quarantine."""
+        return len(self._held)
 
     def reset(self) -> None:
-        """Forget the current stream; the next message starts from the prior."""
+        """Forget the current stream (and any quarantined message); the next message starts from the prior."""
         self.trajectory = None
         self.step = -1
         self._last_stamp = None
+        self._held = []
 
-    def _classify(self, trajectory: int, step: int, stamp_ns: int) -> str:
-        """ "new" (start a stream here), "next" (continue), "duplicate" or "stale" (skip)."""
-        if self.trajectory is None:
-            return "new"
-        newer = self._last_stamp is None or stamp_ns > self._last_stamp
-        if step == 0 and newer and (trajectory != self.trajectory or self.step >= 0):
-            return "new"  # a new trajectory, or a new run restarting the indices
-        if trajectory > self.trajectory:
-            return "new"
-        if trajectory < self.trajectory:
-            return "stale"  # a stray message of an earlier trajectory
-        if step <= self.step:
-            return "duplicate" if step == self.step else "stale"
-        return "next"
+    # ---- identity ------------------------------------------------------------------------------------
+    def _succeeds(self, m: _Obs, trajectory: int, step: int, stamp_ns: int) -> bool:
+        """True when ``m`` is the natural successor of (trajectory, step, stamp): the next step of
+        the trajectory, or step 0 of the next one after its last step (horizon known), stamped later."""
+        if m.stamp_ns <= stamp_ns:
+            return False
+        if m.trajectory == trajectory:
+            return m.step == step + 1
+        return self.horizon is not None and step == self.horizon - 1 and m.trajectory == trajectory + 1 and m.step == 0
 
+    def _ahead(self, m: _Obs) -> bool:
+        """True for a later step of the current trajectory, stamped later (a forward gap)."""
+        return m.trajectory == self.trajectory and m.step > self.step and m.stamp_ns > self._last_stamp
+
+    def _continues_held(self, m: _Obs) -> bool:
+        """True when ``m`` agrees with the quarantined jump: later in its trajectory (gaps allowed)
+        or its natural successor, stamped later; and it is not rather the current stream going on
+        past a gap (that confirms only a held forward jump of the current trajectory)."""
+        last = self._held[-1]
+        if self._ahead(m) and not self._ahead(self._held[0]):
+            return False
+        if m.trajectory == last.trajectory:
+            return m.step > last.step and m.stamp_ns > last.stamp_ns
+        return self._succeeds(m, last.trajectory, last.step, last.stamp_ns)
+
+    def _behind(self, m: _Obs) -> bool:
+        """True for a message older than the current stream (a late message rather than a jump)."""
+        if m.trajectory != self.trajectory:
+            return m.trajectory < self.trajectory and m.stamp_ns <= self._last_stamp
+        return m.step < self.step and m.stamp_ns < self._last_stamp
+
+    # ---- the rules -----------------------------------------------------------------------------------
+    def feed(self, raw: bytes | memoryview, now: float | None = None) -> list[StepResult]:
+        """Consume one observation message: the results it caused, in order (an estimate of this
+        message, its ``held`` status, or a ``duplicate``; plus quarantined messages it released or
+        dropped). ``now`` (seconds, any monotonic clock; default time.monotonic) times the quarantine.
+        Raises MessageError for a message that cannot be used (the state is untouched)."""
+        now = time.monotonic() if now is None else float(now)
+        m = self._decode(raw)
+        out: list[StepResult] = []
+        if self.trajectory is None:  # the first message (or after a reset) starts a stream
+            out.append(self._estimate(m, new=True))
+            self._last_arrival, self._interval = now, None
+        elif self._succeeds(m, self.trajectory, self.step, self._last_stamp):
+            out.append(self._estimate(m, new=m.trajectory != self.trajectory))
+            self._arrived(now)
+            self._since_held += 1
+            self._release_successors(out)
+            if self._held and self._since_held >= self.confirm:  # the stream went on without the jump
+                out += self._drop_held()
+        elif m.trajectory == self.trajectory and m.step == self.step and m.stamp_ns == self._last_stamp:
+            out.append(StepResult("duplicate", m.trajectory, m.step, m.stamp_ns))
+        elif self._held and self._continues_held(m):
+            self._held.append(m)
+            if len(self._held) >= self.confirm:  # confirmed: the jump and this message are estimated
+                out += self._accept_held()
+            else:
+                out.append(StepResult("held", m.trajectory, m.step, m.stamp_ns))
+        else:
+            out += self._drop_held()
+            self._held, self._held_since, self._since_held = [m], now, 0
+            out.append(StepResult("held", m.trajectory, m.step, m.stamp_ns))
+            if self.confirm <= 1:
+                out += self._accept_held()
+        return out
+
+    def poll(self, now: float | None = None) -> list[StepResult]:
+        """Accept a held jump when the stream fell silent: no message of the current stream since it
+        arrived, for ``quarantine_seconds`` or four of the stream's inter-arrival times, whichever is
+        longer (so a slow stream's next message still gets to refute it). Call it periodically."""
+        now = time.monotonic() if now is None else float(now)
+        wait = max(self.quarantine_seconds, 4 * (self._interval or 0.0))
+        if self._held and not self._since_held and now - self._held_since >= wait:
+            return self._accept_held()
+        return []
+
+    def _arrived(self, now: float) -> None:
+        if self._last_arrival is not None and now >= self._last_arrival:
+            gap = now - self._last_arrival
+            self._interval = gap if self._interval is None else 0.9 * self._interval + 0.1 * gap
+        self._last_arrival = now
+
+    def flush(self) -> list[StepResult]:
+        """Accept a held jump now (the end of the input: nothing more can confirm or refute it)."""
+        return self._accept_held() if self._held else []
+
+    def _release_successors(self, out: list[StepResult]) -> None:
+        """Held messages that became the current stream's next steps (reordered delivery) are processed."""
+        while self._held and self._succeeds(self._held[0], self.trajectory, self.step, self._last_stamp):
+            h = self._held.pop(0)
+            out.append(self._estimate(h, new=h.trajectory != self.trajectory))
+
+    def _drop_held(self) -> list[StepResult]:
+        held, self._held = self._held, []
+        return [
+            StepResult("stale" if self._behind(h) else "unconfirmed", h.trajectory, h.step, h.stamp_ns) for h in held
+        ]
+
+    def _accept_held(self) -> list[StepResult]:
+        """The held jump becomes the stream: a later step of the current trajectory is bridged (or
+        restarted) as a gap, anything else starts a new stream from the prior."""
+        held, self._held = self._held, []
+        first = held[0]
+        same = self._ahead(first)
+        new_run = self._last_stamp is not None and first.stamp_ns <= self._last_stamp
+        out = [self._estimate(first, new=not same, new_run=new_run)]
+        out += [self._estimate(h, new=h.trajectory != self.trajectory) for h in held[1:]]
+        return out
+
+    def _decode(self, raw: bytes | memoryview) -> _Obs:
+        vec = self._obs_codec.decode(raw)
+        values = M.check_labels(vec, self._obs_labels, "observation")
+        y, u_prev = values[None, : self._dy], values[None, self._dy :]
+        if not np.all(np.isfinite(u_prev)):
+            raise MessageError(f"observation {vec.trajectory}/{vec.step}: control u_prev contains NaN or inf")
+        return _Obs(vec.trajectory, vec.step, vec.stamp_ns, y, u_prev)
+
+    # ---- one estimator step ------------------------------------------------------------------------
     def _start(self, trajectory: int) -> None:
         self.estimator.reset(1)
         self.trajectory = trajectory
@@ -140,52 +305,45 @@ class OnlineEstimator:
                 return 0, True
         return gap, False
 
-    def process(self, raw: bytes | memoryview) -> StepResult:
-        """Consume one observation message; raises MessageError for a message that cannot be used."""
-        vec = self._obs_codec.decode(raw)
-        values = M.check_labels(vec, self._obs_labels, "observation")
-        y, u_prev = values[None, : self._dy], values[None, self._dy :]
-        if not np.all(np.isfinite(u_prev)):
-            raise MessageError(f"observation {vec.trajectory}/{vec.step}: control u_prev contains NaN or inf")
-        kind = self._classify(vec.trajectory, vec.step, vec.stamp_ns)
-        if kind in ("duplicate", "stale"):
-            return StepResult(kind, vec.trajectory, vec.step, vec.stamp_ns)
-        reset = kind == "new"
-        if reset:
-            self._start(vec.trajectory)
-        gap = vec.step - self.step - 1
+    def _estimate(self, m: _Obs, *, new: bool = False, new_run: bool = False) -> StepResult:
+        if new:
+            self._start(m.trajectory)
+        gap = m.step - self.step - 1
         restarted = False
         if gap > self.max_gap:
             gap, restarted = 0, True
         elif gap:
             gap, restarted = self._bridge(gap)
         if restarted:  # too long to bridge: estimate from the prior from here on
-            self._start(vec.trajectory)
+            self._start(m.trajectory)
         try:
-            x_hat = self.estimator.step(y, u_prev)[0]
-        except EstimatorError as exc:  # the checks above should make this unreachable
-            raise MessageError(f"observation {vec.trajectory}/{vec.step}: {exc}") from None
-        self.step = vec.step
-        self._last_stamp = vec.stamp_ns
-        self._u_hold = u_prev
-        est = self._est_codec.encode(vec.stamp_ns, vec.trajectory, vec.step, x_hat)
+            x_hat = self.estimator.step(m.y, m.u_prev)[0]
+        except EstimatorError as exc:  # the checks in _decode should make this unreachable
+            raise MessageError(f"observation {m.trajectory}/{m.step}: {exc}") from None
+        self.step = m.step
+        self._last_stamp = m.stamp_ns
+        self._u_hold = m.u_prev
+        est = self._est_codec.encode(m.stamp_ns, m.trajectory, m.step, x_hat)
         cov = None
-        if self.publish_covariance and self.estimator.covariance is not None:
-            cov = self._cov_codec.encode(vec.stamp_ns, vec.trajectory, vec.step, self.estimator.covariance[0])
+        P = None if self.estimator.covariance is None else self.estimator.covariance[0].copy()
+        if self.publish_covariance and P is not None:
+            cov = self._cov_codec.encode(m.stamp_ns, m.trajectory, m.step, P)
         diverged = bool(self.estimator.diverged[0]) if len(self.estimator.diverged) else False
         return StepResult(
             "estimated",
-            vec.trajectory,
-            vec.step,
-            vec.stamp_ns,
+            m.trajectory,
+            m.step,
+            m.stamp_ns,
             est,
             cov,
             x_hat,
-            reset=reset,
+            reset=new,
             filled=gap,
             restarted=restarted,
-            nonfinite=not bool(np.all(np.isfinite(y))),
+            nonfinite=not bool(np.all(np.isfinite(m.y))),
             diverged=diverged,
+            new_run=new_run,
+            P=P,
         )
 
 
@@ -271,6 +429,7 @@ def replay(
             bag.connection(scen_topic, M.STRING)
             for _, _, raw in bag.messages([scen_topic]):
                 desc = M.decode_scenario(raw)
+                break  # the first announcement defines the run
         kept_topics = [c for c in bag.connections if c.topic not in replaced]
         passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
     if desc is None:
@@ -305,27 +464,31 @@ def replay(
             method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
         )
         online = OnlineEstimator(
-            est, method, publish_covariance=publish_covariance, max_gap=max_gap, max_gap_seconds=max_gap_seconds
+            est,
+            method,
+            publish_covariance=publish_covariance,
+            max_gap=max_gap,
+            max_gap_seconds=max_gap_seconds,
+            horizon=(desc.get("run") or {}).get("horizon"),
         )
         est_topic = M.resolve_topic(M.estimate_topic(method), namespace)
         cov_topic = M.resolve_topic(M.covariance_topic(method), namespace)
         counts[method], rejected[method], skipped[method], spent = 0, 0, 0, 0.0
         for _, t, raw in observations:
             t0 = time.perf_counter()
+            now = t * 1e-9 if order == "recorded" else 0.0  # the receive time: held jumps time out as live
             try:
-                res = online.process(raw)
+                results = online.poll(now) + online.feed(raw, now)
             except MessageError:
                 rejected[method] += 1
                 continue
             finally:
                 spent += time.perf_counter() - t0
-            if res.estimate is None:
-                skipped[method] += 1
-            else:
-                out_msgs.append((est_topic, t, res.estimate))
-                counts[method] += 1
-            if res.covariance is not None:
-                out_msgs.append((cov_topic, t, res.covariance))
+            for res in results:
+                counts[method] += _collect(res, t, est_topic, cov_topic, out_msgs, skipped, method)
+        t_end = observations[-1][1] if observations else 0
+        for res in online.flush():
+            counts[method] += _collect(res, t_end, est_topic, cov_topic, out_msgs, skipped, method)
         seconds[method] = spent
 
     qos = {c.topic: parse_qos_yaml(c.offered_qos_profiles) for c in kept_topics}
@@ -345,6 +508,17 @@ def replay(
                 )
             out.write(topic, t, raw)
     return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
+
+
+def _collect(res: StepResult, t: int, est_topic: str, cov_topic: str, out_msgs: list, skipped: dict, method: str):
+    """Append an estimated result's messages at log time ``t``; count the skipped ones. 1 if estimated."""
+    if res.estimate is None:
+        skipped[method] += res.status != "held"  # a held message is counted once, when dropped
+        return 0
+    out_msgs.append((est_topic, t, res.estimate))
+    if res.covariance is not None:
+        out_msgs.append((cov_topic, t, res.covariance))
+    return 1
 
 
 def set_torch_threads(methods: Sequence[str], threads: int) -> None:

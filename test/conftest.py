@@ -20,6 +20,10 @@ def _load_example():
 EXAMPLE = _load_example()
 
 
+def pytest_configure(config):
+    config.addinivalue_line("markers", "slow: minutes-long live checks (the chaos harness); -m 'not slow' skips them")
+
+
 def load_script(relative: str):
     """A repository script (``scripts/...``, ``benchmarks/...``) loaded afresh as a module, so its
     functions and ``main`` are tested in-process (each call gives a new module: monkeypatching one

@@ -554,20 +554,25 @@ def test_online_estimator_stream_rules():
         u = (data.u[0, k - 1] if k else np.zeros(1)) if u is None else u
         return M.encode_observation(s, k, n, k, y, u)
 
-    assert online.process(obs(0)).status == "estimated"
-    assert online.process(obs(0)).status == "duplicate"
-    r = online.process(obs(3))
-    assert r.status == "estimated" and r.filled == 2
-    assert online.process(obs(2)).status == "stale"
-    r = online.process(obs(4, y=[np.nan]))
-    assert r.nonfinite and np.isfinite(r.x_hat).all()
+    def feed(raw):
+        return [r.status for r in online.feed(raw, 0.0)]
+
+    assert feed(obs(0)) == ["estimated"]
+    assert feed(obs(0)) == ["duplicate"]
+    assert feed(obs(3)) == ["held"]  # a jump: held until the next message agrees
+    r = online.feed(obs(4, y=[np.nan]), 0.0)
+    assert [x.status for x in r] == ["estimated", "estimated"] and r[0].filled == 2
+    assert r[1].nonfinite and np.isfinite(r[1].x_hat).all()
+    assert feed(obs(2)) == ["held"]  # late: held, then dropped as stale once the stream goes on
     for bad in (b"", obs(5, u=[np.nan]), M.encode_vector(0, s.name, 0, 5, ["position"], [0.0])):
         with pytest.raises(MessageError):
-            online.process(bad)
+            online.feed(bad)
     assert online.step == 4  # bad messages change nothing
-    assert online.process(obs(0, n=1)).reset
+    assert feed(obs(5)) == ["estimated"] and feed(obs(6)) == ["estimated", "stale"]
+    assert feed(obs(0, n=1)) == ["held"]
     online.max_gap = 2
-    assert online.process(obs(7, n=1)).restarted
+    r = online.feed(obs(7, n=1), 0.0)
+    assert [x.status for x in r] == ["estimated", "estimated"] and r[0].reset and r[1].restarted
 
 
 @pytest.mark.parametrize("frame", ["", "a", "abcd", "lorenz96"])

@@ -221,24 +221,39 @@ def _obs(scen, data, n, k, start_ns=10**18):
     return M.encode_observation(scen, t, n, k, data.y[n, k], u_prev)
 
 
+def _run(online, raws, now=0.0):
+    """Every result of feeding ``raws`` (no quarantine time-outs), then the flush at the end."""
+    out = []
+    for raw in raws:
+        out += online.feed(raw, now)
+    return out + online.flush()
+
+
+def _estimates(results):
+    return [(r.trajectory, r.step) for r in results if r.status == "estimated"], np.array(
+        [r.x_hat for r in results if r.status == "estimated"]
+    )
+
+
+def _clean(scen, data):
+    return [_obs(scen, data, n, k) for n in range(N) for k in range(T)]
+
+
 def test_a_stray_message_is_skipped_never_a_reset(scen, data, tmp_path):
-    clean = OnlineEstimator(make_estimator("ukf", scen), "ukf")
-    hostile = OnlineEstimator(make_estimator("ukf", scen), "ukf")
-    ref, got, statuses = [], [], []
+    clean = OnlineEstimator(make_estimator("ukf", scen), "ukf", horizon=T)
+    hostile = OnlineEstimator(make_estimator("ukf", scen), "ukf", horizon=T)
+    ref = [r.x_hat for raw in _clean(scen, data) for r in clean.feed(raw, 0.0)]
+    sent = []
     for n in range(N):
         for k in range(T):
-            ref.append(clean.process(_obs(scen, data, n, k)).x_hat)
             if n == 1 and k == 3:  # trajectory 0, step 5 (and 0) arrive late, during trajectory 1
-                statuses += [
-                    hostile.process(_obs(scen, data, 0, 5)).status,
-                    hostile.process(_obs(scen, data, 0, 0)).status,
-                ]
-            got.append(hostile.process(_obs(scen, data, n, k)).x_hat)
-    assert statuses == ["stale", "stale"]
-    np.testing.assert_array_equal(np.array(got), np.array(ref))
-    # a new run restarting the trajectory indices (later stamps) is a new stream
-    r = hostile.process(_obs(scen, data, 0, 0, start_ns=2 * 10**18))
-    assert r.status == "estimated" and r.reset
+                sent += [_obs(scen, data, 0, 5), _obs(scen, data, 0, 0)]
+            sent.append(_obs(scen, data, n, k))
+    results = _run(hostile, sent)
+    assert [(r.trajectory, r.step) for r in results if r.status not in ("estimated", "held")] == [(0, 5), (0, 0)]
+    assert all(r.status == "stale" for r in results if r.status not in ("estimated", "held"))
+    assert sum(r.status == "unconfirmed" for r in results) == 0 and sum(r.reset for r in results) == N
+    np.testing.assert_array_equal(_estimates(results)[1], np.array(ref))
 
     # replay processes a bag in recorded order: the same skip, the same estimates as live
     msgs = _stream_messages(scen, data)
@@ -257,18 +272,87 @@ def test_a_stray_message_is_skipped_never_a_reset(scen, data, tmp_path):
     np.testing.assert_array_equal(bag_to_arrays(res.path).x_hat["ukf"].reshape(-1, scen.dx), np.array(ref))
 
 
+@pytest.mark.parametrize(
+    "forged",
+    [
+        "later trajectory",  # (n + 50, k): the real stream looked out of order (602 of 1,500 estimates)
+        "step jump",  # (n, k + 400): the next 399 real steps were dropped
+        "earlier trajectory, newer stamp",  # (n - 1, 0) stamped later: the stream was reset
+        "far trajectory start",  # (n + 7, 0) stamped later
+    ],
+)
+@pytest.mark.parametrize("horizon", [None, T])
+def test_one_message_cannot_subvert_the_stream(scen, data, forged, horizon):
+    """A single forged or corrupted identity in the middle of trajectory 1 costs itself only: every
+    real message is estimated exactly as in the clean stream; the forged one is dropped, counted."""
+    clean = OnlineEstimator(make_estimator("ukf", scen), "ukf", horizon=horizon)
+    ref_ids, ref = _estimates(_run(clean, _clean(scen, data)))
+    n, k = 1, 4
+    period = M.dt_ns(scen.dt)
+    t_now = M.step_stamp_ns(10**18, n * T + k, period)
+    bad = {
+        "later trajectory": M.encode_observation(scen, t_now, n + 50, k, data.y[n, k], data.u[n, k - 1]),
+        "step jump": M.encode_observation(scen, t_now + 400 * period, n, k + 400, data.y[n, k], data.u[n, k - 1]),
+        "earlier trajectory, newer stamp": M.encode_observation(
+            scen, t_now + 10**12, n - 1, 0, data.y[0, 0], np.zeros(scen.du)
+        ),
+        "far trajectory start": M.encode_observation(scen, t_now + 10**12, n + 7, 0, data.y[0, 0], np.zeros(scen.du)),
+    }[forged]
+    sent = _clean(scen, data)
+    sent.insert(n * T + k, bad)
+    results = _run(OnlineEstimator(make_estimator("ukf", scen), "ukf", horizon=horizon), sent)
+    ids, got = _estimates(results)
+    assert ids == ref_ids
+    np.testing.assert_array_equal(got, ref)
+    dropped = [r.status for r in results if r.status in ("stale", "unconfirmed")]
+    assert len(dropped) == 1 and sum(r.status == "held" for r in results) >= 1
+
+
+def test_a_restarted_publisher_starts_a_fresh_stream(scen, data):
+    """A publisher killed at step 7 and restarted with stamps that went back (a simulator running
+    ahead of wall time): its new run is a new stream from the prior after one confirming message,
+    estimated exactly as a fresh estimator would; nothing of the killed run carries over."""
+    online = OnlineEstimator(make_estimator("ukf", scen), "ukf")
+    for k in range(8):
+        online.feed(_obs(scen, data, 0, k, start_ns=2 * 10**18), 0.0)
+    new_run = [_obs(scen, data, 0, k, start_ns=10**18) for k in range(T)]
+    results = _run(online, new_run)
+    assert results[0].status == "held" and results[1].new_run and results[1].reset
+    fresh = _run(OnlineEstimator(make_estimator("ukf", scen), "ukf"), new_run)
+    np.testing.assert_array_equal(_estimates(results)[1], _estimates(fresh)[1])
+    assert len(_estimates(results)[0]) == T
+
+
+def test_quarantine_is_bounded_in_time_and_reordering_is_repaired(scen, data):
+    online = OnlineEstimator(make_estimator("ekf", scen), "ekf", quarantine_seconds=0.5)
+    for k in range(3):
+        online.feed(_obs(scen, data, 0, k), 10.0)
+    assert [r.status for r in online.feed(_obs(scen, data, 0, 6), 10.0)] == ["held"]
+    assert online.held == 1 and online.poll(10.4) == []
+    r = online.poll(10.5)  # nothing confirmed or refuted it for 0.5 s: accepted, the gap bridged
+    assert [x.status for x in r] == ["estimated"] and r[0].filled == 3 and online.held == 0
+    # reordered delivery: 8 before 7 -> 8 is held, 7 releases it, both estimated in order
+    reordered = OnlineEstimator(make_estimator("ekf", scen), "ekf")
+    in_order = OnlineEstimator(make_estimator("ekf", scen), "ekf")
+    ks = [0, 1, 2, 4, 3, 5]
+    res = _run(reordered, [_obs(scen, data, 0, k) for k in ks])
+    ref = _run(in_order, [_obs(scen, data, 0, k) for k in sorted(ks)])
+    assert [r.step for r in res if r.status == "estimated"] == sorted(ks)
+    np.testing.assert_array_equal(_estimates(res)[1], _estimates(ref)[1])
+
+
 def test_a_step_jump_costs_bounded_time(scen, data):
-    online = OnlineEstimator(make_estimator("pf", scen), "pf", max_gap=10**9, max_gap_seconds=0.05)
-    online.process(_obs(scen, data, 0, 0))
+    online = OnlineEstimator(make_estimator("pf", scen), "pf", max_gap=10**9, max_gap_seconds=0.05, confirm=1)
+    online.feed(_obs(scen, data, 0, 0))
     far = M.encode_observation(scen, 10**18 + 10**15, 0, 10_000_000, data.y[0, 1], data.u[0, 0])
-    r = online.process(far)
+    (_, r) = online.feed(far)
     # restarted without bridging: 10 million PF predict steps would take hours (the work done is
     # asserted, not the wall time, which includes the kernels' first compilation in a fresh clone)
     assert r.status == "estimated" and r.restarted and r.filled == 0
-    counted = OnlineEstimator(make_estimator("ekf", scen), "ekf", max_gap=5, max_gap_seconds=0)
-    counted.process(_obs(scen, data, 0, 0))
-    assert counted.process(_obs(scen, data, 0, 3)).filled == 2
-    assert counted.process(_obs(scen, data, 0, 11)).restarted
+    counted = OnlineEstimator(make_estimator("ekf", scen), "ekf", max_gap=5, max_gap_seconds=0, confirm=1)
+    counted.feed(_obs(scen, data, 0, 0))
+    assert counted.feed(_obs(scen, data, 0, 3))[-1].filled == 2
+    assert counted.feed(_obs(scen, data, 0, 11))[-1].restarted
 
 
 # ---- options and threads -----------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ def test_health_levels_and_problems_over_a_window():
     w = s.window(1.0)
     level, problems = health(s, w, waiting=False, foreign={"/x (std_msgs/msg/String)"})
     assert level == WARN and problems == [
-        "2 bad messages",
+        "2 bad messages dropped",
         "5 missing steps",
         "foreign publishers: /x (std_msgs/msg/String)",
     ]
@@ -45,3 +45,64 @@ def test_values_and_the_stats_file_are_plain_text_and_json():
     )
     summary = stats_summary(s, "/est", "ukf")
     assert json.loads(json.dumps(summary))["latency_samples"] == 2 and summary["bad"] == 2
+
+
+def test_window_after_more_latencies_than_kept_does_not_raise():
+    """Regression: trimming an array.array while a np.frombuffer view of it was alive raised
+    BufferError in the diagnostics timer after 200,000 estimates, and the node exited."""
+    s = EstimatorStats()
+    for _ in range(200_001):
+        s.latency.append(1e-3)
+    w = s.window(1.0)
+    assert w["p50"] == 1e-3 and len(s.latency) == s.latency.capacity and s.latency.total == 200_001
+
+
+def test_ring_keeps_the_newest_in_order():
+    from neural_estimator.nodes.estimator_stats import LatencyRing
+
+    r = LatencyRing(5)
+    r.extend(range(8))
+    assert r.values().tolist() == [3, 4, 5, 6, 7] and r.since(6).tolist() == [6, 7] and r.since(100).size == 0
+    assert r.since(0).tolist() == [3, 4, 5, 6, 7]
+
+
+def test_short_soak_of_the_stats_path_keeps_memory_fixed():
+    """250,000 estimates through the node's stats path (record + a diagnostics window every 500, as
+    at 500 Hz with a 1 s period): no exception, the latency store never grows, counts exact."""
+    s = EstimatorStats()
+    buf = s.latency._buf
+    windows = 0
+    for i in range(250_000):
+        s.record(1e-4 if i % 1000 else 5e-3)
+        s.estimated += 1
+        if i % 500 == 499:
+            w = s.window(i / 500)
+            windows += 1
+            assert w["estimated"] == 500 and health(s, w, waiting=False, foreign=set())[0] == OK
+    assert s.latency._buf is buf and buf.nbytes == 8 * s.latency.capacity
+    summary = stats_summary(s, "/est", "ukf")
+    assert summary["estimates"] == 250_000 and summary["latency_samples"] == 250_000 and windows == 500
+    assert summary["latency_kept"] == s.latency.capacity and abs(summary["latency_p50_ms"] - 0.1) < 1e-9
+
+
+def test_drops_quarantine_and_falling_behind_are_never_ok():
+    s = EstimatorStats()
+    s.window(0.0)
+    s.estimated = 100
+    s.skipped["stale"] = 3
+    s.quarantined = 2
+    level, problems = health(s, s.window(1.0), waiting=False, foreign=set())
+    assert level == WARN and "3 messages skipped" in problems[0] and "2 messages quarantined" in problems[1]
+    s.record(0.95)  # busy 95 % of a 1 s window
+    s.estimated += 10
+    level, problems = health(s, s.window(2.0), waiting=False, foreign=set())
+    assert level == WARN and problems == ["falling behind: busy 95% of the time"]
+    s.waited(2.5)  # a message sent 2.5 s before it was processed
+    level, problems = health(s, s.window(2.5), waiting=False, foreign=set())
+    assert level == WARN and problems == ["falling behind: a message waited 2.5 s in the queue"]
+    assert s.window(2.6)["lag"] == 0.0  # per window
+    s.skipped["unconfirmed"] += 40
+    s.oversize += 1
+    s.estimated += 20
+    level, problems = health(s, s.window(3.0), waiting=False, foreign=set())
+    assert level == ERROR and problems[0] == "lost 41 messages against 20 estimates"

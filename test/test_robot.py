@@ -339,3 +339,30 @@ def test_the_estimator_node_serves_a_recorded_data_checkpoint_without_a_scenario
 
     out = subprocess.run(wrong, env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 1 and "holds a gru model" in out.stderr + out.stdout
+
+
+# ---- bounds on what a spec can make this package allocate ----------------------------------------------------
+def test_yaml_aliases_in_a_spec_are_refused_before_expansion(tmp_path):
+    """Nested aliases amplified a 51 KB spec to 1.74 GB; now any alias is one line, read in linear time."""
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 9)]
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(SPEC.read_text() + "\n" + "\n".join(lines) + "\n")
+    with pytest.raises(SpecError, match=r"YAML aliases \(\*name\) are not allowed in a spec"):
+        load_spec(bomb)
+
+
+def test_a_rate_of_a_megahertz_is_refused(bag):
+    """``rate: 1e6`` took 5.2 GB, then a MemoryError traceback."""
+    with pytest.raises(SpecError, match="rate 1e\\+06 Hz is over the bound of 10000 Hz"):
+        load_spec(spec_dict(rate=1e6))
+    spec = load_spec(spec_dict(rate=9000.0))  # under the rate bound; the samples are bounded as well
+    import neural_estimator.robot.dataset as D
+
+    bound = D.MAX_TICKS
+    try:
+        D.MAX_TICKS = 1000
+        with pytest.raises(SpecError, match="over the bound of 1000 \\(MAX_TICKS\\)"):
+            build_dataset([bag], spec, length=50)
+    finally:
+        D.MAX_TICKS = bound

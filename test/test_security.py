@@ -226,7 +226,7 @@ def test_the_estimator_node_refuses_a_hostile_scenario_and_keeps_serving(ros, tm
         labels = M.observation_labels(node.online.scenario)
         huge = M.encode_vector(0, "ballistic", 0, 0, [f"v{j}" for j in range(200_000)], np.zeros(200_000))
         node._on_observation(huge)
-        assert node.stats.bad == 1 and node.context.ok()
+        assert node.stats.oversize == 1 and node.stats.bad == 0 and node.context.ok()  # dropped unread
         node._on_observation(M.encode_vector(0, "ballistic", 0, 0, labels, np.zeros(len(labels))))
         assert node.stats.estimated == 1
     finally:

@@ -43,6 +43,7 @@ class RunArrays:
     rejected: dict[str, int]  # messages that did not fit the layout (wrong names, malformed)
     status: list[dict[str, Any]]  # run_status messages in order
     present: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # {stream: (N, T) bool}
+    outside: dict[str, int] = dataclasses.field(default_factory=dict)  # identities outside the announced run
 
     @property
     def scenario(self):
@@ -122,7 +123,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
             key = _stream_key(role)
             try:
                 if role.kind == M.SCENARIO:
-                    if description is None:
+                    if desc is None:  # the first announcement defines the run: a later one cannot resize it
                         desc = M.decode_scenario(raw)
                     continue
                 if role.kind == M.RUN_STATUS:
@@ -168,13 +169,41 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         store[cell] = (vec.stamp_ns, vec.values)
         received[key] = received.get(key, 0) + 1
 
-    run = desc.get("run", {})
+    run = desc.get("run") if isinstance(desc.get("run"), Mapping) else {}
+    widths = {M.OBSERVATION: dy + du, M.GROUND_TRUTH: dx}
+    for key in cells:
+        if key.startswith(M.ESTIMATES + "/"):
+            widths[key] = dx * dx if key.endswith("/" + M.COVARIANCE_SUFFIX) else dx
+    cell_bytes = 8 * sum(widths.values()) + 8 + len(widths)  # values, the stamp, a presence flag per stream
+    limit = max_array_bytes()
+    n_ann, t_ann = _announced(run.get("trajectories")), _announced(run.get("horizon"))
+    if n_ann and t_ann and n_ann * t_ann * cell_bytes > limit:
+        raise BagError(
+            f"{path}: the run announces {n_ann} trajectories x {t_ann} steps: {_gib(n_ann * t_ann * cell_bytes)} "
+            f"as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV})"
+        )
+    outside: dict[str, int] = {}
+    if n_ann and t_ann:  # a cell outside the announced run is a corrupt or forged identity: rejected
+        for key, store in cells.items():
+            bad = [c for c in store if not (0 <= c[0] < n_ann and 0 <= c[1] < t_ann)]
+            for c in bad:
+                del store[c]
+            if bad:
+                outside[key] = len(bad)
+                received[key] -= len(bad)
     # Rows: every trajectory announced by the run (so that a wholly lost one counts as missing)
     # and every one that was received.
-    announced = range(int(run.get("trajectories", 0) or 0))
+    announced = range(n_ann)
     traj_ids = sorted({n for store in cells.values() for n, _ in store} | set(announced))
-    horizon = max([k + 1 for store in cells.values() for _, k in store] + [int(run.get("horizon", 0) or 0)])
+    horizon = max([k + 1 for store in cells.values() for _, k in store] + [t_ann])
     N, T = len(traj_ids), horizon
+    if N * T * cell_bytes > limit:
+        last = max(((n, k) for store in cells.values() for n, k in store), key=lambda c: c[1], default=(0, 0))
+        raise BagError(
+            f"{path}: the streams span {N} trajectories x {T} steps (largest step index {last[1]}, in trajectory "
+            f"{last[0]}): {_gib(N * T * cell_bytes)} as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV}); "
+            "a corrupt identity? A /scenario message announcing the run rejects identities outside it"
+        )
     row = {n: i for i, n in enumerate(traj_ids)}
 
     def fill(key: str, width: int) -> np.ndarray:
@@ -219,6 +248,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         rejected=rejected,
         status=status,
         present=present,
+        outside=outside,
     )
 
 
@@ -307,6 +337,35 @@ def arrays_to_bag(
     return Path(path)
 
 
+MAX_ARRAY_ENV = "NEURAL_ESTIMATOR_MAX_ARRAY_GB"
+DEFAULT_MAX_ARRAY_GB = 4.0
+
+
+def max_array_bytes() -> int:
+    """The bound on the dense arrays a bag is read into (bytes): ``$NEURAL_ESTIMATOR_MAX_ARRAY_GB``
+    GiB (default 4), checked before anything is allocated."""
+    import os
+
+    try:
+        gb = float(os.environ.get(MAX_ARRAY_ENV, DEFAULT_MAX_ARRAY_GB))
+    except ValueError:
+        raise BagError(f"{MAX_ARRAY_ENV} must be a number of GiB, got {os.environ[MAX_ARRAY_ENV]!r}") from None
+    return int(gb * 2**30)
+
+
+def _announced(value: Any) -> int:
+    """A count of the run announcement (trajectories, horizon): a positive integer, else 0 (unknown)."""
+    try:
+        v = int(value or 0)
+    except (TypeError, ValueError, OverflowError):
+        return 0
+    return v if v > 0 else 0
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB"
+
+
 def load_bag_dataset(
     path: str | Path,
     *,
@@ -386,6 +445,7 @@ def load_bag_dataset(
             "missing": run.missing,
             "duplicates": run.duplicates,
             "rejected": run.rejected,
+            "outside": run.outside,
             "complete": run.complete,
         },
     )

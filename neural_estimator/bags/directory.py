@@ -34,7 +34,7 @@ def bag_files(path: str | Path) -> list[Path]:
         import yaml
 
         try:
-            info = yaml.safe_load(meta.read_text(errors="replace"))
+            info = yaml.load(meta.read_text(errors="replace"), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
         except (yaml.YAMLError, RecursionError, ValueError) as exc:
             raise BagError(
                 f"{meta}: unreadable rosbag2 metadata ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
@@ -53,13 +53,38 @@ def bag_files(path: str | Path) -> list[Path]:
                 f"{root}: storage {str(storage)[:40]!r} is not supported (only mcap; convert with "
                 f"`rosbags-convert` or `ros2 bag convert`)"
             )
+    bound = max_bag_files()
+    if len(listed) > bound:
+        raise BagError(
+            f"{meta}: lists {len(listed)} files, over the bound of {bound} files open at once ({_BOUND_WHY})"
+        )
     files = [root / f for f in listed] if listed else sorted(root.glob("*.mcap"))
+    if len(files) > bound:
+        raise BagError(
+            f"{root}: holds {len(files)} .mcap files, over the bound of {bound} files open at once ({_BOUND_WHY})"
+        )
     if not files:
         raise BagError(f"{root}: a directory without .mcap files (not a rosbag2 mcap bag)")
     missing = [str(f) for f in files if not _is_file(f)]
     if missing:
         raise BagError(f"{root}: {METADATA_FILE} lists missing file(s): {', '.join(missing)}")
     return files
+
+
+MAX_BAG_FILES = 512
+_BOUND_WHY = "512, or the open-file limit (ulimit -n) less 64"
+
+
+def max_bag_files() -> int:
+    """The most files of one rosbag2 directory read at once: 512, or fewer where the process's
+    open-file limit is lower (less 64 kept for everything else)."""
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    except (ImportError, OSError, ValueError):
+        return MAX_BAG_FILES
+    return MAX_BAG_FILES if soft == resource.RLIM_INFINITY else max(1, min(MAX_BAG_FILES, soft - 64))
 
 
 def _is_file(path: Path) -> bool:

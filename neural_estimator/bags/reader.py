@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import os
 import struct
 import warnings
 import zlib
@@ -44,6 +45,31 @@ MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _OP_METADATA, _OP_DATA_END = 0x0C, 0x0F
 _MAX_OPCODE = 0x0F
+MAX_CHUNK_ENV = "NEURAL_ESTIMATOR_MAX_CHUNK_MB"
+DEFAULT_MAX_CHUNK_MB = 64  # rosbag2 writes 768 KiB chunks, this package 256 KiB, the mcap CLI 4 MiB
+
+
+def max_chunk_bytes() -> int:
+    """The largest uncompressed chunk a bag may declare (bytes): ``$NEURAL_ESTIMATOR_MAX_CHUNK_MB``
+    MiB (default 64), checked before decompressing (zstd and lz4)."""
+    try:
+        return int(float(os.environ.get(MAX_CHUNK_ENV, DEFAULT_MAX_CHUNK_MB)) * 2**20)
+    except ValueError:
+        raise BagError(f"{MAX_CHUNK_ENV} must be a number of MiB, got {os.environ[MAX_CHUNK_ENV]!r}") from None
+
+
+def _read_at_most(reader, n: int) -> bytes:
+    """Up to ``n`` bytes of a stream reader (several reads: one may return less)."""
+    parts, got = [], 0
+    while got < n:
+        piece = reader.read(n - got)
+        if not piece:
+            break
+        parts.append(piece)
+        got += len(piece)
+    return b"".join(parts)
+
+
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _MSG_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc
@@ -399,15 +425,23 @@ class BagReader:
         return True, "", None
 
     def _decompress(self, chunk: _Chunk, data: bytes) -> bytes:
+        limit = max_chunk_bytes()
+        if chunk.usize > limit and chunk.compression:
+            raise BagError(
+                f"a chunk declares {chunk.usize} bytes uncompressed, over the bound of {limit} bytes "
+                f"({MAX_CHUNK_ENV}, MiB): not decompressed"
+            )
         try:
+            # never more than the declared size (+1 byte, to notice a chunk that holds more): a
+            # crafted chunk cannot make the reader allocate what its header does not declare
             if chunk.compression == "zstd":
                 if zstandard is None:
                     raise BagError("zstd chunk but the zstandard module is missing")
-                raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=chunk.usize)
+                raw = _read_at_most(zstandard.ZstdDecompressor().stream_reader(data), chunk.usize + 1)
             elif chunk.compression == "lz4":
                 if lz4_frame is None:
                     raise BagError("lz4 chunk but the lz4 module is missing")
-                raw = lz4_frame.decompress(data)
+                raw = lz4_frame.LZ4FrameDecompressor().decompress(data, max_length=chunk.usize + 1)
             elif chunk.compression == "":
                 raw = data
             else:

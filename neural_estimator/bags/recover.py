@@ -27,32 +27,85 @@ class RecoverResult:
     messages: int
     topics: int
     damage: BagDamage | None  # None: the input was intact (the copy is then just a rewrite)
+    lost: dict[str, int] = dataclasses.field(default_factory=dict)  # stream -> messages lost against the run
+
+    def lost_note(self) -> str:
+        """'' or one clause: the messages each stream lost against the run's announcement."""
+        if not self.lost:
+            return ""
+        return "messages lost against the announced run: " + ", ".join(f"{t} {n}" for t, n in self.lost.items())
 
 
 def recover_bag(src: str | Path, out: str | Path, *, overwrite: bool = False) -> RecoverResult:
     """Copy what ``src`` (a ``.mcap`` file or rosbag2 directory) holds into the valid file ``out``.
 
+    The copy is written beside ``out`` under a temporary name and renamed when complete, so a full
+    disk or a read-only directory never leaves a partial or empty ``out``. Messages lost are
+    counted, not only chunks: where the bag's ``/scenario`` announces the run (trajectories x
+    horizon), each vector stream's messages short of that number are its lost messages (those in
+    damaged chunks and those the recorder still buffered when it died).
+
     Raises:
         BagError: ``src`` unreadable (not MCAP, empty), ``out`` equal to ``src`` or existing
-            without ``overwrite``.
+            without ``overwrite``, or ``out`` cannot be written (the error names why).
     """
     src, out = Path(src), Path(out)
     if out.exists() and src.exists() and out.resolve() == src.resolve():
         raise BagError(f"{out}: recover writes a new file; it cannot overwrite its input")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", BagWarning)  # reported through RecoverResult.damage
-        with open_bag(src) as bag, BagWriter(out, overwrite=overwrite) as writer:
-            for conn in bag.connections:
-                writer.add_topic(
-                    conn.topic,
-                    conn.msgtype,
-                    qos=parse_qos_yaml(conn.offered_qos_profiles),
-                    msgdef=conn.msgdef or None,
-                    type_hash=(conn.type_hash or "") if conn.msgdef else None,
-                )
-            n = 0
-            for conn, t, raw in bag.messages():
-                writer.write(conn.topic, t, raw)
-                n += 1
-            damage, topics = bag.damage, len(bag.connections)
-    return RecoverResult(out, n, topics, damage)
+    if out.exists() and not overwrite:
+        raise BagError(f"{out}: file exists (pass overwrite=True to replace it)")
+    tmp = out.with_name(f".{out.stem}.partial.mcap")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", BagWarning)  # reported through RecoverResult.damage
+            with open_bag(src) as bag, BagWriter(tmp, overwrite=True) as writer:
+                for conn in bag.connections:
+                    writer.add_topic(
+                        conn.topic,
+                        conn.msgtype,
+                        qos=parse_qos_yaml(conn.offered_qos_profiles),
+                        msgdef=conn.msgdef or None,
+                        type_hash=(conn.type_hash or "") if conn.msgdef else None,
+                    )
+                n = 0
+                counts: dict[str, int] = {}
+                run = None
+                for conn, t, raw in bag.messages():
+                    writer.write(conn.topic, t, raw)
+                    n += 1
+                    run = _count(conn.topic, raw, counts, run)
+                damage, topics = bag.damage, len(bag.connections)
+        tmp.replace(out)
+    except BagError as exc:  # errors name the file asked for, not the temporary one
+        tmp.unlink(missing_ok=True)
+        raise BagError(str(exc).replace(str(tmp), str(out))) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return RecoverResult(out, n, topics, damage, _lost(counts, run))
+
+
+def _count(topic: str, raw: bytes, counts: dict[str, int], run: dict | None) -> dict | None:
+    """Count a vector stream's message; return the run a /scenario message announces (else ``run``)."""
+    from neural_estimator.bags import messages as M
+    from neural_estimator.bags.errors import MessageError
+
+    leaf = topic.rsplit("/", 1)[-1]
+    try:
+        if leaf == M.SCENARIO:
+            desc = M.decode_scenario(raw)
+            return desc.get("run") if isinstance(desc.get("run"), dict) else run
+    except MessageError:
+        return run
+    if leaf in (M.OBSERVATION, M.GROUND_TRUTH, M.COVARIANCE_SUFFIX) or f"/{M.ESTIMATES}/" in topic:
+        counts[topic] = counts.get(topic, 0) + 1
+    return run
+
+
+def _lost(counts: dict[str, int], run: dict | None) -> dict[str, int]:
+    """Messages per vector stream short of the run's trajectories x horizon (duplicates aside)."""
+    try:
+        expected = int(run["trajectories"]) * int(run["horizon"])
+    except (TypeError, KeyError, ValueError):
+        return {}
+    return {topic: expected - n for topic, n in sorted(counts.items()) if n < expected}

@@ -72,6 +72,12 @@ class BagReport:
         scored = f" (steps {self.warmup}.. scored)" if self.warmup else ""
         return f"{self.scenario}: {self.n_trajectories} trajectories x {self.horizon} steps{scored}"
 
+    def losses(self, expected: int | None = None, dropped: dict[str, dict[str, int]] | None = None) -> str:
+        """What each stream lost and why (see :func:`loss_lines`); ``expected``: the messages the run
+        announced per stream, ``dropped``: {stream: {reason: count}} the recorder did not write."""
+        head = f"messages per stream (of {expected} announced)" if expected else "messages per stream"
+        return head + ":\n" + "".join(f"  {line}\n" for line in loss_lines(self.bag, dropped))
+
     def summary(self) -> str:
         """A heading line and the text table."""
         note = "; ".join(n for n in (left_out_note(self.bag), self.note) if n)
@@ -84,6 +90,27 @@ class BagReport:
             + mark_rows(self.table("text", marked=True), self.scenario, self.starts)
             + "".join(line + "\n" for line in lines)
         )
+
+
+def loss_lines(bag: dict[str, Any], dropped: dict[str, dict[str, int]] | None = None) -> list[str]:
+    """One line per stream: (trajectory, step) cells without a message, and the messages that were
+    not used and why (malformed, outside the announced run, duplicates, dropped by the recorder)."""
+    dropped = dropped or {}
+    missing = bag.get("missing") or {}
+    lines = []
+    for key in sorted(set(missing) | set(dropped)):
+        unused = [
+            (bag.get("rejected", {}).get(key, 0), "malformed"),
+            (bag.get("outside", {}).get(key, 0), "outside the announced run"),
+            (bag.get("duplicates", {}).get(key, 0), "duplicates"),
+            *((n, why) for why, n in dropped.get(key, {}).items()),
+        ]
+        why = ", ".join(f"{n} {what}" for n, what in unused if n)
+        lines.append(
+            f"{key}: {bag.get('received', {}).get(key, 0)} received, {missing.get(key, 0)} lost"
+            + (f"; not used: {why}" if why else "")
+        )
+    return lines
 
 
 def evaluate_bag(

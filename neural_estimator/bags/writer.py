@@ -198,7 +198,10 @@ class BagWriter:
             chunk_size=self.chunk_size,
             compression=CompressionType.ZSTD if self.compression == "zstd" else CompressionType.NONE,
         )
-        self._writer.start(profile="ros2", library=f"neural_estimator {__version__} (mcap-python)")
+        try:
+            self._writer.start(profile="ros2", library=f"neural_estimator {__version__} (mcap-python)")
+        except OSError as exc:
+            raise BagError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
         return self
 
     def close(self) -> Path:
@@ -208,12 +211,19 @@ class BagWriter:
         if self._writer is None:
             self.open()
         assert self._writer is not None
-        self._writer.add_metadata("rosbag2", {"serialized_metadata": self._bag_metadata()})
-        self._writer.finish()
-        self._stream.flush()
-        os.fsync(self._stream.fileno())
-        self._stream.close()
-        self._closed = True
+        try:
+            self._writer.add_metadata("rosbag2", {"serialized_metadata": self._bag_metadata()})
+            self._writer.finish()
+            self._stream.flush()
+            os.fsync(self._stream.fileno())
+        except OSError as exc:  # what reached the disk stays readable (BagReader, ``recover``)
+            raise BagError(f"{self.path}: cannot finish the bag: {exc.strerror or exc}") from None
+        finally:
+            self._closed = True
+            try:
+                self._stream.close()
+            except OSError:
+                pass  # the buffered tail could not be written either: the error above says so
         return self.path
 
     def __enter__(self) -> "BagWriter":
@@ -284,13 +294,16 @@ class BagWriter:
         time_ns = int(time_ns)
         if time_ns < 0:
             raise BagError(f"log time must be >= 0 ns, got {time_ns}")
-        w.add_message(
-            channel_id=t.channel_id,
-            log_time=time_ns,
-            data=bytes(raw),
-            publish_time=time_ns if publish_time_ns is None else int(publish_time_ns),
-            sequence=sequence,
-        )
+        try:
+            w.add_message(
+                channel_id=t.channel_id,
+                log_time=time_ns,
+                data=bytes(raw),
+                publish_time=time_ns if publish_time_ns is None else int(publish_time_ns),
+                sequence=sequence,
+            )
+        except OSError as exc:  # a full disk or a read-only file system: one line, not a traceback
+            raise BagError(f"{self.path}: cannot write: {exc.strerror or exc}") from None
         t.count += 1
         self._start_ns = time_ns if self._start_ns is None else min(self._start_ns, time_ns)
         self._end_ns = max(self._end_ns, time_ns)

@@ -100,12 +100,37 @@ def read_card(checkpoint: str | Path) -> tuple[Path, dict[str, Any]]:
     card = read_json(card_path, "checkpoint card")
     if card.get("format") != CARD_FORMAT:
         raise EstimatorError(f"{card_path}: not a neural_estimator checkpoint card (format {card.get('format')!r})")
-    if int(card.get("format_version", 0)) > CARD_VERSION:
+    version = card.get("format_version", 0)
+    if not isinstance(version, int) or isinstance(version, bool) or version < 0:
         raise EstimatorError(
-            f"{card_path}: card format version {card.get('format_version')} is newer than this "
+            f"{card_path}: checkpoint card is corrupt (format_version {version!r} is not a version number)"
+        )
+    if version > CARD_VERSION:
+        raise EstimatorError(
+            f"{card_path}: card format version {version} is newer than this "
             f"neural_estimator reads ({CARD_VERSION}); upgrade the package"
         )
     for key in ("method", "scenario", "architecture", "normalization", "weights"):
         if key not in card:
             raise EstimatorError(f"{card_path}: checkpoint card is corrupt (no {key!r} entry)")
+    for key, kind in (("scenario", dict), ("architecture", dict), ("normalization", dict), ("weights", dict)):
+        if not isinstance(card[key], kind):
+            raise EstimatorError(
+                f"{card_path}: checkpoint card is corrupt ({key!r} is a {type(card[key]).__name__}, not an object)"
+            )
+    arch = card["architecture"]
+    if not isinstance(arch.get("name"), str) or not isinstance(arch.get("config"), dict):
+        raise EstimatorError(f"{card_path}: checkpoint card is corrupt (architecture needs a name and a config object)")
+    for key, value in arch["config"].items():
+        if key in COUNT_KEYS and (not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_COUNT):
+            raise EstimatorError(
+                f"{card_path}: the card's {arch['name']} config has {key}={value!r}; at most {MAX_COUNT} "
+                "(the bound on layers, heads and components a card may declare)"
+            )
     return directory, card
+
+
+# Config entries that count repeated modules: bounded before a model is built (building 200,000 layers,
+# even on the meta device, takes minutes). The shipped models have 2-4 layers, 4 heads, 32 components.
+COUNT_KEYS = ("layers", "n_layer", "n_head", "n_components")
+MAX_COUNT = 256

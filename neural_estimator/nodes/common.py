@@ -13,6 +13,7 @@ import dataclasses
 import importlib
 import typing
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import rclpy
@@ -204,12 +205,31 @@ class ManagedNode(Node):
         return self.exit_code
 
 
+DDS_PROFILES = Path(__file__).with_name("fastdds_profiles.xml")
+
+
+def dds_memory_policy() -> None:
+    """Fast DDS frees each sample's payload once taken (``fastdds_profiles.xml``): a huge message
+    that a node drops unread does not stay resident. Set before ``rclpy.init``, for Fast DDS only,
+    and only where the user configured none of it."""
+    import os
+
+    rmw = os.environ.get("RMW_IMPLEMENTATION", "")
+    own = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE", "RMW_FASTRTPS_USE_QOS_FROM_XML")
+    if rmw not in ("", "rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp") or any(v in os.environ for v in own):
+        return
+    if DDS_PROFILES.is_file():
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(DDS_PROFILES)
+        os.environ["RMW_FASTRTPS_USE_QOS_FROM_XML"] = "1"
+
+
 def run_node(factory: Callable[[], ManagedNode], name: str, args: list[str] | None = None) -> int:
     """The nodes' main(): init, build, spin until shutdown, clean up; exit status.
 
     A :class:`StartupError` while building the node is logged as one fatal line and gives exit
     status 1; otherwise the status is the node's :meth:`ManagedNode.on_shutdown`.
     """
+    dds_memory_policy()
     rclpy.init(args=args)
     try:
         node = factory()

@@ -36,8 +36,12 @@ newest is stepped; the older ones are dropped and counted (``late observations d
 the estimator meets the hole as lost observations (predict-only steps within ``max_gap`` /
 ``max_gap_seconds``, else a restart from the prior, both counted).
 
-A message that cannot be used (wrong width or names, NaN control, empty, unparsable) is logged
-(throttled), counted in the diagnostics and dropped; the node never stops on one. An unknown
+A message that cannot be used (wrong width or names, NaN control, empty, unparsable, larger than
+any valid one) is logged (throttled), counted in the diagnostics and dropped; the node never stops
+on one. No single message moves the stream: a jump in trajectory or step (or stamps that go back,
+a restarted publisher) is held until the next message confirms it (``confirm``) or the stream
+falls silent (``quarantine_seconds``); see :mod:`neural_estimator.replay`. Diagnostics are WARN
+whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An unknown
 method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
 
@@ -72,9 +76,16 @@ from neural_estimator.nodes.common import (
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
-from neural_estimator.replay import DEFAULT_MAX_GAP, DEFAULT_MAX_GAP_SECONDS, OnlineEstimator
+from neural_estimator.replay import (
+    DEFAULT_CONFIRM,
+    DEFAULT_MAX_GAP,
+    DEFAULT_MAX_GAP_SECONDS,
+    DEFAULT_QUARANTINE_SECONDS,
+    OnlineEstimator,
+)
 
 OBSERVATION_QOS = ("reliable", "sensor_data")
+EARLY_MAX_BYTES = 1 << 20  # an observation kept while waiting for the scenario (width unknown yet): 1 MiB
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,6 +153,15 @@ class EstimatorParams:
         DEFAULT_MAX_GAP_SECONDS,
         "most seconds spent bridging one gap before a restart (bounds the cost of a step jump; 0 = no bound)",
     )
+    confirm: int = param(
+        DEFAULT_CONFIRM,
+        "messages that must agree before a jump in trajectory or step (or a new run) is accepted; "
+        "1 = accept any single message's jump",
+    )
+    quarantine_seconds: float = param(
+        DEFAULT_QUARANTINE_SECONDS,
+        "a held jump is accepted after this long (or 4 inter-arrival times) with no message of the current stream",
+    )
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
@@ -182,6 +202,7 @@ class EstimatorNode(ManagedNode):
         self._last_log: dict[str, float] = {}
         self._foreign: set[str] = set()
         self._early: list[bytes] = []
+        self._run_start: int | None = None  # start_ns of the announced run (a new one = a restarted publisher)
         if p.scenario:
             self._build(build_scenario(p.scenario, p.set))
         else:
@@ -193,6 +214,7 @@ class EstimatorNode(ManagedNode):
         # steady clock: with use_sim_time and no /clock, ROS-clock timers would never fire
         self.timer = self.create_timer(p.diagnostics_period, self._on_diagnostics, clock=self._steady)
         self.discovery = self.create_timer(0.1, self._subscribe_when_published, clock=self._steady)
+        self.quarantine = self.create_timer(0.1, self._on_quarantine, clock=self._steady)
         self._subscribe_when_published()
 
     def _subscribe_when_published(self) -> None:
@@ -224,7 +246,7 @@ class EstimatorNode(ManagedNode):
         )
 
     # ---- setup -------------------------------------------------------------------------------------
-    def _build(self, scenario) -> None:
+    def _build(self, scenario, horizon: int | None = None) -> None:
         p = self.p
         try:
             options = dict(item.split("=", 1) for item in p.options)
@@ -250,6 +272,9 @@ class EstimatorNode(ManagedNode):
             max_gap=p.max_gap,
             max_gap_seconds=p.max_gap_seconds,
             frame_id=p.frame_id,
+            confirm=max(1, p.confirm),
+            quarantine_seconds=max(0.0, p.quarantine_seconds),
+            horizon=horizon,
         )
         dx = scenario.dx
         self.depths = {"estimates": self._depth(dx), "covariance": self._depth(dx * dx)}
@@ -310,19 +335,32 @@ class EstimatorNode(ManagedNode):
         except MessageError as exc:
             self._warn("scenario", f"ignoring a scenario message: {exc}")
             return
+        run = desc.get("run") if isinstance(desc.get("run"), dict) else {}
+        start, horizon = run.get("start_ns"), run.get("horizon")
+        horizon = horizon if isinstance(horizon, int) and 0 < horizon < 2**53 else None
         if self.online is None:
             from neural_estimator.scenarios import ScenarioError, scenario_from_description
 
             try:
-                self._build(scenario_from_description(desc))
+                self._build(scenario_from_description(desc), horizon)
             except (StartupError, ScenarioError, KeyError, TypeError, ValueError) as exc:
                 # anyone on the domain can publish a scenario: a bad one is refused, the node keeps waiting
                 self._warn("scenario", f"cannot serve the announced scenario, ignored: {exc}")
                 return
+            self._run_start = start
             early, self._early = self._early, []
             for raw_obs in early:
                 self._on_observation(raw_obs)
-        elif (
+            return
+        if start is not None and start != self._run_start:  # the publisher restarted: a new run
+            if self._run_start is not None:  # the stream switches once the new run's messages confirm it
+                self.get_logger().warning(  # (a forged announcement alone resets nothing)
+                    f"a new run was announced (start_ns {self._run_start} -> {start}): the publisher "
+                    "restarted; its stream starts fresh once its first messages confirm each other"
+                )
+            self._run_start = start
+            self.online.horizon = horizon
+        if (
             desc.get("scenario") != self.online.scenario.name
             or desc.get("config") != self.online.scenario.describe()["config"]
         ):
@@ -367,72 +405,129 @@ class EstimatorNode(ManagedNode):
             )
             batch = batch[-1:]
         for raw_obs, sent_ns in batch:
-            self._on_observation(raw_obs)
+            self._on_observation(raw_obs, {"source_timestamp": sent_ns})
             if sent_ns:  # observation published -> its estimate published (or the message dropped)
                 s.delay.append((time.time_ns() - sent_ns) * 1e-9)
 
     # ---- per message -------------------------------------------------------------------------------
-    def _on_observation(self, raw: bytes) -> None:
+    def _on_observation(self, raw: bytes, info=None) -> None:
         t0 = time.perf_counter()
         self.input_monitor.tick(time.monotonic())
+        if info is not None and info.get("source_timestamp"):  # how long it waited (same clock, same machine)
+            self.stats.waited(max(0.0, (time.time_ns() - info["source_timestamp"]) * 1e-9))
         if self.online is None:  # kept until the scenario arrives (messages on two topics race)
+            if len(raw) > EARLY_MAX_BYTES:
+                self.stats.oversize += 1
+                self._warn(
+                    "oversize",
+                    f"observation of {len(raw)} bytes before the scenario dropped unread "
+                    f"(bound {EARLY_MAX_BYTES} bytes while the width is unknown)",
+                )
+                return
             if len(self._early) < self.p.queue_depth:
                 self._early.append(bytes(raw))
             else:
                 self.stats.early += 1
                 self._warn("early", f"{self.p.queue_depth} observations wait for the scenario: dropping more")
             return
+        if len(raw) > self.online.max_message_bytes:  # dropped unread; its memory freed at once
+            self.stats.oversize += 1
+            self._warn(
+                "oversize",
+                f"observation of {len(raw)} bytes dropped unread: larger than any valid one of this stream "
+                f"(bound {self.online.max_message_bytes} bytes); {self.stats.oversize} so far",
+            )
+            del raw
+            _trim_heap()
+            return
         try:
-            res = self.online.process(raw)
+            results = self.online.feed(raw)
         except MessageError as exc:
             self.stats.bad += 1
             self._warn("bad", f"bad observation dropped: {exc}")
             return
         except Exception as exc:  # a failure inside a method must not take the node down
-            self.stats.errors += 1
-            self.online.reset()
-            self.get_logger().error(
-                f"{self.method} failed on an observation ({exc!r}); the stream restarts "
-                "from the prior at the next observation"
-            )
+            self._method_failed(exc)
             return
-        if res.status != "estimated":
-            self.stats.skipped[res.status] += 1
-            self._warn(
-                res.status,
-                f"{res.status} observation (trajectory {res.trajectory}, step {res.step}; "
-                f"last processed step {self.online.step}) skipped",
-            )
+        self._handle(results, t0)
+
+    def _on_quarantine(self) -> None:
+        """A held jump that nothing confirmed or refuted for ``quarantine_seconds`` is accepted."""
+        if self.online is None or not self.online.held:
             return
+        t0 = time.perf_counter()
+        try:
+            results = self.online.poll()
+        except Exception as exc:  # a failure inside a method must not take the node down
+            self._method_failed(exc)
+            return
+        self._handle(results, t0)
+
+    def _method_failed(self, exc: Exception) -> None:
+        self.stats.errors += 1
+        self.online.reset()
+        self.get_logger().error(
+            f"{self.method} failed on an observation ({exc!r}); the stream restarts from the prior "
+            "at the next observation"
+        )
+
+    def _handle(self, results, t0: float) -> None:
+        """Publish the estimates of ``results`` (see OnlineEstimator.feed), count and log the rest."""
+        s = self.stats
+        for res in results:
+            if res.status == "held":
+                s.quarantined += 1
+                self._warn(
+                    "held",
+                    f"observation {res.trajectory}/{res.step} jumps from the current stream "
+                    f"({self.online.trajectory}/{self.online.step}): held until the next messages confirm it",
+                )
+                continue
+            if res.status != "estimated":
+                s.skipped[res.status] += 1
+                self._warn(
+                    res.status,
+                    f"{res.status} observation (trajectory {res.trajectory}, step {res.step}; "
+                    f"current stream {self.online.trajectory}/{self.online.step}) dropped; "
+                    f"{s.skipped[res.status]} so far",
+                )
+                continue
+            self._publish(res)
+            s.estimated += 1
+            s.resets += res.reset
+            s.gap_steps += res.filled
+            s.restarts += res.restarted
+            s.nonfinite += res.nonfinite
+            s.diverged = res.diverged or not np.all(np.isfinite(res.x_hat))
+            s.position = (res.trajectory, res.step)
+            if res.new_run:
+                s.publisher_restarts += 1
+                self.get_logger().warning(
+                    f"the observation stamps went back at {res.trajectory}/{res.step}, confirmed by the next "
+                    "message: the publisher restarted; a fresh stream starts from the prior"
+                )
+            if res.filled:
+                self._warn(
+                    "gap",
+                    f"{res.filled} observation(s) missing before step {res.step} of trajectory "
+                    f"{res.trajectory}: bridged by predict-only steps",
+                )
+            if res.restarted:
+                self._warn(
+                    "restart",
+                    f"gap before step {res.step} longer than max_gap={self.p.max_gap} steps or "
+                    f"max_gap_seconds={self.p.max_gap_seconds:g} s: restarted from the prior",
+                )
+            if res.nonfinite:
+                self._warn("nonfinite", f"observation {res.trajectory}/{res.step} has NaN/inf: predict only")
+        s.record(time.perf_counter() - t0)
+
+    def _publish(self, res) -> None:
         self.pub_est.publish(res.estimate)
         if res.covariance is not None and self.pub_cov is not None:
             self.pub_cov.publish(res.covariance)
-        cov = self.online.estimator.covariance
-        self.outputs.publish(res.stamp_ns, res.x_hat, None if cov is None else cov[0])
+        self.outputs.publish(res.stamp_ns, res.x_hat, res.P)
         self.set_pose.last = res.x_hat
-        s = self.stats
-        s.latency.append(time.perf_counter() - t0)
-        s.estimated += 1
-        s.resets += res.reset
-        s.gap_steps += res.filled
-        s.restarts += res.restarted
-        s.nonfinite += res.nonfinite
-        s.diverged = res.diverged or not np.all(np.isfinite(res.x_hat))
-        s.position = (res.trajectory, res.step)
-        if res.filled:
-            self._warn(
-                "gap",
-                f"{res.filled} observation(s) missing before step {res.step} of trajectory "
-                f"{res.trajectory}: bridged by predict-only steps",
-            )
-        if res.restarted:
-            self._warn(
-                "restart",
-                f"gap before step {res.step} longer than max_gap={self.p.max_gap} steps or "
-                f"max_gap_seconds={self.p.max_gap_seconds:g} s: restarted from the prior",
-            )
-        if res.nonfinite:
-            self._warn("nonfinite", f"observation {res.trajectory}/{res.step} has NaN/inf: predict only")
 
     def _on_reset(self, request, response):
         if self.online is not None:
@@ -516,6 +611,16 @@ def _warm_up(est, scenario) -> None:
     except Exception:  # a scenario where zeros are not a valid observation: warm up at the first message
         pass
     est.reset(1)
+
+
+def _trim_heap() -> None:
+    """Give freed heap memory back to the system (glibc), so one huge message does not stay resident."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _exists(path: str) -> bool:

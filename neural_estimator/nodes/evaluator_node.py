@@ -19,7 +19,10 @@ foreign bag played, your own nodes), when no stream message arrived for ``idle_t
 bag is closed, the paper's metrics are
 computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
-status 0 (1 if no metrics could be computed). Ctrl-C / SIGTERM close the bag properly too. A bag
+status 0 (1 if no metrics could be computed). After the table it prints, per stream, the messages
+received and lost and why (malformed, outside the announced run, duplicates, over ``max_message_mb``,
+which are dropped unrecorded). A full or read-only disk stops the recording with one error line,
+closes the bag as far as possible and exits 1. Ctrl-C / SIGTERM close the bag properly too. A bag
 without ``/scenario`` is scored with the ``scenario`` (+ ``set``, ``plugins``) parameters. Timers run
 on the steady clock, so ``use_sim_time:=true`` records like the default.
 Parameters: ``params/evaluator.yaml``.
@@ -70,6 +73,9 @@ class EvaluatorParams:
         30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds"
     )
     chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
+    max_message_mb: float = param(
+        16.0, "messages larger than this (MiB) are dropped unrecorded, counted and logged (0 = no bound)"
+    )
     idle_timeout: float = param(
         10.0,
         "without run_status 'complete': end when no stream message arrived for this "
@@ -129,6 +135,11 @@ class EvaluatorNode(ManagedNode):
         self.required_methods = tuple(p.methods)
         self.subs: dict = {}
         self.counts: dict[str, int] = {}
+        self.oversize: dict[str, int] = {}  # messages dropped unrecorded for their size, per topic
+        self.unrecorded = 0  # messages that arrived after a write failure
+        self.write_error: str | None = None
+        self._max_bytes = int(p.max_message_mb * 2**20) if p.max_message_mb > 0 else 0
+        self._last_log: dict[str, float] = {}
         self._refused: set[str] = set()
         self.expected: int | None = None
         self.complete_at: float | None = None
@@ -203,10 +214,25 @@ class EvaluatorNode(ManagedNode):
 
         def record(raw: bytes, info) -> None:
             if self.closed:
+                self.unrecorded += self.write_error is not None
+                return
+            if self._max_bytes and len(raw) > self._max_bytes:
+                self.oversize[name] = self.oversize.get(name, 0) + 1
+                self._warn(
+                    "oversize",
+                    f"'{name}': a message of {len(raw)} bytes dropped unrecorded (bound max_message_mb="
+                    f"{self.p.max_message_mb:g}); {sum(self.oversize.values())} so far",
+                )
+                del raw
+                _trim_heap()
                 return
             t = self.get_clock().now().nanoseconds if self.sim_time else 0
-            # like `ros2 bag record --use-sim-time`: log times on the sim clock (receipt time until /clock)
-            self.bag.write(name, t or info["received_timestamp"], raw, publish_time_ns=info["source_timestamp"])
+            try:
+                # like `ros2 bag record --use-sim-time`: log times on the sim clock (receipt time until /clock)
+                self.bag.write(name, t or info["received_timestamp"], raw, publish_time_ns=info["source_timestamp"])
+            except BagError as exc:  # disk full, read-only: stop recording, close what can be closed
+                self._write_failed(str(exc))
+                return
             self.counts[name] += 1
             if is_stream:
                 self._last_stream = time.monotonic()
@@ -273,6 +299,21 @@ class EvaluatorNode(ManagedNode):
             )
         self._finish()
 
+    def _write_failed(self, why: str) -> None:
+        self.write_error = why
+        self.unrecorded += 1
+        self.get_logger().error(
+            f"recording stopped: {why}; {sum(self.counts.values())} messages recorded so far "
+            f"(`neural-estimator recover {self.bag.path} --out FIXED.mcap` reads what reached the disk)"
+        )
+        self._finish()
+
+    def _warn(self, kind: str, text: str, every: float = 2.0) -> None:
+        now = time.monotonic()
+        if now - self._last_log.get(kind, -1e9) >= every:
+            self._last_log[kind] = now
+            self.get_logger().warning(text)
+
     def _close(self) -> None:
         if self.closed:
             return
@@ -283,14 +324,22 @@ class EvaluatorNode(ManagedNode):
             except Exception:  # the context may already be shut down (Ctrl-C): nothing to release
                 pass
         self.subs.clear()
-        self.bag.close()
         total = sum(self.counts.values())
+        try:
+            self.bag.close()
+        except BagError as exc:
+            if self.write_error is None:
+                self.get_logger().error(f"{exc}; {total} messages recorded before it")
+            self.write_error = self.write_error or str(exc)
+            return
         self.get_logger().info(f"wrote {self.bag.path} ({total} messages on {len(self.counts)} topics)")
 
     def _finish(self) -> None:
         self._close()
         code = 0
-        if self.p.compute_metrics:
+        if self.write_error is not None:
+            code = 1  # no metrics from a bag that could not be finished
+        elif self.p.compute_metrics:
             code = self._evaluate()
         if self.p.exit_when_done:
             request_shutdown(self, code)
@@ -315,8 +364,21 @@ class EvaluatorNode(ManagedNode):
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
             return 1
         print(report.summary(), end="", flush=True)
+        print(report.losses(expected=self.expected, dropped=self._dropped()), end="", flush=True)
         self.get_logger().info("wrote " + ", ".join(str(p) for p in paths.values()))
         return 0
+
+    def _dropped(self) -> dict[str, dict[str, int]]:
+        """{stream key: {reason: count}} of what this node itself did not record."""
+        out: dict[str, dict[str, int]] = {}
+        for topic, n in self.oversize.items():
+            role = M.topic_role(topic, self.ns)
+            if role is not None:
+                key = M.estimate_topic(role.method) if role.kind == "estimate" else role.kind
+                if role.kind == "covariance":
+                    key = M.covariance_topic(role.method)
+                out.setdefault(key, {})["oversize (dropped by the evaluator)"] = n
+        return out
 
     def _evaluate_spec(self) -> int:
         """Score the recorded estimate streams through the spec (recorded-data models: no scenario)."""
@@ -354,6 +416,16 @@ class EvaluatorNode(ManagedNode):
             self.get_logger().info("interrupted: closing the bag")
             self._close()
         return self.exit_code
+
+
+def _trim_heap() -> None:
+    """Give freed heap memory back to the system (glibc), so one huge message does not stay resident."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def main(args: list[str] | None = None) -> int:

@@ -32,7 +32,7 @@ import numpy as np
 from neural_estimator.bags import BagError, open_bag
 from neural_estimator.data.simulate import Trajectories
 from neural_estimator.robot.data_scenario import DATA_SCENARIO
-from neural_estimator.robot.spec import ESTIMATE_PREFIX, Field, Spec, SpecError, topic_values
+from neural_estimator.robot.spec import MAX_TICKS, ESTIMATE_PREFIX, Field, Spec, SpecError, topic_values
 
 
 @dataclasses.dataclass
@@ -123,6 +123,11 @@ def tick_times(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec) ->
         return np.zeros(0, dtype=np.int64)
     step = spec.dt * 1e9
     n = int(np.floor((stop - start) / step)) + 1
+    if n > MAX_TICKS:
+        raise SpecError(
+            f"{(stop - start) / 1e9:.1f} s at {spec.rate:g} Hz is {n} samples, "
+            f"over the bound of {MAX_TICKS} (MAX_TICKS)"
+        )
     return start + np.round(np.arange(n) * step).astype(np.int64)
 
 

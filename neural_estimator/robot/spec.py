@@ -60,6 +60,10 @@ _TOPIC = re.compile(r"/?[A-Za-z_~{][A-Za-z0-9_/{}~]*")
 MAX_COMPONENTS = 1024  # per vector, the package's dimension bound
 
 
+MAX_RATE = 10_000.0  # Hz: a spec's sample rate (each tick is a row of every recorded stream)
+MAX_TICKS = 20_000_000  # samples of one bag (rate x the bag's span), checked before allocating
+
+
 class SpecError(ValueError):
     """A spec that cannot be used, or a message that does not have a field the spec names."""
 
@@ -133,6 +137,10 @@ def load_spec(spec: str | Path | Mapping[str, Any]) -> Spec:
         if len(text) > 1_000_000:
             raise SpecError(f"{path}: a spec of {len(text)} bytes is not a spec")
         try:
+            # anchors and aliases are refused before anything is built: a few aliases nested a few
+            # levels deep expand a 51 KB file to gigabytes wherever the spec is walked or serialized
+            if any(isinstance(ev, (yaml.AliasEvent,)) for ev in yaml.parse(text, Loader=yaml.SafeLoader)):
+                raise SpecError(f"{path}: YAML aliases (*name) are not allowed in a spec: write each value out")
             spec = yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise SpecError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
@@ -147,6 +155,8 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
     if unknown:
         raise SpecError(f"{where}: unknown key(s) {unknown}; known: {sorted(known)}")
     rate = _positive(raw.get("rate"), "rate", where)
+    if rate > MAX_RATE:
+        raise SpecError(f"{where}: rate {rate:g} Hz is over the bound of {MAX_RATE:g} Hz")
     max_age = _positive(raw.get("max_age", 2.0 / rate), "max_age", where)
     trigger = raw.get("trigger")
     if trigger is not None and (not isinstance(trigger, str) or not _TOPIC.fullmatch(trigger)):
