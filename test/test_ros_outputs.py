@@ -334,9 +334,9 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
                 p.kill()
     ref = OnlineEstimator(make_estimator("ukf", scen), "ukf")
     for k in range(5):
-        last = ref.process(obs(k)).x_hat
+        (last,) = [r.x_hat for r in ref.feed(obs(k)) if r.status == "estimated"]
     start = np.array([40.0, -25.0, last[2], last[3]])
     ref.estimator.reset(1, initial_mean=start[None])
-    expected = ref.process(obs(5)).x_hat
+    (expected,) = [r.x_hat for r in ref.feed(obs(5)) if r.status == "estimated"]
     np.testing.assert_allclose(est["ukf"][5].values, expected, rtol=0, atol=1e-9)
     assert abs(est["ukf"][5].values[0] - est["ukf"][4].values[0]) > 1.0  # the pose moved the estimate

@@ -71,6 +71,8 @@ class LifecycleEstimatorNode(LifecycleNode):
             max_gap=p.max_gap,
             max_gap_seconds=p.max_gap_seconds,
             frame_id=p.frame_id,
+            confirm=max(1, p.confirm),
+            quarantine_seconds=max(0.0, p.quarantine_seconds),
         )
         self.get_logger().info(f"configured: {method} on {scenario.name}")
         return TransitionCallbackReturn.SUCCESS
@@ -106,6 +108,8 @@ class LifecycleEstimatorNode(LifecycleNode):
             durability=DurabilityPolicy.VOLATILE,  # matches any publisher; history is not replayed here
         )
         self.sub = self.create_subscription(JointState, p.observation_topic, self._on_observation, sub_qos, raw=True)
+        # a held jump that nothing confirms or refutes is accepted once the stream falls silent
+        self.quarantine_timer = self.create_timer(0.1, self._on_quarantine)
         o = self.outputs
         self.entities = [self.pub_est, self.pub_cov, self.sub, o.pub_odom, o.pub_pose, o.pub_state, o.pub_tf]
         self.get_logger().info(f"active: '{self.sub.topic_name}' -> '{self.pub_est.topic_name}'{o.describe()}")
@@ -127,6 +131,10 @@ class LifecycleEstimatorNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _destroy_entities(self) -> None:
+        timer = getattr(self, "quarantine_timer", None)
+        if timer is not None:
+            self.destroy_timer(timer)
+            self.quarantine_timer = None
         for e in self.entities:
             if e is None:
                 continue
@@ -142,24 +150,43 @@ class LifecycleEstimatorNode(LifecycleNode):
         if self.online is None:
             return
         try:
-            res = self.online.process(raw)
+            results = self.online.feed(raw)
         except MessageError as exc:
             self.counts["bad"] += 1
             self._warn(f"bad observation dropped: {exc}")
             return
         except Exception as exc:  # a failure inside a method must not take the node down
-            self.online.reset()
-            self.get_logger().error(f"{self.method} failed on an observation ({exc!r}); restarting from the prior")
+            self._method_failed(exc)
             return
-        if res.status != "estimated":
-            self.counts["skipped"] += 1
+        self._publish(results)
+
+    def _on_quarantine(self) -> None:
+        if self.online is None or not self.online.held:
             return
-        self.pub_est.publish(res.estimate)
-        if res.covariance is not None and self.pub_cov is not None:
-            self.pub_cov.publish(res.covariance)
-        cov = self.online.estimator.covariance
-        self.outputs.publish(res.stamp_ns, res.x_hat, None if cov is None else cov[0])
-        self.counts["estimates"] += 1
+        try:
+            results = self.online.poll()
+        except Exception as exc:  # a failure inside a method must not take the node down
+            self._method_failed(exc)
+            return
+        self._publish(results)
+
+    def _method_failed(self, exc: Exception) -> None:
+        self.online.reset()
+        self.get_logger().error(f"{self.method} failed on an observation ({exc!r}); restarting from the prior")
+
+    def _publish(self, results) -> None:
+        """Publish the estimates among ``results`` (OnlineEstimator.feed); count the others."""
+        for res in results:
+            if res.status == "held":
+                continue  # counted once it is estimated or dropped
+            if res.status != "estimated":
+                self.counts["skipped"] += 1
+                continue
+            self.pub_est.publish(res.estimate)
+            if res.covariance is not None and self.pub_cov is not None:
+                self.pub_cov.publish(res.covariance)
+            self.outputs.publish(res.stamp_ns, res.x_hat, res.P)
+            self.counts["estimates"] += 1
 
     def _warn(self, text: str) -> None:
         now = time.monotonic()
