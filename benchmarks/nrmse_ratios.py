@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/nrmse_ratios.py                      # EKF, UKF; 30 trajectories, seed 7
     .venv/bin/python benchmarks/nrmse_ratios.py --trajectories 100 --methods ekf,ukf,enkf
 
-The paper does not define NRMSE; docs/metrics-reference.md explains the definition chosen from its tables.
+The paper does not define NRMSE; docs/metrics.md explains the definition chosen from its tables.
 This prints, per scenario and method, RMSE, Full RMSE, NRMSE (``nrmse``), ``nrmse_spread``, the ratio
 RMSE / NRMSE and the per-component spreads s_d of the true state, so the ratios can be set beside
 the paper's (RMSE / NRMSE within a scenario: ballistic 0.9-3.4, bearings 250-320, Lorenz 96 3.4-3.7,

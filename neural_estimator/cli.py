@@ -973,7 +973,7 @@ def _cmd_recover(args) -> int:
 def _add_reproduce(sub) -> None:
     p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
     p.add_argument(
-        "--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (docs/reproduce-guide.md)"
+        "--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (docs/reproduce.md)"
     )
     p.add_argument(
         "--plugin",

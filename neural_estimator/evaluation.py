@@ -573,11 +573,11 @@ def departure_legend(results: Mapping[str, MethodResult], extra: set[str] = froz
     return D.legend_text(used | set(extra), [r.context for r in results.values()])
 
 
-RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see docs/metrics-reference.md
+RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see docs/metrics.md
 
 
 def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info: Any) -> dict[str, Any]:
-    """Everything measured, strict-JSON-ready (schema :data:`RESULTS_SCHEMA`, docs/metrics-reference.md).
+    """Everything measured, strict-JSON-ready (schema :data:`RESULTS_SCHEMA`, docs/metrics.md).
 
     Every method has the same keys: its ``summary`` has every metric of
     :data:`~neural_estimator.metrics.SCALAR_METRICS` (``applies`` false and null numbers for the

@@ -44,7 +44,7 @@ Definitions where the paper is silent (each is documented again where it is comp
   with s_d the spread of component d of the true state (population standard deviation of
   x_true[..., d] over all trajectories and timesteps; one set of numbers per data set, shared by
   every method). inf as soon as one trajectory diverged, like Full RMSE. The paper does not
-  define NRMSE; this is the definition its own tables leave standing (see docs/metrics-reference.md, and
+  define NRMSE; this is the definition its own tables leave standing (see docs/metrics.md, and
   test/test_metrics.py::test_paper_tables_*): (1) in the Lorenz 96 rows, where every component has
   the same spread by symmetry, RMSE / NRMSE is not one constant (LSTM 0.119 / 0.034 < 3.57 but
   Filterformer 0.732 / 0.202 > 3.61, after rounding), which rules out any "RMSE divided by a
@@ -816,7 +816,7 @@ def to_json(obj: Any) -> Any:
 
     Strict JSON (``json.dumps(..., allow_nan=False)`` accepts it): arrays become lists, numpy
     scalars Python scalars, and every non-finite number becomes null. A report always has every
-    key (the schema is in docs/metrics-reference.md); null means "no finite value": the metric does not
+    key (the schema is in docs/metrics.md); null means "no finite value": the metric does not
     apply (covariance metrics of a method without covariance: ``has_covariance`` is false), is
     unavailable (the paper's N/A), or is infinite; which one is told by the report's own fields
     (``n_diverged`` > 0 for an infinite Full RMSE or NRMSE, ``all_diverged`` for the rest,

@@ -2,7 +2,7 @@
 
 The end-to-end run uses a subset (2 scenarios x 4 methods: two filters, two neural models; 16 tiny
 trainings for the data-efficiency table) so the suite stays fast; the full smoke scale (5 x 10)
-is the same code with more jobs (docs/reproduce-guide.md).
+is the same code with more jobs (docs/reproduce.md).
 """
 
 from __future__ import annotations
