@@ -961,6 +961,8 @@ def _add_recover(sub) -> None:
 def _cmd_recover(args) -> int:
     from neural_estimator.bags.recover import recover_bag
 
+    if Path(args.out).exists() and Path(args.out).resolve() == Path(args.bag).resolve():
+        raise CliError(f"{args.out}: recover writes a new file; it cannot overwrite its input (choose another --out)")
     _check_out(args.out, args.overwrite)
     res = recover_bag(args.bag, args.out, overwrite=args.overwrite)
     lost = f"; the input had lost: {res.damage}" if res.damage is not None else "; the input was intact"
@@ -972,9 +974,7 @@ def _cmd_recover(args) -> int:
 # ---- reproduce ----------------------------------------------------------------------------------
 def _add_reproduce(sub) -> None:
     p = sub.add_parser("reproduce", help="the paper's experiments on Ray; a report beside the paper's numbers")
-    p.add_argument(
-        "--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (docs/reproduce.md)"
-    )
+    p.add_argument("--scale", required=True, choices=("smoke", "small", "paper"), help="sizes (docs/reproduce.md)")
     p.add_argument(
         "--plugin",
         action="append",

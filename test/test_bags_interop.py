@@ -171,7 +171,7 @@ def test_recover_makes_a_killed_recording_readable_by_every_tool(scen, data, tmp
     with open_bag(fixed, strict=True) as r:  # and our reader sees no damage now
         assert r.message_count == expected and r.damage is None
     assert cli.main(["recover", str(cut), "--out", str(cut)]) == 2
-    assert "pass --overwrite" in capsys.readouterr().err
+    assert "cannot overwrite its input" in capsys.readouterr().err
 
 
 # ---- no silent empty answers -------------------------------------------------------------------------------------
