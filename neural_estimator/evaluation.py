@@ -57,7 +57,8 @@ from neural_estimator.scenarios import Scenario
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
 # Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
 # changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns.
-RESULTS_REVISION = 2
+# 3: scenario presets and the recalibrated defaults (ballistic, quadrotor).
+RESULTS_REVISION = 3
 # Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
 _SPEED_ONLY_OPTIONS = frozenset({"threads"})
 

@@ -70,12 +70,47 @@ from neural_estimator.models.checkpoint import load_checkpoint
 from neural_estimator.models.serving import validated_context
 from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
 from neural_estimator.runtime import tune_allocator
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, make_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
 STATE = ROOT / "zoo_training"
 ORDER = ("mamba", "mamba2", "gru", "lstm", "gpt2", "filterformer")  # the issue's order
+
+
+def recorded_scenario(work: Path) -> dict | None:
+    """The scenario description a training directory was written for (its card, else its resume
+    state), or None when nothing has been trained there."""
+    for path in (work / "card.json", work / RESUME_DIR / "state.json"):
+        if path.is_file():
+            return json.loads(path.read_text()).get("scenario")
+    return None
+
+
+def same_constants(desc: dict, scenario) -> bool:
+    """True when ``desc`` (a recorded description) has ``scenario``'s name and constants, up to the
+    constants that may differ between training and use (noise scale, horizon)."""
+    ours = scenario.describe()
+    if desc.get("scenario") != ours["scenario"]:
+        return False
+    theirs_cfg, ours_cfg = desc.get("config", {}), ours["config"]
+    keys = (set(theirs_cfg) | set(ours_cfg)) - set(EVALUATION_CONSTANTS)
+    return all(theirs_cfg.get(k) == ours_cfg.get(k) for k in keys)
+
+
+def work_dir(state: Path, scenario, method: str) -> Path:
+    """Where (scenario, method) trains on ``scenario``'s constants.
+
+    STATE/<scenario>-<method>/ when that directory is empty or holds a training of these very
+    constants (every training made before presets existed lives there, on the constants of preset
+    v3); otherwise STATE/<preset>/<scenario>-<method>/ (e.g. zoo_training/v4/ballistic-mamba2/ for
+    the recalibrated ballistic), so a training on new constants never meets an old one's state.
+    """
+    legacy = state / f"{scenario.name}-{method}"
+    recorded = recorded_scenario(legacy)
+    if recorded is None or same_constants(recorded, scenario):
+        return legacy
+    return state / (scenario.describe().get("preset") or "custom") / legacy.name
 
 
 def resume_state(work: Path) -> dict | None:
@@ -191,6 +226,12 @@ def status_line(work: Path) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
+    p.add_argument(
+        "--preset",
+        default=None,
+        help="scenario constants to train on (default: each scenario's defaults, preset v4; v3: the "
+        "constants of the earlier zoo)",
+    )
     p.add_argument("--methods", default=",".join(ORDER))
     p.add_argument("--max-epochs", type=int, default=500, help="epoch budget per model (paper: 500)")
     p.add_argument(
@@ -264,13 +305,14 @@ def main(argv=None) -> int:
     stop_at = time.time() + 3600 * a.hours if a.hours else None
     for method in methods:  # method-major: every scenario gets Mamba before any gets Mamba-2, and so on
         for scenario_name in scenarios:
-            work = state / f"{scenario_name}-{method}"
+            scenario = make_scenario(scenario_name, preset=a.preset)
+            work = work_dir(state, scenario, method)
             if a.status:
-                print(status_line(work))
+                print(status_line(work).replace(work.name, str(work.relative_to(state)), 1))
                 continue
             if a.install:
                 if finished(work):
-                    install_if_better(work, zoo, make_scenario(scenario_name), not a.no_compare, a.device)
+                    install_if_better(work, zoo, scenario, not a.no_compare, a.device)
                 else:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
@@ -294,7 +336,6 @@ def main(argv=None) -> int:
                 keep_resume=True,
             )
             cfg = TrainConfig(epochs=a.max_epochs, **recipe)
-            scenario = make_scenario(scenario_name)
             t0 = time.time()
             if not a.finish:
                 stop_when = plateau_rule(cfg.lr, a.plateau_epochs, a.plateau_tol) if a.plateau_epochs else None

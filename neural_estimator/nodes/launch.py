@@ -49,6 +49,7 @@ class PipelineConfig:
     rate_hz: float = 0.0  # 0 = real time (1 / dt)
     seed: int = 0
     set: tuple[str, ...] = ()  # scenario constants name=value
+    preset: str = ""  # named scenario constants applied before set; empty = the defaults
     plugins: tuple[str, ...] = ()  # files registering user scenarios
     noise_scale: float = -1.0  # negative = the scenario's
     checkpoints: tuple[str, ...] = ()  # method=path for neural methods
@@ -188,6 +189,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
                         "method": m,
                         "scenario": cfg.scenario,
                         "set": list(cfg.set),
+                        "preset": cfg.preset,
                         "plugins": list(cfg.plugins),
                         "checkpoint": ckpt.get(m, ""),
                         "device": cfg.device,
@@ -211,6 +213,7 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
                 {
                     "scenario": cfg.scenario,
                     "set": list(cfg.set),
+                    "preset": cfg.preset,
                     "plugins": list(cfg.plugins),
                     "noise_scale": float(cfg.noise_scale),
                     "seed": cfg.seed,
@@ -310,6 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate-hz", type=float, default=0.0, help="observations per second (0 = real time)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="scenario constant")
+    p.add_argument(
+        "--preset", default="", metavar="NAME", help="named scenario constants, applied before --set (e.g. v3)"
+    )
     p.add_argument("--plugin", action="append", default=[], metavar="FILE", help="file registering user scenarios")
     p.add_argument("--noise-scale", type=float, default=-1.0)
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=DIR")
@@ -332,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         rate_hz=a.rate_hz,
         seed=a.seed,
         set=tuple(a.set),
+        preset=a.preset,
         plugins=tuple(a.plugin),
         noise_scale=a.noise_scale,
         checkpoints=tuple(a.checkpoint),
