@@ -155,6 +155,12 @@ CANDIDATES: dict[str, dict[str, tuple[str, dict, str]]] = {
             {"prior_angle_std": 1.0, "prior_rate_std": 1.0, "obs_noise_std": 0.01, "process_noise_q": 0.001},
             "x0 std 1.0, better sensor, smaller process noise",
         ),
+        "x0std1-rate0.1": (
+            "v3",
+            {"prior_angle_std": 1.0, "prior_rate_std": 0.1},
+            "x0 std 1.0 on the angles, the links released nearly at rest",
+        ),
+        "angle0.5-rate0.5": ("v3", {"prior_angle_std": 0.5, "prior_rate_std": 0.5}, "half the paper's x0 std"),
         "rate3-r0.01": (
             "v3",
             {"prior_angle_std": 1.0, "prior_rate_std": 3.0, "obs_noise_std": 0.01},
@@ -168,6 +174,16 @@ CANDIDATES: dict[str, dict[str, tuple[str, dict, str]]] = {
         "x0std1-dt0.05": ("v3", {"prior_std": (1.0,) * 6, "dt": 0.05}, "x0 std 1.0, tau 0.05 s (10 s)"),
         "x0std1-dt0.1": ("v3", {"prior_std": (1.0,) * 6, "dt": 0.1}, "x0 std 1.0, tau 0.1 s (20 s)"),
         "x0std1-h500": ("v3", {"prior_std": (1.0,) * 6, "horizon": 500}, "x0 std 1.0, 500 steps"),
+        "x0std1-q0.15-t0.5": (
+            "v3",
+            {"prior_std": (1.0,) * 6, "process_noise_std": 0.15, "thrust_perturb_rel": 0.5},
+            "x0 std 1.0, thrust perturbation 50 % (some flights grow without bound)",
+        ),
+        "x0std1-q0.15-t1": (
+            "v3",
+            {"prior_std": (1.0,) * 6, "process_noise_std": 0.15, "thrust_perturb_rel": 1.0},
+            "x0 std 1.0, thrust perturbation 100 % (flights grow without bound)",
+        ),
         "x0std1-dt0.05-q0.03": (
             "v3",
             {"prior_std": (1.0,) * 6, "dt": 0.05, "process_noise_std": 0.03},

@@ -58,6 +58,7 @@ unless --no-compare): for a variant that finished in an earlier run, e.g.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import sys
@@ -66,6 +67,7 @@ from pathlib import Path
 
 import torch
 
+from neural_estimator.data.protocol import SELECTION_INDEX, dataset
 from neural_estimator.models.checkpoint import load_checkpoint
 from neural_estimator.models.serving import validated_context
 from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
@@ -113,6 +115,34 @@ def work_dir(state: Path, scenario, method: str) -> Path:
     return state / (scenario.describe().get("preset") or "custom") / legacy.name
 
 
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
+    """Drop what a finished training no longer needs; returns the removed paths (relative to work).
+
+    Kept: card.json, which holds the training's history (``training.history``, every epoch's losses,
+    learning rate and seconds) and the recipe that reproduces it (``training.recipe``, ``data``,
+    ``init_seed``, ``architecture``). Removed: resume/ (the last epoch's weights, the AdamW moments,
+    the scheduler, the RNG states: only a training that goes on needs them) and model.safetensors
+    where the zoo ships the very same weights (byte-identical; a model that was not installed, e.g.
+    a --val-context variant, keeps its weights so that --install can still install it).
+    An unfinished training is left as it is: its resume state is what the next run continues from.
+    """
+    if not finished(work):
+        return []
+    removed = []
+    if (work / RESUME_DIR).is_dir():
+        shutil.rmtree(work / RESUME_DIR)
+        removed.append(f"{RESUME_DIR}/")
+    weights, shipped = work / "model.safetensors", (zoo / work.name / "model.safetensors") if zoo else None
+    if weights.is_file() and shipped is not None and shipped.is_file() and _sha256(weights) == _sha256(shipped):
+        weights.unlink()
+        removed.append("model.safetensors")
+    return removed
+
+
 def resume_state(work: Path) -> dict | None:
     """The run record of an unfinished model (epoch, history, ...), or None if it has not started."""
     path = work / RESUME_DIR / "state.json"
@@ -157,51 +187,81 @@ def not_installable(work: Path) -> str | None:
     return None
 
 
-def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float | None:
-    """RMSE of the model shipped in ``zoo`` for this pair, on the set the finished model's card was scored
-    on (evaluation set 0, as many trajectories, same seed and warm-up), or None when nothing ships there.
+def selection_rmse(checkpoint: Path, scenario, trajectories: int, seed: int = 0, device: str = "cpu") -> float:
+    """RMSE of the checkpoint in ``checkpoint`` (as it serves: bounded if it was validated so) on the
+    selection set: the first ``trajectories`` of validation set :data:`SELECTION_INDEX` at ``seed``.
 
-    Scored afresh, not read from the shipped card: older cards were scored on other sets (400
-    trajectories, every step), so their figures do not compare."""
-    shipped = zoo / work.name
-    if not (shipped / "card.json").is_file():
-        return None
-    card = json.loads((work / "card.json").read_text())
-    scored = (card.get("metrics") or {}).get("set") or {}
-    if scored.get("role") != "eval":
-        return None  # recorded data (no evaluation set to score the shipped model on): nothing to compare
-    model, norm, shipped_card = load_checkpoint(shipped, device)
+    A validation set, not an evaluation set: the evaluation sets are what the tables report
+    (evaluate, reproduce, the neural scoreboard), so choosing between models on one of them would
+    select on the test set; and not a training's own validation set (index 0-2), on which the new
+    model's best epoch was already chosen."""
+    model, norm, card = load_checkpoint(checkpoint, device)
+    data = dataset(scenario, "val", SELECTION_INDEX, trajectories, None, seed)
     metrics = evaluate(
         scenario,
         model,
         norm,
-        shipped_card["architecture"]["name"],
-        scored["trajectories"],
-        scored["seed"],
+        card["architecture"]["name"],
+        trajectories,
+        seed,
         device,
-        **validated_context(shipped_card),  # as it serves: bounded if it was validated so
+        data=data,
+        **validated_context(card),
     )
-    if metrics["set"]["warmup"] != scored.get("warmup", 0):
-        return None  # the finished card was scored over another range of steps: not comparable
-    return metrics["rmse"]
+    return float(metrics["rmse"])
 
 
-def install_if_better(work: Path, zoo: Path, scenario, compare: bool = True, device: str = "cpu") -> None:
-    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` or, with
-    ``compare``, :func:`not_better` says why not; print which."""
-    why = not_installable(work) or (not_better(work, shipped_rmse(work, zoo, scenario, device)) if compare else None)
-    print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
-
-
-def not_better(work: Path, shipped: float | None) -> str | None:
-    """Why a finished model must not replace the shipped one by its RMSE, or None: it must be lower than
-    the shipped model's on the same evaluation set (:func:`shipped_rmse`)."""
-    rmse = (json.loads((work / "card.json").read_text()).get("metrics") or {}).get("rmse")
-    if shipped is None or rmse is None or rmse < shipped:
+def comparable_shipped(work: Path, zoo: Path, scenario) -> Path | None:
+    """The shipped model of this pair when it serves ``scenario``'s constants, else None (nothing
+    ships there, or it was trained on other constants, e.g. preset v3 after a recalibration: it
+    cannot serve these, so there is nothing to compare against)."""
+    shipped = zoo / work.name
+    card = shipped / "card.json"
+    if not card.is_file() or not same_constants(json.loads(card.read_text())["scenario"], scenario):
         return None
-    return (
-        f"its RMSE {rmse:.4g} is not below the shipped model's {shipped:.4g} on the same set; the shipped model stays"
-    )
+    return shipped
+
+
+def install_if_better(
+    work: Path, zoo: Path, scenario, compare: bool = True, device: str = "cpu", trajectories: int = 1000
+) -> bool:
+    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` says why not
+    or, with ``compare``, the shipped model of the same constants scores a lower RMSE on the selection
+    set (:func:`selection_rmse`, validation data only); print which, with both figures. Returns
+    whether it was installed."""
+    why = not_installable(work)
+    figures = ""
+    shipped = comparable_shipped(work, zoo, scenario) if compare and why is None else None
+    if shipped is not None:
+        seed = json.loads((work / "card.json").read_text()).get("data", {}).get("seed", 0)
+        new = selection_rmse(work, scenario, trajectories, seed, device)
+        old = selection_rmse(shipped, scenario, trajectories, seed, device)
+        figures = (
+            f" (selection set: validation set {SELECTION_INDEX}, seed {seed}, {trajectories} trajectories; "
+            f"RMSE {new:.4g} against the shipped model's {old:.4g})"
+        )
+        why = not_better(new, old)
+    if why:
+        print(f"{work.name}: not installed: {why}{figures}", flush=True)
+        return False
+    print(f"installed {install(work, zoo)}{figures}", flush=True)
+    return True
+
+
+def not_better(new: float, shipped: float | None) -> str | None:
+    """Why a finished model must not replace the shipped one by its selection-set RMSE, or None: it
+    must be lower than the shipped model's on the same validation trajectories."""
+    if shipped is None or new < shipped:
+        return None
+    return f"its RMSE {new:.4g} is not below the shipped model's {shipped:.4g}; the shipped model stays"
+
+
+def installed_note(work: Path, zoo: Path | None) -> str:
+    """Whether the shipped model of the pair is this training's (same card), for a pruned training."""
+    shipped = (zoo / work.name / "card.json") if zoo else None
+    if shipped is not None and shipped.is_file() and shipped.read_text() == (work / "card.json").read_text():
+        return f"the zoo ships it ({shipped.parent})"
+    return "the zoo does not ship it; train it again to install it"
 
 
 def status_line(work: Path) -> str:
@@ -293,6 +353,12 @@ def main(argv=None) -> int:
         help="install the selected finished models (no training; a --val-context variant into the shipped zoo)",
     )
     p.add_argument("--status", action="store_true", help="print each model's state and exit")
+    p.add_argument(
+        "--prune",
+        action="store_true",
+        help="remove what every finished training under STATE no longer needs (resume state; weights the "
+        "zoo ships identically) and exit; runs by itself after every training that finishes",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -303,6 +369,17 @@ def main(argv=None) -> int:
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     scenarios = [s.strip() for s in a.scenarios.split(",") if s.strip()]
     stop_at = time.time() + 3600 * a.hours if a.hours else None
+    if a.prune:  # every training under STATE, whatever its constants (v3 ones included)
+        for card in sorted(state.rglob("card.json")):
+            work = card.parent
+            removed = prune(work, zoo or ZOO)
+            what = (
+                f"removed {', '.join(removed)}"
+                if removed
+                else ("nothing to remove" if finished(work) else "in progress, kept")
+            )
+            print(f"{work.relative_to(state)}: {what}")
+        return 0
     for method in methods:  # method-major: every scenario gets Mamba before any gets Mamba-2, and so on
         for scenario_name in scenarios:
             scenario = make_scenario(scenario_name, preset=a.preset)
@@ -311,8 +388,10 @@ def main(argv=None) -> int:
                 print(status_line(work).replace(work.name, str(work.relative_to(state)), 1))
                 continue
             if a.install:
-                if finished(work):
-                    install_if_better(work, zoo, scenario, not a.no_compare, a.device)
+                if finished(work) and not (work / "model.safetensors").is_file():
+                    print(f"{work.name}: finished, its weights were pruned: {installed_note(work, zoo)}", flush=True)
+                elif finished(work):
+                    install_if_better(work, zoo, scenario, not a.no_compare, a.device, a.eval_trajectories)
                 else:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
@@ -360,7 +439,9 @@ def main(argv=None) -> int:
             if finished(work) and zoo is None:
                 print(f"{work.name}: finished in {work} (a --val-context variant: not installed without --zoo)")
             elif finished(work):
-                install_if_better(work, zoo, scenario, not a.no_compare, a.device)
+                install_if_better(work, zoo, scenario, not a.no_compare, a.device, a.eval_trajectories)
+            if finished(work):
+                prune(work, zoo)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0
 

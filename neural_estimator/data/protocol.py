@@ -29,6 +29,12 @@ from neural_estimator.data.simulate import Trajectories, simulate
 from neural_estimator.scenarios import Scenario, code_digest
 
 ROLES = {"train": 0, "val": 1, "eval": 2}
+# The validation set that chooses between two trained models (scripts/train_zoo.py installs a model
+# only if it beats the shipped one there): role "val", this index, at the training's data seed. A
+# training's own validation set (early stopping, best epoch) is val index data_index (0-2), and no
+# table is ever computed on role "val": evaluate, reproduce and the neural scoreboard draw role
+# "eval" only, so model selection never sees a trajectory a table reports (test/test_selection.py).
+SELECTION_INDEX = 100
 DATA_RATIOS = (20, 10, 5, 1)
 NOMINAL_PARAMETERS = 100_000  # the paper's budget; sizes every architecture's training set alike
 TRAIN_TRAJECTORY_LENGTH = 500
