@@ -6,11 +6,16 @@ AdamW lr 2e-3 (weight decay 1e-5, clip 1.0), ReduceLROnPlateau factor 0.5 / pati
 stopping patience 30, at most 500 epochs. One deviation, for CPU time: the validation set is
 --val-trajectories (default 1,000) full-length trajectories instead of the paper's 8,000.
 
-Each (scenario, model) trains in STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the
-repository root): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
+Each (scenario, model) trains on the scenario's constants (--preset, default the defaults, v4) in
+STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the repository root), or in
+STATE/<preset>/<scenario>-<method>/ when the former holds a training of other constants
+(work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
 AdamW state, scheduler, RNG states, history; safetensors + JSON, no pickle; about 1.5 MB per
 model), small enough to commit so that the next session continues where this one stopped.
-Running the script again resumes every unfinished model from its last finished epoch.
+Running the script again resumes every unfinished model from its last finished epoch. Once a
+model is finished its resume state is deleted, and its weights too where the zoo ships the same
+file (prune; --prune does it for every finished training under STATE): the card keeps the
+history and the recipe. See docs/training.md.
 
 A model is finished when early stopping triggers, the plateau rule says so (below), the epoch
 budget (--max-epochs) is spent, its wall-time budget (--model-hours, summed over all runs) is
@@ -18,12 +23,16 @@ spent, or --finish says so: that
 finishes the selected unfinished models as they stand, without another epoch (for a run whose
 validation loss has been flat at a learning rate halved many times, where waiting for the paper's
 30-epoch early stopping costs an hour of CPU per model and changes nothing); the card says so.
-A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 and installed
-into neural_estimator/zoo/ with its card, which records the budget and whether training converged
-(early stopping triggered, or the learning rate reduced at least three times). It is not installed,
-and the shipped model stays (the script says why), when its best epoch is its first (the recipe did
-not train it), or when the shipped model, scored afresh on the same evaluation set (the cards of
-older models were scored on other sets), has the lower RMSE; --no-compare skips that comparison.
+A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 (the card's
+metrics: a report, never a criterion) and installed into neural_estimator/zoo/ with its card, which
+records the budget and whether training converged (early stopping triggered, or the learning rate
+reduced at least three times). It is not installed, and the shipped model stays (the script says
+why), when its best epoch is its first (the recipe did not train it), or when the shipped model of
+the same constants has the lower RMSE on the selection set: --eval-trajectories trajectories of
+validation set SELECTION_INDEX (100) at the training's data seed, both models scored afresh. Model
+selection never sees an evaluation set that a table reports (test/test_selection.py). A shipped
+model of other constants (a recalibrated scenario) is replaced without a comparison; --no-compare
+skips the comparison.
 
 The plateau rule (a stated budget, on by default; --plateau-epochs 0 turns it off): a model is finished
 once its learning rate has been reduced at least 3 times and its last --plateau-epochs (N = 10) epochs
@@ -33,11 +42,14 @@ did not lower the validation loss by --plateau-tol (1 %) against the N epochs be
 no run more than 1.1 % above its final best validation loss. Such a model is converged by the card's
 rule, and the card says which rule stopped it.
 
-Order: Mamba and Mamba-2 on every scenario first, then GRU, LSTM, GPT-2, Filterformer (method-major).
+Order: the --methods order (default Mamba, Mamba-2, GRU, LSTM, GPT-2, Filterformer), method-major:
+every selected scenario gets the first method before any gets the second.
 --hours bounds this invocation: no new epoch starts after it; the state stays resumable.
 
     python scripts/train_zoo.py --scenarios lorenz96 --methods mamba,mamba2 --hours 1
     python scripts/train_zoo.py --status        # what is finished, what is in progress
+    python scripts/train_zoo.py --scenarios ballistic,quadrotor --methods mamba2,mamba,gru,lstm,gpt2,filterformer
+                                                # the retraining after the v4 recalibration (resumable)
     python scripts/train_zoo.py --scenarios nlink --methods mamba2 --val-context 100   # a variant
 
 --val-context N (not the paper's recipe) validates, and so chooses the checkpoint, with the model's
