@@ -42,8 +42,11 @@ did not lower the validation loss by --plateau-tol (1 %) against the N epochs be
 no run more than 1.1 % above its final best validation loss. Such a model is converged by the card's
 rule, and the card says which rule stopped it.
 
-Order: the --methods order (default Mamba, Mamba-2, GRU, LSTM, GPT-2, Filterformer), method-major:
-every selected scenario gets the first method before any gets the second.
+Order: the --methods order (default Mamba-2, Mamba, GRU, LSTM, GPT-2, Filterformer), method-major:
+every selected scenario gets the first method before any gets the second. A model that has not
+started is not started where the zoo already ships one of the same constants (nothing invalidated
+it; --retrain starts it anyway), so a plain run retrains exactly what a recalibration invalidated
+and resumes what is in progress.
 --hours bounds this invocation: no new epoch starts after it; the state stays resumable.
 
     python scripts/train_zoo.py --scenarios lorenz96 --methods mamba,mamba2 --hours 1
@@ -89,7 +92,7 @@ from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
 STATE = ROOT / "zoo_training"
-ORDER = ("mamba", "mamba2", "gru", "lstm", "gpt2", "filterformer")  # the issue's order
+ORDER = ("mamba2", "mamba", "gru", "lstm", "gpt2", "filterformer")  # SSMs first, then recurrent, then attention
 
 
 def recorded_scenario(work: Path) -> dict | None:
@@ -234,6 +237,12 @@ def comparable_shipped(work: Path, zoo: Path, scenario) -> Path | None:
     return shipped
 
 
+def shipped_of(zoo: Path, work: Path, scenario) -> bool:
+    """True when ``zoo`` ships this pair with a card of ``scenario``'s constants: a recalibration did
+    not invalidate it, so a plain run does not train it again."""
+    return comparable_shipped(work, zoo, scenario) is not None
+
+
 def install_if_better(
     work: Path, zoo: Path, scenario, compare: bool = True, device: str = "cpu", trajectories: int = 1000
 ) -> bool:
@@ -366,6 +375,12 @@ def main(argv=None) -> int:
     )
     p.add_argument("--status", action="store_true", help="print each model's state and exit")
     p.add_argument(
+        "--retrain",
+        action="store_true",
+        help="start a model even where the zoo ships one of the same constants (default: only what a "
+        "change of constants invalidated, or what never shipped, is trained)",
+    )
+    p.add_argument(
         "--prune",
         action="store_true",
         help="remove what every finished training under STATE no longer needs (resume state; weights the "
@@ -408,6 +423,13 @@ def main(argv=None) -> int:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
             if finished(work):
+                continue
+            if resume_state(work) is None and not a.retrain and zoo is not None and shipped_of(zoo, work, scenario):
+                print(
+                    f"{work.name}: not started: the zoo ships a model of these constants, nothing to retrain "
+                    "(--retrain trains one anyway)",
+                    flush=True,
+                )
                 continue
             if stop_at is not None and time.time() >= stop_at:
                 print(f"{work.name}: not started in this run (--hours spent)", flush=True)

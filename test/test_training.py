@@ -697,21 +697,22 @@ def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_th
     capsys.readouterr()
     assert zoo_script.main([*args, "--state", str(tmp_path / "a"), "--install"]) == 0
     assert "its weights were pruned: the zoo ships it" in capsys.readouterr().out
-    # the same recipe again trains the same model: not lower, so the shipped one stays
+    # with a model of these constants shipped, a plain run in a fresh state starts nothing
     assert zoo_script.main([*args, "--state", str(tmp_path / "b")]) == 0
+    assert "the zoo ships a model of these constants, nothing to retrain" in capsys.readouterr().out
+    assert not (tmp_path / "b" / "test_spinner-gru").exists()
+    # the same recipe again trains the same model: not lower, so the shipped one stays
+    assert zoo_script.main([*args, "--state", str(tmp_path / "b"), "--retrain"]) == 0
     out = capsys.readouterr().out
     assert "is not below the shipped model's" in out and "selection set: validation set 100" in out
-    again = (
-        tmp_path / "b" / "test_spinner-gru"
-    )  # not installed: keeps its weights (for --install), not its resume state
-    assert sorted(f.name for f in again.iterdir()) == ["card.json", "model.safetensors"]
-    # on the selection set (validation data) the two score alike, and not the card's evaluation figure
-    scenario = make_scenario("test_spinner")
-    rmse = zoo_script.selection_rmse(shipped, scenario, 4)
-    assert rmse == zoo_script.selection_rmse(again, scenario, 4) and rmse != first["metrics"]["rmse"]
+    # not installed: the training keeps no resume state (its weights only where they differ from the shipped ones)
+    kept = {f.name for f in (tmp_path / "b" / "test_spinner-gru").iterdir()}
+    assert "card.json" in kept and "resume" not in kept and kept <= {"card.json", "model.safetensors"}
+    # the selection set (validation data) is not the card's evaluation set
+    assert zoo_script.selection_rmse(shipped, make_scenario("test_spinner"), 4) != first["metrics"]["rmse"]
     assert (shipped / "card.json").stat().st_mtime_ns == stamp
     # --no-compare installs it regardless
-    assert zoo_script.main([*args, "--state", str(tmp_path / "c"), "--no-compare"]) == 0
+    assert zoo_script.main([*args, "--state", str(tmp_path / "c"), "--no-compare", "--retrain"]) == 0
     assert "installed" in capsys.readouterr().out
     assert (shipped / "card.json").stat().st_mtime_ns != stamp
 
@@ -775,7 +776,16 @@ def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
     calls.clear()
     assert (
         zoo_script.main(
-            [*args, "--scenarios", "test_spinner", "--state", str(tmp_path / "s2"), "--plateau-epochs", "0"]
+            [
+                *args,
+                "--scenarios",
+                "test_spinner",
+                "--state",
+                str(tmp_path / "s2"),
+                "--plateau-epochs",
+                "0",
+                "--retrain",
+            ]
         )
         == 0
     )
