@@ -27,7 +27,14 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-from neural_estimator.scenarios import ScenarioError, load_plugins, make_scenario, parse_assignments, scenario_names
+from neural_estimator.scenarios import (
+    ScenarioError,
+    load_plugins,
+    make_scenario,
+    parse_assignments,
+    preset_names,
+    scenario_names,
+)
 
 EXIT_BAD_INPUT = 2
 
@@ -80,7 +87,16 @@ def scenario_from_args(args: argparse.Namespace):
     overrides: dict[str, Any] = parse_assignments(getattr(args, "set", None))
     if getattr(args, "noise_scale", None) is not None:
         overrides["noise_scale"] = args.noise_scale
-    return make_scenario(args.scenario, **overrides)
+    return make_scenario(args.scenario, preset=getattr(args, "preset", None), **overrides)
+
+
+def _preset_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--preset",
+        metavar="NAME",
+        help="named set of the scenario's constants, applied before --set (built-ins: v4, the default; "
+        "v3, the constants before the spread calibration; see docs/scenarios.md)",
+    )
 
 
 def _common(p: argparse.ArgumentParser, scenario: bool = True, data: bool = False) -> None:
@@ -92,6 +108,7 @@ def _common(p: argparse.ArgumentParser, scenario: bool = True, data: bool = Fals
             help=f"one of: {', '.join(scenario_names())} (or a plugin's)" + ("; or --data" if data else ""),
         )
         p.add_argument("--set", action="append", metavar="NAME=VALUE", help="override a scenario constant (repeatable)")
+        _preset_flag(p)
         p.add_argument("--noise-scale", type=float, help="multiply the observation-noise std (filters are told)")
 
 
@@ -144,6 +161,7 @@ def _cmd_scenarios(args) -> int:
             f"  y = [{names(d['obs_names'], d['obs_units'])}]"
             + (f", u = [{names(d['control_names'], d['control_units'])}]" if d["control_names"] else "")
             + f", dt = {d['dt']} s"
+            + (f"; preset {d['preset']} (presets: {', '.join(preset_names(d['scenario']))})" if "preset" in d else "")
         )
         print("  " + ", ".join(f"{k}={v}" for k, v in d["config"].items() if not isinstance(v, list) or len(v) <= 4))
     return 0
@@ -216,14 +234,16 @@ def _bag_scenario_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--set", action="append", metavar="NAME=VALUE", help="scenario constant, with --scenario (repeatable)"
     )
+    _preset_flag(p)
 
 
 def _bag_description(args: argparse.Namespace) -> dict[str, Any] | None:
     """The description named by ``--scenario``/``--set``, or None (use the bag's own)."""
     if getattr(args, "scenario", None):
-        return make_scenario(args.scenario, **parse_assignments(args.set)).describe()
-    if getattr(args, "set", None):
-        raise CliError("--set needs --scenario (the bag's own scenario message carries its constants)")
+        return make_scenario(args.scenario, preset=args.preset, **parse_assignments(args.set)).describe()
+    if getattr(args, "set", None) or getattr(args, "preset", None):
+        flag = "--set" if getattr(args, "set", None) else "--preset"
+        raise CliError(f"{flag} needs --scenario (the bag's own scenario message carries its constants)")
     return None
 
 
@@ -460,8 +480,8 @@ def _scenario_or_data(args: argparse.Namespace):
         if getattr(args, "scenario", None) is None:
             raise CliError("pass --scenario NAME, or --data FILE.npz for recorded data")
         return scenario_from_args(args), None
-    if getattr(args, "scenario", None) is not None or getattr(args, "set", None):
-        raise CliError("--data brings its own interface: drop --scenario and --set")
+    if getattr(args, "scenario", None) is not None or getattr(args, "set", None) or getattr(args, "preset", None):
+        raise CliError("--data brings its own interface: drop --scenario, --set and --preset")
     from neural_estimator.data import load_trajectories
     from neural_estimator.robot import DataScenario
 

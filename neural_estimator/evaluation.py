@@ -58,8 +58,9 @@ from neural_estimator.scenarios import Scenario
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
 # Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
 # changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns;
-# 3: every report carries the every-step RMSE beside the scored one (rmse_every_step).
-RESULTS_REVISION = 3
+# 3: every report carries the every-step RMSE beside the scored one (rmse_every_step); 4: scenario
+# presets and the recalibrated defaults (ballistic, quadrotor).
+RESULTS_REVISION = 4
 # Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
 _SPEED_ONLY_OPTIONS = frozenset({"threads"})
 

@@ -6,11 +6,16 @@ AdamW lr 2e-3 (weight decay 1e-5, clip 1.0), ReduceLROnPlateau factor 0.5 / pati
 stopping patience 30, at most 500 epochs. One deviation, for CPU time: the validation set is
 --val-trajectories (default 1,000) full-length trajectories instead of the paper's 8,000.
 
-Each (scenario, model) trains in STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the
-repository root): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
+Each (scenario, model) trains on the scenario's constants (--preset, default the defaults, v4) in
+STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the repository root), or in
+STATE/<preset>/<scenario>-<method>/ when the former holds a training of other constants
+(work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
 AdamW state, scheduler, RNG states, history; safetensors + JSON, no pickle; about 1.5 MB per
 model), small enough to commit so that the next session continues where this one stopped.
-Running the script again resumes every unfinished model from its last finished epoch.
+Running the script again resumes every unfinished model from its last finished epoch. Once a
+model is finished its resume state is deleted, and its weights too where the zoo ships the same
+file (prune; --prune does it for every finished training under STATE): the card keeps the
+history and the recipe. See docs/training.md.
 
 A model is finished when early stopping triggers, the plateau rule says so (below), the epoch
 budget (--max-epochs) is spent, its wall-time budget (--model-hours, summed over all runs) is
@@ -18,12 +23,16 @@ spent, or --finish says so: that
 finishes the selected unfinished models as they stand, without another epoch (for a run whose
 validation loss has been flat at a learning rate halved many times, where waiting for the paper's
 30-epoch early stopping costs an hour of CPU per model and changes nothing); the card says so.
-A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 and installed
-into neural_estimator/zoo/ with its card, which records the budget and whether training converged
-(early stopping triggered, or the learning rate reduced at least three times). It is not installed,
-and the shipped model stays (the script says why), when its best epoch is its first (the recipe did
-not train it), or when the shipped model, scored afresh on the same evaluation set (the cards of
-older models were scored on other sets), has the lower RMSE; --no-compare skips that comparison.
+A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 (the card's
+metrics: a report, never a criterion) and installed into neural_estimator/zoo/ with its card, which
+records the budget and whether training converged (early stopping triggered, or the learning rate
+reduced at least three times). It is not installed, and the shipped model stays (the script says
+why), when its best epoch is its first (the recipe did not train it), or when the shipped model of
+the same constants has the lower RMSE on the selection set: --eval-trajectories trajectories of
+validation set SELECTION_INDEX (100) at the training's data seed, both models scored afresh. Model
+selection never sees an evaluation set that a table reports (test/test_selection.py). A shipped
+model of other constants (a recalibrated scenario) is replaced without a comparison; --no-compare
+skips the comparison.
 
 The plateau rule (a stated budget, on by default; --plateau-epochs 0 turns it off): a model is finished
 once its learning rate has been reduced at least 3 times and its last --plateau-epochs (N = 10) epochs
@@ -33,11 +42,17 @@ did not lower the validation loss by --plateau-tol (1 %) against the N epochs be
 no run more than 1.1 % above its final best validation loss. Such a model is converged by the card's
 rule, and the card says which rule stopped it.
 
-Order: Mamba and Mamba-2 on every scenario first, then GRU, LSTM, GPT-2, Filterformer (method-major).
+Order: the --methods order (default Mamba-2, Mamba, GRU, LSTM, GPT-2, Filterformer), method-major:
+every selected scenario gets the first method before any gets the second. A model that has not
+started is not started where the zoo already ships one of the same constants (nothing invalidated
+it; --retrain starts it anyway), so a plain run retrains exactly what a recalibration invalidated
+and resumes what is in progress.
 --hours bounds this invocation: no new epoch starts after it; the state stays resumable.
 
     python scripts/train_zoo.py --scenarios lorenz96 --methods mamba,mamba2 --hours 1
     python scripts/train_zoo.py --status        # what is finished, what is in progress
+    python scripts/train_zoo.py --scenarios ballistic,quadrotor --methods mamba2,mamba,gru,lstm,gpt2,filterformer
+                                                # the retraining after the v4 recalibration (resumable)
     python scripts/train_zoo.py --scenarios nlink --methods mamba2 --val-context 100   # a variant
 
 --val-context N (not the paper's recipe) validates, and so chooses the checkpoint, with the model's
@@ -58,6 +73,7 @@ unless --no-compare): for a variant that finished in an earlier run, e.g.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import sys
@@ -66,16 +82,80 @@ from pathlib import Path
 
 import torch
 
+from neural_estimator.data.protocol import SELECTION_INDEX, dataset
 from neural_estimator.models.checkpoint import load_checkpoint
 from neural_estimator.models.serving import validated_context
 from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
 from neural_estimator.runtime import tune_allocator
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, make_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
 STATE = ROOT / "zoo_training"
-ORDER = ("mamba", "mamba2", "gru", "lstm", "gpt2", "filterformer")  # the issue's order
+ORDER = ("mamba2", "mamba", "gru", "lstm", "gpt2", "filterformer")  # SSMs first, then recurrent, then attention
+
+
+def recorded_scenario(work: Path) -> dict | None:
+    """The scenario description a training directory was written for (its card, else its resume
+    state), or None when nothing has been trained there."""
+    for path in (work / "card.json", work / RESUME_DIR / "state.json"):
+        if path.is_file():
+            return json.loads(path.read_text()).get("scenario")
+    return None
+
+
+def same_constants(desc: dict, scenario) -> bool:
+    """True when ``desc`` (a recorded description) has ``scenario``'s name and constants, up to the
+    constants that may differ between training and use (noise scale, horizon)."""
+    ours = scenario.describe()
+    if desc.get("scenario") != ours["scenario"]:
+        return False
+    theirs_cfg, ours_cfg = desc.get("config", {}), ours["config"]
+    keys = (set(theirs_cfg) | set(ours_cfg)) - set(EVALUATION_CONSTANTS)
+    return all(theirs_cfg.get(k) == ours_cfg.get(k) for k in keys)
+
+
+def work_dir(state: Path, scenario, method: str) -> Path:
+    """Where (scenario, method) trains on ``scenario``'s constants.
+
+    STATE/<scenario>-<method>/ when that directory is empty or holds a training of these very
+    constants (every training made before presets existed lives there, on the constants of preset
+    v3); otherwise STATE/<preset>/<scenario>-<method>/ (e.g. zoo_training/v4/ballistic-mamba2/ for
+    the recalibrated ballistic), so a training on new constants never meets an old one's state.
+    """
+    legacy = state / f"{scenario.name}-{method}"
+    recorded = recorded_scenario(legacy)
+    if recorded is None or same_constants(recorded, scenario):
+        return legacy
+    return state / (scenario.describe().get("preset") or "custom") / legacy.name
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
+    """Drop what a finished training no longer needs; returns the removed paths (relative to work).
+
+    Kept: card.json, which holds the training's history (``training.history``, every epoch's losses,
+    learning rate and seconds) and the recipe that reproduces it (``training.recipe``, ``data``,
+    ``init_seed``, ``architecture``). Removed: resume/ (the last epoch's weights, the AdamW moments,
+    the scheduler, the RNG states: only a training that goes on needs them) and model.safetensors
+    where the zoo ships the very same weights (byte-identical; a model that was not installed, e.g.
+    a --val-context variant, keeps its weights so that --install can still install it).
+    An unfinished training is left as it is: its resume state is what the next run continues from.
+    """
+    if not finished(work):
+        return []
+    removed = []
+    if (work / RESUME_DIR).is_dir():
+        shutil.rmtree(work / RESUME_DIR)
+        removed.append(f"{RESUME_DIR}/")
+    weights, shipped = work / "model.safetensors", (zoo / work.name / "model.safetensors") if zoo else None
+    if weights.is_file() and shipped is not None and shipped.is_file() and _sha256(weights) == _sha256(shipped):
+        weights.unlink()
+        removed.append("model.safetensors")
+    return removed
 
 
 def resume_state(work: Path) -> dict | None:
@@ -122,51 +202,87 @@ def not_installable(work: Path) -> str | None:
     return None
 
 
-def shipped_rmse(work: Path, zoo: Path, scenario, device: str = "cpu") -> float | None:
-    """RMSE of the model shipped in ``zoo`` for this pair, on the set the finished model's card was scored
-    on (evaluation set 0, as many trajectories, same seed and warm-up), or None when nothing ships there.
+def selection_rmse(checkpoint: Path, scenario, trajectories: int, seed: int = 0, device: str = "cpu") -> float:
+    """RMSE of the checkpoint in ``checkpoint`` (as it serves: bounded if it was validated so) on the
+    selection set: the first ``trajectories`` of validation set :data:`SELECTION_INDEX` at ``seed``.
 
-    Scored afresh, not read from the shipped card: older cards were scored on other sets (400
-    trajectories, every step), so their figures do not compare."""
-    shipped = zoo / work.name
-    if not (shipped / "card.json").is_file():
-        return None
-    card = json.loads((work / "card.json").read_text())
-    scored = (card.get("metrics") or {}).get("set") or {}
-    if scored.get("role") != "eval":
-        return None  # recorded data (no evaluation set to score the shipped model on): nothing to compare
-    model, norm, shipped_card = load_checkpoint(shipped, device)
+    A validation set, not an evaluation set: the evaluation sets are what the tables report
+    (evaluate, reproduce, the neural scoreboard), so choosing between models on one of them would
+    select on the test set; and not a training's own validation set (index 0-2), on which the new
+    model's best epoch was already chosen."""
+    model, norm, card = load_checkpoint(checkpoint, device)
+    data = dataset(scenario, "val", SELECTION_INDEX, trajectories, None, seed)
     metrics = evaluate(
         scenario,
         model,
         norm,
-        shipped_card["architecture"]["name"],
-        scored["trajectories"],
-        scored["seed"],
+        card["architecture"]["name"],
+        trajectories,
+        seed,
         device,
-        **validated_context(shipped_card),  # as it serves: bounded if it was validated so
+        data=data,
+        **validated_context(card),
     )
-    if metrics["set"]["warmup"] != scored.get("warmup", 0):
-        return None  # the finished card was scored over another range of steps: not comparable
-    return metrics["rmse"]
+    return float(metrics["rmse"])
 
 
-def install_if_better(work: Path, zoo: Path, scenario, compare: bool = True, device: str = "cpu") -> None:
-    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` or, with
-    ``compare``, :func:`not_better` says why not; print which."""
-    why = not_installable(work) or (not_better(work, shipped_rmse(work, zoo, scenario, device)) if compare else None)
-    print(f"{work.name}: not installed: {why}" if why else f"installed {install(work, zoo)}", flush=True)
-
-
-def not_better(work: Path, shipped: float | None) -> str | None:
-    """Why a finished model must not replace the shipped one by its RMSE, or None: it must be lower than
-    the shipped model's on the same evaluation set (:func:`shipped_rmse`)."""
-    rmse = (json.loads((work / "card.json").read_text()).get("metrics") or {}).get("rmse")
-    if shipped is None or rmse is None or rmse < shipped:
+def comparable_shipped(work: Path, zoo: Path, scenario) -> Path | None:
+    """The shipped model of this pair when it serves ``scenario``'s constants, else None (nothing
+    ships there, or it was trained on other constants, e.g. preset v3 after a recalibration: it
+    cannot serve these, so there is nothing to compare against)."""
+    shipped = zoo / work.name
+    card = shipped / "card.json"
+    if not card.is_file() or not same_constants(json.loads(card.read_text())["scenario"], scenario):
         return None
-    return (
-        f"its RMSE {rmse:.4g} is not below the shipped model's {shipped:.4g} on the same set; the shipped model stays"
-    )
+    return shipped
+
+
+def shipped_of(zoo: Path, work: Path, scenario) -> bool:
+    """True when ``zoo`` ships this pair with a card of ``scenario``'s constants: a recalibration did
+    not invalidate it, so a plain run does not train it again."""
+    return comparable_shipped(work, zoo, scenario) is not None
+
+
+def install_if_better(
+    work: Path, zoo: Path, scenario, compare: bool = True, device: str = "cpu", trajectories: int = 1000
+) -> bool:
+    """Install the finished model of ``work`` into ``zoo`` unless :func:`not_installable` says why not
+    or, with ``compare``, the shipped model of the same constants scores a lower RMSE on the selection
+    set (:func:`selection_rmse`, validation data only); print which, with both figures. Returns
+    whether it was installed."""
+    why = not_installable(work)
+    figures = ""
+    shipped = comparable_shipped(work, zoo, scenario) if compare and why is None else None
+    if shipped is not None:
+        seed = json.loads((work / "card.json").read_text()).get("data", {}).get("seed", 0)
+        new = selection_rmse(work, scenario, trajectories, seed, device)
+        old = selection_rmse(shipped, scenario, trajectories, seed, device)
+        figures = (
+            f" (selection set: validation set {SELECTION_INDEX}, seed {seed}, {trajectories} trajectories; "
+            f"RMSE {new:.4g} against the shipped model's {old:.4g})"
+        )
+        why = not_better(new, old)
+    if why:
+        print(f"{work.name}: not installed: {why}{figures}", flush=True)
+        return False
+    print(f"installed {install(work, zoo)}{figures}", flush=True)
+    return True
+
+
+def not_better(new: float, shipped: float | None) -> str | None:
+    """Why a finished model must not replace the shipped one by its selection-set RMSE, or None: it
+    must be lower than the shipped model's on the same validation trajectories."""
+    if shipped is None or new < shipped:
+        return None
+    return f"its RMSE {new:.4g} is not below the shipped model's {shipped:.4g}; the shipped model stays"
+
+
+def installed_note(work: Path, zoo: Path | None) -> str:
+    """Whether the shipped model of the pair is this training's (same card), for a pruned training."""
+    shipped = (zoo / work.name / "card.json") if zoo else None
+    if shipped is not None and shipped.is_file() and shipped.read_text() == (work / "card.json").read_text():
+        return f"the zoo ships it ({shipped.parent})"
+    return "the zoo does not ship it; train it again to install it"
 
 
 def status_line(work: Path) -> str:
@@ -191,6 +307,12 @@ def status_line(work: Path) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
+    p.add_argument(
+        "--preset",
+        default=None,
+        help="scenario constants to train on (default: each scenario's defaults, preset v4; v3: the "
+        "constants of the earlier zoo)",
+    )
     p.add_argument("--methods", default=",".join(ORDER))
     p.add_argument("--max-epochs", type=int, default=500, help="epoch budget per model (paper: 500)")
     p.add_argument(
@@ -252,6 +374,18 @@ def main(argv=None) -> int:
         help="install the selected finished models (no training; a --val-context variant into the shipped zoo)",
     )
     p.add_argument("--status", action="store_true", help="print each model's state and exit")
+    p.add_argument(
+        "--retrain",
+        action="store_true",
+        help="start a model even where the zoo ships one of the same constants (default: only what a "
+        "change of constants invalidated, or what never shipped, is trained)",
+    )
+    p.add_argument(
+        "--prune",
+        action="store_true",
+        help="remove what every finished training under STATE no longer needs (resume state; weights the "
+        "zoo ships identically) and exit; runs by itself after every training that finishes",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -262,19 +396,40 @@ def main(argv=None) -> int:
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     scenarios = [s.strip() for s in a.scenarios.split(",") if s.strip()]
     stop_at = time.time() + 3600 * a.hours if a.hours else None
+    if a.prune:  # every training under STATE, whatever its constants (v3 ones included)
+        for card in sorted(state.rglob("card.json")):
+            work = card.parent
+            removed = prune(work, zoo or ZOO)
+            what = (
+                f"removed {', '.join(removed)}"
+                if removed
+                else ("nothing to remove" if finished(work) else "in progress, kept")
+            )
+            print(f"{work.relative_to(state)}: {what}")
+        return 0
     for method in methods:  # method-major: every scenario gets Mamba before any gets Mamba-2, and so on
         for scenario_name in scenarios:
-            work = state / f"{scenario_name}-{method}"
+            scenario = make_scenario(scenario_name, preset=a.preset)
+            work = work_dir(state, scenario, method)
             if a.status:
-                print(status_line(work))
+                print(status_line(work).replace(work.name, str(work.relative_to(state)), 1))
                 continue
             if a.install:
-                if finished(work):
-                    install_if_better(work, zoo, make_scenario(scenario_name), not a.no_compare, a.device)
+                if finished(work) and not (work / "model.safetensors").is_file():
+                    print(f"{work.name}: finished, its weights were pruned: {installed_note(work, zoo)}", flush=True)
+                elif finished(work):
+                    install_if_better(work, zoo, scenario, not a.no_compare, a.device, a.eval_trajectories)
                 else:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
             if finished(work):
+                continue
+            if resume_state(work) is None and not a.retrain and zoo is not None and shipped_of(zoo, work, scenario):
+                print(
+                    f"{work.name}: not started: the zoo ships a model of these constants, nothing to retrain "
+                    "(--retrain trains one anyway)",
+                    flush=True,
+                )
                 continue
             if stop_at is not None and time.time() >= stop_at:
                 print(f"{work.name}: not started in this run (--hours spent)", flush=True)
@@ -294,7 +449,6 @@ def main(argv=None) -> int:
                 keep_resume=True,
             )
             cfg = TrainConfig(epochs=a.max_epochs, **recipe)
-            scenario = make_scenario(scenario_name)
             t0 = time.time()
             if not a.finish:
                 stop_when = plateau_rule(cfg.lr, a.plateau_epochs, a.plateau_tol) if a.plateau_epochs else None
@@ -319,7 +473,9 @@ def main(argv=None) -> int:
             if finished(work) and zoo is None:
                 print(f"{work.name}: finished in {work} (a --val-context variant: not installed without --zoo)")
             elif finished(work):
-                install_if_better(work, zoo, scenario, not a.no_compare, a.device)
+                install_if_better(work, zoo, scenario, not a.no_compare, a.device, a.eval_trajectories)
+            if finished(work):
+                prune(work, zoo)
             print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
     return 0
 

@@ -62,6 +62,7 @@ class SimulatorParams:
 
     scenario: str = param("lorenz96", "scenario name (built-in or registered by a plugin)")
     set: tuple[str, ...] = param((), "scenario constants as name=value, e.g. ['forcing=10.0']")
+    preset: str = param("", "named constants of the scenario, applied before set (empty = the defaults; e.g. v3)")
     plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     noise_scale: float = param(-1.0, "observation-noise scale; negative = the scenario's (or set's) value")
     seed: int = param(0, "seed of the simulated data (same seed, same data)")
@@ -94,7 +95,9 @@ class SimulatorNode(ManagedNode):
         if p.horizon < 0 or p.rate_hz < 0:
             raise StartupError("horizon and rate_hz must be >= 0")
         load_plugins(p.plugins)
-        self.scenario = build_scenario(p.scenario, p.set, p.noise_scale if p.noise_scale >= 0 else None)
+        self.scenario = build_scenario(
+            p.scenario, p.set, p.noise_scale if p.noise_scale >= 0 else None, preset=p.preset
+        )
         from neural_estimator.data import simulate
 
         self.horizon = p.horizon or self.scenario.horizon

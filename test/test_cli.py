@@ -165,3 +165,42 @@ def test_metrics_scores_an_estimate_file_holding_only_x_hat(tmp_path, capsys):
     save_npz(tmp_path / "bad.npz", {"x_hat": np.zeros((3, 4, 2))}, {})
     assert main(["metrics", str(tmp_path / "d.npz"), str(tmp_path / "bad.npz")]) == 2
     assert "x_hat has shape (3, 4, 2), the truth's x has (3, 15, 2)" in capsys.readouterr().err
+
+
+def test_preset_flag_selects_named_constants_recorded_in_the_file(tmp_path, capsys):
+    out = tmp_path / "b.npz"
+    args = ["simulate", "--scenario", "ballistic", "--trajectories", "2", "--horizon", "5", "--out", str(out)]
+    assert main([*args, "--preset", "v3"]) == 0
+    data, _ = load_trajectories(out)
+    assert data.meta["preset"] == "v3" and data.meta["config"]["dt"] == 0.1
+    assert main([*args, "--preset", "v3", "--set", "dt=0.2"]) == 0  # --set applies on top
+    data, _ = load_trajectories(out)
+    assert data.meta["preset"] == "custom" and data.meta["config"]["dt"] == 0.2
+    assert main(args) == 0
+    data, _ = load_trajectories(out)
+    assert data.meta["preset"] == "v4" and data.meta["config"]["dt"] == 0.01
+    capsys.readouterr()
+    assert main([*args, "--preset", "v9"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no preset 'v9'" in err and "\n" not in err
+
+
+def test_evaluate_on_preset_v3_loads_the_model_trained_on_it(tmp_path, capsys):
+    """A shipped model trained on the earlier constants evaluates on their preset; on the new
+    defaults it is refused with one line naming the preset."""
+    import json as _json
+    from pathlib import Path
+
+    from neural_estimator.scenarios import scenario_class
+
+    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+    card = _json.loads((zoo / "ballistic-gru" / "card.json").read_text())
+    preset = scenario_class("ballistic").preset_of(card["scenario"]["config"])
+    common = ["evaluate", "--scenario", "ballistic", "--methods", "gru", "--trajectories", "3", "--sets", "1"]
+    common += ["--horizon", "30", "--no-cache", "--out", str(tmp_path / "r")]
+    assert main([*common, "--preset", preset]) == 0
+    if preset != "v4":
+        capsys.readouterr()
+        assert main(common) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"--preset {preset}" in err and "\n" not in err

@@ -364,6 +364,7 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         ({"method": "ukf", "observation_qos": "fast"}, "observation_qos must be one of reliable, sensor_data"),
         ({"method": "ukf", "init": "sideways"}, "ukf: init must be one of prior, observation"),
         ({"method": "pf", "scenario": "bearings", "init": "observation"}, "pf: init=observation needs an observation"),
+        ({"method": "ukf", "preset": "v9"}, "scenario 'lorenz96' has no preset 'v9'; valid: v4, v3"),
     ],
 )
 def test_estimator_refuses_to_start(params, text, nodes):
@@ -371,6 +372,16 @@ def test_estimator_refuses_to_start(params, text, nodes):
     assert nodes.wait("bad", 60) == 1
     log = nodes.log("bad")
     assert text in log and "Traceback" not in log
+
+
+def test_nodes_build_their_scenario_from_a_preset_and_set():
+    from neural_estimator.nodes.common import StartupError, build_scenario
+
+    s = build_scenario("ballistic", ("obs_noise_std=0.05",), 2.0, preset="v3")
+    assert s.config.dt == 0.1 and s.config.obs_noise_std == 0.05 and s.config.noise_scale == 2.0
+    assert build_scenario("ballistic", ()).describe()["preset"] == "v4"
+    with pytest.raises(StartupError, match="no preset 'v9'"):
+        build_scenario("ballistic", (), preset="v9")
 
 
 # ---- recording ends cleanly on signals; a killed recorder's file is recovered --------------------------------

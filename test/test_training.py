@@ -689,17 +689,30 @@ def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_th
     shipped = zoo / "test_spinner-gru"
     first = json.loads((shipped / "card.json").read_text())
     stamp = (shipped / "card.json").stat().st_mtime_ns  # install copies the card with its mtime
-    # the shipped model scored afresh on the card's set reproduces the card's own figure
+    # the installed model is the finished one; the training keeps only its card (history and recipe)
     work = tmp_path / "a" / "test_spinner-gru"
-    rmse = zoo_script.shipped_rmse(work, zoo, make_scenario("test_spinner"))
-    assert rmse == pytest.approx(first["metrics"]["rmse"], rel=1e-6)
-    # the same recipe again trains the same model: not lower, so the shipped one stays
+    assert first == json.loads((work / "card.json").read_text())
+    assert sorted(f.name for f in work.iterdir()) == ["card.json"]  # resume state and shipped weights pruned
+    assert first["training"]["history"] and first["training"]["recipe"]
     capsys.readouterr()
+    assert zoo_script.main([*args, "--state", str(tmp_path / "a"), "--install"]) == 0
+    assert "its weights were pruned: the zoo ships it" in capsys.readouterr().out
+    # with a model of these constants shipped, a plain run in a fresh state starts nothing
     assert zoo_script.main([*args, "--state", str(tmp_path / "b")]) == 0
-    assert "is not below the shipped model's" in capsys.readouterr().out
+    assert "the zoo ships a model of these constants, nothing to retrain" in capsys.readouterr().out
+    assert not (tmp_path / "b" / "test_spinner-gru").exists()
+    # the same recipe again trains the same model: not lower, so the shipped one stays
+    assert zoo_script.main([*args, "--state", str(tmp_path / "b"), "--retrain"]) == 0
+    out = capsys.readouterr().out
+    assert "is not below the shipped model's" in out and "selection set: validation set 100" in out
+    # not installed: the training keeps no resume state (its weights only where they differ from the shipped ones)
+    kept = {f.name for f in (tmp_path / "b" / "test_spinner-gru").iterdir()}
+    assert "card.json" in kept and "resume" not in kept and kept <= {"card.json", "model.safetensors"}
+    # the selection set (validation data) is not the card's evaluation set
+    assert zoo_script.selection_rmse(shipped, make_scenario("test_spinner"), 4) != first["metrics"]["rmse"]
     assert (shipped / "card.json").stat().st_mtime_ns == stamp
     # --no-compare installs it regardless
-    assert zoo_script.main([*args, "--state", str(tmp_path / "c"), "--no-compare"]) == 0
+    assert zoo_script.main([*args, "--state", str(tmp_path / "c"), "--no-compare", "--retrain"]) == 0
     assert "installed" in capsys.readouterr().out
     assert (shipped / "card.json").stat().st_mtime_ns != stamp
 
@@ -732,17 +745,12 @@ def test_train_zoo_val_context_trains_a_variant_that_replaces_no_shipped_model_u
     assert "not finished, nothing to install" in capsys.readouterr().out
 
 
-def test_train_zoo_not_better_compares_rmse_only_when_both_exist(tmp_path):
+def test_train_zoo_not_better_compares_rmse_only_when_both_exist():
     zoo_script = _train_zoo()
-    work = tmp_path / "s-m"
-    work.mkdir()
-    (work / "card.json").write_text(json.dumps({"metrics": {"rmse": 0.5}}))
-    assert zoo_script.not_better(work, None) is None  # nothing shipped
-    assert zoo_script.not_better(work, 0.6) is None
-    assert "0.5 is not below the shipped model's 0.4" in zoo_script.not_better(work, 0.4)
-    assert "not below" in zoo_script.not_better(work, 0.5)  # a tie keeps the shipped model
-    (work / "card.json").write_text(json.dumps({"metrics": None}))  # no card metrics: nothing to compare
-    assert zoo_script.not_better(work, 0.4) is None
+    assert zoo_script.not_better(0.5, None) is None  # nothing comparable ships
+    assert zoo_script.not_better(0.5, 0.6) is None
+    assert "0.5 is not below the shipped model's 0.4" in zoo_script.not_better(0.5, 0.4)
+    assert "not below" in zoo_script.not_better(0.5, 0.5)  # a tie keeps the shipped model
 
 
 def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
@@ -768,7 +776,16 @@ def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
     calls.clear()
     assert (
         zoo_script.main(
-            [*args, "--scenarios", "test_spinner", "--state", str(tmp_path / "s2"), "--plateau-epochs", "0"]
+            [
+                *args,
+                "--scenarios",
+                "test_spinner",
+                "--state",
+                str(tmp_path / "s2"),
+                "--plateau-epochs",
+                "0",
+                "--retrain",
+            ]
         )
         == 0
     )
@@ -827,7 +844,10 @@ def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeyp
         "4",
         "--quiet",
     ]
+    real_prune = zoo_script.prune
+    monkeypatch.setattr(zoo_script, "prune", lambda work, zoo=None: [])  # keep the resume state this once
     assert zoo_script.main(args + ["--max-epochs", "1"]) == 0  # one epoch, finished on its epoch budget
+    monkeypatch.setattr(zoo_script, "prune", real_prune)
     work = state / "test_spinner-gru"
     shutil.rmtree(zoo / work.name)
     card = json.loads((work / "card.json").read_text())

@@ -68,6 +68,25 @@ def test_shipped_model_on_the_default_constants_loads_or_is_refused_naming_them(
         assert f"{k}=" in message, (k, message)
 
 
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_model_loads_on_the_preset_its_card_names(name):
+    """Every shipped model's constants are a named preset (v3 for those trained before the spread
+    calibration, v4 for the retrained), and it loads on that preset by name; on the other preset of
+    a changed scenario it is refused with a one-line message that names the preset to use."""
+    from neural_estimator.scenarios import preset_names, scenario_class
+
+    scenario_name, method = name.split("-")
+    card = json.loads((ZOO / name / "card.json").read_text())
+    preset = scenario_class(scenario_name).preset_of(card["scenario"]["config"])
+    assert preset in preset_names(scenario_name), (name, preset)
+    make_estimator(method, make_scenario(scenario_name, preset=preset))
+    for other in preset_names(scenario_name):
+        if _changed_constants(card, make_scenario(scenario_name, preset=other)):
+            with pytest.raises(EstimatorError) as info:
+                make_estimator(method, make_scenario(scenario_name, preset=other))
+            assert f"--preset {preset}" in str(info.value) and "\n" not in str(info.value)
+
+
 def test_a_shipped_model_says_how_many_leading_steps_its_training_skipped():
     """The estimator node warns about them (a neural model's first estimates were never optimised)."""
     from neural_estimator.estimators import make_estimator

@@ -99,6 +99,13 @@ def simulate(
         y[:, k] = scenario.h(x[:, k]) + noise_v(rng.standard_normal((n, dy)))
         if k + 1 < T:
             x[:, k + 1] = scenario.normalize_state(scenario.f(x[:, k], u[:, k]) + noise_w(rng.standard_normal((n, dx))))
+    bad = ~np.isfinite(x).all(axis=(1, 2))
+    if bad.any():
+        raise ScenarioError(
+            f"scenario {scenario.name!r}: {int(bad.sum())} of {n} simulated trajectories left the finite range "
+            f"(first: trajectory {int(np.flatnonzero(bad)[0])}); its constants draw states the dynamics cannot "
+            "integrate over the horizon: narrow the prior or shorten the horizon"
+        )
     meta = dict(scenario.describe())
     meta.update(seed=_seed_repr(seed), trajectories=n, horizon=T)
     return Trajectories(x, y, u, meta)

@@ -15,10 +15,9 @@ from neural_estimator.estimator import EstimatorError, check_method
 from neural_estimator.models.card import CARD_FILE, WEIGHTS_FILE, read_card
 from neural_estimator.models.checkpoint import load_checkpoint
 from neural_estimator.models.neural import NeuralEstimator
-from neural_estimator.scenarios import Scenario
+from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
 ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
-EVALUATION_CONSTANTS = ("noise_scale", "horizon")  # may differ between training and use
 
 
 def default_checkpoint(scenario_name: str, method: str) -> Path:
@@ -64,9 +63,11 @@ def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None
                 f"but the requested one has {key}={ours[key]}"
             )
     if diffs:
+        preset = type(scenario).preset_of(theirs_cfg)
+        hint = f" (preset {preset}: --preset {preset})" if preset not in (None, "custom") else ""
         raise EstimatorError(
             f"checkpoint {where} was trained on scenario {ours['scenario']!r} with other constants: "
-            f"{'; '.join(diffs)}. Use the checkpoint's constants, or train a model for these "
+            f"{'; '.join(diffs)}. Use the checkpoint's constants{hint}, or train a model for these "
             f"(only {', '.join(EVALUATION_CONSTANTS)} may differ)"
         )
 

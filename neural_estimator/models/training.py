@@ -672,9 +672,15 @@ def load_resume(
     return state["run"]
 
 
+def _without_preset(desc: Any) -> Any:
+    return {k: v for k, v in desc.items() if k != "preset"} if isinstance(desc, dict) else desc
+
+
 def _check_same_run(directory: Path, state: dict[str, Any], identity: dict[str, Any]) -> None:
     """Refuse to resume a state written by another scenario, architecture or recipe."""
-    if state.get("scenario") != identity["scenario"]:
+    # The preset label is derived from the constants (Scenario.describe); states written before
+    # presets existed lack it, and the constants themselves are compared.
+    if _without_preset(state.get("scenario")) != _without_preset(identity["scenario"]):
         raise TrainingError(
             f"{directory} was written for scenario {state.get('scenario', {}).get('scenario')!r} "
             f"with other constants or dimensions; start without --resume or use another --out"

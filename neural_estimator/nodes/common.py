@@ -177,15 +177,16 @@ def load_plugins(paths: tuple[str, ...]) -> None:
         raise StartupError(f"plugins: {exc}") from None
 
 
-def build_scenario(name: str, assignments: tuple[str, ...], noise_scale: float | None = None):
-    """The scenario ``name`` with ``name=value`` constants (and noise scale) applied."""
+def build_scenario(name: str, assignments: tuple[str, ...], noise_scale: float | None = None, preset: str = ""):
+    """The scenario ``name``: its ``preset`` (empty: the defaults), then ``name=value`` constants
+    (and noise scale) applied."""
     from neural_estimator.scenarios import ScenarioError, make_scenario, parse_assignments
 
     try:
         overrides: dict[str, Any] = parse_assignments(assignments)
         if noise_scale is not None:
             overrides["noise_scale"] = noise_scale
-        return make_scenario(name, **overrides)
+        return make_scenario(name, preset=preset or None, **overrides)
     except ScenarioError as exc:
         raise StartupError(str(exc)) from None
 

@@ -95,6 +95,7 @@ class EstimatorParams:
     method: str = param("ukf", f"estimation method: one of {', '.join(METHODS)}")
     scenario: str = param("", "scenario name; empty = take it (with its constants) from the 'scenario' topic")
     set: tuple[str, ...] = param((), "scenario constants as name=value (with scenario set)")
+    preset: str = param("", "named constants of that scenario, applied before set (empty = the defaults; e.g. v3)")
     plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
     device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
@@ -204,7 +205,7 @@ class EstimatorNode(ManagedNode):
         self._early: list[bytes] = []
         self._run_start: int | None = None  # start_ns of the announced run (a new one = a restarted publisher)
         if p.scenario:
-            self._build(build_scenario(p.scenario, p.set))
+            self._build(build_scenario(p.scenario, p.set, preset=p.preset))
         else:
             self.get_logger().info(f"waiting for the scenario on '{p.scenario_topic}'")
         self.sub_scenario = self.create_subscription(

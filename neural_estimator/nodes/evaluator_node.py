@@ -85,6 +85,7 @@ class EvaluatorParams:
         "", "scenario to score a run whose source publishes no 'scenario' topic ('' = from the topic)"
     )
     set: tuple[str, ...] = param((), "constants of that scenario as name=value")
+    preset: str = param("", "named constants of that scenario, applied before set (empty = the defaults; e.g. v3)")
     plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     compute_metrics: bool = param(True, "compute and write the metrics when the run ends")
     spec: str = param(
@@ -150,7 +151,7 @@ class EvaluatorNode(ManagedNode):
 
         load_plugins(p.plugins)  # also for scoring a recorded plugin scenario
         if p.scenario:
-            self.description = build_scenario(p.scenario, p.set).describe()
+            self.description = build_scenario(p.scenario, p.set, preset=p.preset).describe()
         self._last_stream = None  # monotonic time of the last observation / truth / estimate message
         self.get_logger().info(f"recording to {self.bag.path}")
         # steady clock: with use_sim_time and no /clock, a ROS-clock timer would never fire

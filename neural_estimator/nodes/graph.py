@@ -78,6 +78,7 @@ class PipelineConfig:
     rate_hz: float = 0.0  # 0 = real time (1 / dt)
     seed: int = 0
     set: tuple[str, ...] = ()  # scenario constants name=value
+    preset: str = ""  # named scenario constants applied before set; empty = the defaults
     plugins: tuple[str, ...] = ()  # files registering user scenarios
     noise_scale: float = -1.0  # negative = the scenario's
     checkpoints: tuple[str, ...] = ()  # method=path for neural methods
@@ -136,6 +137,7 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
                     "method": m,
                     "scenario": cfg.scenario,
                     "set": list(cfg.set),
+                    "preset": cfg.preset,
                     "plugins": list(cfg.plugins),
                     "checkpoint": ckpt.get(m, ""),
                     "device": cfg.device,
@@ -157,6 +159,7 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
             {
                 "scenario": cfg.scenario,
                 "set": list(cfg.set),
+                "preset": cfg.preset,
                 "plugins": list(cfg.plugins),
                 "noise_scale": float(cfg.noise_scale),
                 "seed": cfg.seed,

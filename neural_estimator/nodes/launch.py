@@ -224,6 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate-hz", type=float, default=0.0, help="observations per second (0 = real time)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="scenario constant")
+    p.add_argument(
+        "--preset", default="", metavar="NAME", help="named scenario constants, applied before --set (e.g. v3)"
+    )
     p.add_argument("--plugin", action="append", default=[], metavar="FILE", help="file registering user scenarios")
     p.add_argument("--noise-scale", type=float, default=-1.0)
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=DIR")
@@ -283,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         rate_hz=a.rate_hz,
         seed=a.seed,
         set=tuple(a.set),
+        preset=a.preset,
         plugins=tuple(a.plugin),
         noise_scale=a.noise_scale,
         checkpoints=tuple(a.checkpoint),

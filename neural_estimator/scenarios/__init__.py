@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.scenarios.base import (
+    DEFAULT_PRESET,
+    EVALUATION_CONSTANTS,
     Scenario,
     ScenarioError,
     complex_step_jacobian,
@@ -100,9 +102,18 @@ def scenario_class(name: str) -> type[Scenario]:
     return entry
 
 
-def make_scenario(name: str, **overrides: Any) -> Scenario:
-    """An instance of the scenario ``name`` with constants ``overrides`` applied."""
-    return scenario_class(name)(**overrides)
+def make_scenario(name: str, preset: str | None = None, **overrides: Any) -> Scenario:
+    """An instance of the scenario ``name``: its ``preset`` (None: the Config defaults, for a
+    built-in the preset :data:`DEFAULT_PRESET`), then constants ``overrides`` applied."""
+    cls = scenario_class(name)
+    if preset is None or preset == "":
+        return cls(**overrides)
+    return cls(preset=preset, **overrides)
+
+
+def preset_names(name: str) -> list[str]:
+    """The presets of the scenario ``name``, newest first (empty for a scenario without any)."""
+    return list(scenario_class(name).presets)
 
 
 def code_digest(scenario: Scenario | type[Scenario]) -> str | None:
@@ -129,6 +140,8 @@ def scenario_from_description(desc: dict[str, Any]) -> Scenario:
 
 __all__ = [
     "BUILTIN_SCENARIOS",
+    "DEFAULT_PRESET",
+    "EVALUATION_CONSTANTS",
     "Scenario",
     "ScenarioError",
     "code_digest",
@@ -136,6 +149,7 @@ __all__ = [
     "load_plugins",
     "make_scenario",
     "parse_assignments",
+    "preset_names",
     "psd_sqrt",
     "register_scenario",
     "scenario_class",

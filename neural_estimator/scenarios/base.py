@@ -19,6 +19,15 @@ Every method here is batched over any leading axes: ``x`` is (..., dx), ``u`` is
 Constants live in one frozen dataclass per scenario (its ``Config``). Every constant can be
 overridden (``make_scenario("lorenz96", obs_noise_std=1.0)`` or ``--set obs_noise_std=1.0``) and is
 recorded, through :meth:`Scenario.describe`, in every file the tools write.
+
+Presets: a scenario's ``presets`` names whole sets of constants (overrides of its ``Config``
+defaults), so that every earlier operating point stays one flag away: ``make_scenario("ballistic",
+preset="v3")``, ``--preset v3`` on the command line, the nodes' ``preset`` parameter. The built-in
+scenarios have ``v3`` (the constants calibrated to the paper's RMSE rows only) and ``v4`` (the
+defaults: calibrated to the RMSE rows and the spread of the true states, see docs/scenarios.md).
+``--set`` applies on top of the preset. :meth:`Scenario.describe` records the preset the constants
+match (``"preset"``; ``"custom"`` when they match none), computed from the constants themselves, so
+a file written before presets existed is labelled too.
 """
 
 from __future__ import annotations
@@ -38,6 +47,13 @@ from neural_estimator.options import OptionError, did_you_mean, parse_value
 # matrices (8 MiB each at 1024) and a scenario description can arrive from the ROS graph, so the
 # bound is checked before anything of that size is allocated (see Scenario.dimension_fields).
 MAX_DIMENSION = 1024
+
+
+# The preset the built-in scenarios' Config defaults are (see "Presets" above).
+DEFAULT_PRESET = "v4"
+# Constants that describe an evaluation rather than the system: they may differ between a model's
+# training and its use, and do not change which preset a set of constants is.
+EVALUATION_CONSTANTS = ("noise_scale", "horizon")
 
 
 # Smallest Cholesky pivot^2, relative to the largest variance, taken as positive definite (round-off
@@ -141,9 +157,14 @@ class Scenario(ABC):
     # built, so a description naming 10^9 variables is refused before any allocation; a scenario
     # with variable dimensions should declare its fields here (dx, dy, du are checked after too).
     dimension_fields: ClassVar[dict[str, int]] = {}
+    # Named sets of constants: preset name -> overrides of the Config defaults (see "Presets").
+    # Newest first; the built-ins' "v4" is {} (the defaults).
+    presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
-    def __init__(self, config: Any = None, **overrides: Any) -> None:
+    def __init__(self, config: Any = None, preset: str | None = None, **overrides: Any) -> None:
         cfg = config if config is not None else self.Config()
+        if preset is not None:
+            cfg = replace_config(cfg, self.preset_constants(preset), scenario=self.name)
         if overrides:
             cfg = replace_config(cfg, overrides, scenario=self.name)
         self.config = cfg
@@ -166,6 +187,35 @@ class Scenario(ABC):
                 raise ScenarioError(
                     f"scenario {self.name!r}: {n} {what} dimensions, more than the {MAX_DIMENSION} this package accepts"
                 )
+
+    @classmethod
+    def preset_constants(cls, preset: str) -> dict[str, Any]:
+        """The overrides of the Config defaults that make ``preset``; an unknown name is an error
+        listing the valid ones."""
+        try:
+            return dict(cls.presets[str(preset)])
+        except KeyError:
+            valid = ", ".join(cls.presets) or "none"
+            raise ScenarioError(f"scenario {cls.name!r} has no preset {preset!r}; valid: {valid}") from None
+
+    @classmethod
+    def preset_of(cls, config: Mapping[str, Any] | Any) -> str | None:
+        """The name of the preset whose constants ``config`` (a Config or its dict) are, ignoring
+        :data:`EVALUATION_CONSTANTS`; "custom" when none matches; None for a scenario without
+        presets. The newest matching preset wins where two are equal."""
+        if not cls.presets:
+            return None
+        theirs = config if isinstance(config, Mapping) else config_to_dict(config)
+        for name, overrides in cls.presets.items():
+            try:
+                ours = config_to_dict(replace_config(cls.Config(), overrides, scenario=cls.name))
+            except ScenarioError:
+                continue
+            if all(theirs.get(k) == v for k, v in ours.items() if k not in EVALUATION_CONSTANTS) and set(theirs) <= set(
+                ours
+            ):
+                return name
+        return "custom"
 
     # ---- dimensions and timing -------------------------------------------------------------
     @property
@@ -293,9 +343,10 @@ class Scenario(ABC):
     # ---- description ---------------------------------------------------------------------------
     def describe(self) -> dict[str, Any]:
         """Everything that defines this scenario instance, JSON-serialisable (recorded in files)."""
-        return {
+        config = config_to_dict(self.config)
+        out = {
             "scenario": self.name,
-            "config": config_to_dict(self.config),
+            "config": config,
             "state_names": list(self.state_names),
             "state_units": list(self.state_units),
             "obs_names": list(self.obs_names),
@@ -306,6 +357,10 @@ class Scenario(ABC):
             "angle_obs": list(self.angle_obs),
             "dt": self.dt,
         }
+        preset = self.preset_of(config)
+        if preset is not None:
+            out["preset"] = preset
+        return out
 
     def _validate(self) -> None:
         for field in ("dt", "horizon", "noise_scale"):

@@ -83,6 +83,8 @@ class Bearings(Scenario):
 
     name = "bearings"
     Config = BearingsConfig
+    # Named constants (see neural_estimator.scenarios.base, "Presets"): v4 = the defaults above.
+    presets = {"v4": {}, "v3": {}}
     state_names = ("px", "py", "vx", "vy")
     pose_states = {"x": 0, "y": 1, "vx": 2, "vy": 3}  # planar pose for Odometry output
     state_units = ("m", "m", "m/s", "m/s")

@@ -114,6 +114,8 @@ class Lorenz96(Scenario):
     name = "lorenz96"
     dimension_fields = {"n_vars": 1}  # J variables: dx = dy = J
     Config = Lorenz96Config
+    # Named constants (see neural_estimator.scenarios.base, "Presets"): v4 = the defaults above.
+    presets = {"v4": {}, "v3": {}}
 
     @property
     def state_names(self) -> tuple[str, ...]:

@@ -131,6 +131,8 @@ class NLinkPendulum(Scenario):
     name = "nlink"
     dimension_fields = {"n_links": 2}  # N links: dx = dy = 2N
     Config = NLinkConfig
+    # Named constants (see neural_estimator.scenarios.base, "Presets"): v4 = the defaults above.
+    presets = {"v4": {}, "v3": {}}
 
     @property
     def n_links(self) -> int:

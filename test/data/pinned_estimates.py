@@ -31,7 +31,7 @@ def _inputs(name: str):
     from neural_estimator.data import simulate
     from neural_estimator.scenarios import make_scenario
 
-    scenario = make_scenario(name)
+    scenario = make_scenario(name, preset="v3")  # the constants the pin was made with
     data = simulate(scenario, B, horizon=T, seed=7)
     Y = data.y.copy()
     Y[1, 5] = np.nan  # one missing observation: the predict-only / training-mean path
