@@ -233,6 +233,7 @@ def _live(args: Mapping[str, str]) -> list[NodeSpec]:
         rate_hz=_number(args, "rate_hz", float),
         seed=_number(args, "seed", int),
         init=_init(args["init"]),
+        preset=args["preset"],
     )
     return live_nodes(cfg, args["output"] or f"runs/{cfg.scenario}-live.mcap")
 
@@ -358,6 +359,7 @@ GRAPHS: dict[str, Graph] = {
             "horizon": ("0", "steps per trajectory (0 = the scenario's)"),
             "seed": ("0", "simulation and filter seed"),
             "init": ("prior", "how the classical filters start: prior (the paper's) or observation"),
+            "preset": ("", "named scenario constants (e.g. v3); empty = the defaults"),
             "output": ("", "bag the evaluator writes (default runs/<scenario>-live.mcap)"),
         },
         _live,
