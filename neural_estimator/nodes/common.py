@@ -224,7 +224,7 @@ def dds_memory_policy() -> None:
         os.environ["RMW_FASTRTPS_USE_QOS_FROM_XML"] = "1"
 
 
-def run_node(factory: Callable[[], ManagedNode], name: str, args: list[str] | None = None) -> int:
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
     """The nodes' main(): init, build, spin until shutdown, clean up; exit status.
 
     A :class:`StartupError` while building the node is logged as one fatal line and gives exit
@@ -255,7 +255,10 @@ def run_node(factory: Callable[[], ManagedNode], name: str, args: list[str] | No
         if node.context.ok():
             raise
     finally:
-        code = int(node.on_shutdown() or node.exit_code)
+        # a ManagedNode reports its exit status; other nodes (the lifecycle estimator, whose
+        # on_shutdown is a lifecycle transition) exit 0 unless they set exit_code
+        managed = isinstance(node, ManagedNode)
+        code = int((node.on_shutdown() if managed else 0) or getattr(node, "exit_code", 0))
         node.destroy_node()
         rclpy.try_shutdown()
     return code

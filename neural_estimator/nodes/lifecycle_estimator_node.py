@@ -21,8 +21,6 @@ from __future__ import annotations
 import sys
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -30,7 +28,14 @@ from sensor_msgs.msg import JointState
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.estimators import EstimatorError, check_method, make_estimator
-from neural_estimator.nodes.common import StartupError, build_scenario, declare_params, load_plugins, stream_qos
+from neural_estimator.nodes.common import (
+    StartupError,
+    build_scenario,
+    declare_params,
+    load_plugins,
+    run_node,
+    stream_qos,
+)
 from neural_estimator.nodes.estimator_node import EstimatorParams
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
 from neural_estimator.replay import OnlineEstimator
@@ -196,23 +201,7 @@ class LifecycleEstimatorNode(LifecycleNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = LifecycleEstimatorNode()
-    except StartupError as exc:
-        rclpy.logging.get_logger("lifecycle_estimator").fatal(str(exc))
-        rclpy.try_shutdown()
-        return 1
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(LifecycleEstimatorNode, "lifecycle_estimator", args)
 
 
 if __name__ == "__main__":
