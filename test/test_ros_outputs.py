@@ -105,6 +105,41 @@ def test_set_pose_restarts_a_filter_at_the_pose_and_refuses_neural_models():
         O.state_at_pose(np.zeros(3), {"x": 0.0}, {})
 
 
+def test_set_pose_starts_every_filter_at_the_pose_covariance():
+    """A pose message's covariance replaces the prior's pose block (its cross terms dropped): the
+    EKF/UKF start at it, the EnKF's members and the PF's particles spread by it; all zeros = P0;
+    a covariance that is not one is refused in one line and the stream restarts from the prior."""
+    from neural_estimator.estimators import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scen = make_scenario("bearings")
+    pose_cov = np.diag([4.0, 9.0, 1.0, 1.0, 1.0, 0.25])
+    pose_cov[0, 1] = pose_cov[1, 0] = 1.5
+    want = O.state_covariance(make_estimator("ekf", scen).P0, pose_cov, scen.pose_states)
+    assert want[0, 0] == 4.0 and want[1, 1] == 9.0 and want[0, 1] == 1.5 and want[0, 2] == 0.0
+    pose = {"x": -3.0, "y": 7.0, "z": 0, "roll": 0, "pitch": 0, "yaw": 0}
+    for method in ("ekf", "ukf"):
+        f = make_estimator(method, scen)
+        f.reset(1)
+        O.set_pose(f, pose, scen.pose_states, None, pose_cov)
+        np.testing.assert_allclose(f._P[0], want)
+    for method, options in (("enkf", {"n_members": 4000}), ("pf", {"n_particles": 4000})):
+        f = make_estimator(method, scen, **options)
+        f.reset(1)
+        mean = O.set_pose(f, pose, scen.pose_states, None, pose_cov)
+        X = f._X[0]
+        np.testing.assert_allclose(X.mean(axis=0)[:2], mean[:2], atol=0.2)
+        np.testing.assert_allclose(np.cov(X.T)[:2, :2], want[:2, :2], rtol=0.1, atol=0.1)
+    ekf = make_estimator("ekf", scen)
+    ekf.reset(1)
+    O.set_pose(ekf, pose, scen.pose_states, None, None)
+    np.testing.assert_allclose(ekf._P[0], ekf.P0)
+    bad = np.diag([-4.0, 9.0, 1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(O.OutputError, match="not positive semi-definite"):
+        O.set_pose(ekf, pose, scen.pose_states, None, bad)
+    np.testing.assert_allclose(ekf._P[0], ekf.P0)
+
+
 def test_output_topics_the_evaluator_records():
     assert O.is_output_topic("/estimates/ekf/odometry") and O.is_output_topic("/r1/estimates/gru/state", "/r1")
     assert not O.is_output_topic("/estimates/ekf/covariance") and not O.is_output_topic("/estimates/ekf")

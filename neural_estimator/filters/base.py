@@ -177,17 +177,23 @@ class ClassicalFilter(Estimator):
         self._init_state(self.batch)
 
     # ---- the Estimator contract --------------------------------------------------------------
-    def reset(self, batch: int = 1, initial_mean: np.ndarray | None = None) -> None:
+    def reset(
+        self, batch: int = 1, initial_mean: np.ndarray | None = None, initial_cov: np.ndarray | None = None
+    ) -> None:
         """Start ``batch`` streams from the prior; the random draws start again from ``seed``.
 
         ``initial_mean`` (B, n), optional, replaces the prior mean m0 stream by stream (the
         offline protocol's ``init="truth"`` passes the true x_0 there); the prior covariance P0,
         and the PF's ``init_std`` spread, are unchanged. None: every stream starts at m0.
+        ``initial_cov`` (B, n, n), optional, replaces P0 (and the PF's spread) stream by stream: the
+        EKF/UKF start at it, the EnKF's members and the PF's particles are drawn from
+        N(initial mean, initial_cov) (``set_pose`` passes a pose message's covariance there).
         """
         B = int(batch)
         if B < 1:
             raise EstimatorError(f"{self.method}: batch must be >= 1, got {batch}")
         self._init_mean = self._check_initial_mean(initial_mean, B)
+        self._init_cov = self._check_initial_cov(initial_cov, B)
         self.batch = B
         self._k = 0
         self.diverged = np.zeros(B, dtype=bool)
@@ -196,6 +202,41 @@ class ClassicalFilter(Estimator):
         self._scheduler = BlockScheduler(B, self.block_size, self.threads, self.seed)
         self._blocks = self._scheduler.blocks
         self._init_state(B)
+
+    def _check_initial_cov(self, initial_cov: np.ndarray | None, B: int) -> np.ndarray | None:
+        """(B, n, n) symmetric positive semi-definite starting covariances, or None (P0)."""
+        if initial_cov is None:
+            return None
+        n = self.scenario.dx
+        P = np.asarray(initial_cov, dtype=np.float64)
+        if P.shape != (B, n, n):
+            raise EstimatorError(f"{self.method}: initial_cov must be ({B}, {n}, {n}), got {P.shape}")
+        if not np.all(np.isfinite(P)):
+            raise EstimatorError(f"{self.method}: initial_cov contains NaN or inf")
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        if np.any(np.linalg.eigvalsh(P)[..., 0] < -1e-9 * np.maximum(1.0, np.abs(P).max(axis=(-1, -2)))):
+            raise EstimatorError(f"{self.method}: initial_cov is not positive semi-definite")
+        return P
+
+    def _initial_draws(self, phase: int, N: int, L0: np.ndarray, d0: np.ndarray | None) -> np.ndarray:
+        """(B, N, n) zero-mean starting draws of the members / particles: covariance L0 L0^T (the
+        prior's), or each stream's ``initial_cov`` when one was given (the same standard normals)."""
+        from neural_estimator.filters.numerics import gaussian
+
+        if self._init_cov is None:
+            return self._draw_blockwise(phase, lambda rng, rows: gaussian(rng, (rows, N), L0, d0))
+        from neural_estimator.scenarios import psd_sqrt
+
+        z = self._draw_blockwise(phase, lambda rng, rows: rng.standard_normal((rows, N, L0.shape[0])))
+        L = np.stack([psd_sqrt(P) for P in self._init_cov])  # (B, n, n)
+        return np.einsum("bij,bkj->bki", L, z)
+
+    def _initial_cov(self, B: int) -> np.ndarray:
+        """(B, n, n) starting covariances: P0, or the ``initial_cov`` given to reset."""
+        if self._init_cov is not None:
+            return self._init_cov.copy()
+        n = self.scenario.dx
+        return np.broadcast_to(self.P0, (B, n, n)).copy()
 
     def _check_initial_mean(self, initial_mean: np.ndarray | None, B: int) -> np.ndarray:
         """(B, n) starting means: m0 for every stream, or ``initial_mean`` checked (finite, shape)."""

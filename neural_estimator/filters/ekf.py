@@ -134,7 +134,7 @@ class ExtendedKalmanFilter(ClassicalFilter):
         n = self.scenario.dx
         self._eye = np.eye(n)
         self._m = np.array(self._init_mean, dtype=np.float64)  # (B, n): m0 or the given initial means
-        self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
+        self._P = self._initial_cov(B)
         self._compiled = self._compiled_kernels(B)
         # the kernels, bound once per reset (not per step: a B = 1 step is ~0.5 ms)
         self._predict_kernel = _no_flags(partial(_predict, ops=self.ops, Q=self.Q, inflation=self.hp.inflation))

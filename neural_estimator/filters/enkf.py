@@ -159,9 +159,7 @@ class EnsembleKalmanFilter(MemberFilter):
         self._transition = compiled_model(scenario).transition or scenario.f
 
     def _init_state(self, B: int) -> None:
-        draws = self._draw_blockwise(
-            PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_P0, self._sd_P0)
-        )
+        draws = self._initial_draws(PHASE_INIT, self.N, self._sqrt_P0, self._sd_P0)
         self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
 
     def _predict_block(self, X: np.ndarray, u: np.ndarray, rng: np.random.Generator):

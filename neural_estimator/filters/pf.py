@@ -32,7 +32,6 @@ from neural_estimator.filters.compiled_models import compiled_model, weighted_mo
 from neural_estimator.filters.numerics import (
     LOG_W_FLOOR,
     effective_sample_size,
-    gaussian,
     normalize_log_weights,
     sqrt_factor,
     systematic_resample,
@@ -196,9 +195,7 @@ class ParticleFilter(MemberFilter):
             self._ck_H = (H, bool(H.shape == (s.dy, s.dx) and np.array_equal(H, np.eye(s.dx))))
 
     def _init_state(self, B: int) -> None:
-        draws = self._draw_blockwise(
-            PHASE_INIT, lambda rng, rows: gaussian(rng, (rows, self.N), self._sqrt_init, self._sd_init)
-        )
+        draws = self._initial_draws(PHASE_INIT, self.N, self._sqrt_init, self._sd_init)
         self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
         self._logw = np.full((B, self.N), -np.log(self.N))
         self._w = np.full((B, self.N), 1.0 / self.N)

@@ -311,10 +311,15 @@ class UnscentedKalmanFilter(ClassicalFilter):
     def _init_state(self, B: int) -> None:
         n = self.scenario.dx
         self._m = np.array(self._init_mean, dtype=np.float64)  # (B, n): m0 or the given initial means
-        self._P = np.broadcast_to(self.P0, (B, n, n)).copy()
+        self._P = self._initial_cov(B)
         # The factor of P for the next sigma points; the linear update needs none, so then predict
         # factors the posterior itself.
-        self._L = None if self._H is not None else np.broadcast_to(self._factor0, (B, n, n)).copy()
+        if self._H is not None:
+            self._L = None
+        elif self._init_cov is None:
+            self._L = np.broadcast_to(self._factor0, (B, n, n)).copy()
+        else:
+            self._L = self._sqrt_c * cholesky(self._P, self.jitter)[0]
 
     @property
     def _factor0(self) -> np.ndarray:

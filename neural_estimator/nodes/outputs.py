@@ -252,23 +252,61 @@ class Outputs:
             self.pub_tf.publish(tf)
 
 
+def pose_covariance(msg) -> np.ndarray | None:
+    """The 6x6 covariance of a ``geometry_msgs/PoseWithCovarianceStamped`` (x, y, z, roll, pitch,
+    yaw), or None when it is all zeros (not given)."""
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
+    if not np.all(np.isfinite(cov)):
+        raise OutputError("pose covariance contains NaN or inf")
+    return None if not cov.any() else cov
+
+
+def state_covariance(P0: np.ndarray, pose_cov: np.ndarray | None, pose_states: Mapping[str, int]) -> np.ndarray:
+    """The starting covariance of a state set from a pose: P0, with the rows and columns of the
+    components the scenario maps to a pose replaced by the pose covariance's (their correlations with
+    the other components dropped). ``pose_cov`` None: P0 unchanged."""
+    P = np.array(P0, dtype=np.float64)
+    if pose_cov is None:
+        return P
+    pairs = [(i, pose_states[k]) for i, k in enumerate(POSE_KEYS) if k in pose_states]
+    for _, j in pairs:
+        P[j, :] = 0.0
+        P[:, j] = 0.0
+    for a, ja in pairs:
+        for b, jb in pairs:
+            P[ja, jb] = pose_cov[a, b]
+    return P
+
+
 def set_pose(
-    estimator, pose: Mapping[str, float], pose_states: Mapping[str, int], last: np.ndarray | None
+    estimator,
+    pose: Mapping[str, float],
+    pose_states: Mapping[str, int],
+    last: np.ndarray | None,
+    pose_cov: np.ndarray | None = None,
 ) -> np.ndarray:
     """Restart a filter's stream at ``pose``: the mean is the last estimate (else the prior mean) with
-    its pose components replaced; the covariance restarts at the filter's prior P0. The next
+    its pose components replaced; the covariance is the filter's prior P0 with the pose block taken
+    from ``pose_cov`` (6x6, robot_localization's order x, y, z, roll, pitch, yaw; None: P0). The next
     observation is then an update of that state (the filters' step k = 0). Returns the new mean.
 
     Raises:
-        OutputError: the method has no state to set (a neural model), or the state has no pose.
+        OutputError: the method has no state to set (a neural model), the state has no pose, or the
+            covariance is not a covariance.
     """
+    from neural_estimator.estimator import EstimatorError
     from neural_estimator.filters.base import ClassicalFilter
 
     if not isinstance(estimator, ClassicalFilter):
         raise OutputError(f"set_pose: {type(estimator).__name__} has no state that can be set (filters only)")
     base = last if last is not None and np.all(np.isfinite(last)) else estimator.m0
     mean = state_at_pose(base, pose, pose_states)
-    estimator.reset(1, initial_mean=mean[None])
+    P = state_covariance(estimator.P0, pose_cov, pose_states)
+    try:
+        estimator.reset(1, initial_mean=mean[None], initial_cov=P[None])
+    except EstimatorError as exc:
+        estimator.reset(1)  # the stream is not left half-set
+        raise OutputError(f"set_pose refused: {exc}") from None
     return mean
 
 
@@ -303,15 +341,16 @@ class SetPose:
         try:
             if online is None:
                 raise OutputError("set_pose before the scenario is known: ignored")
-            pose = pose_values(msg)
-            mean = set_pose(online.estimator, pose, getattr(online.scenario, "pose_states", {}), self.last)
+            pose, pose_cov = pose_values(msg), pose_covariance(msg)
+            mean = set_pose(online.estimator, pose, getattr(online.scenario, "pose_states", {}), self.last, pose_cov)
         except OutputError as exc:
             self.refused += 1
             log.warning(str(exc))
             return
         self.applied += 1
         self.last = mean
-        log.info(f"set_pose: state restarted at {np.array2string(mean, precision=4)} (covariance: prior P0)")
+        where = "the prior P0" if pose_cov is None else "the message's pose block"
+        log.info(f"set_pose: state restarted at {np.array2string(mean, precision=4)} (covariance: {where})")
 
 
 OUTPUT_SUFFIXES = ("odometry", "pose", "state")
