@@ -7,7 +7,7 @@
 
 The paper trains on length-100 windows and evaluates over 500 steps. A model whose recurrent state
 drifts once it has run longer than any window it was trained on (the N-link Mamba-2 trained on the paper's
-recipe, see docs/training-reference.md) is accurate inside 100 steps of context and not beyond. This diagnostic runs one
+recipe, see docs/training.md) is accurate inside 100 steps of context and not beyond. This diagnostic runs one
 model two ways on evaluation set 0 and prints the RMSE per segment of the horizon:
 
 * ``continuous``: over the whole trajectory from step 0, as every evaluation does (the paper's way);

@@ -37,7 +37,7 @@ def load_script(relative: str):
 
 @pytest.fixture
 def oscillator():
-    """The documented custom scenario (docs/systems.md): linear-Gaussian, so the Kalman filter is exact."""
+    """The documented custom scenario (docs/scenarios.md): linear-Gaussian, so the Kalman filter is exact."""
     return EXAMPLE.Oscillator()
 
 

@@ -2,7 +2,7 @@
 
 The paper trains on length-L windows (L = 100) and evaluates over 500 steps run continuously. A
 recurrent model whose state drifts once it has run longer than any window it was trained on (the
-N-link SSMs, see docs/training-reference.md) is accurate inside L steps of context and not beyond. Bounded context
+N-link SSMs, see docs/training.md) is accurate inside L steps of context and not beyond. Bounded context
 runs K copies of the model; copy k starts from a zero state at step o_k = round(k L / K) and restarts
 every L steps after (o_k + j L); the estimate at step t is that of the copy whose last restart is the
 oldest, i.e. whose context is the longest:

@@ -3,7 +3,7 @@
 >>> from neural_estimator.scenarios import make_scenario
 >>> s = make_scenario("lorenz96", obs_noise_std=0.5)
 
-A user registers a system of their own with :func:`register_scenario` (see docs/systems.md, "Your own
+A user registers a system of their own with :func:`register_scenario` (see docs/scenarios.md, "Your own
 scenario" section); every tool (simulate, evaluate, train, the nodes) then accepts its name.
 """
 

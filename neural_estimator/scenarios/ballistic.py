@@ -2,7 +2,7 @@
 
 Athans, Wishner & Bertolini (1968), Julier & Uhlmann (2004), in the km scaling of SSMToybox
 (jacobnzw/SSMToybox, ``ssmtoybox/dynsys.py``, reentry vehicle); the constants and the reason for
-each are in :class:`BallisticConfig` below (docs/systems.md has the table).
+each are in :class:`BallisticConfig` below (docs/scenarios.md has the table).
 """
 
 from __future__ import annotations
