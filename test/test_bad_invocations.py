@@ -41,7 +41,7 @@ CLI_CASES = [
     ),
     (["evaluate", "--scenario", "lorenz96", "--methods", "ukf", "--horizon", "0"], "--horizon must be >= 1"),
     (["replay", "{bag}", "--methods", "ukf", "--out", "{bag}"], "file exists; pass --overwrite to replace it"),
-    (["recover", "{bag}", "--out", "{bag}"], "file exists; pass --overwrite to replace it"),
+    (["recover", "{bag}", "--out", "{bag}"], "it cannot overwrite its input"),
     (["metrics", "{tmp}/missing.npz"], "missing.npz: no such file"),
     (["metrics", "{tmp}/truncated.mcap"], "no /observation or /ground_truth topic"),
     (["replay", "{bag}", "--methods", "ukf", "--out", "{tmp}/o.mcap", "--threads", "-1"], "--threads must be >= 0"),

@@ -173,7 +173,7 @@ def test_metrics_verb_names_the_scored_steps_and_marks_outliers_and_starts(tmp_p
 
 
 def _fake_run(tmp_path, init="prior"):
-    """write_report on fabricated results: accuracy on lorenz96 and ballistic for a filter, the PF and
+    """write_report on fabricated results: accuracy on lorenz96 and quadrotor for a filter, the PF and
     two networks (GRU with a bounded context on lorenz96), runtime in both modes."""
     pytest.importorskip("ray")
     from neural_estimator.reproduce.engine import Outcome
@@ -183,13 +183,13 @@ def _fake_run(tmp_path, init="prior"):
 
     rng = np.random.default_rng(5)
     scale = get_scale("smoke")
-    scen, meth = ["ballistic", "lorenz96"], ["ekf", "pf", "gru", "mamba2"]
+    scen, meth = ["quadrotor", "lorenz96"], ["ekf", "pf", "gru", "mamba2"]
     jobs, outcome = [], Outcome()
     for s in scen:
         for m in meth:
             res = M.to_json(_report(rng, 0.05 if m != "pf" else 0.5, outliers=6 if m == "pf" else 0))
             res["context"] = 100 if (s, m) == ("lorenz96", "gru") else 0
-            # the start each filter got: --init observation is the prior where h determines nothing (ballistic)
+            # the start each filter got: --init observation is the prior where h determines nothing (quadrotor)
             res["start"] = init if m in ("ekf", "pf") and (init != "observation" or s == "lorenz96") else "prior"
             jobs.append(Job("evaluate", s, m, trajectories=40, init=init))
             outcome.results[len(jobs) - 1] = {"cached": False, "seconds": 0.1, "result": res}
@@ -219,7 +219,7 @@ def test_report_main_table_marks_departures_and_shows_the_every_step_rmse(tmp_pa
     assert header.count("RMSE all steps") == 2  # beside the scored RMSE of each scenario
     assert "this project's choice" in main_table and "training loss only" in main_table
     gru = rows["GRU"].split("|")
-    assert D.BOUNDED not in gru[2] and D.BOUNDED in gru[5]  # ballistic cell unmarked, lorenz96 cell marked
+    assert D.BOUNDED not in gru[2] and D.BOUNDED in gru[5]  # quadrotor cell unmarked, lorenz96 cell marked
     assert D.OUTLIERS in rows["PF"] and "(full " in rows["PF"]
     assert all(D.OUTLIERS not in rows[m] for m in ("EKF", "GRU", "Mamba-2"))
     assert rows["PF"].count(f"{MARK} · ") == 2  # both PF rows are expected failures from the prior
@@ -233,14 +233,14 @@ def test_report_main_table_marks_departures_and_shows_the_every_step_rmse(tmp_pa
 def test_report_marks_the_start_where_it_applied_and_keeps_only_start_independent_failures(tmp_path):
     _, main_table, rows = _fake_run(tmp_path, init="observation")
     pf, ekf, gru = rows["PF"].split("|"), rows["EKF"].split("|"), rows["GRU"].split("|")
-    # columns: 2-4 ballistic (RMSE, all steps, NRMSE), 5-7 lorenz96; h inverts nothing on ballistic
+    # columns: 2-4 quadrotor (RMSE, all steps, NRMSE), 5-7 lorenz96; h inverts nothing on quadrotor
     assert D.FROM_OBSERVATION in pf[5] and D.FROM_OBSERVATION in ekf[5]
     assert D.FROM_OBSERVATION not in pf[2] and D.FROM_OBSERVATION not in ekf[2]  # started from the prior there
     assert D.FROM_OBSERVATION not in rows["GRU"]  # networks carry no start mark
-    assert MARK in pf[2] and MARK not in pf[5]  # ballistic PF fails from any start; Lorenz 96's only from the prior
+    assert MARK in pf[2] and MARK not in pf[5]  # quadrotor PF fails from any start; Lorenz 96's only from the prior
     assert D.BOUNDED in gru[5]
     assert any(line.startswith(f"- {D.FROM_OBSERVATION}") for line in main_table.splitlines())
-    assert "- lorenz96: (!) pf" not in main_table and "- ballistic: (!) pf" in main_table
+    assert "- lorenz96: (!) pf" not in main_table and "- quadrotor: (!) pf" in main_table
 
 
 def test_report_times_both_ways_and_says_which_ordering_each_supports(tmp_path):
