@@ -1,5 +1,6 @@
 """Shared fixtures: the example user scenario (a linear-Gaussian oscillator) is registered here."""
 
+import ast
 import importlib.util
 import sys
 from pathlib import Path
@@ -33,6 +34,17 @@ def load_script(relative: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def top_level_imports(path: Path) -> set[str]:
+    """The top-level modules a Python file imports (absolute imports only)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
 
 
 @pytest.fixture

@@ -10,6 +10,8 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+from conftest import top_level_imports
+
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = [ROOT / "neural_estimator", ROOT / "sim_nodes", ROOT / "launch"]
 ROS_TOOLS = {"rclpy", "launch", "launch_ros", "ament_index_python", "tf2_ros"}
@@ -30,15 +32,8 @@ def _imports() -> dict[str, set[str]]:
     out: dict[str, set[str]] = {}
     for src in SOURCES:
         for path in src.rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.Import):
-                    names = [a.name.split(".")[0] for a in node.names]
-                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                    names = [node.module.split(".")[0]]
-                else:
-                    continue
-                for n in names:
-                    out.setdefault(n, set()).add(path.relative_to(ROOT).as_posix())
+            for n in top_level_imports(path):
+                out.setdefault(n, set()).add(path.relative_to(ROOT).as_posix())
     return out
 
 
