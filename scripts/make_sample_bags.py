@@ -5,10 +5,12 @@ Each holds the `scenario`, `observation` and `ground_truth` streams of 2 traject
 
     neural-estimator replay bags/lorenz96.mcap --methods ukf,mamba --out /tmp/l96.mcap --metrics
 
-    python scripts/make_sample_bags.py [--scenarios lorenz96,...] [--trajectories 2] [--horizon 200]
+    python scripts/make_sample_bags.py [--scenarios lorenz96,...] [--preset v3] [--trajectories 2] [--horizon 200]
 
 A bag records its scenario's constants, so a bag and the shipped models it replays through must be
-made on the same constants: rewrite a scenario's bag when its shipped models are retrained.
+made on the same constants. `bags/<scenario>.mcap` is made on the scenario's default constants;
+`--preset P` (other than the default) writes `bags/<scenario>-P.mcap`, for the shipped models still
+trained on that preset (the card names it; `neural-estimator zoo` lists them).
 """
 
 from __future__ import annotations
@@ -19,9 +21,14 @@ from pathlib import Path
 
 from neural_estimator.bags import arrays_to_bag
 from neural_estimator.data import simulate
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET, make_scenario
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
+
+
+def sample_bag_path(scenario: str, preset: str | None = None) -> Path:
+    """bags/<scenario>.mcap on the default constants, bags/<scenario>-<preset>.mcap on another preset."""
+    return BAGS / (f"{scenario}.mcap" if preset in (None, "", DEFAULT_PRESET) else f"{scenario}-{preset}.mcap")
 
 
 def main(argv=None) -> int:
@@ -30,13 +37,14 @@ def main(argv=None) -> int:
     p.add_argument("--horizon", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS), help="comma-separated (default: all five)")
+    p.add_argument("--preset", default=None, help=f"constants preset (default: {DEFAULT_PRESET})")
     a = p.parse_args(argv)
     for name in a.scenarios.split(","):
-        scenario = make_scenario(name)
+        scenario = make_scenario(name, preset=a.preset)
         T = min(a.horizon, scenario.horizon)
         d = simulate(scenario, a.trajectories, T, a.seed)
         path = arrays_to_bag(
-            BAGS / f"{name}.mcap",
+            sample_bag_path(name, a.preset),
             scenario,
             d.x,
             d.y,

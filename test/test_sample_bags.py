@@ -1,5 +1,6 @@
 """The sample bags in bags/ are readable, hold what they claim, and replay through the methods."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
 from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.scenarios import BUILTIN_SCENARIOS
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET, scenario_class
 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
@@ -47,10 +48,32 @@ def test_sample_bag_replays_through_every_classical_method(scenario, tmp_path, c
 SHIPPED = [(s, m) for s in BUILTIN_SCENARIOS for m in NEURAL_METHODS if (ZOO / f"{s}-{m}" / "card.json").exists()]
 
 
+def _card_preset(scenario: str, method: str) -> str:
+    """The preset whose constants the shipped model was trained on (from its card's constants)."""
+    card = json.loads((ZOO / f"{scenario}-{method}" / "card.json").read_text())
+    return scenario_class(scenario).preset_of(card["scenario"]["config"]) or DEFAULT_PRESET
+
+
+def _bag_of(scenario: str, preset: str) -> Path:
+    return ROOT / "bags" / (f"{scenario}.mcap" if preset == DEFAULT_PRESET else f"{scenario}-{preset}.mcap")
+
+
 @pytest.mark.parametrize("scenario, method", SHIPPED)
 def test_sample_bag_replays_through_shipped_models(scenario, method, tmp_path):
+    """Every shipped model replays the sample bag of its own constants (scripts/make_sample_bags.py)."""
+    bag = _bag_of(scenario, _card_preset(scenario, method))
+    assert bag.exists(), f"no sample bag on the constants of {scenario}-{method}: make_sample_bags.py --preset"
     out = tmp_path / "r.mcap"
-    assert main(["replay", str(ROOT / "bags" / f"{scenario}.mcap"), "--methods", method, "--out", str(out)]) == 0
+    assert main(["replay", str(bag), "--methods", method, "--out", str(out)]) == 0
     truth, estimates, _ = load_bag_dataset(out)
     x_hat, _ = estimates[method]
     assert np.all(np.isfinite(x_hat)) and x_hat.shape == truth.x.shape
+
+
+@pytest.mark.parametrize("scenario, method", [(s, m) for s, m in SHIPPED if _card_preset(s, m) != DEFAULT_PRESET])
+def test_a_model_of_other_constants_is_refused_on_the_default_bag_in_one_line(scenario, method, tmp_path, capsys):
+    out = tmp_path / "r.mcap"
+    assert main(["replay", str(_bag_of(scenario, DEFAULT_PRESET)), "--methods", method, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "other constants" in err and "--preset" in err
+    assert not out.exists()
