@@ -857,3 +857,13 @@ def test_train_zoo_finishes_a_model_whose_wall_budget_is_spent(tmp_path, monkeyp
     t = json.loads((zoo / work.name / "card.json").read_text())["training"]
     assert t["stopped"] == "wall budget spent (1e-09 h)" and t["epochs_run"] == 1
     assert t["budget"]["max_epochs"] == 5 and t["converged"] is False
+
+
+def test_training_caps_trajectories_at_the_scenarios_longest_informative_length(tmp_path):
+    from neural_estimator.scenarios import make_scenario
+
+    quad = make_scenario("quadrotor", horizon=40)  # the quadrotor's limit is its horizon
+    assert quad.longest_training_trajectory == 40 and make_scenario("lorenz96").longest_training_trajectory is None
+    out = train(quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False)
+    card = json.loads((out / "card.json").read_text())
+    assert card["data"]["train_length"] == 40 and card["training"]["recipe"]["train_length"] == 40

@@ -277,6 +277,15 @@ def train(
         recorded = {"train_sha256": trajectories_digest(train_data), "val_sha256": trajectories_digest(val_data)}
         n_train = train_data.n
     else:
+        longest = scenario.longest_training_trajectory
+        if longest is not None and cfg.train_length > longest:  # e.g. the quadrotor: flights past its horizon
+            if progress:
+                print(
+                    f"{scenario.name}: training trajectories of {longest} steps, not {cfg.train_length} "
+                    "(longer ones are not informative for this scenario)",
+                    flush=True,
+                )
+            cfg = dataclasses.replace(cfg, train_length=longest)
         n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
         train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
         val_data = dataset(

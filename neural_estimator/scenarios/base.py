@@ -240,6 +240,12 @@ class Scenario(ABC):
         """Default number of steps of a trajectory."""
         return int(self.config.horizon)
 
+    @property
+    def longest_training_trajectory(self) -> int | None:
+        """The longest training trajectory [steps] that is still informative, or None (no limit:
+        the paper's 500-step trajectories). Training caps its trajectories at this length."""
+        return None
+
     # ---- the model -------------------------------------------------------------------------
     @abstractmethod
     def f(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
