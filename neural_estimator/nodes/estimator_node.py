@@ -67,6 +67,7 @@ from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,
     declare_params,
+    executor_choice,
     latched_qos,
     load_plugins,
     param,
@@ -240,7 +241,10 @@ class EstimatorNode(ManagedNode):
             else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
-        self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observations, qos, raw=True)
+        # rclpy 7.1's EventsExecutor cannot call a callback that takes the message info (SystemError):
+        # under it the callback takes the message only (see _on_observations)
+        callback = self._on_observations if executor_choice() == "events" else self._on_observations_with_info
+        self.sub_obs = self.create_subscription(JointState, p.observation_topic, callback, qos, raw=True)
         self.get_logger().info(
             f"subscribed to '{self.obs_topic}' ({p.observation_qos}, "
             f"{'transient_local: the publishers history is received' if transient else 'volatile'})"
@@ -372,7 +376,10 @@ class EstimatorNode(ManagedNode):
             )
 
     # ---- per wake-up ------------------------------------------------------------------------------
-    def _on_observations(self, raw: bytes, info: dict) -> None:
+    def _on_observations_with_info(self, raw: bytes, info: dict) -> None:
+        self._on_observations(raw, info.get("source_timestamp", 0))
+
+    def _on_observations(self, raw: bytes, sent_ns: int = 0) -> None:
         """Subscription callback: this observation and every other one waiting in the queue (``drain``),
         stepped in arrival order (one reliable publisher: time order, and the order replay uses).
 
@@ -382,8 +389,14 @@ class EstimatorNode(ManagedNode):
         When the oldest one was published more than ``max_delay`` s ago, the node is behind: only the
         newest is stepped, the older ones are dropped and counted (``late_dropped``), and the estimator
         meets them as lost observations (the gap rule: predict-only steps or a restart, both counted).
+
+        ``sent_ns`` is the observation's DDS source timestamp where the executor passes the message
+        info (the single-threaded executor); the events executor passes the message only, and the
+        delivered observation's publish time is then taken as that of the next one waiting (it was
+        published before it), or as now when none waits: its wait is under-counted by at most one
+        inter-arrival time. The messages the node takes itself carry their own timestamps.
         """
-        batch = [(raw, info.get("source_timestamp", 0))]
+        batch = [(raw, sent_ns)]
         sub = self.sub_obs
         if self.p.drain and sub is not None:
             limit = max(1, self.p.queue_depth)
@@ -393,6 +406,8 @@ class EstimatorNode(ManagedNode):
                     if taken is None:
                         break
                     batch.append((taken[0], taken[1].get("source_timestamp", 0)))
+        if not sent_ns:
+            batch[0] = (raw, batch[1][1] if len(batch) > 1 and batch[1][1] else time.time_ns())
         s = self.stats
         s.wakeups += 1
         s.max_batch = max(s.max_batch, len(batch))

@@ -430,7 +430,8 @@ def _trim_heap() -> None:
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(EvaluatorNode, "evaluator", args)
+    # the recorder's callbacks take each message's info (its timestamps): the single-threaded executor
+    return run_node(EvaluatorNode, "evaluator", args, executor="single")
 
 
 if __name__ == "__main__":
