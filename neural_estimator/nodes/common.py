@@ -57,6 +57,8 @@ def declare_params(node: Node, cls: type[P]) -> P:
             read_only=True,
             dynamic_typing=True,
         )
+        if node.has_parameter(f.name):  # peeked at before the node's kind was known (see peek_param)
+            node.undeclare_parameter(f.name)
         value = node.declare_parameter(
             f.name,
             list(default)
@@ -69,6 +71,12 @@ def declare_params(node: Node, cls: type[P]) -> P:
         return cls(**values)
     except (TypeError, ValueError) as exc:
         raise StartupError(str(exc)) from None
+
+
+def peek_param(node: Node, name: str) -> Any:
+    """The value the command line or a parameter file gives ``name`` on ``node`` (None if none), read
+    by declaring it untyped and writable; :func:`declare_params` declares it again, as its field."""
+    return node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True)).value
 
 
 def _type_name(kind: Any) -> str:

@@ -71,6 +71,7 @@ from neural_estimator.nodes.common import (
     latched_qos,
     load_plugins,
     param,
+    peek_param,
     run_node,
     stream_qos,
 )
@@ -170,8 +171,12 @@ class EstimatorParams:
 
 
 class EstimatorNode(ManagedNode):
-    def __init__(self) -> None:
-        super().__init__("estimator")
+    def __init__(self, node_name: str = "estimator") -> None:
+        super().__init__(node_name)
+        self.setup()
+
+    def setup(self) -> None:
+        """Declare the parameters, build the scenario's estimator (or wait for the scenario), wire the topics."""
         self.p = p = declare_params(self, EstimatorParams)
         self.po = declare_params(self, OutputParams)
         self.pd = declare_params(self, InputDiagnosticsParams)
@@ -648,39 +653,47 @@ def _exists(path: str) -> bool:
 def _make_node() -> ManagedNode:
     """The estimator node, or, when ``checkpoint`` is a model trained on recorded data (its card holds a
     spec, docs/robot.md), the robot estimator on the spec's own topics: a recorded-data model
-    needs no scenario. The parameters are looked at once by a short-lived probe node of the same name."""
-    import rclpy
+    needs no scenario.
 
-    probe = rclpy.create_node("estimator", automatically_declare_parameters_from_overrides=True)
+    One node is made: a :class:`ManagedNode` named ``estimator`` (its name and parameter overrides
+    resolved by rcl from the command line, remappings and parameter files), whose ``checkpoint`` and
+    ``method`` are peeked at (:func:`~neural_estimator.nodes.common.peek_param`); the card is read
+    once, and the node becomes the kind it names: its class set, then that class's ``setup``, which
+    declares every parameter as the class's fields (those two again)."""
+    node = ManagedNode("estimator")
     try:
-        checkpoint = probe.get_parameter("checkpoint").value if probe.has_parameter("checkpoint") else ""
-        method = probe.get_parameter("method").value if probe.has_parameter("method") else ""
-        name = probe.get_name()
-    finally:
-        probe.destroy_node()
-    if checkpoint and _recorded_data_card(str(checkpoint)):
-        from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
+        checkpoint = str(peek_param(node, "checkpoint") or "")
+        method = str(peek_param(node, "method") or "")
+        read = _recorded_data_card(checkpoint) if checkpoint else None
+        if read is not None:
+            from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
 
-        node = RobotEstimatorNode(node_name=name)
-        try:
-            wrong = bool(method) and check_method(str(method)) != node.method
-        except EstimatorError as exc:
-            raise StartupError(str(exc)) from None
-        if wrong:
-            raise StartupError(f"parameter method is {method!r} but {checkpoint} holds a {node.method} model")
-        return node
-    return EstimatorNode()
+            try:
+                wrong = bool(method) and check_method(method) != read[1].get("method")
+            except EstimatorError as exc:
+                raise StartupError(str(exc)) from None
+            if wrong:
+                raise StartupError(f"parameter method is {method!r} but {checkpoint} holds a {read[1]['method']} model")
+            node.__class__ = RobotEstimatorNode
+            node.setup(read)
+        else:
+            node.__class__ = EstimatorNode
+            node.setup()
+    except BaseException:
+        node.destroy_node()
+        raise
+    return node
 
 
-def _recorded_data_card(checkpoint: str) -> bool:
-    """True when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
+def _recorded_data_card(checkpoint: str) -> tuple | None:
+    """(directory, card) when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
     from neural_estimator.models.card import read_card
 
     try:
-        _, card = read_card(checkpoint)
+        read = read_card(checkpoint)
     except EstimatorError:
-        return False  # the estimator node reports a missing or corrupt checkpoint itself
-    return card.get("scenario", {}).get("scenario") == "data"
+        return None  # the estimator node reports a missing or corrupt checkpoint itself
+    return read if read[1].get("scenario", {}).get("scenario") == "data" else None
 
 
 def main(args: list[str] | None = None) -> int:
