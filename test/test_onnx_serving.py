@@ -21,11 +21,14 @@ def l96():
     return scen, simulate(scen, 1, 300, 4)
 
 
-@pytest.mark.parametrize("method", ["gru", "lstm", "mamba", "mamba2"])
+@pytest.mark.parametrize("method", ["gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"])
 def test_onnx_step_equals_torch_step(method, l96):
+    """300 steps (GPT-2 and Filterformer: past a window of 100, so the KV cache wraps), a missing
+    observation included; estimates (and Filterformer's covariance) within 1e-5 relative."""
     scen, data = l96
-    torch_est = load_neural_estimator(method, scen, context=0)
-    ort_est = load_neural_estimator(method, scen, context=0, backend="onnxruntime")
+    context = 100 if method in ("gpt2", "filterformer") else 0
+    torch_est = load_neural_estimator(method, scen, context=context)
+    ort_est = load_neural_estimator(method, scen, context=context, backend="onnxruntime")
     y = data.y[0].copy()
     y[50] = np.nan  # a missing observation: both use the training mean
     torch_est.reset(1)
@@ -37,6 +40,10 @@ def test_onnx_step_equals_torch_step(method, l96):
         assert b.shape == a.shape == (1, scen.dx) and b.dtype == np.float64
         assert ort_est.skipped[0] == torch_est.skipped[0] == (k == 50)
         worst = max(worst, float(np.abs(a - b).max() / (1.0 + np.abs(a).max())))
+        if torch_est.has_covariance:
+            assert ort_est.has_covariance
+            P, Q = torch_est.covariance, ort_est.covariance
+            worst = max(worst, float(np.abs(P - Q).max() / (1.0 + np.abs(P).max())))
     assert worst < 1e-5, worst
     # a reset starts over: the first estimates repeat
     ort_est.reset(1)
@@ -47,7 +54,7 @@ def test_onnx_step_equals_torch_step(method, l96):
 def test_onnx_backend_refuses_what_it_cannot_serve(l96):
     scen, data = l96
     with pytest.raises(EstimatorError, match="backend onnxruntime serves"):
-        load_neural_estimator("gpt2", scen, backend="onnxruntime")
+        load_neural_estimator("gru", scen, context=50, backend="onnxruntime")  # restarted copies
     with pytest.raises(EstimatorError, match="backend must be one of"):
         load_neural_estimator("gru", scen, backend="tensorrt")
     est = load_neural_estimator("gru", scen, context=0, backend="onnxruntime")

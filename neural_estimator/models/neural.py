@@ -145,11 +145,11 @@ class NeuralEstimator(Estimator):
 
         if self.method not in EXPORTABLE or self.context_by_copies or self.dtype != torch.float32:
             raise EstimatorError(
-                f"{self.method}: backend onnxruntime serves {', '.join(EXPORTABLE)} with an unbounded context "
-                "(option context=0) in float32"
+                f"{self.method}: backend onnxruntime serves {', '.join(EXPORTABLE)} in float32, the recurrent "
+                "models with an unbounded context (option context=0), the attention models with their window"
             )
         try:
-            return OrtStep(export_step(self.model, self.method))
+            return OrtStep(export_step(self.model, self.method, covariance=self.has_covariance))
         except OnnxError as exc:
             raise EstimatorError(str(exc)) from None
 
@@ -244,7 +244,11 @@ class NeuralEstimator(Estimator):
             x = wrap_components(x, n.angle_states)
         self._t += 1
         self.skipped = self._skip_flags[int(skipped)]
-        if not np.isfinite(x).all():
+        finite = np.isfinite(x).all()
+        if self.has_covariance:
+            self.covariance = n.denormalize_covariance(ort.outputs["cov"].astype(np.float64))
+            finite = finite and np.isfinite(self.covariance).all()
+        if not finite:
             self.diverged = np.ones(1, dtype=bool)
         return x
 

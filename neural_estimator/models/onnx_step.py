@@ -8,11 +8,16 @@ the model's own ``step`` traced at batch 1::
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
 with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM
-state per layer). :func:`export_step` makes it from the loaded checkpoint (card + safetensors
-weights), so the export is reproducible from the card: the same weights give the same graph.
-:class:`OrtStep` serves it; a test holds it equal to the torch step over hundreds of steps.
+state per layer; GPT-2: the (W,) slot mask, then each layer's (2, 1, nh, W, hs) keys and values;
+Filterformer: the mask and its one attention's cache). The attention models serve a bounded key/value
+cache of the last W steps (their attention window, the ``context`` option), so their step graph has
+fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's covariance
+(normalised units), when exported with ``covariance``. A state that does not start at zeros (the
+attention models' mask starts at -inf: no slot filled) is recorded in the graph's metadata
+(``initial_fill``), which :class:`OrtStep` resets to. :func:`export_step` makes it from the loaded
+checkpoint (card + safetensors weights), so the export is reproducible from the card: the same
+weights give the same graph. :class:`OrtStep` serves it; a test holds it equal to the torch step over hundreds of steps.
 
-The attention models (GPT-2, Filterformer) carry a growing key/value cache and are not exported.
 Serving needs ``onnxruntime`` (``pip install onnxruntime``, the ``onnx`` extra); exporting also needs
 torch and ``onnx``. A robot that gets the ``.onnx`` file (``scripts/export_onnx.py``) and the card
 runs :class:`OrtStep` without torch.
@@ -21,13 +26,15 @@ runs :class:`OrtStep` without torch.
 from __future__ import annotations
 
 import io
+import json
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-EXPORTABLE = ("gru", "lstm", "mamba", "mamba2")
+EXPORTABLE = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
+ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
 OPSET = 17
 
 
@@ -39,8 +46,20 @@ def _flatten(state: Any) -> list:
     return list(state) if isinstance(state, (tuple, list)) else [state]
 
 
-def export_step(model: Any, method: str, path: str | Path | None = None, normalizer: Any = None) -> bytes:
+def export_step(
+    model: Any,
+    method: str,
+    path: str | Path | None = None,
+    normalizer: Any = None,
+    covariance: bool = False,
+    metadata: dict[str, str] | None = None,
+) -> bytes:
     """The ONNX graph of ``model.step`` at batch 1, written to ``path`` when given.
+
+    ``covariance``: a model with ``step_with_cov`` (Filterformer) exports that, with the extra output
+    ``cov`` (normalised units; with ``normalizer``: ``covariance``, in state units). ``metadata``:
+    strings stored in the graph (e.g. the card's weight digest) beside ``method``, ``window`` (the
+    attention models) and ``initial_fill``.
 
     Without ``normalizer`` the graph is the network alone (z float32 in, mean float32 out). With the
     checkpoint's :class:`~neural_estimator.models.normalization.Normalizer` it is the whole estimator
@@ -65,10 +84,21 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
     d_in = model.input_proj.in_features
+    with_cov = bool(covariance) and hasattr(model, "step_with_cov")
+    fills = []
+    for t in flat:  # the state's starting values: one constant per tensor (zeros, or the mask's -inf)
+        first = t.reshape(-1)[:1]
+        if t.numel() and not bool((t == first).all()):
+            raise OnnxError(f"{method}: a starting state that is not one constant per tensor cannot be exported")
+        fills.append(float(first[0]) if t.numel() else 0.0)
 
     def network(z, state):
-        mean, new = model.step(z, tuple(state) if structured else state[0])
-        return mean, _flatten(new)
+        state = tuple(state) if structured else state[0]
+        if with_cov:
+            mean, cov, new = model.step_with_cov(z, state)
+            return (mean, cov), _flatten(new)
+        mean, new = model.step(z, state)
+        return (mean,), _flatten(new)
 
     if normalizer is None:
 
@@ -78,11 +108,11 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
                 self.model = model
 
             def forward(self, z, *state):
-                mean, new = network(z, state)
-                return (mean, *new)
+                outs, new = network(z, state)
+                return (*outs, *new)
 
         args: tuple = (torch.zeros(1, d_in), *flat)
-        names_in, names_out = ["z"], ["mean"]
+        names_in, names_out = ["z"], ["mean"] + (["cov"] if with_cov else [])
     else:
         n = normalizer
         dy, du = int(n.dy), int(n.du)
@@ -102,13 +132,18 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
                 finite = torch.isfinite(y).all(dim=-1, keepdim=True)  # (1, 1)
                 zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], torch.zeros_like(y))
                 z = torch.cat([zy, (u - in_mean[:, dy:]) / in_std[:, dy:]], dim=-1) if du else zy
-                mean, new = network(z.float(), state)
-                return (mean.double() * out_std + out_mean, ~finite, *new)
+                outs, new = network(z.float(), state)
+                x = outs[0].double() * out_std + out_mean
+                if with_cov:  # diag(sigma_x) C diag(sigma_x), as Normalizer.denormalize_covariance
+                    cov = outs[1].double() * (out_std.reshape(1, -1, 1) * out_std.reshape(1, 1, -1))
+                    return (x, cov, ~finite, *new)
+                return (x, ~finite, *new)
 
         args = (torch.zeros(1, dy, dtype=torch.float64),)
         args += (torch.zeros(1, du, dtype=torch.float64),) if du else ()
         args += tuple(flat)
-        names_in, names_out = ["y"] + (["u"] if du else []), ["x", "skipped"]
+        names_in = ["y"] + (["u"] if du else [])
+        names_out = ["x"] + (["covariance"] if with_cov else []) + ["skipped"]
 
     _register_symbolics()
     names_in = names_in + [f"state_{i}" for i in range(len(flat))]
@@ -128,18 +163,43 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
             )
     except ImportError as exc:
         raise OnnxError(f"exporting needs the onnx package ({exc}): pip install onnx") from None
-    data = buf.getvalue()
+    data = _with_metadata(
+        buf.getvalue(),
+        {
+            "method": method,
+            "initial_fill": json.dumps(fills),
+            **({"window": str(int(flat[0].shape[0]))} if method in ATTENTION else {}),
+            **(metadata or {}),
+        },
+    )
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+def _with_metadata(data: bytes, props: dict[str, str]) -> bytes:
+    """The graph ``data`` with ``props`` as its metadata (key/value strings)."""
+    import onnx
+
+    graph = onnx.load_from_string(data)
+    for key, value in props.items():
+        entry = graph.metadata_props.add()
+        entry.key, entry.value = str(key), str(value)
+    return graph.SerializeToString()
+
+
+def graph_metadata(session: Any) -> dict[str, str]:
+    """The metadata strings of a loaded graph (an onnxruntime InferenceSession)."""
+    return dict(session.get_modelmeta().custom_metadata_map)
 
 
 _REGISTERED = False
 
 
 def _register_symbolics() -> None:
-    """ONNX forms of the two aten ops the SSM steps use that opset 17 lacks: ``rms_norm`` (as
-    x / sqrt(mean(x^2) + eps) * w) and ``linalg_vecdot`` (as sum(a * b) over the last axis)."""
+    """ONNX forms of the aten ops the steps use that opset 17 lacks: ``rms_norm`` (as
+    x / sqrt(mean(x^2) + eps) * w) and ``linalg_vecdot`` (as sum(a * b) over the last axis) of the SSM
+    steps, ``diag_embed`` (as x[..., None] * I) of Filterformer's covariance."""
     global _REGISTERED
     if _REGISTERED:
         return
@@ -159,6 +219,17 @@ def _register_symbolics() -> None:
         axis = sh._get_const(dim, "i", "dim")
         return g.op("ReduceSum", g.op("Mul", a, b), g.op("Constant", value_t=torch.tensor([axis])), keepdims_i=0)
 
+    def diag_embed(g, x, offset, dim1, dim2):  # only the default form (offset 0, the last two axes)
+        if sh._get_const(offset, "i", "offset") != 0 or (
+            sh._get_const(dim1, "i", "dim1"),
+            sh._get_const(dim2, "i", "dim2"),
+        ) not in ((-2, -1),):
+            return sh._unimplemented("diag_embed", "offset 0 on the last two axes only", x)
+        n = sh._get_tensor_sizes(x)[-1]
+        eye = g.op("Constant", value_t=torch.eye(n, dtype=torch.float32))
+        return g.op("Mul", g.op("Unsqueeze", x, g.op("Constant", value_t=torch.tensor([-1]))), eye)
+
+    register_custom_op_symbolic("aten::diag_embed", diag_embed, OPSET)
     register_custom_op_symbolic("aten::rms_norm", rms_norm, OPSET)
     register_custom_op_symbolic("aten::linalg_vecdot", vecdot, OPSET)
     _REGISTERED = True
@@ -204,6 +275,11 @@ class OrtStep:
         first = self.inputs["y" if self.normalized else "z"]
         self.d_in = int(first.shape[1])
         self._sets = [[buffer(i) for i in state_in] for _ in range(2)]
+        self.metadata = graph_metadata(self.session)
+        fills = json.loads(self.metadata.get("initial_fill", "[]")) or [0.0] * len(state_in)
+        if len(fills) != len(state_in):
+            raise OnnxError(f"the graph's initial_fill names {len(fills)} states, its inputs {len(state_in)}")
+        self._fills = [float(f) for f in fills]
         value = ort.OrtValue.ortvalue_from_numpy
         self._bindings = []
         for src, dst in ((0, 1), (1, 0)):
@@ -226,8 +302,8 @@ class OrtStep:
 
     def reset(self) -> None:
         for buffers in self._sets:
-            for a in buffers:
-                a.fill(0.0)
+            for a, fill in zip(buffers, self._fills):
+                a.fill(fill)
         self._current = 0
 
     def run(self) -> None:
