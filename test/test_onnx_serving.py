@@ -97,3 +97,58 @@ def test_normalised_graph_is_the_whole_estimator_step(l96):
         want = est.step(y[k : k + 1])
         np.testing.assert_allclose(step.outputs["x"], want, rtol=1e-5, atol=1e-5)
         assert bool(step.outputs["skipped"][0, 0]) == (k == 7)
+
+
+def _exported_beside(tmp_path, method):
+    """A copy of the shipped lorenz96 checkpoint with its step exported beside the card."""
+    import shutil
+
+    from neural_estimator.models.serving import default_checkpoint
+    from scripts.export_onnx import main as export_main
+
+    directory = tmp_path / f"lorenz96-{method}"
+    shutil.copytree(default_checkpoint("lorenz96", method), directory)
+    assert export_main(["--scenario", "lorenz96", "--method", method, "--checkpoint", str(directory), "--beside"]) == 0
+    return directory
+
+
+@pytest.mark.parametrize("method", ["gpt2", "filterformer"])
+def test_graph_beside_the_card_serves_like_the_torch_step(method, l96, tmp_path):
+    """``step.onnx`` beside the card: backend onnxruntime serves it (the torch-free estimator), equal to
+    the torch step within 1e-5 relative over 300 steps, covariance included."""
+    from neural_estimator.models.onnx_step import OnnxEstimator
+
+    scen, data = l96
+    directory = _exported_beside(tmp_path, method)
+    ort_est = load_neural_estimator(method, scen, checkpoint=directory, backend="onnxruntime")
+    torch_est = load_neural_estimator(method, scen, checkpoint=directory)
+    assert isinstance(ort_est, OnnxEstimator) and ort_est.has_covariance == torch_est.has_covariance
+    y = data.y[0]
+    ort_est.reset(1)
+    torch_est.reset(1)
+    worst = 0.0
+    for k in range(y.shape[0]):
+        a, b = torch_est.step(y[k : k + 1]), ort_est.step(y[k : k + 1])
+        worst = max(worst, float(np.abs(a - b).max() / (1.0 + np.abs(a).max())))
+        if torch_est.has_covariance:
+            P, Q = torch_est.covariance, ort_est.covariance
+            worst = max(worst, float(np.abs(P - Q).max() / (1.0 + np.abs(P).max())))
+    assert worst < 1e-5, worst
+    # run is a loop of step
+    est = ort_est.run(data.y[:1, :20])
+    ort_est.reset(1)
+    np.testing.assert_array_equal(est.x[0, 19], [ort_est.step(y[k : k + 1])[0] for k in range(20)][-1])
+
+
+def test_graph_beside_the_card_refuses_other_weights_and_windows(l96, tmp_path):
+    import json
+
+    scen, _ = l96
+    directory = _exported_beside(tmp_path, "gpt2")
+    with pytest.raises(EstimatorError, match="attention window"):
+        load_neural_estimator("gpt2", scen, checkpoint=directory, backend="onnxruntime", context=7)
+    card = json.loads((directory / "card.json").read_text())
+    card["weights"]["sha256"] = "0" * 64  # the card now names other weights than those exported
+    (directory / "card.json").write_text(json.dumps(card))
+    with pytest.raises(EstimatorError, match="export it again"):
+        load_neural_estimator("gpt2", scen, checkpoint=directory, backend="onnxruntime")

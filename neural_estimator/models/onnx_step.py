@@ -33,7 +33,11 @@ from typing import Any
 
 import numpy as np
 
+from neural_estimator.angles import wrap_components
+from neural_estimator.estimator import Estimator, EstimatorError
+
 EXPORTABLE = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
+ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (scripts/export_onnx.py --beside)
 ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
 OPSET = 17
 
@@ -317,3 +321,155 @@ class OrtStep:
         np.copyto(self.inputs["z"], z, casting="same_kind")
         self.run()
         return self.outputs["mean"]
+
+
+class OnnxEstimator(Estimator):
+    """A neural model's estimator served by ONNX Runtime over its network-only step graph, batch 1,
+    with numpy and onnxruntime only (no torch).
+
+    The arithmetic of :class:`~neural_estimator.models.neural.NeuralEstimator`'s step: normalise
+    [y_k, u_{k-1}] in float64 with the card's statistics (a non-finite y becomes the training mean and
+    is flagged in ``skipped``), the network in float32, denormalise (angles wrapped; Filterformer's
+    covariance as diag(sigma_x) C diag(sigma_x)). Written into the graph's bound buffers, because at
+    20-90 us a step every numpy call counts. ``run`` is the base class's loop of :meth:`step`.
+
+    Args:
+        scenario: the system served (the caller has checked the card against it).
+        step: the network-only graph (:class:`OrtStep`; inputs ``z`` and the state).
+        normalizer: the card's normalisation (:class:`~neural_estimator.models.normalization.Normalizer`).
+        method: the method name.
+        card: the checkpoint card (provenance; the training warm-up).
+    """
+
+    def __init__(self, scenario: Any, step: OrtStep, normalizer: Any, method: str, card: dict | None = None) -> None:
+        super().__init__(scenario)
+        self.method = method
+        if step.normalized:
+            raise EstimatorError(f"{method}: the ONNX graph has the normalisation inside; serve the network-only one")
+        dy, du = scenario.dy, scenario.du
+        if step.d_in != dy + du or step.outputs["mean"].shape[1] != scenario.dx:
+            raise EstimatorError(
+                f"{method}: the ONNX graph maps {step.d_in} inputs to {step.outputs['mean'].shape[1]} states; "
+                f"scenario {scenario.name!r} has dy + du = {dy + du}, dx = {scenario.dx}"
+            )
+        self.ort, self.normalizer, self.card = step, normalizer, dict(card or {})
+        self.has_covariance = "cov" in step.outputs
+        self.backend = "onnxruntime"
+        self._dims = (dy, du)
+        self._z64 = np.zeros((1, dy + du))  # the normalised input, float64
+        self._z64_y = self._z64[:, :dy]
+        self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
+
+    @property
+    def untrained_steps(self) -> int:
+        """Leading steps the training loss skipped (the card's ``training.recipe.warmup``)."""
+        recipe = (self.card.get("training") or {}).get("recipe") or {}
+        return int(recipe.get("warmup") or 0)
+
+    def reset(self, batch: int = 1) -> None:
+        if int(batch) != 1:
+            raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {batch}")
+        self.ort.reset()
+        self.batch = 1
+        self.covariance = None
+        self.diverged = np.zeros(1, dtype=bool)
+        self.skipped = np.zeros(1, dtype=bool)
+
+    def step(self, y: Any, u_prev: Any = None) -> np.ndarray:
+        ort, n, (dy, du) = self.ort, self.normalizer, self._dims
+        fast = (
+            type(y) is np.ndarray
+            and y.dtype == np.float64
+            and y.shape == (1, dy)
+            and self.batch == 1
+            and (u_prev is None or (type(u_prev) is np.ndarray and u_prev.dtype == np.float64))
+        )
+        if not fast:  # anything else gets the full checks (and their errors)
+            y, u_prev = self.check_step(y, u_prev)
+            if y.shape[0] != 1:
+                raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {y.shape[0]}")
+            self.start_streams_if_none(1)
+        zb, zy = self._z64, self._z64_y
+        if du:
+            if u_prev is None:
+                zb[0, dy:] = 0.0
+            else:
+                if u_prev.shape != (1, du) or not np.isfinite(u_prev).all():
+                    self.check_step(y, u_prev)  # raises its one-line error
+                zb[0, dy:] = u_prev[0]
+        skipped = not np.isfinite(y).all()
+        np.copyto(zy, y)
+        np.subtract(zb, n.in_mean, out=zb)
+        np.divide(zb, n.in_std, out=zb)
+        if skipped:
+            zy.fill(0.0)  # the training mean (see Normalizer.normalize_inputs)
+        np.copyto(ort.inputs["z"], zb, casting="same_kind")
+        ort.run()
+        x = ort.outputs["mean"] * n.out_std + n.out_mean  # float32 * float64 -> float64, as the torch path
+        if n.angle_states:
+            x = wrap_components(x, n.angle_states)
+        self.skipped = self._skip_flags[int(skipped)]
+        finite = np.isfinite(x).all()
+        if self.has_covariance:
+            self.covariance = n.denormalize_covariance(ort.outputs["cov"])
+            finite = finite and np.isfinite(self.covariance).all()
+        if not finite:
+            self.diverged = np.ones(1, dtype=bool)
+        return x
+
+    def __repr__(self) -> str:
+        return f"OnnxEstimator({self.method!r}, scenario={self.scenario.name!r})"
+
+
+def onnx_beside(directory: str | Path) -> Path | None:
+    """The exported step graph in a checkpoint directory (``step.onnx`` beside its card), or None."""
+    path = Path(directory) / ONNX_FILE
+    return path if path.is_file() else None
+
+
+def load_onnx_estimator(
+    directory: Path, card: dict[str, Any], scenario: Any, context: int | None = None, covariance: bool = True
+) -> OnnxEstimator:
+    """The torch-free estimator of a checkpoint whose directory holds ``step.onnx``.
+
+    The caller has read the card and checked it against ``scenario``. The graph must be the
+    network-only step of this card's weights (its ``weights_sha256`` equals the card's: a graph left
+    from other weights is refused, re-export it) and of the method the card names; an attention model
+    serves with the window it was exported with (``context``, when given, must equal it).
+    ``covariance`` False ignores Filterformer's covariance output.
+
+    Raises:
+        EstimatorError: missing onnxruntime, a graph of other weights, method or window.
+    """
+    from neural_estimator.models.normalization import NormalizationError, Normalizer
+
+    path = Path(directory) / ONNX_FILE
+    method = str(card["method"])
+    try:
+        step = OrtStep(path)
+    except OnnxError as exc:
+        raise EstimatorError(str(exc)) from None
+    except Exception as exc:  # onnxruntime's own errors for a malformed file
+        raise EstimatorError(f"{path}: not a readable ONNX graph ({str(exc).splitlines()[0]})") from None
+    meta = step.metadata
+    digest = str((card.get("weights") or {}).get("sha256") or "")
+    if meta.get("method") != method or meta.get("weights_sha256", "") != digest:
+        raise EstimatorError(
+            f"{path} was exported from other weights or another method than {directory}'s card "
+            f"({meta.get('method')!r}, weights {meta.get('weights_sha256', '')[:12] or '?'}): export it again with "
+            f"scripts/export_onnx.py --beside"
+        )
+    if context and method in ATTENTION and int(meta.get("window", 0)) != int(context):
+        raise EstimatorError(
+            f"{path} serves attention window {meta.get('window')}, not context={context}: "
+            f"export it with --context {context}"
+        )
+    if context and method not in ATTENTION:
+        raise EstimatorError(f"{method}: the exported step serves the unbounded context (context=0), not {context}")
+    if not covariance and "cov" in step.outputs:
+        step.outputs.pop("cov")  # still computed by the graph, no longer read
+    try:
+        normalizer = Normalizer.from_dict(card["normalization"])
+    except NormalizationError as exc:
+        raise EstimatorError(f"{directory}: {exc}") from None
+    return OnnxEstimator(scenario, step, normalizer, method, card)

@@ -262,10 +262,6 @@ class EstimatorNode(ManagedNode):
             options = dict(item.split("=", 1) for item in p.options)
         except ValueError:
             raise StartupError(f"options must be name=value, got {list(p.options)}") from None
-        if p.threads > 0 and self.method in NEURAL_METHODS:
-            import torch
-
-            torch.set_num_threads(p.threads)
         if p.init != "prior" and self.method not in NEURAL_METHODS:
             options.setdefault("init", p.init)
         try:
@@ -274,6 +270,9 @@ class EstimatorNode(ManagedNode):
             )
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
+        torch = sys.modules.get("torch")  # absent when the model is served without torch (step.onnx)
+        if p.threads > 0 and self.method in NEURAL_METHODS and torch is not None:
+            torch.set_num_threads(p.threads)
         _warm_up(est, scenario)
         self.online = OnlineEstimator(
             est,
