@@ -359,6 +359,9 @@ class OnnxEstimator(Estimator):
         self._z64 = np.zeros((1, dy + du))  # the normalised input, float64
         self._z64_y = self._z64[:, :dy]
         self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
+        self._in_mean_y, self._in_mean_u = normalizer.in_mean[:dy], normalizer.in_mean[dy:]
+        s = np.asarray(normalizer.out_std, dtype=np.float64)
+        self._cov_scale = s[:, None] * s[None, :]  # (dx, dx)
 
     @property
     def untrained_steps(self) -> int:
@@ -398,20 +401,21 @@ class OnnxEstimator(Estimator):
                     self.check_step(y, u_prev)  # raises its one-line error
                 zb[0, dy:] = u_prev[0]
         skipped = not np.isfinite(y).all()
-        np.copyto(zy, y)
-        np.subtract(zb, n.in_mean, out=zb)
-        np.divide(zb, n.in_std, out=zb)
+        np.subtract(y, self._in_mean_y, out=zy)
+        if du:
+            np.subtract(zb[:, dy:], self._in_mean_u, out=zb[:, dy:])
+        z = ort.inputs["z"]
+        np.divide(zb, n.in_std, out=z, casting="same_kind")  # float64 arithmetic, rounded to float32 once
         if skipped:
-            zy.fill(0.0)  # the training mean (see Normalizer.normalize_inputs)
-        np.copyto(ort.inputs["z"], zb, casting="same_kind")
+            z[:, :dy] = 0.0  # the training mean (see Normalizer.normalize_inputs)
         ort.run()
         x = ort.outputs["mean"] * n.out_std + n.out_mean  # float32 * float64 -> float64, as the torch path
         if n.angle_states:
             x = wrap_components(x, n.angle_states)
         self.skipped = self._skip_flags[int(skipped)]
         finite = np.isfinite(x).all()
-        if self.has_covariance:
-            self.covariance = n.denormalize_covariance(ort.outputs["cov"])
+        if self.has_covariance:  # diag(sigma_x) C diag(sigma_x) (Normalizer.denormalize_covariance), one product
+            self.covariance = ort.outputs["cov"] * self._cov_scale
             finite = finite and np.isfinite(self.covariance).all()
         if not finite:
             self.diverged = np.ones(1, dtype=bool)
