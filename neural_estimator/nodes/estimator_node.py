@@ -316,6 +316,11 @@ class EstimatorNode(ManagedNode):
             + f" (history {self.depths['estimates']}"
             + (f"/{self.depths['covariance']}" if self.pub_cov else "")
             + " msgs)"
+            + (
+                "; served by ONNX Runtime without torch"
+                if self.method in NEURAL_METHODS and not sys.modules.get("torch")
+                else ""
+            )
         )
         if getattr(est, "context", 0):
             how = (
