@@ -11,8 +11,7 @@ every import of the package against this list):
 2. ``scenarios``: the five nonlinear systems (pure numpy)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
-5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2),
-   ``serving`` (a model served behind the estimator interface)
+5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2), ``serving``
 6. ``estimators``: the registry (``make_estimator``)
 7. ``bags``, ``evaluation``, ``replay``, ``robot``, ``departures``: MCAP I/O, the evaluation protocol, bag
    replay, recorded robot data, the marks of departures from the paper's protocol
