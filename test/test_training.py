@@ -864,6 +864,8 @@ def test_training_caps_trajectories_at_the_scenarios_longest_informative_length(
 
     quad = make_scenario("quadrotor", horizon=40)  # the quadrotor's limit is its horizon
     assert quad.longest_training_trajectory == 40 and make_scenario("lorenz96").longest_training_trajectory is None
-    out = train(quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False)
+    out = train(
+        quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False
+    )
     card = json.loads((out / "card.json").read_text())
     assert card["data"]["train_length"] == 40 and card["training"]["recipe"]["train_length"] == 40
