@@ -49,7 +49,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.reader import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, parse_qos_yaml
-from neural_estimator.estimators import NEURAL_METHODS, Estimator, EstimatorError, make_estimator
+from neural_estimator.registry import NEURAL_METHODS, Estimator, EstimatorError, make_estimator
 
 DEFAULT_MAX_GAP = 1_000
 DEFAULT_MAX_GAP_SECONDS = 0.25
@@ -394,10 +394,10 @@ def replay(
     Args:
         bag_in: a recorded or sample bag (``.mcap`` file or rosbag2 directory) with an
             ``observation`` stream, and a ``scenario`` stream unless ``description`` is given.
-        methods: method names (see :data:`neural_estimator.estimators.METHODS`).
+        methods: method names (see :data:`neural_estimator.registry.METHODS`).
         bag_out: output ``.mcap``.
         checkpoints: {method: checkpoint} for neural methods (default: the shipped models).
-        device, seed: passed to :func:`~neural_estimator.estimators.make_estimator`.
+        device, seed: passed to :func:`~neural_estimator.registry.make_estimator`.
         namespace: namespace of the streams.
         options: {method: {option: value}} filter hyperparameters.
         publish_covariance: also write covariance streams where methods have them.

@@ -1,6 +1,6 @@
 """Train the shipped model zoo with the paper's recipe, resumably, across as many runs as it takes.
 
-Recipe (neural_estimator.models.training.TrainConfig defaults = the paper's): data ratio 20:1 (4,000
+Recipe (neural_estimator.training.recipe.TrainConfig defaults = the paper's): data ratio 20:1 (4,000
 training trajectories x 500 steps), 20,000 random length-100 windows per epoch in batches of 64,
 AdamW lr 2e-3 (weight decay 1e-5, clip 1.0), ReduceLROnPlateau factor 0.5 / patience 3, early
 stopping patience 30, at most 500 epochs. One deviation, for CPU time: the validation set is
@@ -83,9 +83,12 @@ from pathlib import Path
 import torch
 
 from neural_estimator.data.protocol import SELECTION_INDEX, dataset
-from neural_estimator.models.checkpoint import load_checkpoint
-from neural_estimator.models.serving import validated_context
-from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
+from neural_estimator.serving.checkpoint import load_checkpoint
+from neural_estimator.serving.load import validated_context
+from neural_estimator.training.loop import evaluate, train
+from neural_estimator.training.recipe import TrainConfig
+from neural_estimator.training.resume import RESUME_DIR
+from neural_estimator.training.stopping import plateau_rule
 from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, make_scenario
 

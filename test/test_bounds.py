@@ -249,7 +249,7 @@ def _card(tmp_path, edit):
     import json
     import shutil
 
-    from neural_estimator.models.serving import default_checkpoint
+    from neural_estimator.serving.load import default_checkpoint
 
     src = default_checkpoint("bearings", "gru")
     dst = tmp_path / "ckpt"
@@ -275,7 +275,7 @@ def test_a_corrupt_card_is_one_line(tmp_path, edit, text):
     hung the size check for over 300 s (200,000 modules built on the meta device)."""
     import time
 
-    from neural_estimator.estimators import EstimatorError, make_estimator
+    from neural_estimator.registry import EstimatorError, make_estimator
 
     ckpt = _card(tmp_path, edit)
     t0 = time.monotonic()

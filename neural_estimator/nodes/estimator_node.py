@@ -61,7 +61,7 @@ from std_srvs.srv import Trigger
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.estimators import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
+from neural_estimator.registry import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
     ManagedNode,
     StartupError,
@@ -659,7 +659,7 @@ def _make_node() -> ManagedNode:
 
 def _recorded_data_card(checkpoint: str) -> bool:
     """True when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
-    from neural_estimator.models.card import read_card
+    from neural_estimator.serving.card import read_card
 
     try:
         _, card = read_card(checkpoint)

@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.estimators import EstimatorError, check_method, make_estimator
+from neural_estimator.registry import EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,

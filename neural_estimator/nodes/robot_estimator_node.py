@@ -307,8 +307,8 @@ def _load(p: RobotEstimatorParams):
     """(DataScenario, Spec, method, estimator) from the checkpoint's card; StartupError otherwise."""
     from pathlib import Path
 
-    from neural_estimator.estimators import EstimatorError, make_estimator
-    from neural_estimator.models.card import read_card
+    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.serving.card import read_card
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.scenarios import ScenarioError
 

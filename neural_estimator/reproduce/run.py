@@ -369,7 +369,7 @@ def write_report(
         for device in rt[mode]:
             L += [f"#### {device.upper()}", ""] + R.runtime_table(rt[mode], scen, meth, device) + [""]
             L += [R.runtime_ordering(rt[mode][device], scen, meth, "gpu" if device != "cpu" else "cpu"), ""]
-    from neural_estimator.estimators import NEURAL_METHODS
+    from neural_estimator.registry import NEURAL_METHODS
 
     neural = [m for m in meth if m in NEURAL_METHODS]
     L += ["## Data efficiency (paper: Table data_ratio_main, figures data_ratio_*)", ""]
