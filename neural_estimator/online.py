@@ -2,8 +2,9 @@
 
 :class:`OnlineEstimator` turns one observation message (CDR bytes, layout of
 :mod:`neural_estimator.bags.messages`) into the estimate message (and covariance message) of that
-step. The estimator node calls it from its subscription callback; :func:`replay` calls it for every
-observation of a bag at full speed, without DDS. Same bytes in, same calls, same estimates out.
+step. The estimator node calls it from its subscription callback; bag replay
+(:func:`neural_estimator.replay.replay`) calls it for every observation of a bag at full speed,
+without DDS. Same bytes in, same calls, same estimates out.
 
 Stream rules (one estimator, B = 1), applied in arrival order (replay uses the bag's order, the
 order a live node received the messages in, so both give the same estimates):
@@ -39,17 +40,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any, NamedTuple
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from neural_estimator.bags import messages as M
-from neural_estimator.bags.errors import BagError, MessageError
-from neural_estimator.bags.reader import open_bag
-from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, parse_qos_yaml
-from neural_estimator.registry import NEURAL_METHODS, Estimator, EstimatorError, make_estimator
+from neural_estimator.bags.errors import MessageError
+from neural_estimator.registry import NEURAL_METHODS, Estimator, EstimatorError
 
 DEFAULT_MAX_GAP = 1_000
 DEFAULT_MAX_GAP_SECONDS = 0.25
@@ -345,180 +343,6 @@ class OnlineEstimator:
             new_run=new_run,
             P=P,
         )
-
-
-@dataclasses.dataclass
-class ReplayResult:
-    """What :func:`replay` wrote."""
-
-    path: Path
-    observations: int
-    estimates: dict[str, int]  # estimate messages per method
-    seconds: dict[str, float]  # time spent in OnlineEstimator.process per method
-    rejected: dict[str, int]  # observation messages each method could not use
-    skipped: dict[str, int] = dataclasses.field(default_factory=dict)  # duplicate or stale observations
-
-    def per_step_us(self, method: str) -> float:
-        return 1e6 * self.seconds[method] / max(1, self.estimates[method])
-
-
-def replay(
-    bag_in: str | Path,
-    methods: Sequence[str],
-    bag_out: str | Path,
-    checkpoints: Mapping[str, str | Path] | None = None,
-    *,
-    device: str = "cpu",
-    seed: int = 0,
-    namespace: str = "/",
-    options: Mapping[str, Mapping[str, Any]] | None = None,
-    publish_covariance: bool = True,
-    overwrite: bool = False,
-    description: Mapping[str, Any] | None = None,
-    order: str = "recorded",
-    threads: int = 1,
-    max_gap: int = DEFAULT_MAX_GAP,
-    max_gap_seconds: float = DEFAULT_MAX_GAP_SECONDS,
-) -> ReplayResult:
-    """Run a bag's observations through estimators offline and write a bag with their estimates.
-
-    Observations are processed in the order they were recorded (``order="recorded"``: the order
-    a live estimator node received them, so a stray or late message is skipped exactly as the
-    node skips it) or, with ``order="identity"``, grouped by trajectory with steps in order (for
-    bags whose recording order was scrambled), each by :meth:`OnlineEstimator.process`: the
-    estimator node's code path, so the estimates equal those a live node computes from the same
-    messages. The output holds every message of ``bag_in`` (estimate streams of the replayed
-    methods replaced) plus ``estimates/<method>`` (and ``/covariance``) with the log time of the
-    observation each one answers.
-
-    Args:
-        bag_in: a recorded or sample bag (``.mcap`` file or rosbag2 directory) with an
-            ``observation`` stream, and a ``scenario`` stream unless ``description`` is given.
-        methods: method names (see :data:`neural_estimator.registry.METHODS`).
-        bag_out: output ``.mcap``.
-        checkpoints: {method: checkpoint} for neural methods (default: the shipped models).
-        device, seed: passed to :func:`~neural_estimator.registry.make_estimator`.
-        namespace: namespace of the streams.
-        options: {method: {option: value}} filter hyperparameters.
-        publish_covariance: also write covariance streams where methods have them.
-        overwrite: replace an existing ``bag_out``.
-        description: the scenario description (``scenario.describe()``) to use instead of the
-            bag's ``scenario`` message (needed for bags without one).
-        order: "recorded" (default, as live) or "identity".
-        threads: torch intra-op threads for neural methods (one suits per-message B = 1 steps;
-            0 = torch's default).
-        max_gap, max_gap_seconds: the bound on predict-only bridging (see :class:`OnlineEstimator`).
-    """
-    from neural_estimator.scenarios import scenario_from_description
-
-    bag_in, bag_out = Path(bag_in), Path(bag_out)
-    if order not in ("recorded", "identity"):
-        raise BagError(f"order must be 'recorded' or 'identity', got {order!r}")
-    if bag_in.resolve() == bag_out.resolve():
-        raise BagError(f"{bag_out}: replay cannot overwrite its input bag")
-    obs_topic = M.resolve_topic(M.OBSERVATION, namespace)
-    scen_topic = M.resolve_topic(M.SCENARIO, namespace)
-    replaced = {M.resolve_topic(M.estimate_topic(m), namespace) for m in methods}
-    replaced |= {M.resolve_topic(M.covariance_topic(m), namespace) for m in methods}
-    with open_bag(bag_in) as bag:
-        bag.connection(obs_topic, M.JOINT_STATE)
-        desc = dict(description) if description is not None else None
-        if desc is None:
-            if scen_topic not in bag.topics:
-                raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
-            bag.connection(scen_topic, M.STRING)
-            for _, _, raw in bag.messages([scen_topic]):
-                desc = M.decode_scenario(raw)
-                break  # the first announcement defines the run
-        kept_topics = [c for c in bag.connections if c.topic not in replaced]
-        passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
-    if desc is None:
-        raise BagError(f"{bag_in}: no message on {scen_topic}: name the scenario (--scenario NAME [--set ...])")
-    scenario = scenario_from_description(desc)
-    set_torch_threads(methods, threads)
-
-    # The observations in recorded order (as a live node receives them), or by in-band identity.
-    observations = []
-    for i, (topic, t, raw) in enumerate(passthrough):
-        if topic != obs_topic:
-            continue
-        key: tuple[int, int, int] = (0, 0, i)
-        if order == "identity":
-            try:
-                vec = M.decode_vector(raw)
-                key = (vec.trajectory, vec.step, i)
-            except MessageError:
-                key = (-1, -1, i)  # unparsable ones keep bag order
-        observations.append((key, t, raw))
-    observations.sort(key=lambda o: o[0])
-
-    out_msgs: list[tuple[str, int, bytes]] = list(passthrough)
-    added_scenario = not any(c.topic == scen_topic for c in kept_topics)
-    if added_scenario:  # the output names its scenario even when the input did not
-        t0 = min((t for _, t, _ in passthrough), default=0)
-        out_msgs.insert(0, (scen_topic, t0, M.encode_scenario(desc)))
-    counts, seconds, rejected, skipped = {}, {}, {}, {}
-    for method in methods:
-        ckpt = (checkpoints or {}).get(method)
-        est = make_estimator(
-            method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
-        )
-        online = OnlineEstimator(
-            est,
-            method,
-            publish_covariance=publish_covariance,
-            max_gap=max_gap,
-            max_gap_seconds=max_gap_seconds,
-            horizon=(desc.get("run") or {}).get("horizon"),
-        )
-        est_topic = M.resolve_topic(M.estimate_topic(method), namespace)
-        cov_topic = M.resolve_topic(M.covariance_topic(method), namespace)
-        counts[method], rejected[method], skipped[method], spent = 0, 0, 0, 0.0
-        for _, t, raw in observations:
-            t0 = time.perf_counter()
-            now = t * 1e-9 if order == "recorded" else 0.0  # the receive time: held jumps time out as live
-            try:
-                results = online.poll(now) + online.feed(raw, now)
-            except MessageError:
-                rejected[method] += 1
-                continue
-            finally:
-                spent += time.perf_counter() - t0
-            for res in results:
-                counts[method] += _collect(res, t, est_topic, cov_topic, out_msgs, skipped, method)
-        t_end = observations[-1][1] if observations else 0
-        for res in online.flush():
-            counts[method] += _collect(res, t_end, est_topic, cov_topic, out_msgs, skipped, method)
-        seconds[method] = spent
-
-    qos = {c.topic: parse_qos_yaml(c.offered_qos_profiles) for c in kept_topics}
-    types = {c.topic: c for c in kept_topics}
-    out_msgs.sort(key=lambda m: m[1])  # stable: per time, input order then methods in order
-    with BagWriter(bag_out, overwrite=overwrite) as out:
-        for topic, conn in types.items():
-            out.add_topic(
-                topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None, type_hash=conn.type_hash or None
-            )
-        for topic, t, raw in out_msgs:
-            if not out.has_topic(topic):
-                out.add_topic(
-                    topic,
-                    M.STRING if topic == scen_topic else M.JOINT_STATE,
-                    qos=[LATCHED_QOS if topic == scen_topic else STREAM_QOS],
-                )
-            out.write(topic, t, raw)
-    return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
-
-
-def _collect(res: StepResult, t: int, est_topic: str, cov_topic: str, out_msgs: list, skipped: dict, method: str):
-    """Append an estimated result's messages at log time ``t``; count the skipped ones. 1 if estimated."""
-    if res.estimate is None:
-        skipped[method] += res.status != "held"  # a held message is counted once, when dropped
-        return 0
-    out_msgs.append((est_topic, t, res.estimate))
-    if res.covariance is not None:
-        out_msgs.append((cov_topic, t, res.covariance))
-    return 1
 
 
 def set_torch_threads(methods: Sequence[str], threads: int) -> None:

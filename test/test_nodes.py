@@ -524,7 +524,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
 
     from neural_estimator.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
-    from neural_estimator.replay import OnlineEstimator
+    from neural_estimator.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")

@@ -298,7 +298,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     from neural_estimator.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
     from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
-    from neural_estimator.replay import OnlineEstimator
+    from neural_estimator.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
     domain = random.SystemRandom().randint(200, 229)
