@@ -63,7 +63,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.registry import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
-    ManagedNode,
+    ExitStatusNode,
     StartupError,
     build_scenario,
     declare_params,
@@ -168,7 +168,7 @@ class EstimatorParams:
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
 
 
-class EstimatorNode(ManagedNode):
+class EstimatorNode(ExitStatusNode):
     def __init__(self) -> None:
         super().__init__("estimator")
         self.p = p = declare_params(self, EstimatorParams)
@@ -630,7 +630,7 @@ def _exists(path: str) -> bool:
     return Path(path).exists()
 
 
-def _make_node() -> ManagedNode:
+def _make_node() -> ExitStatusNode:
     """The estimator node, or, when ``checkpoint`` is a model trained on recorded data (its card holds a
     spec, docs/robot.md), the robot estimator on the spec's own topics: a recorded-data model
     needs no scenario. The parameters are looked at once by a short-lived probe node of the same name."""
