@@ -15,7 +15,7 @@ from typing import Any
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
-from neural_estimator.bags.reader import open_bag
+from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, parse_qos_yaml
 from neural_estimator.registry import make_estimator
 

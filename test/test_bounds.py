@@ -23,7 +23,7 @@ def _bag_with(path, scen, extra, *, announce=True, N=2, T=6):
     arrays_to_bag(path, scen, data.x, data.y, data.u, estimates={"ekf": data.x})
     if not extra and announce:
         return path
-    from neural_estimator.bags.reader import open_bag
+    from neural_estimator.bags.directory import open_bag
 
     with open_bag(path) as bag:
         msgs = [(c.topic, t, bytes(raw)) for c, t, raw in bag.messages()]
@@ -221,7 +221,7 @@ def test_a_rosbag2_directory_listing_more_files_than_can_be_open_is_one_line(tmp
 
     import yaml
 
-    from neural_estimator.bags.reader import open_bag
+    from neural_estimator.bags.directory import open_bag
 
     bag = tmp_path / "many"
     bag.mkdir()

@@ -28,7 +28,7 @@ from rclpy.duration import Duration
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, BagWarning
-from neural_estimator.bags.reader import open_bag
+from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import parse_qos_yaml
 from neural_estimator.nodes.common import (
     ExitStatusNode,
