@@ -178,7 +178,8 @@ def _fake_run(tmp_path, init="prior"):
     pytest.importorskip("ray")
     from neural_estimator.reproduce.engine import Outcome
     from neural_estimator.reproduce.jobs import Job
-    from neural_estimator.reproduce.run import Settings, write_report
+    from neural_estimator.reproduce.report import write_report
+    from neural_estimator.reproduce.settings import Settings
     from neural_estimator.reproduce.scales import get_scale
 
     rng = np.random.default_rng(5)
