@@ -37,7 +37,7 @@ skips the comparison.
 The plateau rule (a stated budget, on by default; --plateau-epochs 0 turns it off): a model is finished
 once its learning rate has been reduced at least 3 times and its last --plateau-epochs (N = 10) epochs
 did not lower the validation loss by --plateau-tol (1 %) against the N epochs before them
-(models.training.plateau_rule). The paper waits 30 epochs without a new best; on this CPU that is
+(training.stopping.plateau_rule). The paper waits 30 epochs without a new best; on this CPU that is
 40-50 minutes per model on a flat curve. Replayed on the full-recipe histories so far, the rule ends
 no run more than 1.1 % above its final best validation loss. Such a model is converged by the card's
 rule, and the card says which rule stopped it.
