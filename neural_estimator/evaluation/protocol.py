@@ -22,8 +22,6 @@ resumes from the runs it finished and a second one with more methods only comput
 
 from __future__ import annotations
 
-import hashlib
-import json
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -33,14 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator import departures as D
 from neural_estimator import metrics as M
-from neural_estimator import __version__
 from neural_estimator.data import Trajectories, evaluation_sets
-from neural_estimator.data.io import DataError, load_npz, save_npz
-from neural_estimator.data.protocol import SIMULATION_REVISION, code_key, default_cache_dir
+from neural_estimator.data.io import DataError
+from neural_estimator.data.protocol import default_cache_dir
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
-from neural_estimator.estimators import (
+from neural_estimator.registry import (
     CLASSICAL_METHODS,
     NEURAL_METHODS,
     Estimator,
@@ -54,55 +50,10 @@ from neural_estimator.filters.enkf import EnKFHyperParams
 from neural_estimator.filters.pf import PFHyperParams
 from neural_estimator.options import parse_value
 from neural_estimator.scenarios import Scenario
+from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run
+from neural_estimator.evaluation.starts import INIT_MODES, check_init, effective_init  # noqa: F401
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
-# Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
-# changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns;
-# 3: every report carries the every-step RMSE beside the scored one (rmse_every_step); 4: scenario
-# presets and the recalibrated defaults (ballistic, quadrotor).
-RESULTS_REVISION = 4
-# Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
-_SPEED_ONLY_OPTIONS = frozenset({"threads"})
-
-INIT_MODES = ("prior", "truth", "observation")
-"""How the classical filters start in the offline protocol (``init``):
-
-- ``"prior"`` (default; the live node's only choice, it never knows the truth): every filter
-  starts from the scenario prior, mean m0 and covariance P0; the PF's particles are
-  N(m0, init_std^2 I) (paper: x_0 std = 1.0).
-- ``"truth"``: each trajectory's filters start at its true initial state x_0 (the mean only:
-  covariance P0 and the PF's init_std spread unchanged), i.e. the PF's particles are
-  N(x_0, init_std^2 I). This is the reading of the paper's "x_0 std = 1.0" under which a PF with a
-  fixed unit spread can lock on in every scenario (see docs/fidelity.md).
-- ``"observation"``: the start the live pipeline offers a practitioner (the filters' ``init``
-  option, :data:`neural_estimator.filters.base.FILTER_INITS`): at step 0 each stream's mean is
-  the state its first observation determines where h is invertible on the observed components
-  (Lorenz 96: x = y_0), the prior mean elsewhere; P0 and init_std unchanged. Needs no truth, so
-  the live node, replay and ``neural-estimator live`` use it too.
-
-Neural methods read observations only; the option does not concern them.
-"""
-
-
-def effective_init(scenario: Scenario, method: str, init: str) -> str:
-    """The start ``method`` really gets on ``scenario`` under the protocol's ``init``: ``"observation"``
-    is the prior where one observation determines no state component (bearings, ballistic, quadrotor:
-    the same computation, so the same cached result), and neural methods always read ``"prior"``."""
-    check_init(init)
-    if method not in CLASSICAL_METHODS:
-        return "prior"
-    if init == "observation":
-        from neural_estimator.filters.base import observation_determines_state
-
-        return init if observation_determines_state(scenario) else "prior"
-    return init
-
-
-def check_init(init: str) -> str:
-    """``init`` if it is one of :data:`INIT_MODES`, else a one-line ValueError naming the choices."""
-    if init not in INIT_MODES:
-        raise ValueError(f"init must be one of {', '.join(INIT_MODES)}; got {init!r}")
-    return init
 
 
 @dataclass
@@ -138,6 +89,21 @@ def recorded_result(
         data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)), warmup=warmup
     )
     return MethodResult(name, [report])
+
+
+def recorded_data_methods(methods: Sequence[str], checkpoints: Mapping[str, Sequence[str]]) -> list[str]:
+    """``methods`` if recorded data allow them all: a classical filter needs the model of a system
+    that recorded data do not have, and no model is shipped for recorded data, so each must be a
+    neural method given a checkpoint. Raises ValueError naming the first one refused."""
+    for m in methods:
+        if m in CLASSICAL_METHODS:
+            raise ValueError(
+                f"{m}: recorded data have no model for a classical filter; compare the robot's own "
+                "filter with --estimate NAME=FILE"
+            )
+        if m not in checkpoints:
+            raise ValueError(f"{m}: recorded data have no shipped model: pass --checkpoint {m}=DIR")
+    return list(methods)
 
 
 def chunk_size(
@@ -267,117 +233,14 @@ def served_context(
         return 0
     if options and options.get("context") not in (None, ""):
         return int(parse_value(options["context"], 0, "context"))
-    from neural_estimator.models.card import read_card
-    from neural_estimator.models.serving import default_checkpoint, validated_context
+    from neural_estimator.serving.card import read_card
+    from neural_estimator.serving.load import default_checkpoint, validated_context
 
     try:
         _, card = read_card(checkpoint if checkpoint is not None else default_checkpoint(scenario.name, method))
     except Exception:  # a missing card fails at loading, with its own message
         return 0
     return int(validated_context(card).get("context", 0))
-
-
-def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | None) -> str | None:
-    """BLAKE2b of a neural method's card and weights (the shipped model's when ``checkpoint`` is
-    None); None for classical filters. A missing file hashes as "missing" (loading will fail)."""
-    if method not in NEURAL_METHODS:
-        return None
-    from neural_estimator.models.card import CARD_FILE, WEIGHTS_FILE
-    from neural_estimator.models.serving import default_checkpoint
-
-    path = Path(checkpoint) if checkpoint is not None else default_checkpoint(scenario.name, method)
-    directory = path.parent if path.suffix == ".json" else path
-    h = hashlib.blake2b(digest_size=16)
-    for name in (CARD_FILE, WEIGHTS_FILE):
-        f = directory / name
-        h.update(name.encode())
-        h.update(f.read_bytes() if f.is_file() else b"missing")
-    return h.hexdigest()
-
-
-def run_key(
-    scenario: Scenario,
-    method: str,
-    options: Mapping[str, Any] | None,
-    checkpoint_hash: str | None,
-    seed: int,
-    device: str,
-    data: Trajectories | str,
-    init: str = "prior",
-    warmup: int = 0,
-) -> str:
-    """Hex digest of everything that defines one run's result.
-
-    Keyed: :data:`RESULTS_REVISION`, the simulation revision, the package version, the scenario
-    with all its constants, the method, its options (those that only change the speed, like
-    ``threads``, left out), the checkpoint's content hash, the filters' seed, the device, the
-    evaluation set's content (:func:`dataset_digest`, or a digest given as a string) and, for
-    classical filters, how they start (``init``; neural methods ignore it, so it is not keyed), and a
-    plugin scenario's source file (:func:`~neural_estimator.scenarios.code_digest`), and the
-    unscored leading steps (``warmup``; keyed only when nonzero, so results of every step made before
-    it existed stay valid).
-    """
-    opts = {k: v for k, v in sorted((options or {}).items()) if k not in _SPEED_ONLY_OPTIONS}
-    key = json.dumps(
-        {
-            "rev": RESULTS_REVISION,
-            "sim": SIMULATION_REVISION,
-            "version": __version__,
-            "scenario": scenario.describe(),
-            "method": method,
-            "options": opts,
-            "checkpoint": checkpoint_hash,
-            "seed": int(seed),
-            "device": str(device),
-            "data": data if isinstance(data, str) else dataset_digest(data),
-            **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}),
-            **({"warmup": int(warmup)} if warmup else {}),
-            **code_key(scenario),
-        },
-        sort_keys=True,
-        default=str,
-    )
-    return hashlib.sha256(key.encode()).hexdigest()[:20]
-
-
-def result_path(cache_root: Path, scenario: Scenario, method: str, key: str) -> Path:
-    return Path(cache_root) / "results" / f"{scenario.name}-{method}-{key}.npz"
-
-
-_REPORT_ARRAYS = ("rmse_t", "spread", "outlier_idx", "diverged_idx")
-
-
-def save_run(path: Path, report: M.MetricReport, seconds: float, steps: int) -> Path:
-    """Write one run (its metrics, time and size) as .npz + JSON meta, atomically (no pickle)."""
-    arrays = {k: np.asarray(getattr(report, k)) for k in _REPORT_ARRAYS}
-    scalars = {
-        f.name: getattr(report, f.name)
-        for f in M.MetricReport.__dataclass_fields__.values()
-        if f.name not in _REPORT_ARRAYS
-    }
-    meta = {
-        "kind": "neural_estimator run result",
-        "revision": RESULTS_REVISION,
-        "report": scalars,
-        "seconds": float(seconds),
-        "steps": int(steps),
-    }
-    return save_npz(path, arrays, meta)  # JSON with allow_nan: inf and NaN survive
-
-
-def load_run(path: Path) -> tuple[M.MetricReport, float, int] | None:
-    """(report, seconds, steps) of a cached run, or None if the file is absent or unreadable (a
-    damaged cache entry is recomputed, never trusted)."""
-    if not Path(path).is_file():
-        return None
-    try:
-        arrays, meta = load_npz(path)
-        if meta.get("kind") != "neural_estimator run result" or meta.get("revision") != RESULTS_REVISION:
-            return None
-        report = M.MetricReport(**meta["report"], **{k: arrays[k] for k in _REPORT_ARRAYS})
-        return report, float(meta["seconds"]), int(meta["steps"])
-    except (DataError, KeyError, TypeError, ValueError):
-        return None
 
 
 def evaluate(
@@ -404,7 +267,7 @@ def evaluate(
 
     Args:
         scenario: the system (with any overrides, e.g. noise_scale).
-        methods: method names (see :data:`neural_estimator.estimators.METHODS`).
+        methods: method names (see :data:`neural_estimator.registry.METHODS`).
         trajectories, horizon, seed, sets: the evaluation sets (paper: 8,000, scenario horizon, 3).
         checkpoints: {method: [checkpoint, ...]} for neural methods; each checkpoint is one instance.
             A neural method without an entry uses the shipped default model.
@@ -530,82 +393,4 @@ def _progress(total: int, enabled: bool, desc: str):
         leave=False,
         mininterval=0.5,
         disable=None,  # only on a terminal: no carriage-return progress in logs and pipes
-    )
-
-
-def results_table(results: Mapping[str, MethodResult], fmt: str = "markdown", marked: bool = False) -> str:
-    """The paper's per-scenario table (median +- IQR over runs) for these results; ``marked``: rows
-    and cells that depart from the paper's protocol carry their marks (:func:`departure_marks`)."""
-    summaries = {m: r.summary for m, r in results.items()}
-    if not marked:
-        return M.format_table(summaries, fmt=fmt)
-    rows, cells, _ = departure_marks(results)
-    named = D.marked_names(summaries, rows)
-    return M.format_table(
-        {named[m]: s for m, s in summaries.items()}, fmt=fmt, marks={named[m]: c for m, c in cells.items()}
-    )
-
-
-def departure_marks(
-    results: Mapping[str, MethodResult],
-) -> tuple[dict[str, list[str]], dict[str, dict[str, str]], set[str]]:
-    """(row marks {method: [mark]}, cell marks {method: {metric: mark}}, every mark used): [c] for a
-    bounded context, [t] / [y] for filters started from the truth / the first observation, [o] on the
-    RMSE when the outlier rule decides it (:mod:`neural_estimator.departures`)."""
-    rows: dict[str, list[str]] = {}
-    cells: dict[str, dict[str, str]] = {}
-    used: set[str] = set()
-    for m, r in results.items():
-        marks = D.row_marks(m, context=r.context, init=r.init)
-        if marks:
-            rows[m] = marks
-            used.update(marks)
-        if r.reports:
-            s = r.summary
-            if D.rests_on_outliers(s["rmse"].median, s["full_rmse"].median):
-                cells[m] = {"rmse": D.OUTLIERS}
-                used.add(D.OUTLIERS)
-    return rows, cells, used
-
-
-def departure_legend(results: Mapping[str, MethodResult], extra: set[str] = frozenset()) -> list[str]:
-    """The legend of the marks :func:`results_table` prints for ``results`` (plus ``extra`` marks)."""
-    _, _, used = departure_marks(results)
-    return D.legend_text(used | set(extra), [r.context for r in results.values()])
-
-
-RESULTS_SCHEMA = "neural_estimator.results/2"  # results.json's "schema"; see docs/metrics.md
-
-
-def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info: Any) -> dict[str, Any]:
-    """Everything measured, strict-JSON-ready (schema :data:`RESULTS_SCHEMA`, docs/metrics.md).
-
-    Every method has the same keys: its ``summary`` has every metric of
-    :data:`~neural_estimator.metrics.SCALAR_METRICS` (``applies`` false and null numbers for the
-    covariance metrics of a method without covariance), each run in ``runs`` has every report key.
-    """
-    return M.to_json(
-        {
-            "schema": RESULTS_SCHEMA,
-            "scenario": scenario.describe(),
-            **info,
-            "methods": {
-                m: {
-                    "summary": r.summary,
-                    "runs": r.reports,
-                    "cached_runs": r.cached,
-                    "context": r.context,
-                    "start": r.init,
-                    "marks": D.row_marks(m, context=r.context, init=r.init)
-                    + (
-                        [D.OUTLIERS]
-                        if r.reports and D.rests_on_outliers(r.summary["rmse"].median, r.summary["full_rmse"].median)
-                        else []
-                    ),
-                    "seconds": r.seconds,
-                    "trajectory_steps_per_second": r.throughput,
-                }
-                for m, r in results.items()
-            },
-        }
     )

@@ -15,7 +15,7 @@ control that is always zero, say) maps to 0 instead of dividing by zero.
 Angles. Angular state components (``scenario.angle_states``) are predicted directly, in radians,
 with mu = 0 and sigma = 1: a z-score of an angle in (-pi, pi] would move the wrap point and a
 z-scored mean of angles is not a circular mean. The training loss wraps the error of these
-components to (-pi, pi] (:func:`neural_estimator.models.training.state_error`), exactly as the
+components to (-pi, pi] (:func:`neural_estimator.training.loop.state_error`), exactly as the
 evaluation's errors are wrapped (:func:`neural_estimator.metrics.errors`), so an estimate of
 pi - 0.01 for a true -pi + 0.01 costs 0.02, not 2 pi - 0.02. The network's raw output for an angle
 is any real number; :meth:`Normalizer.denormalize_states` wraps it to (-pi, pi]. Angular

@@ -15,8 +15,8 @@ The model is rebuilt from the card (``ModelCls(ConfigCls(**config))``) and the w
 safetensors only: no ``torch.load``, no pickle. Trained defaults ship at
 ``neural_estimator/zoo/<scenario>-<method>/``.
 
-The card's reading and writing is :mod:`neural_estimator.models.card`; serving a checkpoint for a
-scenario (the shipped zoo, the scenario check, the estimator) is :mod:`neural_estimator.models.serving`.
+The card's reading and writing is :mod:`neural_estimator.serving.card`; serving a checkpoint for a
+scenario (the shipped zoo, the scenario check, the estimator) is :mod:`neural_estimator.serving.load`.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from torch import nn
 
 from neural_estimator.estimator import EstimatorError
 from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
-from neural_estimator.models.card import (
+from neural_estimator.serving.card import (
     CARD_FILE,
     CARD_FORMAT,
     CARD_VERSION,
@@ -42,8 +42,8 @@ from neural_estimator.models.card import (
     software_versions,
     write_json,
 )
-from neural_estimator.models.neural import resolve_device
-from neural_estimator.models.normalization import NormalizationError, Normalizer
+from neural_estimator.serving.neural import resolve_device
+from neural_estimator.serving.normalization import NormalizationError, Normalizer
 
 
 # ---- architectures ----------------------------------------------------------------------------------

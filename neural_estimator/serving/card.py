@@ -1,7 +1,7 @@
 """Checkpoint cards: the JSON half of a checkpoint, read and written without running code.
 
 A card (``card.json``) holds everything needed to rebuild and judge a model (see
-:mod:`neural_estimator.models.checkpoint`); this module reads and writes cards and other JSON
+:mod:`neural_estimator.serving.checkpoint`); this module reads and writes cards and other JSON
 files atomically and without NaN/inf tokens, hashes the weight file, and records the software
 versions. It imports no torch model code.
 """

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
-from neural_estimator.models.card import CARD_FILE, WEIGHTS_FILE, read_card
-from neural_estimator.models.checkpoint import load_checkpoint
-from neural_estimator.models.neural import NeuralEstimator
+from neural_estimator.serving.card import CARD_FILE, WEIGHTS_FILE, read_card
+from neural_estimator.serving.checkpoint import load_checkpoint
+from neural_estimator.serving.neural import NeuralEstimator
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
 ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
@@ -93,7 +93,7 @@ def load_neural_estimator(
     context_copies: int | None = None,
     backend: str = "torch",
 ):
-    """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
+    """A :class:`~neural_estimator.serving.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
     Args:
         method: gru, lstm, gpt2, filterformer, mamba or mamba2.
@@ -104,7 +104,7 @@ def load_neural_estimator(
         covariance: report Filterformer's covariance (False saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
         context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
-            :mod:`neural_estimator.models.context`); 0 = unbounded, the paper's way. None: as the
+            :mod:`neural_estimator.serving.context`); 0 = unbounded, the paper's way. None: as the
             model was validated (the card's ``training.recipe.val_context`` and
             ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
             when only ``context`` is given.

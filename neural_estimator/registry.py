@@ -2,7 +2,7 @@
 
 It sits above both families (:mod:`neural_estimator.filters`, :mod:`neural_estimator.models`), which
 implement the interface of :mod:`neural_estimator.estimator`; that interface is re-exported here, so
-``from neural_estimator.estimators import Estimator, EstimatorError, METHODS`` keeps working for the
+``from neural_estimator.registry import Estimator, EstimatorError, METHODS`` keeps working for the
 layers above.
 """
 
@@ -52,7 +52,7 @@ def make_estimator(
     Classical filters take their settings from ``options`` (paper defaults otherwise) and ``seed``
     for their random draws. Neural models load ``checkpoint`` (a directory or its ``.json`` card),
     or the model shipped with the package for (scenario, method) when ``checkpoint`` is None;
-    their ``options`` go to :func:`~neural_estimator.models.serving.load_neural_estimator`
+    their ``options`` go to :func:`~neural_estimator.serving.load.load_neural_estimator`
     (``covariance=False`` skips the Filterformer's per-step covariance).
     """
     m = check_method(method)
@@ -60,7 +60,7 @@ def make_estimator(
         return CLASSICAL_FILTERS[m](scenario, seed=seed, **options)
     # Imported here, not at the top: the neural side imports torch (1-2 s), which a process that
     # only runs filters (an EKF node, a classical evaluate) should not pay.
-    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.serving.load import load_neural_estimator
 
     # an unknown option is the caller's one-line error, not a TypeError from deep inside
     valid = [

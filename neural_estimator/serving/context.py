@@ -13,7 +13,7 @@ oldest, i.e. whose context is the longest:
 so every estimate after step L sees between L - ceil(L / K) + 1 and L steps, never more than the
 training windows. K times the compute. (The paper's GPT-2 has a bounded context by construction: its
 attention window.) This departs from the paper's continuous evaluation, so it is an option, off by
-default: ``context`` and ``context_copies`` of :class:`~neural_estimator.models.neural.NeuralEstimator`.
+default: ``context`` and ``context_copies`` of :class:`~neural_estimator.serving.neural.NeuralEstimator`.
 """
 
 from __future__ import annotations

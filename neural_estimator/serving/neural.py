@@ -24,8 +24,8 @@ from torch import nn
 
 from neural_estimator.angles import wrap_components
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
-from neural_estimator.models.context import bounded_forward, copy_offsets, restart_of
-from neural_estimator.models.normalization import Normalizer
+from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
+from neural_estimator.serving.normalization import Normalizer
 from neural_estimator.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
 
@@ -76,7 +76,7 @@ class NeuralEstimator(Estimator):
             development machine); the first steps pay a one-off compilation of seconds.
         context: bound every estimate's context to this many steps (0: as trained, the paper's
             way). GRU, LSTM, Mamba, Mamba-2: ``context_copies`` copies of the model restart at
-            staggered steps, see :mod:`neural_estimator.models.context`; K times the compute.
+            staggered steps, see :mod:`neural_estimator.serving.context`; K times the compute.
             GPT-2, Filterformer: their attention window W becomes ``context`` (``set_window`` on
             ``model`` itself, which then keeps it; the paper's W is 256, and a model trained on
             length-100 windows has never seen more than 100 keys), at no extra compute;
@@ -250,7 +250,7 @@ class NeuralEstimator(Estimator):
 
     def _bounded_step(self, z_t: torch.Tensor) -> torch.Tensor:
         """One step of every started copy (a copy restarts from a zero state at o_k + j L); the mean of
-        the copy with the oldest restart, s(t) of :mod:`neural_estimator.models.context`."""
+        the copy with the oldest restart, s(t) of :mod:`neural_estimator.serving.context`."""
         t, L = self._t, self.context
         means = {}
         for k, o in enumerate(self._offsets):

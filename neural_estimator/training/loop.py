@@ -17,7 +17,7 @@ What :func:`train` does, in order:
 1. Data (:mod:`neural_estimator.data.protocol`, cached): training set ``data_index`` of
    ``data_seed`` (length-500 trajectories holding ratio x 100k steps: 20:1 -> 4,000 x 500) and its
    validation set (8,000 x 500).
-2. Normalisation statistics from the training set (:mod:`~neural_estimator.models.normalization`).
+2. Normalisation statistics from the training set (:mod:`~neural_estimator.serving.normalization`).
 3. The model, initialised under ``torch.manual_seed(init_seed)``.
 4. Each epoch: ``windows_per_epoch`` random length-100 windows (default: as many as make the
    training set's timesteps once, 20,000 at 20:1) in batches of 64. Loss, with e = x_hat_n - x_n the
@@ -59,9 +59,7 @@ an uninterrupted one. On CUDA the same holds up to nondeterministic kernels (cuD
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import shutil
 import time
 from pathlib import Path
@@ -73,129 +71,19 @@ import torch
 from tqdm.auto import tqdm
 
 from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
-from neural_estimator.data.recipe import TrainConfig, TrainingError  # noqa: F401  (re-exported)
+from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
-from neural_estimator.models.card import json_ready
-from neural_estimator.models.checkpoint import load_checkpoint, save_checkpoint
-from neural_estimator.models.context import bounded_forward
-from neural_estimator.models.neural import NeuralEstimator, resolve_device
-from neural_estimator.models.normalization import Normalizer
+from neural_estimator.serving.checkpoint import load_checkpoint, save_checkpoint
+from neural_estimator.serving.context import bounded_forward
+from neural_estimator.serving.neural import NeuralEstimator, resolve_device
+from neural_estimator.serving.normalization import Normalizer
 from neural_estimator.scenarios import Scenario, make_scenario
-
-RESUME_DIR = "resume"
-RESUME_FORMAT = "neural_estimator.resume"
-# Settings that may change when a run is resumed (budget and runtime); everything else must match.
-RESUMABLE_CHANGES = (
-    "epochs",
-    "patience",
-    "device",
-    "resume",
-    "keep_resume",
-    "cache_dir",
-    "eval_trajectories",
-    "val_batch_size",
-)
-
-
-def state_error(pred: torch.Tensor, target: torch.Tensor, angle_mask: torch.Tensor) -> torch.Tensor:
-    """pred - target (..., dx) in normalised units, angular components wrapped to [-pi, pi).
-
-    Angular components are in radians (mean 0, std 1 in the normaliser), so the wrap acts on
-    radians; its gradient is 1 almost everywhere.
-    """
-    e = pred - target
-    if not bool(angle_mask.any()):
-        return e
-    wrapped = torch.remainder(e + math.pi, 2.0 * math.pi) - math.pi
-    return torch.where(angle_mask, wrapped, e)
-
-
-def weighted_loss(
-    pred: torch.Tensor,
-    target: torch.Tensor,
-    weights: torch.Tensor,
-    angle_mask: torch.Tensor,
-    component_weights: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """L = sum_{b,t,d} w_bt c_d e_btd^2 / (sum_d c_d sum_{b,t} w_bt); pred, target (B, L, dx), weights (B, L).
-
-    ``component_weights`` c (dx,): None is c = 1 (every normalised component alike); see
-    :func:`component_weights`.
-    """
-    e = state_error(pred, target, angle_mask)
-    if component_weights is None:
-        return (weights.unsqueeze(-1) * e.square()).sum() / (weights.sum() * e.shape[-1])
-    return (weights.unsqueeze(-1) * component_weights * e.square()).sum() / (weights.sum() * component_weights.sum())
-
-
-def component_weights(loss_units: str, state_std: np.ndarray, device) -> torch.Tensor | None:
-    """Per-component loss weights c_d for ``TrainConfig.loss_units``.
-
-    "normalised": None (c = 1). "state": c_d = sigma_d^2 / mean(sigma^2), so that c_d e_d^2 with e the
-    normalised error is the squared error in the state's own units up to one constant factor: the
-    loss then weighs the components as RMSE does (a component with a large spread, such as an
-    altitude in km, counts more than one with a tiny spread, such as a drag coefficient).
-    """
-    if loss_units == "normalised":
-        return None
-    s2 = np.square(np.asarray(state_std, dtype=np.float64))
-    return torch.as_tensor(s2 / s2.mean(), dtype=torch.float32, device=device)
-
-
-# ---- the training run ---------------------------------------------------------------------------------
-def lr_reductions(history: list[dict[str, Any]], initial_lr: float) -> int:
-    """How many times the learning rate went down over a run's history (ReduceLROnPlateau steps)."""
-    lrs = [initial_lr] + [h["lr"] for h in history]
-    return sum(b < a for a, b in zip(lrs, lrs[1:]))
-
-
-def converged(stopped: str | None, history: list[dict[str, Any]], initial_lr: float) -> bool:
-    """The zoo's convergence rule: early stopping triggered, or the learning rate reduced >= 3 times."""
-    return bool(stopped and stopped.startswith("early stopping")) or lr_reductions(history, initial_lr) >= 3
-
-
-def plateau_rule(
-    initial_lr: float, epochs: int = 10, tol: float = 0.01, min_reductions: int = 3
-) -> Callable[[list[dict[str, Any]]], str | None]:
-    """A stated stopping budget for long CPU runs, cheaper than the paper's 30-epoch early stopping:
-    stop once the learning rate has been reduced at least ``min_reductions`` times and the last
-    ``epochs`` epochs did not lower the validation loss by ``tol`` (relative) against the ``epochs``
-    before them: min(v over the last N) > (1 - tol) * min(v over the N before), N = ``epochs``.
-
-    Window against window, not against the best so far: a curve whose first epoch was a lucky low
-    and which is still coming down from a later high (the bearings Mamba: 0.52 at epoch 1, above it
-    until epoch 14, 0.41 at epoch 28) is improving, not flat. Replayed on the first full-recipe
-    histories (N = 10, tol = 1 %), the rule stops no run at a validation loss more than 1.1 %
-    above the run's final best, and saves 0.5-0.7 h of CPU on the Lorenz 96 SSMs and the N-link
-    Mamba-2.
-
-    Returns ``stop_when(history) -> reason or None`` for :func:`train`. A run it stops is converged
-    by the zoo's rule (learning rate reduced >= 3 times) when ``min_reductions >= 3``.
-    """
-    if epochs < 1 or not 0.0 <= tol < 1.0 or min_reductions < 0:
-        raise TrainingError(
-            f"plateau rule needs epochs >= 1, 0 <= tol < 1, min_reductions >= 0; got {epochs}, {tol}, {min_reductions}"
-        )
-
-    def stop_when(history: list[dict[str, Any]]) -> str | None:
-        if len(history) < 2 * epochs:
-            return None
-        k = lr_reductions(history, initial_lr)
-        if k < min_reductions:
-            return None
-        before = min(h["val_loss"] for h in history[-2 * epochs : -epochs])
-        recent = min(h["val_loss"] for h in history[-epochs:])
-        if recent > (1.0 - tol) * before:
-            return (
-                f"plateau: the best validation loss of the last {epochs} epochs ({recent:.4g}) is not "
-                f"{100 * tol:g} % below that of the {epochs} before ({before:.4g}), after {k} learning-rate reductions"
-            )
-        return None
-
-    return stop_when
+from neural_estimator.training.loss import component_weights, state_error, weighted_loss
+from neural_estimator.training.resume import RESUME_DIR, load_resume, save_resume
+from neural_estimator.training.stopping import converged, lr_reductions
 
 
 def train(
@@ -583,142 +471,3 @@ def evaluate(
         },
         **to_json(report.scalars()),
     }
-
-
-# ---- resume state: safetensors for tensors, JSON for the rest ----------------------------------------
-def save_resume(
-    directory: Path,
-    identity: dict[str, Any],
-    run: dict[str, Any],
-    model: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    scheduler: Any,
-    rng: np.random.Generator,
-) -> None:
-    """Write the state after an epoch: written to ``directory.tmp`` and then swapped in."""
-    from safetensors.torch import save_file, save_model
-
-    tmp = directory.with_name(directory.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    save_model(model, str(tmp / "model.safetensors"), force_contiguous=True)
-    opt = optimizer.state_dict()
-    tensors, extra = {}, {}
-    for pid, slots in opt["state"].items():
-        for key, value in slots.items():
-            if torch.is_tensor(value):
-                tensors[f"{pid}.{key}"] = value.detach().cpu().contiguous()
-            else:
-                extra.setdefault(str(pid), {})[key] = value
-    save_file(tensors, str(tmp / "optimizer.safetensors"))
-    rng_tensors = {"torch_cpu": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        for i, s in enumerate(torch.cuda.get_rng_state_all()):
-            rng_tensors[f"torch_cuda_{i}"] = s
-    save_file(rng_tensors, str(tmp / "rng.safetensors"))
-    state = {
-        "format": RESUME_FORMAT,
-        **identity,
-        "run": run,
-        "optimizer": {"param_groups": opt["param_groups"], "state_extra": extra},
-        "scheduler": scheduler.state_dict(),
-        "numpy_rng": rng.bit_generator.state,
-    }
-    # allow_nan: the scheduler's "best" starts at inf; Python's json reads the Infinity token back
-    (tmp / "state.json").write_text(json.dumps(state, indent=1, allow_nan=True) + "\n")
-    old = directory.with_name(directory.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if directory.exists():
-        os.replace(directory, old)
-    os.replace(tmp, directory)
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def load_resume(
-    directory: Path,
-    identity: dict[str, Any],
-    model: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    scheduler: Any,
-    rng: np.random.Generator,
-) -> dict[str, Any]:
-    """Restore the state :func:`save_resume` wrote (in place); returns the run record."""
-    from safetensors.torch import load_file, load_model
-
-    try:
-        state = json.loads((directory / "state.json").read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise TrainingError(f"{directory / 'state.json'} is corrupt ({exc}); start without --resume") from None
-    if state.get("format") != RESUME_FORMAT:
-        raise TrainingError(f"{directory / 'state.json'} is not a training resume state")
-    _check_same_run(directory, state, identity)
-    try:
-        device = str(next(model.parameters()).device)
-        load_model(model, str(directory / "model.safetensors"), strict=True, device=device)
-        flat = load_file(str(directory / "optimizer.safetensors"))
-        rng_tensors = load_file(str(directory / "rng.safetensors"))
-    except Exception as exc:  # safetensors' own error types for missing or malformed files
-        raise TrainingError(f"{directory}: cannot read the resume state ({exc}); start without --resume") from None
-    opt_state: dict[int, dict[str, Any]] = {}
-    for name, tensor in flat.items():
-        pid, _, key = name.partition(".")
-        opt_state.setdefault(int(pid), {})[key] = tensor
-    for pid, slots in state["optimizer"]["state_extra"].items():
-        opt_state.setdefault(int(pid), {}).update(slots)
-    groups = state["optimizer"]["param_groups"]
-    for g in groups:
-        if "betas" in g:
-            g["betas"] = tuple(g["betas"])
-    optimizer.load_state_dict({"state": opt_state, "param_groups": groups})
-    scheduler.load_state_dict(state["scheduler"])
-    rng.bit_generator.state = state["numpy_rng"]
-    torch.set_rng_state(rng_tensors["torch_cpu"])
-    if torch.cuda.is_available():
-        keys = [f"torch_cuda_{i}" for i in range(torch.cuda.device_count())]
-        cuda = [rng_tensors[k] for k in keys if k in rng_tensors]
-        if cuda:
-            torch.cuda.set_rng_state_all(cuda)
-    return state["run"]
-
-
-def _without_preset(desc: Any) -> Any:
-    return {k: v for k, v in desc.items() if k != "preset"} if isinstance(desc, dict) else desc
-
-
-def _check_same_run(directory: Path, state: dict[str, Any], identity: dict[str, Any]) -> None:
-    """Refuse to resume a state written by another scenario, architecture or recipe."""
-    # The preset label is derived from the constants (Scenario.describe); states written before
-    # presets existed lack it, and the constants themselves are compared.
-    if _without_preset(state.get("scenario")) != _without_preset(identity["scenario"]):
-        raise TrainingError(
-            f"{directory} was written for scenario {state.get('scenario', {}).get('scenario')!r} "
-            f"with other constants or dimensions; start without --resume or use another --out"
-        )
-    if state.get("arch") != identity["arch"]:
-        raise TrainingError(f"{directory} was written for {state.get('arch')!r}, not {identity['arch']!r}")
-    old, new = state.get("config", {}), json_ready(identity["config"])
-    diffs = [
-        f"{k}={old.get(k)!r} (resume state) vs {new.get(k)!r} (now)"
-        for k in sorted(set(old) | set(new))
-        if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)
-    ]
-    if diffs:
-        raise TrainingError(
-            f"{directory} was written with other settings: {'; '.join(diffs)}. Resume with the same "
-            f"settings (only {', '.join(RESUMABLE_CHANGES)} may change) or start without --resume"
-        )
-
-
-__all__ = [
-    "TrainConfig",
-    "TrainingError",
-    "converged",
-    "evaluate",
-    "load_resume",
-    "lr_reductions",
-    "save_resume",
-    "state_error",
-    "train",
-    "weighted_loss",
-    "component_weights",
-]

@@ -1,17 +1,6 @@
-"""Evaluation metrics of the paper (Section "Evaluation Metrics", Appendix "Full Evaluation Metrics").
-
-Paper, Section "Evaluation Metrics":
-
-    "We report RMSE over time, aggregate RMSE, NRMSE, MAE, MedAE, area under the RMSE-time curve
-    (AUC), drift ratio, outlier ratio, and inference throughput."
-
-and Appendix "Full Evaluation Metrics":
-
-    "Each entry is reported as median ± interquartile range unless otherwise indicated. The column
-    'Full RMSE' denotes RMSE computed before trajectory-level outlier removal, while 'RMSE' denotes
-    the main aggregate RMSE after applying the outlier rule described in Section [Methodology]."
-
-Throughput is measured elsewhere (it is a property of the implementation, not of the estimates).
+"""Evaluation metrics of the paper (Section "Evaluation Metrics", Appendix "Full Evaluation Metrics"):
+the per-run definitions (errors, outlier rule, RMSE-time curve, AUC, drift, NRMSE, NEES, coverage)
+and :func:`compute_metrics`, which makes one :class:`MetricReport` of a run.
 
 Shapes, one convention everywhere:
     x_true, x_hat   (N, T, dx)       N trajectories, T timesteps, dx state components
@@ -20,70 +9,17 @@ Shapes, one convention everywhere:
     M               (N,)             trajectory-level MSE
     rmse_t          (T,)             RMSE-time curve
 
-Effective trajectory length. The paper's loss ignores "the first 10 timesteps ... as a warmup
-period", and its drift ratio speaks of "the effective trajectory length T". :func:`compute_metrics`
-takes ``warmup``: the leading timesteps that are not evaluated (T_eff = T - warmup; every metric,
-curve and covariance column uses steps warmup..T-1 only). Its own default is 0 (every step, the
-plain definition); the evaluation protocol (``evaluate``, the CLI, the evaluator node, reproduce)
-passes :data:`EVALUATION_WARMUP` = 10, the paper's warm-up, for every method alike. Why that
-reading: the paper's tables only fit it. A model trained with those steps masked has no reason to
-estimate them well (ours: Lorenz 96 Mamba RMSE 0.49 over steps 0-9, 0.051 after), and over all
-steps such a spike makes AUC / RMSE fall far below T - 1 (ours: 321) and the drift ratio below 1
-(0.71), while the paper's neural rows have AUC / RMSE 486-489 and drift 0.98-1.09 on Lorenz 96, as
-ours do over t >= 10 (489, 1.00). ``benchmarks/effective_horizon.py`` prints the comparison for every
-scenario and method (benchmarks/results/effective_horizon.txt).
-
-Definitions where the paper is silent (each is documented again where it is computed):
-
-- Kept trajectories: those not flagged by the outlier rule. Diverged trajectories (any non-finite
-  estimate, or a squared error that overflows) are always flagged. RMSE, NRMSE, MAE, MedAE, AUC,
-  drift ratio, the RMSE-time curve, NEES and coverage use the kept trajectories only; Full RMSE uses
-  all trajectories and is inf as soon as one diverged.
-- NRMSE (``nrmse``, the paper's column): the mean over ALL trajectories of each trajectory's
-  RMSE of spread-normalised errors, NRMSE = (1/N) sum_n sqrt( (1/(T dx)) sum_{t,d} (e_{n,t,d}/s_d)^2 ),
-  with s_d the spread of component d of the true state (population standard deviation of
-  x_true[..., d] over all trajectories and timesteps; one set of numbers per data set, shared by
-  every method). inf as soon as one trajectory diverged, like Full RMSE. The paper does not
-  define NRMSE; this is the definition its own tables leave standing (see docs/metrics.md, and
-  test/test_metrics.py::test_paper_tables_*): (1) in the Lorenz 96 rows, where every component has
-  the same spread by symmetry, RMSE / NRMSE is not one constant (LSTM 0.119 / 0.034 < 3.57 but
-  Filterformer 0.732 / 0.202 > 3.61, after rounding), which rules out any "RMSE divided by a
-  data-set constant", per component or overall; a mean of per-trajectory values is not tied to the
-  RMS, and gives the larger ratio to the method whose error varies more between trajectories;
-  (2) the N-link PF row (RMSE 0.086, Full RMSE 4.678, 27 % outliers, NRMSE 0.550, MAE 0.618 > RMSE,
-  impossible on one set of trajectories) only fits an NRMSE that includes the outliers.
-- ``nrmse_spread``: the previous definition, kept by name: the RMSE of the spread-normalised
-  errors over the kept trajectories, sqrt( (1/(|K| T dx)) sum_{n in K,t,d} (e_{n,t,d}/s_d)^2 ).
-- NEES and coverage (when the method reports covariances): e^T P^-1 e per kept (n, t). A
-  covariance that is not finite, not positive definite, or numerically singular (some component's
-  variance given the others below DEGENERATE_RCOND of its own variance: a collapsed particle
-  cloud) is *degenerate*: its NEES is inf and its 95 % region holds nothing. Reported:
-  ``nees_median`` (robust; inf only when most steps are degenerate), ``nees`` the mean over the
-  steps whose covariance is usable (inf when none is), ``coverage95`` the share of all kept steps
-  whose NEES is within the chi-square 95 % quantile (degenerate steps count as not covered) and
-  ``cov_degenerate`` the share of kept steps with a degenerate covariance. None (JSON null) for
-  methods without covariances.
-- AUC: the trapezoid rule on the RMSE-time curve with a unit timestep,
-  sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2 (0 for T = 1). The paper's AUC is about T times its
-  RMSE (ballistic UKF: 303.9 for T = 500 and RMSE 0.626), so the timestep is one step, not seconds.
-- Outlier ratio: the share of all N trajectories flagged by the rule, diverged ones included; the
-  diverged share is also reported on its own.
-- When every trajectory diverged: error metrics and AUC are inf, drift, outlier ratio and the
-  covariance columns are NaN (the paper's "N/A"), ``all_diverged`` is True. Nothing raises.
-
-References: Iglewicz & Hoaglin (1993), "How to Detect and Handle Outliers" (MAD z-score and its
-MeanAD fallback); Bar-Shalom, Li & Kirubarajan (2001), "Estimation with Applications to Tracking
-and Navigation", Sec. 5.4 (NEES and its chi-square test).
+The definitions where the paper is silent, the scored steps (:data:`EVALUATION_WARMUP`) and the
+reasons for each reading are in docs/metrics.md; each is documented again where it is computed.
+Summaries across runs are in :mod:`neural_estimator.metrics.summary`, tables in
+:mod:`neural_estimator.metrics.table`.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -661,186 +597,6 @@ def covariance_metrics(eps: np.ndarray, dx: int) -> dict[str, float]:
     )
 
 
-# ---- across runs ------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class Stat:
-    """Median and interquartile range of one metric across runs (evaluation sets x instances)."""
-
-    median: float
-    iqr: float  # q75 - q25
-    n: int  # values that were available (NaN left out)
-    max: float  # largest value (shows a divergence that the median hides)
-    applies: bool = True  # False: the metric does not apply to the method (no covariance)
-
-
-def median_iqr(values: Iterable[float]) -> tuple[float, float]:
-    """(median, q75 - q25) of ``values``, safe with inf; NaN values are left out.
-
-    Quantiles use linear interpolation between order statistics (numpy's default method), written
-    so that inf stays inf: [1, 2, inf] has median 2 and IQR inf, [inf, inf] has median inf and
-    IQR 0. With no value left the result is (NaN, NaN).
-    """
-    v = np.sort(np.array([_as_float(x) for x in values], dtype=np.float64))
-    v = v[~np.isnan(v)]
-    if v.size == 0:
-        return math.nan, math.nan
-    q25, med, q75 = (_quantile(v, p) for p in (0.25, 0.5, 0.75))
-    return med, (0.0 if q75 == q25 else q75 - q25)
-
-
-def summarize(reports: Iterable[MetricReport | Mapping[str, Any]]) -> dict[str, Stat]:
-    """Median and IQR of each scalar metric across runs, the paper's "median ± IQR".
-
-    Args:
-        reports: :class:`MetricReport` objects, or mappings of metric name to value such as the
-            output of :func:`to_json` (null is read back as NaN; a key that is null in every run,
-            or absent, does not apply).
-
-    Returns:
-        {metric: Stat} for every metric of :data:`SCALAR_METRICS`, always the same keys; a metric
-        with no value in any run (NEES of a neural method) has ``applies=False`` and NaN numbers.
-    """
-    rows = [r.scalars() if isinstance(r, MetricReport) else r for r in reports]
-    out: dict[str, Stat] = {}
-    for key in SCALAR_METRICS:
-        vals = [_as_float(r[key]) for r in rows if r.get(key) is not None]
-        if not vals:
-            out[key] = Stat(median=math.nan, iqr=math.nan, n=0, max=math.nan, applies=False)
-            continue
-        med, iqr = median_iqr(vals)
-        avail = [x for x in vals if not math.isnan(x)]
-        out[key] = Stat(median=med, iqr=iqr, n=len(avail), max=max(avail) if avail else math.nan)
-    return out
-
-
-# ---- output -------------------------------------------------------------------------------------------
-
-# (metric key, header, decimals, show IQR). The paper's eight columns first (it prints Out. and
-# Drift without "± IQR"), then ours. Every table has all of them, for every scenario and method.
-TABLE_COLUMNS = (
-    ("rmse", "RMSE", 3, True),
-    ("full_rmse", "Full RMSE", 3, True),
-    ("nrmse", "NRMSE", 3, True),
-    ("mae", "MAE", 3, True),
-    ("medae", "MedAE", 3, True),
-    ("auc", "AUC", 1, True),
-    ("outlier_ratio", "Out.", 3, False),
-    ("drift_ratio", "Drift", 3, False),
-    ("diverged_ratio", "Div.", 3, False),
-    ("nees_median", "NEES med.", 2, True),
-    ("nees", "NEES mean", 2, False),
-    ("coverage95", "95%", 3, True),
-    ("cov_degenerate", "Degen.", 3, False),
-)
-NOT_APPLICABLE = "—"  # table cell of a metric that does not apply (NEES of a method without covariance)
-DEGENERATE = "degen."  # table cell of a NEES made infinite by degenerate covariances
-
-
-def format_table(
-    rows: Mapping[str, Mapping[str, Any]],
-    fmt: str = "markdown",
-    iqr_everywhere: bool = False,
-    marks: Mapping[str, Mapping[str, str]] | None = None,
-) -> str:
-    """The paper's extended-metrics table, one row per method, always the same columns.
-
-    Columns :data:`TABLE_COLUMNS`: the appendix tables' RMSE, Full RMSE, NRMSE, MAE, MedAE, AUC,
-    Out., Drift, then Div. (diverged share) and the covariance columns NEES med., NEES mean, 95%,
-    Degen. Cells are "median±IQR" with 3 decimals (AUC 1, NEES 2); Out., Drift, Div., NEES mean and
-    Degen. show the median only unless ``iqr_everywhere``. An infinite median prints "inf" (the
-    paper's infinity; in a NEES column "degen.": most covariances were degenerate), NaN prints
-    "N/A", a metric that does not apply to the method "—". The csv format is for machines: every
-    metric of :data:`SCALAR_METRICS` as a median and an IQR column (``rmse``, ``rmse_iqr``, ...),
-    full precision, "inf" and "nan" as Python prints them, empty where the metric does not apply.
-
-    Args:
-        rows: {method: summary}; a summary maps metric keys to :class:`Stat`, (median, iqr) or a
-            plain number (IQR 0), e.g. the output of :func:`summarize` or ``report.scalars()``;
-            a key that is absent or None does not apply.
-        fmt: "markdown", "text" or "csv".
-        iqr_everywhere: also print the IQR of the median-only columns.
-        marks: {method: {metric key: mark}}: a mark printed after that cell (markdown and text;
-            :mod:`neural_estimator.departures`), e.g. ``{"pf": {"rmse": "[o]"}}``.
-    """
-    if fmt not in ("markdown", "text", "csv"):
-        raise MetricsError(f"fmt must be 'markdown', 'text' or 'csv', got {fmt!r}")
-    stats = {m: {k: _as_stat(s.get(k)) for k in SCALAR_METRICS} for m, s in rows.items()}
-
-    if fmt == "csv":
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["method"] + [h for key in SCALAR_METRICS for h in (key, key + "_iqr")])
-        for method, s in stats.items():
-            cells = [method]
-            for key in SCALAR_METRICS:
-                st = s[key]
-                cells += [repr(st.median), repr(st.iqr)] if st.applies else ["", ""]
-            w.writerow(cells)
-        return buf.getvalue()
-
-    cols = TABLE_COLUMNS
-    header = ["Method"] + [h for _, h, _, _ in cols]
-    body = []
-    for method, s in stats.items():
-        cells = [method]
-        for key, _, dec, show_iqr in cols:
-            cell = _cell(s[key], dec, show_iqr or iqr_everywhere, nees=key.startswith("nees"))
-            mark = ((marks or {}).get(method) or {}).get(key)
-            cells.append(f"{cell} {mark}" if mark else cell)
-        body.append(cells)
-    if fmt == "markdown":
-        lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * len(cols)) + "|"]
-        lines += ["| " + " | ".join(r) + " |" for r in body]
-        return "\n".join(lines) + "\n"
-    widths = [max(len(r[i]) for r in [header] + body) for i in range(len(header))]
-
-    def aligned(r: list[str]) -> str:  # method name left, numbers right
-        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
-
-    return "\n".join(aligned(r) for r in [header] + body) + "\n"
-
-
-def format_reports(
-    reports: Mapping[str, MetricReport], fmt: str = "text", marks: Mapping[str, Mapping[str, str]] | None = None
-) -> str:
-    """:func:`format_table` of one run per method: one run has no spread, so the IQR is NaN and the
-    cells show the value alone (no fake "±0.000"); ``marks`` as in :func:`format_table`."""
-    rows = {m: {k: (None if v is None else (v, math.nan)) for k, v in r.scalars().items()} for m, r in reports.items()}
-    return format_table(rows, fmt=fmt, marks=marks)
-
-
-def to_json(obj: Any) -> Any:
-    """A JSON-ready copy of a :class:`MetricReport`, :class:`Stat`, summary or nested container.
-
-    Strict JSON (``json.dumps(..., allow_nan=False)`` accepts it): arrays become lists, numpy
-    scalars Python scalars, and every non-finite number becomes null. A report always has every
-    key (the schema is in docs/metrics.md); null means "no finite value": the metric does not
-    apply (covariance metrics of a method without covariance: ``has_covariance`` is false), is
-    unavailable (the paper's N/A), or is infinite; which one is told by the report's own fields
-    (``n_diverged`` > 0 for an infinite Full RMSE or NRMSE, ``all_diverged`` for the rest,
-    ``cov_degenerate`` for an infinite NEES). Never a string.
-    """
-    if isinstance(obj, MetricReport):
-        out = {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-        out["has_covariance"] = obj.has_covariance
-        return out
-    if isinstance(obj, Stat):
-        return {f.name: to_json(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, Mapping):
-        return {str(k): to_json(v) for k, v in obj.items()}
-    if isinstance(obj, np.ndarray):
-        return to_json(obj.tolist())
-    if isinstance(obj, (list, tuple)):
-        return [to_json(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return to_json(obj.item())
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
 # ---- helpers ------------------------------------------------------------------------------------------
 
 
@@ -878,54 +634,3 @@ def _resolve_spread(x_true: np.ndarray, spread) -> np.ndarray:
             f"NRMSE spread must be positive and finite; components {np.flatnonzero(bad).tolist()} of the {where}"
         )
     return np.array(s)
-
-
-def _quantile(v: np.ndarray, p: float) -> float:
-    """Linear-interpolation quantile of sorted, NaN-free ``v``; inf-safe."""
-    h = (v.size - 1) * p
-    lo, hi = math.floor(h), math.ceil(h)
-    a, b, w = float(v[lo]), float(v[hi]), h - lo
-    if w == 0 or a == b:
-        return a
-    return a + w * (b - a)
-
-
-def _as_float(x) -> float:
-    """Metric value as float: None -> NaN, "inf"/"-inf"/"nan" strings (older results files) as floats."""
-    if x is None:
-        return math.nan
-    return float(x)
-
-
-def _as_stat(v) -> Stat:
-    if v is None:
-        return Stat(median=math.nan, iqr=math.nan, n=0, max=math.nan, applies=False)
-    if isinstance(v, Stat):
-        return v
-    if isinstance(v, (tuple, list)):
-        med, iqr = _as_float(v[0]), _as_float(v[1])
-        return Stat(median=med, iqr=iqr, n=1, max=med)
-    x = _as_float(v)
-    return Stat(median=x, iqr=0.0, n=1, max=x)
-
-
-def _cell(st: Stat, decimals: int, show_iqr: bool, nees: bool = False) -> str:
-    if not st.applies:
-        return NOT_APPLICABLE
-    if math.isnan(st.median):
-        return "N/A"
-    if math.isinf(st.median):
-        if nees:
-            return DEGENERATE
-        return "inf" if st.median > 0 else "-inf"
-    med = _number(st.median, decimals)
-    if not show_iqr or math.isnan(st.iqr):
-        return med
-    iqr = "inf" if math.isinf(st.iqr) else _number(st.iqr, decimals)
-    return f"{med}±{iqr}"
-
-
-def _number(x: float, decimals: int) -> str:
-    """Fixed decimals, or 3 significant digits from 1e6 up (an overconfident filter's NEES of
-    7e10 reads better than 71662836828.73)."""
-    return f"{x:.3g}" if abs(x) >= 1e6 else f"{x:.{decimals}f}"

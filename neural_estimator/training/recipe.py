@@ -1,7 +1,7 @@
 """The training recipe (:class:`TrainConfig`): the paper's settings as one frozen dataclass.
 
 Kept free of torch, so that the command line can offer every field as a ``train`` flag without
-importing it; :mod:`neural_estimator.models.training` runs the recipe.
+importing it; :mod:`neural_estimator.training.loop` runs the recipe.
 """
 
 from __future__ import annotations
