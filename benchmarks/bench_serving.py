@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     from neural_estimator.data import simulate
     from neural_estimator.models import count_parameters
-    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.serving.load import load_neural_estimator
     from neural_estimator.scenarios import make_scenario
 
     load0 = os.getloadavg()[0]
@@ -103,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     for m in a.methods:
         est_t = load_neural_estimator(m, scen, context=0)
         est_o = load_neural_estimator(m, scen, context=0, backend="onnxruntime")
-        from neural_estimator.models.onnx_step import OrtStep, export_step
+        from neural_estimator.models.onnx_step import export_step
+        from neural_estimator.serving.onnx_runtime import OrtStep
 
         graph = export_step(est_t.model, m)  # the network alone, as the torch step column
         ort = OrtStep(graph)

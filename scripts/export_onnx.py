@@ -30,9 +30,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neural_estimator.estimator import EstimatorError  # noqa: E402
-from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, ONNX_FILE, OnnxError, export_step  # noqa: E402
-from neural_estimator.models.card import checkpoint_paths  # noqa: E402
-from neural_estimator.models.serving import default_checkpoint, load_neural_estimator  # noqa: E402
+from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
+from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
+from neural_estimator.serving.load import default_checkpoint, load_neural_estimator  # noqa: E402
+from neural_estimator.serving.onnx_runtime import ONNX_FILE  # noqa: E402
 from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E402
 
 

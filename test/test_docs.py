@@ -91,7 +91,8 @@ def test_readme_and_docs_name_every_cli_verb():
 
 # ---- commands ---------------------------------------------------------------------------------------
 def _parse_cli(line: str) -> None:
-    from neural_estimator.cli import OneLineParser, build_parser
+    from neural_estimator.cli import build_parser
+    from neural_estimator.cli.common import OneLineParser
     from neural_estimator.nodes.launch import build_parser as live_parser
 
     argv = shlex.split(line)[1:]

@@ -10,8 +10,9 @@ pytest.importorskip("onnx")
 
 from neural_estimator.data import simulate  # noqa: E402
 from neural_estimator.estimator import EstimatorError  # noqa: E402
-from neural_estimator.models.onnx_step import OrtStep, export_step  # noqa: E402
-from neural_estimator.models.serving import load_neural_estimator  # noqa: E402
+from neural_estimator.models.onnx_step import export_step  # noqa: E402
+from neural_estimator.serving.onnx_runtime import OrtStep  # noqa: E402
+from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
 
 
@@ -103,7 +104,7 @@ def _exported_beside(tmp_path, method):
     """A copy of the shipped lorenz96 checkpoint with its step exported beside the card."""
     import shutil
 
-    from neural_estimator.models.serving import default_checkpoint
+    from neural_estimator.serving.load import default_checkpoint
     from scripts.export_onnx import main as export_main
 
     directory = tmp_path / f"lorenz96-{method}"
@@ -116,7 +117,7 @@ def _exported_beside(tmp_path, method):
 def test_graph_beside_the_card_serves_like_the_torch_step(method, l96, tmp_path):
     """``step.onnx`` beside the card: backend onnxruntime serves it (the torch-free estimator), equal to
     the torch step within 1e-5 relative over 300 steps, covariance included."""
-    from neural_estimator.models.onnx_step import OnnxEstimator
+    from neural_estimator.serving.onnx_runtime import OnnxEstimator
 
     scen, data = l96
     directory = _exported_beside(tmp_path, method)
@@ -152,3 +153,64 @@ def test_graph_beside_the_card_refuses_other_weights_and_windows(l96, tmp_path):
     (directory / "card.json").write_text(json.dumps(card))
     with pytest.raises(EstimatorError, match="export it again"):
         load_neural_estimator("gpt2", scen, checkpoint=directory, backend="onnxruntime")
+
+
+_NO_TORCH = """
+import sys
+sys.modules["torch"] = None  # `import torch` now raises ImportError
+"""
+
+
+def test_served_without_torch_step_and_node(tmp_path):
+    """With step.onnx beside the card, ``Estimator.step`` and the estimator node run where torch cannot
+    be imported: the estimator is built and stepped, and the node builds it, steps its warm-up and
+    says so, then exits cleanly on SIGINT."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    directory = _exported_beside(tmp_path, "gru")
+    step_code = (
+        _NO_TORCH
+        + f"""
+import numpy as np
+from neural_estimator.registry import make_estimator
+from neural_estimator.scenarios import make_scenario
+scen = make_scenario("lorenz96")
+est = make_estimator("gru", scen, checkpoint={str(directory)!r}, backend="onnxruntime")
+est.reset(1)
+x = est.step(np.zeros((1, scen.dy)))
+assert x.shape == (1, scen.dx) and np.isfinite(x).all()
+assert sys.modules.get("torch") is None
+print(type(est).__name__)
+"""
+    )
+    env = dict(os.environ, ROS_DOMAIN_ID=str(120 + os.getpid() % 60), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-c", step_code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "OnnxEstimator"
+    node_code = _NO_TORCH + "from neural_estimator.nodes.estimator_node import main\nsys.exit(main())\n"
+    args = ["--ros-args", "-p", "method:=gru", "-p", "scenario:=lorenz96", "-p", f"checkpoint:={directory}"]
+    args += ["-p", "options:=[backend=onnxruntime]"]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", node_code, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    )
+    try:
+        lines = []
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "served by ONNX Runtime without torch" in line:
+                break
+        assert any("served by ONNX Runtime without torch" in ln for ln in lines), "".join(lines)[-2000:]
+        time.sleep(3.0)  # the rest of the start-up (a few ms), then the node spins
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0, proc.stdout.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()

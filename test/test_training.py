@@ -13,13 +13,15 @@ import torch
 from safetensors.torch import load_file
 
 from neural_estimator.data import simulate
-from neural_estimator.estimators import EstimatorError, make_estimator
+from neural_estimator.registry import EstimatorError, make_estimator
 from neural_estimator.models import ARCHITECTURES, build_model
-from neural_estimator.models.checkpoint import save_checkpoint
-from neural_estimator.models.serving import load_neural_estimator
-from neural_estimator.models.neural import NeuralEstimator, resolve_device
-from neural_estimator.models.normalization import Normalizer
-from neural_estimator.models.training import TrainConfig, TrainingError, state_error, train, weighted_loss
+from neural_estimator.serving.checkpoint import save_checkpoint
+from neural_estimator.serving.load import load_neural_estimator
+from neural_estimator.serving.neural import NeuralEstimator, resolve_device
+from neural_estimator.serving.normalization import Normalizer
+from neural_estimator.training.loop import train
+from neural_estimator.training.loss import state_error, weighted_loss
+from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.scenarios import Scenario, make_scenario, register_scenario
 from conftest import load_script
 
@@ -113,7 +115,7 @@ def weights(path):
 def test_normalizer_round_trip_and_statistics(spinner):
     data = simulate(spinner, 20, 50, seed=0)
     norm = Normalizer.from_data(spinner, data)
-    from neural_estimator.estimators import previous_controls
+    from neural_estimator.registry import previous_controls
 
     z, skipped = norm.normalize_inputs(data.y, previous_controls(data.u))
     assert z.shape == (20, 50, 2) and not skipped.any()
@@ -302,7 +304,7 @@ def test_wrapped_and_weighted_loss():
 
 
 def test_loss_in_state_units_weighs_components_as_rmse_does():
-    from neural_estimator.models.training import component_weights
+    from neural_estimator.training.loss import component_weights
 
     std = np.array([20.0, 2.0, 0.01])
     assert component_weights("normalised", std, "cpu") is None
@@ -415,8 +417,8 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     """compile_step serves the same estimates (float32 round-off) through torch.compile."""
     from neural_estimator.data import simulate
     from neural_estimator.models import build_model
-    from neural_estimator.models.neural import NeuralEstimator
-    from neural_estimator.models.normalization import Normalizer
+    from neural_estimator.serving.neural import NeuralEstimator
+    from neural_estimator.serving.normalization import Normalizer
 
     data = simulate(oscillator, 8, 40, seed=0)
     norm = Normalizer.from_data(oscillator, data)
@@ -445,7 +447,7 @@ def test_val_context_recipe_is_checked_and_recorded_only_when_set():
 
 
 def test_val_context_validates_bounded_and_the_model_serves_bounded(tmp_path, spinner, monkeypatch):
-    import neural_estimator.models.training as training
+    import neural_estimator.training.loop as training
 
     calls = []
     real = training.bounded_forward
@@ -505,7 +507,7 @@ def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path
     import time
     from types import SimpleNamespace
 
-    import neural_estimator.models.training as training
+    import neural_estimator.training.loop as training
 
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
@@ -577,7 +579,7 @@ def test_train_zoo_finish_installs_an_unfinished_model_as_it_stands(tmp_path, mo
     import time
     from types import SimpleNamespace
 
-    import neural_estimator.models.training as training
+    import neural_estimator.training.loop as training
 
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
@@ -606,7 +608,7 @@ def test_train_zoo_finish_installs_an_unfinished_model_as_it_stands(tmp_path, mo
 
 
 def test_converged_rule():
-    from neural_estimator.models.training import converged, lr_reductions
+    from neural_estimator.training.stopping import converged, lr_reductions
 
     hist = [{"lr": lr} for lr in (2e-3, 1e-3, 1e-3, 5e-4, 2.5e-4)]
     assert lr_reductions(hist, 2e-3) == 3 and converged(None, hist, 2e-3)
@@ -619,7 +621,7 @@ def _history(vals, lrs):
 
 
 def test_plateau_rule_stops_flat_curves_after_three_halvings_only():
-    from neural_estimator.models.training import plateau_rule
+    from neural_estimator.training.stopping import plateau_rule
 
     stop = plateau_rule(2e-3, epochs=4, tol=0.01)
     halved = [2e-3] * 2 + [1e-3] * 2 + [5e-4] * 2 + [2.5e-4] * 2  # 3 reductions within 8 epochs
@@ -800,7 +802,7 @@ def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
     best one, none lower) or >= 3 learning-rate reductions."""
     from pathlib import Path
 
-    from neural_estimator.models.training import converged, lr_reductions
+    from neural_estimator.training.stopping import converged, lr_reductions
 
     zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
     cards = sorted(zoo.glob("*/card.json"))
@@ -864,6 +866,8 @@ def test_training_caps_trajectories_at_the_scenarios_longest_informative_length(
 
     quad = make_scenario("quadrotor", horizon=40)  # the quadrotor's limit is its horizon
     assert quad.longest_training_trajectory == 40 and make_scenario("lorenz96").longest_training_trajectory is None
-    out = train(quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False)
+    out = train(
+        quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False
+    )
     card = json.loads((out / "card.json").read_text())
     assert card["data"]["train_length"] == 40 and card["training"]["recipe"]["train_length"] == 40

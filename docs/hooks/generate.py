@@ -244,6 +244,11 @@ def fidelity() -> str:
     return "\n".join(rows)
 
 
+def fidelity_measured() -> str:
+    """The fidelity section measured on the default constants (scripts/fidelity_table.py)."""
+    return (ROOT / "benchmarks/results/fidelity_v4/fidelity.md").read_text().strip()
+
+
 GENERATORS = {
     "node-params": params_table,
     "cli": cli_help,
@@ -251,6 +256,7 @@ GENERATORS = {
     "headline": lambda _=None: headline_table(),
     "report-section": report_section,
     "fidelity": lambda _=None: fidelity(),
+    "fidelity-measured": lambda _=None: fidelity_measured(),
     "zoo": lambda _=None: zoo(),
 }
 

@@ -14,12 +14,13 @@ cache of the last W steps (their attention window, the ``context`` option), so t
 fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's covariance
 (normalised units), when exported with ``covariance``. A state that does not start at zeros (the
 attention models' mask starts at -inf: no slot filled) is recorded in the graph's metadata
-(``initial_fill``), which :class:`OrtStep` resets to. :func:`export_step` makes it from the loaded
+(``initial_fill``), which ``OrtStep`` resets to. :func:`export_step` makes it from the loaded
 checkpoint (card + safetensors weights), so the export is reproducible from the card: the same
-weights give the same graph. :class:`OrtStep` serves it; a test holds it equal to the torch step over hundreds of steps.
+weights give the same graph. ``OrtStep`` serves it; a test holds it equal to the torch step over
+hundreds of steps.
 
 Serving needs ``onnxruntime`` (``pip install onnxruntime``, the ``onnx`` extra); exporting also needs
-torch and ``onnx``. The serving side (:class:`OrtStep`, the torch-free ``OnnxEstimator``) lives in
+torch and ``onnx``. The serving side (``OrtStep``, the torch-free ``OnnxEstimator``) lives in
 :mod:`neural_estimator.serving.onnx_runtime`, which imports no torch: a robot that gets ``step.onnx``
 beside the card (``scripts/export_onnx.py --beside``) serves it without torch.
 """
@@ -34,18 +35,15 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.serving.onnx_runtime import (  # noqa: F401  re-exported: the serving side
-    ATTENTION,
-    ONNX_FILE,
-    OnnxError,
-    OnnxEstimator,
-    OrtStep,
-    graph_metadata,
-    load_onnx_estimator,
-    onnx_beside,
-)
 
 EXPORTABLE = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
+ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
+
+
+class OnnxError(RuntimeError):
+    """The step cannot be exported (missing package, unsupported method): one line."""
+
+
 OPSET = 17
 
 
@@ -69,14 +67,15 @@ def export_step(
     attention models) and ``initial_fill``.
 
     Without ``normalizer`` the graph is the network alone (z float32 in, mean float32 out). With the
-    checkpoint's :class:`~neural_estimator.models.normalization.Normalizer` it is the whole estimator
-    step of :class:`~neural_estimator.models.neural.NeuralEstimator`, in the same arithmetic::
+    checkpoint's :class:`~neural_estimator.serving.normalization.Normalizer` it is the whole estimator
+    step of :class:`~neural_estimator.serving.neural.NeuralEstimator`, in the same arithmetic::
 
         inputs:  y (1, dy) float64, u (1, du) float64 (absent when du = 0), state_0 ... state_{S-1}
         outputs: x (1, dx) float64 (denormalised, angles not yet wrapped), skipped (1, 1) bool
                  (y had NaN or inf: its part of z was the training mean 0), new_state_0 ...
 
-    so a robot serves it with numpy and onnxruntime only (:class:`OrtStep`), without torch.
+    so a robot serves it with numpy and onnxruntime only
+    (:class:`~neural_estimator.serving.onnx_runtime.OrtStep`), without torch.
 
     Raises:
         OnnxError: ``method`` is not one of :data:`EXPORTABLE`, or torch's exporter is missing.

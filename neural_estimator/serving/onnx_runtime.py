@@ -22,10 +22,6 @@ ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (sc
 ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
 
 
-class OnnxError(RuntimeError):
-    """The ONNX backend cannot serve this model (missing package, unsupported method): one line."""
-
-
 def graph_metadata(session: Any) -> dict[str, str]:
     """The metadata strings of a loaded graph (an onnxruntime InferenceSession)."""
     return dict(session.get_modelmeta().custom_metadata_map)
@@ -48,7 +44,7 @@ class OrtStep:
         try:
             import onnxruntime as ort
         except ImportError:
-            raise OnnxError("backend onnxruntime needs the onnxruntime package: pip install onnxruntime") from None
+            raise EstimatorError("backend onnxruntime needs the onnxruntime package: pip install onnxruntime") from None
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = max(1, int(threads))
         opts.inter_op_num_threads = 1
@@ -74,7 +70,7 @@ class OrtStep:
         self.metadata = graph_metadata(self.session)
         fills = json.loads(self.metadata.get("initial_fill", "[]")) or [0.0] * len(state_in)
         if len(fills) != len(state_in):
-            raise OnnxError(f"the graph's initial_fill names {len(fills)} states, its inputs {len(state_in)}")
+            raise EstimatorError(f"the graph's initial_fill names {len(fills)} states, its inputs {len(state_in)}")
         self._fills = [float(f) for f in fills]
         value = ort.OrtValue.ortvalue_from_numpy
         self._bindings = []
@@ -119,7 +115,7 @@ class OnnxEstimator(Estimator):
     """A neural model's estimator served by ONNX Runtime over its network-only step graph, batch 1,
     with numpy and onnxruntime only (no torch).
 
-    The arithmetic of :class:`~neural_estimator.models.neural.NeuralEstimator`'s step: normalise
+    The arithmetic of :class:`~neural_estimator.serving.neural.NeuralEstimator`'s step: normalise
     [y_k, u_{k-1}] in float64 with the card's statistics (a non-finite y becomes the training mean and
     is flagged in ``skipped``), the network in float32, denormalise (angles wrapped; Filterformer's
     covariance as diag(sigma_x) C diag(sigma_x)). Written into the graph's bound buffers, because at
@@ -128,7 +124,7 @@ class OnnxEstimator(Estimator):
     Args:
         scenario: the system served (the caller has checked the card against it).
         step: the network-only graph (:class:`OrtStep`; inputs ``z`` and the state).
-        normalizer: the card's normalisation (:class:`~neural_estimator.models.normalization.Normalizer`).
+        normalizer: the card's normalisation (:class:`~neural_estimator.serving.normalization.Normalizer`).
         method: the method name.
         card: the checkpoint card (provenance; the training warm-up).
     """
@@ -239,14 +235,14 @@ def load_onnx_estimator(
     Raises:
         EstimatorError: missing onnxruntime, a graph of other weights, method or window.
     """
-    from neural_estimator.models.normalization import NormalizationError, Normalizer
+    from neural_estimator.serving.normalization import NormalizationError, Normalizer
 
     path = Path(directory) / ONNX_FILE
     method = str(card["method"])
     try:
         step = OrtStep(path)
-    except OnnxError as exc:
-        raise EstimatorError(str(exc)) from None
+    except EstimatorError:
+        raise
     except Exception as exc:  # onnxruntime's own errors for a malformed file
         raise EstimatorError(f"{path}: not a readable ONNX graph ({str(exc).splitlines()[0]})") from None
     meta = step.metadata
