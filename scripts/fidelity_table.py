@@ -28,7 +28,7 @@ SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 def shipped_on_defaults(scenario: str) -> tuple[list[str], dict[str, str]]:
     """(neural methods whose shipped model was trained on the default constants, {other: why})."""
-    from neural_estimator.estimators import NEURAL_METHODS
+    from neural_estimator.registry import NEURAL_METHODS
     from neural_estimator.scenarios import DEFAULT_PRESET, scenario_class
 
     ok, pending = [], {}
