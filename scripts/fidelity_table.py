@@ -28,7 +28,7 @@ SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 def shipped_on_defaults(scenario: str) -> tuple[list[str], dict[str, str]]:
     """(neural methods whose shipped model was trained on the default constants, {other: why})."""
-    from neural_estimator.estimators import NEURAL_METHODS
+    from neural_estimator.registry import NEURAL_METHODS
     from neural_estimator.scenarios import DEFAULT_PRESET, scenario_class
 
     ok, pending = [], {}
@@ -66,39 +66,12 @@ def measure(a: argparse.Namespace) -> int:
     return render(a)
 
 
-def tables(out: Path) -> tuple[dict, dict, dict, list[str]]:
-    """({s: {m: RMSE}}, {s: {m: NRMSE}}, {(s, m): why pending}, settings lines) from DIR's results."""
-    rmse: dict[str, dict[str, float]] = {}
-    nrmse: dict[str, dict[str, float]] = {}
-    pending: dict[tuple[str, str], str] = {}
-    settings = []
-    for s in SCENARIOS:
-        for where in (out / s, out / f"{s}-pf"):
-            path = where / "results.json"
-            if not path.exists():
-                continue
-            res = json.loads(path.read_text())
-            settings.append(
-                f"{where.name}: {res['sets']} sets x {res['trajectories']} trajectories x {res['horizon']} steps, "
-                f"seed {res['seed']}, filters from the {res['init']}, steps {res['warmup']}.. scored, "
-                f"preset {res['scenario'].get('preset', '?')}{'' if res.get('complete') else ' (INCOMPLETE)'}"
-            )
-            for m, r in res["methods"].items():
-                summ = r["summary"]
-                rmse.setdefault(s, {})[m] = summ["rmse"]["median"]
-                nrmse.setdefault(s, {})[m] = summ["nrmse"]["median"]
-        p = out / s / "pending.json"
-        if p.exists():
-            pending.update({(s, m): why for m, why in json.loads(p.read_text()).items()})
-    return rmse, nrmse, pending, settings
-
-
 def render(a: argparse.Namespace) -> int:
-    from neural_estimator.reproduce.fidelity import section
+    from neural_estimator.reproduce.fidelity import load_measured, section
 
     out = Path(a.out)
-    rmse, nrmse, pending, settings = tables(out)
-    lines = section(rmse, nrmse, pending) + ["", "Measured:", ""] + [f"- {x}" for x in settings]
+    got = load_measured(out)
+    lines = section(got) + ["", "Measured:", ""] + [f"- {x}" for x in got.settings]
     text = "\n".join(lines) + "\n"
     (out / "fidelity.md").write_text(text)
     print(text)
