@@ -16,7 +16,11 @@ One process, one node, an isolated ROS domain, a JointState observation of the L
   by ``spin_once``, as :func:`neural_estimator.nodes.common.spin` does);
 - ``burst`` per executor: 200 messages published, then spun until all callbacks ran, per message
   (the executor's per-message cost when a backlog waits), without and with the node's drain (the
-  first callback takes every waiting message itself).
+  first callback takes every waiting message itself);
+- the callback's own work, per method (``--methods``, Lorenz 96 at its defaults): decoding
+  the observation's CDR (``VectorCodec.decode``), ``Estimator.step``, encoding the estimate and the
+  covariance, the ``<output>/state`` bytes (``StateEncoder``), and the whole
+  ``OnlineEstimator.feed`` (decode, the stream's checks, step, encode), outside ROS.
 
 Rounds alternate the executors; each figure is the best round's. The machine's load average is
 printed (on this 2-core machine a training may hold one core: the figures then include waits).
@@ -46,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--messages", type=int, default=2000)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--width", type=int, default=40, help="values in the observation")
+    ap.add_argument(
+        "--methods", nargs="*", default=["ekf", "gru"], help="methods whose callback work is timed (gru: ORT backend)"
+    )
     a = ap.parse_args(argv)
     os.environ["ROS_DOMAIN_ID"] = str(150 + os.getpid() % 80)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -171,7 +178,58 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {k} | {p50:.1f} | {p99:.1f} |")
     node.destroy_node()
     rclpy.try_shutdown()
+    if a.methods:
+        print()
+        print("| callback work (Lorenz 96 at its defaults, 10 variables: the shipped models) | p50 µs | p99 µs |")
+        print("|---|---:|---:|")
+        for k, (p50, p99) in callback_work(a.methods, a.messages).items():
+            print(f"| {k} | {p50:.1f} | {p99:.1f} |")
     return 0
+
+
+def callback_work(methods: list[str], messages: int) -> dict[str, tuple[float, float]]:
+    """p50 / p99 µs of each part of the estimator node's per-message work, outside ROS."""
+    from neural_estimator.bags import messages as M
+    from neural_estimator.data import simulate
+    from neural_estimator.nodes.outputs import StateEncoder
+    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.registry import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scen = make_scenario("lorenz96")
+    n = max(200, messages)
+    data = simulate(scen, 1, 2 * n + 1, 0)
+    codec = M.VectorCodec(scen.name, list(scen.obs_names))
+    raws = [codec.encode(int(k * scen.dt * 1e9), 0, k, data.y[0, k]) for k in range(2 * n + 1)]
+    out_codec = M.VectorCodec("map", M.state_labels(scen))
+    cov_codec = M.VectorCodec("map", M.covariance_labels(scen.dx))
+    state = StateEncoder(scen.state_names)
+    found: dict[str, tuple[float, float]] = {}
+
+    def timed(label: str, fn, items) -> None:
+        ts = []
+        for item in items:
+            t0 = time.perf_counter()
+            fn(item)
+            ts.append(time.perf_counter() - t0)
+        found[label] = _quantiles(ts)
+
+    timed("decode the observation (VectorCodec)", codec.decode, raws[:n])
+    for m in methods:
+        options = {"backend": "onnxruntime"} if m in ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2") else {}
+        est = make_estimator(m, scen, **options)
+        est.reset(1)
+        y = data.y[0]
+        timed(f"{m}: Estimator.step{' (ORT)' if options else ''}", lambda k: est.step(y[k : k + 1]), range(n))
+        x, P = est.step(y[:1]), est.covariance
+        timed(f"{m}: encode the estimate", lambda k: out_codec.encode(k, 0, k, x[0]), range(n))
+        if P is not None:
+            timed(f"{m}: encode the covariance", lambda k: cov_codec.encode(k, 0, k, P[0]), range(n))
+            timed(f"{m}: <output>/state bytes (StateEncoder)", lambda k: state.encode(x[0], P[0]), range(n))
+        online = OnlineEstimator(est, m, publish_covariance=True)
+        online.feed(raws[0])
+        timed(f"{m}: OnlineEstimator.feed (decode, checks, step, encode)", online.feed, raws[1 : 2 * n + 1])
+    return found
 
 
 if __name__ == "__main__":
