@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_pipeline.py                       # bearings, ekf/ukf/enkf, 1 kHz, 10 s
     .venv/bin/python benchmarks/bench_pipeline.py --methods ekf,ukf,gru --rate-hz 1000 --seconds 20
+    .venv/bin/python benchmarks/bench_pipeline.py --scenario lorenz96 --methods ekf,gru,mamba --executors single,events
 
 Runs :func:`neural_estimator.nodes.launch.run_pipeline` (separate processes, isolated ROS domain),
 then reads the recorded bag and reports
@@ -18,6 +19,10 @@ then reads the recorded bag and reports
   DDS reception timestamp of the estimate, both on this machine's clock), p50 / p99. On a starved
   machine the recorder's own reception lags too, and that lag is in this figure (wait is not);
 - the rate the simulator achieved, and wall time.
+
+``--executors single,events`` runs the chain once per executor in turn (the nodes' executor,
+``NEURAL_ESTIMATOR_EXECUTOR``; the evaluator always keeps the single-threaded one) and prints the
+end-to-end figures side by side, with the load average before each run.
 
 Results print as a table and go to ``<out>/bench_pipeline.json``. The machine matters: each node is
 a Python process; ``--cores`` in the JSON records how many this machine had.
