@@ -630,6 +630,7 @@ def _cmd_evaluate(args) -> int:
         for line in departure_legend(results):
             print(line)
         print(D.scored_steps(args.warmup))
+        _print_consistency(results, scenario.dx)
         print(
             "speed: "
             + ", ".join(
@@ -643,6 +644,20 @@ def _cmd_evaluate(args) -> int:
         _write_evaluation(out, scenario, results, info, expected_runs, plot=True)
         print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
     return 0
+
+
+def _print_consistency(results, dx: int) -> None:
+    """The consistency table of the methods that report a covariance (docs/uncertainty.md)."""
+    from neural_estimator.consistency import COVERAGE_BAND, NEES_BAND
+    from neural_estimator.evaluation import consistency_table
+
+    table = consistency_table(results, dx, fmt="text")
+    if table:
+        print(
+            f"consistency of the reported covariances (consistent: 95% coverage in {list(COVERAGE_BAND)} "
+            f"and mean NEES/dx in {list(NEES_BAND)}; a wide covariance is as wrong as a narrow one):"
+        )
+        print(table, end="")
 
 
 _START_WORDS = {
@@ -677,6 +692,11 @@ def _write_evaluation(
         + f"\n\n{D.scored_steps(info.get('warmup', 0))}\n"
     )
     (out / "table.csv").write_text(results_table(done, fmt="csv"))
+    from neural_estimator.evaluation import consistency_table
+
+    consistency = consistency_table(done, scenario.dx)
+    if consistency:
+        (out / "consistency.md").write_text(consistency)
     payload = results_json(scenario, done, complete=complete, **info)
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, allow_nan=False))

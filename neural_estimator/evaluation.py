@@ -609,3 +609,22 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
             },
         }
     )
+
+
+def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "markdown") -> str | None:
+    """The consistency table beside :func:`results_table` (:mod:`neural_estimator.consistency`):
+    NEES median and mean per state dimension, 95 % coverage (medians over runs), the calibration
+    error of the runs' median reliability curve and a verdict; None when no method reports a
+    covariance."""
+    from neural_estimator import consistency as C
+
+    rows = {}
+    for m, r in results.items():
+        if not r.reports or not r.reports[0].has_covariance:
+            continue
+        curves = [rep.coverage_curve for rep in r.reports if rep.coverage_curve is not None]
+        curve = np.median(np.asarray(curves, dtype=np.float64), axis=0) if curves else None
+        rows[m] = C.consistency_row(r.summary, dx, curve)
+    if not rows:
+        return None
+    return C.format_consistency_table(rows, dx, fmt=fmt)

@@ -68,3 +68,14 @@ class LSTMModel(nn.Module):
         x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, H); no module-call overhead
         h, state = self.rnn(x.unsqueeze(1), state)  # (B, 1, H), ((L, B, H), (L, B, H))
         return F.linear(h.squeeze(1), self.head.weight, self.head.bias), state  # (B, d_out)
+
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    def features(self, z: Tensor) -> Tensor:
+        """(B, T, H): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
+        h, _ = self.rnn(self.input_proj(z))
+        return h
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        """(B, H) features of one step and the new state: ``step`` is ``head`` of them."""
+        h, state = self.rnn(F.linear(z_t, self.input_proj.weight, self.input_proj.bias).unsqueeze(1), state)
+        return h.squeeze(1), state

@@ -92,6 +92,7 @@ def load_neural_estimator(
     context: int | None = None,
     context_copies: int | None = None,
     backend: str = "torch",
+    cov_scale: float = 1.0,
 ):
     """A :class:`~neural_estimator.models.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
@@ -101,7 +102,9 @@ def load_neural_estimator(
         checkpoint: a checkpoint directory or its ``card.json``; None -> the shipped default at
             ``neural_estimator/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
-        covariance: report Filterformer's covariance (False saves memory in ``run``).
+        covariance: report the covariance: the fitted covariance head's where the card has one
+            (``covariance_head``, :mod:`neural_estimator.uncertainty.heads`), else Filterformer's
+            own; False reports none (and saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
         context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
             :mod:`neural_estimator.models.context`); 0 = unbounded, the paper's way. None: as the
@@ -111,6 +114,7 @@ def load_neural_estimator(
         backend: ``torch`` or ``onnxruntime`` (GRU, LSTM, Mamba, Mamba-2 with an unbounded context:
             ``step`` runs the model's step exported to ONNX, :mod:`neural_estimator.models.onnx_step`;
             ``run`` keeps torch's parallel form).
+        cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
@@ -131,6 +135,10 @@ def load_neural_estimator(
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
     model, normalizer, card = load_checkpoint(directory, device)
+    if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
+        from neural_estimator.uncertainty.heads import attach_head
+
+        model = attach_head(model, directory, card["covariance_head"])
     if context is None:  # as the checkpoint was chosen: bounded if its validation was
         validated = validated_context(card)
         context = validated.get("context", 0)
@@ -149,4 +157,5 @@ def load_neural_estimator(
         context=context,
         context_copies=context_copies,
         backend=backend,
+        cov_scale=cov_scale,
     )

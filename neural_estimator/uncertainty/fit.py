@@ -1,0 +1,181 @@
+"""Fitting a covariance head on the frozen trunk of a trained model, and its calibration scale.
+
+Data (validation role only, never a set a table reports; see :mod:`neural_estimator.data.protocol`):
+
+    head set         role "val", index HEAD_INDEX, at the model's data seed     the NLL fit
+    calibration set  role "val", index CALIBRATION_INDEX, same seed            the scale s
+
+Both are whole trajectories at the scenario's horizon, run the way the model is served (its bounded
+context or attention window included), with the first ``warmup`` steps left out as in training and
+evaluation. The trunk runs once per set (its features are cached), so a fit costs one forward pass
+and a few thousand Adam steps of a linear layer.
+
+Steps (:func:`fit_covariance_head`):
+
+1. features h_t and estimates x_hat_t of the served model on both sets (the estimate is the
+   model's own, bit for bit);
+2. errors e_t = wrap(x_hat_t - x_t) / sigma_x in normalised units;
+3. the head starts from the constant covariance diag(std(e)^2) and is trained by the Gaussian NLL
+   (:meth:`~neural_estimator.uncertainty.heads.CholeskyHead.nll`) with Adam, minibatches of (n, t);
+4. on the calibration set (trajectories the outlier rule of the metrics keeps), the scale
+   s = quantile_0.95(eps) / chi2_dx^{-1}(0.95) (:func:`~neural_estimator.consistency.fit_scale`)
+   is stored in the head, and the set's coverage and mean NEES before and after are recorded.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from neural_estimator import metrics as M
+from neural_estimator.data import protocol
+from neural_estimator.estimator import previous_controls
+from neural_estimator.models.context import bounded_forward
+from neural_estimator import consistency as C
+from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+
+HEAD_INDEX = 101
+CALIBRATION_INDEX = 102
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    head_trajectories: int = 256
+    calibration_trajectories: int = 128
+    steps: int = 2000
+    batch: int = 8192
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+    scale_target: str = "coverage"
+
+
+def served_features(est, Y: np.ndarray, U: np.ndarray, chunk: int = 64) -> tuple[torch.Tensor, np.ndarray]:
+    """(features (N, T, H) float32, estimates (N, T, dx)) of the served model of ``est`` (a
+    NeuralEstimator without a covariance head) over sequences Y (N, T, dy), U (N, T, du)."""
+    model = est.model.trunk if isinstance(est.model, GaussianModel) else est.model
+    Z, _ = est.normalizer.normalize_inputs(Y, previous_controls(U))
+    feats, xs = [], []
+    mean_of = model.mean_of if hasattr(model, "mean_of") else model.head
+    model.eval()
+    with torch.inference_mode():
+        for b0 in range(0, Z.shape[0], chunk):
+            z = torch.as_tensor(Z[b0 : b0 + chunk], dtype=est.dtype, device=est.device)
+            if est.context_by_copies:
+                h = bounded_forward(model.features, z, est.context, est.context_copies)
+            else:
+                h = model.features(z)
+            feats.append(h.float().cpu())
+            xs.append(est.normalizer.denormalize_states(mean_of(h).cpu().double().numpy()))
+    return torch.cat(feats), np.concatenate(xs)
+
+
+def normalised_errors(est, x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
+    """e = wrap(x_hat - x) / sigma_x (N, T, dx)."""
+    e = M.errors(x, x_hat, est.scenario.angle_states)
+    return e / est.normalizer.out_std
+
+
+def kept_trajectories(e: np.ndarray) -> np.ndarray:
+    """(N,) True for the trajectories the metrics' outlier rule keeps (finite, not outliers)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        Mn = np.mean(e * e, axis=(1, 2))
+    return ~M.outlier_mask(np.where(np.isfinite(Mn), Mn, np.inf))
+
+
+def train_head(h: torch.Tensor, e: torch.Tensor, settings: FitSettings, log=None) -> tuple[CholeskyHead, list[float]]:
+    """A Cholesky head fitted by the Gaussian NLL to errors e (K, n) at features h (K, H)."""
+    torch.manual_seed(settings.seed)
+    head = CholeskyHead(h.shape[-1], e.shape[-1])
+    head.init_constant(e.std(dim=0).clamp_min(1e-8))
+    opt = torch.optim.AdamW(head.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, settings.steps)
+    gen = torch.Generator().manual_seed(settings.seed)
+    K = h.shape[0]
+    history = []
+    head.train()
+    for it in range(settings.steps):
+        idx = torch.randint(0, K, (min(settings.batch, K),), generator=gen)
+        loss = head.nll(h[idx], e[idx])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        if it % 250 == 0 or it == settings.steps - 1:
+            history.append(float(loss.detach()))
+            if log:
+                log(f"  step {it:5d}  NLL {history[-1]:.4f}")
+    return head.eval(), history
+
+
+def nees_of(head: CholeskyHead, h: torch.Tensor, e: np.ndarray, batch: int = 1 << 15) -> np.ndarray:
+    """(K,) NEES of normalised errors e (K, n) under the head's covariances at features h (K, H)."""
+    out = np.empty(e.shape[0])
+    with torch.inference_mode():
+        for b0 in range(0, e.shape[0], batch):
+            cov = head(h[b0 : b0 + batch]).double().numpy()
+            out[b0 : b0 + batch] = M.nees(e[None, b0 : b0 + batch], cov[None])[0]
+    return out
+
+
+def figures(eps: np.ndarray, dx: int) -> dict[str, float]:
+    """Consistency figures of NEES values: median and mean NEES / dx, 95 % coverage, calibration error."""
+    curve = C.coverage_curve(eps, dx)
+    finite = eps[np.isfinite(eps)]
+    return {
+        "nees_median_per_dim": float(np.median(eps) / dx),
+        "nees_mean_per_dim": float(finite.mean() / dx) if finite.size else float("inf"),
+        "coverage95": float(curve[C.RELIABILITY_LEVELS.index(0.95)]),
+        "calibration_error": C.calibration_error(curve),
+    }
+
+
+def fit_covariance_head(est, settings: FitSettings = FitSettings(), log=None) -> tuple[CholeskyHead, dict[str, Any]]:
+    """Fit a head (and its calibration scale) for the served model ``est`` (module docstring).
+
+    Returns:
+        The head and the card entry's ``fit`` information (sets, settings, NLL history, the
+        calibration scale and the calibration set's figures before and after it).
+    """
+    t0 = time.time()
+    s, dx = est.scenario, est.scenario.dx
+    seed = int((est.card.get("data") or {}).get("seed", 0))
+    warmup = est.untrained_steps
+    sets = {}
+    for name, index, n in (
+        ("head", HEAD_INDEX, settings.head_trajectories),
+        ("calibration", CALIBRATION_INDEX, settings.calibration_trajectories),
+    ):
+        data = protocol.dataset(s, "val", index, n, seed=seed)
+        h, x_hat = served_features(est, data.y, data.u)
+        e = normalised_errors(est, data.x, x_hat)
+        keep = kept_trajectories(e)
+        sets[name] = (h[keep, warmup:].reshape(-1, h.shape[-1]), e[keep, warmup:].reshape(-1, dx), int(keep.sum()))
+        if log:
+            log(f"  {name} set: val index {index}, {keep.sum()}/{n} trajectories kept, {time.time() - t0:.0f} s")
+    h_fit, e_fit, _ = sets["head"]
+    head, history = train_head(h_fit, torch.as_tensor(e_fit, dtype=torch.float32), settings, log)
+    h_cal, e_cal, n_cal = sets["calibration"]
+    eps = nees_of(head, h_cal, e_cal)
+    before = figures(eps, dx)
+    scale = C.fit_scale(eps, dx, settings.scale_target)
+    head.scale.fill_(scale)
+    after = figures(eps / scale, dx)
+    info = {
+        "fitted_on": {
+            "head": {"role": "val", "index": HEAD_INDEX, "seed": seed, "trajectories": settings.head_trajectories},
+            "calibration": {"role": "val", "index": CALIBRATION_INDEX, "seed": seed, "kept": n_cal},
+            "horizon": s.horizon,
+            "warmup": warmup,
+            "context": est.context,
+        },
+        "settings": asdict(settings),
+        "nll_history": history,
+        "calibration": {"scale": scale, "target": settings.scale_target, "before": before, "after": after},
+        "seconds": round(time.time() - t0, 1),
+    }
+    return head, info

@@ -1,0 +1,82 @@
+#!/usr/bin/env python3
+"""Fit a covariance head (and its calibration scale) for every shipped model, resumably.
+
+For each (scenario, method) of the shipped zoo (neural_estimator/zoo/<scenario>-<method>/) whose card
+has no ``covariance_head`` yet (or every one with --force), fit a Gaussian head on the model's frozen
+trunk on validation data (neural_estimator.uncertainty.fit), write ``covariance_head.safetensors``
+beside the weights and add the card's ``covariance_head`` entry. The weights and the estimate are
+untouched. One pair at a time; a pair already done is skipped, so an interrupted run continues.
+
+    OMP_NUM_THREADS=1 python scripts/fit_covariance_heads.py --scenarios bearings lorenz96 nlink
+    python scripts/fit_covariance_heads.py --scenarios ballistic --methods gru --force
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import torch
+
+from neural_estimator.estimator import NEURAL_METHODS
+from neural_estimator.models.card import CARD_FILE, read_card, write_json
+from neural_estimator.models.serving import default_checkpoint, load_neural_estimator
+from neural_estimator.scenarios import scenario_from_description
+from neural_estimator.uncertainty.fit import FitSettings, fit_covariance_head
+from neural_estimator.uncertainty.heads import save_head
+
+SCENARIOS = ("bearings", "lorenz96", "nlink", "ballistic", "quadrotor")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS[:3]), choices=SCENARIOS)
+    ap.add_argument("--methods", nargs="+", default=list(NEURAL_METHODS), choices=NEURAL_METHODS)
+    ap.add_argument("--force", action="store_true", help="refit pairs that already have a head")
+    ap.add_argument("--head-trajectories", type=int, default=FitSettings.head_trajectories)
+    ap.add_argument("--calibration-trajectories", type=int, default=FitSettings.calibration_trajectories)
+    ap.add_argument("--steps", type=int, default=FitSettings.steps)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    settings = FitSettings(
+        head_trajectories=args.head_trajectories,
+        calibration_trajectories=args.calibration_trajectories,
+        steps=args.steps,
+    )
+    for scenario_name in args.scenarios:
+        for method in args.methods:
+            directory = default_checkpoint(scenario_name, method)
+            if not (directory / CARD_FILE).is_file():
+                print(f"{scenario_name}-{method}: no shipped model, skipped", flush=True)
+                continue
+            _, card = read_card(directory)
+            if card.get("covariance_head") and not args.force:
+                print(f"{scenario_name}-{method}: has a covariance head, skipped", flush=True)
+                continue
+            t0 = time.time()
+            print(f"{scenario_name}-{method}: fitting", flush=True)
+            scenario = scenario_from_description(card["scenario"])
+            est = load_neural_estimator(method, scenario, directory, covariance=False)
+            head, info = fit_covariance_head(est, settings, log=lambda m: print(m, flush=True))
+            entry = save_head(directory, head, info)
+            _, card = read_card(directory)  # re-read: write only our entry
+            card["covariance_head"] = entry
+            write_json(directory / CARD_FILE, card)
+            cal = info["calibration"]
+            print(
+                f"{scenario_name}-{method}: scale {cal['scale']:.3g}; calibration set before "
+                f"{_fmt(cal['before'])}; after {_fmt(cal['after'])} ({time.time() - t0:.0f} s)",
+                flush=True,
+            )
+    return 0
+
+
+def _fmt(f: dict) -> str:
+    return (
+        f"cov95 {f['coverage95']:.3f}, NEES mean/dx {f['nees_mean_per_dim']:.2f}, med/dx {f['nees_median_per_dim']:.2f}"
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,240 @@
+"""Covariance heads, consistency metrics and calibration (neural_estimator.uncertainty)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neural_estimator import metrics as M
+from neural_estimator.models import build_model
+from neural_estimator import consistency as C
+from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+NAMES = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
+
+
+# ---- consistency metrics against a Gaussian simulation whose coverage is known ----------------------
+def _gaussian_nees(n: int, dx: int, claimed_factor: float, seed: int = 0) -> np.ndarray:
+    """NEES of errors drawn from N(0, P) with a random SPD P, judged under claimed_factor * P."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(dx, dx))
+    P = A @ A.T + 0.5 * np.eye(dx)
+    e = rng.normal(size=(n, dx)) @ np.linalg.cholesky(P).T
+    return M.nees(e[None], np.broadcast_to(claimed_factor * P, (1, n, dx, dx)))[0]
+
+
+def test_coverage_of_a_consistent_covariance_is_each_nominal_level():
+    eps = _gaussian_nees(40_000, 4, 1.0)
+    curve = C.coverage_curve(eps, 4)
+    # binomial standard error at n = 40000 is <= 0.0025: 0.01 is four of them
+    np.testing.assert_allclose(curve, C.RELIABILITY_LEVELS, atol=0.01)
+    assert C.calibration_error(curve) < 0.01
+    assert abs(eps.mean() / 4 - 1) < 0.03
+
+
+def test_coverage_matches_a_slow_reference_count():
+    """The chi-square bound against counting, level by level, with scipy's own chi2.ppf."""
+    from scipy.stats import chi2
+
+    eps = _gaussian_nees(3_000, 3, 0.7, seed=2)
+    curve = C.coverage_curve(eps, 3)
+    for q, c in zip(C.RELIABILITY_LEVELS, curve):
+        bound = chi2.ppf(q, 3)
+        assert c == sum(1 for v in eps if v <= bound) / len(eps)
+
+
+@pytest.mark.parametrize("factor", [0.25, 4.0])
+def test_a_mis_scaled_covariance_is_caught_and_its_scale_recovered(factor):
+    eps = _gaussian_nees(40_000, 5, factor)
+    curve = C.coverage_curve(eps, 5)
+    if factor < 1:  # over-confident: the truth falls outside more often than claimed
+        assert curve[C.RELIABILITY_LEVELS.index(0.95)] < 0.7
+        assert C.verdict(eps.mean() / 5, curve[-2]) == "over-confident"
+    else:
+        assert curve[C.RELIABILITY_LEVELS.index(0.95)] > 0.999
+        assert C.verdict(eps.mean() / 5, curve[-2]) == "too wide"
+    for target in C.SCALE_TARGETS:
+        s = C.fit_scale(eps, 5, target)
+        assert s == pytest.approx(1.0 / factor, rel=0.04)
+        rescaled = C.coverage_curve(eps / s, 5)
+        np.testing.assert_allclose(rescaled, C.RELIABILITY_LEVELS, atol=0.015)
+
+
+def test_degenerate_covariances_count_as_not_covered():
+    eps = np.array([1.0, 2.0, np.inf, np.inf])
+    assert C.coverage_curve(eps, 2, [0.99])[0] == 0.5
+    assert C.fit_scale(eps[:2], 2, "mean") == pytest.approx(0.75)
+    with pytest.raises(C.ConsistencyError, match="levels"):
+        C.coverage_curve(eps, 2, [1.0])
+    with pytest.raises(C.ConsistencyError, match="target"):
+        C.fit_scale(eps, 2, "median")
+
+
+def test_verdict_bands_and_the_table():
+    assert C.verdict(1.0, 0.95) == "consistent"
+    assert C.verdict(3.0, 0.80) == "over-confident"
+    assert C.verdict(0.1, 1.00) == "too wide"
+    assert C.verdict(2.0, 0.99) == "mixed"
+    assert C.verdict(None, None) == "—"
+    rows = {
+        "ekf": C.consistency_row({"nees_median": 9.3, "nees": 10.2, "coverage95": 0.95}, 10, C.RELIABILITY_LEVELS),
+        "gru": C.consistency_row({"nees_median": None, "nees": None, "coverage95": None}, 10),
+    }
+    assert rows["ekf"]["nees_mean_per_dim"] == pytest.approx(1.02) and rows["ekf"]["calibration_error"] == 0.0
+    table = C.format_consistency_table(rows, 10)
+    assert "| ekf | 0.93 | 1.02 | 0.950 | 0.000 | consistent |" in table
+    assert "| gru | — | — | — | — | — |" in table
+
+
+# ---- the head -------------------------------------------------------------------------------------------
+def test_cholesky_head_covariance_and_nll_against_torch_distributions():
+    torch.manual_seed(0)
+    head = CholeskyHead(7, 4).double()
+    with torch.no_grad():
+        head.linear.weight.normal_(0, 0.3)
+        head.linear.bias.normal_(0, 0.3)
+        head.unit.copy_(torch.tensor([1.0, 2.0, 0.5, 3.0]))
+    h, e = torch.randn(50, 7, dtype=torch.float64), torch.randn(50, 4, dtype=torch.float64)
+    cov = head(h)
+    assert torch.allclose(cov, cov.transpose(-1, -2)) and torch.linalg.eigvalsh(cov).min() > 0
+    mvn = torch.distributions.MultivariateNormal(torch.zeros(4, dtype=torch.float64), covariance_matrix=cov)
+    nll_ref = -mvn.log_prob(e).mean() - 2 * math.log(2 * math.pi)  # the head leaves out (dx / 2) log 2 pi
+    with torch.no_grad():
+        nll = float(head.nll(h, e))
+    assert nll == pytest.approx(float(nll_ref), rel=1e-9)
+    head.scale.fill_(3.0)
+    assert torch.allclose(head(h), 3.0 * cov)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gaussian_model_keeps_the_estimate_and_steps_as_it_runs(name):
+    """forward_with_cov's mean is the trunk's forward bit for bit; a loop of step_with_cov equals it."""
+    torch.manual_seed(0)
+    trunk = build_model(name, 5, 3, **({"decode_chunk": 16} if name == "gpt2" else {})).eval()
+    head = CholeskyHead(trunk.features(torch.zeros(1, 1, 5)).shape[-1], 3)
+    with torch.no_grad():
+        head.linear.weight.normal_(0, 0.2)
+    gm = GaussianModel(trunk, head).eval()
+    z = torch.randn(2, 40, 5)
+    with torch.inference_mode():
+        mean, cov = gm.forward_with_cov(z)
+        assert torch.equal(mean, trunk(z))
+        state, ms, cs = gm.init_state(2), [], []
+        for t in range(z.shape[1]):
+            m, c, state = gm.step_with_cov(z[:, t], state)
+            ms.append(m)
+            cs.append(c)
+    torch.testing.assert_close(torch.stack(ms, 1), mean, rtol=0, atol=2e-5)
+    torch.testing.assert_close(torch.stack(cs, 1), cov, rtol=1e-4, atol=1e-5)
+    assert gm.cfg is trunk.cfg  # everything else comes from the trunk
+
+
+def _estimator_with_head(tmp_path, method="gru", **kwargs):
+    """A tiny untrained model of ``method`` for nlink saved as a checkpoint with a covariance head."""
+    from neural_estimator.data import simulate
+    from neural_estimator.models.card import CARD_FILE, read_card, write_json
+    from neural_estimator.models.checkpoint import save_checkpoint
+    from neural_estimator.models.normalization import Normalizer
+    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scenario = make_scenario("nlink")
+    data = simulate(scenario, 3, 30, seed=3)
+    norm = Normalizer.from_data(scenario, data)
+    torch.manual_seed(0)
+    model = build_model(method, norm.d_in, scenario.dx)
+    save_checkpoint(tmp_path, model, norm, {"scenario": scenario.describe()})
+    head = CholeskyHead(model.features(torch.zeros(1, 1, norm.d_in)).shape[-1], scenario.dx)
+    with torch.no_grad():
+        head.linear.weight.normal_(0, 0.2)
+    _, card = read_card(tmp_path)
+    plain = load_neural_estimator(method, scenario, tmp_path, **kwargs)
+    card["covariance_head"] = save_head(tmp_path, head, {"calibration": {"scale": 1.0}})
+    write_json(tmp_path / CARD_FILE, card)
+    return scenario, data, plain, load_neural_estimator(method, scenario, tmp_path, **kwargs)
+
+
+@pytest.mark.parametrize(
+    "method,kwargs", [("gru", {}), ("gru", {"context": 8, "context_copies": 2}), ("filterformer", {})]
+)
+def test_estimator_with_a_head_reports_covariance_in_step_and_run(tmp_path, method, kwargs):
+    """A card with a head serves its covariance (bounded context included); run equals a loop of
+    step for the covariance too; the estimate is the model's without the head, bit for bit."""
+    scenario, data, plain, est = _estimator_with_head(tmp_path, method, **kwargs)
+    assert est.has_covariance
+    whole = est.run(data.y, data.u)
+    assert np.array_equal(whole.x, plain.run(data.y, data.u).x)
+    assert whole.cov.shape == data.x.shape + (scenario.dx,)
+    assert np.linalg.eigvalsh(whole.cov).min() > 0
+    est.reset(3)
+    xs, covs = [], []
+    for t in range(data.y.shape[1]):
+        xs.append(est.step(data.y[:, t], data.u[:, t - 1] if t else None))
+        covs.append(est.covariance)
+    np.testing.assert_allclose(np.stack(xs, 1), whole.x, rtol=0, atol=1e-4 * np.abs(whole.x).max())
+    np.testing.assert_allclose(np.stack(covs, 1), whole.cov, rtol=1e-3, atol=1e-6 * np.abs(whole.cov).max())
+
+
+def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_path):
+    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.models.card import CARD_FILE
+    from neural_estimator.models.serving import load_neural_estimator
+
+    scenario, data, plain, est = _estimator_with_head(tmp_path)
+    assert not plain.has_covariance and plain.run(data.y, data.u).cov is None
+    assert not load_neural_estimator("gru", scenario, tmp_path, covariance=False).has_covariance
+    (tmp_path / "covariance_head.safetensors").write_bytes(b"not a head")
+    with pytest.raises(EstimatorError, match="sha256"):
+        load_neural_estimator("gru", scenario, tmp_path)
+    card = json.loads((tmp_path / CARD_FILE).read_text())
+    with pytest.raises(HeadError, match="inside the checkpoint"):
+        load_head(tmp_path, {**card["covariance_head"], "file": "../x"}, scenario.dx)
+
+
+# ---- calibration of any method: cov_scale ------------------------------------------------------------
+def test_cov_scale_multiplies_the_reported_covariance_of_a_filter_in_step_and_run():
+    from neural_estimator.data import simulate
+    from neural_estimator.estimators import EstimatorError, make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scenario = make_scenario("ballistic")
+    data = simulate(scenario, 2, 12, seed=1)
+    plain, scaled = make_estimator("ekf", scenario), make_estimator("ekf", scenario, cov_scale="2.5")
+    a, b = plain.run(data.y, data.u), scaled.run(data.y, data.u)
+    assert np.array_equal(a.x, b.x)
+    np.testing.assert_allclose(b.cov, 2.5 * a.cov, rtol=1e-15)
+    scaled.reset(2)
+    for t in range(12):
+        scaled.step(data.y[:, t], data.u[:, t - 1] if t else None)
+    np.testing.assert_allclose(scaled.covariance, b.cov[:, -1], rtol=1e-15)
+    with pytest.raises(EstimatorError, match="cov_scale must be a finite number > 0"):
+        make_estimator("pf", scenario, cov_scale=0)
+
+
+def test_evaluate_reports_a_consistency_table_and_the_reliability_curve():
+    from neural_estimator.evaluation import consistency_table, evaluate
+    from neural_estimator.scenarios import make_scenario
+
+    scenario = make_scenario("ballistic")
+    results = evaluate(
+        scenario,
+        ["ekf"],
+        trajectories=6,
+        horizon=30,
+        seed=777,
+        sets=1,
+        cache_dir=False,
+        progress=False,
+        options={"ekf": {"cov_scale": 100.0}},
+    )
+    rep = results["ekf"].reports[0]
+    assert len(rep.coverage_curve) == len(C.RELIABILITY_LEVELS)
+    assert rep.coverage_curve[C.RELIABILITY_LEVELS.index(0.95)] == pytest.approx(rep.coverage95)
+    table = consistency_table(results, scenario.dx)
+    assert "| ekf |" in table and "too wide" in table  # a covariance 100 times too large
