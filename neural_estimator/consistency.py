@@ -140,9 +140,10 @@ def consistency_row(summary: Mapping[str, Any], dx: int, curve: Sequence[float] 
     return row
 
 
-def format_consistency_table(rows: Mapping[str, Mapping[str, Any]], dx: int, fmt: str = "markdown") -> str:
+def format_consistency_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown") -> str:
     """The consistency table beside the accuracy table: NEES med./dx, NEES mean/dx, 95 % coverage,
-    calibration error (mean |coverage(q) - q| over :data:`RELIABILITY_LEVELS`) and the verdict."""
+    calibration error (mean |coverage(q) - q| over :data:`RELIABILITY_LEVELS`) and the verdict, one
+    row per method of ``rows`` ({method: :func:`consistency_row`})."""
     header = ["Method", "NEES med./dx", "NEES mean/dx", "95% cov.", "Cal. err.", "Verdict"]
 
     def num(v: float | None, dec: int) -> str:

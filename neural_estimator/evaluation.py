@@ -627,4 +627,4 @@ def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "
         rows[m] = C.consistency_row(r.summary, dx, curve)
     if not rows:
         return None
-    return C.format_consistency_table(rows, dx, fmt=fmt)
+    return C.format_consistency_table(rows, fmt=fmt)

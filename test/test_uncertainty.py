@@ -87,7 +87,7 @@ def test_verdict_bands_and_the_table():
         "gru": C.consistency_row({"nees_median": None, "nees": None, "coverage95": None}, 10),
     }
     assert rows["ekf"]["nees_mean_per_dim"] == pytest.approx(1.02) and rows["ekf"]["calibration_error"] == 0.0
-    table = C.format_consistency_table(rows, 10)
+    table = C.format_consistency_table(rows)
     assert "| ekf | 0.93 | 1.02 | 0.950 | 0.000 | consistent |" in table
     assert "| gru | — | — | — | — | — |" in table
 
@@ -238,3 +238,21 @@ def test_evaluate_reports_a_consistency_table_and_the_reliability_curve():
     assert rep.coverage_curve[C.RELIABILITY_LEVELS.index(0.95)] == pytest.approx(rep.coverage95)
     table = consistency_table(results, scenario.dx)
     assert "| ekf |" in table and "too wide" in table  # a covariance 100 times too large
+
+
+def test_the_live_path_publishes_the_heads_covariance(tmp_path):
+    """The node's per-message path (OnlineEstimator) of a neural model with a head carries its
+    covariance in every result and builds the covariance message (no 'not estimated' diagonal)."""
+    from neural_estimator.bags import messages as BM
+    from neural_estimator.replay import OnlineEstimator
+
+    scenario, data, plain, est = _estimator_with_head(tmp_path)
+    online = OnlineEstimator(est, "gru")
+    assert online.publish_covariance and not OnlineEstimator(plain, "gru").publish_covariance
+    codec = BM.VectorCodec(scenario.name, BM.observation_labels(scenario))
+    est_ref = est.run(data.y[:1, :5], data.u[:1, :5])
+    for k in range(5):
+        u_prev = data.u[0, k - 1] if k else np.zeros(scenario.du)
+        (res,) = online.feed(codec.encode(1000 + k, 0, k, np.concatenate([data.y[0, k], u_prev])))
+        assert res.status == "estimated" and res.covariance is not None
+        np.testing.assert_allclose(res.P, est_ref.cov[0, k], rtol=1e-3, atol=1e-7)
