@@ -256,3 +256,19 @@ def test_the_live_path_publishes_the_heads_covariance(tmp_path):
         (res,) = online.feed(codec.encode(1000 + k, 0, k, np.concatenate([data.y[0, k], u_prev])))
         assert res.status == "estimated" and res.covariance is not None
         np.testing.assert_allclose(res.P, est_ref.cov[0, k], rtol=1e-3, atol=1e-7)
+
+
+def test_the_reproduce_report_has_the_consistency_table():
+    from neural_estimator.reproduce import report as R
+
+    summ = {
+        "lorenz96": {
+            "ekf": M.summarize([{"nees_median": 9.3, "nees": 10.1, "coverage95": 0.95}]),
+            "gru": M.summarize([{"nees_median": None, "nees": None, "coverage95": None}]),
+            "pf": M.summarize([{"nees_median": 900.0, "nees": 1e6, "coverage95": 0.01}]),
+        }
+    }
+    lines = R.consistency_table(summ, ["lorenz96"], ["ekf", "gru", "pf"], {"lorenz96": 10})
+    assert lines[0].startswith("| Method | lorenz96 NEES mean/dx | lorenz96 verdict |")
+    assert "| EKF | 1.01 | consistent |" in lines and "| PF | 100,000.0 | over-confident |" in lines
+    assert not any(line.startswith("| GRU") for line in lines)  # no covariance: no row

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from neural_estimator import consistency as CONSISTENCY
 from neural_estimator import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.reproduce import report as R
@@ -330,6 +331,12 @@ def write_report(
         "",
     ]
     L += R.covariance_table(summ, scen, meth) + [""]
+    L += [
+        "Mean NEES per state dimension and the verdict (consistent: 95 % coverage in "
+        f"{list(CONSISTENCY.COVERAGE_BAND)} and mean NEES/dx in {list(CONSISTENCY.NEES_BAND)}; docs/uncertainty.md):",
+        "",
+    ]
+    L += R.consistency_table(summ, scen, meth, {s: make_scenario(s).dx for s in scen}) + [""]
     L += ["## RMSE over time (paper: Appendix figures rmse_time_*)", ""]
     for s in scen:
         curves = {m: [_floats(r["rmse_t"]) for r in acc[s][m] if r.get("rmse_t")] for m in meth}
