@@ -98,10 +98,18 @@ def tiny_config(cache, **kw):
     return TrainConfig(**base)
 
 
-def estimator_for(scenario, arch, data, seed=0):
+def estimator_for(scenario, arch, data, seed=0, head=False):
+    """A freshly initialised model of ``arch``; ``head``: with a random covariance head on its trunk."""
     torch.manual_seed(seed)
     norm = Normalizer.from_data(scenario, data)
     model = build_model(arch, norm.d_in, scenario.dx)
+    if head:
+        from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+
+        cov_head = CholeskyHead(model.features(torch.zeros(1, 1, norm.d_in)).shape[-1], scenario.dx)
+        with torch.no_grad():
+            cov_head.linear.weight.normal_(0.0, 0.1)
+        model = GaussianModel(model, cov_head)
     return NeuralEstimator(scenario, model, norm, arch)
 
 
@@ -145,10 +153,11 @@ def test_normalizer_floor_and_unusable_observations():
 
 
 # ---- the estimator: run equals a loop of step, past the training length -----------------------------
+@pytest.mark.parametrize("head", [False, True], ids=["own", "covariance-head"])
 @pytest.mark.parametrize("arch", ARCHS)
-def test_run_equals_step_loop(arch, spinner):
+def test_run_equals_step_loop(arch, spinner, head):
     data = simulate(spinner, 6, 300, seed=1)
-    est = estimator_for(spinner, arch, data)
+    est = estimator_for(spinner, arch, data, head=head)
     Y = data.y[:3].copy()
     Y[1, 40] = np.nan  # an unusable observation: the training mean in its place, in both forms
     out = est.run(Y, data.u[:3])
@@ -165,7 +174,7 @@ def test_run_equals_step_loop(arch, spinner):
             covs.append(est.covariance)
     assert np.abs(out.x - np.stack(xs, 1)).max() <= TOL
     assert np.all(np.abs(out.x[..., 0]) <= np.pi)  # the angle comes out wrapped
-    assert est.has_covariance == (arch == "filterformer")
+    assert est.has_covariance == (head or arch == "filterformer")
     if est.has_covariance:
         assert out.cov.shape == (3, 300, 2, 2)
         assert np.abs(out.cov - np.stack(covs, 1)).max() <= TOL * max(1.0, np.abs(out.cov).max())
@@ -864,6 +873,8 @@ def test_training_caps_trajectories_at_the_scenarios_longest_informative_length(
 
     quad = make_scenario("quadrotor", horizon=40)  # the quadrotor's limit is its horizon
     assert quad.longest_training_trajectory == 40 and make_scenario("lorenz96").longest_training_trajectory is None
-    out = train(quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False)
+    out = train(
+        quad, "gru", tmp_path / "q", tiny_config(tmp_path / "cache", epochs=1, eval_trajectories=3), progress=False
+    )
     card = json.loads((out / "card.json").read_text())
     assert card["data"]["train_length"] == 40 and card["training"]["recipe"]["train_length"] == 40
