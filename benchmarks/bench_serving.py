@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     from neural_estimator.data import simulate
     from neural_estimator.models import count_parameters
-    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.serving.load import load_neural_estimator
     from neural_estimator.scenarios import make_scenario
 
     load0 = os.getloadavg()[0]

@@ -1,6 +1,6 @@
 """Training throughput of the six architectures: windows per second at the paper's batch and window.
 
-One training step is what :func:`neural_estimator.models.training.train` does per batch: forward a
+One training step is what :func:`neural_estimator.training.loop.train` does per batch: forward a
 (64, 100, d_in) batch, the weighted MSE on (64, 100, d_out), backward, gradient clipping at 1.0 and
 an AdamW step. Inputs are random (throughput does not depend on the data); the default widths are
 Lorenz 96's (d_in = d_out = 40), the largest of the paper's five systems. Also measured: the
@@ -43,8 +43,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.dropout import Dropout
-from neural_estimator.models.neural import resolve_device
-from neural_estimator.models.training import weighted_loss
+from neural_estimator.serving.neural import resolve_device
+from neural_estimator.training.loss import weighted_loss
 from neural_estimator.runtime import tune_allocator
 
 EPOCH_WINDOWS = 20_000  # windows per epoch at 20:1 (protocol.windows_per_epoch)

@@ -20,7 +20,7 @@ model two ways on evaluation set 0 and prints the RMSE per segment of the horizo
 
 The same bounding is the neural estimators' ``context`` option (``--option mamba2.context=100`` on
 evaluate / replay, ``options:=['context=100']`` on the estimator node; off by default, see
-:mod:`neural_estimator.models.context`); this script runs it on any weights, e.g. a run's last epoch.
+:mod:`neural_estimator.serving.context`); this script runs it on any weights, e.g. a run's last epoch.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from neural_estimator.angles import wrap_components
 from neural_estimator.data import evaluation_sets
 from neural_estimator.estimator import previous_controls
 from neural_estimator.metrics import rmse_over_time
-from neural_estimator.models.checkpoint import load_checkpoint
-from neural_estimator.models.context import bounded_forward
+from neural_estimator.serving.checkpoint import load_checkpoint
+from neural_estimator.serving.context import bounded_forward
 from neural_estimator.scenarios import make_scenario
 
 

@@ -12,12 +12,16 @@ every import of the package against this list):
 2. ``scenarios``: the five nonlinear systems (pure numpy)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
-5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2), ``uncertainty``
-6. ``estimators``: the registry (``make_estimator``)
-7. ``bags``, ``evaluation``, ``replay``, ``robot``, ``departures``: MCAP I/O, the evaluation protocol, bag
-   replay, recorded robot data, the marks of departures from the paper's protocol
-8. ``reproduce``: the paper's experiments on Ray
-9. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
+5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (the six architectures: GRU, LSTM, GPT-2, Filterformer,
+   Mamba, Mamba-2)
+6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo);
+   ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
+7. ``registry``: every method by name (``make_estimator``)
+8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``, ``departures``: the
+   training run, MCAP I/O, the evaluation protocol, the per-message estimator, bag replay, recorded
+   robot data, the marks of departures from the paper's protocol
+9. ``reproduce``: the paper's experiments on Ray
+10. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
 """
 
 __version__ = "0.1.0"

@@ -1,7 +1,7 @@
 """The estimator interface shared by the ten methods (the bottom of the estimator layers).
 
 The classical filters (:mod:`neural_estimator.filters`) and the neural models
-(:mod:`neural_estimator.models`) implement :class:`Estimator`; :mod:`neural_estimator.estimators`
+(:mod:`neural_estimator.models`) implement :class:`Estimator`; :mod:`neural_estimator.registry`
 above them is the registry that builds any of the ten by name.
 
 Contract (every method, classical or neural):

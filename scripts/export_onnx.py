@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neural_estimator.estimator import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step  # noqa: E402
-from neural_estimator.models.serving import load_neural_estimator  # noqa: E402
+from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E402
 
 

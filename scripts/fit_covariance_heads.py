@@ -20,8 +20,8 @@ import time
 import torch
 
 from neural_estimator.estimator import NEURAL_METHODS
-from neural_estimator.models.card import CARD_FILE, read_card, write_json
-from neural_estimator.models.serving import default_checkpoint, load_neural_estimator
+from neural_estimator.serving.card import CARD_FILE, read_card, write_json
+from neural_estimator.serving.load import default_checkpoint, load_neural_estimator
 from neural_estimator.scenarios import scenario_from_description
 from neural_estimator.uncertainty.fit import FitSettings, calibrate_head, fit_covariance_head
 from neural_estimator.uncertainty.heads import load_head, save_head

@@ -1,6 +1,6 @@
 """Train the shipped model zoo with the paper's recipe, resumably, across as many runs as it takes.
 
-Recipe (neural_estimator.models.training.TrainConfig defaults = the paper's): data ratio 20:1 (4,000
+Recipe (neural_estimator.training.recipe.TrainConfig defaults = the paper's): data ratio 20:1 (4,000
 training trajectories x 500 steps), 20,000 random length-100 windows per epoch in batches of 64,
 AdamW lr 2e-3 (weight decay 1e-5, clip 1.0), ReduceLROnPlateau factor 0.5 / patience 3, early
 stopping patience 30, at most 500 epochs. One deviation, for CPU time: the validation set is
@@ -37,7 +37,7 @@ skips the comparison.
 The plateau rule (a stated budget, on by default; --plateau-epochs 0 turns it off): a model is finished
 once its learning rate has been reduced at least 3 times and its last --plateau-epochs (N = 10) epochs
 did not lower the validation loss by --plateau-tol (1 %) against the N epochs before them
-(models.training.plateau_rule). The paper waits 30 epochs without a new best; on this CPU that is
+(training.stopping.plateau_rule). The paper waits 30 epochs without a new best; on this CPU that is
 40-50 minutes per model on a flat curve. Replayed on the full-recipe histories so far, the rule ends
 no run more than 1.1 % above its final best validation loss. Such a model is converged by the card's
 rule, and the card says which rule stopped it.
@@ -83,9 +83,12 @@ from pathlib import Path
 import torch
 
 from neural_estimator.data.protocol import SELECTION_INDEX, dataset
-from neural_estimator.models.checkpoint import load_checkpoint
-from neural_estimator.models.serving import validated_context
-from neural_estimator.models.training import RESUME_DIR, TrainConfig, evaluate, plateau_rule, train
+from neural_estimator.serving.checkpoint import load_checkpoint
+from neural_estimator.serving.load import validated_context
+from neural_estimator.training.loop import evaluate, train
+from neural_estimator.training.recipe import TrainConfig
+from neural_estimator.training.resume import RESUME_DIR
+from neural_estimator.training.stopping import plateau_rule
 from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, make_scenario
 

@@ -43,7 +43,7 @@ from std_msgs.msg import String
 
 from neural_estimator.bags import messages as M
 from neural_estimator.nodes.common import (
-    ManagedNode,
+    ExitStatusNode,
     StartupError,
     build_scenario,
     declare_params,
@@ -86,7 +86,7 @@ class SimulatorParams:
     publish_clock: bool = param(False, "publish /clock at each step's stamp (for nodes with use_sim_time:=true)")
 
 
-class SimulatorNode(ManagedNode):
+class SimulatorNode(ExitStatusNode):
     def __init__(self) -> None:
         super().__init__("simulator")
         self.p = p = declare_params(self, SimulatorParams)

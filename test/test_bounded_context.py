@@ -1,4 +1,4 @@
-"""Bounded context (neural_estimator.models.context, the estimators' context option) and
+"""Bounded context (neural_estimator.serving.context, the estimators' context option) and
 benchmarks/bounded_context.py."""
 
 import pytest
@@ -8,9 +8,9 @@ from conftest import load_script
 import numpy as np
 
 from neural_estimator.estimator import EstimatorError
-from neural_estimator.estimators import make_estimator
+from neural_estimator.registry import make_estimator
 from neural_estimator.models import build_model
-from neural_estimator.models.context import bounded_forward, restart_of
+from neural_estimator.serving.context import bounded_forward, restart_of
 from neural_estimator.scenarios import make_scenario
 
 
@@ -64,8 +64,8 @@ def test_the_context_option_of_an_attention_model_is_its_window(method, key):
     """context=L serves the same weights with attention window L: equal to a model built with that
     window, step equal to run, and different from the paper's window of 256 past step L."""
     from neural_estimator.data import simulate
-    from neural_estimator.models.normalization import Normalizer
-    from neural_estimator.models.neural import NeuralEstimator
+    from neural_estimator.serving.normalization import Normalizer
+    from neural_estimator.serving.neural import NeuralEstimator
 
     scenario = make_scenario("nlink")
     data = simulate(scenario, 2, 40, seed=7)

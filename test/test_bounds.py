@@ -23,7 +23,7 @@ def _bag_with(path, scen, extra, *, announce=True, N=2, T=6):
     arrays_to_bag(path, scen, data.x, data.y, data.u, estimates={"ekf": data.x})
     if not extra and announce:
         return path
-    from neural_estimator.bags.reader import open_bag
+    from neural_estimator.bags.directory import open_bag
 
     with open_bag(path) as bag:
         msgs = [(c.topic, t, bytes(raw)) for c, t, raw in bag.messages()]
@@ -221,7 +221,7 @@ def test_a_rosbag2_directory_listing_more_files_than_can_be_open_is_one_line(tmp
 
     import yaml
 
-    from neural_estimator.bags.reader import open_bag
+    from neural_estimator.bags.directory import open_bag
 
     bag = tmp_path / "many"
     bag.mkdir()
@@ -249,7 +249,7 @@ def _card(tmp_path, edit):
     import json
     import shutil
 
-    from neural_estimator.models.serving import default_checkpoint
+    from neural_estimator.serving.load import default_checkpoint
 
     src = default_checkpoint("bearings", "gru")
     dst = tmp_path / "ckpt"
@@ -275,7 +275,7 @@ def test_a_corrupt_card_is_one_line(tmp_path, edit, text):
     hung the size check for over 300 s (200,000 modules built on the meta device)."""
     import time
 
-    from neural_estimator.estimators import EstimatorError, make_estimator
+    from neural_estimator.registry import EstimatorError, make_estimator
 
     ckpt = _card(tmp_path, edit)
     t0 = time.monotonic()

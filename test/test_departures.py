@@ -178,7 +178,8 @@ def _fake_run(tmp_path, init="prior"):
     pytest.importorskip("ray")
     from neural_estimator.reproduce.engine import Outcome
     from neural_estimator.reproduce.jobs import Job
-    from neural_estimator.reproduce.run import Settings, write_report
+    from neural_estimator.reproduce.report import write_report
+    from neural_estimator.reproduce.settings import Settings
     from neural_estimator.reproduce.scales import get_scale
 
     rng = np.random.default_rng(5)
@@ -269,7 +270,7 @@ def test_plan_and_jobs_time_both_modes(tmp_path, monkeypatch):
     ]
     assert "mode" not in Job("runtime", "ballistic", "ekf").to_json()  # step mode's keys are unchanged
 
-    import neural_estimator.estimators as E
+    import neural_estimator.registry as E
 
     real, calls = E.make_estimator, {"run": 0, "step": 0}
 

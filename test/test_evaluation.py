@@ -8,7 +8,7 @@ import pytest
 
 from neural_estimator.cli import main
 from neural_estimator.data import simulate
-from neural_estimator.estimators import make_estimator
+from neural_estimator.registry import make_estimator
 from neural_estimator.evaluation import chunk_size, evaluate, results_json, results_table, run_method
 from neural_estimator.scenarios import make_scenario
 
@@ -232,7 +232,7 @@ def test_stepwise_run_equals_run_and_reports_every_step(oscillator, method):
 
 
 def _count_builds(monkeypatch):
-    import neural_estimator.evaluation as ev
+    import neural_estimator.evaluation.protocol as ev
 
     built = []
     real = ev.make_estimator
@@ -293,7 +293,7 @@ def test_cached_runs_are_reused_and_keyed(oscillator, tmp_path, monkeypatch):
 
 
 def test_interrupted_evaluate_resumes_from_finished_runs(tmp_path, capsys, monkeypatch):
-    import neural_estimator.evaluation as ev
+    import neural_estimator.evaluation.protocol as ev
 
     out = tmp_path / "ev"
     args = [

@@ -2,7 +2,7 @@
 
 import pytest
 
-from neural_estimator.data.recipe import TrainConfig
+from neural_estimator.training.recipe import TrainConfig
 from conftest import load_script
 
 

@@ -11,7 +11,7 @@ pytest.importorskip("onnx")
 from neural_estimator.data import simulate  # noqa: E402
 from neural_estimator.estimator import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import OrtStep, export_step  # noqa: E402
-from neural_estimator.models.serving import load_neural_estimator  # noqa: E402
+from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
-from neural_estimator.estimators import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET, scenario_class
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -238,7 +238,7 @@ def _copy_shipped(tmp_path: Path, edit) -> Path:
     import json
     import shutil
 
-    from neural_estimator.models.serving import default_checkpoint
+    from neural_estimator.serving.load import default_checkpoint
 
     src = default_checkpoint("lorenz96", "mamba")
     dst = tmp_path / "ckpt"
@@ -252,8 +252,8 @@ def _copy_shipped(tmp_path: Path, edit) -> Path:
 def test_a_card_declaring_a_huge_model_is_refused_before_allocation(tmp_path):
     import tracemalloc
 
-    from neural_estimator.estimators import EstimatorError
-    from neural_estimator.models.checkpoint import load_checkpoint
+    from neural_estimator.registry import EstimatorError
+    from neural_estimator.serving.checkpoint import load_checkpoint
 
     ckpt = _copy_shipped(tmp_path, lambda c: c["architecture"]["config"].update(d_model=200_000))
     with pytest.raises(EstimatorError):  # once untraced: the first meta-device build imports parts of torch
@@ -272,8 +272,8 @@ def test_a_card_declaring_a_huge_model_is_refused_before_allocation(tmp_path):
 
 @pytest.mark.parametrize("name", ["../../etc/passwd", "/etc/passwd", "..", "sub/model.safetensors", 7])
 def test_a_card_cannot_name_a_weight_file_outside_its_checkpoint(tmp_path, name):
-    from neural_estimator.estimators import EstimatorError
-    from neural_estimator.models.checkpoint import load_checkpoint
+    from neural_estimator.registry import EstimatorError
+    from neural_estimator.serving.checkpoint import load_checkpoint
 
     ckpt = _copy_shipped(tmp_path, lambda c: c["weights"].update(file=name))
     with pytest.raises(EstimatorError, match="must be a file name inside the checkpoint"):

@@ -13,13 +13,15 @@ import torch
 from safetensors.torch import load_file
 
 from neural_estimator.data import simulate
-from neural_estimator.estimators import EstimatorError, make_estimator
+from neural_estimator.registry import EstimatorError, make_estimator
 from neural_estimator.models import ARCHITECTURES, build_model
-from neural_estimator.models.checkpoint import save_checkpoint
-from neural_estimator.models.serving import load_neural_estimator
-from neural_estimator.models.neural import NeuralEstimator, resolve_device
-from neural_estimator.models.normalization import Normalizer
-from neural_estimator.models.training import TrainConfig, TrainingError, state_error, train, weighted_loss
+from neural_estimator.serving.checkpoint import save_checkpoint
+from neural_estimator.serving.load import load_neural_estimator
+from neural_estimator.serving.neural import NeuralEstimator, resolve_device
+from neural_estimator.serving.normalization import Normalizer
+from neural_estimator.training.loop import train
+from neural_estimator.training.loss import state_error, weighted_loss
+from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.scenarios import Scenario, make_scenario, register_scenario
 from conftest import load_script
 
@@ -121,7 +123,7 @@ def weights(path):
 def test_normalizer_round_trip_and_statistics(spinner):
     data = simulate(spinner, 20, 50, seed=0)
     norm = Normalizer.from_data(spinner, data)
-    from neural_estimator.estimators import previous_controls
+    from neural_estimator.registry import previous_controls
 
     z, skipped = norm.normalize_inputs(data.y, previous_controls(data.u))
     assert z.shape == (20, 50, 2) and not skipped.any()
@@ -311,7 +313,7 @@ def test_wrapped_and_weighted_loss():
 
 
 def test_loss_in_state_units_weighs_components_as_rmse_does():
-    from neural_estimator.models.training import component_weights
+    from neural_estimator.training.loss import component_weights
 
     std = np.array([20.0, 2.0, 0.01])
     assert component_weights("normalised", std, "cpu") is None
@@ -424,8 +426,8 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     """compile_step serves the same estimates (float32 round-off) through torch.compile."""
     from neural_estimator.data import simulate
     from neural_estimator.models import build_model
-    from neural_estimator.models.neural import NeuralEstimator
-    from neural_estimator.models.normalization import Normalizer
+    from neural_estimator.serving.neural import NeuralEstimator
+    from neural_estimator.serving.normalization import Normalizer
 
     data = simulate(oscillator, 8, 40, seed=0)
     norm = Normalizer.from_data(oscillator, data)
@@ -454,7 +456,7 @@ def test_val_context_recipe_is_checked_and_recorded_only_when_set():
 
 
 def test_val_context_validates_bounded_and_the_model_serves_bounded(tmp_path, spinner, monkeypatch):
-    import neural_estimator.models.training as training
+    import neural_estimator.training.loop as training
 
     calls = []
     real = training.bounded_forward
@@ -514,7 +516,7 @@ def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path
     import time
     from types import SimpleNamespace
 
-    import neural_estimator.models.training as training
+    import neural_estimator.training.loop as training
 
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
@@ -586,7 +588,7 @@ def test_train_zoo_finish_installs_an_unfinished_model_as_it_stands(tmp_path, mo
     import time
     from types import SimpleNamespace
 
-    import neural_estimator.models.training as training
+    import neural_estimator.training.loop as training
 
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()
@@ -615,7 +617,7 @@ def test_train_zoo_finish_installs_an_unfinished_model_as_it_stands(tmp_path, mo
 
 
 def test_converged_rule():
-    from neural_estimator.models.training import converged, lr_reductions
+    from neural_estimator.training.stopping import converged, lr_reductions
 
     hist = [{"lr": lr} for lr in (2e-3, 1e-3, 1e-3, 5e-4, 2.5e-4)]
     assert lr_reductions(hist, 2e-3) == 3 and converged(None, hist, 2e-3)
@@ -628,7 +630,7 @@ def _history(vals, lrs):
 
 
 def test_plateau_rule_stops_flat_curves_after_three_halvings_only():
-    from neural_estimator.models.training import plateau_rule
+    from neural_estimator.training.stopping import plateau_rule
 
     stop = plateau_rule(2e-3, epochs=4, tol=0.01)
     halved = [2e-3] * 2 + [1e-3] * 2 + [5e-4] * 2 + [2.5e-4] * 2  # 3 reductions within 8 epochs
@@ -809,7 +811,7 @@ def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
     best one, none lower) or >= 3 learning-rate reductions."""
     from pathlib import Path
 
-    from neural_estimator.models.training import converged, lr_reductions
+    from neural_estimator.training.stopping import converged, lr_reductions
 
     zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
     cards = sorted(zoo.glob("*/card.json"))

@@ -138,10 +138,10 @@ def test_gaussian_model_keeps_the_estimate_and_steps_as_it_runs(name):
 def _estimator_with_head(tmp_path, method="gru", **kwargs):
     """A tiny untrained model of ``method`` for nlink saved as a checkpoint with a covariance head."""
     from neural_estimator.data import simulate
-    from neural_estimator.models.card import CARD_FILE, read_card, write_json
-    from neural_estimator.models.checkpoint import save_checkpoint
-    from neural_estimator.models.normalization import Normalizer
-    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.serving.card import CARD_FILE, read_card, write_json
+    from neural_estimator.serving.checkpoint import save_checkpoint
+    from neural_estimator.serving.normalization import Normalizer
+    from neural_estimator.serving.load import load_neural_estimator
     from neural_estimator.scenarios import make_scenario
 
     scenario = make_scenario("nlink")
@@ -183,8 +183,8 @@ def test_estimator_with_a_head_reports_covariance_in_step_and_run(tmp_path, meth
 
 def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_path):
     from neural_estimator.estimator import EstimatorError
-    from neural_estimator.models.card import CARD_FILE
-    from neural_estimator.models.serving import load_neural_estimator
+    from neural_estimator.serving.card import CARD_FILE
+    from neural_estimator.serving.load import load_neural_estimator
 
     scenario, data, plain, est = _estimator_with_head(tmp_path)
     assert not plain.has_covariance and plain.run(data.y, data.u).cov is None
@@ -200,7 +200,7 @@ def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_pa
 # ---- calibration of any method: cov_scale ------------------------------------------------------------
 def test_cov_scale_multiplies_the_reported_covariance_of_a_filter_in_step_and_run():
     from neural_estimator.data import simulate
-    from neural_estimator.estimators import EstimatorError, make_estimator
+    from neural_estimator.registry import EstimatorError, make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scenario = make_scenario("ballistic")
@@ -244,7 +244,7 @@ def test_the_live_path_publishes_the_heads_covariance(tmp_path):
     """The node's per-message path (OnlineEstimator) of a neural model with a head carries its
     covariance in every result and builds the covariance message (no 'not estimated' diagonal)."""
     from neural_estimator.bags import messages as BM
-    from neural_estimator.replay import OnlineEstimator
+    from neural_estimator.online import OnlineEstimator
 
     scenario, data, plain, est = _estimator_with_head(tmp_path)
     online = OnlineEstimator(est, "gru")

@@ -9,7 +9,7 @@ import pytest
 
 from neural_estimator import metrics as M
 from neural_estimator.data import simulate
-from neural_estimator.estimators import EstimatorError, make_estimator
+from neural_estimator.registry import EstimatorError, make_estimator
 from neural_estimator.scenarios import make_scenario
 
 ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
@@ -43,7 +43,7 @@ def test_a_shipped_covariance_head_is_served_and_recorded_its_calibration(name):
 def _changed_constants(card: dict, scenario) -> list[str]:
     """Constants (evaluation-only ones aside) whose default differs from the card's (the
     calibration changed some scenarios after the zoo was trained)."""
-    from neural_estimator.models.serving import EVALUATION_CONSTANTS
+    from neural_estimator.serving.load import EVALUATION_CONSTANTS
 
     theirs, ours = card["scenario"]["config"], scenario.describe()["config"]
     return sorted(k for k in set(theirs) | set(ours) if k not in EVALUATION_CONSTANTS and theirs.get(k) != ours.get(k))
@@ -108,7 +108,7 @@ def test_shipped_model_loads_on_the_preset_its_card_names(name):
 
 def test_a_shipped_model_says_how_many_leading_steps_its_training_skipped():
     """The estimator node warns about them (a neural model's first estimates were never optimised)."""
-    from neural_estimator.estimators import make_estimator
+    from neural_estimator.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     est = make_estimator("mamba2", make_scenario("lorenz96"))

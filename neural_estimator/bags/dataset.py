@@ -17,7 +17,7 @@ import numpy as np
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
-from neural_estimator.bags.reader import open_bag
+from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, LATCHED_QOS, STREAM_QOS, BagWriter
 
 

@@ -533,10 +533,3 @@ def _string_map(buf: bytes | memoryview, pos: int) -> tuple[dict[str, str], int]
         v, p = _string(buf, p)
         out[k] = v
     return out, end
-
-
-def open_bag(path: str | Path, *, strict: bool = False):
-    """A reader for a ``.mcap`` file or a rosbag2 directory (see :mod:`~neural_estimator.bags.directory`)."""
-    from neural_estimator.bags.directory import open_bag as _open
-
-    return _open(path, strict=strict)

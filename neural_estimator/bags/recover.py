@@ -15,7 +15,8 @@ import warnings
 from pathlib import Path
 
 from neural_estimator.bags.errors import BagError, BagWarning
-from neural_estimator.bags.reader import BagDamage, open_bag
+from neural_estimator.bags.directory import open_bag
+from neural_estimator.bags.reader import BagDamage
 from neural_estimator.bags.writer import BagWriter, parse_qos_yaml
 
 

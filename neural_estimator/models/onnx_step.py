@@ -43,8 +43,8 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
     """The ONNX graph of ``model.step`` at batch 1, written to ``path`` when given.
 
     Without ``normalizer`` the graph is the network alone (z float32 in, mean float32 out). With the
-    checkpoint's :class:`~neural_estimator.models.normalization.Normalizer` it is the whole estimator
-    step of :class:`~neural_estimator.models.neural.NeuralEstimator`, in the same arithmetic::
+    checkpoint's :class:`~neural_estimator.serving.normalization.Normalizer` it is the whole estimator
+    step of :class:`~neural_estimator.serving.neural.NeuralEstimator`, in the same arithmetic::
 
         inputs:  y (1, dy) float64, u (1, du) float64 (absent when du = 0), state_0 ... state_{S-1}
         outputs: x (1, dx) float64 (denormalised, angles not yet wrapped), skipped (1, 1) bool

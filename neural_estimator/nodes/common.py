@@ -192,8 +192,9 @@ def build_scenario(name: str, assignments: tuple[str, ...], noise_scale: float |
 
 
 # ---- main ----------------------------------------------------------------------------------------------
-class ManagedNode(Node):
-    """What :func:`run_node` needs of a node, declared: an exit status and a clean-up hook.
+class ExitStatusNode(Node):
+    """What :func:`run_node` needs of a node, declared: an exit status and a clean-up hook (a plain
+    rclpy node, not a ROS 2 managed, that is lifecycle, node).
 
     ``exit_code`` is the process's exit status (:func:`request_shutdown` sets it and ends the
     spin); :meth:`on_shutdown` runs once after the spin ends (Ctrl-C, SIGTERM, a shutdown request)
@@ -228,7 +229,7 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     """The nodes' main(): init, build, spin until shutdown, clean up; exit status.
 
     A :class:`StartupError` while building the node is logged as one fatal line and gives exit
-    status 1; otherwise the status is the node's :meth:`ManagedNode.on_shutdown`.
+    status 1; otherwise the status is the node's :meth:`ExitStatusNode.on_shutdown`.
     """
     dds_memory_policy()
     rclpy.init(args=args)
@@ -255,16 +256,16 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         if node.context.ok():
             raise
     finally:
-        # a ManagedNode reports its exit status; other nodes (the lifecycle estimator, whose
+        # an ExitStatusNode reports its exit status; other nodes (the lifecycle estimator, whose
         # on_shutdown is a lifecycle transition) exit 0 unless they set exit_code
-        managed = isinstance(node, ManagedNode)
+        managed = isinstance(node, ExitStatusNode)
         code = int((node.on_shutdown() if managed else 0) or getattr(node, "exit_code", 0))
         node.destroy_node()
         rclpy.try_shutdown()
     return code
 
 
-def request_shutdown(node: ManagedNode, code: int = 0) -> None:
+def request_shutdown(node: ExitStatusNode, code: int = 0) -> None:
     """End the spin of :func:`run_node` (from a callback) with exit status ``code``."""
     node.exit_code = code
     node.context.try_shutdown()

@@ -22,7 +22,7 @@ publisher, e.g. a driver's sensor-data QoS). Estimate publishers are reliable + 
 with a history bounded in messages (``history_depth``) and in memory (``history_mb``), so a late
 recorder or ``ros2 topic echo --qos-durability transient_local`` gets the start of the stream.
 Timers run on the steady clock, so ``use_sim_time`` without ``/clock`` silences nothing.
-The per-message work is :class:`neural_estimator.replay.OnlineEstimator` (the same code as offline
+The per-message work is :class:`neural_estimator.online.OnlineEstimator` (the same code as offline
 replay); this node only wires it to topics. Parameters: ``params/estimator.yaml``.
 
 Staying current. Each wake-up of the executor takes every observation waiting in the subscription
@@ -40,7 +40,7 @@ A message that cannot be used (wrong width or names, NaN control, empty, unparsa
 any valid one) is logged (throttled), counted in the diagnostics and dropped; the node never stops
 on one. No single message moves the stream: a jump in trajectory or step (or stamps that go back,
 a restarted publisher) is held until the next message confirms it (``confirm``) or the stream
-falls silent (``quarantine_seconds``); see :mod:`neural_estimator.replay`. Diagnostics are WARN
+falls silent (``quarantine_seconds``); see :mod:`neural_estimator.online`. Diagnostics are WARN
 whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An unknown
 method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
@@ -61,9 +61,9 @@ from std_srvs.srv import Trigger
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.estimators import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
+from neural_estimator.registry import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
-    ManagedNode,
+    ExitStatusNode,
     StartupError,
     build_scenario,
     declare_params,
@@ -76,7 +76,7 @@ from neural_estimator.nodes.common import (
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
-from neural_estimator.replay import (
+from neural_estimator.online import (
     DEFAULT_CONFIRM,
     DEFAULT_MAX_GAP,
     DEFAULT_MAX_GAP_SECONDS,
@@ -168,7 +168,7 @@ class EstimatorParams:
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
 
 
-class EstimatorNode(ManagedNode):
+class EstimatorNode(ExitStatusNode):
     def __init__(self) -> None:
         super().__init__("estimator")
         self.p = p = declare_params(self, EstimatorParams)
@@ -630,7 +630,7 @@ def _exists(path: str) -> bool:
     return Path(path).exists()
 
 
-def _make_node() -> ManagedNode:
+def _make_node() -> ExitStatusNode:
     """The estimator node, or, when ``checkpoint`` is a model trained on recorded data (its card holds a
     spec, docs/robot.md), the robot estimator on the spec's own topics: a recorded-data model
     needs no scenario. The parameters are looked at once by a short-lived probe node of the same name."""
@@ -659,7 +659,7 @@ def _make_node() -> ManagedNode:
 
 def _recorded_data_card(checkpoint: str) -> bool:
     """True when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
-    from neural_estimator.models.card import read_card
+    from neural_estimator.serving.card import read_card
 
     try:
         _, card = read_card(checkpoint)

@@ -45,7 +45,7 @@ from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.metrics import EVALUATION_WARMUP
 from neural_estimator.nodes.outputs import is_output_topic
 from neural_estimator.nodes.common import (
-    ManagedNode,
+    ExitStatusNode,
     InterfaceError,
     StartupError,
     declare_params,
@@ -108,7 +108,7 @@ class EvaluatorParams:
     )
 
 
-class EvaluatorNode(ManagedNode):
+class EvaluatorNode(ExitStatusNode):
     def __init__(self) -> None:
         super().__init__("evaluator")
         self.p = p = declare_params(self, EvaluatorParams)

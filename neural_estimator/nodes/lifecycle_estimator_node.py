@@ -13,7 +13,7 @@ topics and standard outputs, :mod:`neural_estimator.nodes.outputs`) and the obse
 subscription; **deactivate** destroys them (observations are not received while inactive);
 **cleanup** drops the method; **shutdown** from any state. Same parameters as the estimator node
 (``params/estimator.yaml``), except that ``scenario`` must be given: configure needs the system.
-The per-message work is :class:`neural_estimator.replay.OnlineEstimator`, as in the estimator node.
+The per-message work is :class:`neural_estimator.online.OnlineEstimator`, as in the estimator node.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.estimators import EstimatorError, check_method, make_estimator
+from neural_estimator.registry import EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,
@@ -38,7 +38,7 @@ from neural_estimator.nodes.common import (
 )
 from neural_estimator.nodes.estimator_node import EstimatorParams
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
-from neural_estimator.replay import OnlineEstimator
+from neural_estimator.online import OnlineEstimator
 
 
 class LifecycleEstimatorNode(LifecycleNode):

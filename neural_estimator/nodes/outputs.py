@@ -319,7 +319,7 @@ class SetPose:
     Args:
         node: the rclpy node.
         topic: the topic ('' = no subscription).
-        get_online: returns the node's :class:`~neural_estimator.replay.OnlineEstimator` (None while
+        get_online: returns the node's :class:`~neural_estimator.online.OnlineEstimator` (None while
             the scenario is unknown).
     """
 

@@ -28,10 +28,10 @@ from rclpy.duration import Duration
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, BagWarning
-from neural_estimator.bags.reader import open_bag
+from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import parse_qos_yaml
 from neural_estimator.nodes.common import (
-    ManagedNode,
+    ExitStatusNode,
     InterfaceError,
     StartupError,
     declare_params,
@@ -65,7 +65,7 @@ class PlayerParams:
     publish_clock: bool = param(False, "publish /clock at each message's log time (for nodes with use_sim_time:=true)")
 
 
-class PlayerNode(ManagedNode):
+class PlayerNode(ExitStatusNode):
     def __init__(self) -> None:
         super().__init__("player")
         self.p = p = declare_params(self, PlayerParams)

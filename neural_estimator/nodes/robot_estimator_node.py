@@ -57,7 +57,7 @@ from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
 from neural_estimator.robot.dataset import topic_fields
 from neural_estimator.robot.spec import SpecError, topic_values
 from neural_estimator.nodes.common import (
-    ManagedNode,
+    ExitStatusNode,
     InterfaceError,
     StartupError,
     declare_params,
@@ -96,7 +96,7 @@ class RobotEstimatorParams:
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
 
 
-class RobotEstimatorNode(ManagedNode):
+class RobotEstimatorNode(ExitStatusNode):
     def __init__(self, node_name: str = "robot_estimator") -> None:
         super().__init__(node_name)
         self.p = p = declare_params(self, RobotEstimatorParams)
@@ -307,8 +307,8 @@ def _load(p: RobotEstimatorParams):
     """(DataScenario, Spec, method, estimator) from the checkpoint's card; StartupError otherwise."""
     from pathlib import Path
 
-    from neural_estimator.estimators import EstimatorError, make_estimator
-    from neural_estimator.models.card import read_card
+    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.serving.card import read_card
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.scenarios import ScenarioError
 

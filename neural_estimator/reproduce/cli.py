@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from neural_estimator.data.protocol import default_cache_dir
-from neural_estimator.reproduce.run import ReproduceError, Settings, reproduce
+from neural_estimator.reproduce.run import reproduce
+from neural_estimator.reproduce.settings import ReproduceError, Settings
 from neural_estimator.reproduce.scales import get_scale
 from neural_estimator.paper.transcribe import SCENARIOS as PAPER_SCENARIOS
 
@@ -18,7 +19,7 @@ def _names(text: str | None, default, check, flag: str) -> list[str]:
 
 
 def run_from_args(args, usage_error: type[Exception]) -> int:
-    from neural_estimator.estimators import METHODS, check_method
+    from neural_estimator.registry import METHODS, check_method
 
     try:
         if args.num_cpus is not None and args.num_cpus < 1:

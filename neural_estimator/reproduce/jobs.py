@@ -13,7 +13,7 @@ Three kinds:
   networks' parallel form, the filters' loop over time), the paper's apparent method; stored as
   JSON under ``runtime/``;
 * ``train``: one instance of one architecture on one scenario at one data-to-parameter ratio
-  (:func:`neural_estimator.models.training.train`), written under ``models/`` in a directory
+  (:func:`neural_estimator.training.loop.train`), written under ``models/`` in a directory
   named by the recipe's hash; an ``evaluate`` job with ``train_job`` set evaluates that model.
 
 Jobs are plain data (they travel to Ray workers); :func:`run_job` has no Ray in it, so it is tested
@@ -99,7 +99,7 @@ def job_data(job: Job, cache_dir: Path):
 
 def train_config(job: Job, cache_dir: Path, **runtime: Any):
     """The job's recipe; ``runtime``: how to run it (resume, keep_resume), not part of the result."""
-    from neural_estimator.models.training import TrainConfig
+    from neural_estimator.training.recipe import TrainConfig
 
     return TrainConfig(
         data_ratio=job.data_ratio,
@@ -195,7 +195,7 @@ def run_job(
 
 def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
     from neural_estimator import metrics as M
-    from neural_estimator.estimators import CLASSICAL_METHODS
+    from neural_estimator.registry import CLASSICAL_METHODS
     from neural_estimator.evaluation import evaluate
 
     scenario = make_job_scenario(job)
@@ -226,7 +226,7 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
 
 
 def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
-    from neural_estimator.estimators import CLASSICAL_METHODS, make_estimator, previous_controls
+    from neural_estimator.registry import CLASSICAL_METHODS, make_estimator, previous_controls
 
     path = runtime_path(cache_dir, job)
     if path.is_file():
@@ -282,7 +282,7 @@ def _time_sequence(est, data, job: Job) -> float:
 
 
 def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:
-    from neural_estimator.models.training import train
+    from neural_estimator.training.loop import train
 
     out = train_dir(cache_dir, job)
     done = out / DONE_FILE

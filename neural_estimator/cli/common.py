@@ -1,0 +1,195 @@
+"""What the verbs share: the one-line parser and error, the scenario, preset, warm-up and bag flags, and
+the parsing of METHOD=... values."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from neural_estimator.scenarios import (
+    ScenarioError,
+    make_scenario,
+    parse_assignments,
+    scenario_names,
+)
+
+
+EXIT_BAD_INPUT = 2
+
+
+class CliError(Exception):
+    """A command-line usage problem (message shown to the user, exit status 2)."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line (no usage block) and suggest the closest verb or flag
+    to a mistyped one ("did you mean"), with exit status 2. Sub-parsers inherit the class."""
+
+    _argv: list[str] = []
+
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 - argparse's
+        self._argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_args(args, namespace)
+
+    def _flags(self) -> list[str]:
+        """The option strings of this parser, or of the verb named on the command line."""
+        parser = self
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                verb = next((a for a in self._argv if a in action.choices), None)
+                if verb is not None:
+                    parser = action.choices[verb]
+        return [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+
+    def error(self, message: str):  # noqa: D102 - argparse's
+        import re
+
+        from neural_estimator.options import did_you_mean
+
+        m = re.match(r"unrecognized arguments: (.*)", message)
+        if m:
+            flags = [w.split("=", 1)[0] for w in m.group(1).split() if w.startswith("-")]
+            if flags:
+                message = f"unrecognized option {flags[0]}{did_you_mean(flags[0], self._flags())}"
+                if len(flags) > 1:
+                    message += f" (and {', '.join(flags[1:])})"
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            choices = re.findall(r"'([^']*)'", m.group(2))
+            message = message.replace(f"'{m.group(1)}'", f"'{m.group(1)}'{did_you_mean(m.group(1), choices)}", 1)
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def scenario_from_args(args: argparse.Namespace):
+    """The scenario named by ``--scenario`` with ``--set`` overrides and ``--noise-scale``."""
+    overrides: dict[str, Any] = parse_assignments(getattr(args, "set", None))
+    if getattr(args, "noise_scale", None) is not None:
+        overrides["noise_scale"] = args.noise_scale
+    return make_scenario(args.scenario, preset=getattr(args, "preset", None), **overrides)
+
+
+def preset_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--preset",
+        metavar="NAME",
+        help="named set of the scenario's constants, applied before --set (built-ins: v4, the default; "
+        "v3, the constants before the spread calibration; see docs/scenarios.md)",
+    )
+
+
+def scenario_flags(p: argparse.ArgumentParser, scenario: bool = True, data: bool = False) -> None:
+    p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
+    if scenario:
+        p.add_argument(
+            "--scenario",
+            required=not data,
+            help=f"one of: {', '.join(scenario_names())} (or a plugin's)" + ("; or --data" if data else ""),
+        )
+        p.add_argument("--set", action="append", metavar="NAME=VALUE", help="override a scenario constant (repeatable)")
+        preset_flag(p)
+        p.add_argument("--noise-scale", type=float, help="multiply the observation-noise std (filters are told)")
+
+
+def warmup_flag(p: argparse.ArgumentParser) -> None:
+    """``--warmup N``: leading timesteps of every trajectory that are not scored (metrics verbs)."""
+    from neural_estimator.metrics import EVALUATION_WARMUP
+
+    p.add_argument(
+        "--warmup",
+        type=int,
+        default=EVALUATION_WARMUP,
+        metavar="N",
+        help=f"leading timesteps of every trajectory not scored, for every method alike (default "
+        f"{EVALUATION_WARMUP}: this project's choice; the paper states its {EVALUATION_WARMUP}-step warm-up for "
+        "the training loss only; 0 scores every step)",
+    )
+    p.add_argument(
+        "--every-step",
+        dest="warmup",
+        action="store_const",
+        const=0,
+        help="score every step of every trajectory (the same as --warmup 0)",
+    )
+
+
+def bag_scenario_flags(p: argparse.ArgumentParser) -> None:
+    """Flags of the verbs that read a bag: its namespace, and the scenario of a bag without one."""
+    p.add_argument("--namespace", default="/", help="namespace of the recorded streams")
+    p.add_argument(
+        "--scenario",
+        help="scenario of a bag without a /scenario message (e.g. one recorded from your "
+        "own nodes); overrides the bag's",
+    )
+    p.add_argument(
+        "--set", action="append", metavar="NAME=VALUE", help="scenario constant, with --scenario (repeatable)"
+    )
+    preset_flag(p)
+
+
+def bag_description(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The description named by ``--scenario``/``--set``, or None (use the bag's own)."""
+    if getattr(args, "scenario", None):
+        return make_scenario(args.scenario, preset=args.preset, **parse_assignments(args.set)).describe()
+    if getattr(args, "set", None) or getattr(args, "preset", None):
+        flag = "--set" if getattr(args, "set", None) else "--preset"
+        raise CliError(f"{flag} needs --scenario (the bag's own scenario message carries its constants)")
+    return None
+
+
+def is_bag(path: str) -> bool:
+    return path.endswith(".mcap") or Path(path).is_dir()
+
+
+def parse_checkpoints(items: list[str] | None) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for item in items or ():
+        method, sep, paths = item.partition("=")
+        if not sep or not paths:
+            raise CliError(f"--checkpoint expects METHOD=DIR[,DIR...], got {item!r}")
+        out.setdefault(method.strip().lower(), []).extend(p for p in paths.split(",") if p)
+    return out
+
+
+def parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
+    """{method: {name: text}}: the values stay text, parsed by the method against each option's type
+    (:mod:`neural_estimator.options`)."""
+    out: dict[str, dict[str, Any]] = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        method, dot, name = key.partition(".")
+        if not sep or not dot or not name:
+            raise CliError(f"--option expects METHOD.NAME=VALUE, got {item!r}")
+        out.setdefault(method.strip().lower(), {})[name.strip()] = value.strip()
+    return out
+
+
+def scenario_or_data(args: argparse.Namespace):
+    """(scenario, None) from --scenario, or (DataScenario, [the recorded trajectories]) from --data."""
+    if getattr(args, "data", None) is None:
+        if getattr(args, "scenario", None) is None:
+            raise CliError("pass --scenario NAME, or --data FILE.npz for recorded data")
+        return scenario_from_args(args), None
+    if getattr(args, "scenario", None) is not None or getattr(args, "set", None) or getattr(args, "preset", None):
+        raise CliError("--data brings its own interface: drop --scenario, --set and --preset")
+    from neural_estimator.data import load_trajectories
+    from neural_estimator.robot import DataScenario
+
+    data, _ = load_trajectories(args.data)
+    if data.meta.get("scenario") != "data":
+        raise CliError(
+            f"{args.data}: not a recorded dataset (scenario {data.meta.get('scenario')!r}); "
+            "make one with neural-estimator dataset, or pass --scenario"
+        )
+    try:
+        scenario = DataScenario(data.meta)
+    except ScenarioError as exc:
+        raise CliError(f"{args.data}: {exc}") from None
+    return scenario, [data]
+
+
+def check_out(out: str, overwrite: bool) -> None:
+    """An existing ``--out`` is replaced only with ``--overwrite`` (the flag's name in the message)."""
+    if Path(out).exists() and not overwrite:
+        raise CliError(f"{out}: file exists; pass --overwrite to replace it")

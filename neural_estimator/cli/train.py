@@ -1,0 +1,180 @@
+"""The ``train`` verb: a neural estimator with the paper's protocol."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+from neural_estimator.scenarios import (
+    parse_assignments,
+)
+from neural_estimator.cli.common import CliError, scenario_flags, scenario_or_data
+
+
+_TRAIN_FLAG_HELP = {
+    "data_ratio": "data-to-parameter ratio: 20 (paper's default), 10, 5 or 1",
+    "data_seed": "seed of the training/validation/evaluation sets",
+    "init_seed": "seed of the initial weights, dropout and window draws",
+    "trajectories": "training trajectories (default: from --data-ratio; 20:1 -> 4000 x 500 steps)",
+    "windows_per_epoch": "windows per epoch (default: the set's timesteps once)",
+    "epochs": "maximum epochs (paper: 500)",
+    "patience": "early-stopping patience in epochs (paper: 30)",
+    "eval_trajectories": "metrics of the best model on that many evaluation trajectories, in the card "
+    "(default 200, a few seconds to minutes; 0: none)",
+    "val_trajectories": "validation trajectories, run in full after every epoch (default: half the training "
+    "trajectories, at most the paper's 8000; 20:1 -> 2000)",
+}
+
+
+_TRAIN_FLAG_HELP["loss_units"] = (
+    "units the loss weighs the state components in: state (the states' own units, as RMSE counts them; "
+    "default) or normalised (each at unit variance; cards without the field); the paper does "
+    "not say which"
+)
+
+
+_TRAIN_FLAG_HELP["val_context"] = (
+    "> 0: validate (and so choose the checkpoint) with the context bounded to this many steps: "
+    "--val-context-copies copies restarted at staggered steps (gru, lstm, mamba, mamba2), the attention "
+    "window (gpt2, filterformer); not the paper's recipe; the model then serves bounded by default "
+    "(default: 0, the paper's validation)"
+)
+
+
+_TRAIN_FLAG_HELP["val_context_copies"] = "copies for --val-context (K times the validation compute; default: 4)"
+
+
+_TRAIN_DEFAULTS = {
+    "eval_trajectories": 200,
+    "val_trajectories": None,
+}  # the CLI's, where they differ from TrainConfig's
+
+
+def add_train(sub) -> None:
+    import dataclasses
+
+    from neural_estimator.training.recipe import TrainConfig  # no torch: the flags cost nothing to list
+
+    p = sub.add_parser("train", help="train a neural estimator with the paper's protocol")
+    scenario_flags(p, data=True)
+    p.add_argument(
+        "--data",
+        metavar="FILE.npz",
+        help="train on a recorded dataset (neural-estimator dataset) instead of simulating --scenario",
+    )
+    p.add_argument(
+        "--val-data",
+        metavar="FILE.npz",
+        help="with --data: the validation set (default: the last --val-fraction of --data's trajectories)",
+    )
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.2,
+        help="with --data and no --val-data: share of the "
+        "trajectories held out for validation, split by trajectory (default 0.2)",
+    )
+    p.add_argument("--model", required=True, help="gru, lstm, gpt2, filterformer, mamba or mamba2")
+    p.add_argument("--out", required=True, help="output directory (model.safetensors + card.json)")
+    p.add_argument("--model-set", action="append", metavar="NAME=VALUE", help="override an architecture hyperparameter")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    # Every TrainConfig field is a flag with the paper's default (one source of truth).
+    for f in dataclasses.fields(TrainConfig):
+        if f.name in ("model_overrides", "resume", "keep_resume"):
+            continue
+        default = _TRAIN_DEFAULTS.get(f.name, f.default)
+        flag = "--" + f.name.replace("_", "-")
+        kind = type(f.default) if f.default is not None else int
+        if f.name == "cache_dir":
+            kind = str
+        p.add_argument(flag, type=kind, default=default, help=_TRAIN_FLAG_HELP.get(f.name, f"default: {default}"))
+    p.add_argument("--resume", action="store_true", help="continue from OUT/resume if it exists")
+    p.add_argument("--no-keep-resume", action="store_true", help="delete OUT/resume after the run")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="CPU threads for torch and the fused scan kernels (default 1: on this project's 2-core "
+        "machine one process per core beats two threads in one; see docs/performance.md)",
+    )
+    p.set_defaults(func=_cmd_train)
+
+
+def _cmd_train(args) -> int:
+    import dataclasses
+
+    from neural_estimator.registry import NEURAL_METHODS, check_method
+    from neural_estimator.training.recipe import TrainConfig, TrainingError
+    from neural_estimator.training.loop import train
+
+    method = check_method(args.model)
+    if method not in NEURAL_METHODS:
+        raise CliError(f"--model must be a neural method ({', '.join(NEURAL_METHODS)}), got {args.model!r}")
+    scenario, datasets = scenario_or_data(args)
+    data = None
+    if datasets is not None:
+        data = _train_val_split(args, scenario, datasets[0])
+    elif args.val_data:
+        raise CliError("--val-data needs --data")
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if hasattr(args, f.name)}
+    values.update(
+        model_overrides=_parse_model_overrides(args.model_set), resume=args.resume, keep_resume=not args.no_keep_resume
+    )
+    if args.threads < 1:
+        raise CliError(f"--threads must be >= 1, got {args.threads}")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    if data is not None:
+        values.update(trajectories=data[0].n, train_length=data[0].horizon, val_trajectories=data[1].n)
+    if values["val_trajectories"] is None:  # scales with the training set: half of it, at most the paper's 8000
+        from neural_estimator.data.protocol import VALIDATION_TRAJECTORIES, training_trajectories
+
+        n_train = values["trajectories"] or training_trajectories(values["data_ratio"], length=values["train_length"])
+        values["val_trajectories"] = max(1, min(VALIDATION_TRAJECTORIES, int(n_train) // 2))
+    if not args.quiet:
+        print(
+            f"validation after every epoch: {values['val_trajectories']} trajectories x {values['train_length']} "
+            f"steps (--val-trajectories); card metrics on {values['eval_trajectories']} evaluation trajectories "
+            f"(--eval-trajectories); {args.threads} thread(s) (--threads)",
+            flush=True,
+        )
+    try:
+        config = TrainConfig(**values)
+        path = train(scenario, method, args.out, config, progress=not args.quiet, data=data)
+    except TrainingError as exc:
+        raise CliError(str(exc)) from None
+    print(f"wrote {path}")
+    return 0
+
+
+def _train_val_split(args: argparse.Namespace, scenario, train_data):
+    """(training, validation) trajectories from --data and --val-data, or a split by trajectory."""
+    if args.val_data:
+        from neural_estimator.data import load_trajectories
+
+        val, _ = load_trajectories(args.val_data)
+        if val.meta.get("spec_sha256") != train_data.meta.get("spec_sha256"):
+            raise CliError(f"{args.val_data} was made with another spec than {args.data}")
+        return train_data, val
+    if not 0 < args.val_fraction < 1:
+        raise CliError(f"--val-fraction must be between 0 and 1, got {args.val_fraction}")
+    n_val = int(round(train_data.n * args.val_fraction))
+    if n_val < 1 or n_val >= train_data.n:
+        raise CliError(
+            f"{args.data}: {train_data.n} trajectories cannot be split into training and validation "
+            f"(--val-fraction {args.val_fraction}); record more, or cut shorter ones (dataset --length)"
+        )
+    return train_data.subset(slice(0, train_data.n - n_val)), train_data.subset(slice(train_data.n - n_val, None))
+
+
+def _parse_model_overrides(items: list[str] | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, value in parse_assignments(items).items():
+        try:
+            out[name] = json.loads(value)
+        except json.JSONDecodeError:
+            out[name] = value
+    return out

@@ -1,0 +1,396 @@
+"""The paper's evaluation protocol: methods x evaluation sets -> metrics -> median +- IQR table.
+
+Paper, "Evaluation Protocol": "Each scenario uses three independent evaluation datasets with 8,000
+trajectories each. The default evaluation horizon is 500." Results are "summarized over
+independent datasets and random initializations using medians with interquartile ranges".
+
+For each method, every evaluation set (and, for neural methods, every checkpoint given: the paper
+trains 15 instances per architecture) is one *run*; metrics are computed per run on the timesteps
+after the paper's 10-step warm-up (``warmup``; see :mod:`neural_estimator.metrics`, "Effective
+trajectory length"), then summarised as median and IQR across runs.
+
+Memory: the batch is cut into chunks so that no chunk holds more than ``memory_budget`` bytes of
+outputs (the per-step covariances dominate: T dx^2 8 bytes per trajectory, 6.4 MB for Lorenz 96)
+plus the method's working set (the PF's particles). NEES is computed chunk by chunk, so the full
+(N, T, dx, dx) covariance array never exists.
+
+Long runs: a progress bar per run counts trajectory-steps (the classical filters advance it every
+time step of a chunk, so its rate and ETA are those of the run in progress), and every finished
+run is written at once to the result cache (:func:`run_key`), so an interrupted ``evaluate``
+resumes from the runs it finished and a second one with more methods only computes the new ones.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neural_estimator import metrics as M
+from neural_estimator.data import Trajectories, evaluation_sets
+from neural_estimator.data.io import DataError
+from neural_estimator.data.protocol import default_cache_dir
+from neural_estimator.data.simulate import trajectories_digest as dataset_digest
+from neural_estimator.registry import (
+    CLASSICAL_METHODS,
+    NEURAL_METHODS,
+    Estimator,
+    Estimates,
+    check_method,
+    make_estimator,
+    previous_controls,
+)
+from neural_estimator.filters.base import ClassicalFilter
+from neural_estimator.filters.enkf import EnKFHyperParams
+from neural_estimator.filters.pf import PFHyperParams
+from neural_estimator.options import parse_value
+from neural_estimator.scenarios import Scenario
+from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run
+from neural_estimator.evaluation.starts import INIT_MODES, check_init, effective_init  # noqa: F401
+
+DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
+
+
+@dataclass
+class MethodResult:
+    """All runs of one method."""
+
+    method: str
+    reports: list[M.MetricReport] = field(default_factory=list)
+    seconds: float = 0.0  # wall time spent estimating (excludes data generation and metrics)
+    steps: int = 0  # trajectory-steps estimated
+    cached: int = 0  # runs read from the result cache (their seconds are those of the run that made them)
+    context: int = 0  # neural: the bounded context it was served with (0: continuous, the paper's way)
+    init: str = "prior"  # classical: how the filters started (INIT_MODES); neural methods ignore it
+
+    @property
+    def summary(self) -> dict[str, M.Stat]:
+        return M.summarize(self.reports)
+
+    @property
+    def throughput(self) -> float:
+        """Trajectory-steps per second."""
+        return self.steps / self.seconds if self.seconds > 0 else float("nan")
+
+
+def recorded_result(
+    scenario: Scenario, data: Trajectories, x_hat: np.ndarray, name: str, warmup: int = M.EVALUATION_WARMUP
+) -> MethodResult:
+    """The metrics of estimates that were recorded, not computed here (a robot's own filter): one run,
+    no time spent, so no speed is reported. ``warmup``: leading steps not scored (see :func:`evaluate`)."""
+    if x_hat.shape != data.x.shape:
+        raise DataError(f"recorded estimate {name!r} has shape {x_hat.shape}, the states have {data.x.shape}")
+    report = M.compute_metrics(
+        data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)), warmup=warmup
+    )
+    return MethodResult(name, [report])
+
+
+def recorded_data_methods(methods: Sequence[str], checkpoints: Mapping[str, Sequence[str]]) -> list[str]:
+    """``methods`` if recorded data allow them all: a classical filter needs the model of a system
+    that recorded data do not have, and no model is shipped for recorded data, so each must be a
+    neural method given a checkpoint. Raises ValueError naming the first one refused."""
+    for m in methods:
+        if m in CLASSICAL_METHODS:
+            raise ValueError(
+                f"{m}: recorded data have no model for a classical filter; compare the robot's own "
+                "filter with --estimate NAME=FILE"
+            )
+        if m not in checkpoints:
+            raise ValueError(f"{m}: recorded data have no shipped model: pass --checkpoint {m}=DIR")
+    return list(methods)
+
+
+def chunk_size(
+    scenario: Scenario,
+    method: str,
+    horizon: int,
+    n: int,
+    budget: int = DEFAULT_MEMORY_BUDGET,
+    options: Mapping[str, Any] | None = None,
+) -> int:
+    """Trajectories per chunk so one chunk's arrays stay within ``budget`` bytes.
+
+    Per trajectory: outputs T (dx + dx^2) float64 plus the inputs, plus the method's members
+    (the EnKF's members, the PF's particles, defaults from their hyperparameters; each a few
+    dx-vectors of temporaries).
+    """
+    dx, dy, du = scenario.dx, scenario.dy, scenario.du
+    per = horizon * (dx + dx * dx + dy + du) * 8
+    opts = options or {}
+    if method == "pf":
+        members = parse_value(opts.get("n_particles", PFHyperParams.n_particles), 1, "n_particles")
+    elif method == "enkf":
+        members = parse_value(opts.get("n_members", EnKFHyperParams.n_members), 1, "n_members")
+    else:
+        members = 2 * dx + 1
+    per += members * (dx + dy) * 8 * 6
+    return int(max(1, min(n, budget // per)))
+
+
+def run_method(
+    estimator: Estimator,
+    data: Trajectories,
+    chunk: int,
+    angle_states: Sequence[int],
+    on_chunk: Callable[[int], None] | None = None,
+    on_steps: Callable[[int], None] | None = None,
+    init: str = "prior",
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
+    """Estimate every trajectory of ``data`` chunk by chunk.
+
+    Args:
+        on_chunk: called with the number of trajectories of each finished chunk.
+        on_steps: called with B after every time step of a chunk of B trajectories (classical
+            filters, which loop over time: see :func:`run_stepwise`), or with B T after a chunk
+            (neural models, whose parallel form has no steps to report); the calls add up to N T.
+        init: ``"truth"`` starts the classical filters of each trajectory at its true x_0 (see
+            :data:`INIT_MODES`); neural methods are unaffected.
+
+    Returns:
+        (x_hat (N, T, dx), nees (N, T) or None, diverged (N,), seconds spent in the estimator).
+    """
+    N = data.n
+    x_hat = np.empty_like(data.x)
+    diverged = np.zeros(N, dtype=bool)
+    nees_all = np.empty(data.x.shape[:2]) if estimator.has_covariance else None
+    seconds = 0.0
+    from_truth = check_init(init) == "truth" and isinstance(estimator, ClassicalFilter)
+    for lo in range(0, N, chunk):
+        hi = min(N, lo + chunk)
+        t0 = time.perf_counter()
+        initial_mean = data.x[lo:hi, 0] if from_truth else None
+        if on_steps is not None and estimator.method in CLASSICAL_METHODS:
+            est = run_stepwise(
+                estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo), initial_mean=initial_mean
+            )
+        elif from_truth:
+            est = estimator.run(data.y[lo:hi], data.u[lo:hi], initial_mean=initial_mean)
+        else:
+            est = estimator.run(data.y[lo:hi], data.u[lo:hi])
+        if on_steps is not None and estimator.method not in CLASSICAL_METHODS:
+            on_steps((hi - lo) * data.horizon)
+        seconds += time.perf_counter() - t0
+        x_hat[lo:hi] = est.x
+        diverged[lo:hi] = est.diverged
+        if nees_all is not None and est.cov is not None:
+            e = M.errors(data.x[lo:hi], est.x, angle_states)
+            with np.errstate(invalid="ignore", over="ignore"):
+                nees_all[lo:hi] = M.nees(e, est.cov)
+        if on_chunk:
+            on_chunk(hi - lo)
+    return x_hat, nees_all, diverged, seconds
+
+
+def run_stepwise(
+    estimator: Estimator,
+    Y: np.ndarray,
+    U: np.ndarray,
+    on_step: Callable[[], None],
+    initial_mean: np.ndarray | None = None,
+) -> Estimates:
+    """``estimator.run(Y, U)`` as ``reset`` and a loop of ``step``, calling ``on_step()`` after each.
+
+    ``initial_mean`` (B, n), classical filters only, starts each stream there instead of at the
+    prior mean (``reset(B, initial_mean)``).
+
+    The estimator contract makes the two equal (tested for every method, and here for the
+    filters); the loop lets a long chunk report its progress every time step.
+    """
+    Y, U = estimator.check_sequences(Y, U)
+    B, T, _ = Y.shape
+    dx = estimator.scenario.dx
+    if initial_mean is None:
+        estimator.reset(B)
+    else:
+        estimator.reset(B, initial_mean=initial_mean)
+    Uprev = previous_controls(U)
+    xs = np.empty((B, T, dx))
+    covs = np.empty((B, T, dx, dx)) if estimator.has_covariance else None
+    for k in range(T):
+        xs[:, k] = estimator.step(Y[:, k], Uprev[:, k])
+        if covs is not None:
+            covs[:, k] = estimator.covariance
+        on_step()
+    return Estimates(xs, covs, estimator.diverged.copy())
+
+
+# ---- the result cache --------------------------------------------------------------------------------
+
+
+def served_context(
+    scenario: Scenario, method: str, checkpoint: str | Path | None, options: Mapping[str, Any] | None = None
+) -> int:
+    """The bounded context a neural method is served with: the ``context`` option when given, else
+    the one its card was validated with (``training.recipe.val_context``); 0 = continuous (the
+    paper's way), and 0 for classical filters. Read from the card, so known for cached runs too."""
+    if method not in NEURAL_METHODS:
+        return 0
+    if options and options.get("context") not in (None, ""):
+        return int(parse_value(options["context"], 0, "context"))
+    from neural_estimator.serving.card import read_card
+    from neural_estimator.serving.load import default_checkpoint, validated_context
+
+    try:
+        _, card = read_card(checkpoint if checkpoint is not None else default_checkpoint(scenario.name, method))
+    except Exception:  # a missing card fails at loading, with its own message
+        return 0
+    return int(validated_context(card).get("context", 0))
+
+
+def evaluate(
+    scenario: Scenario,
+    methods: Sequence[str],
+    *,
+    trajectories: int = 8000,
+    horizon: int | None = None,
+    seed: int = 0,
+    sets: int = 3,
+    checkpoints: Mapping[str, Sequence[str | Path]] | None = None,
+    options: Mapping[str, Mapping[str, Any]] | None = None,
+    device: str = "cpu",
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    cache_dir: str | Path | None | bool = None,
+    progress: bool = True,
+    datasets: Sequence[Trajectories] | None = None,
+    recompute: bool = False,
+    on_result: Callable[[dict[str, MethodResult]], None] | None = None,
+    init: str = "prior",
+    warmup: int = M.EVALUATION_WARMUP,
+) -> dict[str, MethodResult]:
+    """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
+
+    Args:
+        scenario: the system (with any overrides, e.g. noise_scale).
+        methods: method names (see :data:`neural_estimator.registry.METHODS`).
+        trajectories, horizon, seed, sets: the evaluation sets (paper: 8,000, scenario horizon, 3).
+        checkpoints: {method: [checkpoint, ...]} for neural methods; each checkpoint is one instance.
+            A neural method without an entry uses the shipped default model.
+        options: {method: {hyperparameter: value}} for classical filters.
+        device: torch device for neural methods.
+        memory_budget: bytes per chunk (see :func:`chunk_size`).
+        cache_dir: root of the dataset and result caches (None: :func:`default_cache_dir`;
+            False: no cache, nothing read or written, no resume).
+        progress: show a progress bar per run on stderr (trajectory-steps, with the run's ETA).
+        datasets: use these instead of generating evaluation sets.
+        recompute: compute every run even if a cached result exists (and overwrite it).
+        on_result: called with the results so far after every run (the CLI writes partial
+            outputs with it).
+        init: how the classical filters start, ``"prior"``, ``"truth"`` or ``"observation"``
+            (:data:`INIT_MODES`; ``"observation"`` is the prior where h determines nothing, see
+            :func:`effective_init`, and each result's ``init`` says which start it got).
+        warmup: leading timesteps not scored, for every method alike (default: the paper's 10,
+            :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
+
+    Returns:
+        {method: MethodResult} in the order given.
+    """
+    methods = [check_method(m) for m in methods]
+    check_init(init)
+    T = scenario.horizon if horizon is None else int(horizon)
+    if not 0 <= int(warmup) < T:
+        raise ValueError(f"warmup must be in [0, {T}) for a horizon of {T} steps, got {warmup}")
+    data_sets = (
+        list(datasets)
+        if datasets is not None
+        else evaluation_sets(scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
+    )
+    cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
+    digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
+    plan = [(m, c) for m in methods for c in list((checkpoints or {}).get(m) or [None])]
+    results = {m: MethodResult(m, init=effective_init(scenario, m, init)) for m in methods}
+    n_runs = len(plan) * len(data_sets)
+    run_no = 0
+    for m, ckpt in plan:
+        opts = dict((options or {}).get(m, {}))
+        est = None  # built on the first run that is not cached (loading a model takes seconds)
+        ckpt_hash = checkpoint_digest(scenario, m, ckpt) if cache_root is not None else None
+        results[m].context = max(results[m].context, served_context(scenario, m, ckpt, opts))
+        for j, data in enumerate(data_sets):
+            run_no += 1
+            r = results[m]
+            path = None
+            if cache_root is not None:
+                path = result_path(
+                    cache_root,
+                    scenario,
+                    m,
+                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup),
+                )
+                hit = None if recompute else load_run(path)
+                if hit is not None:
+                    report, secs, steps = hit
+                    r.reports.append(report)
+                    r.seconds += secs
+                    r.steps += steps
+                    r.cached += 1
+                    _note(
+                        progress,
+                        f"{scenario.name} {m} set {j + 1}/{len(data_sets)}: cached result reused ({path.name})",
+                    )
+                    if on_result:
+                        on_result(results)
+                    continue
+            if est is None:
+                start = {"init": "observation"} if results[m].init == "observation" and "init" not in opts else {}
+                est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts, **start)
+            chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
+            bar = _progress(
+                data.n * data.horizon,
+                progress,
+                f"{scenario.name} {m} set {j + 1}/{len(data_sets)} (run {run_no}/{n_runs})",
+            )
+            try:
+                x_hat, nees_nt, diverged, secs = run_method(
+                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=results[m].init
+                )
+            finally:
+                bar.close()
+            report = M.compute_metrics(
+                data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt, warmup=warmup
+            )
+            r.reports.append(report)
+            r.seconds += secs
+            r.steps += data.n * data.horizon
+            if path is not None:
+                save_run(path, report, secs, data.n * data.horizon)
+            if on_result:
+                on_result(results)
+    return results
+
+
+def _note(enabled: bool, message: str) -> None:
+    if enabled:
+        print(message, file=sys.stderr)
+
+
+class _NoBar:
+    def update(self, n=1):
+        pass
+
+    def close(self):
+        pass
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    """A bar over one run's N T trajectory-steps; its ETA is the run's own (the rate of one method
+    on one set, smoothed over the last updates, not an average over methods of different speed)."""
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit="traj-step",
+        unit_scale=True,
+        dynamic_ncols=True,
+        leave=False,
+        mininterval=0.5,
+        disable=None,  # only on a terminal: no carriage-return progress in logs and pipes
+    )

@@ -1,0 +1,180 @@
+"""Checkpoints: safetensors weights plus a JSON card. Loading can never run code.
+
+A checkpoint is a directory holding exactly
+
+    model.safetensors   the weights (safetensors: a JSON header and raw tensor bytes, no pickle)
+    card.json           everything needed to rebuild and judge the model:
+                          method, architecture name and full config, parameter count,
+                          scenario description with every constant (``Scenario.describe()``),
+                          normalisation statistics, data seed/index/ratio and set sizes, init seed,
+                          training recipe and history, final validation loss, metrics on an
+                          evaluation set (when measured), software versions, creation date,
+                          and the sha256 of model.safetensors
+
+The model is rebuilt from the card (``ModelCls(ConfigCls(**config))``) and the weights are read with
+safetensors only: no ``torch.load``, no pickle. Trained defaults ship at
+``neural_estimator/zoo/<scenario>-<method>/``.
+
+The card's reading and writing is :mod:`neural_estimator.serving.card`; serving a checkpoint for a
+scenario (the shipped zoo, the scenario check, the estimator) is :mod:`neural_estimator.serving.load`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from neural_estimator.estimator import EstimatorError
+from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
+from neural_estimator.serving.card import (
+    CARD_FILE,
+    CARD_FORMAT,
+    CARD_VERSION,
+    WEIGHTS_FILE,
+    read_card,
+    sha256_file,
+    software_versions,
+    write_json,
+)
+from neural_estimator.serving.neural import resolve_device
+from neural_estimator.serving.normalization import NormalizationError, Normalizer
+
+
+# ---- architectures ----------------------------------------------------------------------------------
+def architecture_of(model: nn.Module) -> tuple[str, dict[str, Any]]:
+    """(architecture name, full config as a dict) of a model built by :mod:`neural_estimator.models`."""
+    for name, (_, model_cls) in ARCHITECTURES.items():
+        if type(model) is model_cls:
+            return name, dataclasses.asdict(model.cfg)
+    raise EstimatorError(f"{type(model).__name__} is not one of the registered architectures")
+
+
+def build_from_config(name: str, config: dict[str, Any]) -> nn.Module:
+    """Rebuild an (untrained) model from a card's architecture name and full config dict
+    (:func:`~neural_estimator.models.build_model`, its errors as EstimatorError naming the card's values)."""
+    config = dict(config)
+    try:
+        return build_model(name, config.pop("d_in"), config.pop("d_out"), **config)
+    except KeyError as exc:
+        raise EstimatorError(f"cannot build {name!r} from the card's config: {str(exc).strip(chr(39))}") from None
+    except (TypeError, ValueError, AssertionError) as exc:
+        raise EstimatorError(f"cannot build {name} from its config {config}: {exc}") from None
+
+
+# ---- save ---------------------------------------------------------------------------------------
+def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normalizer, card: dict[str, Any]) -> Path:
+    """Write ``model.safetensors`` and ``card.json`` into ``directory``.
+
+    Args:
+        directory: the checkpoint directory (created if needed).
+        model: a model of :mod:`neural_estimator.models`.
+        normalizer: its training-set statistics.
+        card: provenance to record; must hold ``scenario`` (``Scenario.describe()``). Usually also
+            ``data``, ``init_seed``, ``training``, ``validation_loss`` and ``metrics``. The entries
+            this function computes (method, architecture, normalization, weights, software,
+            created) replace any given ones, except ``created``.
+
+    Returns:
+        The directory.
+    """
+    from safetensors.torch import save_model
+
+    directory = Path(directory)
+    if "scenario" not in card or "scenario" not in card["scenario"]:
+        raise EstimatorError("a checkpoint card needs the scenario description (Scenario.describe())")
+    name, config = architecture_of(model)
+    directory.mkdir(parents=True, exist_ok=True)
+    weights = directory / WEIGHTS_FILE
+    tmp = directory / (WEIGHTS_FILE + ".tmp")
+    save_model(model, str(tmp), metadata={"format": CARD_FORMAT, "method": name}, force_contiguous=True)
+    os.replace(tmp, weights)
+    full = {
+        "format": CARD_FORMAT,
+        "format_version": CARD_VERSION,
+        "method": name,
+        "scenario": card["scenario"],
+        "architecture": {"name": name, "config": config, "parameters": count_parameters(model)},
+        "normalization": normalizer.to_dict(),
+    }
+    for key, value in card.items():
+        if key not in full:
+            full[key] = value
+    full["weights"] = {"file": WEIGHTS_FILE, "sha256": sha256_file(weights), "tensors": len(model.state_dict())}
+    full["software"] = software_versions()
+    full.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    write_json(directory / CARD_FILE, full)
+    return directory
+
+
+# ---- load ---------------------------------------------------------------------------------------
+def load_checkpoint(
+    checkpoint: str | Path, device: str | torch.device = "cpu"
+) -> tuple[nn.Module, Normalizer, dict[str, Any]]:
+    """(model in eval mode on ``device``, normalizer, card) of a checkpoint directory or card.
+
+    Raises:
+        EstimatorError: missing or corrupt card or weights, weights that do not match the card.
+    """
+    from safetensors.torch import load_model
+
+    directory, card = read_card(checkpoint)
+    arch = card["architecture"]
+    try:
+        normalizer = Normalizer.from_dict(card["normalization"])
+    except NormalizationError as exc:
+        raise EstimatorError(f"{directory / CARD_FILE}: {exc}") from None
+    name = card["weights"].get("file", WEIGHTS_FILE)
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
+        raise EstimatorError(
+            f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}"
+        )
+    weights = directory / name
+    if not weights.is_file():
+        raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
+    check_model_size(arch, weights.stat().st_size, directory)
+    model = build_from_config(arch["name"], arch["config"])
+    expected = card["weights"].get("sha256")
+    if expected and sha256_file(weights) != expected:
+        raise EstimatorError(
+            f"checkpoint {directory}: {weights.name} does not match the sha256 in {CARD_FILE} "
+            "(the weight file is corrupt or belongs to another checkpoint)"
+        )
+    try:
+        load_model(model, str(weights), strict=True, device="cpu")
+    except Exception as exc:  # safetensors raises its own error types for a malformed file
+        raise EstimatorError(f"checkpoint {directory}: cannot read {weights.name}: {exc}") from None
+    model = model.to(resolve_device(device)).eval()
+    return model, normalizer, card
+
+
+MAX_MODEL_ELEMENTS = 100_000_000  # parameters + buffers a card may declare (the paper's models: ~100k)
+
+
+def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path) -> None:
+    """Refuse a card whose architecture is larger than its weight file or than MAX_MODEL_ELEMENTS,
+    before allocating it: the model is built on torch's meta device (shapes only, no memory)."""
+    try:
+        with torch.device("meta"):
+            probe = build_from_config(arch["name"], arch["config"])
+    except EstimatorError:
+        raise
+    except Exception as exc:  # a card's config that the architecture rejects
+        raise EstimatorError(f"checkpoint {where}: the card's architecture cannot be built: {exc}") from None
+    params = sum(p.numel() for p in probe.parameters())
+    elements = params + sum(b.numel() for b in probe.buffers())
+    if elements > MAX_MODEL_ELEMENTS:
+        raise EstimatorError(
+            f"checkpoint {where}: the card declares a model of {elements:,} elements, more than the "
+            f"{MAX_MODEL_ELEMENTS:,} this package loads"
+        )
+    if 2 * params > weight_bytes + 4096:  # at least 2 bytes per stored parameter (bf16), plus the header
+        raise EstimatorError(
+            f"checkpoint {where}: the card declares {params:,} parameters but the weight file holds "
+            f"{weight_bytes:,} bytes: card and weights do not belong together"
+        )

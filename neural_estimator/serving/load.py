@@ -1,0 +1,161 @@
+"""Serving a checkpoint: the shipped zoo, the scenario check, and the estimator a checkpoint makes.
+
+Loading for a scenario checks that the checkpoint belongs to it: same scenario name, same
+dimensions, same state/observation/control names and angles, same constants. Two constants may
+differ, because they describe an evaluation rather than the system: ``noise_scale`` (the paper's
+robustness study evaluates at observation-noise levels beyond training) and ``horizon``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from neural_estimator.estimator import EstimatorError, check_method
+from neural_estimator.serving.card import CARD_FILE, WEIGHTS_FILE, read_card
+from neural_estimator.serving.checkpoint import load_checkpoint
+from neural_estimator.serving.neural import NeuralEstimator
+from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
+
+ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
+
+
+def default_checkpoint(scenario_name: str, method: str) -> Path:
+    """Where the shipped model of (scenario, method) lives."""
+    return ZOO_DIR / f"{scenario_name}-{method}"
+
+
+def _dims(desc: dict[str, Any]) -> tuple[int, int, int]:
+    return len(desc.get("state_names", ())), len(desc.get("obs_names", ())), len(desc.get("control_names", ()))
+
+
+def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None:
+    """Refuse a checkpoint trained on another scenario, other dimensions or other constants.
+
+    Args:
+        desc: the checkpoint's scenario description.
+        scenario: the scenario it is to serve.
+        where: how to name the checkpoint in messages.
+    """
+    ours = scenario.describe()
+    dx, dy, du = _dims(desc)
+    if desc.get("scenario") != ours["scenario"]:
+        raise EstimatorError(
+            f"checkpoint {where} was trained on scenario {desc.get('scenario')!r} (dx={dx}, dy={dy}, du={du}), "
+            f"not {ours['scenario']!r} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du})"
+        )
+    theirs_cfg, ours_cfg = desc.get("config", {}), ours["config"]
+    diffs = [
+        f"{k}={theirs_cfg.get(k, '<absent>')!r} (checkpoint) vs {ours_cfg.get(k, '<absent>')!r} (requested)"
+        for k in sorted(set(theirs_cfg) | set(ours_cfg))
+        if k not in EVALUATION_CONSTANTS and theirs_cfg.get(k) != ours_cfg.get(k)
+    ]
+    if (dx, dy, du) != (scenario.dx, scenario.dy, scenario.du):
+        raise EstimatorError(
+            f"checkpoint {where} was trained on scenario {ours['scenario']!r} with dx={dx}, dy={dy}, du={du}, "
+            f"but the requested one has dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}"
+            + (f" (constants differ: {'; '.join(diffs)})" if diffs else "")
+        )
+    for key in ("state_names", "obs_names", "control_names", "angle_states", "angle_obs"):
+        if list(desc.get(key, [])) != list(ours[key]):
+            raise EstimatorError(
+                f"checkpoint {where} was trained on scenario {ours['scenario']!r} with {key}={desc.get(key)}, "
+                f"but the requested one has {key}={ours[key]}"
+            )
+    if diffs:
+        preset = type(scenario).preset_of(theirs_cfg)
+        hint = f" (preset {preset}: --preset {preset})" if preset not in (None, "custom") else ""
+        raise EstimatorError(
+            f"checkpoint {where} was trained on scenario {ours['scenario']!r} with other constants: "
+            f"{'; '.join(diffs)}. Use the checkpoint's constants{hint}, or train a model for these "
+            f"(only {', '.join(EVALUATION_CONSTANTS)} may differ)"
+        )
+
+
+def validated_context(card: dict[str, Any]) -> dict[str, int]:
+    """The bounded context a checkpoint was validated with, as ``NeuralEstimator`` keywords
+    (``context``, ``context_copies``), or {} for a model validated the paper's way (continuously):
+    the context it serves with by default (``training.recipe.val_context``)."""
+    recipe = (card.get("training") or {}).get("recipe") or {}
+    if not recipe.get("val_context"):
+        return {}
+    return {"context": recipe["val_context"], "context_copies": recipe.get("val_context_copies", 10)}
+
+
+def load_neural_estimator(
+    method: str,
+    scenario: Scenario,
+    checkpoint: str | Path | None = None,
+    device: str = "cpu",
+    covariance: bool = True,
+    compile_step: bool = False,
+    context: int | None = None,
+    context_copies: int | None = None,
+    backend: str = "torch",
+    cov_scale: float = 1.0,
+):
+    """A :class:`~neural_estimator.serving.neural.NeuralEstimator` of ``method`` for ``scenario``.
+
+    Args:
+        method: gru, lstm, gpt2, filterformer, mamba or mamba2.
+        scenario: the system to serve; the checkpoint must have been trained on it.
+        checkpoint: a checkpoint directory or its ``card.json``; None -> the shipped default at
+            ``neural_estimator/zoo/<scenario>-<method>/``.
+        device: cpu, cuda, cuda:N or auto.
+        covariance: report the covariance: the fitted covariance head's where the card has one
+            (``covariance_head``, :mod:`neural_estimator.uncertainty.heads`), else Filterformer's
+            own; False reports none (and saves memory in ``run``).
+        compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
+        context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
+            :mod:`neural_estimator.serving.context`); 0 = unbounded, the paper's way. None: as the
+            model was validated (the card's ``training.recipe.val_context`` and
+            ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
+            when only ``context`` is given.
+        backend: ``torch`` or ``onnxruntime`` (GRU, LSTM, Mamba, Mamba-2 with an unbounded context:
+            ``step`` runs the model's step exported to ONNX, :mod:`neural_estimator.models.onnx_step`;
+            ``run`` keeps torch's parallel form).
+        cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
+
+    Raises:
+        EstimatorError: no shipped default (the message gives the command that trains one), a
+            checkpoint of another method or scenario, missing or corrupt files.
+    """
+    m = check_method(method)
+    if checkpoint is None:
+        checkpoint = default_checkpoint(scenario.name, m)
+        if not (checkpoint / CARD_FILE).is_file() or not (checkpoint / WEIGHTS_FILE).is_file():
+            missing = [f for f in (CARD_FILE, WEIGHTS_FILE) if not (checkpoint / f).is_file()]
+            raise EstimatorError(
+                f"no trained {m} model ships for scenario {scenario.name!r}: {checkpoint} lacks "
+                f"{' and '.join(missing)}. Train one with `neural-estimator train --scenario {scenario.name} "
+                f"--model {m} --out {checkpoint}` or pass checkpoint=<dir> (--checkpoint)"
+            )
+    directory, card = read_card(checkpoint)
+    if card["method"] != m:
+        raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
+    check_scenario(card["scenario"], scenario, str(directory))
+    model, normalizer, card = load_checkpoint(directory, device)
+    if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
+        from neural_estimator.uncertainty.heads import attach_head
+
+        model = attach_head(model, directory, card["covariance_head"])
+    if context is None:  # as the checkpoint was chosen: bounded if its validation was
+        validated = validated_context(card)
+        context = validated.get("context", 0)
+        context_copies = validated.get("context_copies") if context_copies is None else context_copies
+    if context_copies is None:
+        context_copies = 10
+    return NeuralEstimator(
+        scenario,
+        model,
+        normalizer,
+        m,
+        device=device,
+        covariance=covariance,
+        card=card,
+        compile_step=compile_step,
+        context=context,
+        context_copies=context_copies,
+        backend=backend,
+        cov_scale=cov_scale,
+    )

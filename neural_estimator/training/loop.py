@@ -1,0 +1,473 @@
+"""Training a neural estimator with the paper's protocol, readable top to bottom.
+
+Paper, "Neural Estimators and Training": "Inputs are noisy observations, while supervised targets
+are clean simulator states." "The default training setting uses a data-to-parameter ratio of
+approximately 20:1 ... Training samples are random length-100 sub-trajectories extracted from
+longer trajectories of length 500. Each training dataset has an independent validation set of
+8,000 trajectories for early stopping. Because chunking samples interior and endpoint timesteps with
+different frequencies, we weight each timestep loss by the inverse of its sampling frequency."
+Appendix "Hyperparameter Details": "AdamW with learning rate 2e-3, weight decay 1e-5, and gradient
+clipping with maximum norm 1.0. A ReduceLROnPlateau scheduler with decay factor 0.5 and patience 3
+... up to 500 epochs with batch size 64. Early stopping with patience 30 is applied based on
+validation performance. The first 10 timesteps are ignored during loss computation as a warmup
+period, and validation is performed after each epoch."
+
+What :func:`train` does, in order:
+
+1. Data (:mod:`neural_estimator.data.protocol`, cached): training set ``data_index`` of
+   ``data_seed`` (length-500 trajectories holding ratio x 100k steps: 20:1 -> 4,000 x 500) and its
+   validation set (8,000 x 500).
+2. Normalisation statistics from the training set (:mod:`~neural_estimator.serving.normalization`).
+3. The model, initialised under ``torch.manual_seed(init_seed)``.
+4. Each epoch: ``windows_per_epoch`` random length-100 windows (default: as many as make the
+   training set's timesteps once, 20,000 at 20:1) in batches of 64. Loss, with e = x_hat_n - x_n the
+   error in normalised units (angular components wrapped to (-pi, pi], as the metrics wrap them)
+   and w_bt = inverse sampling frequency of the window's timestep x warm-up mask
+   (``ChunkSampler.loss_weights``):
+
+       L_train = sum_{b,t,d} w_bt c_d e_btd^2 / (sum_d c_d sum_{b,t} w_bt)
+
+   with c_d the component weights of ``loss_units`` (:func:`component_weights`): "state" (the
+   default) c_d = sigma_d^2 / mean(sigma^2), the squared error in the states' own units up to one
+   constant, as RMSE weighs the components; "normalised" c_d = 1.
+
+5. Validation after each epoch (the paper does not define it; this is our definition): the model
+   in eval mode runs every validation trajectory from t = 0 over its full length (500) and
+
+       L_val = mean of c_d e_ntd^2 over trajectories n, timesteps t >= warm-up (10), components d
+               (c_d scaled to mean 1).
+
+   Full trajectories rather than windows: every timestep appears once, so no sampling weights are
+   needed, and the model is judged the way it is evaluated, run from the start over a horizon five
+   times its training windows, so early stopping favours stable filtering over short-window fit.
+   Both losses estimate the same per-timestep normalised MSE.
+6. ReduceLROnPlateau on L_val; the best model (lowest L_val so far) is written as a checkpoint
+   (``model.safetensors`` + ``card.json``) in ``out_dir``; training stops after ``patience`` epochs
+   without a strictly lower L_val, or at ``epochs``.
+7. After every epoch a ``resume/`` directory holds everything needed to continue bit-for-bit:
+   model, AdamW state, scheduler, RNG states, epoch, best, history (safetensors + JSON, no pickle).
+   ``resume=True`` continues from it; a larger ``epochs`` extends a finished run.
+8. The best model is rebuilt from its checkpoint and, if ``eval_trajectories`` > 0, measured on
+   evaluation set 0 with :func:`neural_estimator.metrics.compute_metrics`; the card is completed.
+
+Randomness: ``init_seed`` fixes the initial weights and dropout (torch's global RNG) and the window
+draws (a numpy Generator); the data depend on ``data_seed`` and ``data_index`` only. On CPU two runs
+with the same config give bit-identical weights, and an interrupted run resumed gives the weights of
+an uninterrupted one. On CUDA the same holds up to nondeterministic kernels (cuDNN RNNs, atomics).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+import time
+from pathlib import Path
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
+from neural_estimator.training.recipe import TrainConfig, TrainingError
+from neural_estimator.data.simulate import Trajectories, trajectories_digest
+from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
+from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
+from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
+from neural_estimator.serving.checkpoint import load_checkpoint, save_checkpoint
+from neural_estimator.serving.context import bounded_forward
+from neural_estimator.serving.neural import NeuralEstimator, resolve_device
+from neural_estimator.serving.normalization import Normalizer
+from neural_estimator.scenarios import Scenario, make_scenario
+from neural_estimator.training.loss import component_weights, state_error, weighted_loss
+from neural_estimator.training.resume import RESUME_DIR, load_resume, save_resume
+from neural_estimator.training.stopping import converged, lr_reductions
+
+
+def train(
+    scenario: Scenario | str,
+    arch: str,
+    out_dir: str | Path,
+    config: TrainConfig | None = None,
+    progress: bool = True,
+    deadline: float | None = None,
+    data: tuple[Trajectories, Trajectories] | None = None,
+    stop_when: Callable[[list[dict[str, Any]]], str | None] | None = None,
+) -> Path:
+    """Train ``arch`` on ``scenario`` and write the best model as a checkpoint in ``out_dir``.
+
+    Args:
+        scenario: a scenario instance (its constants are recorded) or a registered name.
+        arch: gru, lstm, gpt2, filterformer, mamba or mamba2.
+        out_dir: the checkpoint directory (``model.safetensors``, ``card.json``, ``resume/``).
+        config: the recipe (default: the paper's).
+        progress: show progress bars: epochs (losses, learning rate), and inside each epoch the
+            training batches (windows/s, time left) and the validation batches.
+        deadline: a ``time.time()`` after which no new epoch starts; the run then returns with its
+            resume state saved and the card marked "in progress" (no final evaluation). The zoo
+            script uses it to spread training over several sessions.
+        data: (training, validation) trajectories to train on instead of simulating the scenario's
+            (recorded data, with a :class:`~neural_estimator.robot.DataScenario`): the recipe's
+            trajectories, train_length and val_trajectories then come from these sets, the card
+            records their SHA-256, and the card's metrics are computed on the validation set.
+        stop_when: called with the run's history after every epoch; a string it returns ends the
+            run as early stopping does, with that string as the card's ``stopped`` (the zoo's
+            :func:`plateau_rule`). Run control like ``deadline``, not part of the recipe.
+
+    Returns:
+        ``out_dir``.
+    """
+    cfg = config or TrainConfig()
+    if isinstance(scenario, str):
+        scenario = make_scenario(scenario)
+    arch = check_method(arch)
+    if arch not in NEURAL_METHODS:
+        raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(NEURAL_METHODS)}")
+    window_key = ATTENTION_WINDOW.get(arch)  # the attention models bound their context by their window
+    if cfg.val_context and window_key and cfg.model_overrides.get(window_key, cfg.val_context) != cfg.val_context:
+        raise TrainingError(
+            f"val_context={cfg.val_context} sets {arch}'s attention window {window_key}, "
+            f"which the model overrides set to {cfg.model_overrides[window_key]}: give one of them"
+        )
+    known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
+    unknown = sorted(set(cfg.model_overrides) - known)
+    if unknown:  # before any data are simulated
+        raise TrainingError(f"{arch} has no hyperparameter(s) {unknown}; valid: {sorted(known)}")
+    out_dir = Path(out_dir)
+    device = resolve_device(cfg.device)
+    cache = cfg.cache_dir
+    dx = scenario.dx
+
+    # ---- data ----
+    recorded = None
+    if data is not None:
+        train_data, val_data = data
+        for role, d in (("training", train_data), ("validation", val_data)):
+            if (d.x.shape[2], d.y.shape[2], d.u.shape[2]) != (scenario.dx, scenario.dy, scenario.du):
+                raise TrainingError(
+                    f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
+                    f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}"
+                )
+        if train_data.horizon < cfg.window:
+            raise TrainingError(
+                f"training trajectories have {train_data.horizon} steps, fewer than the window "
+                f"({cfg.window}); pass a smaller --window or cut longer trajectories"
+            )
+        cfg = dataclasses.replace(
+            cfg,
+            trajectories=train_data.n,
+            train_length=train_data.horizon,
+            val_trajectories=val_data.n,
+            eval_trajectories=min(cfg.eval_trajectories, val_data.n),
+        )
+        recorded = {"train_sha256": trajectories_digest(train_data), "val_sha256": trajectories_digest(val_data)}
+        n_train = train_data.n
+    else:
+        longest = scenario.longest_training_trajectory
+        if longest is not None and cfg.train_length > longest:  # e.g. the quadrotor: flights past its horizon
+            if progress:
+                print(
+                    f"{scenario.name}: training trajectories of {longest} steps, not {cfg.train_length} "
+                    "(longer ones are not informative for this scenario)",
+                    flush=True,
+                )
+            cfg = dataclasses.replace(cfg, train_length=longest)
+        n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
+        train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
+        val_data = dataset(
+            scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache
+        )
+    eval_data = val_data if recorded is not None else None  # recorded data: card metrics on the validation set
+    norm = Normalizer.from_data(scenario, train_data)
+
+    def as_tensors(data) -> tuple[torch.Tensor, torch.Tensor]:
+        z, _ = norm.normalize_inputs(data.y, previous_controls(data.u))  # (N, T, d_in)
+        x = norm.normalize_states(data.x)  # (N, T, dx)
+        return (
+            torch.as_tensor(z, dtype=torch.float32, device=device),
+            torch.as_tensor(x, dtype=torch.float32, device=device),
+        )
+
+    Z_train, X_train = as_tensors(train_data)
+    Z_val, X_val = as_tensors(val_data)
+    del train_data, val_data  # (eval_data keeps the recorded validation set for the card's metrics)
+    sampler = ChunkSampler(n_train, cfg.train_length, cfg.window, cfg.warmup)
+    n_windows = int(cfg.windows_per_epoch or math.ceil(n_train * cfg.train_length / cfg.window))
+    steps_per_epoch = math.ceil(n_windows / cfg.batch_size)
+    angle_mask = torch.zeros(dx, dtype=torch.bool, device=device)
+    angle_mask[list(scenario.angle_states)] = True
+    comp_w = component_weights(cfg.loss_units, norm.out_std, device)  # None: normalised units
+    window_cols = np.arange(cfg.window)
+
+    # ---- model, optimiser, scheduler, RNG ----
+    torch.manual_seed(cfg.init_seed)  # initial weights and dropout
+    overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
+    model = build_model(arch, norm.d_in, dx, **overrides).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+        optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
+    )
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
+    run = {"epoch": 0, "best": math.inf, "best_epoch": 0, "bad_epochs": 0, "stopped": None, "history": []}
+    identity = {
+        "scenario": scenario.describe(),
+        "arch": arch,
+        "config": cfg.recipe(),
+        **({"recorded": recorded} if recorded else {}),
+    }
+    if cfg.resume and (out_dir / RESUME_DIR / "state.json").is_file():
+        run = load_resume(out_dir / RESUME_DIR, identity, model, optimizer, scheduler, rng)
+        if run["stopped"] and run["stopped"].startswith("early stopping"):
+            if run["bad_epochs"] < cfg.patience:
+                run["stopped"] = None  # resumed with a larger patience: early stopping no longer applies
+        elif run["stopped"] and stop_when is None:
+            run["stopped"] = None  # stopped by a stop_when rule that this run does not apply
+
+    def get_batch() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        idx, start = sampler.sample(rng, cfg.batch_size)  # (B,), (B,)
+        rows = torch.as_tensor(idx[:, None], device=device)  # (B, 1)
+        cols = torch.as_tensor(start[:, None] + window_cols[None, :], device=device)  # (B, L)
+        w = torch.as_tensor(sampler.loss_weights(start), dtype=torch.float32, device=device)  # (B, L)
+        return Z_train[rows, cols], X_train[rows, cols], w
+
+    n_val_batches = math.ceil(Z_val.shape[0] / cfg.val_batch_size)
+
+    @torch.no_grad()
+    def estimate_loss(bar) -> float:
+        model.eval()
+        total, count = 0.0, 0
+        bar.set_description_str(f"{scenario.name}/{arch} epoch {run['epoch'] + 1} validation")
+        for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
+            z = Z_val[b0 : b0 + cfg.val_batch_size]
+            if cfg.val_context and not window_key:
+                pred = bounded_forward(model, z, cfg.val_context, cfg.val_context_copies)
+            else:  # an attention model's window, val_context when set, bounds it already
+                pred = model(z)
+            e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
+            e2 = e.double().square()
+            if comp_w is not None:  # the same component weights as the training loss (mean 1)
+                e2 = e2 * comp_w.double()
+            total += float(e2.sum())
+            count += e.numel()
+            bar.update(1)
+        model.train()
+        return total / count
+
+    def card(metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+        return {
+            "scenario": scenario.describe(),
+            "data": {
+                **(
+                    {"source": "recorded", **recorded}
+                    if recorded
+                    else {"seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio}
+                ),
+                "train_trajectories": n_train,
+                "train_length": cfg.train_length,
+                "val_trajectories": cfg.val_trajectories,
+                "windows_per_epoch": n_windows,
+            },
+            "init_seed": cfg.init_seed,
+            "training": {
+                "recipe": cfg.recipe(),
+                "device": str(device),
+                "steps_per_epoch": steps_per_epoch,
+                "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "
+                "e = normalised error, angles wrapped"
+                + (
+                    ""
+                    if comp_w is None
+                    else "; each component weighted by sigma_d^2 / mean(sigma^2) (loss_units=state: the states' units)"
+                ),
+                "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode"
+                + (
+                    ""
+                    if not cfg.val_context
+                    else f", context bounded to {cfg.val_context} steps (its attention window)"
+                    if window_key
+                    else f", context bounded to {cfg.val_context} steps ({cfg.val_context_copies} copies)"
+                ),
+                "epochs_run": run["epoch"],
+                "best_epoch": run["best_epoch"],
+                "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
+                "budget": {
+                    "max_epochs": cfg.epochs,
+                    "early_stopping_patience": cfg.patience,
+                    "windows_per_epoch": n_windows,
+                    "val_trajectories": cfg.val_trajectories,
+                    "wall_seconds": round(sum(h["seconds"] for h in run["history"]), 1),
+                },
+                "lr_reductions": lr_reductions(run["history"], cfg.lr),
+                "converged": converged(run["stopped"], run["history"], cfg.lr),
+                "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
+                "history": run["history"],
+            },
+            "validation_loss": run["best"],
+            "metrics": metrics,
+        }
+
+    # ---- the loop ----
+    bar = tqdm(
+        total=cfg.epochs,
+        initial=run["epoch"],
+        disable=None if progress else True,
+        unit="epoch",
+        desc=f"{scenario.name}/{arch}",
+        dynamic_ncols=True,
+        position=0,
+    )
+    interrupted = False
+    while run["epoch"] < cfg.epochs and run["stopped"] is None:
+        if deadline is not None and time.time() >= deadline:
+            interrupted = True
+            break
+        t0 = time.perf_counter()
+        model.train()
+        train_loss = 0.0
+        # inside the epoch: batches of windows, then validation batches (rate and time left)
+        inner = tqdm(
+            total=steps_per_epoch,
+            disable=None if progress else True,
+            unit="batch",
+            leave=False,
+            position=1,
+            desc=f"{scenario.name}/{arch} epoch {run['epoch'] + 1} training",
+            dynamic_ncols=True,
+        )
+        for it in range(steps_per_epoch):
+            z, x, w = get_batch()
+            loss = weighted_loss(model(z), x, w, angle_mask, comp_w)
+            loss_value = loss.item()
+            if not math.isfinite(loss_value):
+                raise TrainingError(
+                    f"training loss is {loss_value} at epoch {run['epoch'] + 1}, step {it + 1}; the run diverged "
+                    f"(a lower --lr may help; the last good state is in {out_dir / RESUME_DIR})"
+                )
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            optimizer.step()
+            train_loss += loss_value
+            inner.update(1)
+            if it % 10 == 9 or it == steps_per_epoch - 1:
+                inner.set_postfix_str(
+                    f"{cfg.batch_size * inner.n / max(inner.format_dict['elapsed'], 1e-9):.0f} windows/s, "
+                    f"loss {train_loss / (it + 1):.4g}"
+                )
+        inner.close()
+        train_loss /= steps_per_epoch
+        inner = tqdm(
+            total=n_val_batches,
+            disable=None if progress else True,
+            unit="batch",
+            leave=False,
+            position=1,
+            dynamic_ncols=True,
+        )
+        val_loss = estimate_loss(inner)
+        inner.close()
+        scheduler.step(val_loss)
+        run["epoch"] += 1
+        lr = optimizer.param_groups[0]["lr"]
+        run["history"].append(
+            {
+                "epoch": run["epoch"],
+                "train_loss": train_loss,
+                "val_loss": val_loss,
+                "lr": lr,
+                "seconds": round(time.perf_counter() - t0, 3),
+            }
+        )
+        if val_loss < run["best"]:
+            run["best"], run["best_epoch"], run["bad_epochs"] = val_loss, run["epoch"], 0
+            save_checkpoint(out_dir, model, norm, card())
+        else:
+            run["bad_epochs"] += 1
+            if run["bad_epochs"] >= cfg.patience:
+                run["stopped"] = f"early stopping: no lower validation loss in {cfg.patience} epochs"
+        if run["stopped"] is None and stop_when is not None:
+            run["stopped"] = stop_when(run["history"])
+        save_resume(out_dir / RESUME_DIR, identity, run, model, optimizer, scheduler, rng)
+        bar.update(1)
+        bar.set_postfix(
+            {"train": f"{train_loss:.4g}", "val": f"{val_loss:.4g}", "best": f"{run['best']:.4g}", "lr": f"{lr:.2g}"}
+        )
+    bar.close()
+    if interrupted:  # out of time: the resume state and the best checkpoint so far stay for the next run
+        return out_dir
+
+    # ---- the best model, rebuilt from its checkpoint; metrics; the final card ----
+    if run["best_epoch"] == 0:
+        raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
+    best_model, _, _ = load_checkpoint(out_dir, device)
+    metrics = None
+    if cfg.eval_trajectories:
+        metrics = evaluate(
+            scenario,
+            best_model,
+            norm,
+            arch,
+            cfg.eval_trajectories,
+            cfg.data_seed,
+            device,
+            cache,
+            data=eval_data,
+            context=cfg.val_context,
+            context_copies=cfg.val_context_copies,
+        )
+    save_checkpoint(out_dir, best_model, norm, card(metrics))
+    if not cfg.keep_resume:
+        shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
+    return out_dir
+
+
+def evaluate(
+    scenario: Scenario,
+    model: torch.nn.Module,
+    normalizer: Normalizer,
+    arch: str,
+    trajectories: int,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    cache_dir: str | None = None,
+    data: Trajectories | None = None,
+    context: int = 0,
+    context_copies: int = 4,
+) -> dict[str, Any]:
+    """Metrics of a model on the first ``trajectories`` of evaluation set 0 (scenario horizon), or of
+    ``data`` (recorded data: the validation set), the first :data:`EVALUATION_WARMUP` steps not scored
+    (as every evaluation; the card's ``set.warmup`` says so; cards without it scored every step);
+    ``context`` > 0 runs it with its context bounded (the card's ``set.context`` says so)."""
+    role = "eval" if data is None else "val (recorded)"
+    data = (
+        dataset(scenario, "eval", 0, trajectories, None, seed, cache_dir)
+        if data is None
+        else data.subset(slice(0, trajectories))
+    )
+    est = NeuralEstimator(
+        scenario,
+        model,
+        normalizer,
+        arch,
+        device=device,
+        covariance=False,
+        context=context,
+        context_copies=context_copies,
+    )
+    out = est.run(data.y, data.u)
+    warmup = EVALUATION_WARMUP if data.horizon > EVALUATION_WARMUP else 0
+    report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged, warmup=warmup)
+    return {
+        "set": {
+            "role": role,
+            "index": 0,
+            "seed": seed,
+            "trajectories": data.n,
+            "horizon": data.horizon,
+            "warmup": warmup,
+            **({"context": context, "context_copies": context_copies} if context else {}),
+        },
+        **to_json(report.scalars()),
+    }
