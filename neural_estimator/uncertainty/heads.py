@@ -82,7 +82,10 @@ class CholeskyHead(nn.Module):
         return self.unit.unsqueeze(-1) * L
 
     def forward(self, h: Tensor) -> Tensor:
-        L = self.factor(h) * self.scale.sqrt().unsqueeze(-1)  # D L
+        """The covariance in float64: a product L L^T rounded to float32 is not positive semi-definite
+        when two components are correlated beyond ~0.9999 (bearings: range along the line of
+        sight), and a float64 product of the float32 factor is (the factor is what was fitted)."""
+        L = (self.factor(h) * self.scale.sqrt().unsqueeze(-1)).double()  # D L
         return L @ L.transpose(-1, -2)
 
     def nll(self, h: Tensor, e: Tensor) -> Tensor:
