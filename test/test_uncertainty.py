@@ -284,3 +284,17 @@ def test_the_band_scale_trades_the_tail_for_the_bulk_on_heavy_tailed_errors():
     assert c_exact[C.RELIABILITY_LEVELS.index(0.95)] == pytest.approx(0.95, abs=1e-3)
     assert C.FIT_BAND[0] - 1e-3 <= c_band[C.RELIABILITY_LEVELS.index(0.95)] <= C.FIT_BAND[1] + 1e-3
     assert C.calibration_error(c_band) < C.calibration_error(c_exact) - 0.03
+
+
+def test_the_calibrated_settings_are_options_every_filter_takes():
+    from neural_estimator.registry import make_estimator
+    from neural_estimator.scenarios import make_scenario
+    from neural_estimator.uncertainty.calibrated import calibrated_options
+
+    scenario = make_scenario("nlink")
+    for method in ("ekf", "ukf", "enkf", "pf"):
+        opts = calibrated_options("nlink", method)
+        assert opts.get("cov_scale", 1.0) > 0
+        est = make_estimator(method, scenario, **opts)
+        assert est.cov_scale == opts.get("cov_scale", 1.0)
+    assert calibrated_options("nlink", "gru") == {}

@@ -5,6 +5,8 @@
   its storage beside the checkpoint's weights.
 - :mod:`~neural_estimator.uncertainty.fit`: fitting a head and its calibration scale on validation
   data (``scripts/fit_covariance_heads.py`` does it for the shipped models).
+- :mod:`~neural_estimator.uncertainty.calibrated`: the classical filters' calibrated settings
+  (``scripts/calibrate_covariances.py`` chose them on validation data).
 
 The figures they are judged by (NEES, coverage, the reliability curve, the calibration scale) are
 :mod:`neural_estimator.consistency`; every method also takes a ``cov_scale`` option (the classical
