@@ -9,6 +9,7 @@ untouched. One pair at a time; a pair already done is skipped, so an interrupted
 
     OMP_NUM_THREADS=1 python scripts/fit_covariance_heads.py --scenarios bearings lorenz96 nlink
     python scripts/fit_covariance_heads.py --scenarios ballistic --methods gru --force
+    python scripts/fit_covariance_heads.py --checkpoint my_gru --data held_out_a.npz --calibration-data held_out_b.npz
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -42,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="refit only the calibration scale of the heads already fitted (the calibration set's trunk pass)",
     )
+    ap.add_argument("--checkpoint", type=Path, help="a model trained on recorded data (train --data): fit its head")
+    ap.add_argument("--data", type=Path, help="with --checkpoint: held-out recorded trajectories to fit the head on")
+    ap.add_argument(
+        "--calibration-data", type=Path, help="with --checkpoint: other held-out trajectories for the scale"
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     settings = FitSettings(
@@ -49,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
         calibration_trajectories=args.calibration_trajectories,
         steps=args.steps,
     )
+    if args.checkpoint is not None:
+        return fit_recorded(args, settings)
     for scenario_name in args.scenarios:
         for method in args.methods:
             directory = default_checkpoint(scenario_name, method)
@@ -78,6 +87,26 @@ def main(argv: list[str] | None = None) -> int:
                 f"{_fmt(cal['before'])}; after {_fmt(cal['after'])} ({time.time() - t0:.0f} s)",
                 flush=True,
             )
+    return 0
+
+
+def fit_recorded(args, settings: FitSettings) -> int:
+    """The head of a model trained on recorded data, fitted on held-out recorded trajectories."""
+    from neural_estimator.data import load_trajectories
+    from neural_estimator.robot import DataScenario
+
+    if args.data is None or args.calibration_data is None:
+        print("--checkpoint needs --data and --calibration-data (held-out recorded trajectories)", file=sys.stderr)
+        return 2
+    fit_data, _ = load_trajectories(args.data)
+    cal_data, _ = load_trajectories(args.calibration_data)
+    _, card = read_card(args.checkpoint)
+    est = load_neural_estimator(card["method"], DataScenario(fit_data.meta), args.checkpoint, covariance=False)
+    head, info = fit_covariance_head(est, settings, print, head_data=fit_data, calibration_data=cal_data)
+    _, card = read_card(args.checkpoint)
+    card["covariance_head"] = save_head(args.checkpoint, head, info)
+    write_json(Path(args.checkpoint) / CARD_FILE, card)
+    print(f"{args.checkpoint}: scale {info['calibration']['scale']:.3g}; after {_fmt(info['calibration']['after'])}")
     return 0
 
 

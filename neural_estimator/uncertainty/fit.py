@@ -136,25 +136,34 @@ def figures(eps: np.ndarray, dx: int) -> dict[str, float]:
     }
 
 
-def _set(est, name: str, index: int, n: int, log=None, t0: float = 0.0) -> tuple[torch.Tensor, np.ndarray, int]:
-    """(features (K, H), normalised errors (K, dx), kept trajectories) of one validation set, the
-    warm-up left out, the trajectories the metrics' outlier rule keeps only."""
-    s, dx = est.scenario, est.scenario.dx
+def _set(
+    est, name: str, index: int, n: int, log=None, t0: float = 0.0, data=None
+) -> tuple[torch.Tensor, np.ndarray, int]:
+    """(features (K, H), normalised errors (K, dx), kept trajectories) of one validation set (or of
+    recorded trajectories ``data``), the warm-up left out, the trajectories the metrics' outlier
+    rule keeps only."""
+    dx = est.scenario.dx
     seed = int((est.card.get("data") or {}).get("seed", 0))
     warmup = est.untrained_steps
-    data = protocol.dataset(s, "val", index, n, seed=seed)
+    if data is None:
+        data = protocol.dataset(est.scenario, "val", index, n, seed=seed)
     h, x_hat = served_features(est, data.y, data.u)
     e = normalised_errors(est, data.x, x_hat)
     keep = kept_trajectories(e)
     if log:
-        log(f"  {name} set: val index {index}, {keep.sum()}/{n} trajectories kept, {time.time() - t0:.0f} s")
+        where = f"val index {index}" if data is None else "recorded data"
+        log(f"  {name} set: {where}, {keep.sum()}/{len(keep)} trajectories kept, {time.time() - t0:.0f} s")
     return h[keep, warmup:].reshape(-1, h.shape[-1]), e[keep, warmup:].reshape(-1, dx), int(keep.sum())
 
 
-def calibrate_head(est, head: CholeskyHead, settings: FitSettings = FitSettings(), log=None) -> dict[str, Any]:
-    """Fit the head's calibration scale s on the calibration set (its NEES with s = 1), store it in
-    ``head.scale`` and return the card's ``calibration`` entry (scale, target, figures before and after)."""
-    h, e, kept = _set(est, "calibration", CALIBRATION_INDEX, settings.calibration_trajectories, log, time.time())
+def calibrate_head(
+    est, head: CholeskyHead, settings: FitSettings = FitSettings(), log=None, data=None
+) -> dict[str, Any]:
+    """Fit the head's calibration scale s on the calibration set (or recorded trajectories ``data``;
+    its NEES with s = 1), store it in ``head.scale`` and return the card's ``calibration`` entry
+    (scale, target, figures before and after)."""
+    n = settings.calibration_trajectories
+    h, e, kept = _set(est, "calibration", CALIBRATION_INDEX, n, log, time.time(), data)
     head.scale.fill_(1.0)
     eps = nees_of(head, h, e)
     dx = est.scenario.dx
@@ -163,14 +172,19 @@ def calibrate_head(est, head: CholeskyHead, settings: FitSettings = FitSettings(
     return {
         "scale": scale,
         "target": settings.scale_target,
-        "set": {"role": "val", "index": CALIBRATION_INDEX, "kept": kept},
+        "set": {"role": "val", "index": CALIBRATION_INDEX, "kept": kept} if data is None else {"recorded": kept},
         "before": figures(eps, dx),
         "after": figures(eps / scale, dx),
     }
 
 
-def fit_covariance_head(est, settings: FitSettings = FitSettings(), log=None) -> tuple[CholeskyHead, dict[str, Any]]:
+def fit_covariance_head(
+    est, settings: FitSettings = FitSettings(), log=None, head_data=None, calibration_data=None
+) -> tuple[CholeskyHead, dict[str, Any]]:
     """Fit a head (and its calibration scale) for the served model ``est`` (module docstring).
+
+    ``head_data``, ``calibration_data``: recorded trajectories (a robot's held-out data, see
+    docs/robot.md) in place of the scenario's validation sets 101 and 102.
 
     Returns:
         The head and the card entry's ``fit`` information (sets, settings, NLL history, the
@@ -178,13 +192,18 @@ def fit_covariance_head(est, settings: FitSettings = FitSettings(), log=None) ->
     """
     t0 = time.time()
     seed = int((est.card.get("data") or {}).get("seed", 0))
-    h_fit, e_fit, _ = _set(est, "head", HEAD_INDEX, settings.head_trajectories, log, t0)
+    h_fit, e_fit, n_fit = _set(est, "head", HEAD_INDEX, settings.head_trajectories, log, t0, head_data)
     head, history = train_head(h_fit, torch.as_tensor(e_fit, dtype=torch.float32), settings, log)
-    calibration = calibrate_head(est, head, settings, log)
+    calibration = calibrate_head(est, head, settings, log, calibration_data)
+    recorded = head_data is not None
     info = {
         "fitted_on": {
-            "head": {"role": "val", "index": HEAD_INDEX, "seed": seed, "trajectories": settings.head_trajectories},
-            "calibration": {"role": "val", "index": CALIBRATION_INDEX, "seed": seed},
+            "head": {"recorded": n_fit}
+            if recorded
+            else {"role": "val", "index": HEAD_INDEX, "seed": seed, "trajectories": settings.head_trajectories},
+            "calibration": {"recorded": calibration["set"].get("recorded")}
+            if calibration_data is not None
+            else {"role": "val", "index": CALIBRATION_INDEX, "seed": seed},
             "horizon": est.scenario.horizon,
             "warmup": est.untrained_steps,
             "context": est.context,
