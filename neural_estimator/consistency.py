@@ -46,6 +46,9 @@ RELIABILITY_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99)
 COVERAGE_BAND = (0.90, 0.98)
 NEES_BAND = (0.7, 1.5)
 SCALE_TARGETS = ("coverage", "mean", "band")
+# A reliability curve whose mean distance from the diagonal exceeds this is not called consistent,
+# whatever its 95 % coverage and mean NEES.
+CALIBRATION_ERROR_MAX = 0.1
 # The 95 % coverage band the "band" scale is chosen in: inside COVERAGE_BAND with a margin, so that
 # a scale fitted on one validation set stays in the band on fresh data.
 FIT_BAND = (0.92, 0.97)
@@ -132,10 +135,12 @@ def _band_scale(eps: np.ndarray, dx: int, points: int = 400) -> float:
     return float(scales[int(np.argmin(err))]) if np.isfinite(err).any() else float(np.quantile(eps, 0.95) / q95)
 
 
-def verdict(nees_mean_per_dim: float | None, coverage95: float | None) -> str:
+def verdict(nees_mean_per_dim: float | None, coverage95: float | None, calibration_error: float | None = None) -> str:
     """``consistent`` (both in the done-when bands :data:`COVERAGE_BAND`, :data:`NEES_BAND`),
     ``over-confident`` (coverage below its band or NEES above), ``too wide`` (coverage above or NEES
-    below), ``mixed`` (one says each), ``—`` without a covariance."""
+    below), ``mixed`` (one says each), ``mis-shaped`` (both in their bands but the reliability curve
+    far from the diagonal: calibration error above :data:`CALIBRATION_ERROR_MAX`, e.g. most errors
+    far inside the region and a few far out), ``—`` without a covariance."""
     if nees_mean_per_dim is None or coverage95 is None:
         return "—"
     c, r = float(coverage95), float(nees_mean_per_dim)
@@ -145,7 +150,11 @@ def verdict(nees_mean_per_dim: float | None, coverage95: float | None) -> str:
     wide = c > COVERAGE_BAND[1] or r < NEES_BAND[0]
     if over and wide:  # e.g. heavy tails: most errors well inside, a few far out
         return "mixed"
-    return "over-confident" if over else "too wide" if wide else "consistent"
+    if over or wide:
+        return "over-confident" if over else "too wide"
+    if calibration_error is not None and calibration_error > CALIBRATION_ERROR_MAX:
+        return "mis-shaped"
+    return "consistent"
 
 
 def consistency_row(summary: Mapping[str, Any], dx: int, curve: Sequence[float] | None = None) -> dict[str, Any]:
@@ -169,7 +178,7 @@ def consistency_row(summary: Mapping[str, Any], dx: int, curve: Sequence[float] 
         "coverage95": c95,
         "calibration_error": None if curve is None else calibration_error(curve),
     }
-    row["verdict"] = verdict(row["nees_mean_per_dim"], c95)
+    row["verdict"] = verdict(row["nees_mean_per_dim"], c95, row["calibration_error"])
     return row
 
 

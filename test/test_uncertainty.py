@@ -82,6 +82,8 @@ def test_verdict_bands_and_the_table():
     assert C.verdict(0.1, 1.00) == "too wide"
     assert C.verdict(2.0, 0.99) == "mixed"
     assert C.verdict(None, None) == "—"
+    assert C.verdict(1.3, 0.92, 0.32) == "mis-shaped"  # in both bands, but the curve is far off
+    assert C.verdict(1.3, 0.92, 0.05) == "consistent"
     rows = {
         "ekf": C.consistency_row({"nees_median": 9.3, "nees": 10.2, "coverage95": 0.95}, 10, C.RELIABILITY_LEVELS),
         "gru": C.consistency_row({"nees_median": None, "nees": None, "coverage95": None}, 10),
