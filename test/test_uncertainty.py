@@ -300,3 +300,17 @@ def test_the_calibrated_settings_are_options_every_filter_takes():
         est = make_estimator(method, scenario, **opts)
         assert est.cov_scale == opts.get("cov_scale", 1.0)
     assert calibrated_options("nlink", "gru") == {}
+
+
+def test_new_weights_in_a_checkpoint_drop_the_old_covariance_head(tmp_path):
+    """A head fitted on other weights is removed when a checkpoint is written over (retraining):
+    the new card has no head and the directory holds no stale head file."""
+    from neural_estimator.serving.checkpoint import save_checkpoint
+    from neural_estimator.serving.normalization import Normalizer
+
+    scenario, data, plain, est = _estimator_with_head(tmp_path)
+    assert (tmp_path / "covariance_head.safetensors").is_file()
+    old_card = json.loads((tmp_path / "card.json").read_text())  # passed on whole, as a fine-tuning would
+    save_checkpoint(tmp_path, plain.model, Normalizer.from_data(scenario, data), old_card)
+    assert not (tmp_path / "covariance_head.safetensors").exists()
+    assert "covariance_head" not in json.loads((tmp_path / "card.json").read_text())
