@@ -25,7 +25,7 @@ from neural_estimator.estimator import NEURAL_METHODS
 from neural_estimator.serving.card import CARD_FILE, read_card, write_json
 from neural_estimator.serving.load import default_checkpoint, load_neural_estimator
 from neural_estimator.scenarios import scenario_from_description
-from neural_estimator.uncertainty.fit import FitSettings, calibrate_head, fit_covariance_head
+from neural_estimator.uncertainty.fit import FitSettings, calibrate_head, choose_shrink, fit_covariance_head
 from neural_estimator.uncertainty.heads import load_head, save_head
 
 SCENARIOS = ("bearings", "lorenz96", "nlink", "ballistic", "quadrotor")
@@ -39,6 +39,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--head-trajectories", type=int, default=FitSettings.head_trajectories)
     ap.add_argument("--calibration-trajectories", type=int, default=FitSettings.calibration_trajectories)
     ap.add_argument("--steps", type=int, default=FitSettings.steps)
+    ap.add_argument(
+        "--choose-shrink",
+        action="store_true",
+        help="choose the heads' correlation shrinkage on a larger validation set (1000 trajectories of val 103)",
+    )
     ap.add_argument(
         "--recalibrate",
         action="store_true",
@@ -65,6 +70,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{scenario_name}-{method}: no shipped model, skipped", flush=True)
                 continue
             _, card = read_card(directory)
+            if args.choose_shrink:
+                if card.get("covariance_head"):
+                    shrink(directory, scenario_name, method, card)
+                continue
             if args.recalibrate:
                 if card.get("covariance_head"):
                     recalibrate(directory, scenario_name, method, card, settings)
@@ -108,6 +117,20 @@ def fit_recorded(args, settings: FitSettings) -> int:
     write_json(Path(args.checkpoint) / CARD_FILE, card)
     print(f"{args.checkpoint}: scale {info['calibration']['scale']:.3g}; after {_fmt(info['calibration']['after'])}")
     return 0
+
+
+def shrink(directory, scenario_name: str, method: str, card: dict) -> None:
+    """Choose a fitted head's correlation shrinkage (the card's ``covariance_head.shrink``)."""
+    entry = card["covariance_head"]
+    scenario = scenario_from_description(card["scenario"])
+    est = load_neural_estimator(method, scenario, directory, covariance=False)
+    head = load_head(directory, entry, scenario.dx)
+    record = choose_shrink(est, head)
+    entry["shrink"] = record["value"]
+    entry["shrink_choice"] = record
+    write_json(directory / CARD_FILE, card)
+    best = next(c for c in record["candidates"] if c["shrink"] == record["value"])
+    print(f"{scenario_name}-{method}: shrink {record['value']}; {_fmt(best)}", flush=True)
 
 
 def recalibrate(directory, scenario_name: str, method: str, card: dict, settings: FitSettings) -> None:

@@ -112,6 +112,11 @@ def test_cholesky_head_covariance_and_nll_against_torch_distributions():
     assert nll == pytest.approx(float(nll_ref), rel=1e-9)
     head.scale.fill_(3.0)
     assert torch.allclose(head(h), 3.0 * cov)
+    head.shrink = 0.1  # correlations shrunk towards zero, variances kept
+    shrunk = head(h)
+    assert torch.allclose(torch.diagonal(shrunk, dim1=-2, dim2=-1), torch.diagonal(3.0 * cov, dim1=-2, dim2=-1))
+    off = ~torch.eye(4, dtype=torch.bool)
+    assert torch.allclose(shrunk[:, off], 0.9 * 3.0 * cov[:, off])
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -197,6 +202,8 @@ def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_pa
     card = json.loads((tmp_path / CARD_FILE).read_text())
     with pytest.raises(HeadError, match="inside the checkpoint"):
         load_head(tmp_path, {**card["covariance_head"], "file": "../x"}, scenario.dx)
+    with pytest.raises(HeadError, match="shrink must be in"):
+        load_head(tmp_path, {**card["covariance_head"], "sha256": None, "shrink": 1.5}, scenario.dx)
 
 
 # ---- calibration of any method: cov_scale ------------------------------------------------------------

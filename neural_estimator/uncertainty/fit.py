@@ -214,3 +214,23 @@ def fit_covariance_head(
         "seconds": round(time.time() - t0, 1),
     }
     return head, info
+
+
+SHRINK_INDEX = 103
+SHRINK_GRID = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
+
+
+def choose_shrink(est, head: CholeskyHead, n: int = 1000, log=None) -> dict[str, Any]:
+    """The smallest correlation shrinkage rho of :data:`SHRINK_GRID` whose mean NEES / dx on a larger
+    validation set (role "val", index :data:`SHRINK_INDEX`, ``n`` trajectories) is within
+    :data:`~neural_estimator.consistency.NEES_BAND` (the last one if none is); returns the card's
+    ``shrink`` record with every candidate's figures. ``head.shrink`` is left at the choice."""
+    h, e, kept = _set(est, "shrink", SHRINK_INDEX, n, log, time.time())
+    dx, tried = est.scenario.dx, []
+    for rho in SHRINK_GRID:
+        head.shrink = rho
+        tried.append({"shrink": rho, **figures(nees_of(head, h, e), dx)})
+    ok = [t for t in tried if C.NEES_BAND[0] <= t["nees_mean_per_dim"] <= C.NEES_BAND[1]]
+    best = ok[0] if ok else tried[-1]
+    head.shrink = best["shrink"]
+    return {"value": best["shrink"], "set": {"role": "val", "index": SHRINK_INDEX, "kept": kept}, "candidates": tried}

@@ -12,7 +12,10 @@ u is fixed at the per-component standard deviation of the errors the head is fit
 trained part A works in units where every error component has spread one (its diagonal and its
 off-diagonal entries are commensurate, which keeps Adam's steps stable for any scale of error).
 
-so C_t is symmetric positive definite by construction, in normalised units (the estimator maps it to
+and, where the card says so (``shrink`` = rho > 0), C_t <- (1 - rho) C_t + rho diag(C_t), a shrinkage of
+the correlations that bounds how thin the covariance can get (chosen on validation data where the
+head's correlations reach +-0.9999 and the errors lie across the thin direction: the bearings
+Filterformer). C_t is symmetric positive definite by construction, in normalised units (the estimator maps it to
 state units as diag(sigma_x) C_t diag(sigma_x), see ``Normalizer.denormalize_covariance``). The head
 is trained on the frozen trunk by the Gaussian negative log-likelihood of the trunk's own errors
 
@@ -61,6 +64,7 @@ class CholeskyHead(nn.Module):
         self.register_buffer("cols", cols, persistent=False)
         self.register_buffer("unit", torch.ones(self.n))  # u: the fit's error std per component (fixed)
         self.register_buffer("scale", torch.ones(self.n))  # s: per-component variance scale (calibration)
+        self.shrink = 0.0  # rho: C <- (1 - rho) C + rho diag(C), from the card (see the module docstring)
         nn.init.zeros_(self.linear.weight)
         nn.init.zeros_(self.linear.bias)
 
@@ -86,7 +90,10 @@ class CholeskyHead(nn.Module):
         when two components are correlated beyond ~0.9999 (bearings: range along the line of
         sight), and a float64 product of the float32 factor is (the factor is what was fitted)."""
         L = (self.factor(h) * self.scale.sqrt().unsqueeze(-1)).double()  # D L
-        return L @ L.transpose(-1, -2)
+        C = L @ L.transpose(-1, -2)
+        if self.shrink:
+            C = (1.0 - self.shrink) * C + self.shrink * torch.diag_embed(torch.diagonal(C, dim1=-2, dim2=-1))
+        return C
 
     def nll(self, h: Tensor, e: Tensor) -> Tensor:
         """Mean Gaussian negative log-likelihood (without the constant) of errors e (K, n) at features h (K, H)."""
@@ -183,6 +190,9 @@ def load_head(directory: str | Path, entry: dict[str, Any], n: int) -> CholeskyH
     path = directory / name
     if not path.is_file():
         raise HeadError(f"checkpoint {directory}: the card names a covariance head, but {name} is missing")
+    shrink = entry.get("shrink", 0.0)
+    if isinstance(shrink, bool) or not isinstance(shrink, (int, float)) or not 0.0 <= shrink < 1.0:
+        raise HeadError(f"checkpoint {directory}: the covariance head's shrink must be in [0, 1), got {shrink!r}")
     if entry.get("form", HEAD_FORM) != HEAD_FORM:
         raise HeadError(f"checkpoint {directory}: unknown covariance head form {entry.get('form')!r}")
     if entry.get("sha256") and _sha256(path) != entry["sha256"]:
@@ -195,6 +205,7 @@ def load_head(directory: str | Path, entry: dict[str, Any], n: int) -> CholeskyH
         head.load_state_dict(load_file(str(path)), strict=True)
     except Exception as exc:  # safetensors and torch raise their own types
         raise HeadError(f"checkpoint {directory}: cannot read {name}: {exc}") from None
+    head.shrink = float(shrink)
     return head.eval()
 
 
