@@ -321,3 +321,17 @@ def test_new_weights_in_a_checkpoint_drop_the_old_covariance_head(tmp_path):
     save_checkpoint(tmp_path, plain.model, Normalizer.from_data(scenario, data), old_card)
     assert not (tmp_path / "covariance_head.safetensors").exists()
     assert "covariance_head" not in json.loads((tmp_path / "card.json").read_text())
+
+
+def test_the_onnx_backend_serves_the_estimate_only_and_says_so():
+    """A model with a covariance head on ONNX Runtime: no covariance in step or run (has_covariance
+    False), the estimate as before."""
+    pytest.importorskip("onnxruntime")
+    from neural_estimator.registry import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    est = make_estimator("gru", make_scenario("lorenz96"), backend="onnxruntime")
+    assert not est.has_covariance
+    est.reset(1)
+    est.step(np.zeros((1, 10)))
+    assert est.covariance is None and est.run(np.zeros((1, 3, 10))).cov is None

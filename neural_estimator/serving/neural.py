@@ -140,6 +140,8 @@ class NeuralEstimator(Estimator):
         if self.backend not in BACKENDS:
             raise EstimatorError(f"{method}: backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         self._ort = self._onnx_step() if self.backend == "onnxruntime" else None
+        if self._ort is not None:  # the exported step serves the estimate only: no covariance in step or run
+            self.has_covariance = False
         self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
         self._dims = (scenario.dy, scenario.du)
         self._z64 = np.zeros((1, scenario.dy + scenario.du))  # the normalised input, float64
