@@ -70,6 +70,9 @@ def test_spread_is_read_on_the_most_accurate_method_and_the_section_renders():
     assert F.spread(rmse, nrmse, "quadrotor", F.CLASSICAL + F.NEURAL) == 0.287 / 0.009  # its EKF, the most accurate
     ours = {s: dict(v) for s, v in rmse.items()}
     ours["ballistic"]["gru"] = None
-    text = "\n".join(F.section(ours, nrmse, pending={("ballistic", "gru"): "retraining"}))
+    measured = F.Measured(ours, nrmse, {("ballistic", "gru"): "retraining"}, [], marks={("bearings", "gru"): ["[c]"]})
+    text = "\n".join(F.section(measured))
+    assert "[c] ·" in text and "(!)" in text  # a bounded-context cell; the expected failures of the PF
+    assert "- `[c]` bounded context" in text and "- `(!)` expected to fail" in text
     assert "48 of 48 measured cells within 1.5x" in text and "retraining · 0.676" in text
     assert "6 of 7 findings reproduced, 1 partly" in text  # an SSM best in 4 of the 4 measured scenarios

@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from neural_estimator import __version__
 from neural_estimator.estimator import EstimatorError
@@ -74,6 +73,7 @@ def sha256_file(path: Path) -> str:
 
 def software_versions() -> dict[str, str]:
     import safetensors
+    import torch  # here, not at the top: reading a card (serving without torch) needs no torch
 
     return {
         "neural_estimator": __version__,

@@ -13,8 +13,7 @@ from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
 from neural_estimator.serving.card import CARD_FILE, WEIGHTS_FILE, read_card
-from neural_estimator.serving.checkpoint import load_checkpoint
-from neural_estimator.serving.neural import NeuralEstimator
+from neural_estimator.serving.onnx_runtime import ATTENTION, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
 ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
@@ -111,9 +110,12 @@ def load_neural_estimator(
             model was validated (the card's ``training.recipe.val_context`` and
             ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
             when only ``context`` is given.
-        backend: ``torch`` or ``onnxruntime`` (GRU, LSTM, Mamba, Mamba-2 with an unbounded context:
-            ``step`` runs the model's step exported to ONNX, :mod:`neural_estimator.models.onnx_step`;
-            ``run`` keeps torch's parallel form).
+        backend: ``torch`` or ``onnxruntime``: ``step`` runs the model's step exported to ONNX
+            (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 with an unbounded
+            context, GPT-2 and Filterformer with their window). Where the checkpoint directory holds
+            ``step.onnx`` (``scripts/export_onnx.py --beside``) that graph is served without torch
+            (:class:`~neural_estimator.models.onnx_step.OnnxEstimator`, batch 1, ``run`` a loop of
+            ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
         cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
 
     Raises:
@@ -134,6 +136,16 @@ def load_neural_estimator(
     if card["method"] != m:
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
+    if backend == "onnxruntime" and onnx_beside(directory) is not None:  # served without torch
+        if str(device).lower() not in ("cpu", "auto"):
+            raise EstimatorError(f"{m}: the exported step beside the card serves on the cpu, not {device!r}")
+        if context is None and m not in ATTENTION:  # as validated: a bounded one is not the exported step
+            context = validated_context(card).get("context", 0)
+        return load_onnx_estimator(directory, card, scenario, context=context, covariance=covariance)
+    # torch from here on: imported only where a model is loaded into it
+    from neural_estimator.serving.checkpoint import load_checkpoint
+    from neural_estimator.serving.neural import NeuralEstimator
+
     model, normalizer, card = load_checkpoint(directory, device)
     if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
         from neural_estimator.uncertainty.heads import attach_head

@@ -59,9 +59,14 @@ class CholeskyHead(nn.Module):
         super().__init__()
         self.n = int(n)
         self.linear = nn.Linear(int(features), self.n + self.n * (self.n - 1) // 2)
-        rows, cols = torch.tril_indices(self.n, self.n, offset=-1)
-        self.register_buffer("rows", rows, persistent=False)
-        self.register_buffer("cols", cols, persistent=False)
+        # L = v[..., place].view(n, n) with v = [exp(diag part), off-diagonal part, 0]: a gather, so the
+        # head exports to ONNX (the estimator's onnxruntime backend) where an indexed assignment does not
+        n = self.n
+        place = torch.full((n, n), 2 * n + n * (n - 1) // 2 - n, dtype=torch.long)  # the trailing 0
+        place[range(n), range(n)] = torch.arange(n)
+        rows, cols = torch.tril_indices(n, n, offset=-1)
+        place[rows, cols] = n + torch.arange(rows.numel())
+        self.register_buffer("place", place.reshape(-1), persistent=False)
         self.register_buffer("unit", torch.ones(self.n))  # u: the fit's error std per component (fixed)
         self.register_buffer("scale", torch.ones(self.n))  # s: per-component variance scale (calibration)
         self.shrink = 0.0  # rho: C <- (1 - rho) C + rho diag(C), from the card (see the module docstring)
@@ -79,10 +84,8 @@ class CholeskyHead(nn.Module):
         """diag(u) L (..., n, n), lower triangular with a positive diagonal, before the calibration scale."""
         a = F.linear(h, self.linear.weight, self.linear.bias)
         n = self.n
-        L = a.new_zeros(a.shape[:-1] + (n, n))
-        idx = torch.arange(n, device=a.device)
-        L[..., idx, idx] = torch.exp(a[..., :n].clamp(*LOG_DIAG_RANGE))
-        L[..., self.rows, self.cols] = a[..., n:]
+        v = torch.cat([torch.exp(a[..., :n].clamp(*LOG_DIAG_RANGE)), a[..., n:], a[..., :1] * 0.0], dim=-1)
+        L = v[..., self.place].unflatten(-1, (n, n))
         return self.unit.unsqueeze(-1) * L
 
     def forward(self, h: Tensor) -> Tensor:
@@ -91,8 +94,9 @@ class CholeskyHead(nn.Module):
         sight), and a float64 product of the float32 factor is (the factor is what was fitted)."""
         L = (self.factor(h) * self.scale.sqrt().unsqueeze(-1)).double()  # D L
         C = L @ L.transpose(-1, -2)
-        if self.shrink:
-            C = (1.0 - self.shrink) * C + self.shrink * torch.diag_embed(torch.diagonal(C, dim1=-2, dim2=-1))
+        if self.shrink:  # off-diagonal entries times (1 - rho), the diagonal kept
+            eye = torch.eye(self.n, dtype=C.dtype, device=C.device)
+            C = C * ((1.0 - self.shrink) * (1.0 - eye) + eye)
         return C
 
     def nll(self, h: Tensor, e: Tensor) -> Tensor:
