@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from neural_estimator import consistency as CONSISTENCY
 from neural_estimator import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.expected_failures import MARK, expected_to_fail, notes
@@ -284,6 +285,29 @@ def covariance_table(summ, scenarios, methods) -> list[str]:
                 applies = st is not None and st[k].applies
                 any_applies |= applies
                 cells.append(stat_cell(st[k], d, True) if applies else M.NOT_APPLICABLE)
+        if any_applies:
+            lines.append(_row(cells))
+    return lines
+
+
+def consistency_table(summ, scenarios, methods, dims: Mapping[str, int]) -> list[str]:
+    """Beyond the paper: mean NEES per state dimension and the verdict of
+    :func:`neural_estimator.consistency.verdict` (scenario -> dx in ``dims``), where a method
+    reports a covariance."""
+    from neural_estimator import consistency as C
+
+    cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("NEES mean/dx", "verdict")]
+    lines = _header(cols)
+    for m in methods:
+        cells, any_applies = [PAPER_NAMES.get(m, m)], False
+        for s in scenarios:
+            st = summ.get(s, {}).get(m)
+            if st is None or not st["nees"].applies:
+                cells += [M.NOT_APPLICABLE, M.NOT_APPLICABLE]
+                continue
+            any_applies = True
+            row = C.consistency_row(st, dims[s])
+            cells += [num(row["nees_mean_per_dim"], 2), row["verdict"]]
         if any_applies:
             lines.append(_row(cells))
     return lines
@@ -599,6 +623,12 @@ def write_report(
         "",
     ]
     L += covariance_table(summ, scen, meth) + [""]
+    L += [
+        "Mean NEES per state dimension and the verdict (consistent: 95 % coverage in "
+        f"{list(CONSISTENCY.COVERAGE_BAND)} and mean NEES/dx in {list(CONSISTENCY.NEES_BAND)}; docs/uncertainty.md):",
+        "",
+    ]
+    L += consistency_table(summ, scen, meth, {s: make_scenario(s).dx for s in scen}) + [""]
     L += ["## RMSE over time (paper: Appendix figures rmse_time_*)", ""]
     for s in scen:
         curves = {m: [_floats(r["rmse_t"]) for r in acc[s][m] if r.get("rmse_t")] for m in meth}
