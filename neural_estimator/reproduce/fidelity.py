@@ -335,8 +335,24 @@ def headline(measured: Measured) -> list[str]:
             shown = "…" if ours is None else _num(ours) + measured.mark(s, m)
             cells.append(f"{shown} · {_num(paper[s][m])}")
         L.append(f"| {LABELS[m]} | " + " | ".join(cells) + " |")
-    legend = measured.legend()
-    return L + ([""] + [f"`{line.split()[0]}` {line.split(' ', 1)[1]}.  " for line in legend] if legend else [])
+    hit, n_measured, total = match_counts(rmse_cells(measured.rmse))
+    L += [
+        "",
+        f"**{hit} of the {n_measured} measured cells are within {FACTOR:g}x of the paper's** ({total} finite cells; "
+        f"{total - n_measured} not measured).",
+    ]
+    used = {k for s in SCENARIOS for m in CLASSICAL + NEURAL for k in measured.mark(s, m).split()}
+    short = [f"`{k}` {SHORT_LEGEND[k]}" for k in SHORT_LEGEND if k in used]
+    return L + (["", "; ".join(short) + " (each cell's reason: docs/fidelity.md)."] if short else [])
+
+
+SHORT_LEGEND = {
+    "[c]": "bounded context (the model sees at most 100 steps of input)",
+    "[o]": "the outlier rule decides the figure (trajectories dropped; the Full RMSE differs)",
+    "[t]": "filter started at the true x0",
+    "[y]": "filter started from the first observation",
+    "(!)": "expected to fail under the paper's start",
+}
 
 
 # ---- markdown ---------------------------------------------------------------------------------
