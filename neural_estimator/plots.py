@@ -56,3 +56,37 @@ def plot_rmse_over_time(
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def plot_reliability(
+    curves: Mapping[str, np.ndarray], levels: Sequence[float], path: str | Path, title: str = ""
+) -> Path:
+    """Write a PNG reliability diagram: for each method, the fraction of (trajectory, step) errors
+    inside its covariance's chi-square region of level q, against q. A consistent covariance lies on
+    the diagonal; below it the method is over-confident, above it too wide.
+
+    Args:
+        curves: {method: coverage at each of ``levels`` (the median over runs)}.
+        levels: the nominal levels q (``neural_estimator.consistency.RELIABILITY_LEVELS``).
+        path: output PNG.
+        title: figure title (e.g. the scenario).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    q = np.asarray(levels, dtype=float)
+    fig, ax = plt.subplots(figsize=(5.5, 5), dpi=120)
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="consistent")
+    for method, cov in curves.items():
+        ax.plot(q, np.asarray(cov, dtype=float), marker="o", ms=3, lw=1.2, label=method)
+    ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="nominal level q", ylabel="coverage", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", ncol=2)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
