@@ -1,0 +1,260 @@
+"""Compiled (numba) EnKF step on Lorenz 96 for a few streams: the live node's B = 1 step without
+numpy's per-call cost.
+
+At B = 1 the batched EnKF (:mod:`neural_estimator.filters.enkf`) spends most of a step on numpy's
+per-call overhead: about 40 array operations on (1, N, n) arrays, each 1-5 us whatever its size.
+These kernels run the same equations, in the same order of operations where it is cheap to keep
+it, in one compiled call per phase:
+
+- predict: Lorenz 96's RK4 per member (:func:`neural_estimator.filters.compiled._l96_rk4`, the
+  batched path's compiled transition), plus the process noise;
+- update: anomalies, C = A^T B / (N - 1), C_zz, S = C_zz + R (with the localisation tapers when
+  set), K^T = S^{-1} C^T by Cholesky, the perturbed observations; then the ensemble mean and
+  covariance.
+
+Random numbers are numpy's, bit for bit: the block's generator state is derived from the key
+(seed, step, phase, block) as ``SFC64(SeedSequence(seed, spawn_key=key))`` does
+(:mod:`.seeding`), and the standard normals follow numpy's ``Generator.standard_normal``: SFC64's
+64-bit words through numpy's 256-layer ziggurat, with numpy's own tables (as numba's port of
+numpy's generator carries them). The tests hold the draws equal to numpy's and the filter equal to
+the batched path.
+
+What differs from the batched path is the summation order of the matrix products and the solve
+(loops here, BLAS / LAPACK there): the estimates agree to rounding (the tests state the bound).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
+
+from neural_estimator.filters.compiled import _l96_rk4
+from neural_estimator.filters.seeding import sfc64_state
+
+_KI = np.ascontiguousarray(ki_double, dtype=np.uint64)
+_WI = np.ascontiguousarray(wi_double, dtype=np.float64)
+_FI = np.ascontiguousarray(fi_double, dtype=np.float64)
+_NOR_R = float(ziggurat_nor_r)
+_NOR_INV_R = float(ziggurat_nor_inv_r)
+
+
+# ---- numpy's SFC64 and standard normal ------------------------------------------------------------
+@nb.njit(inline="always")
+def _sfc64_next(s):
+    """SFC64's next 64-bit word; state s = (a, b, c, counter) advanced in place."""
+    a, b, c, w = s[0], s[1], s[2], s[3]
+    tmp = a + b + w
+    s[3] = w + np.uint64(1)
+    s[0] = b ^ (b >> np.uint64(11))
+    s[1] = c + (c << np.uint64(3))
+    s[2] = ((c << np.uint64(24)) | (c >> np.uint64(40))) + tmp
+    return tmp
+
+
+@nb.njit(inline="always")
+def _sfc64_double(s):
+    return float(_sfc64_next(s) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@nb.njit
+def _normal_slow(s, idx, rabs, x):
+    """The ziggurat's rare branches (numpy's random_standard_normal): the tail beyond r for layer 0,
+    else the wedge test; NaN asks for a new word."""
+    if idx == 0:
+        while True:
+            xx = -_NOR_INV_R * math.log1p(-_sfc64_double(s))
+            yy = -math.log1p(-_sfc64_double(s))
+            if yy + yy > xx * xx:
+                return -(_NOR_R + xx) if (rabs >> np.uint64(8)) & np.uint64(1) else _NOR_R + xx
+    if (_FI[idx - 1] - _FI[idx]) * _sfc64_double(s) + _FI[idx] < math.exp(-0.5 * x * x):
+        return x
+    return math.nan
+
+
+@nb.njit(inline="always")
+def _normal(s):
+    """One standard normal as numpy's ``Generator(SFC64).standard_normal`` draws it."""
+    while True:
+        r = _sfc64_next(s)
+        idx = np.int64(r & np.uint64(0xFF))
+        r >>= np.uint64(8)
+        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
+        x = float(rabs) * _WI[idx]
+        if r & np.uint64(1):
+            x = -x
+        if rabs < _KI[idx]:
+            return x
+        x = _normal_slow(s, idx, rabs, x)
+        if not math.isnan(x):
+            return x
+
+
+@nb.njit(cache=True)
+def standard_normals(pool, hc, k0, k1, k2, count):
+    """``count`` draws of ``Generator(SFC64(SeedSequence(seed, spawn_key=(k0, k1, k2)))).standard_normal``
+    (for the tests)."""
+    s = sfc64_state(pool, hc, k0, k1, k2)
+    out = np.empty(count)
+    for i in range(count):
+        out[i] = _normal(s)
+    return out
+
+
+# ---- the filter ------------------------------------------------------------------------------------
+@nb.njit(nogil=True, cache=True)
+def predict(X, forcing, h, substeps, sd_Q, pool, hc, k, phase, block):
+    """X (b, N, n) <- f(X) + w, w = z * sd_Q with z the block's standard normals, member by member
+    (z fills (b, N, n) in C order, as the batched path's draw). In place."""
+    b, N, n = X.shape
+    s = sfc64_state(pool, hc, k, phase, block)
+    K, A, M = np.empty(n), np.empty(n), np.empty(n)
+    for r in range(b):
+        for i in range(N):
+            x = X[r, i]
+            _l96_rk4(x, forcing, h, substeps, K, A, M)
+            for j in range(n):
+                x[j] += _normal(s) * sd_Q[j]
+
+
+@nb.njit(inline="always")
+def _member_mean(X, out):
+    """out = X.mean(axis=0) for X (N, n): summed member after member, then divided by N (numpy's
+    reduction over a non-contiguous axis)."""
+    N, n = X.shape
+    for j in range(n):
+        out[j] = X[0, j]
+    for i in range(1, N):
+        for j in range(n):
+            out[j] += X[i, j]
+    for j in range(n):
+        out[j] /= N
+
+
+@nb.njit(inline="always")
+def _cross(A, B, denom, out):
+    """out = A^T B / denom for A (N, p), B (N, q): sums over members in member order."""
+    N, p = A.shape
+    q = B.shape[1]
+    out[:, :] = 0.0
+    for i in range(N):
+        for a in range(p):
+            v = A[i, a]
+            for c in range(q):
+                out[a, c] += v * B[i, c]
+    for a in range(p):
+        for c in range(q):
+            out[a, c] /= denom
+
+
+@nb.njit(inline="always")
+def _cholesky_in_place(S):
+    """S (n, n) symmetric -> its lower Cholesky factor L in the lower triangle (the upper one is
+    left as scratch); False when a pivot is not positive (S not positive definite, or NaN)."""
+    n = S.shape[0]
+    for j in range(n):
+        d = S[j, j]
+        if not d > 0.0:
+            return False
+        d = math.sqrt(d)
+        S[j, j] = d
+        for i in range(j + 1, n):
+            S[i, j] /= d
+        for i in range(j + 1, n):  # S[i, j+1 .. i] -= L[i, j] L[j+1 .. i, j]
+            v = S[i, j]
+            for m in range(j + 1, i + 1):
+                S[i, m] -= v * S[m, j]
+    return True
+
+
+@nb.njit(nogil=True, cache=True)
+def update(X, Y, skip, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, k, phase, block):
+    """The perturbed-observations update of every stream of X (b, N, n) not in ``skip``, H = I
+    (filters/enkf.py's ``_update``), in place; the draws of skipped streams are drawn and unused,
+    so every stream keeps its numbers. A failed Cholesky factor of S gives NaN members (diverged)."""
+    b, N, n = X.shape
+    s = sfc64_state(pool, hc, k, phase, block)
+    xbar, zbar = np.empty(n), np.empty(n)
+    A, Bz = np.empty((N, n)), np.empty((N, n))
+    E = np.empty((N, n))
+    for r in range(b):
+        for i in range(N):  # the draws first: a skipped or failing stream still consumes its own
+            for j in range(n):
+                E[i, j] = _normal(s) * sd_R[j]
+        if skip[r]:
+            continue
+        Xr, y = X[r], Y[r]
+        _member_mean(Xr, xbar)
+        for i in range(N):
+            for j in range(n):
+                A[i, j] = Xr[i, j] - xbar[j]
+        if inflation != 1.0:
+            for i in range(N):
+                for j in range(n):
+                    A[i, j] = A[i, j] * inflation
+                    Xr[i, j] = xbar[j] + A[i, j]
+        _member_mean(Xr, zbar)  # Z = h(X) = X
+        for i in range(N):
+            for j in range(n):
+                Bz[i, j] = Xr[i, j] - zbar[j]
+        C = np.dot(A.T, Bz) / (N - 1.0)  # (n, dy)
+        S = np.dot(Bz.T, Bz) / (N - 1.0)  # C_zz
+        S = 0.5 * (S + S.T)
+        if localize:
+            C = C * rho_xy
+            S = S * rho_yy
+        S = S + R
+        try:
+            Kt = np.linalg.solve(S, np.ascontiguousarray(C.T))  # (dy, n) = K^T, LU as numpy's solve
+        except Exception:  # singular S: NaN members, flagged as diverged
+            Xr[:, :] = math.nan
+            continue
+        # X_i += (y + e_i - z_i) K^T, z_i = x_i (the forecast member)
+        for i in range(N):
+            for j in range(n):
+                E[i, j] = (y[j] + E[i, j]) - Xr[i, j]
+        D = np.dot(E, Kt)
+        for i in range(N):
+            for c in range(n):
+                Xr[i, c] += D[i, c]
+
+
+@nb.njit(nogil=True, cache=True)
+def estimate(X, mean, cov):
+    """The ensemble mean (b, n) and covariance sym(A^T A / (N - 1)) (b, n, n) of X (b, N, n)."""
+    b, N, n = X.shape
+    A = np.empty((N, n))
+    for r in range(b):
+        _member_mean(X[r], mean[r])
+        for i in range(N):
+            for j in range(n):
+                A[i, j] = X[r, i, j] - mean[r, j]
+        C = np.dot(A.T, A) / (N - 1.0)
+        cov[r] = 0.5 * (C + C.T)
+
+
+@nb.njit(nogil=True, cache=True)
+def step(X, Y, k, forcing, h, substeps, sd_Q, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, phases):
+    """One filter step of every stream of X (b, N, n) in place (ClassicalFilter's cycle, fused):
+    predict (k >= 1), update the streams whose y_k (b, dy) is finite, then the estimate.
+
+    ``phases`` = (predict, update) phase numbers of the keys. Returns (mean (b, n), cov (b, n, n),
+    skipped (b,), bad (b,)): bad where the mean or the covariance has a non-finite sum (the
+    caller's divergence test)."""
+    b, N, n = X.shape
+    if k > 0:
+        predict(X, forcing, h, substeps, sd_Q, pool, hc, k, phases[0], 0)
+    skip = np.zeros(b, dtype=np.bool_)
+    for r in range(b):
+        for j in range(Y.shape[1]):
+            if not np.isfinite(Y[r, j]):
+                skip[r] = True
+    update(X, Y, skip, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, k, phases[1], 0)
+    mean, cov = np.empty((b, n)), np.empty((b, n, n))
+    estimate(X, mean, cov)
+    bad = np.zeros(b, dtype=np.bool_)
+    for r in range(b):
+        bad[r] = not (np.isfinite(mean[r].sum()) and np.isfinite(cov[r].sum()))
+    return mean, cov, skip, bad
