@@ -181,7 +181,7 @@ class EnsembleKalmanFilter(MemberFilter):
         keyed = self._scheduler.keyed
         n = self.scenario.dx
         rho = self._rho if self._rho is not None else (np.ones((n, n)), np.ones((n, n)))
-        return {
+        c = {
             "model": (float(cfg.forcing), float(cfg.dt) / int(cfg.substeps), int(cfg.substeps)),
             "sd_Q": np.ascontiguousarray(self._sd_Q, dtype=np.float64),
             "update": (
@@ -195,6 +195,8 @@ class EnsembleKalmanFilter(MemberFilter):
             "key": (keyed.pool, keyed.hc),
             "no_skip": np.zeros(B, dtype=bool),
         }
+        c["step"] = (*c["model"], c["sd_Q"], *c["update"], *c["key"], (PHASE_PREDICT, PHASE_UPDATE))
+        return c
 
     def _own_members(self) -> np.ndarray:
         """self._X as a C-contiguous float64 array the compiled kernels may write."""
@@ -210,9 +212,7 @@ class EnsembleKalmanFilter(MemberFilter):
         c = self._compiled
         if c is None or (self._k == 0 and self.init == "observation"):
             return super()._advance(y, u)
-        X = self._own_members()
-        args = (*c["model"], c["sd_Q"], *c["update"], *c["key"], (PHASE_PREDICT, PHASE_UPDATE))
-        mean, cov, self.skipped, bad = compiled_enkf.step(X, y, self._k, *args)
+        mean, cov, self.skipped, bad = compiled_enkf.step(self._own_members(), y, self._k, *c["step"])
         self._k += 1
         if bad.any():
             self.diverged |= bad
