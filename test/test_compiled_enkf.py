@@ -59,11 +59,16 @@ def _close(a, b):
 
 
 @pytest.mark.parametrize(
-    "n_vars, hp",
-    [(10, {}), (40, {}), (12, {"inflation": 1.05, "q_inflation": 2.0, "localization_radius": 2.0})],
+    "n_vars, substeps, hp",
+    [
+        (10, 1, {}),
+        (40, 1, {}),
+        (12, 1, {"inflation": 1.05, "q_inflation": 2.0, "localization_radius": 2.0}),
+        (20, 3, {"n_members": 30}),
+    ],
 )
-def test_compiled_enkf_equals_batched_path(n_vars, hp):
-    scen = make_scenario("lorenz96", n_vars=n_vars)
+def test_compiled_enkf_equals_batched_path(n_vars, substeps, hp):
+    scen = make_scenario("lorenz96", n_vars=n_vars, substeps=substeps)
     Y = simulate(scen, 3, 40, 2).y.copy()
     Y[1, 20] = np.nan  # a missing observation: predict only, in both paths
     Y[2, 0, 3] = np.inf
