@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.filters.base import PHASE_INIT, PHASE_UPDATE, MemberFilter, check_inflation
+from neural_estimator.filters import compiled_enkf
+from neural_estimator.filters.base import PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, MemberFilter, check_inflation
 from neural_estimator.filters.compiled_models import compiled_model
 from neural_estimator.filters.localization import localization_tapers
 from neural_estimator.filters.numerics import (
@@ -145,6 +146,10 @@ class EnsembleKalmanFilter(MemberFilter):
 
     method = "enkf"
     HyperParams = EnKFHyperParams
+    # Up to this many streams in one block, Lorenz 96 runs on the compiled kernels
+    # (filters/compiled_enkf.py: the same equations and numpy's very draws, one compiled call per
+    # phase); at B = 1 numpy's per-call cost is most of a batched step. 0 turns them off.
+    compiled_max_batch = 16
 
     def __init__(self, scenario, seed: int = 0, hyperparams=None, **options) -> None:
         super().__init__(scenario, seed=seed, hyperparams=hyperparams, **options)
@@ -161,16 +166,81 @@ class EnsembleKalmanFilter(MemberFilter):
     def _init_state(self, B: int) -> None:
         draws = self._initial_draws(PHASE_INIT, self.N, self._sqrt_P0, self._sd_P0)
         self._X = self.ops.normalize_state(self._init_mean[:, None, :] + draws)
+        self._compiled = self._compiled_args(B)
 
-    def _predict_block(self, X: np.ndarray, u: np.ndarray, rng: np.random.Generator):
-        """x^i_{k+1} = f(x^i_k, u_k) + w^i_k,  w^i_k ~ N(0, Q), for every member i."""
-        X = self._transition(X, self._broadcast_u(u, self.N))
-        X += gaussian(rng, X.shape[:2], self._sqrt_Q, self._sd_Q)
-        return self.ops.normalize_state(X), None
+    def _compiled_args(self, B: int) -> dict | None:
+        """The compiled kernels' constants when they apply (Lorenz 96, H = I, diagonal Q and R, R
+        positive definite, the streams in one block of at most ``compiled_max_batch``), else None."""
+        from neural_estimator.scenarios.lorenz96 import Lorenz96
+
+        if B > self.compiled_max_batch or len(self._blocks) != 1 or type(self.scenario) is not Lorenz96:
+            return None
+        if self._sd_Q is None or self._sd_R is None or not np.all(self._sd_R > 0.0):
+            return None
+        cfg = self.scenario.config
+        keyed = self._scheduler.keyed
+        n = self.scenario.dx
+        rho = self._rho if self._rho is not None else (np.ones((n, n)), np.ones((n, n)))
+        c = {
+            "model": (float(cfg.forcing), float(cfg.dt) / int(cfg.substeps), int(cfg.substeps)),
+            "sd_Q": np.ascontiguousarray(self._sd_Q, dtype=np.float64),
+            "update": (
+                np.ascontiguousarray(self.R),
+                np.ascontiguousarray(self._sd_R, dtype=np.float64),
+                float(self.hp.inflation),
+                np.ascontiguousarray(rho[0], dtype=np.float64),
+                np.ascontiguousarray(rho[1], dtype=np.float64),
+                self._rho is not None,
+            ),
+            "key": (keyed.pool, keyed.hc),
+            "no_skip": np.zeros(B, dtype=bool),
+        }
+        c["step"] = (*c["model"], c["sd_Q"], *c["update"], *c["key"], (PHASE_PREDICT, PHASE_UPDATE))
+        return c
+
+    def _own_members(self) -> np.ndarray:
+        """self._X as a C-contiguous float64 array the compiled kernels may write."""
+        X = self._X
+        if not (X.flags.writeable and X.flags.c_contiguous and X.dtype == np.float64):
+            X = self._X = np.array(X, dtype=np.float64, order="C")
+        return X
+
+    def _advance(self, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The base class's step cycle; on the compiled kernels, one call for predict, update and
+        estimate (the same cycle: rows of y with a NaN or inf only predict, non-finite estimates
+        flag the stream as diverged and park it)."""
+        c = self._compiled
+        if c is None or (self._k == 0 and self.init == "observation"):
+            return super()._advance(y, u)
+        mean, cov, self.skipped, bad = compiled_enkf.step(self._own_members(), y, self._k, *c["step"])
+        self._k += 1
+        if bad.any():
+            self.diverged |= bad
+            self._park(bad)
+        if self.diverged.any():
+            d = self.diverged
+            mean = np.where(d[:, None], np.nan, mean)
+            cov = np.where(d[:, None, None], np.nan, cov)
+        cov.flags.writeable = False  # the filter's own array: read it, copy it, never write it
+        return mean, cov
+
+    def _predict(self, u: np.ndarray) -> None:
+        c = self._compiled
+        if c is None:
+            return super()._predict(u)
+        X = self._own_members()
+        compiled_enkf.predict(X, *c["model"], c["sd_Q"], *c["key"], self._k, PHASE_PREDICT, 0)
+        return None
 
     # The maths is the module-level _update / _estimate; these hooks schedule it over the blocks of
     # streams.
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
+        c = self._compiled
+        if c is not None:
+            X = self._own_members()
+            no = c["no_skip"] if skip is None else skip
+            compiled_enkf.update(X, y, no, *c["update"], *c["key"], self._k, PHASE_UPDATE, 0)
+            return None
         X_post, _ = self._blockwise(self._update_kernel, self._X, y, phase=PHASE_UPDATE)
         self._X = self._keep(skip, self._X, X_post)
         return None
@@ -189,6 +259,12 @@ class EnsembleKalmanFilter(MemberFilter):
         ), None
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._compiled is not None:
+            X = self._own_members()
+            b, _, n = X.shape
+            mean, cov = np.empty((b, n)), np.empty((b, n, n))
+            compiled_enkf.estimate(X, mean, cov)
+            return mean, cov
         mean, cov, _ = self._blockwise(lambda X: (*_estimate(X, self.ops), None), self._X)
         return mean, cov
 

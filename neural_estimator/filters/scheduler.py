@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from neural_estimator.filters.seeding import KeyedSFC64
+
 THREADS_ENV = "NEURAL_ESTIMATOR_THREADS"
 
 
@@ -104,11 +106,16 @@ class BlockScheduler:
         self.seed = int(seed)
         size = max(1, int(block_size))
         self.blocks = [slice(i, min(i + size, self.batch)) for i in range(0, self.batch, size)]
+        self.keyed = KeyedSFC64(self.seed)
 
     def rng(self, step: int, phase: int, block: int) -> np.random.Generator:
         """The generator of one block's draws in one phase of one step, keyed by (seed, step, phase,
-        block). SFC64: the fastest of numpy's generators for normal draws, a fifth faster than PCG64 here."""
-        return np.random.Generator(np.random.SFC64(np.random.SeedSequence(self.seed, spawn_key=(step, phase, block))))
+        block): ``Generator(SFC64(SeedSequence(seed, spawn_key=(step, phase, block))))``, in that
+        very state, set up by :class:`~neural_estimator.filters.seeding.KeyedSFC64` (4 us instead
+        of 40). The object is reused per (phase, block): valid until the next call for the same
+        phase and block. SFC64: the fastest of numpy's generators for normal draws, a fifth faster
+        than PCG64 here."""
+        return self.keyed.generator((step, phase, block), (phase, block))
 
     def map(self, fn: Callable[[int], Any]) -> Iterator[Any]:
         """fn(i) for every block i, in order: on the calling thread for one block or one thread,
