@@ -238,7 +238,7 @@ def _copy_shipped(tmp_path: Path, edit) -> Path:
     import json
     import shutil
 
-    from neural_estimator.serving.load import default_checkpoint
+    from neural_estimator.serving.card import default_checkpoint
 
     src = default_checkpoint("lorenz96", "mamba")
     dst = tmp_path / "ckpt"

@@ -308,7 +308,7 @@ def _load(p: RobotEstimatorParams):
     from pathlib import Path
 
     from neural_estimator.registry import EstimatorError, make_estimator
-    from neural_estimator.serving.card import read_card
+    from neural_estimator.serving.card import resolve_checkpoint
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.scenarios import ScenarioError
 
@@ -318,7 +318,8 @@ def _load(p: RobotEstimatorParams):
     if not path.exists():
         raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
     try:
-        directory, card = read_card(path)
+        ckpt = resolve_checkpoint(path)  # read and hashed once, passed to the estimator
+        card = ckpt.card
         desc = card["scenario"]
         if desc.get("scenario") != "data" or not desc.get("spec"):
             raise StartupError(
@@ -332,7 +333,7 @@ def _load(p: RobotEstimatorParams):
             import torch
 
             torch.set_num_threads(p.threads)
-        est = make_estimator(method, scenario, checkpoint=directory, device=p.device)
+        est = make_estimator(method, scenario, checkpoint=ckpt, device=p.device)
     except (EstimatorError, ScenarioError, SpecError, KeyError, TypeError) as exc:
         raise StartupError(f"checkpoint {p.checkpoint}: {exc}") from None
     return scenario, spec, method, est

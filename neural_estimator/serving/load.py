@@ -12,17 +12,10 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
-from neural_estimator.serving.card import CARD_FILE, WEIGHTS_FILE, read_card
+from neural_estimator.serving.card import Checkpoint, resolve_checkpoint
 from neural_estimator.serving.checkpoint import load_checkpoint
 from neural_estimator.serving.neural import NeuralEstimator
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
-
-ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
-
-
-def default_checkpoint(scenario_name: str, method: str) -> Path:
-    """Where the shipped model of (scenario, method) lives."""
-    return ZOO_DIR / f"{scenario_name}-{method}"
 
 
 def _dims(desc: dict[str, Any]) -> tuple[int, int, int]:
@@ -85,7 +78,7 @@ def validated_context(card: dict[str, Any]) -> dict[str, int]:
 def load_neural_estimator(
     method: str,
     scenario: Scenario,
-    checkpoint: str | Path | None = None,
+    checkpoint: str | Path | Checkpoint | None = None,
     device: str = "cpu",
     covariance: bool = True,
     compile_step: bool = False,
@@ -98,8 +91,9 @@ def load_neural_estimator(
     Args:
         method: gru, lstm, gpt2, filterformer, mamba or mamba2.
         scenario: the system to serve; the checkpoint must have been trained on it.
-        checkpoint: a checkpoint directory or its ``card.json``; None -> the shipped default at
-            ``neural_estimator/zoo/<scenario>-<method>/``.
+        checkpoint: a checkpoint directory or its ``card.json``, or a
+            :class:`~neural_estimator.serving.card.Checkpoint` already resolved; None -> the shipped
+            default at ``neural_estimator/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
         covariance: report Filterformer's covariance (False saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
@@ -117,20 +111,11 @@ def load_neural_estimator(
             checkpoint of another method or scenario, missing or corrupt files.
     """
     m = check_method(method)
-    if checkpoint is None:
-        checkpoint = default_checkpoint(scenario.name, m)
-        if not (checkpoint / CARD_FILE).is_file() or not (checkpoint / WEIGHTS_FILE).is_file():
-            missing = [f for f in (CARD_FILE, WEIGHTS_FILE) if not (checkpoint / f).is_file()]
-            raise EstimatorError(
-                f"no trained {m} model ships for scenario {scenario.name!r}: {checkpoint} lacks "
-                f"{' and '.join(missing)}. Train one with `neural-estimator train --scenario {scenario.name} "
-                f"--model {m} --out {checkpoint}` or pass checkpoint=<dir> (--checkpoint)"
-            )
-    directory, card = read_card(checkpoint)
-    if card["method"] != m:
-        raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
-    check_scenario(card["scenario"], scenario, str(directory))
-    model, normalizer, card = load_checkpoint(directory, device)
+    ckpt = resolve_checkpoint(checkpoint, scenario.name, m)
+    if ckpt.card["method"] != m:
+        raise EstimatorError(f"checkpoint {ckpt.directory} holds a {ckpt.card['method']!r} model, not {m!r}")
+    check_scenario(ckpt.card["scenario"], scenario, str(ckpt.directory))
+    model, normalizer, card = load_checkpoint(ckpt, device)
     if context is None:  # as the checkpoint was chosen: bounded if its validation was
         validated = validated_context(card)
         context = validated.get("context", 0)
