@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("ray")
 
 from neural_estimator.cli import main
-from neural_estimator.reproduce import report as R
+from neural_estimator.reproduce import tables as R
 from neural_estimator.reproduce.jobs import Job, run_job, train_dir
 from neural_estimator.reproduce.plan import plan_jobs
 from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
