@@ -26,7 +26,7 @@ def pytest_configure(config):
 
 
 def load_script(relative: str):
-    """A repository script (``scripts/...``, ``benchmarks/...``) loaded afresh as a module, so its
+    """A repository script (``scripts/...``, ``benchmarks/...``, ``experiments/...``) loaded afresh as a module, so its
     functions and ``main`` are tested in-process (each call gives a new module: monkeypatching one
     test's copy leaves the others alone)."""
     path = ROOT / relative

@@ -1,5 +1,5 @@
 """Bounded context (neural_estimator.serving.context, the estimators' context option) and
-benchmarks/bounded_context.py."""
+experiments/bounded_context.py."""
 
 import pytest
 import torch
@@ -16,7 +16,7 @@ from neural_estimator.scenarios import make_scenario
 
 @pytest.fixture(scope="module")
 def bc():
-    return load_script("benchmarks/bounded_context.py")
+    return load_script("experiments/bounded_context.py")
 
 
 @pytest.mark.parametrize("length,copies", [(10, 1), (10, 3), (10, 10), (7, 2)])
