@@ -15,6 +15,8 @@ from ros_tester import Tester
 
 from neural_estimator.bags import messages as M
 
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
+
 MODULE = "neural_estimator.nodes.lifecycle_estimator_node"
 
 

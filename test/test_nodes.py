@@ -36,6 +36,8 @@ from neural_estimator.nodes.launch import (
 )
 from neural_estimator.replay import replay
 
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
+
 pytest.importorskip("rclpy")
 
 PLUGIN = textwrap.dedent(

@@ -21,6 +21,7 @@ def l96():
     return scen, simulate(scen, 1, 300, 4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["gru", "lstm", "mamba", "mamba2"])
 def test_onnx_step_equals_torch_step(method, l96):
     scen, data = l96

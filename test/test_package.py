@@ -26,6 +26,7 @@ def test_package_xml_is_format3_ament_python_with_valid_maintainer():
     assert {"rclpy", "sensor_msgs", "std_msgs", "diagnostic_msgs", "std_srvs"} <= deps
 
 
+@pytest.mark.colcon
 @pytest.mark.skipif(not COLCON.exists(), reason="colcon is not installed in this environment")
 def test_colcon_lists_and_builds_the_package(tmp_path):
     src = tmp_path / "ws" / "src"
@@ -104,6 +105,7 @@ def _declared_requirements() -> tuple[set[str], dict[str, set[str]]]:
     )
 
 
+@pytest.mark.slow
 def test_every_third_party_import_is_a_declared_dependency():
     """`pip install .` must give a package that imports: each distribution the package imports is in
     install_requires, or in the extra of the feature that imports it (ROS nodes, reproduce, references)."""

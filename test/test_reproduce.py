@@ -21,6 +21,8 @@ from neural_estimator.reproduce.jobs import Job, run_job, train_dir
 from neural_estimator.reproduce.plan import plan_jobs
 from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
 
+pytestmark = pytest.mark.slow  # Ray jobs, and the smoke scale of every experiment
+
 # Two scenarios keep the suite fast; both have an expected PF failure (marked in the main table),
 # and both kept their constants when ballistic and quadrotor were recalibrated (their shipped models
 # load on the defaults).

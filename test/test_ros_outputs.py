@@ -13,6 +13,8 @@ from neural_estimator.nodes import diagnostics as D
 from neural_estimator.nodes import outputs as O
 from neural_estimator.nodes.odometry import UNKNOWN_VARIANCE, quaternion
 
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
+
 
 def _msg(**fields):
     return types.SimpleNamespace(**fields)

@@ -185,6 +185,7 @@ def test_an_oversized_or_deeply_nested_json_message_is_refused():
         M.decode_scenario(M.encode_string("[" * 200_000))
 
 
+@pytest.mark.slow
 def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
     import time
     import tracemalloc
