@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_pipeline.py                       # bearings, ekf/ukf/enkf, 1 kHz, 10 s
     .venv/bin/python benchmarks/bench_pipeline.py --methods ekf,ukf,gru --rate-hz 1000 --seconds 20
+    .venv/bin/python benchmarks/bench_pipeline.py --scenario lorenz96 --methods ekf,gru,mamba --executors single,events
 
 Runs :func:`neural_estimator.nodes.launch.run_pipeline` (separate processes, isolated ROS domain),
 then reads the recorded bag and reports
@@ -18,6 +19,10 @@ then reads the recorded bag and reports
   DDS reception timestamp of the estimate, both on this machine's clock), p50 / p99. On a starved
   machine the recorder's own reception lags too, and that lag is in this figure (wait is not);
 - the rate the simulator achieved, and wall time.
+
+``--executors single,events`` runs the chain once per executor in turn (the nodes' executor,
+``NEURAL_ESTIMATOR_EXECUTOR``; the evaluator always keeps the single-threaded one) and prints the
+end-to-end figures side by side, with the load average before each run.
 
 Results print as a table and go to ``<out>/bench_pipeline.json``. The machine matters: each node is
 a Python process; ``--cores`` in the JSON records how many this machine had.
@@ -40,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from neural_estimator.bags import bag_to_arrays  # noqa: E402
 from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.nodes.common import EXECUTOR_ENV  # noqa: E402
 from neural_estimator.nodes.launch import PipelineConfig, PipelineError, PipelineResult, run_pipeline  # noqa: E402
 
 
@@ -123,10 +129,40 @@ def main(argv: list[str] | None = None) -> int:
         metavar="METHOD.NAME=VALUE",
         help="a method option, e.g. gru.backend=onnxruntime (ONNX Runtime serving of the neural step)",
     )
+    ap.add_argument(
+        "--executors",
+        default="events",
+        help="comma-separated: the nodes' executor in turn (events, single), e.g. single,events to compare "
+        "rclpy's single-threaded executor with its EventsExecutor in one invocation",
+    )
     a = ap.parse_args(argv)
+    executors = [e.strip() for e in a.executors.split(",") if e.strip()]
+    print(f"command: python benchmarks/bench_pipeline.py {' '.join(argv if argv is not None else sys.argv[1:])}")
+    summary = {}
+    code = 0
+    for executor in executors:
+        os.environ[EXECUTOR_ENV] = executor  # the node processes inherit it
+        out = Path(a.out) / executor if len(executors) > 1 else Path(a.out)
+        print(f"\n== executor: {executor}")
+        result = _run(a, out)
+        summary[executor] = result
+        code = code or int(result["total_lost"] > 0)
+    if len(executors) > 1:
+        print(f"\nend to end, observation published -> estimate received (ms), {a.rate_hz:g} Hz:")
+        print(f"{'executor':10s} {'method':8s} {'p50':>9s} {'p99':>9s} {'lost':>6s} {'load':>5s}")
+        for executor, r in summary.items():
+            for m in r["methods"]:
+                e = r["end_to_end_ms"].get(m, {})
+                lost = r["losses"].get(M.estimate_topic(m), -1)
+                print(
+                    f"{executor:10s} {m:8s} {e.get('p50', float('nan')):9.2f} {e.get('p99', float('nan')):9.2f} "
+                    f"{lost:6d} {r['load_average_1min_before']:5.1f}"
+                )
+    return code
 
+
+def _run(a, out: Path) -> dict:
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
-    out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     stats_dir = out / "stats"
     for f in stats_dir.glob("*.json"):
@@ -239,7 +275,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average (1 min): {load_before:.1f} before, {load:.1f} after the run, on {os.cpu_count()} cores")
     total_lost = sum(v["missing"] for v in streams.values())
     print(f"total lost: {total_lost}; results in {out / 'bench_pipeline.json'}")
-    return 0 if total_lost == 0 else 1
+    result["total_lost"] = total_lost
+    return result
 
 
 if __name__ == "__main__":

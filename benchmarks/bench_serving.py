@@ -1,6 +1,6 @@
 """Batch-1 neural serving beside its limits: the node's step against ONNX Runtime and the GEMV bound.
 
-    .venv/bin/python benchmarks/bench_serving.py                        # lorenz96 zoo, every exportable model
+    .venv/bin/python benchmarks/bench_serving.py                        # lorenz96 zoo, all six models
     .venv/bin/python benchmarks/bench_serving.py --scenario bearings --methods gru mamba --core 0
 
 For every shipped model of the scenario (the paper's sizes), in one process, in interleaved rounds
@@ -63,7 +63,7 @@ def pct(samples: list[float]) -> tuple[float, float]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="lorenz96")
-    ap.add_argument("--methods", nargs="+", default=["gru", "lstm", "mamba", "mamba2"])
+    ap.add_argument("--methods", nargs="+", default=["gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"])
     ap.add_argument("--steps", type=int, default=2000, help="measured steps per column")
     ap.add_argument("--rounds", type=int, default=10, help="interleaved rounds (steps split among them)")
     ap.add_argument("--core", type=int, default=-1, help="pin to this core (-1: no pinning)")
@@ -103,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     for m in a.methods:
         est_t = load_neural_estimator(m, scen, context=0)
         est_o = load_neural_estimator(m, scen, context=0, backend="onnxruntime")
-        from neural_estimator.models.onnx_step import OrtStep, export_step
+        from neural_estimator.models.onnx_step import export_step
+        from neural_estimator.serving.onnx_runtime import OrtStep
 
         graph = export_step(est_t.model, m)  # the network alone, as the torch step column
         ort = OrtStep(graph)

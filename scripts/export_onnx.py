@@ -1,7 +1,16 @@
-"""Write a recurrent model's batch-1 step as an ONNX graph (for ONNX Runtime serving).
+"""Write a neural model's batch-1 step as an ONNX graph (for ONNX Runtime serving).
 
     python scripts/export_onnx.py --scenario lorenz96 --method gru --out gru_step.onnx
     python scripts/export_onnx.py --scenario lorenz96 --method mamba --checkpoint runs/my-mamba --out m.onnx
+    python scripts/export_onnx.py --scenario lorenz96 --method gpt2 --checkpoint runs/my-gpt2 --beside
+
+``--beside`` writes the network-only graph as ``step.onnx`` in the checkpoint's directory, next to
+its card, with the card's weight digest in the graph: there the estimator (``backend=onnxruntime``,
+the estimator node's ``options:=[backend=onnxruntime]``) serves it with numpy and onnxruntime only,
+without importing torch (docs/performance.md, "Serving without torch"). GPT-2 and Filterformer are
+exported with the attention window they serve with (the card's validation context, or ``--context``):
+their key/value cache of the last W steps is the graph's state; Filterformer's graph also gives its
+covariance.
 
 The graph is made from the checkpoint (card + safetensors weights) by
 :func:`neural_estimator.models.onnx_step.export_step`: the same checkpoint gives the same bytes. By
@@ -21,8 +30,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neural_estimator.estimator import EstimatorError  # noqa: E402
-from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step  # noqa: E402
-from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
+from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
+from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
+from neural_estimator.serving.load import default_checkpoint, load_neural_estimator  # noqa: E402
+from neural_estimator.serving.onnx_runtime import ONNX_FILE  # noqa: E402
 from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E402
 
 
@@ -31,16 +42,38 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", required=True)
     ap.add_argument("--method", required=True, choices=EXPORTABLE)
     ap.add_argument("--checkpoint", default=None, help="checkpoint directory or card.json (default: the shipped one)")
-    ap.add_argument("--out", required=True, help="the .onnx file to write")
+    ap.add_argument("--out", default=None, help="the .onnx file to write")
+    ap.add_argument(
+        "--beside", action="store_true", help=f"write the network-only graph as {ONNX_FILE} beside the card"
+    )
     ap.add_argument("--network-only", action="store_true", help="leave the normalisation out of the graph")
+    ap.add_argument(
+        "--context",
+        type=int,
+        default=None,
+        help="GPT-2, Filterformer: the attention window W (default: as the card validated the model)",
+    )
     a = ap.parse_args(argv)
+    if (a.out is None) == (not a.beside):
+        ap.error("give --out or --beside (one of them)")
+    attention = a.method in ATTENTION
     try:
-        est = load_neural_estimator(a.method, make_scenario(a.scenario), checkpoint=a.checkpoint, context=0)
-        data = export_step(est.model, a.method, a.out, normalizer=None if a.network_only else est.normalizer)
+        context = a.context if attention else 0  # the recurrent models' graph is the unbounded step
+        est = load_neural_estimator(a.method, make_scenario(a.scenario), checkpoint=a.checkpoint, context=context)
+        directory = checkpoint_paths(a.checkpoint or default_checkpoint(a.scenario, a.method))[0]
+        out = Path(a.out) if a.out else directory / ONNX_FILE
+        data = export_step(
+            est.model,
+            a.method,
+            out,
+            normalizer=None if (a.network_only or a.beside) else est.normalizer,
+            covariance=est.has_covariance,
+            metadata={"weights_sha256": str(est.card.get("weights", {}).get("sha256", ""))},
+        )
     except (EstimatorError, OnnxError, ScenarioError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    print(f"{a.out}: {len(data):,} bytes, sha256 {hashlib.sha256(data).hexdigest()[:16]}")
+    print(f"{out}: {len(data):,} bytes, sha256 {hashlib.sha256(data).hexdigest()[:16]}")
     return 0
 
 

@@ -10,7 +10,8 @@ pytest.importorskip("onnx")
 
 from neural_estimator.data import simulate  # noqa: E402
 from neural_estimator.estimator import EstimatorError  # noqa: E402
-from neural_estimator.models.onnx_step import OrtStep, export_step  # noqa: E402
+from neural_estimator.models.onnx_step import export_step  # noqa: E402
+from neural_estimator.serving.onnx_runtime import OrtStep  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
 
@@ -22,11 +23,14 @@ def l96():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", ["gru", "lstm", "mamba", "mamba2"])
+@pytest.mark.parametrize("method", ["gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"])
 def test_onnx_step_equals_torch_step(method, l96):
+    """300 steps (GPT-2 and Filterformer: past a window of 100, so the KV cache wraps), a missing
+    observation included; estimates (and Filterformer's covariance) within 1e-5 relative."""
     scen, data = l96
-    torch_est = load_neural_estimator(method, scen, context=0)
-    ort_est = load_neural_estimator(method, scen, context=0, backend="onnxruntime")
+    context = 100 if method in ("gpt2", "filterformer") else 0
+    torch_est = load_neural_estimator(method, scen, context=context)
+    ort_est = load_neural_estimator(method, scen, context=context, backend="onnxruntime")
     y = data.y[0].copy()
     y[50] = np.nan  # a missing observation: both use the training mean
     torch_est.reset(1)
@@ -38,6 +42,10 @@ def test_onnx_step_equals_torch_step(method, l96):
         assert b.shape == a.shape == (1, scen.dx) and b.dtype == np.float64
         assert ort_est.skipped[0] == torch_est.skipped[0] == (k == 50)
         worst = max(worst, float(np.abs(a - b).max() / (1.0 + np.abs(a).max())))
+        if torch_est.has_covariance:
+            assert ort_est.has_covariance
+            P, Q = torch_est.covariance, ort_est.covariance
+            worst = max(worst, float(np.abs(P - Q).max() / (1.0 + np.abs(P).max())))
     assert worst < 1e-5, worst
     # a reset starts over: the first estimates repeat
     ort_est.reset(1)
@@ -48,7 +56,7 @@ def test_onnx_step_equals_torch_step(method, l96):
 def test_onnx_backend_refuses_what_it_cannot_serve(l96):
     scen, data = l96
     with pytest.raises(EstimatorError, match="backend onnxruntime serves"):
-        load_neural_estimator("gpt2", scen, backend="onnxruntime")
+        load_neural_estimator("gru", scen, context=50, backend="onnxruntime")  # restarted copies
     with pytest.raises(EstimatorError, match="backend must be one of"):
         load_neural_estimator("gru", scen, backend="tensorrt")
     est = load_neural_estimator("gru", scen, context=0, backend="onnxruntime")
@@ -91,3 +99,119 @@ def test_normalised_graph_is_the_whole_estimator_step(l96):
         want = est.step(y[k : k + 1])
         np.testing.assert_allclose(step.outputs["x"], want, rtol=1e-5, atol=1e-5)
         assert bool(step.outputs["skipped"][0, 0]) == (k == 7)
+
+
+def _exported_beside(tmp_path, method):
+    """A copy of the shipped lorenz96 checkpoint with its step exported beside the card."""
+    import shutil
+
+    from neural_estimator.serving.load import default_checkpoint
+    from scripts.export_onnx import main as export_main
+
+    directory = tmp_path / f"lorenz96-{method}"
+    shutil.copytree(default_checkpoint("lorenz96", method), directory)
+    assert export_main(["--scenario", "lorenz96", "--method", method, "--checkpoint", str(directory), "--beside"]) == 0
+    return directory
+
+
+@pytest.mark.parametrize("method", ["gpt2", "filterformer"])
+def test_graph_beside_the_card_serves_like_the_torch_step(method, l96, tmp_path):
+    """``step.onnx`` beside the card: backend onnxruntime serves it (the torch-free estimator), equal to
+    the torch step within 1e-5 relative over 300 steps, covariance included."""
+    from neural_estimator.serving.onnx_runtime import OnnxEstimator
+
+    scen, data = l96
+    directory = _exported_beside(tmp_path, method)
+    ort_est = load_neural_estimator(method, scen, checkpoint=directory, backend="onnxruntime")
+    torch_est = load_neural_estimator(method, scen, checkpoint=directory)
+    assert isinstance(ort_est, OnnxEstimator) and ort_est.has_covariance == torch_est.has_covariance
+    y = data.y[0]
+    ort_est.reset(1)
+    torch_est.reset(1)
+    worst = 0.0
+    for k in range(y.shape[0]):
+        a, b = torch_est.step(y[k : k + 1]), ort_est.step(y[k : k + 1])
+        worst = max(worst, float(np.abs(a - b).max() / (1.0 + np.abs(a).max())))
+        if torch_est.has_covariance:
+            P, Q = torch_est.covariance, ort_est.covariance
+            worst = max(worst, float(np.abs(P - Q).max() / (1.0 + np.abs(P).max())))
+    assert worst < 1e-5, worst
+    # run is a loop of step
+    est = ort_est.run(data.y[:1, :20])
+    ort_est.reset(1)
+    np.testing.assert_array_equal(est.x[0, 19], [ort_est.step(y[k : k + 1])[0] for k in range(20)][-1])
+
+
+def test_graph_beside_the_card_refuses_other_weights_and_windows(l96, tmp_path):
+    import json
+
+    scen, _ = l96
+    directory = _exported_beside(tmp_path, "gpt2")
+    with pytest.raises(EstimatorError, match="attention window"):
+        load_neural_estimator("gpt2", scen, checkpoint=directory, backend="onnxruntime", context=7)
+    card = json.loads((directory / "card.json").read_text())
+    card["weights"]["sha256"] = "0" * 64  # the card now names other weights than those exported
+    (directory / "card.json").write_text(json.dumps(card))
+    with pytest.raises(EstimatorError, match="export it again"):
+        load_neural_estimator("gpt2", scen, checkpoint=directory, backend="onnxruntime")
+
+
+_NO_TORCH = """
+import sys
+sys.modules["torch"] = None  # `import torch` now raises ImportError
+"""
+
+
+def test_served_without_torch_step_and_node(tmp_path):
+    """With step.onnx beside the card, ``Estimator.step`` and the estimator node run where torch cannot
+    be imported: the estimator is built and stepped, and the node builds it, steps its warm-up and
+    says so, then exits cleanly on SIGINT."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    directory = _exported_beside(tmp_path, "gru")
+    step_code = (
+        _NO_TORCH
+        + f"""
+import numpy as np
+from neural_estimator.registry import make_estimator
+from neural_estimator.scenarios import make_scenario
+scen = make_scenario("lorenz96")
+est = make_estimator("gru", scen, checkpoint={str(directory)!r}, backend="onnxruntime")
+est.reset(1)
+x = est.step(np.zeros((1, scen.dy)))
+assert x.shape == (1, scen.dx) and np.isfinite(x).all()
+assert sys.modules.get("torch") is None
+print(type(est).__name__)
+"""
+    )
+    env = dict(os.environ, ROS_DOMAIN_ID=str(120 + os.getpid() % 60), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    out = subprocess.run([sys.executable, "-c", step_code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "OnnxEstimator"
+    node_code = _NO_TORCH + "from neural_estimator.nodes.estimator_node import main\nsys.exit(main())\n"
+    args = ["--ros-args", "-p", "method:=gru", "-p", "scenario:=lorenz96", "-p", f"checkpoint:={directory}"]
+    args += ["-p", "options:=[backend=onnxruntime]"]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", node_code, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    )
+    try:
+        lines = []
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "served by ONNX Runtime without torch" in line:
+                break
+        assert any("served by ONNX Runtime without torch" in ln for ln in lines), "".join(lines)[-2000:]
+        time.sleep(3.0)  # the rest of the start-up (a few ms), then the node spins
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0, proc.stdout.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()

@@ -4,6 +4,7 @@ declared is unused, and every Python dependency of setup.py has its rosdep key o
 from __future__ import annotations
 
 import ast
+import functools
 import importlib.metadata as md
 import re
 import sys
@@ -38,10 +39,16 @@ def _imports() -> dict[str, set[str]]:
     return out
 
 
+@functools.cache
+def _distributions() -> dict[str, list[str]]:
+    """{top-level module: distributions}; read once (it scans every installed distribution's files)."""
+    return md.packages_distributions()
+
+
 def _is_ros(module: str) -> bool:
     if module in ROS_TOOLS or re.search(r"_(msgs|srvs|interfaces)$", module):
         return True
-    return any(d.lower().startswith("ros-") for d in md.packages_distributions().get(module, []))
+    return any(d.lower().startswith("ros-") for d in _distributions().get(module, []))
 
 
 def _package_xml():

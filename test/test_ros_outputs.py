@@ -73,6 +73,29 @@ def test_state_vector_message_round_trips_with_and_without_covariance():
     assert O.read_state(bare.data, [(d.label, d.size) for d in bare.layout.dim])[2] is None
 
 
+def test_state_encoder_writes_the_message_rclpy_reads():
+    from rclpy.serialization import deserialize_message, serialize_message
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+    rng = np.random.default_rng(0)
+    for n, cov, names in [
+        (3, True, "abc"),
+        (3, False, "abc"),
+        (5, True, "abcde"),
+        (1, False, ["x1"]),
+        (2, True, ["longer", "q"]),
+    ]:
+        enc = O.StateEncoder(list(names))
+        for _ in range(2):  # the cached layout serves the next estimate
+            x = rng.standard_normal(n)
+            P = rng.standard_normal((n, n)) if cov else None
+            want = O.make_state(Float64MultiArray, MultiArrayDimension, x, P, list(names))
+            got = deserialize_message(enc.encode(x, P), Float64MultiArray)
+            assert got == want, (n, cov)
+            # and what rclpy serialises reads back the same (its padding bytes may differ)
+            assert deserialize_message(serialize_message(want), Float64MultiArray) == got
+
+
 def test_euler_inverts_quaternion_and_set_pose_values():
     for rpy in [(0.1, -0.2, 0.3), (0.0, 0.0, -3.0), (-0.5, 0.4, 2.5)]:
         assert np.allclose(O.euler(*quaternion(*rpy)), rpy)

@@ -169,29 +169,6 @@ def report_section(title: str) -> str:
     return re.sub(r"\]\((figures/[^)]+)\)", r"](results/small/\1)", body)
 
 
-def headline_table() -> str:
-    """The main accuracy table of the committed small-scale report, RMSE only, three significant
-    digits: *ours · the paper's*, ``(!)`` where a method is expected to fail (README, results page)."""
-    rows = [ln for ln in report_section("Main accuracy").splitlines() if ln.startswith("| ")]
-    header = [c.strip() for c in rows[0].strip("|").split("|")]
-    scenarios = [h.split()[0] for h in header[1:] if h.endswith(" RMSE") and not h.endswith("NRMSE")]
-
-    def fmt(cell: str) -> str:
-        def n(x: str) -> str:
-            x = x.strip()
-            return x if x in ("∞", "N/A", "—") else f"{float(x):.3g}"
-
-        mark = " (!)" if "(!)" in cell else ""
-        ours, paper = cell.replace("(!)", "").split("·")
-        return f"{n(ours)}{mark} · {n(paper)}"
-
-    out = ["| method | " + " | ".join(scenarios) + " |", "|---|" + "---|" * len(scenarios)]
-    for row in rows[2:]:
-        cells = [c.strip() for c in row.strip("|").split("|")]
-        out.append(f"| {cells[0]} | " + " | ".join(fmt(cells[1 + 2 * i]) for i in range(len(scenarios))) + " |")
-    return "\n".join(out)
-
-
 def zoo() -> str:
     """The shipped models, one row per card of neural_estimator/zoo: budget, stop, card metrics."""
     rows = [
@@ -244,13 +221,26 @@ def fidelity() -> str:
     return "\n".join(rows)
 
 
+def defaults_table() -> str:
+    """The headline RMSE table at the defaults, fresh seeds (README, results page)."""
+    from neural_estimator.reproduce.fidelity import headline, load_measured
+
+    return "\n".join(headline(load_measured(ROOT / "benchmarks/results/fidelity_v4")))
+
+
+def fidelity_measured() -> str:
+    """The fidelity section measured on the default constants (scripts/fidelity_table.py)."""
+    return (ROOT / "benchmarks/results/fidelity_v4/fidelity.md").read_text().strip()
+
+
 GENERATORS = {
     "node-params": params_table,
     "cli": cli_help,
     "scoreboard": lambda _=None: scoreboard(),
-    "headline": lambda _=None: headline_table(),
     "report-section": report_section,
     "fidelity": lambda _=None: fidelity(),
+    "fidelity-measured": lambda _=None: fidelity_measured(),
+    "defaults-table": lambda _=None: defaults_table(),
     "zoo": lambda _=None: zoo(),
 }
 

@@ -344,6 +344,12 @@ def _evaluation_request(args):
         for m in methods:
             if m in CLASSICAL_METHODS:
                 options.setdefault(m, {}).setdefault("threads", args.threads)
+    if scenario is not None:  # a misspelt filter option fails now, not after the data are simulated
+        from neural_estimator.registry import make_estimator
+
+        for m in methods:
+            if m in CLASSICAL_METHODS:
+                make_estimator(m, scenario, **options.get(m, {}))
     if datasets is not None:
         info = dict(
             trajectories=datasets[0].n,

@@ -1,4 +1,4 @@
-"""One step of a recurrent model as an ONNX graph, served by ONNX Runtime (an optional backend).
+"""One step of a neural model as an ONNX graph, served by ONNX Runtime (an optional backend).
 
 At batch 1 a torch step costs the dispatch of every aten op (1.3-1.7 us each, 40-120 ops a step)
 on top of the arithmetic; ONNX Runtime runs the same graph with one call from Python. The graph is
@@ -8,39 +8,63 @@ the model's own ``step`` traced at batch 1::
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
 with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM
-state per layer). :func:`export_step` makes it from the loaded checkpoint (card + safetensors
-weights), so the export is reproducible from the card: the same weights give the same graph.
-:class:`OrtStep` serves it; a test holds it equal to the torch step over hundreds of steps.
+state per layer; GPT-2: the (W,) slot mask, then each layer's (2, 1, nh, W, hs) keys and values;
+Filterformer: the mask and its one attention's cache). The attention models serve a bounded key/value
+cache of the last W steps (their attention window, the ``context`` option), so their step graph has
+fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's covariance
+(normalised units), when exported with ``covariance``. A state that does not start at zeros (the
+attention models' mask starts at -inf: no slot filled) is recorded in the graph's metadata
+(``initial_fill``), which ``OrtStep`` resets to. :func:`export_step` makes it from the loaded
+checkpoint (card + safetensors weights), so the export is reproducible from the card: the same
+weights give the same graph. ``OrtStep`` serves it; a test holds it equal to the torch step over
+hundreds of steps.
 
-The attention models (GPT-2, Filterformer) carry a growing key/value cache and are not exported.
 Serving needs ``onnxruntime`` (``pip install onnxruntime``, the ``onnx`` extra); exporting also needs
-torch and ``onnx``. A robot that gets the ``.onnx`` file (``scripts/export_onnx.py``) and the card
-runs :class:`OrtStep` without torch.
+torch and ``onnx``. The serving side (``OrtStep``, the torch-free ``OnnxEstimator``) lives in
+:mod:`neural_estimator.serving.onnx_runtime`, which imports no torch: a robot that gets ``step.onnx``
+beside the card (``scripts/export_onnx.py --beside``) serves it without torch.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-EXPORTABLE = ("gru", "lstm", "mamba", "mamba2")
-OPSET = 17
+
+EXPORTABLE = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
+ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
 
 
 class OnnxError(RuntimeError):
-    """The ONNX backend cannot serve this model (missing package, unsupported method): one line."""
+    """The step cannot be exported (missing package, unsupported method): one line."""
+
+
+OPSET = 17
 
 
 def _flatten(state: Any) -> list:
     return list(state) if isinstance(state, (tuple, list)) else [state]
 
 
-def export_step(model: Any, method: str, path: str | Path | None = None, normalizer: Any = None) -> bytes:
+def export_step(
+    model: Any,
+    method: str,
+    path: str | Path | None = None,
+    normalizer: Any = None,
+    covariance: bool = False,
+    metadata: dict[str, str] | None = None,
+) -> bytes:
     """The ONNX graph of ``model.step`` at batch 1, written to ``path`` when given.
+
+    ``covariance``: a model with ``step_with_cov`` (Filterformer) exports that, with the extra output
+    ``cov`` (normalised units; with ``normalizer``: ``covariance``, in state units). ``metadata``:
+    strings stored in the graph (e.g. the card's weight digest) beside ``method``, ``window`` (the
+    attention models) and ``initial_fill``.
 
     Without ``normalizer`` the graph is the network alone (z float32 in, mean float32 out). With the
     checkpoint's :class:`~neural_estimator.serving.normalization.Normalizer` it is the whole estimator
@@ -50,7 +74,8 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
         outputs: x (1, dx) float64 (denormalised, angles not yet wrapped), skipped (1, 1) bool
                  (y had NaN or inf: its part of z was the training mean 0), new_state_0 ...
 
-    so a robot serves it with numpy and onnxruntime only (:class:`OrtStep`), without torch.
+    so a robot serves it with numpy and onnxruntime only
+    (:class:`~neural_estimator.serving.onnx_runtime.OrtStep`), without torch.
 
     Raises:
         OnnxError: ``method`` is not one of :data:`EXPORTABLE`, or torch's exporter is missing.
@@ -65,10 +90,21 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
     d_in = model.input_proj.in_features
+    with_cov = bool(covariance) and hasattr(model, "step_with_cov")
+    fills = []
+    for t in flat:  # the state's starting values: one constant per tensor (zeros, or the mask's -inf)
+        first = t.reshape(-1)[:1]
+        if t.numel() and not bool((t == first).all()):
+            raise OnnxError(f"{method}: a starting state that is not one constant per tensor cannot be exported")
+        fills.append(float(first[0]) if t.numel() else 0.0)
 
     def network(z, state):
-        mean, new = model.step(z, tuple(state) if structured else state[0])
-        return mean, _flatten(new)
+        state = tuple(state) if structured else state[0]
+        if with_cov:
+            mean, cov, new = model.step_with_cov(z, state)
+            return (mean, cov), _flatten(new)
+        mean, new = model.step(z, state)
+        return (mean,), _flatten(new)
 
     if normalizer is None:
 
@@ -78,11 +114,11 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
                 self.model = model
 
             def forward(self, z, *state):
-                mean, new = network(z, state)
-                return (mean, *new)
+                outs, new = network(z, state)
+                return (*outs, *new)
 
         args: tuple = (torch.zeros(1, d_in), *flat)
-        names_in, names_out = ["z"], ["mean"]
+        names_in, names_out = ["z"], ["mean"] + (["cov"] if with_cov else [])
     else:
         n = normalizer
         dy, du = int(n.dy), int(n.du)
@@ -102,13 +138,18 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
                 finite = torch.isfinite(y).all(dim=-1, keepdim=True)  # (1, 1)
                 zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], torch.zeros_like(y))
                 z = torch.cat([zy, (u - in_mean[:, dy:]) / in_std[:, dy:]], dim=-1) if du else zy
-                mean, new = network(z.float(), state)
-                return (mean.double() * out_std + out_mean, ~finite, *new)
+                outs, new = network(z.float(), state)
+                x = outs[0].double() * out_std + out_mean
+                if with_cov:  # diag(sigma_x) C diag(sigma_x), as Normalizer.denormalize_covariance
+                    cov = outs[1].double() * (out_std.reshape(1, -1, 1) * out_std.reshape(1, 1, -1))
+                    return (x, cov, ~finite, *new)
+                return (x, ~finite, *new)
 
         args = (torch.zeros(1, dy, dtype=torch.float64),)
         args += (torch.zeros(1, du, dtype=torch.float64),) if du else ()
         args += tuple(flat)
-        names_in, names_out = ["y"] + (["u"] if du else []), ["x", "skipped"]
+        names_in = ["y"] + (["u"] if du else [])
+        names_out = ["x"] + (["covariance"] if with_cov else []) + ["skipped"]
 
     _register_symbolics()
     names_in = names_in + [f"state_{i}" for i in range(len(flat))]
@@ -128,18 +169,38 @@ def export_step(model: Any, method: str, path: str | Path | None = None, normali
             )
     except ImportError as exc:
         raise OnnxError(f"exporting needs the onnx package ({exc}): pip install onnx") from None
-    data = buf.getvalue()
+    data = _with_metadata(
+        buf.getvalue(),
+        {
+            "method": method,
+            "initial_fill": json.dumps(fills),
+            **({"window": str(int(flat[0].shape[0]))} if method in ATTENTION else {}),
+            **(metadata or {}),
+        },
+    )
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+def _with_metadata(data: bytes, props: dict[str, str]) -> bytes:
+    """The graph ``data`` with ``props`` as its metadata (key/value strings)."""
+    import onnx
+
+    graph = onnx.load_from_string(data)
+    for key, value in props.items():
+        entry = graph.metadata_props.add()
+        entry.key, entry.value = str(key), str(value)
+    return graph.SerializeToString()
 
 
 _REGISTERED = False
 
 
 def _register_symbolics() -> None:
-    """ONNX forms of the two aten ops the SSM steps use that opset 17 lacks: ``rms_norm`` (as
-    x / sqrt(mean(x^2) + eps) * w) and ``linalg_vecdot`` (as sum(a * b) over the last axis)."""
+    """ONNX forms of the aten ops the steps use that opset 17 lacks: ``rms_norm`` (as
+    x / sqrt(mean(x^2) + eps) * w) and ``linalg_vecdot`` (as sum(a * b) over the last axis) of the SSM
+    steps, ``diag_embed`` (as x[..., None] * I) of Filterformer's covariance."""
     global _REGISTERED
     if _REGISTERED:
         return
@@ -159,85 +220,17 @@ def _register_symbolics() -> None:
         axis = sh._get_const(dim, "i", "dim")
         return g.op("ReduceSum", g.op("Mul", a, b), g.op("Constant", value_t=torch.tensor([axis])), keepdims_i=0)
 
+    def diag_embed(g, x, offset, dim1, dim2):  # only the default form (offset 0, the last two axes)
+        if sh._get_const(offset, "i", "offset") != 0 or (
+            sh._get_const(dim1, "i", "dim1"),
+            sh._get_const(dim2, "i", "dim2"),
+        ) not in ((-2, -1),):
+            return sh._unimplemented("diag_embed", "offset 0 on the last two axes only", x)
+        n = sh._get_tensor_sizes(x)[-1]
+        eye = g.op("Constant", value_t=torch.eye(n, dtype=torch.float32))
+        return g.op("Mul", g.op("Unsqueeze", x, g.op("Constant", value_t=torch.tensor([-1]))), eye)
+
+    register_custom_op_symbolic("aten::diag_embed", diag_embed, OPSET)
     register_custom_op_symbolic("aten::rms_norm", rms_norm, OPSET)
     register_custom_op_symbolic("aten::linalg_vecdot", vecdot, OPSET)
     _REGISTERED = True
-
-
-class OrtStep:
-    """A stateful batch-1 step over an exported graph: ``reset()``, ``step()``.
-
-    Every input and output is a preallocated numpy buffer bound once (no allocation, no dict per step):
-    write the inputs into :attr:`inputs` (by name: ``z``, or ``y`` and ``u``), call :meth:`run`, read
-    :attr:`outputs` (``mean``, or ``x`` and ``skipped``); the next run overwrites them. The state
-    lives in two sets of buffers that swap roles every step (a run reads one and writes the other).
-
-    Args:
-        graph: the ``.onnx`` bytes or a path to them (:func:`export_step`).
-        threads: ONNX Runtime intra-op threads (1: the live node's case).
-    """
-
-    def __init__(self, graph: bytes | str | Path, threads: int = 1) -> None:
-        try:
-            import onnxruntime as ort
-        except ImportError:
-            raise OnnxError("backend onnxruntime needs the onnxruntime package: pip install onnxruntime") from None
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(1, int(threads))
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # never spin on a busy core
-        model = graph if isinstance(graph, bytes) else Path(graph).read_bytes()
-        self.session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
-        dtypes = {"tensor(float)": np.float32, "tensor(double)": np.float64, "tensor(bool)": np.bool_}
-
-        def buffer(arg) -> np.ndarray:
-            return np.zeros(tuple(int(d) for d in arg.shape), dtype=dtypes[arg.type])
-
-        ins, outs = self.session.get_inputs(), self.session.get_outputs()
-        state_in = [i for i in ins if i.name.startswith("state_")]
-        state_out = [o for o in outs if o.name.startswith("new_state_")]
-        self.inputs = {i.name: buffer(i) for i in ins if not i.name.startswith("state_")}
-        self.outputs = {o.name: buffer(o) for o in outs if not o.name.startswith("new_state_")}
-        self.normalized = "y" in self.inputs
-        first = self.inputs["y" if self.normalized else "z"]
-        self.d_in = int(first.shape[1])
-        self._sets = [[buffer(i) for i in state_in] for _ in range(2)]
-        value = ort.OrtValue.ortvalue_from_numpy
-        self._bindings = []
-        for src, dst in ((0, 1), (1, 0)):
-            b = self.session.io_binding()
-            for name, a in self.inputs.items():
-                b.bind_ortvalue_input(name, value(a))
-            for name, a in self.outputs.items():
-                b.bind_ortvalue_output(name, value(a))
-            for i, o, a, c in zip(state_in, state_out, self._sets[src], self._sets[dst]):
-                b.bind_ortvalue_input(i.name, value(a))
-                b.bind_ortvalue_output(o.name, value(c))
-            self._bindings.append(b)
-        self._run = self.session.run_with_iobinding
-        self.reset()
-
-    @property
-    def state(self) -> list[np.ndarray]:
-        """The current state buffers (float32, the graph's order)."""
-        return self._sets[self._current]
-
-    def reset(self) -> None:
-        for buffers in self._sets:
-            for a in buffers:
-                a.fill(0.0)
-        self._current = 0
-
-    def run(self) -> None:
-        """One step on what :attr:`inputs` hold; the state advances."""
-        self._run(self._bindings[self._current])
-        self._current ^= 1
-
-    def step(self, z: np.ndarray) -> np.ndarray:
-        """A network-only graph: z (1, d_in) -> mean (1, d_out) float32, a view of a buffer the next
-        step overwrites (copy it to keep it)."""
-        np.copyto(self.inputs["z"], z, casting="same_kind")
-        self.run()
-        return self.outputs["mean"]

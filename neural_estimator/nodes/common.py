@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
 import typing
 from collections.abc import Callable
 from pathlib import Path
@@ -56,6 +57,8 @@ def declare_params(node: Node, cls: type[P]) -> P:
             read_only=True,
             dynamic_typing=True,
         )
+        if node.has_parameter(f.name):  # peeked at before the node's kind was known (see peek_param)
+            node.undeclare_parameter(f.name)
         value = node.declare_parameter(
             f.name,
             list(default)
@@ -68,6 +71,12 @@ def declare_params(node: Node, cls: type[P]) -> P:
         return cls(**values)
     except (TypeError, ValueError) as exc:
         raise StartupError(str(exc)) from None
+
+
+def peek_param(node: Node, name: str) -> Any:
+    """The value the command line or a parameter file gives ``name`` on ``node`` (None if none), read
+    by declaring it untyped and writable; :func:`declare_params` declares it again, as its field."""
+    return node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True)).value
 
 
 def _type_name(kind: Any) -> str:
@@ -214,8 +223,6 @@ def dds_memory_policy() -> None:
     """Fast DDS frees each sample's payload once taken (``fastdds_profiles.xml``): a huge message
     that a node drops unread does not stay resident. Set before ``rclpy.init``, for Fast DDS only,
     and only where the user configured none of it."""
-    import os
-
     rmw = os.environ.get("RMW_IMPLEMENTATION", "")
     own = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE", "RMW_FASTRTPS_USE_QOS_FROM_XML")
     if rmw not in ("", "rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp") or any(v in os.environ for v in own):
@@ -225,8 +232,59 @@ def dds_memory_policy() -> None:
         os.environ["RMW_FASTRTPS_USE_QOS_FROM_XML"] = "1"
 
 
-def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
-    """The nodes' main(): init, build, spin until shutdown, clean up; exit status.
+EXECUTOR_ENV = "NEURAL_ESTIMATOR_EXECUTOR"
+EXECUTORS = ("events", "single")
+
+
+def events_executor(context: Any) -> Any:
+    """rclpy's ``rclpy.experimental.EventsExecutor`` for ``context``, or None where this rclpy has none."""
+    try:
+        from rclpy.experimental import EventsExecutor
+    except ImportError:
+        return None
+    try:
+        return EventsExecutor(context=context)
+    except (AttributeError, RuntimeError, TypeError):  # built without it
+        return None
+
+
+def executor_choice() -> str:
+    """The executor ``NEURAL_ESTIMATOR_EXECUTOR`` names (default events); a StartupError otherwise."""
+    choice = os.environ.get(EXECUTOR_ENV, "") or "events"
+    if choice not in EXECUTORS:
+        raise StartupError(f"{EXECUTOR_ENV} must be one of {', '.join(EXECUTORS)}, got {choice!r}")
+    return choice
+
+
+def spin(node: Node, executor: str = "events") -> str:
+    """Run ``node``'s callbacks until its context shuts down; returns the executor's name.
+
+    The executor is rclpy's ``EventsExecutor`` where this rclpy has one (Jazzy's experimental
+    one): each message, timer and service request arrives as an event from the middleware, without
+    the wait set that the ``SingleThreadedExecutor`` rebuilds at every wake-up
+    (``benchmarks/bench_executor.py`` measures both). Its ``spin()`` runs no timers in rclpy 7.1
+    and does not return at shutdown, so it is driven by ``spin_once`` until the context is shut
+    down (SIGINT/SIGTERM, :func:`request_shutdown`; the shutdown wakes it). The environment variable
+    ``NEURAL_ESTIMATOR_EXECUTOR=single`` selects the single-threaded executor (also the fall-back
+    where rclpy has no events executor), and so does ``executor="single"``: a node with a
+    subscription whose callback takes the message info (rclpy 7.1's EventsExecutor raises
+    SystemError on those; the evaluator's recorder needs each message's timestamps).
+    """
+    events = events_executor(node.context) if executor == "events" and executor_choice() == "events" else None
+    if events is None:
+        single = SingleThreadedExecutor(context=node.context)
+        single.add_node(node)
+        single.spin()
+        return "single"
+    events.add_node(node)
+    context = node.context
+    while context.ok():
+        events.spin_once(timeout_sec=1.0)
+    return "events"
+
+
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None, executor: str = "events") -> int:
+    """The nodes' main(): init, build, spin until shutdown (:func:`spin`, ``executor``), clean up; exit status.
 
     A :class:`StartupError` while building the node is logged as one fatal line and gives exit
     status 1; otherwise the status is the node's :meth:`ExitStatusNode.on_shutdown`.
@@ -234,18 +292,14 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     dds_memory_policy()
     rclpy.init(args=args)
     try:
+        executor_choice()
         node = factory()
     except StartupError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
         rclpy.try_shutdown()
         return 1
-    # SingleThreadedExecutor: rclpy's experimental EventsExecutor costs less per message, but in
-    # this rclpy (7.1) its spin() never runs timers and it fails on subscriptions created in a
-    # callback (the evaluator's discovery), so it is not used.
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
     try:
-        executor.spin()
+        spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

@@ -67,9 +67,11 @@ from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,
     declare_params,
+    executor_choice,
     latched_qos,
     load_plugins,
     param,
+    peek_param,
     run_node,
     stream_qos,
 )
@@ -169,8 +171,12 @@ class EstimatorParams:
 
 
 class EstimatorNode(ExitStatusNode):
-    def __init__(self) -> None:
-        super().__init__("estimator")
+    def __init__(self, node_name: str = "estimator") -> None:
+        super().__init__(node_name)
+        self.setup()
+
+    def setup(self) -> None:
+        """Declare the parameters, build the scenario's estimator (or wait for the scenario), wire the topics."""
         self.p = p = declare_params(self, EstimatorParams)
         self.po = declare_params(self, OutputParams)
         self.pd = declare_params(self, InputDiagnosticsParams)
@@ -240,7 +246,10 @@ class EstimatorNode(ExitStatusNode):
             else ReliabilityPolicy.BEST_EFFORT,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient else DurabilityPolicy.VOLATILE,
         )
-        self.sub_obs = self.create_subscription(JointState, p.observation_topic, self._on_observations, qos, raw=True)
+        # rclpy 7.1's EventsExecutor cannot call a callback that takes the message info (SystemError):
+        # under it the callback takes the message only (see _on_observations)
+        callback = self._on_observations if executor_choice() == "events" else self._on_observations_with_info
+        self.sub_obs = self.create_subscription(JointState, p.observation_topic, callback, qos, raw=True)
         self.get_logger().info(
             f"subscribed to '{self.obs_topic}' ({p.observation_qos}, "
             f"{'transient_local: the publishers history is received' if transient else 'volatile'})"
@@ -253,10 +262,6 @@ class EstimatorNode(ExitStatusNode):
             options = dict(item.split("=", 1) for item in p.options)
         except ValueError:
             raise StartupError(f"options must be name=value, got {list(p.options)}") from None
-        if p.threads > 0 and self.method in NEURAL_METHODS:
-            import torch
-
-            torch.set_num_threads(p.threads)
         if p.init != "prior" and self.method not in NEURAL_METHODS:
             options.setdefault("init", p.init)
         try:
@@ -265,6 +270,9 @@ class EstimatorNode(ExitStatusNode):
             )
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
+        torch = sys.modules.get("torch")  # absent when the model is served without torch (step.onnx)
+        if p.threads > 0 and self.method in NEURAL_METHODS and torch is not None:
+            torch.set_num_threads(p.threads)
         _warm_up(est, scenario)
         self.online = OnlineEstimator(
             est,
@@ -308,6 +316,11 @@ class EstimatorNode(ExitStatusNode):
             + f" (history {self.depths['estimates']}"
             + (f"/{self.depths['covariance']}" if self.pub_cov else "")
             + " msgs)"
+            + (
+                "; served by ONNX Runtime without torch"
+                if self.method in NEURAL_METHODS and not sys.modules.get("torch")
+                else ""
+            )
         )
         if getattr(est, "context", 0):
             how = (
@@ -372,7 +385,10 @@ class EstimatorNode(ExitStatusNode):
             )
 
     # ---- per wake-up ------------------------------------------------------------------------------
-    def _on_observations(self, raw: bytes, info: dict) -> None:
+    def _on_observations_with_info(self, raw: bytes, info: dict) -> None:
+        self._on_observations(raw, info.get("source_timestamp", 0))
+
+    def _on_observations(self, raw: bytes, sent_ns: int = 0) -> None:
         """Subscription callback: this observation and every other one waiting in the queue (``drain``),
         stepped in arrival order (one reliable publisher: time order, and the order replay uses).
 
@@ -382,8 +398,14 @@ class EstimatorNode(ExitStatusNode):
         When the oldest one was published more than ``max_delay`` s ago, the node is behind: only the
         newest is stepped, the older ones are dropped and counted (``late_dropped``), and the estimator
         meets them as lost observations (the gap rule: predict-only steps or a restart, both counted).
+
+        ``sent_ns`` is the observation's DDS source timestamp where the executor passes the message
+        info (the single-threaded executor); the events executor passes the message only, and the
+        delivered observation's publish time is then taken as that of the next one waiting (it was
+        published before it), or as now when none waits: its wait is under-counted by at most one
+        inter-arrival time. The messages the node takes itself carry their own timestamps.
         """
-        batch = [(raw, info.get("source_timestamp", 0))]
+        batch = [(raw, sent_ns)]
         sub = self.sub_obs
         if self.p.drain and sub is not None:
             limit = max(1, self.p.queue_depth)
@@ -393,6 +415,8 @@ class EstimatorNode(ExitStatusNode):
                     if taken is None:
                         break
                     batch.append((taken[0], taken[1].get("source_timestamp", 0)))
+        if not sent_ns:
+            batch[0] = (raw, batch[1][1] if len(batch) > 1 and batch[1][1] else time.time_ns())
         s = self.stats
         s.wakeups += 1
         s.max_batch = max(s.max_batch, len(batch))
@@ -633,39 +657,50 @@ def _exists(path: str) -> bool:
 def _make_node() -> ExitStatusNode:
     """The estimator node, or, when ``checkpoint`` is a model trained on recorded data (its card holds a
     spec, docs/robot.md), the robot estimator on the spec's own topics: a recorded-data model
-    needs no scenario. The parameters are looked at once by a short-lived probe node of the same name."""
-    import rclpy
+    needs no scenario.
 
-    probe = rclpy.create_node("estimator", automatically_declare_parameters_from_overrides=True)
+    One node is made: an :class:`ExitStatusNode` named ``estimator`` (its name and parameter overrides
+    resolved by rcl from the command line, remappings and parameter files), whose ``checkpoint`` and
+    ``method`` are peeked at (:func:`~neural_estimator.nodes.common.peek_param`); the card is read
+    once, and the node becomes the kind it names: its class set, then that class's ``setup``, which
+    declares every parameter as the class's fields (those two again)."""
+    node = ExitStatusNode("estimator")
     try:
-        checkpoint = probe.get_parameter("checkpoint").value if probe.has_parameter("checkpoint") else ""
-        method = probe.get_parameter("method").value if probe.has_parameter("method") else ""
-        name = probe.get_name()
-    finally:
-        probe.destroy_node()
-    if checkpoint and _recorded_data_card(str(checkpoint)):
-        from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
+        checkpoint = str(peek_param(node, "checkpoint") or "")
+        method = str(peek_param(node, "method") or "")
+        read = _recorded_data_card(checkpoint) if checkpoint else None
+        if read is not None:
+            from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
 
-        node = RobotEstimatorNode(node_name=name)
-        try:
-            wrong = bool(method) and check_method(str(method)) != node.method
-        except EstimatorError as exc:
-            raise StartupError(str(exc)) from None
-        if wrong:
-            raise StartupError(f"parameter method is {method!r} but {checkpoint} holds a {node.method} model")
-        return node
-    return EstimatorNode()
+            try:
+                wrong = bool(method) and check_method(method) != read.card.get("method")
+            except EstimatorError as exc:
+                raise StartupError(str(exc)) from None
+            if wrong:
+                raise StartupError(
+                    f"parameter method is {method!r} but {checkpoint} holds a {read.card['method']} model"
+                )
+            node.__class__ = RobotEstimatorNode
+            node.setup(read)
+        else:
+            node.__class__ = EstimatorNode
+            node.setup()
+    except BaseException:
+        node.destroy_node()
+        raise
+    return node
 
 
-def _recorded_data_card(checkpoint: str) -> bool:
-    """True when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
-    from neural_estimator.serving.card import read_card
+def _recorded_data_card(checkpoint: str):
+    """The resolved :class:`~neural_estimator.serving.card.Checkpoint` when ``checkpoint`` is a
+    readable card of a model trained with ``train --data`` (passed on, so its card is read once)."""
+    from neural_estimator.serving.card import resolve_checkpoint
 
     try:
-        _, card = read_card(checkpoint)
+        read = resolve_checkpoint(checkpoint)
     except EstimatorError:
-        return False  # the estimator node reports a missing or corrupt checkpoint itself
-    return card.get("scenario", {}).get("scenario") == "data"
+        return None  # the estimator node reports a missing or corrupt checkpoint itself
+    return read if read.card.get("scenario", {}).get("scenario") == "data" else None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -99,6 +99,12 @@ class RobotEstimatorParams:
 class RobotEstimatorNode(ExitStatusNode):
     def __init__(self, node_name: str = "robot_estimator") -> None:
         super().__init__(node_name)
+        self.setup()
+
+    def setup(self, card: tuple | None = None) -> None:
+        """Declare the parameters, load the model and wire the topics; ``card``: the checkpoint
+        (:class:`~neural_estimator.serving.card.Checkpoint`) when already resolved (the estimator
+        executable decides from its card which node to be)."""
         self.p = p = declare_params(self, RobotEstimatorParams)
         self.po = declare_params(self, OutputParams)
         self.pd = declare_params(self, InputDiagnosticsParams)
@@ -108,7 +114,7 @@ class RobotEstimatorNode(ExitStatusNode):
             raise StartupError(str(exc)) from None
         if p.input_qos not in ("sensor_data", "reliable"):
             raise StartupError(f"parameter input_qos must be sensor_data or reliable, got {p.input_qos!r}")
-        self.scenario, self.spec, self.method, self.est = _load(p)
+        self.scenario, self.spec, self.method, self.est = _load(p, card)
         fields = topic_fields(self.spec)
         inputs = [f.topic for name in ("observation", "control") for f in self.spec.vectors[name]]
         if self.spec.trigger:
@@ -303,8 +309,9 @@ class RobotEstimatorNode(ExitStatusNode):
         self.pub_diag.publish(arr)
 
 
-def _load(p: RobotEstimatorParams):
-    """(DataScenario, Spec, method, estimator) from the checkpoint's card; StartupError otherwise."""
+def _load(p: RobotEstimatorParams, read=None):
+    """(DataScenario, Spec, method, estimator) from the checkpoint's card (``read``: the
+    :class:`~neural_estimator.serving.card.Checkpoint` already resolved); StartupError otherwise."""
     from pathlib import Path
 
     from neural_estimator.registry import EstimatorError, make_estimator
@@ -318,7 +325,7 @@ def _load(p: RobotEstimatorParams):
     if not path.exists():
         raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
     try:
-        ckpt = resolve_checkpoint(path)  # read and hashed once, passed to the estimator
+        ckpt = read if read is not None else resolve_checkpoint(path)  # read once, passed to the estimator
         card = ckpt.card
         desc = card["scenario"]
         if desc.get("scenario") != "data" or not desc.get("spec"):

@@ -9,6 +9,7 @@ versions. It imports no torch model code.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -18,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from neural_estimator import __version__
 from neural_estimator.estimator import EstimatorError
@@ -81,6 +81,7 @@ def sha256_file(path: Path) -> str:
 
 def software_versions() -> dict[str, str]:
     import safetensors
+    import torch  # here, not at the top: reading a card (serving without torch) needs no torch
 
     return {
         "neural_estimator": __version__,
@@ -151,16 +152,37 @@ MAX_COUNT = 256
 # ---- a checkpoint resolved once ---------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Checkpoint:
-    """A checkpoint resolved once by :func:`resolve_checkpoint`: its directory, its card (read and
-    checked once), its weight file, the weights' SHA-256 and ``digest``, the BLAKE2b of card and
-    weights that keys cached results (both from one pass over the weights). Passed down in place of
-    a path, so that nothing below reads the card or hashes the weights again."""
+    """A checkpoint resolved once by :func:`resolve_checkpoint`: its directory and its card (read and
+    checked once); on first use its weight file, the weights' SHA-256 and ``digest``, the BLAKE2b of
+    card and weights that keys cached results (both from one pass over the weights, then kept).
+    Passed down in place of a path, so nothing below reads the card or hashes the weights again, and
+    a caller that needs no weights (the ONNX step beside the card) hashes nothing."""
 
     directory: Path
     card: dict[str, Any]
-    weights: Path
-    sha256: str
-    digest: str
+    card_path: Path
+    card_bytes: bytes = dataclasses.field(repr=False)
+
+    @functools.cached_property
+    def weights(self) -> Path:
+        """The card's weight file: a file name inside the checkpoint, present (EstimatorError otherwise)."""
+        return _weight_file(self.directory, self.card)
+
+    @functools.cached_property
+    def _digests(self) -> tuple[str, str]:
+        if self.card_path == self.directory / CARD_FILE and self.weights == self.directory / WEIGHTS_FILE:
+            sha256, digest = _hash(self.card_bytes, self.weights)
+            return str(sha256), digest
+        # a card or weight file of another name: the digest is of the usual files, as for any checkpoint
+        return sha256_file(self.weights), checkpoint_digest(self.directory)
+
+    @property
+    def sha256(self) -> str:
+        return self._digests[0]
+
+    @property
+    def digest(self) -> str:
+        return self._digests[1]
 
 
 def default_checkpoint(scenario_name: str, method: str) -> Path:
@@ -176,7 +198,7 @@ def resolve_checkpoint(
 
     Raises:
         EstimatorError: no shipped model (the message gives the command that trains one), a missing
-            or corrupt card, a weight file named outside the checkpoint or missing.
+            or corrupt card (the weight file is checked where it is first used).
     """
     if isinstance(checkpoint, Checkpoint):
         return checkpoint
@@ -196,12 +218,7 @@ def resolve_checkpoint(
         raise EstimatorError(f"{card_path}: checkpoint card is missing")
     raw = card_path.read_bytes()
     card = check_card(parse_json(raw, card_path, "checkpoint card"), card_path)
-    weights = _weight_file(directory, card)
-    if card_path == directory / CARD_FILE and weights == directory / WEIGHTS_FILE:
-        sha256, digest = _hash(raw, weights)
-    else:  # a card or weight file of another name: the digest is of the usual files, as for any checkpoint
-        sha256, digest = sha256_file(weights), checkpoint_digest(directory)
-    return Checkpoint(directory, card, weights, str(sha256), digest)
+    return Checkpoint(directory, card, card_path, raw)
 
 
 def checkpoint_digest(directory: Path) -> str:

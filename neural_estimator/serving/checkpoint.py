@@ -127,12 +127,13 @@ def load_checkpoint(
     from safetensors.torch import load_model
 
     ckpt = resolve_checkpoint(checkpoint)
-    directory, card, weights = ckpt.directory, ckpt.card, ckpt.weights
+    directory, card = ckpt.directory, ckpt.card
     arch = card["architecture"]
     try:
         normalizer = Normalizer.from_dict(card["normalization"])
     except NormalizationError as exc:
         raise EstimatorError(f"{directory / CARD_FILE}: {exc}") from None
+    weights = ckpt.weights
     check_model_size(arch, weights.stat().st_size, directory)
     model = build_from_config(arch["name"], arch["config"])
     expected = card["weights"].get("sha256")

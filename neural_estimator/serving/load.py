@@ -13,8 +13,7 @@ from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
 from neural_estimator.serving.card import Checkpoint, resolve_checkpoint
-from neural_estimator.serving.checkpoint import load_checkpoint
-from neural_estimator.serving.neural import NeuralEstimator
+from neural_estimator.serving.onnx_runtime import ATTENTION, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
 
@@ -102,19 +101,33 @@ def load_neural_estimator(
             model was validated (the card's ``training.recipe.val_context`` and
             ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
             when only ``context`` is given.
-        backend: ``torch`` or ``onnxruntime`` (GRU, LSTM, Mamba, Mamba-2 with an unbounded context:
-            ``step`` runs the model's step exported to ONNX, :mod:`neural_estimator.models.onnx_step`;
-            ``run`` keeps torch's parallel form).
+        backend: ``torch`` or ``onnxruntime``: ``step`` runs the model's step exported to ONNX
+            (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 with an unbounded
+            context, GPT-2 and Filterformer with their window). Where the checkpoint directory holds
+            ``step.onnx`` (``scripts/export_onnx.py --beside``) that graph is served without torch
+            (:class:`~neural_estimator.models.onnx_step.OnnxEstimator`, batch 1, ``run`` a loop of
+            ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
             checkpoint of another method or scenario, missing or corrupt files.
     """
     m = check_method(method)
-    ckpt = resolve_checkpoint(checkpoint, scenario.name, m)
-    if ckpt.card["method"] != m:
-        raise EstimatorError(f"checkpoint {ckpt.directory} holds a {ckpt.card['method']!r} model, not {m!r}")
-    check_scenario(ckpt.card["scenario"], scenario, str(ckpt.directory))
+    ckpt = resolve_checkpoint(checkpoint, scenario.name, m)  # the card read once; the weights hashed where loaded
+    directory, card = ckpt.directory, ckpt.card
+    if card["method"] != m:
+        raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
+    check_scenario(card["scenario"], scenario, str(directory))
+    if backend == "onnxruntime" and onnx_beside(directory) is not None:  # served without torch
+        if str(device).lower() not in ("cpu", "auto"):
+            raise EstimatorError(f"{m}: the exported step beside the card serves on the cpu, not {device!r}")
+        if context is None and m not in ATTENTION:  # as validated: a bounded one is not the exported step
+            context = validated_context(card).get("context", 0)
+        return load_onnx_estimator(directory, card, scenario, context=context, covariance=covariance)
+    # torch from here on: imported only where a model is loaded into it
+    from neural_estimator.serving.checkpoint import load_checkpoint
+    from neural_estimator.serving.neural import NeuralEstimator
+
     model, normalizer, card = load_checkpoint(ckpt, device)
     if context is None:  # as the checkpoint was chosen: bounded if its validation was
         validated = validated_context(card)

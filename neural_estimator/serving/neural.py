@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from neural_estimator.angles import wrap_components
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.serving.normalization import Normalizer
@@ -134,24 +133,22 @@ class NeuralEstimator(Estimator):
         if self.backend not in BACKENDS:
             raise EstimatorError(f"{method}: backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         self._ort = self._onnx_step() if self.backend == "onnxruntime" else None
-        self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
-        self._dims = (scenario.dy, scenario.du)
-        self._z64 = np.zeros((1, scenario.dy + scenario.du))  # the normalised input, float64
-        self._z64_y = self._z64[:, : scenario.dy]
 
     def _onnx_step(self):
         """The batch-1 step exported from this model and served by ONNX Runtime (models/onnx_step.py)."""
-        from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, OrtStep, export_step
+        from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step
+        from neural_estimator.serving.onnx_runtime import OnnxEstimator, OrtStep
 
         if self.method not in EXPORTABLE or self.context_by_copies or self.dtype != torch.float32:
             raise EstimatorError(
-                f"{self.method}: backend onnxruntime serves {', '.join(EXPORTABLE)} with an unbounded context "
-                "(option context=0) in float32"
+                f"{self.method}: backend onnxruntime serves {', '.join(EXPORTABLE)} in float32, the recurrent "
+                "models with an unbounded context (option context=0), the attention models with their window"
             )
         try:
-            return OrtStep(export_step(self.model, self.method))
+            graph = OrtStep(export_step(self.model, self.method, covariance=self.has_covariance))
         except OnnxError as exc:
             raise EstimatorError(str(exc)) from None
+        return OnnxEstimator(self.scenario, graph, self.normalizer, self.method, self.card)
 
     @property
     def untrained_steps(self) -> int:
@@ -169,9 +166,7 @@ class NeuralEstimator(Estimator):
             raise EstimatorError(f"{self.method}: batch must be >= 1, got {batch}")
         self.model.eval()
         if self._ort is not None:
-            if batch != 1:
-                raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {batch}")
-            self._ort.reset()
+            self._ort.reset(batch)
         with torch.inference_mode():
             self._state = self.model.init_state(batch, device=self.device, dtype=self.dtype)
         if self.context_by_copies:  # one state per copy, None until the copy's first restart
@@ -206,46 +201,12 @@ class NeuralEstimator(Estimator):
         return x
 
     def _step_onnx(self, y: Any, u_prev: Any) -> np.ndarray:
-        """:meth:`step` on ONNX Runtime, batch 1, with no allocation beyond the returned estimate: the
-        same arithmetic as the torch path (normalise in float64, the network in float32, denormalise)
-        written into the graph's bound buffers, because at 20-50 us a step every numpy call counts
-        (normalising inside the graph instead cost 6 us more than these numpy calls, measured)."""
-        ort, n, (dy, du) = self._ort, self.normalizer, self._dims  # (a scenario's dy, du are computed properties)
-        fast = (
-            type(y) is np.ndarray
-            and y.dtype == np.float64
-            and y.shape == (1, dy)
-            and self.batch == 1
-            and (u_prev is None or (type(u_prev) is np.ndarray and u_prev.dtype == np.float64))
-        )
-        if not fast:  # anything else gets the full checks (and their errors)
-            y, u_prev = self.check_step(y, u_prev)
-            if y.shape[0] != 1:
-                raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {y.shape[0]}")
-            self.start_streams_if_none(1)
-        zb, zy = self._z64, self._z64_y
-        if du:
-            if u_prev is None:
-                zb[0, dy:] = 0.0
-            else:
-                if u_prev.shape != (1, du) or not np.isfinite(u_prev).all():
-                    self.check_step(y, u_prev)  # raises its one-line error
-                zb[0, dy:] = u_prev[0]
-        skipped = not np.isfinite(y).all()
-        np.copyto(zy, y)
-        np.subtract(zb, n.in_mean, out=zb)
-        np.divide(zb, n.in_std, out=zb)
-        if skipped:
-            zy.fill(0.0)  # the training mean (see Normalizer.normalize_inputs)
-        np.copyto(ort.inputs["z"], zb, casting="same_kind")
-        ort.run()
-        x = ort.outputs["mean"] * n.out_std + n.out_mean  # float32 * float64 -> float64, as the torch path
-        if n.angle_states:
-            x = wrap_components(x, n.angle_states)
+        """:meth:`step` on ONNX Runtime: the torch-free estimator over the exported step does it (one
+        arithmetic for both), its flags and covariance mirrored here."""
+        ort = self._ort
+        x = ort.step(y, u_prev)
         self._t += 1
-        self.skipped = self._skip_flags[int(skipped)]
-        if not np.isfinite(x).all():
-            self.diverged = np.ones(1, dtype=bool)
+        self.batch, self.skipped, self.diverged, self.covariance = ort.batch, ort.skipped, ort.diverged, ort.covariance
         return x
 
     def _bounded_step(self, z_t: torch.Tensor) -> torch.Tensor:

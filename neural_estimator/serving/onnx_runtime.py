@@ -1,0 +1,269 @@
+"""Serving a neural model's exported step with ONNX Runtime and numpy only: no torch on the robot.
+
+:class:`OrtStep` runs a step graph (``neural_estimator.models.onnx_step.export_step``) through
+preallocated bound buffers; :class:`OnnxEstimator` is the estimator over a network-only graph (the
+card's normalisation in numpy); :func:`load_onnx_estimator` serves ``step.onnx`` beside a checkpoint's
+card (``scripts/export_onnx.py --beside``). This module imports neither torch nor the model code: a
+robot needs numpy and onnxruntime (``scripts/requirements-serve.txt``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neural_estimator.angles import wrap_components
+from neural_estimator.estimator import Estimator, EstimatorError
+
+ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (scripts/export_onnx.py --beside)
+ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
+
+
+def graph_metadata(session: Any) -> dict[str, str]:
+    """The metadata strings of a loaded graph (an onnxruntime InferenceSession)."""
+    return dict(session.get_modelmeta().custom_metadata_map)
+
+
+class OrtStep:
+    """A stateful batch-1 step over an exported graph: ``reset()``, ``step()``.
+
+    Every input and output is a preallocated numpy buffer bound once (no allocation, no dict per step):
+    write the inputs into :attr:`inputs` (by name: ``z``, or ``y`` and ``u``), call :meth:`run`, read
+    :attr:`outputs` (``mean``, or ``x`` and ``skipped``); the next run overwrites them. The state
+    lives in two sets of buffers that swap roles every step (a run reads one and writes the other).
+
+    Args:
+        graph: the ``.onnx`` bytes or a path to them (:func:`export_step`).
+        threads: ONNX Runtime intra-op threads (1: the live node's case).
+    """
+
+    def __init__(self, graph: bytes | str | Path, threads: int = 1) -> None:
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise EstimatorError("backend onnxruntime needs the onnxruntime package: pip install onnxruntime") from None
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = max(1, int(threads))
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # never spin on a busy core
+        model = graph if isinstance(graph, bytes) else Path(graph).read_bytes()
+        self.session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+        dtypes = {"tensor(float)": np.float32, "tensor(double)": np.float64, "tensor(bool)": np.bool_}
+
+        def buffer(arg) -> np.ndarray:
+            return np.zeros(tuple(int(d) for d in arg.shape), dtype=dtypes[arg.type])
+
+        ins, outs = self.session.get_inputs(), self.session.get_outputs()
+        state_in = [i for i in ins if i.name.startswith("state_")]
+        state_out = [o for o in outs if o.name.startswith("new_state_")]
+        self.inputs = {i.name: buffer(i) for i in ins if not i.name.startswith("state_")}
+        self.outputs = {o.name: buffer(o) for o in outs if not o.name.startswith("new_state_")}
+        self.normalized = "y" in self.inputs
+        first = self.inputs["y" if self.normalized else "z"]
+        self.d_in = int(first.shape[1])
+        self._sets = [[buffer(i) for i in state_in] for _ in range(2)]
+        self.metadata = graph_metadata(self.session)
+        fills = json.loads(self.metadata.get("initial_fill", "[]")) or [0.0] * len(state_in)
+        if len(fills) != len(state_in):
+            raise EstimatorError(f"the graph's initial_fill names {len(fills)} states, its inputs {len(state_in)}")
+        self._fills = [float(f) for f in fills]
+        value = ort.OrtValue.ortvalue_from_numpy
+        self._bindings = []
+        for src, dst in ((0, 1), (1, 0)):
+            b = self.session.io_binding()
+            for name, a in self.inputs.items():
+                b.bind_ortvalue_input(name, value(a))
+            for name, a in self.outputs.items():
+                b.bind_ortvalue_output(name, value(a))
+            for i, o, a, c in zip(state_in, state_out, self._sets[src], self._sets[dst]):
+                b.bind_ortvalue_input(i.name, value(a))
+                b.bind_ortvalue_output(o.name, value(c))
+            self._bindings.append(b)
+        self._run = self.session.run_with_iobinding
+        self.reset()
+
+    @property
+    def state(self) -> list[np.ndarray]:
+        """The current state buffers (float32, the graph's order)."""
+        return self._sets[self._current]
+
+    def reset(self) -> None:
+        for buffers in self._sets:
+            for a, fill in zip(buffers, self._fills):
+                a.fill(fill)
+        self._current = 0
+
+    def run(self) -> None:
+        """One step on what :attr:`inputs` hold; the state advances."""
+        self._run(self._bindings[self._current])
+        self._current ^= 1
+
+    def step(self, z: np.ndarray) -> np.ndarray:
+        """A network-only graph: z (1, d_in) -> mean (1, d_out) float32, a view of a buffer the next
+        step overwrites (copy it to keep it)."""
+        np.copyto(self.inputs["z"], z, casting="same_kind")
+        self.run()
+        return self.outputs["mean"]
+
+
+class OnnxEstimator(Estimator):
+    """A neural model's estimator served by ONNX Runtime over its network-only step graph, batch 1,
+    with numpy and onnxruntime only (no torch).
+
+    The arithmetic of :class:`~neural_estimator.serving.neural.NeuralEstimator`'s step: normalise
+    [y_k, u_{k-1}] in float64 with the card's statistics (a non-finite y becomes the training mean and
+    is flagged in ``skipped``), the network in float32, denormalise (angles wrapped; Filterformer's
+    covariance as diag(sigma_x) C diag(sigma_x)). Written into the graph's bound buffers, because at
+    20-90 us a step every numpy call counts. ``run`` is the base class's loop of :meth:`step`.
+
+    Args:
+        scenario: the system served (the caller has checked the card against it).
+        step: the network-only graph (:class:`OrtStep`; inputs ``z`` and the state).
+        normalizer: the card's normalisation (:class:`~neural_estimator.serving.normalization.Normalizer`).
+        method: the method name.
+        card: the checkpoint card (provenance; the training warm-up).
+    """
+
+    def __init__(self, scenario: Any, step: OrtStep, normalizer: Any, method: str, card: dict | None = None) -> None:
+        super().__init__(scenario)
+        self.method = method
+        if step.normalized:
+            raise EstimatorError(f"{method}: the ONNX graph has the normalisation inside; serve the network-only one")
+        dy, du = scenario.dy, scenario.du
+        if step.d_in != dy + du or step.outputs["mean"].shape[1] != scenario.dx:
+            raise EstimatorError(
+                f"{method}: the ONNX graph maps {step.d_in} inputs to {step.outputs['mean'].shape[1]} states; "
+                f"scenario {scenario.name!r} has dy + du = {dy + du}, dx = {scenario.dx}"
+            )
+        self.ort, self.normalizer, self.card = step, normalizer, dict(card or {})
+        self.has_covariance = "cov" in step.outputs
+        self.backend = "onnxruntime"
+        self.context = int(step.metadata.get("window", 0))  # the attention window the graph serves (0: recurrent)
+        self.context_by_copies = False
+        self._dims = (dy, du)
+        self._z64 = np.zeros((1, dy + du))  # the normalised input, float64
+        self._z64_y = self._z64[:, :dy]
+        self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
+        self._in_mean_y, self._in_mean_u = normalizer.in_mean[:dy], normalizer.in_mean[dy:]
+        s = np.asarray(normalizer.out_std, dtype=np.float64)
+        self._cov_scale = s[:, None] * s[None, :]  # (dx, dx)
+
+    @property
+    def untrained_steps(self) -> int:
+        """Leading steps the training loss skipped (the card's ``training.recipe.warmup``)."""
+        recipe = (self.card.get("training") or {}).get("recipe") or {}
+        return int(recipe.get("warmup") or 0)
+
+    def reset(self, batch: int = 1) -> None:
+        if int(batch) != 1:
+            raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {batch}")
+        self.ort.reset()
+        self.batch = 1
+        self.covariance = None
+        self.diverged = np.zeros(1, dtype=bool)
+        self.skipped = np.zeros(1, dtype=bool)
+
+    def step(self, y: Any, u_prev: Any = None) -> np.ndarray:
+        ort, n, (dy, du) = self.ort, self.normalizer, self._dims
+        fast = (
+            type(y) is np.ndarray
+            and y.dtype == np.float64
+            and y.shape == (1, dy)
+            and self.batch == 1
+            and (u_prev is None or (type(u_prev) is np.ndarray and u_prev.dtype == np.float64))
+        )
+        if not fast:  # anything else gets the full checks (and their errors)
+            y, u_prev = self.check_step(y, u_prev)
+            if y.shape[0] != 1:
+                raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {y.shape[0]}")
+            self.start_streams_if_none(1)
+        zb, zy = self._z64, self._z64_y
+        if du:
+            if u_prev is None:
+                zb[0, dy:] = 0.0
+            else:
+                if u_prev.shape != (1, du) or not np.isfinite(u_prev).all():
+                    self.check_step(y, u_prev)  # raises its one-line error
+                zb[0, dy:] = u_prev[0]
+        skipped = not np.isfinite(y).all()
+        np.subtract(y, self._in_mean_y, out=zy)
+        if du:
+            np.subtract(zb[:, dy:], self._in_mean_u, out=zb[:, dy:])
+        z = ort.inputs["z"]
+        np.divide(zb, n.in_std, out=z, casting="same_kind")  # float64 arithmetic, rounded to float32 once
+        if skipped:
+            z[:, :dy] = 0.0  # the training mean (see Normalizer.normalize_inputs)
+        ort.run()
+        x = ort.outputs["mean"] * n.out_std + n.out_mean  # float32 * float64 -> float64, as the torch path
+        if n.angle_states:
+            x = wrap_components(x, n.angle_states)
+        self.skipped = self._skip_flags[int(skipped)]
+        finite = np.isfinite(x).all()
+        if self.has_covariance:  # diag(sigma_x) C diag(sigma_x) (Normalizer.denormalize_covariance), one product
+            self.covariance = ort.outputs["cov"] * self._cov_scale
+            finite = finite and np.isfinite(self.covariance).all()
+        if not finite:
+            self.diverged = np.ones(1, dtype=bool)
+        return x
+
+    def __repr__(self) -> str:
+        return f"OnnxEstimator({self.method!r}, scenario={self.scenario.name!r})"
+
+
+def onnx_beside(directory: str | Path) -> Path | None:
+    """The exported step graph in a checkpoint directory (``step.onnx`` beside its card), or None."""
+    path = Path(directory) / ONNX_FILE
+    return path if path.is_file() else None
+
+
+def load_onnx_estimator(
+    directory: Path, card: dict[str, Any], scenario: Any, context: int | None = None, covariance: bool = True
+) -> OnnxEstimator:
+    """The torch-free estimator of a checkpoint whose directory holds ``step.onnx``.
+
+    The caller has read the card and checked it against ``scenario``. The graph must be the
+    network-only step of this card's weights (its ``weights_sha256`` equals the card's: a graph left
+    from other weights is refused, re-export it) and of the method the card names; an attention model
+    serves with the window it was exported with (``context``, when given, must equal it).
+    ``covariance`` False ignores Filterformer's covariance output.
+
+    Raises:
+        EstimatorError: missing onnxruntime, a graph of other weights, method or window.
+    """
+    from neural_estimator.serving.normalization import NormalizationError, Normalizer
+
+    path = Path(directory) / ONNX_FILE
+    method = str(card["method"])
+    try:
+        step = OrtStep(path)
+    except EstimatorError:
+        raise
+    except Exception as exc:  # onnxruntime's own errors for a malformed file
+        raise EstimatorError(f"{path}: not a readable ONNX graph ({str(exc).splitlines()[0]})") from None
+    meta = step.metadata
+    digest = str((card.get("weights") or {}).get("sha256") or "")
+    if meta.get("method") != method or meta.get("weights_sha256", "") != digest:
+        raise EstimatorError(
+            f"{path} was exported from other weights or another method than {directory}'s card "
+            f"({meta.get('method')!r}, weights {meta.get('weights_sha256', '')[:12] or '?'}): export it again with "
+            f"scripts/export_onnx.py --beside"
+        )
+    if context and method in ATTENTION and int(meta.get("window", 0)) != int(context):
+        raise EstimatorError(
+            f"{path} serves attention window {meta.get('window')}, not context={context}: "
+            f"export it with --context {context}"
+        )
+    if context and method not in ATTENTION:
+        raise EstimatorError(f"{method}: the exported step serves the unbounded context (context=0), not {context}")
+    if not covariance and "cov" in step.outputs:
+        step.outputs.pop("cov")  # still computed by the graph, no longer read
+    try:
+        normalizer = Normalizer.from_dict(card["normalization"])
+    except NormalizationError as exc:
+        raise EstimatorError(f"{directory}: {exc}") from None
+    return OnnxEstimator(scenario, step, normalizer, method, card)
