@@ -105,7 +105,7 @@ def _exported_beside(tmp_path, method):
     """A copy of the shipped lorenz96 checkpoint with its step exported beside the card."""
     import shutil
 
-    from neural_estimator.serving.load import default_checkpoint
+    from neural_estimator.serving.card import default_checkpoint
     from scripts.export_onnx import main as export_main
 
     directory = tmp_path / f"lorenz96-{method}"

@@ -14,8 +14,8 @@ MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 100
 # Modules allowed over the limit, each with the reason and the way out.
 OVERSIZED = {
-    # its start-up (the probe node that picks the node kind) is being reworked where it lives;
-    # the parameters and the per-message handling split out once that has landed
+    # the estimator node (711 lines): its per-message path is being tuned where it lives; its
+    # parameters and the executable's start-up move to modules of their own once that settles
     "nodes/estimator_node.py",
 }
 

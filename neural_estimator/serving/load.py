@@ -105,7 +105,7 @@ def load_neural_estimator(
             (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 with an unbounded
             context, GPT-2 and Filterformer with their window). Where the checkpoint directory holds
             ``step.onnx`` (``scripts/export_onnx.py --beside``) that graph is served without torch
-            (:class:`~neural_estimator.models.onnx_step.OnnxEstimator`, batch 1, ``run`` a loop of
+            (:class:`~neural_estimator.serving.onnx_runtime.OnnxEstimator`, batch 1, ``run`` a loop of
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
 
     Raises:
