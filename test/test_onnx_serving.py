@@ -162,6 +162,7 @@ sys.modules["torch"] = None  # `import torch` now raises ImportError
 """
 
 
+@pytest.mark.slow
 def test_served_without_torch_step_and_node(tmp_path):
     """With step.onnx beside the card, ``Estimator.step`` and the estimator node run where torch cannot
     be imported: the estimator is built and stepped, and the node builds it, steps its warm-up and
