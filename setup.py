@@ -26,7 +26,13 @@ setup(
     version="0.1.0",
     packages=find_packages(include=["neural_estimator", "neural_estimator.*", "sim_nodes", "sim_nodes.*"]),
     package_data={
-        "neural_estimator": ["zoo/*/*.safetensors", "zoo/*/*.json", "paper/paper_results.json", "nodes/*.xml"]
+        "neural_estimator": [
+            "zoo/*/*.safetensors",
+            "zoo/*/*.json",
+            "paper/paper_results.json",
+            "nodes/*.xml",
+            "uncertainty/calibrated_filters.json",
+        ]
     },
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{package_name}"]),

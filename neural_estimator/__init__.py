@@ -7,13 +7,15 @@ Layers, bottom first. A module imports only from its own layer or those below it
 or inside a function alike, and module-level imports form no cycle (``test/test_layers.py`` walks
 every import of the package against this list):
 
-1. ``angles``, ``options``, ``interfaces``, ``runtime``, ``metrics``, ``plots``, ``expected_failures``, ``paper``
+1. ``angles``, ``options``, ``interfaces``, ``runtime``, ``metrics``, ``consistency``, ``plots``,
+   ``expected_failures``, ``paper``
 2. ``scenarios``: the five nonlinear systems (pure numpy)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
 5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (the six architectures: GRU, LSTM, GPT-2, Filterformer,
    Mamba, Mamba-2)
-6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo)
+6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo);
+   ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
 7. ``registry``: every method by name (``make_estimator``)
 8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``, ``departures``: the
    training run, MCAP I/O, the evaluation protocol, the per-message estimator, bag replay, recorded

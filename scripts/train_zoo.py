@@ -76,6 +76,7 @@ import argparse
 import hashlib
 import json
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -268,8 +269,32 @@ def install_if_better(
     if why:
         print(f"{work.name}: not installed: {why}{figures}", flush=True)
         return False
-    print(f"installed {install(work, zoo)}{figures}", flush=True)
+    dest = install(work, zoo)
+    print(f"installed {dest}{figures}", flush=True)
+    fit_head(dest, zoo)
     return True
+
+
+def fit_head(dest: Path, zoo: Path) -> None:
+    """Give a model installed in the package's zoo its covariance head (scripts/fit_covariance_heads.py,
+    a fresh process: the weights are untouched); a failure is reported, never fatal to the training."""
+    scenario, method = dest.name.rsplit("-", 1)
+    cmd = [
+        sys.executable,
+        str(ROOT / "scripts" / "fit_covariance_heads.py"),
+        "--scenarios",
+        scenario,
+        "--methods",
+        method,
+    ]
+    if zoo.resolve() != ZOO.resolve():
+        print(
+            f"{dest.name}: no covariance head fitted outside the package's zoo (run: {' '.join(cmd[1:])})", flush=True
+        )
+        return
+    rc = subprocess.run(cmd, check=False).returncode
+    outcome = "fitted" if rc == 0 else f"NOT fitted (exit {rc}; rerun: {' '.join(cmd[1:])})"
+    print(f"{dest.name}: covariance head {outcome}", flush=True)
 
 
 def not_better(new: float, shipped: float | None) -> str | None:

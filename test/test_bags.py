@@ -456,6 +456,8 @@ def test_load_bag_dataset_and_report(tmp_path):
     np.testing.assert_allclose(report.reports["a"].rmse, 0.05)
     assert report.reports["a"].nees is not None and report.reports["b"].nees is None
     assert "a" in report.table() and "RMSE" in report.summary()
+    consistency = [line.split()[0] for line in report.consistency().splitlines()]
+    assert consistency == ["Method", "a"] and "Verdict" in report.summary()  # the stream with a covariance
     paths = write_report(report)
     assert paths["markdown"].name == "run.metrics.md" and paths["png"].stat().st_size > 0
     assert json.loads(paths["json"].read_text())["methods"]["a"]["rmse"] == pytest.approx(0.05)

@@ -14,9 +14,10 @@ PACKAGE = Path(neural_estimator.__file__).parent
 
 def layers() -> dict[str, int]:
     """{top-level name: layer number} from the numbered list in the package docstring (the ``names``
-    in lower case on each numbered line)."""
+    in lower case on each numbered item, its indented continuation lines included)."""
     out = {}
-    for line in neural_estimator.__doc__.splitlines():
+    text = re.sub(r"\n {3}(?=\S)", " ", neural_estimator.__doc__)  # an item's indented continuation lines
+    for line in text.splitlines():
         m = re.match(r"(\d+)\. (.*)", line.strip())
         if m:
             for name in re.findall(r"``([a-z_0-9]+)``", m.group(2)):

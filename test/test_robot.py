@@ -188,6 +188,19 @@ def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     table = capsys.readouterr().out
     assert "gru " in table and "robot_filter " in table
     assert main(["metrics", str(data), str(tmp_path / "data.robot_filter.npz")]) == 0
+    # the robot-data model learns a covariance too: a head fitted on recorded trajectories
+    # (here the same file twice: the plumbing, not a held-out calibration)
+    import importlib.util
+
+    spec_ = importlib.util.spec_from_file_location("fit_heads", ROOT / "scripts" / "fit_covariance_heads.py")
+    fit_heads = importlib.util.module_from_spec(spec_)
+    spec_.loader.exec_module(fit_heads)
+    fit = ["--checkpoint", str(out), "--data", str(data), "--calibration-data", str(data), "--steps", "20"]
+    assert fit_heads.main(fit) == 0
+    assert json.loads((out / "card.json").read_text())["covariance_head"]["fitted_on"]["head"]["recorded"] > 0
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(data), "--checkpoint", f"gru={out}", "--quiet"]) == 0
+    assert "Verdict" in capsys.readouterr().out  # the model now reports a covariance
     # a checkpoint of another spec (another rate) is refused; a classical filter too; --scenario with --data too
     other = tmp_path / "other.npz"
     spec.write_text(yaml.safe_dump(spec_dict(rate=5.0)))

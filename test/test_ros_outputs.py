@@ -253,55 +253,53 @@ def test_merge_rates_and_hardware_id():
 
 # ---- live: what a run records ------------------------------------------------------------------------------
 def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_for_every_method(tmp_path):
-    """simulator -> ekf, gru -> evaluator, started from the graph description (`neural-estimator live`):
-    the bag holds Odometry with the EKF's covariance, Odometry with "unknown" variances for the GRU
-    (no covariance yet), and a state vector for both, each matching the estimate stream."""
+    """simulator -> ekf, gru, lstm -> evaluator, started from the graph description (`neural-estimator
+    live`): the bag holds Odometry with the EKF's covariance, with the GRU's covariance head's, and with
+    "unknown" variances for the LSTM served without a covariance (`lstm.covariance=false`), and a state
+    vector for every method, each matching the estimate stream."""
     pytest.importorskip("rclpy")
     from neural_estimator.bags import BagReader
     from neural_estimator.bags import messages as M
     from neural_estimator.nodes.launch import PipelineConfig, run_pipeline
 
+    methods = ("ekf", "gru", "lstm")
     cfg = PipelineConfig(
         scenario="bearings",
-        methods=("ekf", "gru"),
+        methods=methods,
         trajectories=1,
         horizon=30,
         rate_hz=100.0,
         output=str(tmp_path / "b.mcap"),
+        options=("lstm.covariance=false",),
     )
     res = run_pipeline(cfg)
     with BagReader(res.bag) as reader:
         topics = set(reader.topics)
-        assert {
-            "/estimates/ekf/odometry",
-            "/estimates/ekf/state",
-            "/estimates/gru/odometry",
-            "/estimates/gru/state",
-        } <= topics
+        assert {f"/estimates/{m}/{kind}" for m in methods for kind in ("odometry", "state")} <= topics
 
         def read(topic, msgtype):
             return [M.TYPESTORE.deserialize_cdr(raw, msgtype) for _, _, raw in reader.messages([topic])]
 
-        est = {m: read(f"/estimates/{m}", M.JOINT_STATE) for m in ("ekf", "gru")}
-        odom = {m: read(f"/estimates/{m}/odometry", "nav_msgs/msg/Odometry") for m in ("ekf", "gru")}
-        state = {m: read(f"/estimates/{m}/state", "std_msgs/msg/Float64MultiArray") for m in ("ekf", "gru")}
-    for m in ("ekf", "gru"):
+        est = {m: read(f"/estimates/{m}", M.JOINT_STATE) for m in methods}
+        odom = {m: read(f"/estimates/{m}/odometry", "nav_msgs/msg/Odometry") for m in methods}
+        state = {m: read(f"/estimates/{m}/state", "std_msgs/msg/Float64MultiArray") for m in methods}
+    for m in methods:
         assert len(odom[m]) == len(state[m]) == len(est[m]) == 30
-    ekf_cov = np.array(odom["ekf"][-1].pose.covariance).reshape(6, 6)
-    assert ekf_cov[0, 0] > 0 and ekf_cov[1, 1] > 0 and ekf_cov[0, 0] < UNKNOWN_VARIANCE
+    covs = {m: np.array(odom[m][-1].pose.covariance).reshape(6, 6) for m in methods}
+    for m in ("ekf", "gru"):  # the filter's P and the covariance head's
+        assert 0 < covs[m][0, 0] < UNKNOWN_VARIANCE and 0 < covs[m][1, 1] < UNKNOWN_VARIANCE
     assert odom["ekf"][-1].header.frame_id == "map" and odom["ekf"][-1].child_frame_id == "base_link"
-    gru_cov = np.array(odom["gru"][-1].pose.covariance).reshape(6, 6)
-    assert np.all(np.diag(gru_cov) == UNKNOWN_VARIANCE)
-    for m, cols in (("ekf", 5), ("gru", 1)):
+    assert np.all(np.diag(covs["lstm"]) == UNKNOWN_VARIANCE)
+    for m, cols in (("ekf", 5), ("gru", 5), ("lstm", 1)):
         msg = state[m][-1]
         dims = [(d.label, d.size) for d in msg.layout.dim]
         names, x, P = O.read_state(msg.data, dims)
         assert names == ["px", "py", "vx", "vy"] and dims[1][1] == cols
         assert np.allclose(x, est[m][-1].position[2:])  # the JointState carries trajectory, step first
-        assert (P is None) == (m == "gru")
+        assert (P is None) == (m == "lstm")
         if P is not None:
             assert np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
-            assert P[0, 0] == pytest.approx(ekf_cov[0, 0])
+            assert P[0, 0] == pytest.approx(covs[m][0, 0])
 
 
 def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatch):

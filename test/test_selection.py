@@ -5,6 +5,7 @@ every evaluation set a table reports (evaluate, reproduce, the neural scoreboard
 import importlib.util
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -120,3 +121,18 @@ def test_work_dir_keeps_trainings_of_other_constants_apart(tmp_path):
     (legacy / "card.json").write_text(json.dumps(card))
     assert zoo_script.work_dir(state, make_scenario("ballistic", preset="v3"), "mamba2") == legacy
     assert zoo_script.work_dir(state, make_scenario("ballistic"), "mamba2") == state / "v4" / "ballistic-mamba2"
+
+
+def test_an_installed_model_gets_its_covariance_head_fitted_in_the_packages_zoo_only(tmp_path, monkeypatch, capsys):
+    zoo_script = _train_zoo()
+    calls = []
+    monkeypatch.setattr(
+        zoo_script.subprocess, "run", lambda cmd, check: calls.append(cmd) or SimpleNamespace(returncode=0)
+    )
+    dest = tmp_path / "zoo" / "ballistic-mamba"
+    zoo_script.fit_head(dest, tmp_path / "zoo")  # another zoo: the command is printed, nothing runs
+    assert not calls and "no covariance head fitted outside" in capsys.readouterr().out
+    monkeypatch.setattr(zoo_script, "ZOO", tmp_path / "zoo")
+    zoo_script.fit_head(dest, tmp_path / "zoo")
+    assert calls[0][-4:] == ["--scenarios", "ballistic", "--methods", "mamba"]
+    assert calls[0][1].endswith("fit_covariance_heads.py") and "covariance head fitted" in capsys.readouterr().out

@@ -100,10 +100,18 @@ def tiny_config(cache, **kw):
     return TrainConfig(**base)
 
 
-def estimator_for(scenario, arch, data, seed=0):
+def estimator_for(scenario, arch, data, seed=0, head=False):
+    """A freshly initialised model of ``arch``; ``head``: with a random covariance head on its trunk."""
     torch.manual_seed(seed)
     norm = Normalizer.from_data(scenario, data)
     model = build_model(arch, norm.d_in, scenario.dx)
+    if head:
+        from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+
+        cov_head = CholeskyHead(model.features(torch.zeros(1, 1, norm.d_in)).shape[-1], scenario.dx)
+        with torch.no_grad():
+            cov_head.linear.weight.normal_(0.0, 0.1)
+        model = GaussianModel(model, cov_head)
     return NeuralEstimator(scenario, model, norm, arch)
 
 
@@ -147,10 +155,11 @@ def test_normalizer_floor_and_unusable_observations():
 
 
 # ---- the estimator: run equals a loop of step, past the training length -----------------------------
+@pytest.mark.parametrize("head", [False, True], ids=["own", "covariance-head"])
 @pytest.mark.parametrize("arch", ARCHS)
-def test_run_equals_step_loop(arch, spinner):
+def test_run_equals_step_loop(arch, spinner, head):
     data = simulate(spinner, 6, 300, seed=1)
-    est = estimator_for(spinner, arch, data)
+    est = estimator_for(spinner, arch, data, head=head)
     Y = data.y[:3].copy()
     Y[1, 40] = np.nan  # an unusable observation: the training mean in its place, in both forms
     out = est.run(Y, data.u[:3])
@@ -167,7 +176,7 @@ def test_run_equals_step_loop(arch, spinner):
             covs.append(est.covariance)
     assert np.abs(out.x - np.stack(xs, 1)).max() <= TOL
     assert np.all(np.abs(out.x[..., 0]) <= np.pi)  # the angle comes out wrapped
-    assert est.has_covariance == (arch == "filterformer")
+    assert est.has_covariance == (head or arch == "filterformer")
     if est.has_covariance:
         assert out.cov.shape == (3, 300, 2, 2)
         assert np.abs(out.cov - np.stack(covs, 1)).max() <= TOL * max(1.0, np.abs(out.cov).max())

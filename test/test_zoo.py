@@ -17,8 +17,27 @@ SHIPPED = sorted(p.name for p in ZOO.glob("*-*") if "." not in p.name and (p / "
 
 
 def test_zoo_holds_only_weights_and_cards():
+    """Weights and card, and the covariance head exactly where the card names one."""
     for d in (ZOO / n for n in SHIPPED):
-        assert sorted(f.name for f in d.iterdir()) == ["card.json", "model.safetensors"], d
+        head = json.loads((d / "card.json").read_text()).get("covariance_head")
+        expected = ["card.json"] + (["covariance_head.safetensors"] if head else []) + ["model.safetensors"]
+        assert sorted(f.name for f in d.iterdir()) == expected, d
+
+
+@pytest.mark.parametrize("name", [n for n in SHIPPED if "covariance_head" in (ZOO / n / "card.json").read_text()])
+def test_a_shipped_covariance_head_is_served_and_recorded_its_calibration(name):
+    """A head serves a positive definite covariance beside the very estimate of the model without
+    it, and its card records the calibration scale and the validation figures after it."""
+    scenario_name, method = name.split("-")
+    card = json.loads((ZOO / name / "card.json").read_text())
+    cal = card["covariance_head"]["calibration"]
+    assert cal["scale"] > 0 and 0.9 <= cal["after"]["coverage95"] <= 0.98
+    scenario = make_scenario(scenario_name, **card["scenario"]["config"])
+    data = simulate(scenario, 2, 40, seed=12345)
+    with_head = make_estimator(method, scenario).run(data.y, data.u)
+    without = make_estimator(method, scenario, covariance=False).run(data.y, data.u)
+    assert np.array_equal(with_head.x, without.x)
+    assert np.linalg.eigvalsh(with_head.cov).min() > 0
 
 
 def _changed_constants(card: dict, scenario) -> list[str]:

@@ -78,8 +78,20 @@ class BagReport:
         head = f"messages per stream (of {expected} announced)" if expected else "messages per stream"
         return head + ":\n" + "".join(f"  {line}\n" for line in loss_lines(self.bag, dropped))
 
+    def consistency(self, fmt: str = "text") -> str:
+        """The consistency table of the streams that carried a covariance (:mod:`neural_estimator.consistency`),
+        or "" when none did."""
+        from neural_estimator import consistency as C
+
+        rows = {
+            m: C.consistency_row(r.scalars(), len(r.spread), r.coverage_curve)
+            for m, r in self.reports.items()
+            if r.has_covariance
+        }
+        return C.format_consistency_table(rows, fmt=fmt) if rows else ""
+
     def summary(self) -> str:
-        """A heading line and the text table."""
+        """A heading line, the text table and the consistency table (streams with a covariance)."""
         note = "; ".join(n for n in (left_out_note(self.bag), self.note) if n)
         extra = f"; {note}" if note else ""
         lines = notes(self.scenario, sorted(self.reports), self.starts)
@@ -89,6 +101,7 @@ class BagReport:
             f"{self.heading()} from {self.path.name}{extra}\n"
             + mark_rows(self.table("text", marked=True), self.scenario, self.starts)
             + "".join(line + "\n" for line in lines)
+            + self.consistency("text")
         )
 
 
@@ -174,7 +187,11 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
     legend = "".join(f"- {line}\n" for line in D.legend(used))
     steps = D.scored_steps(report.warmup, "--every-step (evaluator: warmup:=0)")
     paths["markdown"].write_text(
-        heading + report.table("markdown", marked=True) + (f"\n{legend}" if legend else "") + f"\n{steps}\n"
+        heading
+        + report.table("markdown", marked=True)
+        + (f"\n{legend}" if legend else "")
+        + f"\n{steps}\n"
+        + (f"\n{report.consistency('markdown')}" if report.consistency() else "")
     )
     paths["json"].write_text(json.dumps(report.to_json(), indent=1))
     if report.reports:

@@ -249,7 +249,8 @@ def add_evaluate(sub) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
     p.add_argument(
         "--out",
-        help="directory for table.md, table.csv, results.json (rewritten after every run) and rmse_over_time.png",
+        help="directory for table.md, table.csv, consistency.md, results.json (rewritten after every run) and "
+        "rmse_over_time.png",
     )
     p.set_defaults(func=_cmd_evaluate)
 
@@ -305,7 +306,7 @@ def _cmd_evaluate(args) -> int:
         _print_evaluation(args, scenario, results, info, recorded_data=datasets is not None)
     if out is not None:
         write_evaluation(out, scenario, results, info, expected_runs, plot=True)
-        print(f"wrote {out}/table.md, table.csv, results.json, rmse_over_time.png", file=sys.stderr)
+        print(f"wrote {out}/table.md, table.csv, consistency.md, results.json, rmse_over_time.png", file=sys.stderr)
     return 0
 
 
@@ -406,6 +407,7 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
     for line in departure_legend(results):
         print(line)
     print(D.scored_steps(args.warmup))
+    _print_consistency(results, scenario.dx)
     print(
         "speed: "
         + ", ".join(
@@ -415,6 +417,20 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
             for m, r in results.items()
         )
     )
+
+
+def _print_consistency(results, dx: int) -> None:
+    """The consistency table of the methods that report a covariance (docs/uncertainty.md)."""
+    from neural_estimator.consistency import COVERAGE_BAND, NEES_BAND
+    from neural_estimator.evaluation import consistency_table
+
+    table = consistency_table(results, dx, fmt="text")
+    if table:
+        print(
+            f"consistency of the reported covariances (consistent: 95% coverage in {list(COVERAGE_BAND)} "
+            f"and mean NEES/dx in {list(NEES_BAND)}; a wide covariance is as wrong as a narrow one):"
+        )
+        print(table, end="")
 
 
 _START_WORDS = {

@@ -19,6 +19,7 @@ from neural_estimator.evaluation.cache import (
 )
 from neural_estimator.evaluation.output import (
     RESULTS_SCHEMA,
+    consistency_table,
     departure_legend,
     departure_marks,
     results_json,
@@ -46,6 +47,7 @@ __all__ = [
     "MethodResult",
     "check_init",
     "checkpoint_digest",
+    "consistency_table",
     "chunk_size",
     "departure_legend",
     "departure_marks",

@@ -4,6 +4,8 @@ and legend, and results.json (:data:`RESULTS_SCHEMA`)."""
 from __future__ import annotations
 
 import json
+
+import numpy as np
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -97,7 +99,7 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
 def write_evaluation(
     out: Path, scenario: Scenario, results, info: dict[str, Any], expected_runs: dict[str, int], plot: bool
 ) -> None:
-    """table.md, table.csv and results.json of the runs so far in ``out`` (``complete`` says whether all
+    """table.md, table.csv, consistency.md and results.json of the runs so far in ``out`` (``complete`` says whether all
     ``expected_runs`` {method: runs} are in), and with ``plot`` the RMSE-time figure."""
 
     done = {m: r for m, r in results.items() if r.reports}
@@ -111,6 +113,9 @@ def write_evaluation(
         + f"\n\n{D.scored_steps(info.get('warmup', 0))}\n"
     )
     (out / "table.csv").write_text(results_table(done, fmt="csv"))
+    consistency = consistency_table(done, scenario.dx)
+    if consistency:
+        (out / "consistency.md").write_text(consistency)
     payload = results_json(scenario, done, complete=complete, **info)
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(payload, indent=1, allow_nan=False))
@@ -125,3 +130,22 @@ def write_evaluation(
             dt=scenario.dt,
             first_step=info.get("warmup", 0),
         )
+
+
+def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "markdown") -> str | None:
+    """The consistency table beside :func:`results_table` (:mod:`neural_estimator.consistency`):
+    NEES median and mean per state dimension, 95 % coverage (medians over runs), the calibration
+    error of the runs' median reliability curve and a verdict; None when no method reports a
+    covariance."""
+    from neural_estimator import consistency as C
+
+    rows = {}
+    for m, r in results.items():
+        if not r.reports or not r.reports[0].has_covariance:
+            continue
+        curves = [rep.coverage_curve for rep in r.reports if rep.coverage_curve is not None]
+        curve = np.median(np.asarray(curves, dtype=np.float64), axis=0) if curves else None
+        rows[m] = C.consistency_row(r.summary, dx, curve)
+    if not rows:
+        return None
+    return C.format_consistency_table(rows, fmt=fmt)

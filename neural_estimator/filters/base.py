@@ -108,6 +108,19 @@ def check_covariance(name: str, method: str, cov: Any, n: int, definite: bool = 
     return symmetrize(cov)
 
 
+def check_cov_scale(method: str, value: Any) -> float:
+    """The ``cov_scale`` option as a float > 0 (text accepted), else a one-line EstimatorError."""
+    from neural_estimator.options import OptionError, parse_value
+
+    try:
+        s = float(parse_value(value, 1.0, "cov_scale"))
+    except OptionError as exc:
+        raise EstimatorError(f"{method}: {exc}") from None
+    if not (np.isfinite(s) and s > 0):
+        raise EstimatorError(f"{method}: cov_scale must be a finite number > 0, got {value!r}")
+    return s
+
+
 class ClassicalFilter(Estimator):
     """Base of the EKF, UKF, EnKF and PF: batched over B streams, float64.
 
@@ -118,6 +131,9 @@ class ClassicalFilter(Estimator):
         init: how the streams start, ``"prior"`` or ``"observation"`` (:data:`FILTER_INITS`).
         threads: worker threads over blocks of streams (None: :func:`default_threads`). Not a
             hyperparameter: results do not depend on it (see :meth:`block_rng`).
+        cov_scale: s > 0, the reported covariance is s P (the filter itself runs on P): a post-hoc
+            calibration fitted on validation data (:mod:`neural_estimator.consistency`,
+            ``scripts/calibrate_covariances.py``); 1, the paper's, reports P as it is.
 
     Blocks and threads. The B streams are processed in blocks of ``block_size`` consecutive
     streams, and the blocks of one phase of a step (predict, update, estimate) run concurrently
@@ -141,10 +157,12 @@ class ClassicalFilter(Estimator):
         hyperparams: Any = None,
         threads: int | str | None = None,
         init: str = "prior",
+        cov_scale: float = 1.0,
         **options: Any,
     ) -> None:
         super().__init__(scenario)
         self.init = check_filter_init(self.method, scenario, init)
+        self.cov_scale = check_cov_scale(self.method, cov_scale)
         self.hp = build_hyperparams(self.HyperParams, self.method, hyperparams, options)
         self.seed = int(seed)
         self.threads = default_threads() if threads is None else _check_threads(self.method, threads)
@@ -281,7 +299,7 @@ class ClassicalFilter(Estimator):
         y, u = self.check_step(y, u_prev)
         self.start_streams_if_none(y.shape[0])
         mean, cov = self._advance(np.ascontiguousarray(y), np.ascontiguousarray(u))
-        self.covariance = cov
+        self.covariance = cov if self.cov_scale == 1.0 else self.cov_scale * cov
         return mean
 
     def run(self, Y: np.ndarray, U: np.ndarray | None = None, initial_mean: np.ndarray | None = None) -> Estimates:
@@ -302,7 +320,9 @@ class ClassicalFilter(Estimator):
             mean, cov = self._advance(np.ascontiguousarray(Y[:, k]), np.ascontiguousarray(Uprev[:, k]))
             xs[:, k] = mean
             covs[:, k] = cov
-            self.covariance = cov
+            self.covariance = covs[:, k]
+        if self.cov_scale != 1.0:
+            covs *= self.cov_scale
         return Estimates(xs, covs, self.diverged.copy())
 
     # ---- one step ------------------------------------------------------------------------------

@@ -289,6 +289,10 @@ class MetricReport:
     # figure beside ``rmse`` when steps are left out; equal to ``rmse`` when warmup = 0. None:
     # a result stored before this field existed.
     rmse_every_step: float | None = None
+    # Reliability curve: coverage of the chi-square region at each nominal level of
+    # neural_estimator.consistency.RELIABILITY_LEVELS (None without covariance, or a
+    # result stored before this field existed).
+    coverage_curve: tuple[float, ...] | None = None
 
     @property
     def has_covariance(self) -> bool:
@@ -516,7 +520,15 @@ def covariance_metrics(eps: np.ndarray, dx: int) -> dict[str, float]:
         nees=float(eps[usable].mean()) if usable.any() else math.inf,
         coverage95=float(np.mean(eps <= chdtri(dx, 1.0 - COVERAGE_LEVEL))),
         cov_degenerate=float(1.0 - usable.mean()),
+        coverage_curve=_coverage_curve(eps, dx),
     )
+
+
+def _coverage_curve(eps: np.ndarray, dx: int) -> tuple[float, ...]:
+    """Coverage at every reliability level (:mod:`neural_estimator.consistency`)."""
+    from neural_estimator.consistency import coverage_curve
+
+    return tuple(float(c) for c in coverage_curve(eps, dx))
 
 
 # ---- helpers ------------------------------------------------------------------------------------------

@@ -202,3 +202,16 @@ class FilterformerModel(nn.Module):
         h, state = self._encode_step(z_t, state)
         mean, cov = self.head.moments(h)
         return mean, cov, state
+
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    def features(self, z: Tensor) -> Tensor:
+        """(B, T, D): the encoding the geometric-attention head reads, ``forward(z) == head.mean(features(z))``."""
+        return self.encode(z)
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        """(B, D) features of one step and the new state."""
+        return self._encode_step(z_t, state)
+
+    def mean_of(self, h: Tensor) -> Tensor:
+        """The estimate from features (the geometric-attention head's mean)."""
+        return self.head.mean(h)

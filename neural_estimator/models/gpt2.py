@@ -186,3 +186,23 @@ class GPT2Model(nn.Module):
         ln_f = self.ln_f
         h = F.layer_norm(h, ln_f.normalized_shape, ln_f.weight, ln_f.bias, ln_f.eps)
         return F.linear(h, self.head.weight, self.head.bias), tuple(new)
+
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    def features(self, z: Tensor) -> Tensor:
+        """(B, T, D): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
+        h = self.drop(self.input_proj(z))
+        for block in self.blocks:
+            h = block(h, self.slopes)
+        return self.ln_f(h)
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        """(B, D) features of one step and the new state: ``step`` is ``head`` of them."""
+        mask = advance_mask(state[0])
+        attn_bias = self.slot_alibi + mask
+        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        new: list[Tensor] = [mask]
+        for block, kv in zip(self.blocks, state[1:]):
+            h, kv = block.step(h, kv, attn_bias)
+            new.append(kv)
+        ln_f = self.ln_f
+        return F.layer_norm(h, ln_f.normalized_shape, ln_f.weight, ln_f.bias, ln_f.eps), tuple(new)

@@ -88,3 +88,21 @@ class LSTMModel(nn.Module):
             )
             for k in range(self.cfg.layers)
         ]
+
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    def features(self, z: Tensor) -> Tensor:
+        """(B, T, H): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
+        h, _ = self.rnn(self.input_proj(z))
+        return h
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, tuple[Tensor, Tensor]]:
+        """(B, H) features of one step and the new state, the arithmetic of :meth:`step`, whose
+        estimate is ``head`` of them."""
+        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        h0, c0 = state
+        hs, cs = [], []
+        for layer, weights in enumerate(self._cell_weights()):
+            x, c = torch.lstm_cell(x, (h0[layer], c0[layer]), *weights)
+            hs.append(x)
+            cs.append(c)
+        return x, (torch.stack(hs), torch.stack(cs))

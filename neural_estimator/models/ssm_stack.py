@@ -105,3 +105,21 @@ class SSMEstimator(nn.Module):
             new += [conv, ssm]
         norm_f = self.backbone.norm_f
         return F.linear(rms_norm(h, norm_f.weight, norm_f.eps), self.head.weight, self.head.bias), tuple(new)
+
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    def features(self, z: Tensor) -> Tensor:
+        """(B, T, d): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
+        h = self.input_proj(z)
+        for layer in self.backbone.layers:
+            h = layer(h)
+        return self.backbone.norm_f(h)
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        """(B, d) features of one step and the new state: ``step`` is ``head`` of them."""
+        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        new: list[Tensor] = []
+        for i, layer in enumerate(self.backbone.layers):
+            h, conv, ssm = layer.step(h, state[2 * i], state[2 * i + 1])
+            new += [conv, ssm]
+        norm_f = self.backbone.norm_f
+        return rms_norm(h, norm_f.weight, norm_f.eps), tuple(new)

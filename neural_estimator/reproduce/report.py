@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from neural_estimator import consistency as CONSISTENCY
 from neural_estimator import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.reproduce.engine import Outcome
@@ -164,6 +165,7 @@ def _heading(settings: Settings, jobs: Sequence[Job], outcome: Outcome, wall: fl
 def _accuracy(settings: Settings, r: _Results) -> list[str]:
     """The main accuracy table and the tables made from the same runs."""
     from neural_estimator.metrics import EVALUATION_WARMUP
+    from neural_estimator.scenarios import make_scenario
 
     scen, meth, summ = settings.scenarios, settings.methods, r.summ
     every_med = {s: {m: M.median_iqr(v)[0] for m, v in by_m.items() if v} for s, by_m in r.every.items()}
@@ -207,7 +209,13 @@ def _accuracy(settings: Settings, r: _Results) -> list[str]:
         "Methods that report a covariance; a consistent estimator has NEES ≈ dx and 95 % coverage ≈ 0.95.",
         "",
     ]
-    return L + T.covariance_table(summ, scen, meth) + [""]
+    L += T.covariance_table(summ, scen, meth) + [""]
+    L += [
+        "Mean NEES per state dimension and the verdict (consistent: 95 % coverage in "
+        f"{list(CONSISTENCY.COVERAGE_BAND)} and mean NEES/dx in {list(CONSISTENCY.NEES_BAND)}; docs/uncertainty.md):",
+        "",
+    ]
+    return L + T.consistency_table(summ, scen, meth, {s: make_scenario(s).dx for s in scen}) + [""]
 
 
 def _rmse_and_noise_figures(settings: Settings, r: _Results, figs: Path) -> list[str]:

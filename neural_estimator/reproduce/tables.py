@@ -284,6 +284,29 @@ def covariance_table(summ, scenarios, methods) -> list[str]:
     return lines
 
 
+def consistency_table(summ, scenarios, methods, dims: Mapping[str, int]) -> list[str]:
+    """Beyond the paper: mean NEES per state dimension and the verdict of
+    :func:`neural_estimator.consistency.verdict` (scenario -> dx in ``dims``), where a method
+    reports a covariance."""
+    from neural_estimator import consistency as C
+
+    cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("NEES mean/dx", "verdict")]
+    lines = _header(cols)
+    for m in methods:
+        cells, any_applies = [PAPER_NAMES.get(m, m)], False
+        for s in scenarios:
+            st = summ.get(s, {}).get(m)
+            if st is None or not st["nees"].applies:
+                cells += [M.NOT_APPLICABLE, M.NOT_APPLICABLE]
+                continue
+            any_applies = True
+            row = C.consistency_row(st, dims[s])
+            cells += [num(row["nees_mean_per_dim"], 2), row["verdict"]]
+        if any_applies:
+            lines.append(_row(cells))
+    return lines
+
+
 def _family_averages(
     rt_device: Mapping[str, Mapping[str, float]], scenarios, methods
 ) -> tuple[list[float], list[float]]:

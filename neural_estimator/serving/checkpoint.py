@@ -95,6 +95,9 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
     tmp = directory / (WEIGHTS_FILE + ".tmp")
     save_model(model, str(tmp), metadata={"format": CARD_FORMAT, "method": name}, force_contiguous=True)
     os.replace(tmp, weights)
+    from neural_estimator.uncertainty.heads import HEAD_FILE
+
+    (directory / HEAD_FILE).unlink(missing_ok=True)  # a covariance head belongs to the weights it was fitted on
     full = {
         "format": CARD_FORMAT,
         "format_version": CARD_VERSION,
@@ -104,7 +107,7 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
         "normalization": normalizer.to_dict(),
     }
     for key, value in card.items():
-        if key not in full:
+        if key not in full and key != "covariance_head":  # a head is fitted afterwards, on these weights
             full[key] = value
     full["weights"] = {"file": WEIGHTS_FILE, "sha256": sha256_file(weights), "tensors": len(model.state_dict())}
     full["software"] = software_versions()

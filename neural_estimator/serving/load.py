@@ -84,6 +84,7 @@ def load_neural_estimator(
     context: int | None = None,
     context_copies: int | None = None,
     backend: str = "torch",
+    cov_scale: float = 1.0,
 ):
     """A :class:`~neural_estimator.serving.neural.NeuralEstimator` of ``method`` for ``scenario``.
 
@@ -94,7 +95,9 @@ def load_neural_estimator(
             :class:`~neural_estimator.serving.card.Checkpoint` already resolved; None -> the shipped
             default at ``neural_estimator/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
-        covariance: report Filterformer's covariance (False saves memory in ``run``).
+        covariance: report the covariance: the fitted covariance head's where the card has one
+            (``covariance_head``, :mod:`neural_estimator.uncertainty.heads`), else Filterformer's
+            own; False reports none (and saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
         context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
             :mod:`neural_estimator.serving.context`); 0 = unbounded, the paper's way. None: as the
@@ -107,6 +110,7 @@ def load_neural_estimator(
             ``step.onnx`` (``scripts/export_onnx.py --beside``) that graph is served without torch
             (:class:`~neural_estimator.serving.onnx_runtime.OnnxEstimator`, batch 1, ``run`` a loop of
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
+        cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
 
     Raises:
         EstimatorError: no shipped default (the message gives the command that trains one), a
@@ -129,6 +133,10 @@ def load_neural_estimator(
     from neural_estimator.serving.neural import NeuralEstimator
 
     model, normalizer, card = load_checkpoint(ckpt, device)
+    if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
+        from neural_estimator.uncertainty.heads import attach_head
+
+        model = attach_head(model, directory, card["covariance_head"])
     if context is None:  # as the checkpoint was chosen: bounded if its validation was
         validated = validated_context(card)
         context = validated.get("context", 0)
@@ -147,4 +155,5 @@ def load_neural_estimator(
         context=context,
         context_copies=context_copies,
         backend=backend,
+        cov_scale=cov_scale,
     )

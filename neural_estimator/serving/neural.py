@@ -10,8 +10,9 @@ One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, M
 :meth:`NeuralEstimator.run` uses the model's parallel form over whole sequences instead (chunked
 over the batch to bound memory); a test holds it equal to a loop of :meth:`NeuralEstimator.step`.
 A non-finite observation row is replaced by the training mean (0 after normalisation) and flagged in
-``skipped``. Filterformer also returns a covariance from its geometric-attention head, mapped back
-to state units as diag(sigma_x) C_n diag(sigma_x).
+``skipped``. Filterformer also returns a covariance from its geometric-attention head, and any model
+with a fitted covariance head (:mod:`neural_estimator.uncertainty.heads`) returns that head's; both
+are mapped back to state units as diag(sigma_x) C_n diag(sigma_x).
 """
 
 from __future__ import annotations
@@ -81,6 +82,9 @@ class NeuralEstimator(Estimator):
             length-100 windows has never seen more than 100 keys), at no extra compute;
             ``context_copies`` does not apply.
         context_copies: K, the copies (more: contexts closer to ``context``).
+        backend: how ``step`` runs the network (``torch`` or ``onnxruntime``).
+        cov_scale: s > 0, the reported covariance is s times the model's (a post-hoc calibration
+            on top of the one a covariance head carries in its card; 1 reports it as it is).
     """
 
     def __init__(
@@ -97,6 +101,7 @@ class NeuralEstimator(Estimator):
         context: int = 0,
         context_copies: int = 10,
         backend: str = "torch",
+        cov_scale: float = 1.0,
     ) -> None:
         super().__init__(scenario)
         self.method = method  # instance attribute: one class serves the six methods
@@ -111,6 +116,7 @@ class NeuralEstimator(Estimator):
         self.model = model.to(self.device).eval()  # serving is always eval mode (no dropout)
         self.dtype = next(self.model.parameters()).dtype
         self.has_covariance = _as_bool(covariance, "covariance") and hasattr(model, "step_with_cov")
+        self.cov_scale = _as_positive(cov_scale, "cov_scale")
         self.card = dict(card or {})
         self.chunk_timesteps = int(chunk_timesteps)
         self.context, self.context_copies = _as_int(context, "context", 0), _as_int(context_copies, "context_copies", 1)
@@ -186,7 +192,7 @@ class NeuralEstimator(Estimator):
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():
             if self.context_by_copies:
-                mean = self._bounded_step(z_t)
+                mean, cov = self._bounded_step(z_t)
             elif self.has_covariance:
                 mean, cov, self._state = self._step_fn(z_t, self._state)  # (B, dx), (B, dx, dx)
             else:
@@ -195,7 +201,7 @@ class NeuralEstimator(Estimator):
         x = self.normalizer.denormalize_states(mean.cpu().double().numpy())  # (B, dx) float64
         bad = ~np.all(np.isfinite(x), axis=-1)
         if self.has_covariance:
-            self.covariance = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
+            self.covariance = self._denormalize_cov(cov)
             bad |= ~np.all(np.isfinite(self.covariance), axis=(-2, -1))
         self.diverged = self.diverged | bad
         return x
@@ -209,19 +215,21 @@ class NeuralEstimator(Estimator):
         self.batch, self.skipped, self.diverged, self.covariance = ort.batch, ort.skipped, ort.diverged, ort.covariance
         return x
 
-    def _bounded_step(self, z_t: torch.Tensor) -> torch.Tensor:
+    def _bounded_step(self, z_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """One step of every started copy (a copy restarts from a zero state at o_k + j L); the mean of
-        the copy with the oldest restart, s(t) of :mod:`neural_estimator.serving.context`."""
+        the copy with the oldest restart, s(t) of :mod:`neural_estimator.serving.context`, and that
+        copy's covariance (None without one)."""
         t, L = self._t, self.context
-        means = {}
+        outs = {}
         for k, o in enumerate(self._offsets):
             if t < o:
                 continue
             if (t - o) % L == 0:
                 self._state[k] = self.model.init_state(z_t.shape[0], device=self.device, dtype=self.dtype)
-            mean, self._state[k] = self._step_fn(z_t, self._state[k])
-            means[o + ((t - o) // L) * L] = mean
-        return means[restart_of(t, L, self.context_copies)]
+            *out, self._state[k] = self._step_fn(z_t, self._state[k])  # (mean,) or (mean, cov)
+            outs[o + ((t - o) // L) * L] = out
+        out = outs[restart_of(t, L, self.context_copies)]
+        return out[0], (out[1] if len(out) > 1 else None)
 
     # ---- whole sequences -------------------------------------------------------------------------
     def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
@@ -243,8 +251,8 @@ class NeuralEstimator(Estimator):
                 for b0 in range(0, B, chunk):
                     z = torch.as_tensor(Z[b0 : b0 + chunk], dtype=self.dtype, device=self.device)
                     if covs is not None:
-                        mean, cov = self.model.forward_with_cov(z)  # (b, T, dx), (b, T, dx, dx)
-                        covs[b0 : b0 + chunk] = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
+                        mean, cov = self._forward_with_cov(z)  # (b, T, dx), (b, T, dx, dx)
+                        covs[b0 : b0 + chunk] = self._denormalize_cov(cov)
                     elif self.context_by_copies:
                         mean = bounded_forward(self.model, z, self.context, self.context_copies)  # (b, T, dx)
                     else:
@@ -259,6 +267,25 @@ class NeuralEstimator(Estimator):
         self.covariance = covs[:, -1] if covs is not None and T else None
         return Estimates(xs, covs, diverged)
 
+    def _denormalize_cov(self, cov: torch.Tensor) -> np.ndarray:
+        """The model's covariance in state units, times ``cov_scale``."""
+        P = self.normalizer.denormalize_covariance(cov.cpu().double().numpy())
+        return P if self.cov_scale == 1.0 else self.cov_scale * P
+
+    def _forward_with_cov(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The model's mean and covariance over z (b, T, d_in), within the bounded context if set
+        (both read from the same copy, as :meth:`step` does)."""
+        if not self.context_by_copies:
+            return self.model.forward_with_cov(z)
+        dx = self.scenario.dx
+
+        def packed(zz: torch.Tensor) -> torch.Tensor:  # mean and covariance side by side: (b, t, dx + dx^2)
+            m, c = self.model.forward_with_cov(zz)
+            return torch.cat([m, c.flatten(-2)], dim=-1)
+
+        out = bounded_forward(packed, z, self.context, self.context_copies)
+        return out[..., :dx], out[..., dx:].unflatten(-1, (dx, dx))
+
     def __repr__(self) -> str:
         return f"NeuralEstimator({self.method!r}, scenario={self.scenario.name!r}, device={str(self.device)!r})"
 
@@ -271,6 +298,16 @@ def _as_int(v: Any, name: str, minimum: int) -> int:
     if n < minimum:
         raise EstimatorError(f"{name} must be >= {minimum}, got {n}")
     return n
+
+
+def _as_positive(v: Any, name: str) -> float:
+    try:
+        x = float(parse_value(v, 1.0, name))
+    except OptionError as exc:
+        raise EstimatorError(str(exc)) from None
+    if not (np.isfinite(x) and x > 0):
+        raise EstimatorError(f"{name} must be a finite number > 0, got {v!r}")
+    return x
 
 
 def _as_bool(v: Any, name: str = "option") -> bool:
