@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
-from neural_estimator.serving.card import Checkpoint, resolve_checkpoint
+from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
 from neural_estimator.serving.onnx_runtime import ATTENTION, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
