@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import inspect
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from neural_estimator.estimator import (  # noqa: F401  re-exported: the interface, for the layers above
     CLASSICAL_METHODS,
@@ -29,6 +29,9 @@ from neural_estimator.filters.ukf import UnscentedKalmanFilter
 from neural_estimator.scenarios import Scenario
 from neural_estimator.options import did_you_mean
 
+if TYPE_CHECKING:
+    from neural_estimator.serving.card import Checkpoint
+
 CLASSICAL_FILTERS: dict[str, type[Estimator]] = {
     "ekf": ExtendedKalmanFilter,
     "ukf": UnscentedKalmanFilter,
@@ -42,7 +45,7 @@ def make_estimator(
     method: str,
     scenario: Scenario,
     *,
-    checkpoint: str | Path | None = None,
+    checkpoint: str | Path | Checkpoint | None = None,
     device: str = "cpu",
     seed: int = 0,
     **options: Any,
@@ -50,7 +53,8 @@ def make_estimator(
     """Build one of the ten methods for ``scenario``.
 
     Classical filters take their settings from ``options`` (paper defaults otherwise) and ``seed``
-    for their random draws. Neural models load ``checkpoint`` (a directory or its ``.json`` card),
+    for their random draws. Neural models load ``checkpoint`` (a directory or its ``.json`` card, or a
+    :class:`~neural_estimator.serving.card.Checkpoint` already resolved),
     or the model shipped with the package for (scenario, method) when ``checkpoint`` is None;
     their ``options`` go to :func:`~neural_estimator.serving.load.load_neural_estimator`
     (``covariance=False`` skips the Filterformer's per-step covariance).

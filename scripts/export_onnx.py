@@ -17,7 +17,7 @@ The graph is made from the checkpoint (card + safetensors weights) by
 default it is the whole estimator step, the card's normalisation included (y, u in float64 -> the
 estimate x in float64, and a flag for a skipped non-finite observation); ``--network-only`` writes the
 network alone (normalised z in, normalised mean out). Serving it needs only numpy and onnxruntime
-(:class:`~neural_estimator.models.onnx_step.OrtStep`), not torch; exporting needs torch and onnx.
+(:class:`~neural_estimator.serving.onnx_runtime.OrtStep`), not torch; exporting needs torch and onnx.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neural_estimator.estimator import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
 from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
-from neural_estimator.serving.load import default_checkpoint, load_neural_estimator  # noqa: E402
+from neural_estimator.serving.card import default_checkpoint  # noqa: E402
+from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.serving.onnx_runtime import ONNX_FILE  # noqa: E402
 from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E402
 

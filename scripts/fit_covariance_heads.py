@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 
 from neural_estimator.estimator import NEURAL_METHODS
-from neural_estimator.serving.card import CARD_FILE, read_card, write_json
-from neural_estimator.serving.load import default_checkpoint, load_neural_estimator
+from neural_estimator.serving.card import CARD_FILE, default_checkpoint, read_card, write_json
+from neural_estimator.serving.load import load_neural_estimator
 from neural_estimator.scenarios import scenario_from_description
 from neural_estimator.uncertainty.fit import FitSettings, calibrate_head, choose_shrink, fit_covariance_head
 from neural_estimator.uncertainty.heads import load_head, save_head

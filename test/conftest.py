@@ -22,11 +22,18 @@ EXAMPLE = _load_example()
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "slow: minutes-long live checks (the chaos harness); -m 'not slow' skips them")
+    # The fast suite, for a contributor's inner loop (docs/architecture.md, "Checks"):
+    #   pytest -m "not ros and not slow and not colcon"
+    # scripts/run_tests.sh runs everything.
+    config.addinivalue_line("markers", "ros: starts ROS 2 nodes or a ROS graph (rclpy processes, DDS discovery)")
+    config.addinivalue_line(
+        "markers", "slow: a second or more on its own (live runs, training, statistical references, subprocesses)"
+    )
+    config.addinivalue_line("markers", "colcon: builds the package as a ROS 2 workspace with colcon")
 
 
 def load_script(relative: str):
-    """A repository script (``scripts/...``, ``benchmarks/...``) loaded afresh as a module, so its
+    """A repository script (``scripts/...``, ``benchmarks/...``, ``experiments/...``) loaded afresh as a module, so its
     functions and ``main`` are tested in-process (each call gives a new module: monkeypatching one
     test's copy leaves the others alone)."""
     path = ROOT / relative

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # each test runs the command line in a new Python process
+
 ROOT = Path(__file__).resolve().parents[1]
 BAG = str(ROOT / "bags" / "lorenz96.mcap")
 SPEC = str(ROOT / "examples" / "robot_spec.yaml")
@@ -97,6 +99,7 @@ NODE_CASES = [
 ]
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize("node, params, text", NODE_CASES, ids=[f"{n} {p[0]}" for n, p, _ in NODE_CASES])
 def test_node_bad_start_up_is_one_line_and_status_1(node, params, text, tmp):
     pytest.importorskip("rclpy")

@@ -1,5 +1,5 @@
 """Bounded context (neural_estimator.serving.context, the estimators' context option) and
-benchmarks/bounded_context.py."""
+experiments/bounded_context.py."""
 
 import pytest
 import torch
@@ -16,7 +16,7 @@ from neural_estimator.scenarios import make_scenario
 
 @pytest.fixture(scope="module")
 def bc():
-    return load_script("benchmarks/bounded_context.py")
+    return load_script("experiments/bounded_context.py")
 
 
 @pytest.mark.parametrize("length,copies", [(10, 1), (10, 3), (10, 10), (7, 2)])
@@ -30,6 +30,7 @@ def test_every_step_sees_at_most_length_steps_and_nearly_that_many(length, copie
             assert t - s + 1 >= length - -(-length // copies) + 1  # at least L - ceil(L / K) + 1 steps
 
 
+@pytest.mark.slow
 def test_bounded_forward_is_the_model_on_each_steps_window():
     torch.manual_seed(0)
     model = build_model("mamba2", 3, 2).double().eval()
@@ -42,6 +43,7 @@ def test_bounded_forward_is_the_model_on_each_steps_window():
         torch.testing.assert_close(bounded_forward(model, z, 37, 4), model(z), rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["gru", "mamba2"])
 def test_the_context_option_streams_what_it_runs(method):
     """step() with context=L equals run() with it (float32 round-off), and differs from unbounded."""
@@ -87,6 +89,7 @@ def test_the_context_option_of_an_attention_model_is_its_window(method, key):
     assert np.abs(bounded[:, 12:] - free[:, 12:]).max() > 1e-4
 
 
+@pytest.mark.slow
 def test_the_context_option_refuses_what_it_cannot_do():
     scenario = make_scenario("nlink")
     with pytest.raises(ValueError, match="attention window must be >= 1"):
@@ -100,6 +103,7 @@ def test_the_context_option_refuses_what_it_cannot_do():
     assert make_estimator("mamba2", scenario, context="100").context == 100  # command-line strings
 
 
+@pytest.mark.slow
 def test_runs_on_a_shipped_model(bc, capsys):
     from conftest import ROOT
 

@@ -249,7 +249,7 @@ def _card(tmp_path, edit):
     import json
     import shutil
 
-    from neural_estimator.serving.load import default_checkpoint
+    from neural_estimator.serving.card import default_checkpoint
 
     src = default_checkpoint("bearings", "gru")
     dst = tmp_path / "ckpt"

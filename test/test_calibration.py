@@ -25,7 +25,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("calibrate_scenarios", ROOT / "scripts" / "calibrate_scenarios.py")
+    spec = importlib.util.spec_from_file_location(
+        "calibrate_scenarios", ROOT / "experiments" / "calibrate_scenarios.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

@@ -11,7 +11,7 @@ import pytest
 from conftest import load_script
 
 pytest.importorskip("rclpy")
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.ros]  # minutes of live ROS 2 runs
 
 
 @pytest.mark.parametrize("case", ["forged-trajectory", "step-1e9", "restart", "oversize"])

@@ -27,6 +27,8 @@ from neural_estimator.filters import EnsembleKalmanFilter, ExtendedKalmanFilter
 from neural_estimator.filters.reference import dapper_filter
 from neural_estimator.scenarios import make_scenario
 
+pytestmark = pytest.mark.slow  # DAPPER's EnKF on long Lorenz 96 runs
+
 pytest.importorskip("dapper")
 
 

@@ -214,6 +214,7 @@ def _fake_run(tmp_path, init="prior"):
     return text, main_table, rows
 
 
+@pytest.mark.slow
 def test_report_main_table_marks_departures_and_shows_the_every_step_rmse(tmp_path):
     text, main_table, rows = _fake_run(tmp_path)
     header = next(line for line in main_table.splitlines() if line.startswith("| Method"))
@@ -231,6 +232,7 @@ def test_report_main_table_marks_departures_and_shows_the_every_step_rmse(tmp_pa
     assert every.strip().endswith("· —") and float(every.split("·")[0]) > 0  # ours, and the paper has none
 
 
+@pytest.mark.slow
 def test_report_marks_the_start_where_it_applied_and_keeps_only_start_independent_failures(tmp_path):
     _, main_table, rows = _fake_run(tmp_path, init="observation")
     pf, ekf, gru = rows["PF"].split("|"), rows["EKF"].split("|"), rows["GRU"].split("|")
@@ -244,6 +246,7 @@ def test_report_marks_the_start_where_it_applied_and_keeps_only_start_independen
     assert "- lorenz96: (!) pf" not in main_table and "- quadrotor: (!) pf" in main_table
 
 
+@pytest.mark.slow
 def test_report_times_both_ways_and_says_which_ordering_each_supports(tmp_path):
     text, _, _ = _fake_run(tmp_path)
     runtime = text.split("## Runtime")[1].split("## Data efficiency")[0]

@@ -170,8 +170,8 @@ def test_results_tables_are_generated_not_typed():
 # ---- node parameters ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("node", sorted(GENERATE.NODE_PARAMS))
 def test_params_file_agrees_with_the_node_dataclass(node):
-    """params/NODE.yaml lists exactly the dataclass's parameters, with its defaults; the generated
-    table (read from the source) equals the imported dataclass."""
+    """params/NODE.yaml lists exactly the dataclass's parameters, with its defaults and its help as
+    each line's comment; the generated table (read from the source) equals the imported dataclass."""
     pytest.importorskip("rclpy")
     import dataclasses
     import importlib
@@ -187,6 +187,11 @@ def test_params_file_agrees_with_the_node_dataclass(node):
         default = fields[name].default
         want = list(default) if isinstance(default, tuple) else default
         assert value == want or (isinstance(want, float) and value == pytest.approx(want)), (node, name, value, want)
+    comments = dict(
+        re.findall(r"^ {4}(\w+):[^#\n]*#\s*(.*?)\s*$", (ROOT / "params" / f"{node}.yaml").read_text(), re.M)
+    )
+    for name, field in fields.items():  # the comment is the dataclass's help, word for word: one source
+        assert comments.get(name) == field.metadata["help"].strip(), f"params/{node}.yaml: {name}'s comment"
     generated = GENERATE.node_params(node)
     assert [p["name"] for p in generated] == list(fields)
     for p in generated:

@@ -97,6 +97,7 @@ def test_attention_with_dropout_equals_the_math_path_when_nothing_is_dropped(T, 
         torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("T,W", [(12, 16), (40, 16)])
 def test_attention_dropout_is_unbiased(T, W):
     """Dropout acts on the attention weights: one draw differs from the no-dropout output, and the

@@ -131,6 +131,7 @@ def test_evaluate_threads_do_not_change_the_numbers(tmp_path, capsys):
     assert "--threads must be >= 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_train_then_evaluate_neural_next_to_classical(tmp_path, capsys):
     ckpt = tmp_path / "gru"
     assert (

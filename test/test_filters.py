@@ -310,6 +310,7 @@ FILTERPY_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["ekf", "ukf"])
 @pytest.mark.parametrize("name", list(FILTERPY_CASES))
 def test_ekf_ukf_match_filterpy(name, method):
@@ -360,6 +361,7 @@ PF_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(ENKF_CASES))
 def test_enkf_matches_filterpy_in_distribution(name):
     s = scenario_or_skip(name)
@@ -370,6 +372,7 @@ def test_enkf_matches_filterpy_in_distribution(name):
     paired_rmse_check(s, ours, ref, x, f"{name} EnKF")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(PF_CASES))
 def test_pf_matches_reference_in_distribution(name):
     s = scenario_or_skip(name)
@@ -415,6 +418,7 @@ def test_enkf_approaches_kalman_filter():
     assert errs[-1] < 0.05, errs
 
 
+@pytest.mark.slow
 def test_pf_approaches_kalman_filter():
     # P0 = I in this scenario, so the paper's x_0 std = 1 spread is exactly the prior.
     errs = _error_vs_kf(ParticleFilter, "n_particles", [64, 256, 1024, 4096, 16384])
@@ -667,6 +671,7 @@ def test_psd_solve_never_raises_for_the_batch():
     assert not np.isfinite(X[1]).all()
 
 
+@pytest.mark.slow
 def test_systematic_resample_equals_filterpy(monkeypatch):
     rng = np.random.default_rng(0)
     w = rng.random((6, 50)) ** 4
@@ -806,6 +811,7 @@ def test_compiled_model_transitions_match_the_scenarios():
     np.testing.assert_allclose(X, b.f(x), rtol=1e-14, atol=1e-13)
 
 
+@pytest.mark.slow
 def test_compiled_sincos_is_within_two_ulp():
     import numba as nb
 

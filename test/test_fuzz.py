@@ -38,6 +38,7 @@ def test_the_regression_corpus_is_not_empty():
     assert len(_regressions()) >= 2
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", ["mcap", "rosbag2", "cdr", "scenario"])
 def test_a_short_fuzzing_run_finds_nothing(target, tmp_path):
     """A few hundred mutated inputs per target (a few seconds): the longer campaign is the script's.

@@ -173,6 +173,7 @@ def test_bad_launch_arguments_are_one_line(graph, args, message):
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.ros
 def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch, capsys):
     """`ros2 launch neural_estimator replay.launch.py ...` in a pip environment (the ros2 shim): the
     replay graph's nodes started from the description, a sample bag played into two estimators,

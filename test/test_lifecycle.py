@@ -11,19 +11,20 @@ import time
 
 import numpy as np
 import pytest
+from ros_tester import Tester
 
 from neural_estimator.bags import messages as M
+
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 
 MODULE = "neural_estimator.nodes.lifecycle_estimator_node"
 
 
 def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
     pytest.importorskip("rclpy.lifecycle")
-    import rclpy
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
     from nav_msgs.msg import Odometry
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
 
     from neural_estimator.data import simulate
@@ -41,20 +42,9 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
     bad = start_node(
         node_command(sys.executable, MODULE, "lc_bad", {"method": "ekf", "scenario": "nope"}), tmp_path / "bad.log", env
     )
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
+    tester = Tester(monkeypatch, domain, lambda: f"log:\n{(tmp_path / 'lc.log').read_text()}", timeout=60.0)
     try:
-        node = rclpy.create_node("tester", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
-
-        def spin_until(pred, timeout=60.0):
-            t0 = time.monotonic()
-            while not pred():
-                if time.monotonic() - t0 > timeout:
-                    raise AssertionError(f"timed out; log:\n{(tmp_path / 'lc.log').read_text()}")
-                ex.spin_once(timeout_sec=0.05)
+        node, ex, spin_until = tester.node, tester.executor, tester.spin_until
 
         def call(name, srv, request):
             client = node.create_client(srv, name)
@@ -105,7 +95,7 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
         assert len(estimates) == 10  # inactive: no estimate
         assert change("lc", Transition.TRANSITION_CLEANUP) and state("lc") == "unconfigured"
     finally:
-        rclpy.try_shutdown(context=ctx)
+        tester.shutdown()
         for p in (good, bad):
             p.send_signal(signal.SIGINT)
         for p in (good, bad):

@@ -1,4 +1,4 @@
-"""benchmarks/loss_units.py: a state-unit training is compared only with a model of the same recipe."""
+"""experiments/loss_units.py: a state-unit training is compared only with a model of the same recipe."""
 
 import pytest
 
@@ -8,7 +8,7 @@ from conftest import load_script
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_script("benchmarks/loss_units.py")
+    return load_script("experiments/loss_units.py")
 
 
 def _card(**kw):

@@ -76,6 +76,7 @@ def test_causal(name):
     assert (y2[:, s + 1 :] - y[:, s + 1 :]).abs().max() > 1e-6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("small_window", [False, True], ids=["paper", "small-window"])
 def test_step_equals_forward_beyond_training_length(name, small_window):
@@ -364,6 +365,7 @@ def test_fused_ssd_scan_value_and_gradients_equal_reference(B, T, H, P, N):
         torch.testing.assert_close(a, r, rtol=1e-9, atol=1e-10, msg=lambda m: f"d/d{name}: {m}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("name", ["mamba", "mamba2"])
 def test_fused_training_gradients_equal_reference_model(name, threads):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_tester import Tester
 
 from neural_estimator.bags import BagReader, BagWarning, arrays_to_bag, bag_to_arrays
 from neural_estimator.bags import messages as M
@@ -34,6 +35,8 @@ from neural_estimator.nodes.launch import (
     start_node,
 )
 from neural_estimator.replay import replay
+
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 
 pytest.importorskip("rclpy")
 
@@ -228,7 +231,6 @@ def test_live_chain_records_scores_and_equals_replay(plugin, cart, domain, tmp_p
 def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatch):
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
@@ -238,13 +240,11 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
     nodes.start(
         ESTIMATOR, "est", method="ekf", scenario="nodecart", plugins=[plugin], diagnostics_period=0.3, log_throttle=0.0
     )
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx, ctx2 = rclpy.Context(), rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
+    ctx2 = rclpy.Context()
+    tester = Tester(monkeypatch, domain, lambda: f"estimator log:\n{nodes.log('est')}", timeout=20.0)
     try:
-        node = rclpy.create_node("tester", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
+        node, spin_until = tester.node, tester.spin_until
+
         estimates, diags = [], []
         node.create_subscription(
             JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
@@ -254,13 +254,6 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         # another type on the same topic needs another DDS participant: a second context
         rclpy.init(context=ctx2, domain_id=domain)
         foreign = rclpy.create_node("foreign", context=ctx2).create_publisher(String, "observation", 10)
-
-        def spin_until(pred, timeout=20.0):
-            t0 = time.monotonic()
-            while not pred():
-                if time.monotonic() - t0 > timeout:
-                    raise AssertionError(f"timed out; estimator log:\n{nodes.log('est')}")
-                ex.spin_once(timeout_sec=0.05)
 
         spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ekf") >= 1)
         labels = M.observation_labels(cart)
@@ -331,7 +324,7 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         assert (estimates[-1].trajectory, estimates[-1].step) == (1, 0)
         assert nodes.procs["est"].poll() is None  # still up after all of it
     finally:
-        rclpy.try_shutdown(context=ctx)
+        tester.shutdown()
         rclpy.try_shutdown(context=ctx2)
     log = nodes.log("est")
     for text in (
@@ -515,10 +508,8 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
     """bearings (a declared pose): best-effort publisher with observation_qos:=sensor_data, frame_id,
     Odometry with covariance, use_sim_time without /clock (diagnostics go on), a stray message of an
     earlier trajectory (skipped, no reset), a huge step jump (bounded time, /diagnostics go on)."""
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
 
@@ -542,13 +533,10 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         max_gap_seconds=0.2,
         log_throttle=0.0,
     )
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
+    tester = Tester(monkeypatch, domain, lambda: f"estimator log:\n{nodes.log('est')}", timeout=30.0)
     try:
-        node = rclpy.create_node("tester", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
+        node, spin_until = tester.node, tester.spin_until
+
         estimates, odoms, diags = [], [], []
         node.create_subscription(
             JointState, "estimates/ukf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
@@ -556,13 +544,6 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         node.create_subscription(Odometry, "estimates/ukf/odometry", odoms.append, stream_qos(100))
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
         pub = node.create_publisher(JointState, "observation", qos_profile_sensor_data)  # a driver's QoS
-
-        def spin_until(pred, timeout=30.0):
-            t0 = time.monotonic()
-            while not pred():
-                if time.monotonic() - t0 > timeout:
-                    raise AssertionError(f"timed out; estimator log:\n{nodes.log('est')}")
-                ex.spin_once(timeout_sec=0.05)
 
         spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ukf/odometry") >= 1)
 
@@ -625,7 +606,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         assert values["trajectory resets"] == "2"  # trajectory 0, trajectory 1: the stray one reset nothing
         assert values["quarantined messages"] == "3"  # (1, 0) until (1, 1); the stray (0, 7); the jump
     finally:
-        rclpy.try_shutdown(context=ctx)
+        tester.shutdown()
     log = nodes.log("est")
     assert "nothing publishes /clock" in log and "restarted from the prior" in log
 

@@ -110,6 +110,7 @@ def test_live_launcher_passes_the_start_to_the_filters_and_the_evaluator(tmp_pat
     assert launch.build_parser().parse_args(["--scenario", "x", "--methods", "pf"]).init == "prior"  # the paper's
 
 
+@pytest.mark.slow
 def test_replay_starts_the_filters_from_the_first_observation(tmp_path, capsys):
     from pathlib import Path
 

@@ -22,6 +22,7 @@ def l96():
     return scen, simulate(scen, 1, 300, 4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"])
 def test_onnx_step_equals_torch_step(method, l96):
     """300 steps (GPT-2 and Filterformer: past a window of 100, so the KV cache wraps), a missing
@@ -104,7 +105,7 @@ def _exported_beside(tmp_path, method):
     """A copy of the shipped lorenz96 checkpoint with its step exported beside the card."""
     import shutil
 
-    from neural_estimator.serving.load import default_checkpoint
+    from neural_estimator.serving.card import default_checkpoint
     from scripts.export_onnx import main as export_main
 
     directory = tmp_path / f"lorenz96-{method}"
@@ -161,6 +162,7 @@ sys.modules["torch"] = None  # `import torch` now raises ImportError
 """
 
 
+@pytest.mark.slow
 def test_served_without_torch_step_and_node(tmp_path):
     """With step.onnx beside the card, ``Estimator.step`` and the estimator node run where torch cannot
     be imported: the estimator is built and stepped, and the node builds it, steps its warm-up and

@@ -9,6 +9,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from conftest import top_level_imports
 
 ROOT = Path(__file__).resolve().parents[1]
 COLCON = Path(sys.executable).with_name("colcon")
@@ -25,6 +26,7 @@ def test_package_xml_is_format3_ament_python_with_valid_maintainer():
     assert {"rclpy", "sensor_msgs", "std_msgs", "diagnostic_msgs", "std_srvs"} <= deps
 
 
+@pytest.mark.colcon
 @pytest.mark.skipif(not COLCON.exists(), reason="colcon is not installed in this environment")
 def test_colcon_lists_and_builds_the_package(tmp_path):
     src = tmp_path / "ws" / "src"
@@ -103,10 +105,10 @@ def _declared_requirements() -> tuple[set[str], dict[str, set[str]]]:
     )
 
 
+@pytest.mark.slow
 def test_every_third_party_import_is_a_declared_dependency():
     """`pip install .` must give a package that imports: each distribution the package imports is in
     install_requires, or in the extra of the feature that imports it (ROS nodes, reproduce, references)."""
-    import ast
     import importlib.metadata as md
 
     core, extras = _declared_requirements()
@@ -114,25 +116,14 @@ def test_every_third_party_import_is_a_declared_dependency():
     providers = md.packages_distributions()
     missing = {}
     for path in (ROOT / "neural_estimator").rglob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Import):
-                names = [a.name.split(".")[0] for a in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                names = [node.module.split(".")[0]]
-            else:
+        for top in sorted(top_level_imports(path)):
+            if top in sys.stdlib_module_names or top in ("neural_estimator", "sim_nodes") or top in OPTIONAL_IMPORTS:
                 continue
-            for top in names:
-                if (
-                    top in sys.stdlib_module_names
-                    or top in ("neural_estimator", "sim_nodes")
-                    or top in OPTIONAL_IMPORTS
-                ):
-                    continue
-                if top in ROS_PACKAGES:
-                    assert "ros-jazzy-rclpy" in extras["ros"]
-                    continue
-                dists = {d.lower().replace("_", "-") for d in providers.get(top, [top])}
-                if not dists & declared:
-                    missing.setdefault(top, []).append(path.name)
+            if top in ROS_PACKAGES:
+                assert "ros-jazzy-rclpy" in extras["ros"]
+                continue
+            dists = {d.lower().replace("_", "-") for d in providers.get(top, [top])}
+            if not dists & declared:
+                missing.setdefault(top, []).append(path.name)
     assert not missing, f"imported but not declared in setup.py: {missing}"
     assert {"numpy", "torch", "safetensors", "rosbags", "mcap", "pyyaml"} <= core  # what every verb needs

@@ -11,6 +11,7 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
 from conftest import top_level_imports
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,6 +66,7 @@ def _install_requires() -> set[str]:
     return {re.split(r"[\[<>=!~ ]", r, maxsplit=1)[0].lower() for r in reqs}
 
 
+@pytest.mark.slow
 def test_every_imported_ros_package_is_declared_and_every_declared_one_imported():
     imports = _imports()
     ros = {m for m in imports if _is_ros(m) and m not in sys.stdlib_module_names}
@@ -89,6 +91,7 @@ def test_every_python_dependency_has_its_rosdep_key_or_is_pip_only():
     assert pip_only == {"torch", "safetensors", "mcap", "zstandard"}
 
 
+@pytest.mark.slow
 def test_a_missing_declaration_is_caught(tmp_path, monkeypatch):
     """The check above fails for a package.xml without nav_msgs (the check can fail)."""
     text = (ROOT / "package.xml").read_text().replace("<exec_depend>nav_msgs</exec_depend>", "")

@@ -16,10 +16,12 @@ import pytest
 pytest.importorskip("ray")
 
 from neural_estimator.cli import main
-from neural_estimator.reproduce import report as R
+from neural_estimator.reproduce import tables as R
 from neural_estimator.reproduce.jobs import Job, run_job, train_dir
 from neural_estimator.reproduce.plan import plan_jobs
 from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
+
+pytestmark = pytest.mark.slow  # Ray jobs, and the smoke scale of every experiment
 
 # Two scenarios keep the suite fast; both have an expected PF failure (marked in the main table),
 # and both kept their constants when ballistic and quadrotor were recalibrated (their shipped models

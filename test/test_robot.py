@@ -104,6 +104,7 @@ def test_latest_value_alignment_with_staleness_and_nonfinite_ticks():
 
 
 # ---- bags -> dataset ------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_dataset_from_a_rosbags_recording(bag):
     spec = load_spec(SPEC)
     data, estimates, summaries = build_dataset([bag], spec, length=50)
@@ -126,6 +127,7 @@ def test_dataset_from_a_rosbags_recording(bag):
     np.testing.assert_array_equal(again.x, data.x)
 
 
+@pytest.mark.slow
 def test_dataset_errors_name_the_topic_or_field(bag):
     with pytest.raises(SpecError, match=r"no topic /lidar in this bag \(it has: .*/imu"):
         build_dataset(
@@ -139,6 +141,7 @@ def test_dataset_errors_name_the_topic_or_field(bag):
         build_dataset([bag], load_spec(SPEC), length=5000)
 
 
+@pytest.mark.slow
 def test_data_scenario_has_no_model_and_refuses_classical_filters(bag):
     from neural_estimator.registry import EstimatorError, make_estimator
 
@@ -150,6 +153,7 @@ def test_data_scenario_has_no_model_and_refuses_classical_filters(bag):
 
 
 # ---- the verbs ------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     spec = tmp_path / "spec.yaml"
     import yaml
@@ -226,6 +230,7 @@ def test_simulated_dataset_is_not_taken_as_recorded(tmp_path, capsys):
 
 
 # ---- served live ------------------------------------------------------------------------------------------
+@pytest.mark.ros
 def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(tmp_path):
     """player (the robot's own bag, standard messages) -> robot_estimator (a model trained with --data,
     no scenario) -> evaluator (records /mocap/pose and the estimates) -> scored through a spec."""
@@ -309,6 +314,7 @@ def test_robot_estimator_node_serves_a_recorded_data_model_on_the_robots_topics(
         (str(ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
     ],
 )
+@pytest.mark.ros
 def test_robot_estimator_refuses_to_start(checkpoint, text, tmp_path):
     pytest.importorskip("rclpy")
     import random
@@ -322,6 +328,7 @@ def test_robot_estimator_refuses_to_start(checkpoint, text, tmp_path):
     assert proc.returncode == 1 and text in proc.stderr + proc.stdout, proc.stderr + proc.stdout
 
 
+@pytest.mark.ros
 def test_the_estimator_node_serves_a_recorded_data_checkpoint_without_a_scenario(tmp_path):
     """`ros2 run neural_estimator estimator -p checkpoint:=DIR` with a `train --data` model starts the
     robot estimator on the spec's topics (no scenario parameter, no scenario topic needed)."""
@@ -365,6 +372,7 @@ def test_yaml_aliases_in_a_spec_are_refused_before_expansion(tmp_path):
         load_spec(bomb)
 
 
+@pytest.mark.slow
 def test_a_rate_of_a_megahertz_is_refused(bag):
     """``rate: 1e6`` took 5.2 GB, then a MemoryError traceback."""
     with pytest.raises(SpecError, match="rate 1e\\+06 Hz is over the bound of 10000 Hz"):

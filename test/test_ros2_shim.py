@@ -7,6 +7,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.slow  # each test runs the shim in a new Python process
+
 SHIM = [sys.executable, "-m", "neural_estimator.cli", "ros2"]
 
 

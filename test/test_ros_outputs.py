@@ -7,10 +7,13 @@ import types
 
 import numpy as np
 import pytest
+from ros_tester import Tester
 
 from neural_estimator.nodes import diagnostics as D
 from neural_estimator.nodes import outputs as O
 from neural_estimator.nodes.odometry import UNKNOWN_VARIANCE, quaternion
+
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 
 
 def _msg(**fields):
@@ -307,11 +310,8 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     import random
     import signal
     import sys
-    import time
 
-    import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
-    from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
 
     from neural_estimator.bags import messages as M
@@ -338,13 +338,12 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     def obs(k):
         return M.encode_observation(scen, M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0))
 
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain)
+    tester = Tester(
+        monkeypatch, domain, lambda: "logs:\n" + "".join((tmp_path / f"{m}.log").read_text() for m in est), timeout=60.0
+    )
     try:
-        node = rclpy.create_node("tester", context=ctx)
-        ex = SingleThreadedExecutor(context=ctx)
-        ex.add_node(node)
+        node, spin_until = tester.node, tester.spin_until
+
         est = {"ukf": [], "gru": []}
         for m in est:
             node.create_subscription(
@@ -356,15 +355,6 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
             )
         pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
         pose_pub = node.create_publisher(PoseWithCovarianceStamped, "set_pose", 10)
-
-        def spin_until(pred, timeout=60.0):
-            t0 = time.monotonic()
-            while not pred():
-                if time.monotonic() - t0 > timeout:
-                    raise AssertionError(
-                        "timed out; logs:\n" + "".join((tmp_path / f"{m}.log").read_text() for m in est)
-                    )
-                ex.spin_once(timeout_sec=0.05)
 
         spin_until(lambda: pub.get_subscription_count() >= 2 and pose_pub.get_subscription_count() >= 2)
         spin_until(lambda: node.count_publishers("estimates/ukf") >= 1 and node.count_publishers("estimates/gru") >= 1)
@@ -380,7 +370,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
         pub.publish(obs(5))
         spin_until(lambda: len(est["ukf"]) >= 6 and len(est["gru"]) >= 6)
     finally:
-        rclpy.try_shutdown(context=ctx)
+        tester.shutdown()
         for p in procs:
             p.send_signal(signal.SIGINT)
         for p in procs:

@@ -11,6 +11,8 @@ from neural_estimator.cli import main
 from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET, scenario_class
 
+pytestmark = pytest.mark.slow  # every sample bag through the shipped models
+
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
 

@@ -265,6 +265,7 @@ def test_lorenz96_known_answers():
     np.testing.assert_allclose((x * s._field(x)).sum(-1), -(x * x).sum(-1) + 8.0 * x.sum(-1), rtol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("substeps", [1, 3])
 @pytest.mark.parametrize("shape", [(40,), (3, 40), (2, 81, 40), (20001, 40)])
 def test_lorenz96_f_is_bit_equal_to_rk4_of_the_field(shape, substeps, monkeypatch):

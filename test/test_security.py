@@ -185,6 +185,7 @@ def test_an_oversized_or_deeply_nested_json_message_is_refused():
         M.decode_scenario(M.encode_string("[" * 200_000))
 
 
+@pytest.mark.slow
 def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
     import time
     import tracemalloc
@@ -238,7 +239,7 @@ def _copy_shipped(tmp_path: Path, edit) -> Path:
     import json
     import shutil
 
-    from neural_estimator.serving.load import default_checkpoint
+    from neural_estimator.serving.card import default_checkpoint
 
     src = default_checkpoint("lorenz96", "mamba")
     dst = tmp_path / "ckpt"

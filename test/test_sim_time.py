@@ -18,6 +18,8 @@ SPEC = ROOT / "examples" / "robot_spec.yaml"
 sys.path.insert(0, str(ROOT / "examples"))
 import robot_bag  # noqa: E402
 
+pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
+
 
 def _replay(bag: Path, model: Path, rate: float, out: Path, env) -> Path:
     from neural_estimator.nodes.graph import build, command

@@ -344,6 +344,7 @@ def test_training_in_state_units_records_it_and_differs(oscillator, tmp_path):
     assert not all(torch.equal(weights(a)[k], weights(b)[k]) for k in weights(a))
 
 
+@pytest.mark.slow
 def test_training_learns_is_deterministic_and_writes_a_card(oscillator, tmp_path):
     cfg = tiny_config(tmp_path / "cache", epochs=4, eval_trajectories=5)
     a = train(oscillator, "gru", tmp_path / "a", cfg, progress=False)
@@ -381,6 +382,7 @@ def test_angle_scenario_trains(spinner, tmp_path):
     assert all(math.isfinite(h["val_loss"]) for h in hist) and hist[-1]["val_loss"] < hist[0]["val_loss"]
 
 
+@pytest.mark.slow
 def test_resume_matches_an_uninterrupted_run(oscillator, tmp_path):
     cfg = tiny_config(tmp_path / "cache", epochs=4)
     full = train(oscillator, "gru", tmp_path / "full", cfg, progress=False)
@@ -422,6 +424,7 @@ def test_config_is_checked():
         train("oscillator", "gru", "/nonexistent", TrainConfig(model_overrides={"hiden": 8}), progress=False)
 
 
+@pytest.mark.slow
 def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     """compile_step serves the same estimates (float32 round-off) through torch.compile."""
     from neural_estimator.data import simulate
@@ -512,6 +515,7 @@ def _train_zoo():
     return load_script("scripts/train_zoo.py")
 
 
+@pytest.mark.slow
 def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path, monkeypatch):
     import time
     from types import SimpleNamespace
@@ -687,6 +691,7 @@ def test_train_zoo_does_not_install_a_model_that_never_beat_its_first_epoch(tmp_
     assert zoo_script.not_installable(work) is None
 
 
+@pytest.mark.slow
 def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_the_same_set(
     tmp_path, monkeypatch, capsys
 ):
@@ -728,6 +733,7 @@ def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_th
     assert (shipped / "card.json").stat().st_mtime_ns != stamp
 
 
+@pytest.mark.slow
 def test_train_zoo_val_context_trains_a_variant_that_replaces_no_shipped_model_until_installed(
     tmp_path, monkeypatch, capsys
 ):
@@ -764,6 +770,7 @@ def test_train_zoo_not_better_compares_rmse_only_when_both_exist():
     assert "not below" in zoo_script.not_better(0.5, 0.5)  # a tie keeps the shipped model
 
 
+@pytest.mark.slow
 def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
     monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
     zoo_script = _train_zoo()

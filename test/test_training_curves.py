@@ -23,6 +23,7 @@ def test_flatness_and_reductions(curves):
     assert curves.reductions(_hist([1, 1, 1, 1], [2e-3, 1e-3, 1e-3, 5e-4])) == [2, 4]
 
 
+@pytest.mark.slow
 def test_reads_finished_and_in_progress_pairs_and_plots(curves, tmp_path, capsys):
     done, running = tmp_path / "lorenz96-mamba", tmp_path / "nlink-mamba2"
     (done).mkdir()

@@ -1,4 +1,4 @@
-"""benchmarks/warmup_share.py: RMSE split at the warm-up and over segments of the horizon."""
+"""experiments/warmup_share.py: RMSE split at the warm-up and over segments of the horizon."""
 
 import numpy as np
 import pytest
@@ -7,7 +7,7 @@ from conftest import load_script
 
 @pytest.fixture(scope="module")
 def share():
-    return load_script("benchmarks/warmup_share.py")
+    return load_script("experiments/warmup_share.py")
 
 
 def test_splits_pool_trajectories_and_components_and_wrap_angles(share):
@@ -22,6 +22,7 @@ def test_splits_pool_trajectories_and_components_and_wrap_angles(share):
     assert share.segment_rmse(x, x_hat, [4, 6])[0] > 4  # not wrapped when the component is no angle
 
 
+@pytest.mark.slow
 def test_segments_run_on_a_shipped_model(share, capsys):
     share.main(["--scenario", "nlink", "--methods", "gru", "--trajectories", "2", "--segments", "0,10,100,500"])
     out = capsys.readouterr().out.splitlines()

@@ -49,6 +49,7 @@ def _changed_constants(card: dict, scenario) -> list[str]:
     return sorted(k for k in set(theirs) | set(ours) if k not in EVALUATION_CONSTANTS and theirs.get(k) != ours.get(k))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_model_learnt_and_beats_the_prior_mean(name):
     """On the constants it was trained on (its card's), every shipped model loads and has learnt."""

@@ -92,119 +92,11 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
     Raises:
         BagError: no scenario description, or a stream topic holding a different message type.
     """
-    with open_bag(path) as bag:
-        roles = {}
-        for topic, conn in bag.topics.items():
-            role = M.topic_role(topic, namespace)
-            if role is None:
-                continue
-            want = M.STRING if role.kind in (M.SCENARIO, M.RUN_STATUS) else M.JOINT_STATE
-            if conn.msgtype != want:
-                raise BagError(f"{path}: topic {topic!r} holds {conn.msgtype}, expected {want}")
-            roles[topic] = role
-        if not any(r.kind == M.OBSERVATION for r in roles.values()) and not any(
-            r.kind == M.GROUND_TRUTH for r in roles.values()
-        ):
-            raise BagError(
-                f"{path}: no {M.resolve_topic(M.OBSERVATION, namespace)} or "
-                f"{M.resolve_topic(M.GROUND_TRUTH, namespace)} topic "
-                f"(topics: {', '.join(sorted(bag.topics)) or 'none'})"
-            )
-
-        desc: dict[str, Any] | None = dict(description) if description is not None else None
-        status: list[dict[str, Any]] = []
-        cells: dict[str, dict[tuple[int, int], tuple[int, np.ndarray]]] = {}
-        received: dict[str, int] = {}
-        duplicates: dict[str, int] = {}
-        rejected: dict[str, int] = {}
-        pending: list[tuple[str, bytes]] = []
-        for conn, _, raw in bag.messages(list(roles)):
-            role = roles[conn.topic]
-            key = _stream_key(role)
-            try:
-                if role.kind == M.SCENARIO:
-                    if desc is None:  # the first announcement defines the run: a later one cannot resize it
-                        desc = M.decode_scenario(raw)
-                    continue
-                if role.kind == M.RUN_STATUS:
-                    status.append(M.decode_run_status(raw))
-                    continue
-                pending.append((key, raw))
-            except MessageError:
-                rejected[key] = rejected.get(key, 0) + 1
-    if desc is None:
-        raise BagError(
-            f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
-            "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)"
-        )
-
+    desc, status, pending, rejected = _read_streams(path, namespace, description)
+    cells, received, duplicates = _decode_cells(desc, pending, rejected)
+    traj_ids, N, T, row, outside = _rows(path, desc, cells, received)
     dx, dy = len(desc["state_names"]), len(desc["obs_names"])
     du = len(desc.get("control_names", ()))
-    expected = {
-        M.OBSERVATION: M.observation_labels(desc),
-        M.GROUND_TRUTH: M.state_labels(desc),
-    }
-    state_names, cov_names = M.state_labels(desc), M.covariance_labels(dx)
-    codecs: dict[str, M.VectorCodec] = {}
-    for key, raw in pending:
-        codec = codecs.get(key)
-        if codec is None:
-            if key.startswith(M.ESTIMATES + "/"):
-                names = cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else state_names
-            else:
-                names = expected[key]
-            codec = codecs[key] = M.VectorCodec("", names)
-        try:
-            vec = codec.decode(raw)
-        except MessageError:
-            rejected[key] = rejected.get(key, 0) + 1
-            continue
-        if vec.names != codec.names:
-            rejected[key] = rejected.get(key, 0) + 1
-            continue
-        store = cells.setdefault(key, {})
-        cell = (vec.trajectory, vec.step)
-        if cell in store:
-            duplicates[key] = duplicates.get(key, 0) + 1
-        store[cell] = (vec.stamp_ns, vec.values)
-        received[key] = received.get(key, 0) + 1
-
-    run = desc.get("run") if isinstance(desc.get("run"), Mapping) else {}
-    widths = {M.OBSERVATION: dy + du, M.GROUND_TRUTH: dx}
-    for key in cells:
-        if key.startswith(M.ESTIMATES + "/"):
-            widths[key] = dx * dx if key.endswith("/" + M.COVARIANCE_SUFFIX) else dx
-    cell_bytes = 8 * sum(widths.values()) + 8 + len(widths)  # values, the stamp, a presence flag per stream
-    limit = max_array_bytes()
-    n_ann, t_ann = _announced(run.get("trajectories")), _announced(run.get("horizon"))
-    if n_ann and t_ann and n_ann * t_ann * cell_bytes > limit:
-        raise BagError(
-            f"{path}: the run announces {n_ann} trajectories x {t_ann} steps: {_gib(n_ann * t_ann * cell_bytes)} "
-            f"as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV})"
-        )
-    outside: dict[str, int] = {}
-    if n_ann and t_ann:  # a cell outside the announced run is a corrupt or forged identity: rejected
-        for key, store in cells.items():
-            bad = [c for c in store if not (0 <= c[0] < n_ann and 0 <= c[1] < t_ann)]
-            for c in bad:
-                del store[c]
-            if bad:
-                outside[key] = len(bad)
-                received[key] -= len(bad)
-    # Rows: every trajectory announced by the run (so that a wholly lost one counts as missing)
-    # and every one that was received.
-    announced = range(n_ann)
-    traj_ids = sorted({n for store in cells.values() for n, _ in store} | set(announced))
-    horizon = max([k + 1 for store in cells.values() for _, k in store] + [t_ann])
-    N, T = len(traj_ids), horizon
-    if N * T * cell_bytes > limit:
-        last = max(((n, k) for store in cells.values() for n, k in store), key=lambda c: c[1], default=(0, 0))
-        raise BagError(
-            f"{path}: the streams span {N} trajectories x {T} steps (largest step index {last[1]}, in trajectory "
-            f"{last[0]}): {_gib(N * T * cell_bytes)} as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV}); "
-            "a corrupt identity? A /scenario message announcing the run rejects identities outside it"
-        )
-    row = {n: i for i, n in enumerate(traj_ids)}
 
     def fill(key: str, width: int) -> np.ndarray:
         out = np.full((N, T, width), np.nan)
@@ -250,6 +142,142 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         present=present,
         outside=outside,
     )
+
+
+def _read_streams(
+    path: str | Path, namespace: str, description: Mapping[str, Any] | None
+) -> tuple[dict[str, Any], list[dict[str, Any]], list[tuple[str, bytes]], dict[str, int]]:
+    """(scenario description, run statuses, the raw stream messages (stream key, bytes), rejected
+    messages per stream) of a bag: every topic of the run checked for its message type."""
+    with open_bag(path) as bag:
+        roles = {}
+        for topic, conn in bag.topics.items():
+            role = M.topic_role(topic, namespace)
+            if role is None:
+                continue
+            want = M.STRING if role.kind in (M.SCENARIO, M.RUN_STATUS) else M.JOINT_STATE
+            if conn.msgtype != want:
+                raise BagError(f"{path}: topic {topic!r} holds {conn.msgtype}, expected {want}")
+            roles[topic] = role
+        if not any(r.kind == M.OBSERVATION for r in roles.values()) and not any(
+            r.kind == M.GROUND_TRUTH for r in roles.values()
+        ):
+            raise BagError(
+                f"{path}: no {M.resolve_topic(M.OBSERVATION, namespace)} or "
+                f"{M.resolve_topic(M.GROUND_TRUTH, namespace)} topic "
+                f"(topics: {', '.join(sorted(bag.topics)) or 'none'})"
+            )
+
+        desc: dict[str, Any] | None = dict(description) if description is not None else None
+        status: list[dict[str, Any]] = []
+        rejected: dict[str, int] = {}
+        pending: list[tuple[str, bytes]] = []
+        for conn, _, raw in bag.messages(list(roles)):
+            role = roles[conn.topic]
+            key = _stream_key(role)
+            try:
+                if role.kind == M.SCENARIO:
+                    if desc is None:  # the first announcement defines the run: a later one cannot resize it
+                        desc = M.decode_scenario(raw)
+                    continue
+                if role.kind == M.RUN_STATUS:
+                    status.append(M.decode_run_status(raw))
+                    continue
+                pending.append((key, raw))
+            except MessageError:
+                rejected[key] = rejected.get(key, 0) + 1
+    if desc is None:
+        raise BagError(
+            f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
+            "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)"
+        )
+    return desc, status, pending, rejected
+
+
+def _decode_cells(
+    desc: dict[str, Any], pending: list[tuple[str, bytes]], rejected: dict[str, int]
+) -> tuple[dict[str, dict[tuple[int, int], tuple[int, np.ndarray]]], dict[str, int], dict[str, int]]:
+    """({stream: {(trajectory, step): (stamp, values)}}, received and duplicate messages per
+    stream); a message that does not decode, or names other components, counts as rejected."""
+    cells: dict[str, dict[tuple[int, int], tuple[int, np.ndarray]]] = {}
+    received: dict[str, int] = {}
+    duplicates: dict[str, int] = {}
+    dx = len(desc["state_names"])
+    expected = {
+        M.OBSERVATION: M.observation_labels(desc),
+        M.GROUND_TRUTH: M.state_labels(desc),
+    }
+    state_names, cov_names = M.state_labels(desc), M.covariance_labels(dx)
+    codecs: dict[str, M.VectorCodec] = {}
+    for key, raw in pending:
+        codec = codecs.get(key)
+        if codec is None:
+            if key.startswith(M.ESTIMATES + "/"):
+                names = cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else state_names
+            else:
+                names = expected[key]
+            codec = codecs[key] = M.VectorCodec("", names)
+        try:
+            vec = codec.decode(raw)
+        except MessageError:
+            rejected[key] = rejected.get(key, 0) + 1
+            continue
+        if vec.names != codec.names:
+            rejected[key] = rejected.get(key, 0) + 1
+            continue
+        store = cells.setdefault(key, {})
+        cell = (vec.trajectory, vec.step)
+        if cell in store:
+            duplicates[key] = duplicates.get(key, 0) + 1
+        store[cell] = (vec.stamp_ns, vec.values)
+        received[key] = received.get(key, 0) + 1
+    return cells, received, duplicates
+
+
+def _rows(
+    path: str | Path, desc: dict[str, Any], cells: dict, received: dict[str, int]
+) -> tuple[list[int], int, int, dict[int, int], dict[str, int]]:
+    """(trajectory ids, N, T, {trajectory: row}, cells outside the announced run per stream): the
+    arrays' extent, bounded (:func:`max_array_bytes`); cells outside an announced run are dropped."""
+    dx, dy = len(desc["state_names"]), len(desc["obs_names"])
+    du = len(desc.get("control_names", ()))
+    run = desc.get("run") if isinstance(desc.get("run"), Mapping) else {}
+    widths = {M.OBSERVATION: dy + du, M.GROUND_TRUTH: dx}
+    for key in cells:
+        if key.startswith(M.ESTIMATES + "/"):
+            widths[key] = dx * dx if key.endswith("/" + M.COVARIANCE_SUFFIX) else dx
+    cell_bytes = 8 * sum(widths.values()) + 8 + len(widths)  # values, the stamp, a presence flag per stream
+    limit = max_array_bytes()
+    n_ann, t_ann = _announced(run.get("trajectories")), _announced(run.get("horizon"))
+    if n_ann and t_ann and n_ann * t_ann * cell_bytes > limit:
+        raise BagError(
+            f"{path}: the run announces {n_ann} trajectories x {t_ann} steps: {_gib(n_ann * t_ann * cell_bytes)} "
+            f"as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV})"
+        )
+    outside: dict[str, int] = {}
+    if n_ann and t_ann:  # a cell outside the announced run is a corrupt or forged identity: rejected
+        for key, store in cells.items():
+            bad = [c for c in store if not (0 <= c[0] < n_ann and 0 <= c[1] < t_ann)]
+            for c in bad:
+                del store[c]
+            if bad:
+                outside[key] = len(bad)
+                received[key] -= len(bad)
+    # Rows: every trajectory announced by the run (so that a wholly lost one counts as missing)
+    # and every one that was received.
+    announced = range(n_ann)
+    traj_ids = sorted({n for store in cells.values() for n, _ in store} | set(announced))
+    horizon = max([k + 1 for store in cells.values() for _, k in store] + [t_ann])
+    N, T = len(traj_ids), horizon
+    if N * T * cell_bytes > limit:
+        last = max(((n, k) for store in cells.values() for n, k in store), key=lambda c: c[1], default=(0, 0))
+        raise BagError(
+            f"{path}: the streams span {N} trajectories x {T} steps (largest step index {last[1]}, in trajectory "
+            f"{last[0]}): {_gib(N * T * cell_bytes)} as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV}); "
+            "a corrupt identity? A /scenario message announcing the run rejects identities outside it"
+        )
+    row = {n: i for i, n in enumerate(traj_ids)}
+    return traj_ids, N, T, row, outside
 
 
 def arrays_to_bag(

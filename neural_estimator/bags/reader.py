@@ -369,6 +369,11 @@ class BagReader:
                     problems.append(f"malformed record at byte {pos} (opcode {op:#04x}): {exc}")
                     lost_bytes += 9 + length
             pos = end
+        self._settle(size, problems, lost_bytes, lost_chunks, lost_span)
+
+    def _settle(self, size: int, problems: list[str], lost_bytes: int, lost_chunks: int, lost_span: list[int]) -> None:
+        """After the scan: drop the chunks whose channels were never defined, count each channel's
+        messages, and report the damage (a warning, or BagError when strict)."""
         for chunk in list(self._chunks):
             unknown = sorted(set(chunk.counts) - set(self._channels))
             if unknown:
@@ -394,7 +399,7 @@ class BagReader:
             )
             if self.strict:
                 raise BagError(str(self.damage))
-            warnings.warn(str(self.damage), BagWarning, stacklevel=3)
+            warnings.warn(str(self.damage), BagWarning, stacklevel=4)  # the caller of _scan
 
     def _scan_chunk(self, at: int, length: int, record_at: int) -> tuple[bool, str, tuple[int, int] | None]:
         body = self._read(at, length)

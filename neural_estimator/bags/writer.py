@@ -318,11 +318,6 @@ class BagWriter:
             self.add_topic(topic, msgtype)
         self.write(topic, time_ns, TYPESTORE.serialize_cdr(msg, msgtype), **kw)
 
-    @property
-    def message_counts(self) -> dict[str, int]:
-        """Messages written per topic so far."""
-        return {t.name: t.count for t in self._topics.values()}
-
     def has_topic(self, topic: str) -> bool:
         return topic in self._topics
 

@@ -268,17 +268,53 @@ def _recorded_estimates(items: list[str] | None, truth) -> dict[str, Any]:
 
 
 def _cmd_evaluate(args) -> int:
-    from neural_estimator.registry import CLASSICAL_METHODS, check_method
-    from neural_estimator import departures as D
-    from neural_estimator.evaluation import (
-        departure_legend,
-        evaluate,
-        recorded_data_methods,
-        results_json,
-        results_table,
-        write_evaluation,
+    from neural_estimator.evaluation import evaluate, recorded_result, results_json, write_evaluation
+
+    scenario, datasets, methods, checkpoints, recorded, options, info = _evaluation_request(args)
+    out = Path(args.out) if args.out else None
+    expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
+    expected_runs.update({name: 1 for name in recorded})
+
+    def write_partial(results) -> None:  # after every run: an interrupted evaluate leaves its finished runs
+        if out is not None:
+            write_evaluation(out, scenario, results, info, expected_runs, plot=False)
+
+    results = evaluate(
+        scenario,
+        methods,
+        trajectories=args.trajectories,
+        horizon=args.horizon,
+        seed=args.seed,
+        sets=args.sets,
+        checkpoints=checkpoints,
+        options=options,
+        device=args.device,
+        cache_dir=False if args.no_cache else None,
+        progress=not args.quiet,
+        recompute=args.recompute,
+        on_result=write_partial,
+        init=args.init,
+        datasets=datasets,
+        warmup=args.warmup,
     )
-    from neural_estimator.expected_failures import mark_rows, notes
+    if recorded:
+        for name, x_hat in recorded.items():
+            results[name] = recorded_result(scenario, datasets[0], x_hat, name, warmup=args.warmup)
+    if args.json:
+        print(json.dumps(results_json(scenario, results, complete=True, **info), indent=1, allow_nan=False))
+    else:
+        _print_evaluation(args, scenario, results, info, recorded_data=datasets is not None)
+    if out is not None:
+        write_evaluation(out, scenario, results, info, expected_runs, plot=True)
+        print(f"wrote {out}/table.md, table.csv, consistency.md, results.json, rmse_over_time.png", file=sys.stderr)
+    return 0
+
+
+def _evaluation_request(args):
+    """(scenario, recorded datasets or None, methods, checkpoints, recorded estimates, options, info)
+    of the evaluate flags, each checked: a one-line CliError otherwise."""
+    from neural_estimator.evaluation import recorded_data_methods
+    from neural_estimator.registry import CLASSICAL_METHODS, check_method
 
     scenario, datasets = scenario_or_data(args)
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
@@ -344,72 +380,43 @@ def _cmd_evaluate(args) -> int:
             else f"--warmup {args.warmup} leaves no step of {info['horizon']}-step trajectories to score: pass a "
             "smaller --warmup (0 scores every step)"
         )
-    out = Path(args.out) if args.out else None
-    expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
-    expected_runs.update({name: 1 for name in recorded})
+    return scenario, datasets, methods, checkpoints, recorded, options, info
 
-    def write_partial(results) -> None:  # after every run: an interrupted evaluate leaves its finished runs
-        if out is not None:
-            write_evaluation(out, scenario, results, info, expected_runs, plot=False)
 
-    results = evaluate(
-        scenario,
-        methods,
-        trajectories=args.trajectories,
-        horizon=args.horizon,
-        seed=args.seed,
-        sets=args.sets,
-        checkpoints=checkpoints,
-        options=options,
-        device=args.device,
-        cache_dir=False if args.no_cache else None,
-        progress=not args.quiet,
-        recompute=args.recompute,
-        on_result=write_partial,
-        init=args.init,
-        datasets=datasets,
-        warmup=args.warmup,
-    )
-    if recorded:
-        from neural_estimator.evaluation import recorded_result
+def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_data: bool) -> None:
+    """The table of ``results`` with its heading, notes, marks legend, scored steps and speeds."""
+    from neural_estimator import departures as D
+    from neural_estimator.evaluation import departure_legend, results_table
+    from neural_estimator.expected_failures import mark_rows, notes
 
-        for name, x_hat in recorded.items():
-            results[name] = recorded_result(scenario, datasets[0], x_hat, name, warmup=args.warmup)
-    if args.json:
-        print(json.dumps(results_json(scenario, results, complete=True, **info), indent=1, allow_nan=False))
-    else:
-        if datasets is not None:
-            print(
-                f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps"
-                + _scored(args.warmup)
-            )
-        else:
-            print(
-                f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps"
-                f"{_scored(args.warmup)}, "
-                f"filters start from the {_START_WORDS[args.init]} (median ± IQR over runs)"
-            )
-        starts = {m: r.init for m, r in results.items()}
-        print(mark_rows(results_table(results, fmt="text", marked=True), scenario.name, starts), end="")
-        for line in notes(scenario.name, list(results), starts):
-            print(line)
-        for line in departure_legend(results):
-            print(line)
-        print(D.scored_steps(args.warmup))
-        _print_consistency(results, scenario.dx)
+    if recorded_data:
         print(
-            "speed: "
-            + ", ".join(
-                f"{m} {r.throughput:,.0f} traj-steps/s"
-                if r.seconds
-                else f"{m} recorded" + (f" ({r.cached} cached runs)" if r.cached else "")
-                for m, r in results.items()
-            )
+            f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps"
+            + _scored(args.warmup)
         )
-    if out is not None:
-        write_evaluation(out, scenario, results, info, expected_runs, plot=True)
-        print(f"wrote {out}/table.md, table.csv, consistency.md, results.json, rmse_over_time.png", file=sys.stderr)
-    return 0
+    else:
+        print(
+            f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps"
+            f"{_scored(args.warmup)}, "
+            f"filters start from the {_START_WORDS[args.init]} (median ± IQR over runs)"
+        )
+    starts = {m: r.init for m, r in results.items()}
+    print(mark_rows(results_table(results, fmt="text", marked=True), scenario.name, starts), end="")
+    for line in notes(scenario.name, list(results), starts):
+        print(line)
+    for line in departure_legend(results):
+        print(line)
+    print(D.scored_steps(args.warmup))
+    _print_consistency(results, scenario.dx)
+    print(
+        "speed: "
+        + ", ".join(
+            f"{m} {r.throughput:,.0f} traj-steps/s"
+            if r.seconds
+            else f"{m} recorded" + (f" ({r.cached} cached runs)" if r.cached else "")
+            for m, r in results.items()
+        )
+    )
 
 
 def _print_consistency(results, dx: int) -> None:

@@ -8,7 +8,7 @@ import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,6 +22,9 @@ from neural_estimator.evaluation.starts import check_init
 from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.scenarios import Scenario
 
+if TYPE_CHECKING:
+    from neural_estimator.serving.card import Checkpoint
+
 # Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
 # changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns;
 # 3: every report carries the every-step RMSE beside the scored one (rmse_every_step); 4: scenario
@@ -31,22 +34,18 @@ RESULTS_REVISION = 4
 _SPEED_ONLY_OPTIONS = frozenset({"threads"})
 
 
-def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | None) -> str | None:
+def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | Checkpoint | None) -> str | None:
     """BLAKE2b of a neural method's card and weights (the shipped model's when ``checkpoint`` is
-    None); None for classical filters. A missing file hashes as "missing" (loading will fail)."""
+    None; a resolved :class:`~neural_estimator.serving.card.Checkpoint` carries its own); None for
+    classical filters. A missing file hashes as "missing" (loading will fail)."""
     if method not in NEURAL_METHODS:
         return None
-    from neural_estimator.serving.card import CARD_FILE, WEIGHTS_FILE
-    from neural_estimator.serving.load import default_checkpoint
+    from neural_estimator.serving import card
 
-    path = Path(checkpoint) if checkpoint is not None else default_checkpoint(scenario.name, method)
-    directory = path.parent if path.suffix == ".json" else path
-    h = hashlib.blake2b(digest_size=16)
-    for name in (CARD_FILE, WEIGHTS_FILE):
-        f = directory / name
-        h.update(name.encode())
-        h.update(f.read_bytes() if f.is_file() else b"missing")
-    return h.hexdigest()
+    if isinstance(checkpoint, card.Checkpoint):
+        return checkpoint.digest
+    path = Path(checkpoint) if checkpoint is not None else card.default_checkpoint(scenario.name, method)
+    return card.checkpoint_digest(path.parent if path.suffix == ".json" else path)
 
 
 def run_key(

@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -52,6 +52,9 @@ from neural_estimator.options import parse_value
 from neural_estimator.scenarios import Scenario
 from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run
 from neural_estimator.evaluation.starts import INIT_MODES, check_init, effective_init  # noqa: F401
+
+if TYPE_CHECKING:
+    from neural_estimator.serving.card import Checkpoint
 
 DEFAULT_MEMORY_BUDGET = 1 << 30  # bytes per chunk; peak stays well under 8 GiB
 
@@ -224,7 +227,10 @@ def run_stepwise(
 
 
 def served_context(
-    scenario: Scenario, method: str, checkpoint: str | Path | None, options: Mapping[str, Any] | None = None
+    scenario: Scenario,
+    method: str,
+    checkpoint: str | Path | Checkpoint | None,
+    options: Mapping[str, Any] | None = None,
 ) -> int:
     """The bounded context a neural method is served with: the ``context`` option when given, else
     the one its card was validated with (``training.recipe.val_context``); 0 = continuous (the
@@ -233,13 +239,16 @@ def served_context(
         return 0
     if options and options.get("context") not in (None, ""):
         return int(parse_value(options["context"], 0, "context"))
-    from neural_estimator.serving.card import read_card
-    from neural_estimator.serving.load import default_checkpoint, validated_context
+    from neural_estimator.serving.card import Checkpoint, default_checkpoint, read_card
+    from neural_estimator.serving.load import validated_context
 
-    try:
-        _, card = read_card(checkpoint if checkpoint is not None else default_checkpoint(scenario.name, method))
-    except Exception:  # a missing card fails at loading, with its own message
-        return 0
+    if isinstance(checkpoint, Checkpoint):
+        card = checkpoint.card
+    else:
+        try:
+            _, card = read_card(checkpoint if checkpoint is not None else default_checkpoint(scenario.name, method))
+        except Exception:  # a missing card fails at loading, with its own message
+            return 0
     return int(validated_context(card).get("context", 0))
 
 
@@ -307,6 +316,10 @@ def evaluate(
     n_runs = len(plan) * len(data_sets)
     run_no = 0
     for m, ckpt in plan:
+        if m in NEURAL_METHODS:  # resolved once: its card read and its weights hashed here, then passed down
+            from neural_estimator.serving.card import resolve_checkpoint
+
+            ckpt = resolve_checkpoint(ckpt, scenario.name, m)
         opts = dict((options or {}).get(m, {}))
         est = None  # built on the first run that is not cached (loading a model takes seconds)
         ckpt_hash = checkpoint_digest(scenario, m, ckpt) if cache_root is not None else None

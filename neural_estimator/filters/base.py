@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from abc import abstractmethod
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -363,9 +363,6 @@ class ClassicalFilter(Estimator):
         return mean, cov
 
     # ---- scheduling: the block scheduler of the current batch (filters/scheduler.py) -------------
-    def _map_blocks(self, fn: Callable[[int], Any]) -> Iterator[Any]:
-        return self._scheduler.map(fn)
-
     def _for_blocks(self, kernel: Callable[[int, slice], Any]) -> list:
         return self._scheduler.for_each(kernel)
 

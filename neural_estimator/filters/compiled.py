@@ -178,14 +178,6 @@ def _fill_normals(s, z, count):
     s[0], s[1], s[2], s[3] = s0, s1, s2, s3
 
 
-@nb.njit(inline="always")
-def _normal(s):
-    """One standard normal from generator state s (see :func:`_fill_normals`)."""
-    z = np.empty(1)
-    _fill_normals(s, z, 1)
-    return z[0]
-
-
 @nb.njit(nogil=True, cache=True)
 def stream_normals(seed: int, k: int, phase: int, stream: int, count: int) -> np.ndarray:
     """The first ``count`` standard normals of one stream's generator (for tests and references)."""

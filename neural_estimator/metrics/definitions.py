@@ -24,13 +24,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from neural_estimator.angles import wrap_components
+from neural_estimator.metrics.checks import MetricsError, check_curve, check_errors, check_pair
+from neural_estimator.metrics.outliers import OUTLIER_Z, outlier_mask
 
-OUTLIER_Z = 6.0  # the paper's threshold: "A trajectory is an outlier if z_n > 6."
-MAD_SCALE = 1.4826  # paper: z_n = |u_n - median| / (1.4826 MAD); 1/Phi^-1(3/4), MAD -> sigma
-MEANAD_SCALE = 1.253314  # sqrt(pi/2): mean absolute deviation -> sigma (fallback when MAD = 0)
-LOG_SCALE_FLOOR = 1e-9  # robust scales below this (log space) are round-off, not spread
 COVERAGE_LEVEL = 0.95
-_TINY = np.finfo(np.float64).tiny  # floor of M_n before the log: log(0) would be -inf
 _NEES_CHUNK = 1 << 16  # (n, t) pairs per batched Cholesky, bounds the temporaries
 # A covariance whose smallest conditional-to-marginal variance ratio (1 - R^2 of one component on
 # the ones before it) is below this is numerically singular: its inverse is round-off. Scale-free,
@@ -61,10 +58,6 @@ SCALAR_METRICS = (
 COVARIANCE_METRICS = ("nees_median", "nees", "coverage95", "cov_degenerate")
 
 
-class MetricsError(ValueError):
-    """Inputs the metrics cannot be computed from (shapes, non-finite ground truth, bad spread)."""
-
-
 # ---- errors and per-trajectory quantities ---------------------------------------------------------
 
 
@@ -82,7 +75,7 @@ def errors(x_true: np.ndarray, x_hat: np.ndarray, angle_states: Sequence[int] = 
     Returns:
         (N, T, dx) float64 errors.
     """
-    x_true, x_hat = _check_pair(x_true, x_hat)
+    x_true, x_hat = check_pair(x_true, x_hat)
     with np.errstate(invalid="ignore", over="ignore"):
         return wrap_components(x_hat - x_true, tuple(angle_states))  # (N, T, dx)
 
@@ -104,7 +97,7 @@ def trajectory_mse(e: np.ndarray) -> np.ndarray:
     Returns:
         (N,) M_n; inf or NaN for diverged trajectories (overflow gives inf, no warning).
     """
-    e = _check_errors(e)
+    e = check_errors(e)
     with np.errstate(over="ignore", invalid="ignore"):
         return np.mean(e * e, axis=(1, 2))
 
@@ -119,7 +112,7 @@ def rmse_over_time(e: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     Returns:
         (T,) RMSE_t; NaN everywhere if the mask selects no trajectory.
     """
-    e = _check_errors(e)
+    e = check_errors(e)
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != e.shape[:1]:
@@ -132,83 +125,6 @@ def rmse_over_time(e: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 
 
 # ---- outlier rule -----------------------------------------------------------------------------------
-
-
-def robust_zscores(M: np.ndarray) -> np.ndarray:
-    """The paper's robust z-score of each trajectory's log-MSE.
-
-    Paper, Section "Evaluation Metrics":
-
-        "To prevent rare catastrophic failures from dominating aggregate metrics, we detect
-        trajectory-level outliers on log-MSE values using a robust z-score based on the median
-        absolute deviation (MAD). Let M_n be the trajectory-level MSE for trajectory n, and define
-
-            u_n = log M_n,
-            u~  = median{u_1, ..., u_N},
-            MAD = median{|u_1 - u~|, ..., |u_N - u~|}.
-
-        The robust z-score is
-
-            z_n = |u_n - u~| / (1.4826 MAD)."
-
-    Choices where the paper is silent:
-
-    - Non-finite M_n (diverged trajectories) get z_n = inf and are left out of the median and the
-      MAD, which are taken over the finite M_n only. A diverged trajectory has no log-MSE to rank,
-      and letting it in would move the median (the paper's EnKF rows are "N/A" for this reason).
-    - M_n = 0 (an exact estimate) is floored at the smallest positive float before the log, so u_n
-      stays finite; under the two-sided rule a perfect trajectory among imperfect ones is an
-      outlier on the low side, as the formula says.
-    - MAD = 0 (more than half of the u_n equal): the modified z-score's standard fallback
-      (Iglewicz & Hoaglin 1993) replaces 1.4826 MAD by 1.253314 MeanAD, with
-      MeanAD = mean{|u_n - u~|} and 1.253314 = sqrt(pi / 2) the factor that makes MeanAD estimate
-      a normal standard deviation, as 1.4826 does for the MAD. If MeanAD = 0 as well, all finite
-      u_n are equal and every finite z_n is 0: there is no spread, so nothing is outlying.
-    - The robust scale is floored at LOG_SCALE_FLOOR = 1e-9 in log space (a relative MSE
-      difference of one part in 10^9). Without the floor, trajectories whose MSEs agree up to
-      floating-point round-off (identical errors computed as (x + e) - x) have a MAD of ~1e-16 and
-      round-off alone would be flagged as outliers.
-
-    Args:
-        M: (N,) trajectory-level MSE.
-
-    Returns:
-        (N,) z_n >= 0, inf for non-finite M_n.
-    """
-    M = np.asarray(M, dtype=np.float64)
-    if M.ndim != 1:
-        raise MetricsError(f"M must be (N,), got shape {M.shape}")
-    finite = np.isfinite(M)
-    z = np.full(M.shape, np.inf)
-    if not finite.any():
-        return z
-    u = np.log(np.maximum(M[finite], _TINY))  # (N_finite,)
-    dev = np.abs(u - np.median(u))
-    mad = np.median(dev)
-    scale = MAD_SCALE * mad if mad > LOG_SCALE_FLOOR else MEANAD_SCALE * dev.mean()
-    z[finite] = dev / scale if scale > LOG_SCALE_FLOOR else 0.0
-    return z
-
-
-def outlier_mask(M: np.ndarray, threshold: float = OUTLIER_Z) -> np.ndarray:
-    """(N,) True for the paper's trajectory-level outliers.
-
-    Paper: "A trajectory is an outlier if z_n > 6. We report the outlier ratio over all
-    trajectories. Main RMSE and NRMSE exclude detected outliers, while full metrics with outlier
-    statistics are reported in the Appendix."
-
-    z_n is :func:`robust_zscores` (u_n = log M_n, median, MAD, z_n = |u_n - u~| / (1.4826 MAD)).
-    Non-finite M_n (diverged trajectories) are always flagged; see :func:`robust_zscores` for
-    MAD = 0.
-
-    Args:
-        M: (N,) trajectory-level MSE.
-        threshold: the z-score above which a trajectory is an outlier (paper: 6).
-    """
-    return robust_zscores(M) > threshold
-
-
-# ---- curve summaries ---------------------------------------------------------------------------------
 
 
 def drift_ratio(rmse_t: np.ndarray) -> float:
@@ -226,7 +142,7 @@ def drift_ratio(rmse_t: np.ndarray) -> float:
     Args:
         rmse_t: (T,) RMSE-time curve, T >= 1.
     """
-    rmse_t = _check_curve(rmse_t)
+    rmse_t = check_curve(rmse_t)
     q = max(1, rmse_t.shape[0] // 4)
     with np.errstate(divide="ignore", invalid="ignore"):
         return float(np.float64(rmse_t[-q:].mean()) / np.float64(rmse_t[:q].mean()))
@@ -241,7 +157,7 @@ def auc(rmse_t: np.ndarray) -> float:
     Args:
         rmse_t: (T,) RMSE-time curve, T >= 1.
     """
-    rmse_t = _check_curve(rmse_t)
+    rmse_t = check_curve(rmse_t)
     return float(np.sum(0.5 * (rmse_t[1:] + rmse_t[:-1])))
 
 
@@ -282,7 +198,7 @@ def nees(e: np.ndarray, P_hat: np.ndarray) -> np.ndarray:
     Returns:
         (N, T) NEES values.
     """
-    e = _check_errors(e)
+    e = check_errors(e)
     P_hat = np.asarray(P_hat, dtype=np.float64)
     n, t, dx = e.shape
     if P_hat.shape != (n, t, dx, dx):
@@ -442,7 +358,7 @@ def compute_metrics(
         MetricsError: wrong shapes, non-finite ground truth, a spread that is not positive, or a
             warm-up that leaves no step to evaluate.
     """
-    x_true, x_hat = _check_pair(x_true, x_hat)
+    x_true, x_hat = check_pair(x_true, x_hat)
     n, t, dx = x_true.shape
     if isinstance(warmup, bool) or int(warmup) != warmup or not 0 <= int(warmup) < t:
         raise MetricsError(f"warmup must be an integer in [0, {t}) for {t} timesteps, got {warmup!r}")
@@ -450,22 +366,7 @@ def compute_metrics(
     every_step = None
     if warmup:
         every_step = kept_rmse(errors(x_true, x_hat, angle_states), diverged, threshold)
-        # A trajectory that diverged during the warm-up stays diverged; then score steps warmup.. only.
-        early = diverged_mask(x_hat[:, :warmup])
-        diverged = early if diverged is None else (np.asarray(diverged, dtype=bool) | early)
-        if diverged.shape != (n,):
-            raise MetricsError(f"diverged must be ({n},), got {diverged.shape}")
-        x_true, x_hat = x_true[:, warmup:], x_hat[:, warmup:]
-        if P_hat is not None:
-            P_hat = np.asarray(P_hat)
-            if P_hat.shape != (n, t, dx, dx):
-                raise MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P_hat.shape}")
-            P_hat = P_hat[:, warmup:]
-        if nees_values is not None:
-            nees_values = np.asarray(nees_values)
-            if nees_values.shape != (n, t):
-                raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
-            nees_values = nees_values[:, warmup:]
+        x_true, x_hat, P_hat, nees_values, diverged = _after_warmup(warmup, x_true, x_hat, P_hat, nees_values, diverged)
         t = t - warmup
     if not np.isfinite(x_true).all():
         raise MetricsError("x_true holds non-finite values; ground truth must be finite")
@@ -550,11 +451,32 @@ def compute_metrics(
     )
 
 
+def _after_warmup(warmup: int, x_true, x_hat, P_hat, nees_values, diverged) -> tuple:
+    """(x_true, x_hat, P_hat, nees_values, diverged) from step ``warmup`` on. A trajectory that
+    diverged during the warm-up stays diverged; then steps warmup.. only are scored."""
+    n, t, dx = x_true.shape
+    early = diverged_mask(x_hat[:, :warmup])
+    diverged = early if diverged is None else (np.asarray(diverged, dtype=bool) | early)
+    if diverged.shape != (n,):
+        raise MetricsError(f"diverged must be ({n},), got {diverged.shape}")
+    if P_hat is not None:
+        P_hat = np.asarray(P_hat)
+        if P_hat.shape != (n, t, dx, dx):
+            raise MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P_hat.shape}")
+        P_hat = P_hat[:, warmup:]
+    if nees_values is not None:
+        nees_values = np.asarray(nees_values)
+        if nees_values.shape != (n, t):
+            raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
+        nees_values = nees_values[:, warmup:]
+    return x_true[:, warmup:], x_hat[:, warmup:], P_hat, nees_values, diverged
+
+
 def kept_rmse(e: np.ndarray, diverged: np.ndarray | None = None, threshold: float = OUTLIER_Z) -> float:
     """The main RMSE of errors ``e`` (N, T, dx) on their own steps: sqrt of the mean M_n over the
     trajectories the outlier rule keeps (``diverged`` (N,) and non-finite M_n always flagged);
     inf when none is kept. :func:`compute_metrics` uses it for ``rmse_every_step``."""
-    e = _check_errors(e)
+    e = check_errors(e)
     with np.errstate(over="ignore", invalid="ignore"):
         M = np.mean(e * e, axis=(1, 2))  # (N,)
     div = ~np.isfinite(M)
@@ -610,30 +532,6 @@ def _coverage_curve(eps: np.ndarray, dx: int) -> tuple[float, ...]:
 
 
 # ---- helpers ------------------------------------------------------------------------------------------
-
-
-def _check_pair(x_true, x_hat) -> tuple[np.ndarray, np.ndarray]:
-    x_true = np.asarray(x_true, dtype=np.float64)
-    x_hat = np.asarray(x_hat, dtype=np.float64)
-    if x_true.ndim != 3 or x_true.shape != x_hat.shape:
-        raise MetricsError(f"x_true and x_hat must both be (N, T, dx); got {x_true.shape} and {x_hat.shape}")
-    if 0 in x_true.shape:
-        raise MetricsError(f"empty input of shape {x_true.shape}")
-    return x_true, x_hat
-
-
-def _check_errors(e) -> np.ndarray:
-    e = np.asarray(e, dtype=np.float64)
-    if e.ndim != 3:
-        raise MetricsError(f"errors must be (N, T, dx), got shape {e.shape}")
-    return e
-
-
-def _check_curve(rmse_t) -> np.ndarray:
-    rmse_t = np.asarray(rmse_t, dtype=np.float64)
-    if rmse_t.ndim != 1 or rmse_t.shape[0] == 0:
-        raise MetricsError(f"rmse_t must be (T,) with T >= 1, got shape {rmse_t.shape}")
-    return rmse_t
 
 
 def _resolve_spread(x_true: np.ndarray, spread) -> np.ndarray:

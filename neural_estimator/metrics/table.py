@@ -9,7 +9,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from neural_estimator.metrics.definitions import SCALAR_METRICS, MetricReport, MetricsError
+from neural_estimator.metrics.checks import MetricsError
+from neural_estimator.metrics.definitions import SCALAR_METRICS, MetricReport
 from neural_estimator.metrics.summary import Stat, _as_stat
 
 

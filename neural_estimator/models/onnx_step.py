@@ -51,6 +51,17 @@ def _flatten(state: Any) -> list:
     return list(state) if isinstance(state, (tuple, list)) else [state]
 
 
+def _starting_fills(method: str, flat: list) -> list[float]:
+    """The state's starting values: one constant per tensor (zeros, or the mask's -inf)."""
+    fills = []
+    for t in flat:
+        first = t.reshape(-1)[:1]
+        if t.numel() and not bool((t == first).all()):
+            raise OnnxError(f"{method}: a starting state that is not one constant per tensor cannot be exported")
+        fills.append(float(first[0]) if t.numel() else 0.0)
+    return fills
+
+
 def export_step(
     model: Any,
     method: str,
@@ -91,12 +102,7 @@ def export_step(
     structured = isinstance(state0, (tuple, list))
     d_in = model.input_proj.in_features
     with_cov = bool(covariance) and hasattr(model, "step_with_cov")
-    fills = []
-    for t in flat:  # the state's starting values: one constant per tensor (zeros, or the mask's -inf)
-        first = t.reshape(-1)[:1]
-        if t.numel() and not bool((t == first).all()):
-            raise OnnxError(f"{method}: a starting state that is not one constant per tensor cannot be exported")
-        fills.append(float(first[0]) if t.numel() else 0.0)
+    fills = _starting_fills(method, flat)
 
     def network(z, state):
         state = tuple(state) if structured else state[0]

@@ -673,11 +673,13 @@ def _make_node() -> ExitStatusNode:
             from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
 
             try:
-                wrong = bool(method) and check_method(method) != read[1].get("method")
+                wrong = bool(method) and check_method(method) != read.card.get("method")
             except EstimatorError as exc:
                 raise StartupError(str(exc)) from None
             if wrong:
-                raise StartupError(f"parameter method is {method!r} but {checkpoint} holds a {read[1]['method']} model")
+                raise StartupError(
+                    f"parameter method is {method!r} but {checkpoint} holds a {read.card['method']} model"
+                )
             node.__class__ = RobotEstimatorNode
             node.setup(read)
         else:
@@ -689,15 +691,16 @@ def _make_node() -> ExitStatusNode:
     return node
 
 
-def _recorded_data_card(checkpoint: str) -> tuple | None:
-    """(directory, card) when ``checkpoint`` is a readable card of a model trained with ``train --data``."""
-    from neural_estimator.serving.card import read_card
+def _recorded_data_card(checkpoint: str):
+    """The resolved :class:`~neural_estimator.serving.card.Checkpoint` when ``checkpoint`` is a
+    readable card of a model trained with ``train --data`` (passed on, so its card is read once)."""
+    from neural_estimator.serving.card import resolve_checkpoint
 
     try:
-        read = read_card(checkpoint)
+        read = resolve_checkpoint(checkpoint)
     except EstimatorError:
         return None  # the estimator node reports a missing or corrupt checkpoint itself
-    return read if read[1].get("scenario", {}).get("scenario") == "data" else None
+    return read if read.card.get("scenario", {}).get("scenario") == "data" else None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -102,8 +102,9 @@ class RobotEstimatorNode(ExitStatusNode):
         self.setup()
 
     def setup(self, card: tuple | None = None) -> None:
-        """Declare the parameters, load the model and wire the topics; ``card``: the checkpoint's
-        (directory, card) when already read (the estimator executable decides from it which node to be)."""
+        """Declare the parameters, load the model and wire the topics; ``card``: the checkpoint
+        (:class:`~neural_estimator.serving.card.Checkpoint`) when already resolved (the estimator
+        executable decides from its card which node to be)."""
         self.p = p = declare_params(self, RobotEstimatorParams)
         self.po = declare_params(self, OutputParams)
         self.pd = declare_params(self, InputDiagnosticsParams)
@@ -308,13 +309,13 @@ class RobotEstimatorNode(ExitStatusNode):
         self.pub_diag.publish(arr)
 
 
-def _load(p: RobotEstimatorParams, read: tuple | None = None):
-    """(DataScenario, Spec, method, estimator) from the checkpoint's card (``read``: the (directory,
-    card) already read); StartupError otherwise."""
+def _load(p: RobotEstimatorParams, read=None):
+    """(DataScenario, Spec, method, estimator) from the checkpoint's card (``read``: the
+    :class:`~neural_estimator.serving.card.Checkpoint` already resolved); StartupError otherwise."""
     from pathlib import Path
 
     from neural_estimator.registry import EstimatorError, make_estimator
-    from neural_estimator.serving.card import read_card
+    from neural_estimator.serving.card import resolve_checkpoint
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.scenarios import ScenarioError
 
@@ -324,7 +325,8 @@ def _load(p: RobotEstimatorParams, read: tuple | None = None):
     if not path.exists():
         raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
     try:
-        directory, card = read if read is not None else read_card(path)
+        ckpt = read if read is not None else resolve_checkpoint(path)  # read once, passed to the estimator
+        card = ckpt.card
         desc = card["scenario"]
         if desc.get("scenario") != "data" or not desc.get("spec"):
             raise StartupError(
@@ -338,7 +340,7 @@ def _load(p: RobotEstimatorParams, read: tuple | None = None):
             import torch
 
             torch.set_num_threads(p.threads)
-        est = make_estimator(method, scenario, checkpoint=directory, device=p.device)
+        est = make_estimator(method, scenario, checkpoint=ckpt, device=p.device)
     except (EstimatorError, ScenarioError, SpecError, KeyError, TypeError) as exc:
         raise StartupError(f"checkpoint {p.checkpoint}: {exc}") from None
     return scenario, spec, method, est

@@ -81,7 +81,7 @@ class Ballistic(Scenario):
     where the body speeds up without bound; :meth:`sample_initial` rejects and redraws such states
     (:meth:`rejected_fraction`: 6.7 % of the v4 prior), so no true trajectory overflows.
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario ballistic``; table and command in
+    Calibration (``experiments/calibrate_scenarios.py --scenario ballistic``; table and command in
     docs/scenarios.md). The paper's rows: EKF 5.29, UKF 0.63, EnKF 0.82, PF 0.66, and RMSE / NRMSE
     about 1.06 for every method but the EKF, NRMSE 0.59-0.72 for all of them, ~ sqrt(1/3): one of
     three components (the drag coefficient) left at an error about its own spread, the signature of

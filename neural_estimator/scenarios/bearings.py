@@ -62,7 +62,7 @@ class Bearings(Scenario):
 
     Jacobians are analytic: F, and d atan2(py, px) / d(px, py) = (-py, px) / (px^2 + py^2).
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario bearings``). Gordon's
+    Calibration (``experiments/calibrate_scenarios.py --scenario bearings``). Gordon's
     constants x 1000 (prior mean (0, 400, 0, -50), std (500, 300, 5, 10); acceleration noise
     1 m/s^2; bearing noise 0.005 rad) put the EKF / UKF at 10,100 / 4,600 m RMSE (50 trajectories,
     seed 1), 33x and 26x the paper's 309 / 181; starting the filters at the true x_0 still leaves

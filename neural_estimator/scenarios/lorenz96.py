@@ -93,7 +93,7 @@ class Lorenz96(Scenario):
     a fresh, shorter spin-up. For other (n_vars, forcing), measure again and override
     ``prior_mean`` / ``prior_std``.
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario lorenz96``). The paper states neither
+    Calibration (``experiments/calibrate_scenarios.py --scenario lorenz96``). The paper states neither
     J nor the noise levels. Its classical rows (EKF 0.049, UKF 0.048, EnKF 0.054, PF 0.065, all
     four close) include a bootstrap PF with 1,024 particles, x0 std 1.0 and no rejuvenation. With
     DAPPER's ring (J = 40, obs std 0.25, process std 0.003) EKF and UKF land at 0.052 but the PF

@@ -104,7 +104,7 @@ class NLinkPendulum(Scenario):
     the angular velocities' spread was 3.7 / 4.8 / 5.8 rad/s (links 1 / 2 / 3) and the outer link
     made a full turn in 25 % of the trajectories.
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario nlink``). The paper's rows
+    Calibration (``experiments/calibrate_scenarios.py --scenario nlink``). The paper's rows
     (EKF 0.080, UKF 0.081, EnKF 0.092, PF 0.086; MAE / RMSE = 0.79, no heavy tail; drift 1.01-1.06)
     describe a smooth regime in which all four filters track. The previous constants gave EKF / UKF
     0.31 / 0.31 (100 trajectories, seed 1; 3.9x the paper) with MedAE 0.04: a few trajectories

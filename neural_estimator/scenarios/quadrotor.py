@@ -106,7 +106,7 @@ class PlanarQuadrotor(Scenario):
 
     Jacobians are analytic.
 
-    Calibration (``scripts/calibrate_scenarios.py --scenario quadrotor``; table and command in
+    Calibration (``experiments/calibrate_scenarios.py --scenario quadrotor``; table and command in
     docs/scenarios.md). The paper's EKF row (RMSE 0.287, NRMSE 0.009, RMSE / NRMSE 32; Mamba-2 33)
     fixes both the noise level and the spread of the flights. Preset v3 (velocity noise 0.1 per
     step, thrust perturbation 10 %, a narrow prior on phi and the velocities) matched the RMSE

@@ -8,6 +8,8 @@ versions. It imports no torch model code.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -25,6 +27,7 @@ CARD_FORMAT = "neural_estimator.checkpoint"
 CARD_VERSION = 1
 WEIGHTS_FILE = "model.safetensors"
 CARD_FILE = "card.json"
+ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
 
 
 # ---- JSON that never holds inf/NaN tokens ---------------------------------------------------------
@@ -54,8 +57,13 @@ def read_json(path: Path, what: str = "file") -> dict[str, Any]:
     """Read a JSON object; a missing or malformed file raises EstimatorError naming it."""
     if not path.is_file():
         raise EstimatorError(f"{path}: {what} is missing")
+    return parse_json(path.read_bytes(), path, what)
+
+
+def parse_json(raw: bytes, path: Path, what: str = "file") -> dict[str, Any]:
+    """The JSON object in ``raw`` (the bytes of ``path``); malformed JSON raises EstimatorError naming it."""
     try:
-        obj = json.loads(path.read_text())
+        obj = json.loads(raw.decode())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise EstimatorError(f"{path}: {what} is corrupt (not valid JSON: {exc})") from None
     if not isinstance(obj, dict):
@@ -97,7 +105,12 @@ def read_card(checkpoint: str | Path) -> tuple[Path, dict[str, Any]]:
     directory, card_path = checkpoint_paths(checkpoint)
     if not directory.exists():
         raise EstimatorError(f"checkpoint {directory} does not exist")
-    card = read_json(card_path, "checkpoint card")
+    return directory, check_card(read_json(card_path, "checkpoint card"), card_path)
+
+
+def check_card(card: dict[str, Any], card_path: Path) -> dict[str, Any]:
+    """``card`` if it is a readable checkpoint card (format, version, entries, bounded counts);
+    EstimatorError naming ``card_path`` otherwise."""
     if card.get("format") != CARD_FORMAT:
         raise EstimatorError(f"{card_path}: not a neural_estimator checkpoint card (format {card.get('format')!r})")
     version = card.get("format_version", 0)
@@ -127,10 +140,119 @@ def read_card(checkpoint: str | Path) -> tuple[Path, dict[str, Any]]:
                 f"{card_path}: the card's {arch['name']} config has {key}={value!r}; at most {MAX_COUNT} "
                 "(the bound on layers, heads and components a card may declare)"
             )
-    return directory, card
+    return card
 
 
 # Config entries that count repeated modules: bounded before a model is built (building 200,000 layers,
 # even on the meta device, takes minutes). The shipped models have 2-4 layers, 4 heads, 32 components.
 COUNT_KEYS = ("layers", "n_layer", "n_head", "n_components")
 MAX_COUNT = 256
+
+
+# ---- a checkpoint resolved once ---------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Checkpoint:
+    """A checkpoint resolved once by :func:`resolve_checkpoint`: its directory and its card (read and
+    checked once); on first use its weight file, the weights' SHA-256 and ``digest``, the BLAKE2b of
+    card and weights that keys cached results (both from one pass over the weights, then kept).
+    Passed down in place of a path, so nothing below reads the card or hashes the weights again, and
+    a caller that needs no weights (the ONNX step beside the card) hashes nothing."""
+
+    directory: Path
+    card: dict[str, Any]
+    card_path: Path
+    card_bytes: bytes = dataclasses.field(repr=False)
+
+    @functools.cached_property
+    def weights(self) -> Path:
+        """The card's weight file: a file name inside the checkpoint, present (EstimatorError otherwise)."""
+        return _weight_file(self.directory, self.card)
+
+    @functools.cached_property
+    def _digests(self) -> tuple[str, str]:
+        if self.card_path == self.directory / CARD_FILE and self.weights == self.directory / WEIGHTS_FILE:
+            sha256, digest = _hash(self.card_bytes, self.weights)
+            return str(sha256), digest
+        # a card or weight file of another name: the digest is of the usual files, as for any checkpoint
+        return sha256_file(self.weights), checkpoint_digest(self.directory)
+
+    @property
+    def sha256(self) -> str:
+        return self._digests[0]
+
+    @property
+    def digest(self) -> str:
+        return self._digests[1]
+
+
+def default_checkpoint(scenario_name: str, method: str) -> Path:
+    """Where the shipped model of (scenario, method) lives."""
+    return ZOO_DIR / f"{scenario_name}-{method}"
+
+
+def resolve_checkpoint(
+    checkpoint: str | Path | Checkpoint | None, scenario_name: str | None = None, method: str | None = None
+) -> Checkpoint:
+    """The :class:`Checkpoint` of a directory or ``card.json`` (a :class:`Checkpoint` is returned as it
+    is); None: the shipped model of (``scenario_name``, ``method``).
+
+    Raises:
+        EstimatorError: no shipped model (the message gives the command that trains one), a missing
+            or corrupt card (the weight file is checked where it is first used).
+    """
+    if isinstance(checkpoint, Checkpoint):
+        return checkpoint
+    if checkpoint is None:
+        checkpoint = default_checkpoint(str(scenario_name), str(method))
+        missing = [f for f in (CARD_FILE, WEIGHTS_FILE) if not (checkpoint / f).is_file()]
+        if missing:
+            raise EstimatorError(
+                f"no trained {method} model ships for scenario {scenario_name!r}: {checkpoint} lacks "
+                f"{' and '.join(missing)}. Train one with `neural-estimator train --scenario {scenario_name} "
+                f"--model {method} --out {checkpoint}` or pass checkpoint=<dir> (--checkpoint)"
+            )
+    directory, card_path = checkpoint_paths(checkpoint)
+    if not directory.exists():
+        raise EstimatorError(f"checkpoint {directory} does not exist")
+    if not card_path.is_file():
+        raise EstimatorError(f"{card_path}: checkpoint card is missing")
+    raw = card_path.read_bytes()
+    card = check_card(parse_json(raw, card_path, "checkpoint card"), card_path)
+    return Checkpoint(directory, card, card_path, raw)
+
+
+def checkpoint_digest(directory: Path) -> str:
+    """BLAKE2b of a checkpoint directory's ``card.json`` and ``model.safetensors``, the key of its
+    cached results; a missing file hashes as "missing" (so a key can be made before training)."""
+    card = directory / CARD_FILE
+    return _hash(card.read_bytes() if card.is_file() else None, directory / WEIGHTS_FILE)[1]
+
+
+def _hash(card: bytes | None, weights: Path) -> tuple[str | None, str]:
+    """(SHA-256 of the weights, BLAKE2b of card and weights), one pass over the weight file."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(CARD_FILE.encode())
+    h.update(b"missing" if card is None else card)
+    h.update(WEIGHTS_FILE.encode())
+    if not weights.is_file():
+        h.update(b"missing")
+        return None, h.hexdigest()
+    sha = hashlib.sha256()
+    with open(weights, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            sha.update(block)
+            h.update(block)
+    return sha.hexdigest(), h.hexdigest()
+
+
+def _weight_file(directory: Path, card: dict[str, Any]) -> Path:
+    """The card's weight file: a file name inside the checkpoint, present."""
+    name = card["weights"].get("file", WEIGHTS_FILE)
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
+        raise EstimatorError(
+            f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}"
+        )
+    weights = directory / name
+    if not weights.is_file():
+        raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
+    return weights

@@ -37,7 +37,8 @@ from neural_estimator.serving.card import (
     CARD_FORMAT,
     CARD_VERSION,
     WEIGHTS_FILE,
-    read_card,
+    Checkpoint,
+    resolve_checkpoint,
     sha256_file,
     software_versions,
     write_json,
@@ -117,33 +118,29 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
 
 # ---- load ---------------------------------------------------------------------------------------
 def load_checkpoint(
-    checkpoint: str | Path, device: str | torch.device = "cpu"
+    checkpoint: str | Path | Checkpoint, device: str | torch.device = "cpu"
 ) -> tuple[nn.Module, Normalizer, dict[str, Any]]:
-    """(model in eval mode on ``device``, normalizer, card) of a checkpoint directory or card.
+    """(model in eval mode on ``device``, normalizer, card) of a checkpoint directory, its card, or a
+    :class:`~neural_estimator.serving.card.Checkpoint` already resolved (its card is not read again,
+    its weights not hashed again).
 
     Raises:
         EstimatorError: missing or corrupt card or weights, weights that do not match the card.
     """
     from safetensors.torch import load_model
 
-    directory, card = read_card(checkpoint)
+    ckpt = resolve_checkpoint(checkpoint)
+    directory, card = ckpt.directory, ckpt.card
     arch = card["architecture"]
     try:
         normalizer = Normalizer.from_dict(card["normalization"])
     except NormalizationError as exc:
         raise EstimatorError(f"{directory / CARD_FILE}: {exc}") from None
-    name = card["weights"].get("file", WEIGHTS_FILE)
-    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
-        raise EstimatorError(
-            f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}"
-        )
-    weights = directory / name
-    if not weights.is_file():
-        raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
+    weights = ckpt.weights
     check_model_size(arch, weights.stat().st_size, directory)
     model = build_from_config(arch["name"], arch["config"])
     expected = card["weights"].get("sha256")
-    if expected and sha256_file(weights) != expected:
+    if expected and ckpt.sha256 != expected:
         raise EstimatorError(
             f"checkpoint {directory}: {weights.name} does not match the sha256 in {CARD_FILE} "
             "(the weight file is corrupt or belongs to another checkpoint)"

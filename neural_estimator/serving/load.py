@@ -12,16 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
-from neural_estimator.serving.card import CARD_FILE, WEIGHTS_FILE, read_card
+from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
 from neural_estimator.serving.onnx_runtime import ATTENTION, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
-
-ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
-
-
-def default_checkpoint(scenario_name: str, method: str) -> Path:
-    """Where the shipped model of (scenario, method) lives."""
-    return ZOO_DIR / f"{scenario_name}-{method}"
 
 
 def _dims(desc: dict[str, Any]) -> tuple[int, int, int]:
@@ -84,7 +77,7 @@ def validated_context(card: dict[str, Any]) -> dict[str, int]:
 def load_neural_estimator(
     method: str,
     scenario: Scenario,
-    checkpoint: str | Path | None = None,
+    checkpoint: str | Path | Checkpoint | None = None,
     device: str = "cpu",
     covariance: bool = True,
     compile_step: bool = False,
@@ -98,8 +91,9 @@ def load_neural_estimator(
     Args:
         method: gru, lstm, gpt2, filterformer, mamba or mamba2.
         scenario: the system to serve; the checkpoint must have been trained on it.
-        checkpoint: a checkpoint directory or its ``card.json``; None -> the shipped default at
-            ``neural_estimator/zoo/<scenario>-<method>/``.
+        checkpoint: a checkpoint directory or its ``card.json``, or a
+            :class:`~neural_estimator.serving.card.Checkpoint` already resolved; None -> the shipped
+            default at ``neural_estimator/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
         covariance: report the covariance: the fitted covariance head's where the card has one
             (``covariance_head``, :mod:`neural_estimator.uncertainty.heads`), else Filterformer's
@@ -114,7 +108,7 @@ def load_neural_estimator(
             (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 with an unbounded
             context, GPT-2 and Filterformer with their window). Where the checkpoint directory holds
             ``step.onnx`` (``scripts/export_onnx.py --beside``) that graph is served without torch
-            (:class:`~neural_estimator.models.onnx_step.OnnxEstimator`, batch 1, ``run`` a loop of
+            (:class:`~neural_estimator.serving.onnx_runtime.OnnxEstimator`, batch 1, ``run`` a loop of
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
         cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
 
@@ -123,16 +117,8 @@ def load_neural_estimator(
             checkpoint of another method or scenario, missing or corrupt files.
     """
     m = check_method(method)
-    if checkpoint is None:
-        checkpoint = default_checkpoint(scenario.name, m)
-        if not (checkpoint / CARD_FILE).is_file() or not (checkpoint / WEIGHTS_FILE).is_file():
-            missing = [f for f in (CARD_FILE, WEIGHTS_FILE) if not (checkpoint / f).is_file()]
-            raise EstimatorError(
-                f"no trained {m} model ships for scenario {scenario.name!r}: {checkpoint} lacks "
-                f"{' and '.join(missing)}. Train one with `neural-estimator train --scenario {scenario.name} "
-                f"--model {m} --out {checkpoint}` or pass checkpoint=<dir> (--checkpoint)"
-            )
-    directory, card = read_card(checkpoint)
+    ckpt = resolve_checkpoint(checkpoint, scenario.name, m)  # the card read once; the weights hashed where loaded
+    directory, card = ckpt.directory, ckpt.card
     if card["method"] != m:
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
@@ -146,7 +132,7 @@ def load_neural_estimator(
     from neural_estimator.serving.checkpoint import load_checkpoint
     from neural_estimator.serving.neural import NeuralEstimator
 
-    model, normalizer, card = load_checkpoint(directory, device)
+    model, normalizer, card = load_checkpoint(ckpt, device)
     if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
         from neural_estimator.uncertainty.heads import attach_head
 

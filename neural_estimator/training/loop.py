@@ -122,6 +122,27 @@ def train(
     cfg = config or TrainConfig()
     if isinstance(scenario, str):
         scenario = make_scenario(scenario)
+    arch, window_key = _checked_arch(arch, cfg)
+    device = resolve_device(cfg.device)
+    sets = _training_sets(scenario, cfg, data, device, progress)
+    run = _Run(scenario, arch, window_key, sets, Path(out_dir), device)
+    if sets.cfg.resume and (run.out_dir / RESUME_DIR / "state.json").is_file():
+        run.resume(stop_when)
+    bar = _bar(sets.cfg.epochs, progress, f"{scenario.name}/{arch}", initial=run.state["epoch"], position=0)
+    while run.state["epoch"] < sets.cfg.epochs and run.state["stopped"] is None:
+        if deadline is not None and time.time() >= deadline:
+            bar.close()  # out of time: the resume state and the best checkpoint so far stay for the next run
+            return run.out_dir
+        run.epoch(stop_when, progress, bar)
+    bar.close()
+    run.finish()
+    return run.out_dir
+
+
+# ---- what train() does, in order ----------------------------------------------------------------------
+def _checked_arch(arch: str, cfg: TrainConfig) -> tuple[str, str | None]:
+    """(architecture, its attention-window hyperparameter or None); the recipe's one-line errors
+    before any data are simulated."""
     arch = check_method(arch)
     if arch not in NEURAL_METHODS:
         raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(NEURAL_METHODS)}")
@@ -133,35 +154,33 @@ def train(
         )
     known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
     unknown = sorted(set(cfg.model_overrides) - known)
-    if unknown:  # before any data are simulated
+    if unknown:
         raise TrainingError(f"{arch} has no hyperparameter(s) {unknown}; valid: {sorted(known)}")
-    out_dir = Path(out_dir)
-    device = resolve_device(cfg.device)
-    cache = cfg.cache_dir
-    dx = scenario.dx
+    return arch, window_key
 
-    # ---- data ----
-    recorded = None
+
+@dataclasses.dataclass
+class _Sets:
+    """The run's data: training and validation sets normalised, as tensors on the run's device."""
+
+    cfg: TrainConfig  # the recipe, with the counts and lengths the data set
+    norm: Normalizer
+    Z_train: torch.Tensor  # (N, T, d_in) normalised inputs [y_k, u_{k-1}]
+    X_train: torch.Tensor  # (N, T, dx) normalised states
+    Z_val: torch.Tensor
+    X_val: torch.Tensor
+    n_train: int
+    recorded: dict[str, str] | None  # the SHA-256 of recorded sets, None for simulated ones
+    eval_data: Trajectories | None  # recorded data: the card's metrics on the validation set
+
+
+def _training_sets(
+    scenario: Scenario, cfg: TrainConfig, data: tuple[Trajectories, Trajectories] | None, device, progress: bool
+) -> _Sets:
+    """Step 1-2: the training and validation sets (given, or simulated and cached) and the
+    normalisation statistics of the training set."""
     if data is not None:
-        train_data, val_data = data
-        for role, d in (("training", train_data), ("validation", val_data)):
-            if (d.x.shape[2], d.y.shape[2], d.u.shape[2]) != (scenario.dx, scenario.dy, scenario.du):
-                raise TrainingError(
-                    f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
-                    f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}"
-                )
-        if train_data.horizon < cfg.window:
-            raise TrainingError(
-                f"training trajectories have {train_data.horizon} steps, fewer than the window "
-                f"({cfg.window}); pass a smaller --window or cut longer trajectories"
-            )
-        cfg = dataclasses.replace(
-            cfg,
-            trajectories=train_data.n,
-            train_length=train_data.horizon,
-            val_trajectories=val_data.n,
-            eval_trajectories=min(cfg.eval_trajectories, val_data.n),
-        )
+        cfg, train_data, val_data = _recorded_sets(scenario, cfg, data)
         recorded = {"train_sha256": trajectories_digest(train_data), "val_sha256": trajectories_digest(val_data)}
         n_train = train_data.n
     else:
@@ -174,12 +193,13 @@ def train(
                     flush=True,
                 )
             cfg = dataclasses.replace(cfg, train_length=longest)
+        recorded = None
         n_train = int(cfg.trajectories or training_trajectories(cfg.data_ratio, length=cfg.train_length))
+        cache = cfg.cache_dir
         train_data = dataset(scenario, "train", cfg.data_index, n_train, cfg.train_length, cfg.data_seed, cache)
         val_data = dataset(
             scenario, "val", cfg.data_index, cfg.val_trajectories, cfg.train_length, cfg.data_seed, cache
         )
-    eval_data = val_data if recorded is not None else None  # recorded data: card metrics on the validation set
     norm = Normalizer.from_data(scenario, train_data)
 
     def as_tensors(data) -> tuple[torch.Tensor, torch.Tensor]:
@@ -192,185 +212,125 @@ def train(
 
     Z_train, X_train = as_tensors(train_data)
     Z_val, X_val = as_tensors(val_data)
-    del train_data, val_data  # (eval_data keeps the recorded validation set for the card's metrics)
-    sampler = ChunkSampler(n_train, cfg.train_length, cfg.window, cfg.warmup)
-    n_windows = int(cfg.windows_per_epoch or math.ceil(n_train * cfg.train_length / cfg.window))
-    steps_per_epoch = math.ceil(n_windows / cfg.batch_size)
-    angle_mask = torch.zeros(dx, dtype=torch.bool, device=device)
-    angle_mask[list(scenario.angle_states)] = True
-    comp_w = component_weights(cfg.loss_units, norm.out_std, device)  # None: normalised units
-    window_cols = np.arange(cfg.window)
+    eval_data = val_data if recorded is not None else None
+    return _Sets(cfg, norm, Z_train, X_train, Z_val, X_val, n_train, recorded, eval_data)
 
-    # ---- model, optimiser, scheduler, RNG ----
-    torch.manual_seed(cfg.init_seed)  # initial weights and dropout
-    overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
-    model = build_model(arch, norm.d_in, dx, **overrides).to(device)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
-        optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
+
+def _recorded_sets(
+    scenario: Scenario, cfg: TrainConfig, data: tuple[Trajectories, Trajectories]
+) -> tuple[TrainConfig, Trajectories, Trajectories]:
+    """Given (training, validation) sets checked against the scenario; the recipe's counts and
+    lengths from them."""
+    train_data, val_data = data
+    for role, d in (("training", train_data), ("validation", val_data)):
+        if (d.x.shape[2], d.y.shape[2], d.u.shape[2]) != (scenario.dx, scenario.dy, scenario.du):
+            raise TrainingError(
+                f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
+                f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}"
+            )
+    if train_data.horizon < cfg.window:
+        raise TrainingError(
+            f"training trajectories have {train_data.horizon} steps, fewer than the window "
+            f"({cfg.window}); pass a smaller --window or cut longer trajectories"
+        )
+    cfg = dataclasses.replace(
+        cfg,
+        trajectories=train_data.n,
+        train_length=train_data.horizon,
+        val_trajectories=val_data.n,
+        eval_trajectories=min(cfg.eval_trajectories, val_data.n),
     )
-    rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
-    run = {"epoch": 0, "best": math.inf, "best_epoch": 0, "bad_epochs": 0, "stopped": None, "history": []}
-    identity = {
-        "scenario": scenario.describe(),
-        "arch": arch,
-        "config": cfg.recipe(),
-        **({"recorded": recorded} if recorded else {}),
-    }
-    if cfg.resume and (out_dir / RESUME_DIR / "state.json").is_file():
-        run = load_resume(out_dir / RESUME_DIR, identity, model, optimizer, scheduler, rng)
+    return cfg, train_data, val_data
+
+
+def _bar(total: int, progress: bool, desc: str | None = None, initial: int = 0, position: int = 1, **kw):
+    """A tqdm bar: epochs (position 0), or the batches inside one epoch (position 1, not left behind)."""
+    unit = "epoch" if position == 0 else "batch"
+    extra = {} if position == 0 else {"leave": False}
+    if desc is not None:
+        extra["desc"] = desc
+    return tqdm(
+        total=total,
+        initial=initial,
+        disable=None if progress else True,
+        unit=unit,
+        position=position,
+        dynamic_ncols=True,
+        **extra,
+        **kw,
+    )
+
+
+class _Run:
+    """Steps 3-8 of one training run: the model, its optimiser and scheduler, the window draws, and
+    the run's record (``state``: epoch, best, history; what the resume state holds)."""
+
+    def __init__(self, scenario: Scenario, arch: str, window_key: str | None, sets: _Sets, out_dir: Path, device):
+        cfg = sets.cfg
+        self.scenario, self.arch, self.window_key, self.sets, self.cfg = scenario, arch, window_key, sets, cfg
+        self.out_dir, self.device = out_dir, device
+        self.sampler = ChunkSampler(sets.n_train, cfg.train_length, cfg.window, cfg.warmup)
+        self.n_windows = int(cfg.windows_per_epoch or math.ceil(sets.n_train * cfg.train_length / cfg.window))
+        self.steps_per_epoch = math.ceil(self.n_windows / cfg.batch_size)
+        self.angle_mask = torch.zeros(scenario.dx, dtype=torch.bool, device=device)
+        self.angle_mask[list(scenario.angle_states)] = True
+        self.comp_w = component_weights(cfg.loss_units, sets.norm.out_std, device)  # None: normalised units
+        self.window_cols = np.arange(cfg.window)
+        # step 3: the model under torch.manual_seed(init_seed) (initial weights and dropout)
+        torch.manual_seed(cfg.init_seed)
+        overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
+        self.model = build_model(arch, sets.norm.d_in, scenario.dx, **overrides).to(device)
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            self.optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
+        )
+        self.rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
+        self.state: dict[str, Any] = {
+            "epoch": 0,
+            "best": math.inf,
+            "best_epoch": 0,
+            "bad_epochs": 0,
+            "stopped": None,
+            "history": [],
+        }
+        self.identity = {
+            "scenario": scenario.describe(),
+            "arch": arch,
+            "config": cfg.recipe(),
+            **({"recorded": sets.recorded} if sets.recorded else {}),
+        }
+
+    def resume(self, stop_when) -> None:
+        """Step 7: continue from ``resume/``, bit for bit."""
+        run = self.state = load_resume(
+            self.out_dir / RESUME_DIR, self.identity, self.model, self.optimizer, self.scheduler, self.rng
+        )
         if run["stopped"] and run["stopped"].startswith("early stopping"):
-            if run["bad_epochs"] < cfg.patience:
+            if run["bad_epochs"] < self.cfg.patience:
                 run["stopped"] = None  # resumed with a larger patience: early stopping no longer applies
         elif run["stopped"] and stop_when is None:
             run["stopped"] = None  # stopped by a stop_when rule that this run does not apply
 
-    def get_batch() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        idx, start = sampler.sample(rng, cfg.batch_size)  # (B,), (B,)
-        rows = torch.as_tensor(idx[:, None], device=device)  # (B, 1)
-        cols = torch.as_tensor(start[:, None] + window_cols[None, :], device=device)  # (B, L)
-        w = torch.as_tensor(sampler.loss_weights(start), dtype=torch.float32, device=device)  # (B, L)
-        return Z_train[rows, cols], X_train[rows, cols], w
+    # ---- one epoch: get a batch, estimate the loss, step; validate; checkpoint ----
+    def get_batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        idx, start = self.sampler.sample(self.rng, self.cfg.batch_size)  # (B,), (B,)
+        rows = torch.as_tensor(idx[:, None], device=self.device)  # (B, 1)
+        cols = torch.as_tensor(start[:, None] + self.window_cols[None, :], device=self.device)  # (B, L)
+        w = torch.as_tensor(self.sampler.loss_weights(start), dtype=torch.float32, device=self.device)  # (B, L)
+        return self.sets.Z_train[rows, cols], self.sets.X_train[rows, cols], w
 
-    n_val_batches = math.ceil(Z_val.shape[0] / cfg.val_batch_size)
-
-    @torch.no_grad()
-    def estimate_loss(bar) -> float:
-        model.eval()
-        total, count = 0.0, 0
-        bar.set_description_str(f"{scenario.name}/{arch} epoch {run['epoch'] + 1} validation")
-        for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
-            z = Z_val[b0 : b0 + cfg.val_batch_size]
-            if cfg.val_context and not window_key:
-                pred = bounded_forward(model, z, cfg.val_context, cfg.val_context_copies)
-            else:  # an attention model's window, val_context when set, bounds it already
-                pred = model(z)
-            e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], angle_mask)[:, cfg.warmup :]
-            e2 = e.double().square()
-            if comp_w is not None:  # the same component weights as the training loss (mean 1)
-                e2 = e2 * comp_w.double()
-            total += float(e2.sum())
-            count += e.numel()
-            bar.update(1)
-        model.train()
-        return total / count
-
-    def card(metrics: dict[str, Any] | None = None) -> dict[str, Any]:
-        return {
-            "scenario": scenario.describe(),
-            "data": {
-                **(
-                    {"source": "recorded", **recorded}
-                    if recorded
-                    else {"seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio}
-                ),
-                "train_trajectories": n_train,
-                "train_length": cfg.train_length,
-                "val_trajectories": cfg.val_trajectories,
-                "windows_per_epoch": n_windows,
-            },
-            "init_seed": cfg.init_seed,
-            "training": {
-                "recipe": cfg.recipe(),
-                "device": str(device),
-                "steps_per_epoch": steps_per_epoch,
-                "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "
-                "e = normalised error, angles wrapped"
-                + (
-                    ""
-                    if comp_w is None
-                    else "; each component weighted by sigma_d^2 / mean(sigma^2) (loss_units=state: the states' units)"
-                ),
-                "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode"
-                + (
-                    ""
-                    if not cfg.val_context
-                    else f", context bounded to {cfg.val_context} steps (its attention window)"
-                    if window_key
-                    else f", context bounded to {cfg.val_context} steps ({cfg.val_context_copies} copies)"
-                ),
-                "epochs_run": run["epoch"],
-                "best_epoch": run["best_epoch"],
-                "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
-                "budget": {
-                    "max_epochs": cfg.epochs,
-                    "early_stopping_patience": cfg.patience,
-                    "windows_per_epoch": n_windows,
-                    "val_trajectories": cfg.val_trajectories,
-                    "wall_seconds": round(sum(h["seconds"] for h in run["history"]), 1),
-                },
-                "lr_reductions": lr_reductions(run["history"], cfg.lr),
-                "converged": converged(run["stopped"], run["history"], cfg.lr),
-                "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
-                "history": run["history"],
-            },
-            "validation_loss": run["best"],
-            "metrics": metrics,
-        }
-
-    # ---- the loop ----
-    bar = tqdm(
-        total=cfg.epochs,
-        initial=run["epoch"],
-        disable=None if progress else True,
-        unit="epoch",
-        desc=f"{scenario.name}/{arch}",
-        dynamic_ncols=True,
-        position=0,
-    )
-    interrupted = False
-    while run["epoch"] < cfg.epochs and run["stopped"] is None:
-        if deadline is not None and time.time() >= deadline:
-            interrupted = True
-            break
+    def epoch(self, stop_when, progress: bool, bar) -> None:
+        """Step 4-7: one epoch of training, its validation, the scheduler, the best checkpoint, the
+        stopping rules and the resume state."""
         t0 = time.perf_counter()
-        model.train()
-        train_loss = 0.0
-        # inside the epoch: batches of windows, then validation batches (rate and time left)
-        inner = tqdm(
-            total=steps_per_epoch,
-            disable=None if progress else True,
-            unit="batch",
-            leave=False,
-            position=1,
-            desc=f"{scenario.name}/{arch} epoch {run['epoch'] + 1} training",
-            dynamic_ncols=True,
-        )
-        for it in range(steps_per_epoch):
-            z, x, w = get_batch()
-            loss = weighted_loss(model(z), x, w, angle_mask, comp_w)
-            loss_value = loss.item()
-            if not math.isfinite(loss_value):
-                raise TrainingError(
-                    f"training loss is {loss_value} at epoch {run['epoch'] + 1}, step {it + 1}; the run diverged "
-                    f"(a lower --lr may help; the last good state is in {out_dir / RESUME_DIR})"
-                )
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            optimizer.step()
-            train_loss += loss_value
-            inner.update(1)
-            if it % 10 == 9 or it == steps_per_epoch - 1:
-                inner.set_postfix_str(
-                    f"{cfg.batch_size * inner.n / max(inner.format_dict['elapsed'], 1e-9):.0f} windows/s, "
-                    f"loss {train_loss / (it + 1):.4g}"
-                )
+        train_loss = self.train_epoch(progress)
+        inner = _bar(math.ceil(self.sets.Z_val.shape[0] / self.cfg.val_batch_size), progress)
+        val_loss = self.estimate_loss(inner)
         inner.close()
-        train_loss /= steps_per_epoch
-        inner = tqdm(
-            total=n_val_batches,
-            disable=None if progress else True,
-            unit="batch",
-            leave=False,
-            position=1,
-            dynamic_ncols=True,
-        )
-        val_loss = estimate_loss(inner)
-        inner.close()
-        scheduler.step(val_loss)
+        self.scheduler.step(val_loss)
+        run = self.state
         run["epoch"] += 1
-        lr = optimizer.param_groups[0]["lr"]
+        lr = self.optimizer.param_groups[0]["lr"]
         run["history"].append(
             {
                 "epoch": run["epoch"],
@@ -382,45 +342,152 @@ def train(
         )
         if val_loss < run["best"]:
             run["best"], run["best_epoch"], run["bad_epochs"] = val_loss, run["epoch"], 0
-            save_checkpoint(out_dir, model, norm, card())
+            save_checkpoint(self.out_dir, self.model, self.sets.norm, self.card())
         else:
             run["bad_epochs"] += 1
-            if run["bad_epochs"] >= cfg.patience:
-                run["stopped"] = f"early stopping: no lower validation loss in {cfg.patience} epochs"
+            if run["bad_epochs"] >= self.cfg.patience:
+                run["stopped"] = f"early stopping: no lower validation loss in {self.cfg.patience} epochs"
         if run["stopped"] is None and stop_when is not None:
             run["stopped"] = stop_when(run["history"])
-        save_resume(out_dir / RESUME_DIR, identity, run, model, optimizer, scheduler, rng)
+        save_resume(self.out_dir / RESUME_DIR, self.identity, run, self.model, self.optimizer, self.scheduler, self.rng)
         bar.update(1)
         bar.set_postfix(
             {"train": f"{train_loss:.4g}", "val": f"{val_loss:.4g}", "best": f"{run['best']:.4g}", "lr": f"{lr:.2g}"}
         )
-    bar.close()
-    if interrupted:  # out of time: the resume state and the best checkpoint so far stay for the next run
-        return out_dir
 
-    # ---- the best model, rebuilt from its checkpoint; metrics; the final card ----
-    if run["best_epoch"] == 0:
-        raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
-    best_model, _, _ = load_checkpoint(out_dir, device)
-    metrics = None
-    if cfg.eval_trajectories:
-        metrics = evaluate(
-            scenario,
-            best_model,
-            norm,
-            arch,
-            cfg.eval_trajectories,
-            cfg.data_seed,
-            device,
-            cache,
-            data=eval_data,
-            context=cfg.val_context,
-            context_copies=cfg.val_context_copies,
+    def train_epoch(self, progress: bool) -> float:
+        """Step 4: ``steps_per_epoch`` batches of windows; the mean training loss."""
+        cfg, model, steps = self.cfg, self.model, self.steps_per_epoch
+        model.train()
+        train_loss = 0.0
+        inner = _bar(  # inside the epoch: batches of windows, then validation batches (rate and time left)
+            steps, progress, f"{self.scenario.name}/{self.arch} epoch {self.state['epoch'] + 1} training"
         )
-    save_checkpoint(out_dir, best_model, norm, card(metrics))
-    if not cfg.keep_resume:
-        shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
-    return out_dir
+        for it in range(steps):
+            z, x, w = self.get_batch()
+            loss = weighted_loss(model(z), x, w, self.angle_mask, self.comp_w)
+            loss_value = loss.item()
+            if not math.isfinite(loss_value):
+                raise TrainingError(
+                    f"training loss is {loss_value} at epoch {self.state['epoch'] + 1}, step {it + 1}; the run "
+                    f"diverged (a lower --lr may help; the last good state is in {self.out_dir / RESUME_DIR})"
+                )
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            self.optimizer.step()
+            train_loss += loss_value
+            inner.update(1)
+            if it % 10 == 9 or it == steps - 1:
+                inner.set_postfix_str(
+                    f"{cfg.batch_size * inner.n / max(inner.format_dict['elapsed'], 1e-9):.0f} windows/s, "
+                    f"loss {train_loss / (it + 1):.4g}"
+                )
+        inner.close()
+        return train_loss / steps
+
+    @torch.no_grad()
+    def estimate_loss(self, bar) -> float:
+        """Step 5: L_val over the full-length validation trajectories, eval mode."""
+        cfg, model, Z_val, X_val = self.cfg, self.model, self.sets.Z_val, self.sets.X_val
+        model.eval()
+        total, count = 0.0, 0
+        bar.set_description_str(f"{self.scenario.name}/{self.arch} epoch {self.state['epoch'] + 1} validation")
+        for b0 in range(0, Z_val.shape[0], cfg.val_batch_size):
+            z = Z_val[b0 : b0 + cfg.val_batch_size]
+            if cfg.val_context and not self.window_key:
+                pred = bounded_forward(model, z, cfg.val_context, cfg.val_context_copies)
+            else:  # an attention model's window, val_context when set, bounds it already
+                pred = model(z)
+            e = state_error(pred, X_val[b0 : b0 + cfg.val_batch_size], self.angle_mask)[:, cfg.warmup :]
+            e2 = e.double().square()
+            if self.comp_w is not None:  # the same component weights as the training loss (mean 1)
+                e2 = e2 * self.comp_w.double()
+            total += float(e2.sum())
+            count += e.numel()
+            bar.update(1)
+        model.train()
+        return total / count
+
+    def finish(self) -> None:
+        """Step 8: the best model rebuilt from its checkpoint, measured; the final card."""
+        cfg, out_dir = self.cfg, self.out_dir
+        if self.state["best_epoch"] == 0:
+            raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
+        best_model, _, _ = load_checkpoint(out_dir, self.device)
+        metrics = None
+        if cfg.eval_trajectories:
+            metrics = evaluate(
+                self.scenario,
+                best_model,
+                self.sets.norm,
+                self.arch,
+                cfg.eval_trajectories,
+                cfg.data_seed,
+                self.device,
+                cfg.cache_dir,
+                data=self.sets.eval_data,
+                context=cfg.val_context,
+                context_copies=cfg.val_context_copies,
+            )
+        save_checkpoint(out_dir, best_model, self.sets.norm, self.card(metrics))
+        if not cfg.keep_resume:
+            shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
+
+    def card(self, metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The checkpoint's card: data, recipe, budget, history, validation loss, metrics."""
+        cfg, run, recorded = self.cfg, self.state, self.sets.recorded
+        return {
+            "scenario": self.scenario.describe(),
+            "data": {
+                **(
+                    {"source": "recorded", **recorded}
+                    if recorded
+                    else {"seed": cfg.data_seed, "index": cfg.data_index, "data_ratio": cfg.data_ratio}
+                ),
+                "train_trajectories": self.sets.n_train,
+                "train_length": cfg.train_length,
+                "val_trajectories": cfg.val_trajectories,
+                "windows_per_epoch": self.n_windows,
+            },
+            "init_seed": cfg.init_seed,
+            "training": {
+                "recipe": cfg.recipe(),
+                "device": str(self.device),
+                "steps_per_epoch": self.steps_per_epoch,
+                "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "
+                "e = normalised error, angles wrapped"
+                + (
+                    ""
+                    if self.comp_w is None
+                    else "; each component weighted by sigma_d^2 / mean(sigma^2) (loss_units=state: the states' units)"
+                ),
+                "validation": f"mean e^2 over full-length validation trajectories, t >= {cfg.warmup}, eval mode"
+                + (
+                    ""
+                    if not cfg.val_context
+                    else f", context bounded to {cfg.val_context} steps (its attention window)"
+                    if self.window_key
+                    else f", context bounded to {cfg.val_context} steps ({cfg.val_context_copies} copies)"
+                ),
+                "epochs_run": run["epoch"],
+                "best_epoch": run["best_epoch"],
+                "stopped": run["stopped"] or ("max epochs" if run["epoch"] >= cfg.epochs else "in progress"),
+                "budget": {
+                    "max_epochs": cfg.epochs,
+                    "early_stopping_patience": cfg.patience,
+                    "windows_per_epoch": self.n_windows,
+                    "val_trajectories": cfg.val_trajectories,
+                    "wall_seconds": round(sum(h["seconds"] for h in run["history"]), 1),
+                },
+                "lr_reductions": lr_reductions(run["history"], cfg.lr),
+                "converged": converged(run["stopped"], run["history"], cfg.lr),
+                "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
+                "history": run["history"],
+            },
+            "validation_loss": run["best"],
+            "metrics": metrics,
+        }
 
 
 def evaluate(

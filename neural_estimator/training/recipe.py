@@ -36,7 +36,7 @@ class TrainConfig:
     # the units the loss (and the validation loss) weighs the state components in: "state" (the states'
     # own units, as the paper's RMSE counts them; the default) or "normalised" (each
     # component at unit variance, every model trained before); the paper does not say which, and on
-    # ballistic and the quadrotor "state" gave 2.2x and 1.5x lower RMSE (benchmarks/loss_units.py)
+    # ballistic and the quadrotor "state" gave 2.2x and 1.5x lower RMSE (experiments/loss_units.py)
     loss_units: str = "state"
     windows_per_epoch: int | None = None  # None -> N x train_length / window (the set's steps once)
     # model

@@ -2,7 +2,7 @@
 where the filters' prior on the drag coefficient is far from and much wider than the truth's; and
 bodies that cross the ground, where the paper's E(a) = min(exp(-k a), 1) has its kink.
 
-    .venv/bin/python benchmarks/ballistic_hypotheses.py                    # EKF, UKF, EnKF, PF; 100 trajectories
+    .venv/bin/python experiments/ballistic_hypotheses.py                    # EKF, UKF, EnKF, PF; 100 trajectories
 
 The paper's ballistic EKF (5.29) is 8x its UKF (0.63). Our scenario (the classic problem in km) has
 EKF = UKF. In the classic falling-body problem (Athans, Wishner & Bertolini 1968; Julier & Uhlmann
@@ -17,7 +17,7 @@ the EKF's Jacobian of E jumps there (from -k to 0) while the UKF's sigma points 
 The two after them put the radar under the flight path (r0 = 0: the range |a - a_ref| has a kink
 where every body passes a_ref = 30 km), the second with a 3 km range noise so that the filters are
 still uncertain when they reach it.
-Output of the default run: benchmarks/results/ballistic_hypotheses.txt.
+Output of the default run: experiments/results/ballistic_hypotheses.txt.
 """
 
 from __future__ import annotations

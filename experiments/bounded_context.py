@@ -1,7 +1,7 @@
 """Is an SSM's loss of accuracy beyond its training windows a matter of context length?
 
-    .venv/bin/python benchmarks/bounded_context.py --scenario nlink --model zoo_training/normalised/nlink-mamba2
-    .venv/bin/python benchmarks/bounded_context.py --scenario nlink \
+    .venv/bin/python experiments/bounded_context.py --scenario nlink --model zoo_training/normalised/nlink-mamba2
+    .venv/bin/python experiments/bounded_context.py --scenario nlink \
         --model zoo_training/normalised/nlink-mamba2 \
         --weights zoo_training/normalised/nlink-mamba2/resume/model.safetensors   # its last epoch
 

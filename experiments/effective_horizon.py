@@ -1,7 +1,7 @@
 """Which steps the paper scores: every step, or the steps after its 10-step warm-up?
 
-    .venv/bin/python benchmarks/effective_horizon.py                      # all five scenarios, 200 trajectories
-    .venv/bin/python benchmarks/effective_horizon.py --scenarios lorenz96 --trajectories 1000
+    .venv/bin/python experiments/effective_horizon.py                      # all five scenarios, 200 trajectories
+    .venv/bin/python experiments/effective_horizon.py --scenarios lorenz96 --trajectories 1000
 
 The paper's loss ignores "the first 10 timesteps ... as a warmup period" and its drift ratio uses
 "the effective trajectory length T"; it never says whether its metrics score the warm-up. A model
@@ -12,7 +12,7 @@ ratio (last-quarter over first-quarter RMSE) below 1. For each scenario and meth
 evaluation set 0 (shipped models, classical filters from the prior), RMSE, drift ratio and
 AUC / RMSE scored over every step ("all") and over t >= 10 ("t>=10"), beside the paper's, and then,
 per scenario, how far the neural rows' AUC / RMSE are from the paper's under each reading (median
-|log(ours / paper)|). Output of the default run: benchmarks/results/effective_horizon.txt.
+|log(ours / paper)|). Output of the default run: experiments/results/effective_horizon.txt.
 """
 
 from __future__ import annotations

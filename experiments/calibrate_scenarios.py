@@ -29,10 +29,10 @@ the preset of the constants before this calibration.
 
 Usage (small default sizes, minutes on a loaded 2-core machine):
 
-    .venv/bin/python scripts/calibrate_scenarios.py --scenario ballistic
-    .venv/bin/python scripts/calibrate_scenarios.py --scenario ballistic --trajectories 300 --methods ekf,ukf,enkf,pf
-    .venv/bin/python scripts/calibrate_scenarios.py --scenario nlink --candidate v3 --candidate x0std1
-    .venv/bin/python scripts/calibrate_scenarios.py --scenario quadrotor --set obs_noise_std=0.2
+    .venv/bin/python experiments/calibrate_scenarios.py --scenario ballistic
+    python experiments/calibrate_scenarios.py --scenario ballistic --trajectories 300 --methods ekf,ukf,enkf,pf
+    .venv/bin/python experiments/calibrate_scenarios.py --scenario nlink --candidate v3 --candidate x0std1
+    .venv/bin/python experiments/calibrate_scenarios.py --scenario quadrotor --set obs_noise_std=0.2
 
 ``--set name=value`` applies to every candidate of the run (after the candidate's own constants).
 A candidate whose constants cannot be simulated (a prior with mass where the dynamics blow up)

@@ -1,7 +1,7 @@
 """RMSE / NRMSE of our filters on each scenario, beside the paper's ranges.
 
-    .venv/bin/python benchmarks/nrmse_ratios.py                      # EKF, UKF; 30 trajectories, seed 7
-    .venv/bin/python benchmarks/nrmse_ratios.py --trajectories 100 --methods ekf,ukf,enkf
+    .venv/bin/python experiments/nrmse_ratios.py                      # EKF, UKF; 30 trajectories, seed 7
+    .venv/bin/python experiments/nrmse_ratios.py --trajectories 100 --methods ekf,ukf,enkf
 
 The paper does not define NRMSE; docs/metrics.md explains the definition chosen from its tables.
 This prints, per scenario and method, RMSE, Full RMSE, NRMSE (``nrmse``), ``nrmse_spread``, the ratio

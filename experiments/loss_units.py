@@ -7,12 +7,12 @@ RMSE on evaluation set 0 with the shipped model trained on normalised units, whe
 the same recipe otherwise (same budget, data and seeds: the same window stream), so the loss units
 are the only difference:
 
-    python benchmarks/loss_units.py --pairs ballistic-mamba2,quadrotor-mamba2 --out runs/lossunits
+    python experiments/loss_units.py --pairs ballistic-mamba2,quadrotor-mamba2 --out runs/lossunits
 
 Each training goes to OUT/<scenario>-<model>-state/ and is skipped when its card is already
 there (so the script can be run again to extend the table). Defaults are the shipped 2 %-budget
 recipe: 20 epochs x 2,000 windows, 400 validation and 400 evaluation trajectories, one thread.
-Output of the session-8 run: benchmarks/results/loss_units.md.
+Output of the session-8 run: experiments/results/loss_units.md.
 """
 
 from __future__ import annotations

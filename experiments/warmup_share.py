@@ -1,8 +1,8 @@
 """How much of a model's RMSE comes from the warm-up steps its training loss ignores.
 
-    .venv/bin/python benchmarks/warmup_share.py                                   # Lorenz 96, shipped models
-    .venv/bin/python benchmarks/warmup_share.py --checkpoint mamba2=zoo_training/lorenz96-mamba2
-    .venv/bin/python benchmarks/warmup_share.py --scenario nlink --segments 0,10,100,200,300,400,500
+    .venv/bin/python experiments/warmup_share.py                                   # Lorenz 96, shipped models
+    .venv/bin/python experiments/warmup_share.py --checkpoint mamba2=zoo_training/lorenz96-mamba2
+    .venv/bin/python experiments/warmup_share.py --scenario nlink --segments 0,10,100,200,300,400,500
 
 The paper's loss skips the first 10 timesteps of every window ("warm-up"), and so do the package's
 metrics (neural_estimator.metrics, "Effective trajectory length"; `--warmup 0` counts every
@@ -10,9 +10,9 @@ step). For each method this
 prints the RMSE over all steps (plain, before the outlier rule), over the first ``--warmup`` steps
 and over the rest, on evaluation set 0 (``--trajectories`` of them), so the part of the aggregate
 that the training never optimised is visible. Output of the default run (the shipped models):
-benchmarks/results/warmup_share.txt. With ``--segments`` it prints the RMSE over each segment of the
+experiments/results/warmup_share.txt. With ``--segments`` it prints the RMSE over each segment of the
 horizon instead, which shows whether a model trained on length-100 windows stays as good beyond
-step 100 (benchmarks/results/horizon_segments.txt).
+step 100 (experiments/results/horizon_segments.txt).
 """
 
 from __future__ import annotations

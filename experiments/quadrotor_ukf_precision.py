@@ -17,7 +17,7 @@ factor, additive Q and R) on the same quadrotor trajectories in float64 and in f
 project's EKF for reference, and prints the RMSE of each. It is a reference experiment, not a
 filter of the package (the package's filters are float64 only).
 
-    .venv/bin/python benchmarks/quadrotor_ukf_precision.py [--trajectories 100] [--set NAME=VALUE]
+    .venv/bin/python experiments/quadrotor_ukf_precision.py [--trajectories 100] [--set NAME=VALUE]
 """
 
 from __future__ import annotations

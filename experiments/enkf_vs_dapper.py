@@ -3,8 +3,8 @@
 Answers a question about the EnKF's long-horizon drift at the paper's settings: is it a
 bug (DAPPER would not drift on the same data) or the known need for inflation (DAPPER drifts too)?
 
-    python benchmarks/enkf_vs_dapper.py --obs-std 0.25 --members 50 --inflation 1.0 --horizon 1000
-    python benchmarks/enkf_vs_dapper.py --obs-std 1.0 --members 40 --inflation 1.06 --horizon 600
+    python experiments/enkf_vs_dapper.py --obs-std 0.25 --members 50 --inflation 1.0 --horizon 1000
+    python experiments/enkf_vs_dapper.py --obs-std 1.0 --members 40 --inflation 1.06 --horizon 600
 
 Prints, per filter, the RMSE over the steps after ``--burn-in`` per trajectory, its median, and how
 many trajectories end with an RMSE over the last 100 steps above 1 (lost). DAPPER runs one

@@ -1,0 +1,71 @@
+"""A checkpoint is resolved once: one value (directory, card, weights, digests) made by
+``serving.card.resolve_checkpoint`` and passed down, so an evaluation reads its card once and
+hashes its weights once, and the result cache's key is the digest it always was."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+
+import pytest
+
+from neural_estimator.evaluation import checkpoint_digest, evaluate
+from neural_estimator.registry import EstimatorError
+from neural_estimator.scenarios import make_scenario
+from neural_estimator.serving import card as C
+
+
+def _counting(monkeypatch):
+    calls = {"check_card": 0, "hash": 0, "sha256_file": 0}
+    for name in calls:
+        real = getattr(C, "_hash" if name == "hash" else name)
+
+        def counted(*a, _real=real, _name=name, **k):
+            calls[_name] += 1
+            return _real(*a, **k)
+
+        monkeypatch.setattr(C, "_hash" if name == "hash" else name, counted)
+    return calls
+
+
+def test_an_evaluation_reads_the_card_once_and_hashes_the_weights_once(tmp_path, monkeypatch):
+    calls = _counting(monkeypatch)
+    scenario = make_scenario("lorenz96")
+    kw = dict(trajectories=2, horizon=12, sets=2, cache_dir=tmp_path, progress=False)
+    first = evaluate(scenario, ["gru"], **kw)
+    assert calls == {"check_card": 1, "hash": 1, "sha256_file": 0}, calls
+    assert len(first["gru"].reports) == 2
+    for k in calls:
+        calls[k] = 0
+    second = evaluate(scenario, ["gru"], **kw)  # every run cached: still one resolution, no loading
+    assert second["gru"].cached == 2 and calls == {"check_card": 1, "hash": 1, "sha256_file": 0}, calls
+
+
+def test_the_resolved_digest_is_the_result_cache_key_of_the_files():
+    scenario = make_scenario("lorenz96")
+    ckpt = C.resolve_checkpoint(None, "lorenz96", "gru")
+    assert ckpt.directory == C.default_checkpoint("lorenz96", "gru")
+    assert ckpt.sha256 == ckpt.card["weights"]["sha256"]
+    h = hashlib.blake2b(digest_size=16)
+    for name in (C.CARD_FILE, C.WEIGHTS_FILE):
+        h.update(name.encode())
+        h.update((ckpt.directory / name).read_bytes())
+    assert ckpt.digest == h.hexdigest()
+    assert checkpoint_digest(scenario, "gru", ckpt) == checkpoint_digest(scenario, "gru", None) == ckpt.digest
+    assert checkpoint_digest(scenario, "gru", ckpt.directory / C.CARD_FILE) == ckpt.digest
+    assert checkpoint_digest(scenario, "ekf", None) is None
+
+
+def test_a_checkpoint_that_cannot_be_resolved_is_one_line(tmp_path):
+    with pytest.raises(EstimatorError, match="does not exist"):
+        C.resolve_checkpoint(tmp_path / "nowhere")
+    with pytest.raises(EstimatorError, match="no trained gru model ships for scenario 'nowhere'"):
+        C.resolve_checkpoint(None, "nowhere", "gru")
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(C.default_checkpoint("lorenz96", "gru"), ckpt)
+    (ckpt / C.WEIGHTS_FILE).unlink()
+    resolved = C.resolve_checkpoint(ckpt)  # the card alone: what serving the ONNX step beside it needs
+    with pytest.raises(EstimatorError, match="weight file model.safetensors is missing"):
+        resolved.digest
+    # before training, a job's key is made from files that do not exist yet
+    assert len(C.checkpoint_digest(tmp_path / "later")) == 32
