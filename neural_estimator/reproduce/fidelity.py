@@ -94,7 +94,7 @@ def match_counts(cells: Sequence[Cell]) -> tuple[int, int, int]:
 
 def spread(rmse: Table, nrmse: Table, scenario: str, methods: Sequence[str]) -> float | None:
     """RMSE / NRMSE of the most accurate method (lowest finite NRMSE > 0): the states' spread, read
-    where outliers weigh least (the rule of ``scripts/calibrate_scenarios.py``)."""
+    where outliers weigh least (the rule of ``experiments/calibrate_scenarios.py``)."""
     pairs = [
         (float(nrmse[scenario][m]), float(rmse[scenario][m]))
         for m in methods
