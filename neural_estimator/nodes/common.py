@@ -323,3 +323,13 @@ def request_shutdown(node: ExitStatusNode, code: int = 0) -> None:
     """End the spin of :func:`run_node` (from a callback) with exit status ``code``."""
     node.exit_code = code
     node.context.try_shutdown()
+
+
+def trim_heap() -> None:
+    """Give freed heap memory back to the system (glibc), so one huge message does not stay resident."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass

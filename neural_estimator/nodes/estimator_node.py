@@ -47,7 +47,6 @@ method, scenario or a missing checkpoint is one fatal line at start-up and exit 
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 
@@ -61,7 +60,7 @@ from std_srvs.srv import Trigger
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import METHODS, NEURAL_METHODS, EstimatorError, check_method, make_estimator
+from neural_estimator.registry import NEURAL_METHODS, EstimatorError, check_method, make_estimator
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,
@@ -70,104 +69,19 @@ from neural_estimator.nodes.common import (
     executor_choice,
     latched_qos,
     load_plugins,
-    param,
     peek_param,
     run_node,
     stream_qos,
+    trim_heap,
 )
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
-from neural_estimator.online import (
-    DEFAULT_CONFIRM,
-    DEFAULT_MAX_GAP,
-    DEFAULT_MAX_GAP_SECONDS,
-    DEFAULT_QUARANTINE_SECONDS,
-    OnlineEstimator,
-)
+from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams
+from neural_estimator.online import OnlineEstimator, warm_up
+from neural_estimator.serving.card import recorded_data_checkpoint
 
-OBSERVATION_QOS = ("reliable", "sensor_data")
 EARLY_MAX_BYTES = 1 << 20  # an observation kept while waiting for the scenario (width unknown yet): 1 MiB
-
-
-@dataclasses.dataclass(frozen=True)
-class EstimatorParams:
-    """Parameters of the estimator node (documented in params/estimator.yaml)."""
-
-    method: str = param("ukf", f"estimation method: one of {', '.join(METHODS)}")
-    scenario: str = param("", "scenario name; empty = take it (with its constants) from the 'scenario' topic")
-    set: tuple[str, ...] = param((), "scenario constants as name=value (with scenario set)")
-    preset: str = param("", "named constants of that scenario, applied before set (empty = the defaults; e.g. v3)")
-    plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
-    checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
-    device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")
-    seed: int = param(0, "seed of the random draws of the EnKF and PF")
-    init: str = param(
-        "prior",
-        "how a classical filter starts each trajectory: prior (the paper's start) or observation (the state the "
-        "first observation determines where h is invertible, e.g. Lorenz 96 x0 = y0; prior mean elsewhere)",
-    )
-    threads: int = param(
-        1, "torch intra-op threads of neural methods (one suits one-step, B = 1 updates); 0 = torch's default"
-    )
-    options: tuple[str, ...] = param(
-        (),
-        "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true, "
-        "context=100 (bounded context: restarted copies for GRU/LSTM/Mamba/Mamba-2, "
-        "the attention window for GPT-2/Filterformer)",
-    )
-    observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
-    scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")
-    output_topic: str = param("", "estimate topic; empty = estimates/<method>; covariance goes to <output>/covariance")
-    publish_covariance: bool = param(True, "publish the covariance where the method has one")
-    publish_odometry: bool = param(
-        True, "publish nav_msgs/Odometry on <output>/odometry where the scenario declares a pose"
-    )
-    frame_id: str = param(
-        "map", "header.frame_id of estimates, covariances and odometry (the estimate's coordinate frame)"
-    )
-    child_frame_id: str = param("base_link", "child_frame_id of the odometry")
-    observation_qos: str = param(
-        "reliable",
-        "observation subscription reliability: reliable or sensor_data (best effort); "
-        "durability follows the publishers (transient_local when all offer it)",
-    )
-    queue_depth: int = param(10000, "subscription queue (KEEP_LAST): observations buffered while busy")
-    drain: bool = param(
-        True,
-        "take every waiting observation at each wake-up and step them in arrival order (false: one per wake-up)",
-    )
-    max_delay: float = param(
-        0.0,
-        "seconds: when the oldest waiting observation was published longer ago than this, only the newest "
-        "is stepped and the older ones are dropped (counted; the gap rule bridges or restarts); 0 = never drop",
-    )
-    delay_warn: float = param(
-        0.1, "seconds: diagnostics WARN when observations wait longer than this (p99 of the window) before their step"
-    )
-    history_depth: int = param(10000, "estimate publisher depth (transient_local): a late or slow recorder's backlog")
-    history_mb: float = param(
-        64.0,
-        "memory bound of each estimate publisher's history (MiB): depth = min(history_depth, "
-        "history_mb / message size); large covariances get a shorter history",
-    )
-    max_gap: int = param(DEFAULT_MAX_GAP, "most missing steps bridged by predict-only steps before a restart")
-    max_gap_seconds: float = param(
-        DEFAULT_MAX_GAP_SECONDS,
-        "most seconds spent bridging one gap before a restart (bounds the cost of a step jump; 0 = no bound)",
-    )
-    confirm: int = param(
-        DEFAULT_CONFIRM,
-        "messages that must agree before a jump in trajectory or step (or a new run) is accepted; "
-        "1 = accept any single message's jump",
-    )
-    quarantine_seconds: float = param(
-        DEFAULT_QUARANTINE_SECONDS,
-        "a held jump is accepted after this long (or 4 inter-arrival times) with no message of the current stream",
-    )
-    diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
-    log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
-    stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
 
 
 class EstimatorNode(ExitStatusNode):
@@ -273,7 +187,7 @@ class EstimatorNode(ExitStatusNode):
         torch = sys.modules.get("torch")  # absent when the model is served without torch (step.onnx)
         if p.threads > 0 and self.method in NEURAL_METHODS and torch is not None:
             torch.set_num_threads(p.threads)
-        _warm_up(est, scenario)
+        warm_up(est, scenario)
         self.online = OnlineEstimator(
             est,
             self.method,
@@ -463,7 +377,7 @@ class EstimatorNode(ExitStatusNode):
                 f"(bound {self.online.max_message_bytes} bytes); {self.stats.oversize} so far",
             )
             del raw
-            _trim_heap()
+            trim_heap()
             return
         try:
             results = self.online.feed(raw)
@@ -626,28 +540,6 @@ class EstimatorNode(ExitStatusNode):
             self.get_logger().warning(text)
 
 
-def _warm_up(est, scenario) -> None:
-    """One step on a zero observation, then a reset: compiled kernels (numba, torch's first-call
-    set-up) are built now, not on the first observation, where the EKF's compile took 2.9 s of the
-    run's first second (measured). The stream starts from the prior anyway (OnlineEstimator resets)."""
-    try:
-        est.reset(1)
-        est.step(np.zeros((1, scenario.dy)), np.zeros((1, scenario.du)))
-    except Exception:  # a scenario where zeros are not a valid observation: warm up at the first message
-        pass
-    est.reset(1)
-
-
-def _trim_heap() -> None:
-    """Give freed heap memory back to the system (glibc), so one huge message does not stay resident."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
 def _exists(path: str) -> bool:
     from pathlib import Path
 
@@ -668,7 +560,7 @@ def _make_node() -> ExitStatusNode:
     try:
         checkpoint = str(peek_param(node, "checkpoint") or "")
         method = str(peek_param(node, "method") or "")
-        read = _recorded_data_card(checkpoint) if checkpoint else None
+        read = recorded_data_checkpoint(checkpoint) if checkpoint else None
         if read is not None:
             from neural_estimator.nodes.robot_estimator_node import RobotEstimatorNode
 
@@ -689,18 +581,6 @@ def _make_node() -> ExitStatusNode:
         node.destroy_node()
         raise
     return node
-
-
-def _recorded_data_card(checkpoint: str):
-    """The resolved :class:`~neural_estimator.serving.card.Checkpoint` when ``checkpoint`` is a
-    readable card of a model trained with ``train --data`` (passed on, so its card is read once)."""
-    from neural_estimator.serving.card import resolve_checkpoint
-
-    try:
-        read = resolve_checkpoint(checkpoint)
-    except EstimatorError:
-        return None  # the estimator node reports a missing or corrupt checkpoint itself
-    return read if read.card.get("scenario", {}).get("scenario") == "data" else None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -54,6 +54,7 @@ from neural_estimator.nodes.common import (
     request_shutdown,
     run_node,
     to_bag_qos,
+    trim_heap,
 )
 
 
@@ -225,7 +226,7 @@ class EvaluatorNode(ExitStatusNode):
                     f"{self.p.max_message_mb:g}); {sum(self.oversize.values())} so far",
                 )
                 del raw
-                _trim_heap()
+                trim_heap()
                 return
             t = self.get_clock().now().nanoseconds if self.sim_time else 0
             try:
@@ -432,16 +433,6 @@ class EvaluatorNode(ExitStatusNode):
             self.get_logger().info("interrupted: closing the bag")
             self._close()
         return self.exit_code
-
-
-def _trim_heap() -> None:
-    """Give freed heap memory back to the system (glibc), so one huge message does not stay resident."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
 
 
 def main(args: list[str] | None = None) -> int:

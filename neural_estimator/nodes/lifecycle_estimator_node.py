@@ -36,7 +36,7 @@ from neural_estimator.nodes.common import (
     run_node,
     stream_qos,
 )
-from neural_estimator.nodes.estimator_node import EstimatorParams
+from neural_estimator.nodes.estimator_params import EstimatorParams
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
 from neural_estimator.online import OnlineEstimator
 

@@ -256,3 +256,13 @@ def _weight_file(directory: Path, card: dict[str, Any]) -> Path:
     if not weights.is_file():
         raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
     return weights
+
+
+def recorded_data_checkpoint(checkpoint: str) -> "Checkpoint | None":
+    """The resolved :class:`~neural_estimator.serving.card.Checkpoint` when ``checkpoint`` is a
+    readable card of a model trained with ``train --data`` (passed on, so its card is read once)."""
+    try:
+        read = resolve_checkpoint(checkpoint)
+    except EstimatorError:
+        return None  # the estimator node reports a missing or corrupt checkpoint itself
+    return read if read.card.get("scenario", {}).get("scenario") == "data" else None
