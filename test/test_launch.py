@@ -195,7 +195,12 @@ def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch
     out = tmp_path / "replay.mcap"
     bag = ROOT / "bags" / "bearings.mcap"
     args = [f"bag:={bag}", "methods:=ekf,ukf", "rate:=20", f"output:={out}"]
+    from neural_estimator.nodes import launch as L
+
+    started, popen = [], L.subprocess.Popen
+    monkeypatch.setattr(L.subprocess, "Popen", lambda *a, **k: started.append(popen(*a, **k)) or started[-1])
     assert ros2_shim.main(["launch", "neural_estimator", "replay.launch.py", *args]) == 0
+    assert len(started) == 4 and all(p.poll() is not None for p in started)  # no node outlives the launch
     with BagReader(out) as reader:
         n_obs = reader.topics["/observation"].msgcount
         for m in ("ekf", "ukf"):

@@ -159,16 +159,26 @@ def _stop_all(procs: dict[str, subprocess.Popen], grace: float = 5.0) -> None:
         if not alive:
             return
         for p in alive:
-            try:
-                os.killpg(p.pid, sig)
-            except ProcessLookupError:
-                pass
+            _signal(p, sig)
         deadline = time.monotonic() + wait
         for p in alive:
             try:
                 p.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 pass
+
+
+def _signal(p: subprocess.Popen, sig: int) -> None:
+    """``sig`` to the process group ``p`` leads (a node and the children it made), or to ``p`` alone
+    when it shares its parent's group (``run_graph``'s nodes, in the terminal's group like ros2
+    launch's): killpg on a pid that leads no group would signal nothing."""
+    try:
+        if os.getpgid(p.pid) == p.pid:
+            os.killpg(p.pid, sig)
+        else:
+            p.send_signal(sig)
+    except ProcessLookupError:
+        pass
 
 
 def _tail(path: Path, lines: int = 25) -> str:
