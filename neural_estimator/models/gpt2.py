@@ -159,10 +159,7 @@ class GPT2Model(nn.Module):
             nn.init.zeros_(module.bias)
 
     def forward(self, z: Tensor) -> Tensor:
-        h = self.drop(self.input_proj(z))  # (B, T, D)
-        for block in self.blocks:
-            h = block(h, self.slopes)
-        return self.head(self.ln_f(h))  # (B, T, d_out)
+        return self.head(self.features(z))  # (B, T, d_out)
 
     def init_state(self, batch: int, device=None, dtype=None) -> tuple[Tensor, ...]:
         p = self.head.weight
@@ -176,30 +173,22 @@ class GPT2Model(nn.Module):
         return (caches[0][1], *(kv for kv, _ in caches))
 
     def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
-        mask = advance_mask(state[0])  # (W,)
-        attn_bias = self.slot_alibi + mask  # (nh, 1, W)
-        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, D)
-        new: list[Tensor] = [mask]
-        for block, kv in zip(self.blocks, state[1:]):
-            h, kv = block.step(h, kv, attn_bias)
-            new.append(kv)
-        ln_f = self.ln_f
-        h = F.layer_norm(h, ln_f.normalized_shape, ln_f.weight, ln_f.bias, ln_f.eps)
-        return F.linear(h, self.head.weight, self.head.bias), tuple(new)
+        h, new = self.step_features(z_t, state)
+        return F.linear(h, self.head.weight, self.head.bias), new  # (B, d_out)
 
     # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
     def features(self, z: Tensor) -> Tensor:
         """(B, T, D): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
-        h = self.drop(self.input_proj(z))
+        h = self.drop(self.input_proj(z))  # (B, T, D)
         for block in self.blocks:
             h = block(h, self.slopes)
         return self.ln_f(h)
 
     def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
         """(B, D) features of one step and the new state: ``step`` is ``head`` of them."""
-        mask = advance_mask(state[0])
-        attn_bias = self.slot_alibi + mask
-        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        mask = advance_mask(state[0])  # (W,)
+        attn_bias = self.slot_alibi + mask  # (nh, 1, W)
+        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, D)
         new: list[Tensor] = [mask]
         for block, kv in zip(self.blocks, state[1:]):
             h, kv = block.step(h, kv, attn_bias)

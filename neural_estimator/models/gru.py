@@ -51,8 +51,7 @@ class GRUModel(nn.Module):
         self.head = nn.Linear(cfg.hidden, cfg.d_out)
 
     def forward(self, z: Tensor) -> Tensor:
-        h, _ = self.rnn(self.input_proj(z))  # (B, T, H)
-        return self.head(h)  # (B, T, d_out)
+        return self.head(self.features(z))  # (B, T, d_out)
 
     def init_state(self, batch: int, device=None, dtype=None) -> Tensor:
         p = self.head.weight
@@ -68,12 +67,8 @@ class GRUModel(nn.Module):
         """One step, eval mode (no dropout between layers): one fused ``gru_cell`` per layer, the
         arithmetic of ``nn.GRU`` on a length-1 sequence at a third less time at batch 1 (the module
         call checks and flattens its weights at every call)."""
-        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, H); no module-call overhead
-        hs = []
-        for layer, weights in enumerate(self._cell_weights()):
-            x = torch.gru_cell(x, state[layer], *weights)  # (B, H)
-            hs.append(x)
-        return F.linear(x, self.head.weight, self.head.bias), torch.stack(hs)  # (B, d_out), (L, B, H)
+        h, new = self.step_features(z_t, state)
+        return F.linear(h, self.head.weight, self.head.bias), new  # (B, d_out), (L, B, H)
 
     def _cell_weights(self) -> list[tuple[Tensor, Tensor, Tensor, Tensor]]:
         r = self.rnn
@@ -90,15 +85,15 @@ class GRUModel(nn.Module):
     # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
     def features(self, z: Tensor) -> Tensor:
         """(B, T, H): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
-        h, _ = self.rnn(self.input_proj(z))
+        h, _ = self.rnn(self.input_proj(z))  # (B, T, H)
         return h
 
     def step_features(self, z_t: Tensor, state: Tensor) -> tuple[Tensor, Tensor]:
         """(B, H) features of one step and the new state, the arithmetic of :meth:`step`, whose
         estimate is ``head`` of them."""
-        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, H); no module-call overhead
         hs = []
         for layer, weights in enumerate(self._cell_weights()):
-            x = torch.gru_cell(x, state[layer], *weights)
+            x = torch.gru_cell(x, state[layer], *weights)  # (B, H)
             hs.append(x)
-        return x, torch.stack(hs)
+        return x, torch.stack(hs)  # (B, H), (L, B, H)

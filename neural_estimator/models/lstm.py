@@ -68,14 +68,8 @@ class LSTMModel(nn.Module):
         """One step, eval mode (no dropout between layers): one fused ``lstm_cell`` per layer, the
         arithmetic of ``nn.LSTM`` on a length-1 sequence at a third of its time at batch 1 (the module
         call checks and flattens its weights at every call)."""
-        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, H); no module-call overhead
-        h0, c0 = state
-        hs, cs = [], []
-        for layer, weights in enumerate(self._cell_weights()):
-            x, c = torch.lstm_cell(x, (h0[layer], c0[layer]), *weights)  # (B, H), (B, H)
-            hs.append(x)
-            cs.append(c)
-        return F.linear(x, self.head.weight, self.head.bias), (torch.stack(hs), torch.stack(cs))  # (B, d_out)
+        h, new = self.step_features(z_t, state)
+        return F.linear(h, self.head.weight, self.head.bias), new  # (B, d_out), ((L, B, H), (L, B, H))
 
     def _cell_weights(self) -> list[tuple[Tensor, Tensor, Tensor, Tensor]]:
         r = self.rnn
@@ -98,11 +92,11 @@ class LSTMModel(nn.Module):
     def step_features(self, z_t: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, tuple[Tensor, Tensor]]:
         """(B, H) features of one step and the new state, the arithmetic of :meth:`step`, whose
         estimate is ``head`` of them."""
-        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        x = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, H); no module-call overhead
         h0, c0 = state
         hs, cs = [], []
         for layer, weights in enumerate(self._cell_weights()):
-            x, c = torch.lstm_cell(x, (h0[layer], c0[layer]), *weights)
+            x, c = torch.lstm_cell(x, (h0[layer], c0[layer]), *weights)  # (B, H), (B, H)
             hs.append(x)
             cs.append(c)
         return x, (torch.stack(hs), torch.stack(cs))

@@ -83,10 +83,7 @@ class SSMEstimator(nn.Module):
 
     def forward(self, z: Tensor, reference: bool = False) -> Tensor:
         """z (B, T, d_in) -> (B, T, d_out); ``reference=True`` runs the sequential reference scan."""
-        h = self.input_proj(z)  # (B, T, d)
-        for layer in self.backbone.layers:
-            h = layer(h, reference)
-        return self.head(self.backbone.norm_f(h))
+        return self.head(self.features(z, reference))
 
     def init_state(self, batch: int, device=None, dtype=None) -> tuple[Tensor, ...]:
         p = self.head.weight
@@ -98,25 +95,20 @@ class SSMEstimator(nn.Module):
         return tuple(state)
 
     def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
-        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, d)
-        new: list[Tensor] = []
-        for i, layer in enumerate(self.backbone.layers):
-            h, conv, ssm = layer.step(h, state[2 * i], state[2 * i + 1])
-            new += [conv, ssm]
-        norm_f = self.backbone.norm_f
-        return F.linear(rms_norm(h, norm_f.weight, norm_f.eps), self.head.weight, self.head.bias), tuple(new)
+        h, new = self.step_features(z_t, state)
+        return F.linear(h, self.head.weight, self.head.bias), new  # (B, d_out)
 
     # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
-    def features(self, z: Tensor) -> Tensor:
+    def features(self, z: Tensor, reference: bool = False) -> Tensor:
         """(B, T, d): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
-        h = self.input_proj(z)
+        h = self.input_proj(z)  # (B, T, d)
         for layer in self.backbone.layers:
-            h = layer(h)
+            h = layer(h, reference)
         return self.backbone.norm_f(h)
 
     def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
         """(B, d) features of one step and the new state: ``step`` is ``head`` of them."""
-        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)
+        h = F.linear(z_t, self.input_proj.weight, self.input_proj.bias)  # (B, d)
         new: list[Tensor] = []
         for i, layer in enumerate(self.backbone.layers):
             h, conv, ssm = layer.step(h, state[2 * i], state[2 * i + 1])
