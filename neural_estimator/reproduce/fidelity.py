@@ -34,12 +34,13 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from neural_estimator.estimator import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.paper import paper_results
+from neural_estimator.reproduce.tables import PAPER_NAMES as LABELS
 
 FACTOR = 1.5
 SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
-CLASSICAL = ("ekf", "ukf", "enkf", "pf")
-NEURAL = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
+CLASSICAL, NEURAL = CLASSICAL_METHODS, NEURAL_METHODS
 SSM = ("mamba", "mamba2")
 
 Table = Mapping[str, Mapping[str, "float | None"]]  # {scenario: {method: RMSE}}
@@ -258,13 +259,16 @@ class Measured:
             marks.append(MARK)
         return (" " + " ".join(marks)) if marks else ""
 
+    def used_marks(self) -> set[str]:
+        """Every mark some cell carries."""
+        return {k for s in SCENARIOS for m in CLASSICAL + NEURAL for k in self.mark(s, m).split()}
+
     def legend(self) -> list[str]:
         """The legend of the marks used, then the Full RMSE of each [o] cell and the reason of each (!)."""
         from neural_estimator.departures import OUTLIERS, legend
         from neural_estimator.expected_failures import notes
 
-        used = {k for s in SCENARIOS for m in CLASSICAL + NEURAL for k in self.mark(s, m).split()}
-        lines = legend(used, self.contexts.values())
+        lines = legend(self.used_marks(), self.contexts.values())
         full = [
             f"{s} {LABELS[m]} {_num(self.full_rmse.get((s, m)))}"
             for s in SCENARIOS
@@ -309,20 +313,6 @@ def load_measured(folder: str | Path) -> Measured:
     return out
 
 
-LABELS = {
-    "ekf": "EKF",
-    "ukf": "UKF",
-    "enkf": "EnKF",
-    "pf": "PF",
-    "gru": "GRU",
-    "lstm": "LSTM",
-    "gpt2": "GPT-2",
-    "filterformer": "Filterformer",
-    "mamba": "Mamba",
-    "mamba2": "Mamba-2",
-}
-
-
 def headline(measured: Measured) -> list[str]:
     """A compact table, *ours · the paper's* RMSE (3 significant digits; `…` where pending), with
     each cell's departure marks, and their legend below it."""
@@ -341,7 +331,7 @@ def headline(measured: Measured) -> list[str]:
         f"**{hit} of the {n_measured} measured cells are within {FACTOR:g}x of the paper's** ({total} finite cells; "
         f"{total - n_measured} not measured).",
     ]
-    used = {k for s in SCENARIOS for m in CLASSICAL + NEURAL for k in measured.mark(s, m).split()}
+    used = measured.used_marks()
     short = [f"`{k}` {SHORT_LEGEND[k]}" for k in SHORT_LEGEND if k in used]
     return L + (["", "; ".join(short) + " (each cell's reason: docs/fidelity.md)."] if short else [])
 
