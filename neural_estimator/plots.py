@@ -8,6 +8,28 @@ from pathlib import Path
 import numpy as np
 
 
+def new_figure(figsize: tuple[float, float] = (8, 4.5)):
+    """A figure and its axes on matplotlib's file-only backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(figsize=figsize, dpi=120)
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Lay out, write ``path`` (PNG; its folder made) and free the figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def plot_rmse_over_time(
     curves: Mapping[str, Sequence[np.ndarray]],
     path: str | Path,
@@ -26,12 +48,7 @@ def plot_rmse_over_time(
         logy: logarithmic RMSE axis (methods differ by orders of magnitude in some scenarios).
         first_step: the step of each curve's first value (the unscored warm-up before it).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    fig, ax = new_figure((8, 4.5))
     for method, runs in curves.items():
         R = np.asarray([np.asarray(r, dtype=float) for r in runs])  # (runs, T)
         if R.size == 0:
@@ -50,12 +67,7 @@ def plot_rmse_over_time(
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
     ax.legend(ncol=2, fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_reliability(
@@ -71,22 +83,12 @@ def plot_reliability(
         path: output PNG.
         title: figure title (e.g. the scenario).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     q = np.asarray(levels, dtype=float)
-    fig, ax = plt.subplots(figsize=(5.5, 5), dpi=120)
+    fig, ax = new_figure((5.5, 5))
     ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="consistent")
     for method, cov in curves.items():
         ax.plot(q, np.asarray(cov, dtype=float), marker="o", ms=3, lw=1.2, label=method)
     ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="nominal level q", ylabel="coverage", title=title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", ncol=2)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

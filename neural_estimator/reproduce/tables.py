@@ -19,6 +19,7 @@ from neural_estimator import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.expected_failures import MARK, expected_to_fail, notes
 from neural_estimator.paper import paper_value
+from neural_estimator.plots import new_figure, save_figure
 
 PAPER_NAMES = {
     "ekf": "EKF",
@@ -392,14 +393,9 @@ def data_ratio_table(
 
 def plot_data_ratio(by_method: Mapping[str, Mapping[float, list[float]]], path: Path, title: str) -> Path:
     """Grouped bars: median NRMSE per architecture at each data-to-parameter ratio (IQR as error bars)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     methods = [m for m, v in by_method.items() if v]
     ratios = sorted({r for m in methods for r in by_method[m]}, reverse=True)
-    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    fig, ax = new_figure((8, 4.5))
     width = 0.8 / max(1, len(ratios))
     for k, r in enumerate(ratios):
         med, lo, hi = [], [], []
@@ -415,12 +411,7 @@ def plot_data_ratio(by_method: Mapping[str, Mapping[float, list[float]]], path: 
     ax.set_title(title)
     ax.grid(True, axis="y", alpha=0.3)
     ax.legend(title="data : parameters", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def data_ratio_paper_table() -> list[str]:
@@ -434,12 +425,7 @@ def data_ratio_paper_table() -> list[str]:
 
 def plot_noise(curves: Mapping[str, Mapping[float, list[float]]], path: Path, title: str) -> Path:
     """RMSE against the observation-noise scale, median over sets with the IQR shaded, per method."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    fig, ax = new_figure((8, 4.5))
     for m, by_scale in curves.items():
         xs = sorted(by_scale)
         stats = [M.median_iqr(by_scale[x]) for x in xs]
@@ -458,9 +444,4 @@ def plot_noise(curves: Mapping[str, Mapping[float, list[float]]], path: Path, ti
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
