@@ -33,6 +33,7 @@ from neural_estimator.estimator import CLASSICAL_METHODS
 from neural_estimator.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 from neural_estimator.uncertainty.fit import CALIBRATION_INDEX
+from neural_estimator.uncertainty.fit import figures as head_figures
 
 OUT = Path(__file__).resolve().parents[1] / "neural_estimator" / "uncertainty" / "calibrated_filters.json"
 CANDIDATES = {
@@ -61,7 +62,7 @@ def measure(method: str, scenario, data, options: dict, warmup: int) -> dict:
         figures = dict.fromkeys(("nees_median_per_dim", "nees_mean_per_dim", "coverage95"), nan)
         figures.update(calibration_error=float("inf"), degenerate=nan)
     else:
-        figures = _figures(eps, scenario.dx, C.coverage_curve(eps, scenario.dx))
+        figures = _figures(eps, scenario.dx)
     return {
         "options": options,
         "rmse": rep.rmse,
@@ -71,15 +72,9 @@ def measure(method: str, scenario, data, options: dict, warmup: int) -> dict:
     }
 
 
-def _figures(eps: np.ndarray, dx: int, curve: np.ndarray) -> dict:
-    finite = eps[np.isfinite(eps)]
-    return {
-        "nees_median_per_dim": float(np.median(eps) / dx),
-        "nees_mean_per_dim": float(finite.mean() / dx) if finite.size else float("inf"),
-        "coverage95": float(curve[C.RELIABILITY_LEVELS.index(0.95)]),
-        "calibration_error": C.calibration_error(curve),
-        "degenerate": float(1 - np.isfinite(eps).mean()),
-    }
+def _figures(eps: np.ndarray, dx: int) -> dict:
+    """The heads' consistency figures (uncertainty.fit.figures) and the share of degenerate steps."""
+    return {**head_figures(eps, dx), "degenerate": float(1 - np.isfinite(eps).mean())}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             after = None
             if scale is not None:
                 eps = best["eps"] / scale
-                after = _figures(eps, scenario.dx, C.coverage_curve(eps, scenario.dx))
+                after = _figures(eps, scenario.dx)
             options = dict(best["options"], **({"cov_scale": round(scale, 4)} if scale else {}))
             table.setdefault(s_name, {})[method] = {
                 "options": options,
