@@ -77,7 +77,7 @@ from neural_estimator.nodes.common import (
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
-from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams
+from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams, online_estimator
 from neural_estimator.online import OnlineEstimator, warm_up
 from neural_estimator.serving.card import recorded_data_checkpoint
 
@@ -188,17 +188,7 @@ class EstimatorNode(ExitStatusNode):
         if p.threads > 0 and self.method in NEURAL_METHODS and torch is not None:
             torch.set_num_threads(p.threads)
         warm_up(est, scenario)
-        self.online = OnlineEstimator(
-            est,
-            self.method,
-            publish_covariance=p.publish_covariance,
-            max_gap=p.max_gap,
-            max_gap_seconds=p.max_gap_seconds,
-            frame_id=p.frame_id,
-            confirm=max(1, p.confirm),
-            quarantine_seconds=max(0.0, p.quarantine_seconds),
-            horizon=horizon,
-        )
+        self.online = online_estimator(est, self.method, p, horizon)
         dx = scenario.dx
         self.depths = {"estimates": self._depth(dx), "covariance": self._depth(dx * dx)}
         self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(self.depths["estimates"]))

@@ -11,6 +11,7 @@ from neural_estimator.online import (
     DEFAULT_MAX_GAP,
     DEFAULT_MAX_GAP_SECONDS,
     DEFAULT_QUARANTINE_SECONDS,
+    OnlineEstimator,
 )
 from neural_estimator.registry import METHODS
 
@@ -95,3 +96,18 @@ class EstimatorParams:
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     log_throttle: float = param(2.0, "seconds between repeated warnings of one kind")
     stats_file: str = param("", "write the counters and latency percentiles as JSON here at shutdown ('' = no)")
+
+
+def online_estimator(est, method: str, p: EstimatorParams, horizon: int | None = None) -> OnlineEstimator:
+    """The per-message estimator these parameters describe (the estimator and lifecycle nodes)."""
+    return OnlineEstimator(
+        est,
+        method,
+        publish_covariance=p.publish_covariance,
+        max_gap=p.max_gap,
+        max_gap_seconds=p.max_gap_seconds,
+        frame_id=p.frame_id,
+        confirm=max(1, p.confirm),
+        quarantine_seconds=max(0.0, p.quarantine_seconds),
+        horizon=horizon,
+    )

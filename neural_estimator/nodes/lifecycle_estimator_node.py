@@ -36,7 +36,7 @@ from neural_estimator.nodes.common import (
     run_node,
     stream_qos,
 )
-from neural_estimator.nodes.estimator_params import EstimatorParams
+from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
 from neural_estimator.online import OnlineEstimator
 
@@ -69,16 +69,7 @@ class LifecycleEstimatorNode(LifecycleNode):
             self.get_logger().error(f"configure failed: {exc}")
             return TransitionCallbackReturn.FAILURE
         self.method = method
-        self.online = OnlineEstimator(
-            est,
-            method,
-            publish_covariance=p.publish_covariance,
-            max_gap=p.max_gap,
-            max_gap_seconds=p.max_gap_seconds,
-            frame_id=p.frame_id,
-            confirm=max(1, p.confirm),
-            quarantine_seconds=max(0.0, p.quarantine_seconds),
-        )
+        self.online = online_estimator(est, method, p)
         self.get_logger().info(f"configured: {method} on {scenario.name}")
         return TransitionCallbackReturn.SUCCESS
 
