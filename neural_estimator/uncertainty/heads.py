@@ -34,7 +34,6 @@ The head is stored beside the weights as ``covariance_head.safetensors`` and des
 
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 from typing import Any
@@ -42,6 +41,8 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from neural_estimator.serving.card import sha256_file
 
 HEAD_FILE = "covariance_head.safetensors"
 HEAD_FORM = "cholesky"
@@ -148,14 +149,6 @@ class GaussianModel(nn.Module):
 
 
 # ---- storage ----------------------------------------------------------------------------------------
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def save_head(directory: str | Path, head: CholeskyHead, info: dict[str, Any]) -> dict[str, Any]:
     """Write ``covariance_head.safetensors`` into a checkpoint directory; returns the card entry
     (``file``, ``sha256``, ``form``, ``features``, ``n`` and the given ``info``: how it was fitted,
@@ -169,7 +162,7 @@ def save_head(directory: str | Path, head: CholeskyHead, info: dict[str, Any]) -
     os.replace(tmp, directory / HEAD_FILE)
     return {
         "file": HEAD_FILE,
-        "sha256": _sha256(directory / HEAD_FILE),
+        "sha256": sha256_file(directory / HEAD_FILE),
         "form": HEAD_FORM,
         "features": head.linear.in_features,
         "n": head.n,
@@ -199,7 +192,7 @@ def load_head(directory: str | Path, entry: dict[str, Any], n: int) -> CholeskyH
         raise HeadError(f"checkpoint {directory}: the covariance head's shrink must be in [0, 1), got {shrink!r}")
     if entry.get("form", HEAD_FORM) != HEAD_FORM:
         raise HeadError(f"checkpoint {directory}: unknown covariance head form {entry.get('form')!r}")
-    if entry.get("sha256") and _sha256(path) != entry["sha256"]:
+    if entry.get("sha256") and sha256_file(path) != entry["sha256"]:
         raise HeadError(f"checkpoint {directory}: {name} does not match the sha256 in the card")
     features, n_card = int(entry.get("features", 0)), int(entry.get("n", n))
     if n_card != n or features < 1:
