@@ -26,27 +26,9 @@ DEFAULT_OUT = ROOT / "benchmarks" / "results" / "fidelity_v4"
 SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
-def shipped_on_defaults(scenario: str) -> tuple[list[str], dict[str, str]]:
-    """(neural methods whose shipped model was trained on the default constants, {other: why})."""
-    from neural_estimator.registry import NEURAL_METHODS
-    from neural_estimator.scenarios import DEFAULT_PRESET, scenario_class
-
-    ok, pending = [], {}
-    for m in NEURAL_METHODS:
-        card_path = ROOT / "neural_estimator" / "zoo" / f"{scenario}-{m}" / "card.json"
-        if not card_path.exists():
-            pending[m] = "no shipped model"
-            continue
-        preset = scenario_class(scenario).preset_of(json.loads(card_path.read_text())["scenario"]["config"])
-        if preset in (None, DEFAULT_PRESET):
-            ok.append(m)
-        else:
-            pending[m] = f"retraining ({preset} model)"
-    return ok, pending
-
-
 def measure(a: argparse.Namespace) -> int:
     from neural_estimator.cli import main as cli
+    from neural_estimator.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)
     for s in a.scenarios.split(","):

@@ -44,12 +44,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(ROOT / "docs" / "results" / "reliability"))
     a = p.parse_args(argv)
 
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from fidelity_table import shipped_on_defaults
-
     from neural_estimator.cli import main as cli
     from neural_estimator.consistency import RELIABILITY_LEVELS
     from neural_estimator.plots import plot_reliability
+    from neural_estimator.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,5 @@
 """The sample bags in bags/ are readable, hold what they claim, and replay through the methods."""
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +8,8 @@ import pytest
 from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
 from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET, scenario_class
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET
+from neural_estimator.serving.card import shipped_preset
 
 pytestmark = pytest.mark.slow  # every sample bag through the shipped models
 
@@ -52,8 +52,7 @@ SHIPPED = [(s, m) for s in BUILTIN_SCENARIOS for m in NEURAL_METHODS if (ZOO / f
 
 def _card_preset(scenario: str, method: str) -> str:
     """The preset whose constants the shipped model was trained on (from its card's constants)."""
-    card = json.loads((ZOO / f"{scenario}-{method}" / "card.json").read_text())
-    return scenario_class(scenario).preset_of(card["scenario"]["config"]) or DEFAULT_PRESET
+    return shipped_preset(scenario, method)
 
 
 def _bag_of(scenario: str, preset: str) -> Path:
