@@ -357,13 +357,19 @@ def set_torch_threads(methods: Sequence[str], threads: int) -> None:
         torch.set_num_threads(int(threads))
 
 
+WARM_UP_STEPS = 3
+
+
 def warm_up(est, scenario) -> None:
-    """One step on a zero observation, then a reset: compiled kernels (numba, torch's first-call
-    set-up) are built now, not on the first observation, where the EKF's compile took 2.9 s of the
-    run's first second (measured). The stream starts from the prior anyway (OnlineEstimator resets)."""
+    """A few steps on a zero observation, then a reset: compiled kernels (numba, torch's first-call
+    set-up) are built now, not on the first observations, where the EKF's compile took 2.9 s of the
+    run's first second (measured). Three steps, not one: the first step from the prior and the
+    later ones take different paths (the EKF's second step loaded another kernel, 19 ms, measured).
+    The stream starts from the prior anyway (OnlineEstimator resets)."""
     try:
         est.reset(1)
-        est.step(np.zeros((1, scenario.dy)), np.zeros((1, scenario.du)))
+        for _ in range(WARM_UP_STEPS):
+            est.step(np.zeros((1, scenario.dy)), np.zeros((1, scenario.du)))
     except Exception:  # a scenario where zeros are not a valid observation: warm up at the first message
         pass
     est.reset(1)

@@ -94,6 +94,7 @@ NODE_CASES = [
     ("evaluator", ["spec:={tmp}/no_spec.yaml", "output:={tmp}/e.mcap"], "no_spec.yaml"),
     ("evaluator", ["spec:=" + SPEC, "spec_length:=1", "output:={tmp}/e.mcap"], "spec_length must be at least 2"),
     ("evaluator", ["output:={bag}"], "file exists; pass -p overwrite:=true to replace it"),
+    ("evaluator", ["record_period:=0.0", "output:={tmp}/e.mcap"], "record_period must be in (0, 1] seconds"),
     ("player", ["bag:={tmp}/missing.mcap"], "missing.mcap"),
     ("robot_estimator", ["checkpoint:={tmp}/missing"], "missing"),
 ]

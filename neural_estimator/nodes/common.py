@@ -10,6 +10,7 @@ naming the parameter; a list parameter also accepts one comma-separated string.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import importlib
 import os
 import typing
@@ -298,6 +299,7 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         rclpy.logging.get_logger(name).fatal(str(exc))
         rclpy.try_shutdown()
         return 1
+    settle_heap()
     try:
         spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -323,6 +325,20 @@ def request_shutdown(node: ExitStatusNode, code: int = 0) -> None:
     """End the spin of :func:`run_node` (from a callback) with exit status ``code``."""
     node.exit_code = code
     node.context.try_shutdown()
+
+
+def settle_heap() -> None:
+    """Collect once, then freeze every object alive now out of the garbage collector's reach.
+
+    A node's process holds about 230,000 tracked objects once torch, ONNX Runtime and rclpy are
+    imported; each full (generation-2) collection walks all of them and took 125 ms on this
+    machine, which Python starts on its own every few thousand messages: at 1 kHz those pauses
+    were the end-to-end p99 (60-160 ms stalls in every node). Frozen objects are never walked
+    again, so a later collection only scans what was allocated since (microseconds). Called
+    once the node is built, and again by a node that builds its estimator later (on /scenario).
+    """
+    gc.collect()
+    gc.freeze()
 
 
 def trim_heap() -> None:

@@ -71,6 +71,7 @@ from neural_estimator.nodes.common import (
     load_plugins,
     peek_param,
     run_node,
+    settle_heap,
     stream_qos,
     trim_heap,
 )
@@ -189,6 +190,7 @@ class EstimatorNode(ExitStatusNode):
             torch.set_num_threads(p.threads)
         warm_up(est, scenario)
         self.online = online_estimator(est, self.method, p, horizon)
+        settle_heap()  # the model's objects, built now, out of the collector's reach
         dx = scenario.dx
         self.depths = {"estimates": self._depth(dx), "covariance": self._depth(dx * dx)}
         self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(self.depths["estimates"]))

@@ -34,6 +34,7 @@ from neural_estimator.nodes.common import (
     declare_params,
     load_plugins,
     run_node,
+    settle_heap,
     stream_qos,
 )
 from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
@@ -70,6 +71,7 @@ class LifecycleEstimatorNode(LifecycleNode):
             return TransitionCallbackReturn.FAILURE
         self.method = method
         self.online = online_estimator(est, method, p)
+        settle_heap()  # the model's objects, built now, out of the collector's reach
         self.get_logger().info(f"configured: {method} on {scenario.name}")
         return TransitionCallbackReturn.SUCCESS
 
