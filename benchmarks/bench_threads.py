@@ -10,9 +10,10 @@ touches them alike, and the median over rounds is printed. A configuration still
 ``--timeout`` s is stopped and reported as a bound ("< x windows/s"). ``--busy`` (default) runs a spinning
 process beside them (a second job on another core, as when two trainings share this machine).
 
-Wait policies: ``spin`` is OpenMP's default (libgomp's workers spin for a while before sleeping;
-``OMP_WAIT_POLICY`` unset), ``passive`` is what ``neural-estimator`` sets before torch loads
-(:func:`neural_estimator.runtime.cooperative_threads`: ``OMP_WAIT_POLICY=PASSIVE``).
+Wait policies (``--policies``): ``spin`` is OpenMP's default (libgomp's workers spin for a while
+before sleeping; ``OMP_WAIT_POLICY`` unset), ``passive`` sleeps at once (``OMP_WAIT_POLICY=PASSIVE``),
+``spincount=N`` spins N iterations, then sleeps (``GOMP_SPINCOUNT=N``, policy unset); what
+``neural-estimator`` sets before torch loads is :data:`neural_estimator.runtime.WAIT_POLICY`.
 """
 
 from __future__ import annotations
@@ -58,10 +59,14 @@ def run_child(arch: str, threads: int, policy: str, iters: int, timeout: float) 
     """Training windows/s of one configuration; a run past ``timeout`` s counts as the bound
     (iters + 2) x 64 / timeout (negative: "slower than this")."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    for var in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "OMP_NUM_THREADS"):
+    for var in ("OMP_WAIT_POLICY", "KMP_BLOCKTIME", "OMP_NUM_THREADS", "GOMP_SPINCOUNT"):
         env.pop(var, None)
     if policy == "passive":
         env["OMP_WAIT_POLICY"] = "PASSIVE"
+    elif policy.startswith("spincount="):
+        env["GOMP_SPINCOUNT"] = policy.split("=", 1)[1]
+    elif policy != "spin":
+        raise SystemExit(f"unknown policy {policy!r}: spin, passive or spincount=N")
     try:
         out = subprocess.run(
             [sys.executable, "-c", CHILD, arch, str(threads), str(iters)],
@@ -88,12 +93,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=240.0, help="seconds per configuration (then a bound)")
     ap.add_argument("--busy", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--policies", nargs="+", default=["spin", "passive"], help="spin, passive, spincount=N")
     a = ap.parse_args(argv)
     print(f"command: python benchmarks/bench_threads.py {' '.join(argv if argv is not None else sys.argv[1:])}")
     busy = subprocess.Popen([sys.executable, "-c", BUSY]) if a.busy else None
     load0 = os.getloadavg()[0]
     t0 = time.monotonic()
-    configs = [(arch, th, pol) for arch in a.archs for pol in ("spin", "passive") for th in (1, 2)]
+    configs = [(arch, th, pol) for arch in a.archs for pol in a.policies for th in (1, 2)]
     res: dict[tuple, list[float]] = {c: [] for c in configs}
     try:
         for r in range(a.rounds):
@@ -112,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| arch | policy | 1 thread | 2 threads | 2 / 1 |")
     print("|---|---|---:|---:|---:|")
     for arch in a.archs:
-        for pol in ("spin", "passive"):
+        for pol in a.policies:
             one, two = (statistics.median(res[(arch, th, pol)]) for th in (1, 2))
             ratio = f"{two / one:.2f}x" if one > 0 and two > 0 else f"< {abs(two) / abs(one):.2f}x"
             print(f"| {arch} | {pol} | {_fmt(one)} | {_fmt(two)} | {ratio} |", flush=True)

@@ -216,3 +216,36 @@ print(type(est).__name__)
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_compiled_pre_and_post_processing_equal_the_numpy_expressions_to_the_bit():
+    from neural_estimator.serving.onnx_kernels import denormalize, denormalize_covariance, normalize_into
+
+    rng = np.random.default_rng(3)
+    dy, du, dx = 5, 2, 4
+    in_mean, in_std = rng.normal(size=dy + du), rng.uniform(0.1, 3.0, dy + du)
+    out_mean, out_std = rng.normal(size=dx), rng.uniform(0.1, 3.0, dx)
+    for y_bad in (False, True):
+        y, u = rng.normal(size=(1, dy)) * 100, rng.normal(size=(1, du))
+        if y_bad:
+            y[0, 2] = np.nan
+        z = np.zeros((1, dy + du), dtype=np.float32)
+        skipped = normalize_into(y, u, in_mean, in_std, z)
+        want = ((np.concatenate([y, u], axis=1) - in_mean) / in_std).astype(np.float32)
+        if y_bad:
+            want[:, :dy] = 0.0
+        assert skipped == y_bad
+        np.testing.assert_array_equal(z, want)
+    m = rng.normal(size=(1, dx)).astype(np.float32)
+    x, finite = denormalize(m, out_std, out_mean)
+    assert finite and x.dtype == np.float64
+    np.testing.assert_array_equal(x, m * out_std + out_mean)
+    m[0, 1] = np.inf
+    assert not denormalize(m, out_std, out_mean)[1]
+    c = rng.normal(size=(1, dx, dx)).astype(np.float32)
+    scale = out_std[:, None] * out_std[None, :]
+    p, finite = denormalize_covariance(c, scale)
+    assert finite
+    np.testing.assert_array_equal(p, c * scale)
+    c[0, 0, 3] = np.nan
+    assert not denormalize_covariance(c, scale)[1]

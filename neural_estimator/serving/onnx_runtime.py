@@ -17,6 +17,7 @@ import numpy as np
 
 from neural_estimator.angles import wrap_components
 from neural_estimator.estimator import Estimator, EstimatorError
+from neural_estimator.serving.onnx_kernels import denormalize, denormalize_covariance, normalize_into
 
 ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (scripts/export_onnx.py --beside)
 ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
@@ -146,12 +147,12 @@ class OnnxEstimator(Estimator):
         self.context = int(step.metadata.get("window", 0))  # the attention window the graph serves (0: recurrent)
         self.context_by_copies = False
         self._dims = (dy, du)
-        self._z64 = np.zeros((1, dy + du))  # the normalised input, float64
-        self._z64_y = self._z64[:, :dy]
+        self._u_zero = np.zeros((1, du))
         self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
-        self._in_mean_y, self._in_mean_u = normalizer.in_mean[:dy], normalizer.in_mean[dy:]
-        s = np.asarray(normalizer.out_std, dtype=np.float64)
-        self._cov_scale = s[:, None] * s[None, :]  # (dx, dx)
+        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731 - the kernels' one layout
+        self._in_mean, self._in_std = f64(normalizer.in_mean), f64(normalizer.in_std)
+        self._out_mean, self._out_std = f64(normalizer.out_mean), f64(normalizer.out_std)
+        self._cov_scale = self._out_std[:, None] * self._out_std[None, :]  # (dx, dx)
 
     @property
     def untrained_steps(self) -> int:
@@ -182,31 +183,22 @@ class OnnxEstimator(Estimator):
             if y.shape[0] != 1:
                 raise EstimatorError(f"{self.method}: backend onnxruntime steps one stream (batch 1), got {y.shape[0]}")
             self.start_streams_if_none(1)
-        zb, zy = self._z64, self._z64_y
         if du:
             if u_prev is None:
-                zb[0, dy:] = 0.0
-            else:
-                if u_prev.shape != (1, du) or not np.isfinite(u_prev).all():
-                    self.check_step(y, u_prev)  # raises its one-line error
-                zb[0, dy:] = u_prev[0]
-        skipped = not np.isfinite(y).all()
-        np.subtract(y, self._in_mean_y, out=zy)
-        if du:
-            np.subtract(zb[:, dy:], self._in_mean_u, out=zb[:, dy:])
-        z = ort.inputs["z"]
-        np.divide(zb, n.in_std, out=z, casting="same_kind")  # float64 arithmetic, rounded to float32 once
-        if skipped:
-            z[:, :dy] = 0.0  # the training mean (see Normalizer.normalize_inputs)
+                u_prev = self._u_zero
+            elif u_prev.shape != (1, du) or not np.isfinite(u_prev).all():
+                self.check_step(y, u_prev)  # raises its one-line error
+        else:
+            u_prev = self._u_zero
+        skipped = normalize_into(y, u_prev, self._in_mean, self._in_std, ort.inputs["z"])
         ort.run()
-        x = ort.outputs["mean"] * n.out_std + n.out_mean  # float32 * float64 -> float64, as the torch path
+        x, finite = denormalize(ort.outputs["mean"], self._out_std, self._out_mean)
         if n.angle_states:
             x = wrap_components(x, n.angle_states)
         self.skipped = self._skip_flags[int(skipped)]
-        finite = np.isfinite(x).all()
         if self.has_covariance:  # diag(sigma_x) C diag(sigma_x) (Normalizer.denormalize_covariance), one product
-            self.covariance = ort.outputs["cov"] * self._cov_scale
-            finite = finite and np.isfinite(self.covariance).all()
+            self.covariance, cov_finite = denormalize_covariance(ort.outputs["cov"], self._cov_scale)
+            finite = finite and cov_finite
         if not finite:
             self.diverged = np.ones(1, dtype=bool)
         return x
