@@ -5,8 +5,9 @@
 
 Every configuration (architecture x threads 1 or 2 x wait policy) is a fresh process that times
 training steps (forward, backward, AdamW at the paper's batch of 64 windows of 100 steps, Lorenz 96
-widths) after two warm-up steps; configurations alternate in rounds so that a changing machine load
-touches them alike, and the median over rounds is printed. A configuration still running after
+widths) after two warm-up steps and reports windows/s over all of them (a governed run's probes
+included); configurations alternate in rounds so that a changing machine load touches them alike,
+and the median over rounds is printed. A configuration still running after
 ``--timeout`` s is stopped and reported as a bound ("< x windows/s"). ``--busy`` (default) runs a spinning
 process beside them (a second job on another core, as when two trainings share this machine).
 
@@ -14,6 +15,8 @@ Wait policies (``--policies``): ``spin`` is OpenMP's default (libgomp's workers 
 before sleeping; ``OMP_WAIT_POLICY`` unset), ``passive`` sleeps at once (``OMP_WAIT_POLICY=PASSIVE``),
 ``spincount=N`` spins N iterations, then sleeps (``GOMP_SPINCOUNT=N``, policy unset); what
 ``neural-estimator`` sets before torch loads is :data:`neural_estimator.runtime.WAIT_POLICY`.
+``governed`` is passive with the thread count chosen by measurement, as ``neural-estimator train
+--threads N`` does (:class:`neural_estimator.training.threads.ThreadGovernor`, 4-step probes).
 """
 
 from __future__ import annotations
@@ -33,8 +36,12 @@ CHILD = r"""
 import json, sys, time
 import torch
 from neural_estimator.models import build_model
-arch, threads, iters = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+arch, threads, iters, governed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
 torch.set_num_threads(threads)
+gov = None
+if governed:
+    from neural_estimator.training.threads import ThreadGovernor
+    gov = ThreadGovernor(threads, probe_steps=4)
 torch.manual_seed(0)
 model = build_model(arch, 40, 40).train()
 opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
@@ -42,14 +49,18 @@ z, x = torch.randn(64, 100, 40), torch.randn(64, 100, 40)
 times = []
 for i in range(iters + 2):
     t0 = time.perf_counter()
+    if gov is not None:
+        gov.before_step()
     opt.zero_grad(set_to_none=True)
     torch.nn.functional.mse_loss(model(z), x).backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
     opt.step()
+    if gov is not None:
+        gov.after_step()
     if i >= 2:
         times.append(time.perf_counter() - t0)
 times.sort()
-print(json.dumps({"windows_per_s": 64 / times[len(times) // 2]}))
+print(json.dumps({"windows_per_s": 64 * len(times) / sum(times)}))
 """
 
 BUSY = "import time\nx = 0\nwhile True:\n    x += 1\n"
@@ -63,13 +74,15 @@ def run_child(arch: str, threads: int, policy: str, iters: int, timeout: float) 
         env.pop(var, None)
     if policy == "passive":
         env["OMP_WAIT_POLICY"] = "PASSIVE"
+    elif policy == "governed":
+        env["OMP_WAIT_POLICY"] = "PASSIVE"  # what neural-estimator sets, and the count measured
     elif policy.startswith("spincount="):
         env["GOMP_SPINCOUNT"] = policy.split("=", 1)[1]
     elif policy != "spin":
-        raise SystemExit(f"unknown policy {policy!r}: spin, passive or spincount=N")
+        raise SystemExit(f"unknown policy {policy!r}: spin, passive, governed or spincount=N")
     try:
         out = subprocess.run(
-            [sys.executable, "-c", CHILD, arch, str(threads), str(iters)],
+            [sys.executable, "-c", CHILD, arch, str(threads), str(iters), str(int(policy == "governed"))],
             env=env,
             capture_output=True,
             text=True,
@@ -93,7 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=240.0, help="seconds per configuration (then a bound)")
     ap.add_argument("--busy", action=argparse.BooleanOptionalAction, default=True)
-    ap.add_argument("--policies", nargs="+", default=["spin", "passive"], help="spin, passive, spincount=N")
+    ap.add_argument(
+        "--policies", nargs="+", default=["spin", "passive", "governed"], help="spin, passive, governed, spincount=N"
+    )
     a = ap.parse_args(argv)
     print(f"command: python benchmarks/bench_threads.py {' '.join(argv if argv is not None else sys.argv[1:])}")
     busy = subprocess.Popen([sys.executable, "-c", BUSY]) if a.busy else None

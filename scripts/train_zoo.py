@@ -90,6 +90,7 @@ from neural_estimator.training.loop import evaluate, train
 from neural_estimator.training.recipe import TrainConfig
 from neural_estimator.training.resume import RESUME_DIR
 from neural_estimator.training.stopping import plateau_rule
+from neural_estimator.training.threads import ThreadGovernor
 from neural_estimator.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, make_scenario
 
@@ -368,7 +369,13 @@ def main(argv=None) -> int:
         choices=("state", "normalised"),
         help="units the loss weighs the state components in (default: state, as RMSE; see the README)",
     )
-    p.add_argument("--threads", type=int, default=1, help="torch and kernel threads (1: see the README's figures)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="at most this many torch and kernel threads, the count measured as `neural-estimator train --threads` "
+        "does (1: bit-reproducible)",
+    )
     p.add_argument("--device", default="cpu")
     p.add_argument(
         "--val-context",
@@ -480,7 +487,17 @@ def main(argv=None) -> int:
             t0 = time.time()
             if not a.finish:
                 stop_when = plateau_rule(cfg.lr, a.plateau_epochs, a.plateau_tol) if a.plateau_epochs else None
-                train(scenario, method, work, cfg, progress=not a.quiet, deadline=deadline, stop_when=stop_when)
+                governor = ThreadGovernor(a.threads) if a.threads > 1 else None  # see `train --threads`
+                train(
+                    scenario,
+                    method,
+                    work,
+                    cfg,
+                    progress=not a.quiet,
+                    deadline=deadline,
+                    stop_when=stop_when,
+                    threads=governor,
+                )
             run = resume_state(work)
             if a.finish and run is None:
                 print(f"{work.name}: not started, nothing to finish", flush=True)

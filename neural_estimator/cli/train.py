@@ -96,8 +96,15 @@ def add_train(sub) -> None:
         type=int,
         default=1,
         metavar="N",
-        help="CPU threads for torch and the fused scan kernels (default 1: on this project's 2-core "
-        "machine one process per core beats two threads in one; see docs/performance.md)",
+        help="CPU threads for torch and the fused scan kernels: at most N, the count actually used measured "
+        "every few minutes (one thread when the other cores are busy; --fixed-threads to use N always). "
+        "Default 1: bit-reproducible, and on a 2-core machine one process per core beats two threads in one; "
+        "see docs/performance.md",
+    )
+    p.add_argument(
+        "--fixed-threads",
+        action="store_true",
+        help="always use --threads N threads, even when measurement says fewer would be faster",
     )
     p.set_defaults(func=_cmd_train)
 
@@ -127,6 +134,11 @@ def _cmd_train(args) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    governor = None
+    if args.threads > 1 and not args.fixed_threads:
+        from neural_estimator.training.threads import ThreadGovernor
+
+        governor = ThreadGovernor(args.threads)
     if data is not None:
         values.update(trajectories=data[0].n, train_length=data[0].horizon, val_trajectories=data[1].n)
     if values["val_trajectories"] is None:  # scales with the training set: half of it, at most the paper's 8000
@@ -138,14 +150,17 @@ def _cmd_train(args) -> int:
         print(
             f"validation after every epoch: {values['val_trajectories']} trajectories x {values['train_length']} "
             f"steps (--val-trajectories); card metrics on {values['eval_trajectories']} evaluation trajectories "
-            f"(--eval-trajectories); {args.threads} thread(s) (--threads)",
+            f"(--eval-trajectories); {args.threads} thread(s) (--threads"
+            f"{', the count measured every few minutes' if governor else ''})",
             flush=True,
         )
     try:
         config = TrainConfig(**values)
-        path = train(scenario, method, args.out, config, progress=not args.quiet, data=data)
+        path = train(scenario, method, args.out, config, progress=not args.quiet, data=data, threads=governor)
     except TrainingError as exc:
         raise CliError(str(exc)) from None
+    if governor is not None and not args.quiet:
+        print(governor.summary())
     print(f"wrote {path}")
     return 0
 

@@ -84,6 +84,7 @@ from neural_estimator.scenarios import Scenario, make_scenario
 from neural_estimator.training.loss import component_weights, state_error, weighted_loss
 from neural_estimator.training.resume import RESUME_DIR, load_resume, save_resume
 from neural_estimator.training.stopping import converged, lr_reductions
+from neural_estimator.training.threads import ThreadGovernor
 
 
 def train(
@@ -95,6 +96,7 @@ def train(
     deadline: float | None = None,
     data: tuple[Trajectories, Trajectories] | None = None,
     stop_when: Callable[[list[dict[str, Any]]], str | None] | None = None,
+    threads: ThreadGovernor | None = None,
 ) -> Path:
     """Train ``arch`` on ``scenario`` and write the best model as a checkpoint in ``out_dir``.
 
@@ -115,6 +117,8 @@ def train(
         stop_when: called with the run's history after every epoch; a string it returns ends the
             run as early stopping does, with that string as the card's ``stopped`` (the zoo's
             :func:`plateau_rule`). Run control like ``deadline``, not part of the recipe.
+        threads: chooses the thread count of each training step by measurement
+            (:class:`~neural_estimator.training.threads.ThreadGovernor`); None: the count torch has.
 
     Returns:
         ``out_dir``.
@@ -126,6 +130,7 @@ def train(
     device = resolve_device(cfg.device)
     sets = _training_sets(scenario, cfg, data, device, progress)
     run = _Run(scenario, arch, window_key, sets, Path(out_dir), device)
+    run.threads = threads
     if sets.cfg.resume and (run.out_dir / RESUME_DIR / "state.json").is_file():
         run.resume(stop_when)
     bar = _bar(sets.cfg.epochs, progress, f"{scenario.name}/{arch}", initial=run.state["epoch"], position=0)
@@ -285,6 +290,7 @@ class _Run:
             self.optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
         )
         self.rng = np.random.default_rng(np.random.SeedSequence(cfg.init_seed, spawn_key=(1,)))  # window draws
+        self.threads: ThreadGovernor | None = None  # run control (train()'s threads), not part of the recipe
         self.state: dict[str, Any] = {
             "epoch": 0,
             "best": math.inf,
@@ -363,7 +369,10 @@ class _Run:
         inner = _bar(  # inside the epoch: batches of windows, then validation batches (rate and time left)
             steps, progress, f"{self.scenario.name}/{self.arch} epoch {self.state['epoch'] + 1} training"
         )
+        gov = self.threads
         for it in range(steps):
+            if gov is not None:
+                gov.before_step()
             z, x, w = self.get_batch()
             loss = weighted_loss(model(z), x, w, self.angle_mask, self.comp_w)
             loss_value = loss.item()
@@ -376,6 +385,8 @@ class _Run:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             self.optimizer.step()
+            if gov is not None:
+                gov.after_step()
             train_loss += loss_value
             inner.update(1)
             if it % 10 == 9 or it == steps - 1:
