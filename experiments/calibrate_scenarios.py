@@ -160,6 +160,11 @@ CANDIDATES: dict[str, dict[str, tuple[str, dict, str]]] = {
             {"prior_angle_std": 1.0, "prior_rate_std": 0.1},
             "x0 std 1.0 on the angles, the links released nearly at rest",
         ),
+        "x0std1-rate0.1-r0.01": (
+            "v3",
+            {"prior_angle_std": 1.0, "prior_rate_std": 0.1, "obs_noise_std": 0.01},
+            "x0 std 1.0 on the angles, released nearly at rest, 1 cm position sensor",
+        ),
         "angle0.5-rate0.5": ("v3", {"prior_angle_std": 0.5, "prior_rate_std": 0.5}, "half the paper's x0 std"),
         "rate3-r0.01": (
             "v3",
