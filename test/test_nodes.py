@@ -678,5 +678,18 @@ def test_settle_heap_freezes_what_is_alive_out_of_the_collectors_walk():
         assert gc.get_freeze_count() >= len(alive)
         assert all(gc.is_tracked(x) for x in alive[:3])
         assert sum(gc.get_count()) < 100  # the young generations start empty after it
+        # a rebuild settles again: what was frozen and has become cyclic garbage is freed, not kept
+        import weakref
+
+        class Node:
+            pass
+
+        a, b = Node(), Node()
+        a.other, b.other = b, a  # a cycle: only the collector frees it
+        gone = weakref.ref(a)
+        settle_heap()  # a and b frozen while alive
+        del a, b
+        settle_heap()
+        assert gone() is None
     finally:
         gc.unfreeze()

@@ -335,8 +335,11 @@ def settle_heap() -> None:
     machine, which Python starts on its own every few thousand messages: at 1 kHz those pauses
     were the end-to-end p99 (60-160 ms stalls in every node). Frozen objects are never walked
     again, so a later collection only scans what was allocated since (microseconds). Called
-    once the node is built, and again by a node that builds its estimator later (on /scenario).
+    once the node is built, and again by a node that builds its estimator later (on /scenario):
+    what was frozen before is unfrozen and collected first, so a model replaced by a rebuild is
+    freed, not kept frozen for the life of the process.
     """
+    gc.unfreeze()
     gc.collect()
     gc.freeze()
 
