@@ -130,6 +130,13 @@ def main(argv: list[str] | None = None) -> int:
         help="a method option, e.g. gru.backend=onnxruntime (ONNX Runtime serving of the neural step)",
     )
     ap.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=0,
+        metavar="N",
+        help="every node on SCHED_FIFO at priority N (neural_estimator/nodes/realtime.py; 0: normal scheduling)",
+    )
+    ap.add_argument(
         "--executors",
         default="events",
         help="comma-separated: the nodes' executor in turn (events, single), e.g. single,events to compare "
@@ -180,13 +187,15 @@ def _run(a, out: Path) -> dict:
         timeout=max(120.0, 6 * a.seconds + 60),
         stats_dir=str(stats_dir),
         estimator_params=tuple(a.estimator_param),
+        realtime_priority=a.realtime_priority,
         options=tuple(a.option),
     )
     print(
         f"{a.scenario}: {methods} at {a.rate_hz:g} Hz, {a.trajectories} x {horizon} steps "
         f"({a.trajectories * horizon} observations), {os.cpu_count()} cores"
         + (f", estimator parameters {a.estimator_param}" if a.estimator_param else "")
-        + (f", options {a.option}" if a.option else ""),
+        + (f", options {a.option}" if a.option else "")
+        + (f", SCHED_FIFO priority {a.realtime_priority}" if a.realtime_priority else ""),
         flush=True,
     )
     load_before = os.getloadavg()[0]

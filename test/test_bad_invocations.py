@@ -52,6 +52,10 @@ CLI_CASES = [
     (["simulate", "--scenario", "lorenz96", "--out", "{tmp}/x.npz", "--trajectories", "0"], "must be >= 1"),
     (["live", "--scenario", "lorenz96", "--methods", "ukff"], "unknown method 'ukff' (did you mean 'ukf'?)"),
     (["live", "--scenario", "lorenz96", "--methods", "ukf", "--rate-hz", "x"], "invalid float value: 'x'"),
+    (
+        ["live", "--scenario", "lorenz96", "--methods", "ukf", "--realtime-priority", "100"],
+        "--realtime-priority must be from 0 (off) to 99, got 100",
+    ),
     (["reproduce", "--scale", "smal"], "did you mean 'small'?"),
 ]
 
@@ -188,3 +192,20 @@ def test_reproduce_without_ray_names_the_extra_to_install(tmp):
     )
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert "pip install 'neural_estimator[reproduce]'" in res.stderr
+
+
+@pytest.mark.ros
+def test_node_with_a_bad_realtime_priority_is_one_line_and_status_1(tmp):
+    pytest.importorskip("rclpy")
+    import random
+
+    from neural_estimator.nodes.launch import isolated_env
+
+    env = isolated_env(random.SystemRandom().randint(200, 229))
+    env["NEURAL_ESTIMATOR_REALTIME_PRIORITY"] = "high"
+    cmd = [sys.executable, "-m", "neural_estimator.nodes.entry", "estimator", "--ros-args", "-p", "method:=ukf"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env, cwd=tmp)
+    fatal = [ln for ln in (res.stdout + res.stderr).splitlines() if "FATAL" in ln]
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert len(fatal) == 1 and "NEURAL_ESTIMATOR_REALTIME_PRIORITY must be an integer from 1 to 99" in fatal[0]
+    assert "Traceback" not in res.stderr

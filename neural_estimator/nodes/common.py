@@ -27,6 +27,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 
 from neural_estimator.bags.writer import Qos
 from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class
+from neural_estimator.nodes.realtime import RealtimeError, apply_realtime_priority, requested_priority
 from neural_estimator.options import OptionError, parse_value
 
 RCLError = _rclpy.RCLError  # rclpy's error type for rcl failures (not exported elsewhere in rclpy 7.1)
@@ -291,14 +292,25 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     status 1; otherwise the status is the node's :meth:`ExitStatusNode.on_shutdown`.
     """
     dds_memory_policy()
+    try:  # before rclpy.init: the middleware's threads inherit the scheduling policy
+        realtime = apply_realtime_priority(requested_priority())
+    except RealtimeError as exc:
+        realtime = exc
     rclpy.init(args=args)
     try:
+        if isinstance(realtime, RealtimeError):
+            raise StartupError(str(realtime))
         executor_choice()
         node = factory()
     except StartupError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
         rclpy.try_shutdown()
         return 1
+    applied, line = realtime
+    if applied:
+        node.get_logger().info(line)
+    elif requested_priority():
+        node.get_logger().warning(line)
     settle_heap()
     try:
         spin(node, executor)

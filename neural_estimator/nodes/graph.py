@@ -92,6 +92,7 @@ class PipelineConfig:
     record_topics: tuple[str, ...] = ()  # extra topics for the evaluator to record (e.g. /diagnostics)
     stats_dir: str = ""  # each estimator writes <stats_dir>/<method>.json at shutdown ('' = no)
     estimator_params: tuple[str, ...] = ()  # name=value parameters of every estimator node (e.g. max_delay=0.05)
+    realtime_priority: int = 0  # SCHED_FIFO priority of every node process (nodes/realtime.py); 0 = normal
     python: str = sys.executable
 
 

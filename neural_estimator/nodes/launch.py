@@ -41,6 +41,7 @@ from neural_estimator.nodes.graph import (  # noqa: F401 - re-exported: the one 
     live_nodes,
     ros_arg,
 )
+from neural_estimator.nodes.realtime import MAX_PRIORITY, REALTIME_ENV
 
 
 class PipelineError(RuntimeError):
@@ -115,6 +116,8 @@ def run_pipeline(cfg: PipelineConfig, *, echo: bool = False) -> PipelineResult:
     log_dir.mkdir(parents=True, exist_ok=True)
     domain = cfg.domain_id if cfg.domain_id is not None else pick_domain_id()
     env = isolated_env(domain)
+    if cfg.realtime_priority:
+        env[REALTIME_ENV] = str(cfg.realtime_priority)
     nodes = [(spec.name, command(cfg.python, spec)) for spec in live_nodes(cfg, str(bag))]
 
     procs: dict[str, subprocess.Popen] = {}
@@ -253,6 +256,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output", default="", help="bag path (default runs/<scenario>-<date>-<time>.mcap)")
     p.add_argument("--domain-id", type=int, default=None)
     p.add_argument("--timeout", type=float, default=600.0)
+    p.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=0,
+        metavar="N",
+        help="run every node on SCHED_FIFO at priority N (1-99; needs root, CAP_SYS_NICE or an rtprio limit; "
+        "0: normal scheduling); keeps the estimates current on a busy machine, see docs/performance.md",
+    )
     return p
 
 
@@ -271,6 +282,8 @@ def check_arguments(a: argparse.Namespace) -> None:
         raise ValueError(
             f"--trajectories must be >= 1 and --horizon >= 0 (0 = the scenario's), got {a.trajectories} and {a.horizon}"
         )
+    if not 0 <= a.realtime_priority <= MAX_PRIORITY:
+        raise ValueError(f"--realtime-priority must be from 0 (off) to {MAX_PRIORITY}, got {a.realtime_priority}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -307,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
         output=a.output,
         domain_id=a.domain_id,
         timeout=a.timeout,
+        realtime_priority=a.realtime_priority,
     )
 
     def terminate(signum, frame):  # SIGTERM: stop the nodes too (run_pipeline's clean-up runs)
