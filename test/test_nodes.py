@@ -693,3 +693,37 @@ def test_settle_heap_freezes_what_is_alive_out_of_the_collectors_walk():
         assert gone() is None
     finally:
         gc.unfreeze()
+
+
+def test_a_busy_estimator_publishes_its_diagnostics_from_the_message_path():
+    # the events executor serves queued messages before a due timer: a node that never idles
+    # must still report, so the observation callback publishes when the timer is overdue
+    import types
+
+    from neural_estimator.nodes.estimator_node import EstimatorNode
+    from neural_estimator.nodes.estimator_stats import EstimatorStats
+
+    published = []
+    node = types.SimpleNamespace(
+        p=types.SimpleNamespace(drain=False, max_delay=0.0, diagnostics_period=1.0, queue_depth=10),
+        sub_obs=None,
+        stats=EstimatorStats(),
+        _on_observation=lambda raw, info: None,
+        _last_diagnostics=time.monotonic(),
+    )
+
+    def on_diagnostics():
+        published.append(time.monotonic())
+        node._last_diagnostics = time.monotonic()
+
+    node._on_diagnostics = on_diagnostics
+    EstimatorNode._on_observations(node, b"obs", 1)
+    assert published == []  # the timer is not overdue: nothing from the message path
+    node._last_diagnostics -= 1.6  # 1.6 periods without a diagnostics message
+    EstimatorNode._on_observations(node, b"obs", 1)
+    assert len(published) == 1
+    EstimatorNode._on_diagnostics_timer(node)  # the late timer right after: not a second message
+    assert len(published) == 1
+    node._last_diagnostics -= 0.6
+    EstimatorNode._on_diagnostics_timer(node)  # an on-time timer publishes as before
+    assert len(published) == 2
