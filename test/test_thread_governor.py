@@ -38,9 +38,19 @@ def test_a_busy_machine_trains_on_one_thread_after_the_probe():
     m = FakeMachine({1: 0.10, 2: 0.30})  # two threads 3x slower: the other core is busy
     gov = governor(m, probe_steps=4, period=100.0)
     used = m.train(gov, 60)
-    probe = 2 * (4 + 1)  # each count: one untimed step after the switch, then the timed ones
+    # one thread: an untimed step after the switch, then 4 timed; two threads: the untimed step
+    # and one timed step, 3x the best so far, which ends the probe there
+    probe = (1 + 4) + (1 + 1)
+    assert used[:probe] == [1] * 5 + [2, 2]
     assert set(used[probe:]) == {1}
     assert gov.decisions[0]["chose"] == 1 and gov.decisions[0]["ms"] == {"1": 100.0, "2": 300.0}
+
+
+def test_a_count_only_somewhat_slower_is_timed_in_full():
+    m = FakeMachine({1: 0.10, 2: 0.125})  # 1.25x: under the abort factor, so every probe step is timed
+    gov = governor(m, probe_steps=4, period=100.0)
+    used = m.train(gov, 30)
+    assert used[:10] == [1] * 5 + [2] * 5 and set(used[10:]) == {1}
 
 
 def test_an_idle_machine_keeps_two_threads():

@@ -7,8 +7,9 @@ the second core they train at 0.29-0.89x of one, whatever OpenMP's wait policy
 long training sees both. :class:`ThreadGovernor` measures instead: at the start and then every
 ``period`` seconds it times ``probe_steps`` training steps at each candidate count (1 and the
 maximum asked for; the first step after a change is not timed), and trains at the count whose
-median step was shortest until the next probe. A probe costs at most ``2 * (probe_steps + 1)``
-steps at the slower count, a few seconds every few minutes.
+median step was shortest until the next probe. A count whose timed step takes more than
+``ABORT_FACTOR`` times the best median so far is dropped after that one step, so on a busy
+machine a probe costs two steps at the slow count, not ``probe_steps + 1``.
 
 The decision depends on the load, so a run with ``max_threads > 1`` is not bit-reproducible
 across machines or runs (torch's CPU reductions depend on the thread count); ``max_threads = 1``
@@ -21,6 +22,9 @@ import statistics
 import time
 from collections.abc import Callable
 from typing import Any
+
+
+ABORT_FACTOR = 1.5  # a probed count whose step takes this much longer than the best so far is dropped at once
 
 
 class ThreadGovernor:
@@ -85,8 +89,12 @@ class ThreadGovernor:
             return
         samples = self._times.setdefault(self.current, [])
         samples.append(elapsed)
-        if len(samples) < self.probe_steps:
+        done = {n: statistics.median(t) for n, t in self._times.items() if n != self.current}
+        clearly_slower = bool(done) and elapsed > ABORT_FACTOR * min(done.values())
+        if len(samples) < self.probe_steps and not clearly_slower:
             return
+        if clearly_slower:  # no need for more samples of a count that loses by that much
+            self._queue = self._queue[:1]
         self._queue.pop(0)
         if self._queue:
             self._switch(self._queue[0])
