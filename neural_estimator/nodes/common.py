@@ -292,25 +292,24 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     status 1; otherwise the status is the node's :meth:`ExitStatusNode.on_shutdown`.
     """
     dds_memory_policy()
-    try:  # before rclpy.init: the middleware's threads inherit the scheduling policy
-        realtime = apply_realtime_priority(requested_priority())
+    priority, bad_priority = 0, ""
+    try:
+        priority = requested_priority()
     except RealtimeError as exc:
-        realtime = exc
+        bad_priority = str(exc)  # reported as the start-up error once the logger exists
+    applied, line = apply_realtime_priority(priority)  # before rclpy.init: the middleware's threads inherit it
     rclpy.init(args=args)
     try:
-        if isinstance(realtime, RealtimeError):
-            raise StartupError(str(realtime))
+        if bad_priority:
+            raise StartupError(bad_priority)
         executor_choice()
         node = factory()
     except StartupError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
         rclpy.try_shutdown()
         return 1
-    applied, line = realtime
-    if applied:
-        node.get_logger().info(line)
-    elif requested_priority():
-        node.get_logger().warning(line)
+    if priority:
+        (node.get_logger().info if applied else node.get_logger().warning)(line)
     settle_heap()
     try:
         spin(node, executor)
