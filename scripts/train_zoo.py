@@ -12,7 +12,9 @@ STATE/<preset>/<scenario>-<method>/ when the former holds a training of other co
 (work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
 AdamW state, scheduler, RNG states, history; safetensors + JSON, no pickle; about 1.5 MB per
 model), small enough to commit so that the next session continues where this one stopped.
-Running the script again resumes every unfinished model from its last finished epoch. Once a
+Running the script again resumes every unfinished model from its last finished epoch.
+Started once per core with the same arguments, the processes share the queue: each pair is
+claimed by one of them (a lock file in its directory, see claimed()) and the others move on. Once a
 model is finished its resume state is deleted, and its weights too where the zoo ships the same
 file (prune; --prune does it for every finished training under STATE): the card keeps the
 history and the recipe. See docs/training.md.
@@ -73,6 +75,8 @@ unless --no-compare): for a variant that finished in an earlier run, e.g.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import hashlib
 import json
 import shutil
@@ -97,6 +101,7 @@ from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
 STATE = ROOT / "zoo_training"
+LOCK_NAME = "training.lock"  # see claimed(); not committed (.gitignore)
 ORDER = ("mamba2", "mamba", "gru", "lstm", "gpt2", "filterformer")  # SSMs first, then recurrent, then attention
 
 
@@ -135,6 +140,29 @@ def work_dir(state: Path, scenario, method: str) -> Path:
     return state / (scenario.describe().get("preset") or "custom") / legacy.name
 
 
+@contextlib.contextmanager
+def claimed(work: Path):
+    """Hold the training in ``work`` for this process while the block runs; yields False, holding
+    nothing, where another process holds it.
+
+    An exclusive, non-blocking ``flock`` on WORK/training.lock: several train_zoo.py processes
+    started with the same arguments (one per core) share the queue, each pair trained by exactly
+    one of them, the others moving on to the next pair. The kernel releases the lock when its
+    process exits or is killed, so a stopped run never leaves a pair locked.
+    """
+    work.mkdir(parents=True, exist_ok=True)
+    with open(work / LOCK_NAME, "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -147,7 +175,8 @@ def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
     ``init_seed``, ``architecture``). Removed: resume/ (the last epoch's weights, the AdamW moments,
     the scheduler, the RNG states: only a training that goes on needs them) and model.safetensors
     where the zoo ships the very same weights (byte-identical; a model that was not installed, e.g.
-    a --val-context variant, keeps its weights so that --install can still install it).
+    a --val-context variant, keeps its weights so that --install can still install it), and the
+    lock file of :func:`claimed` (a process that opens it later finds the training finished).
     An unfinished training is left as it is: its resume state is what the next run continues from.
     """
     if not finished(work):
@@ -160,6 +189,7 @@ def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
     if weights.is_file() and shipped is not None and shipped.is_file() and _sha256(weights) == _sha256(shipped):
         weights.unlink()
         removed.append("model.safetensors")
+    (work / LOCK_NAME).unlink(missing_ok=True)
     return removed
 
 
@@ -333,6 +363,83 @@ def status_line(work: Path) -> str:
     )
 
 
+def run_pair(a: argparse.Namespace, scenario, method: str, work: Path, zoo: Path | None, stop_at: float | None) -> None:
+    """Train (scenario, method) in ``work`` to the end or to the run's budget, then install and
+    prune what finished; skipped when finished, when the zoo ships a model of these constants (no
+    --retrain), when the run's hours are spent, or when another process holds it (:func:`claimed`)."""
+    if finished(work):
+        return
+    if resume_state(work) is None and not a.retrain and zoo is not None and shipped_of(zoo, work, scenario):
+        print(
+            f"{work.name}: not started: the zoo ships a model of these constants, nothing to retrain "
+            "(--retrain trains one anyway)",
+            flush=True,
+        )
+        return
+    if stop_at is not None and time.time() >= stop_at:
+        print(f"{work.name}: not started in this run (--hours spent)", flush=True)
+        return
+    if a.finish and resume_state(work) is None:
+        print(f"{work.name}: not started, nothing to finish", flush=True)
+        return
+    with claimed(work) as mine:
+        if not mine:
+            print(f"{work.name}: another train_zoo.py process is training it, skipped", flush=True)
+            return
+        if finished(work):  # by that other process, since the check above
+            return
+        left = 3600 * a.model_hours - used_seconds(work)
+        deadline = time.time() + left if stop_at is None else min(stop_at, time.time() + left)
+        recipe = dict(
+            val_trajectories=a.val_trajectories,
+            trajectories=a.trajectories,
+            windows_per_epoch=a.windows_per_epoch,
+            device=a.device,
+            eval_trajectories=a.eval_trajectories,
+            loss_units=a.loss_units,
+            val_context=a.val_context,
+            val_context_copies=a.val_context_copies,
+            resume=True,
+            keep_resume=True,
+        )
+        cfg = TrainConfig(epochs=a.max_epochs, **recipe)
+        t0 = time.time()
+        if not a.finish:
+            stop_when = plateau_rule(cfg.lr, a.plateau_epochs, a.plateau_tol) if a.plateau_epochs else None
+            governor = ThreadGovernor(a.threads) if a.threads > 1 else None  # see `train --threads`
+            train(
+                scenario,
+                method,
+                work,
+                cfg,
+                progress=not a.quiet,
+                deadline=deadline,
+                stop_when=stop_when,
+                threads=governor,
+            )
+        run = resume_state(work)
+        if not finished(work) and (a.finish or used_seconds(work) >= 3600 * a.model_hours):
+            # finish as it stands: evaluate the best model, final card saying why it stopped
+            cfg = TrainConfig(epochs=run["epoch"], **recipe)
+            train(scenario, method, work, cfg, progress=False)
+            card = json.loads((work / "card.json").read_text())  # say why it stopped, and the real budget
+            if a.finish:
+                card["training"]["stopped"] = (
+                    f"finished by hand (--finish) after {run['epoch']} epochs, {used_seconds(work) / 3600:.2f} h"
+                )
+            else:
+                card["training"]["stopped"] = f"wall budget spent ({a.model_hours:g} h)"
+            card["training"]["budget"]["max_epochs"] = a.max_epochs
+            (work / "card.json").write_text(json.dumps(card, indent=2) + "\n")
+        if finished(work) and zoo is None:
+            print(f"{work.name}: finished in {work} (a --val-context variant: not installed without --zoo)")
+        elif finished(work):
+            install_if_better(work, zoo, scenario, not a.no_compare, a.device, a.eval_trajectories)
+        if finished(work):
+            prune(work, zoo)
+        print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
@@ -457,71 +564,7 @@ def main(argv=None) -> int:
                 else:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
-            if finished(work):
-                continue
-            if resume_state(work) is None and not a.retrain and zoo is not None and shipped_of(zoo, work, scenario):
-                print(
-                    f"{work.name}: not started: the zoo ships a model of these constants, nothing to retrain "
-                    "(--retrain trains one anyway)",
-                    flush=True,
-                )
-                continue
-            if stop_at is not None and time.time() >= stop_at:
-                print(f"{work.name}: not started in this run (--hours spent)", flush=True)
-                continue
-            left = 3600 * a.model_hours - used_seconds(work)
-            deadline = time.time() + left if stop_at is None else min(stop_at, time.time() + left)
-            recipe = dict(
-                val_trajectories=a.val_trajectories,
-                trajectories=a.trajectories,
-                windows_per_epoch=a.windows_per_epoch,
-                device=a.device,
-                eval_trajectories=a.eval_trajectories,
-                loss_units=a.loss_units,
-                val_context=a.val_context,
-                val_context_copies=a.val_context_copies,
-                resume=True,
-                keep_resume=True,
-            )
-            cfg = TrainConfig(epochs=a.max_epochs, **recipe)
-            t0 = time.time()
-            if not a.finish:
-                stop_when = plateau_rule(cfg.lr, a.plateau_epochs, a.plateau_tol) if a.plateau_epochs else None
-                governor = ThreadGovernor(a.threads) if a.threads > 1 else None  # see `train --threads`
-                train(
-                    scenario,
-                    method,
-                    work,
-                    cfg,
-                    progress=not a.quiet,
-                    deadline=deadline,
-                    stop_when=stop_when,
-                    threads=governor,
-                )
-            run = resume_state(work)
-            if a.finish and run is None:
-                print(f"{work.name}: not started, nothing to finish", flush=True)
-                continue
-            if not finished(work) and (a.finish or used_seconds(work) >= 3600 * a.model_hours):
-                # finish as it stands: evaluate the best model, final card saying why it stopped
-                cfg = TrainConfig(epochs=run["epoch"], **recipe)
-                train(scenario, method, work, cfg, progress=False)
-                card = json.loads((work / "card.json").read_text())  # say why it stopped, and the real budget
-                if a.finish:
-                    card["training"]["stopped"] = (
-                        f"finished by hand (--finish) after {run['epoch']} epochs, {used_seconds(work) / 3600:.2f} h"
-                    )
-                else:
-                    card["training"]["stopped"] = f"wall budget spent ({a.model_hours:g} h)"
-                card["training"]["budget"]["max_epochs"] = a.max_epochs
-                (work / "card.json").write_text(json.dumps(card, indent=2) + "\n")
-            if finished(work) and zoo is None:
-                print(f"{work.name}: finished in {work} (a --val-context variant: not installed without --zoo)")
-            elif finished(work):
-                install_if_better(work, zoo, scenario, not a.no_compare, a.device, a.eval_trajectories)
-            if finished(work):
-                prune(work, zoo)
-            print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
+            run_pair(a, scenario, method, work, zoo, stop_at)
     return 0
 
 

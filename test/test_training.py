@@ -887,3 +887,45 @@ def test_training_caps_trajectories_at_the_scenarios_longest_informative_length(
     )
     card = json.loads((out / "card.json").read_text())
     assert card["data"]["train_length"] == 40 and card["training"]["recipe"]["train_length"] == 40
+
+
+def test_train_zoo_leaves_a_pair_that_another_process_holds_and_takes_it_once_released(tmp_path, monkeypatch, capsys):
+    """Two train_zoo.py processes on one queue: a pair whose lock another process holds is skipped
+    (nothing trained, nothing written but the lock file); once that process is gone (killed: the
+    kernel drops its lock) the pair trains."""
+    import subprocess
+    import sys
+
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "state", tmp_path / "zoo"
+    work = state / "test_spinner-gru"
+    work.mkdir(parents=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, sys, time\n"
+            f"h = open({str(work / zoo_script.LOCK_NAME)!r}, 'a+')\n"
+            "fcntl.flock(h, fcntl.LOCK_EX)\nprint('held', flush=True)\ntime.sleep(120)\n",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo)]
+    args += ["--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6"]
+    args += ["--eval-trajectories", "4", "--max-epochs", "1", "--quiet"]
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with zoo_script.claimed(work) as mine:
+            assert mine is False
+        assert zoo_script.main(args) == 0
+        assert "test_spinner-gru: another train_zoo.py process is training it, skipped" in capsys.readouterr().out
+        assert sorted(p.name for p in work.iterdir()) == [zoo_script.LOCK_NAME] and not zoo.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert zoo_script.main(args) == 0
+    assert zoo_script.finished(work) and (zoo / work.name / "model.safetensors").is_file()
+    with zoo_script.claimed(work) as mine:  # released at the end of the training
+        assert mine is True
