@@ -76,3 +76,22 @@ def test_spread_is_read_on_the_most_accurate_method_and_the_section_renders():
     assert "- `[c]` bounded context" in text and "- `(!)` expected to fail" in text
     assert "48 of 48 measured cells within 1.5x" in text and "retraining · 0.676" in text
     assert "6 of 7 findings reproduced, 1 partly" in text  # an SSM best in 4 of the 4 measured scenarios
+
+
+def test_a_miss_in_rmse_within_the_factor_in_nrmse_is_the_operating_points_and_renders_so():
+    """A cell that misses in RMSE but matches in NRMSE (its error relative to the spread of the states
+    is the paper's) is counted as the operating point's; a cell missing in both is not."""
+    rmse, nrmse = _paper()
+    ours_r = {s: dict(v) for s, v in rmse.items()}
+    ours_n = {s: dict(v) for s, v in nrmse.items()}
+    ours_r["bearings"]["mamba"] = 168 * 2.5  # a wider scenario: RMSE 2.5x ...
+    ours_n["bearings"]["mamba"] = 0.588 * 1.1  # ... but 1.1x relative to its spread
+    ours_r["lorenz96"]["gru"] = 0.127 * 0.5  # better than the paper's in both: the method's own
+    ours_n["lorenz96"]["gru"] = 0.036 * 0.5
+    missed, by_spread = F.spread_misses(ours_r, ours_n)
+    assert {(c.scenario, c.method) for c in missed} == {("bearings", "mamba"), ("lorenz96", "gru")}
+    assert [(c.scenario, c.method) for c in by_spread] == [("bearings", "mamba")]
+    text = "\n".join(F.section(F.Measured(ours_r, ours_n, {}, [])))
+    assert "**The same cells in NRMSE**" in text and "48 of 49 measured" in text
+    assert "Of the 2 measured RMSE cells outside 1.5x, 1 are within 1.5x in NRMSE (bearings Mamba)" in text
+    assert "| GRU | 1.00x ✓ | 1.00x ✓ | 0.50x |" in text
