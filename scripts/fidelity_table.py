@@ -11,7 +11,8 @@ gets its own, smaller, run (it costs 100-300x the other filters). Each run write
 ``DIR/<scenario>[-pf]/results.json`` and is cached, so an interrupted measurement resumes where it
 stopped. `render` prints the fidelity section (`neural_estimator/reproduce/fidelity.py`: the 49
 cells within 1.5x, the spread of the states, the paper's seven findings) and writes
-``DIR/fidelity.md``; docs/fidelity.md shows it (`<!-- generate: fidelity-measured -->`).
+``DIR/fidelity.md``; docs/fidelity.md shows it (`<!-- generate: fidelity-measured -->`), and the
+README's headline table (between its fidelity-headline markers) is rewritten from the same cells.
 """
 
 from __future__ import annotations
@@ -57,7 +58,20 @@ def render(a: argparse.Namespace) -> int:
     text = "\n".join(lines) + "\n"
     (out / "fidelity.md").write_text(text)
     print(text)
+    if Path(a.out).resolve() == DEFAULT_OUT.resolve():
+        update_readme(got)
     return 0
+
+
+def update_readme(got) -> None:
+    """Put the headline table (``fidelity.headline``) between the README's fidelity-headline markers."""
+    from neural_estimator.reproduce.fidelity import headline
+
+    readme = ROOT / "README.md"
+    text = readme.read_text()
+    begin, end = "<!-- fidelity-headline: scripts/fidelity_table.py render -->\n", "\n<!-- /fidelity-headline -->"
+    a, b = text.index(begin) + len(begin), text.index(end)
+    readme.write_text(text[:a] + "\n".join(headline(got)) + text[b:])
 
 
 def main(argv=None) -> int:
