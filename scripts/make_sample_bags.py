@@ -21,14 +21,16 @@ from pathlib import Path
 
 from neural_estimator.bags import arrays_to_bag
 from neural_estimator.data import simulate
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET, make_scenario
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset, make_scenario
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 
 
 def sample_bag_path(scenario: str, preset: str | None = None) -> Path:
     """bags/<scenario>.mcap on the default constants, bags/<scenario>-<preset>.mcap on another preset."""
-    return BAGS / (f"{scenario}.mcap" if preset in (None, "", DEFAULT_PRESET) else f"{scenario}-{preset}.mcap")
+    return BAGS / (
+        f"{scenario}.mcap" if preset in (None, "", default_preset(scenario)) else f"{scenario}-{preset}.mcap"
+    )
 
 
 def main(argv=None) -> int:
@@ -37,7 +39,7 @@ def main(argv=None) -> int:
     p.add_argument("--horizon", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS), help="comma-separated (default: all five)")
-    p.add_argument("--preset", default=None, help=f"constants preset (default: {DEFAULT_PRESET})")
+    p.add_argument("--preset", default=None, help="constants preset (default: each scenario's defaults)")
     a = p.parse_args(argv)
     for name in a.scenarios.split(","):
         scenario = make_scenario(name, preset=a.preset)

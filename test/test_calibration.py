@@ -14,8 +14,8 @@ from neural_estimator import evaluation
 from neural_estimator.data import protocol, simulate
 from neural_estimator.scenarios import (
     BUILTIN_SCENARIOS,
-    DEFAULT_PRESET,
     ScenarioError,
+    default_preset,
     make_scenario,
     preset_names,
     scenario_from_description,
@@ -53,7 +53,7 @@ def test_new_defaults_are_preset_v4_and_recorded_in_files(name):
     desc = s.describe()
     for k, v in V4[name].items():
         assert desc["config"][k] == v, (k, desc["config"][k])
-    assert desc["preset"] == DEFAULT_PRESET == "v4"
+    assert desc["preset"] == default_preset(name) == "v4"
     data = simulate(s, 2, 3, seed=0)
     assert data.meta["config"] == desc["config"] and data.meta["preset"] == "v4"  # every file records both
 
@@ -202,7 +202,8 @@ def test_nlink_v5_is_the_joint_fit_one_preset_away_and_not_yet_the_defaults():
     """N-link's v5 (angle std 1.0, rates 0.1, a 1 cm sensor) is newer than the defaults but not them:
     the defaults still describe themselves as v4, a v5 scenario as v5, and the v5 constants given by
     --set are recognised as v5 (a model trained on them is labelled so, and refused at the defaults)."""
-    assert make_scenario("nlink").describe()["preset"] == DEFAULT_PRESET == "v4"
+    assert make_scenario("nlink").describe()["preset"] == default_preset("nlink") == "v4"
+    assert default_preset("test_spinner") is None  # a scenario without presets
     v5 = make_scenario("nlink", preset="v5")
     c = v5.config
     assert (c.prior_angle_std, c.prior_rate_std, c.obs_noise_std) == (1.0, 0.1, 0.01)

@@ -8,7 +8,7 @@ import pytest
 from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
 from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, DEFAULT_PRESET
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset
 from neural_estimator.serving.card import shipped_preset
 
 pytestmark = pytest.mark.slow  # every sample bag through the shipped models
@@ -56,7 +56,7 @@ def _card_preset(scenario: str, method: str) -> str:
 
 
 def _bag_of(scenario: str, preset: str) -> Path:
-    return ROOT / "bags" / (f"{scenario}.mcap" if preset == DEFAULT_PRESET else f"{scenario}-{preset}.mcap")
+    return ROOT / "bags" / (f"{scenario}.mcap" if preset == default_preset(scenario) else f"{scenario}-{preset}.mcap")
 
 
 @pytest.mark.parametrize("scenario, method", SHIPPED)
@@ -71,10 +71,12 @@ def test_sample_bag_replays_through_shipped_models(scenario, method, tmp_path):
     assert np.all(np.isfinite(x_hat)) and x_hat.shape == truth.x.shape
 
 
-@pytest.mark.parametrize("scenario, method", [(s, m) for s, m in SHIPPED if _card_preset(s, m) != DEFAULT_PRESET])
+@pytest.mark.parametrize("scenario, method", [(s, m) for s, m in SHIPPED if _card_preset(s, m) != default_preset(s)])
 def test_a_model_of_other_constants_is_refused_on_the_default_bag_in_one_line(scenario, method, tmp_path, capsys):
     out = tmp_path / "r.mcap"
-    assert main(["replay", str(_bag_of(scenario, DEFAULT_PRESET)), "--methods", method, "--out", str(out)]) == 2
+    assert (
+        main(["replay", str(_bag_of(scenario, default_preset(scenario))), "--methods", method, "--out", str(out)]) == 2
+    )
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "other constants" in err and "--preset" in err
     assert not out.exists()

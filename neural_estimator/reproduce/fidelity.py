@@ -252,13 +252,13 @@ def findings(ours: Table) -> list[tuple[str, Verdict]]:
 
 def shipped_on_defaults(scenario: str) -> tuple[list[str], dict[str, str]]:
     """(neural methods whose shipped model was trained on the default constants, {other: why not})."""
-    from neural_estimator.scenarios import DEFAULT_PRESET
+    from neural_estimator.scenarios import default_preset
     from neural_estimator.serving.card import shipped_preset
 
     ok, pending = [], {}
     for m in NEURAL:
         preset = shipped_preset(scenario, m)
-        if preset == DEFAULT_PRESET:
+        if preset == default_preset(scenario):
             ok.append(m)
         else:
             pending[m] = "no shipped model" if preset is None else f"retraining ({preset} model)"

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.scenarios.base import (
-    DEFAULT_PRESET,
     EVALUATION_CONSTANTS,
     Scenario,
     ScenarioError,
@@ -104,11 +103,19 @@ def scenario_class(name: str) -> type[Scenario]:
 
 def make_scenario(name: str, preset: str | None = None, **overrides: Any) -> Scenario:
     """An instance of the scenario ``name``: its ``preset`` (None: the Config defaults, for a
-    built-in the preset :data:`DEFAULT_PRESET`), then constants ``overrides`` applied."""
+    built-in the preset :func:`default_preset` names), then constants ``overrides`` applied."""
     cls = scenario_class(name)
     if preset is None or preset == "":
         return cls(**overrides)
     return cls(preset=preset, **overrides)
+
+
+def default_preset(name: str) -> str | None:
+    """The preset that the scenario ``name``'s Config defaults are (for a built-in: ``v4``, the
+    constants every ``make_scenario(name)`` gets, until a newer preset such as N-link's ``v5``
+    becomes its defaults); None for a scenario without presets."""
+    cls = scenario_class(name)
+    return cls.preset_of(cls.Config())
 
 
 def preset_names(name: str) -> list[str]:
@@ -140,12 +147,12 @@ def scenario_from_description(desc: dict[str, Any]) -> Scenario:
 
 __all__ = [
     "BUILTIN_SCENARIOS",
-    "DEFAULT_PRESET",
     "EVALUATION_CONSTANTS",
     "Scenario",
     "ScenarioError",
     "code_digest",
     "complex_step_jacobian",
+    "default_preset",
     "load_plugins",
     "make_scenario",
     "parse_assignments",

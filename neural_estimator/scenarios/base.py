@@ -51,8 +51,6 @@ from neural_estimator.options import OptionError, did_you_mean, parse_value
 MAX_DIMENSION = 1024
 
 
-# The preset the built-in scenarios' Config defaults are (see "Presets" above).
-DEFAULT_PRESET = "v4"
 # Constants that describe an evaluation rather than the system: they may differ between a model's
 # training and its use, and do not change which preset a set of constants is.
 EVALUATION_CONSTANTS = ("noise_scale", "horizon")

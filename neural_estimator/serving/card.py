@@ -193,13 +193,13 @@ def default_checkpoint(scenario_name: str, method: str) -> Path:
 def shipped_preset(scenario_name: str, method: str) -> str | None:
     """The preset whose constants the shipped model of (scenario, method) was trained on (read from
     its card's constants; the default preset for a scenario without presets), or None when none ships."""
-    from neural_estimator.scenarios import DEFAULT_PRESET, scenario_class
+    from neural_estimator.scenarios import scenario_class
 
     path = default_checkpoint(scenario_name, method) / CARD_FILE
     if not path.exists():
         return None
     config = read_json(path, "card")["scenario"]["config"]
-    return scenario_class(scenario_name).preset_of(config) or DEFAULT_PRESET
+    return scenario_class(scenario_name).preset_of(config)
 
 
 def resolve_checkpoint(
