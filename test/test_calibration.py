@@ -203,7 +203,7 @@ def test_nlink_v5_is_the_joint_fit_one_preset_away_and_not_yet_the_defaults():
     the defaults still describe themselves as v4, a v5 scenario as v5, and the v5 constants given by
     --set are recognised as v5 (a model trained on them is labelled so, and refused at the defaults)."""
     assert make_scenario("nlink").describe()["preset"] == default_preset("nlink") == "v4"
-    assert default_preset("test_spinner") is None  # a scenario without presets
+    assert default_preset("oscillator") is None  # the example user scenario: no presets
     v5 = make_scenario("nlink", preset="v5")
     c = v5.config
     assert (c.prior_angle_std, c.prior_rate_std, c.obs_noise_std) == (1.0, 0.1, 0.01)
