@@ -370,7 +370,8 @@ def headline(measured: Measured) -> list[str]:
         "",
         f"**{hit} of the {n_measured} measured cells are within {FACTOR:g}x of the paper's** ({total} finite cells; "
         f"{total - n_measured} not measured). {len(by_spread)} of the {len(missed)} misses are within {FACTOR:g}x in "
-        "NRMSE: the scenario's spread differs there, not the method.",
+        "NRMSE: the scenario's spread differs there, not the method. "
+        + _findings_count(findings(measured.rmse, set(measured.contexts))),
     ]
     used = measured.used_marks()
     short = [f"`{k}` {SHORT_LEGEND[k]}" for k in SHORT_LEGEND if k in used]
@@ -477,7 +478,11 @@ def section(measured: Measured) -> list[str]:
     verdicts = findings(rmse, set(measured.contexts))
     for name, v in verdicts:
         L.append(f"| {name} | {v.ours} | {v.paper} | {v.status} |")
+    L += ["", _findings_count(verdicts)]
+    return L
+
+
+def _findings_count(verdicts: Sequence[tuple[str, Verdict]]) -> str:
     n_rep = sum(v.status == "reproduced" for _, v in verdicts)
     n_part = sum(v.status == "partly" for _, v in verdicts)
-    L += ["", f"{n_rep} of {len(verdicts)} findings reproduced, {n_part} partly."]
-    return L
+    return f"{n_rep} of {len(verdicts)} findings reproduced, {n_part} partly."
