@@ -126,6 +126,16 @@ CANDIDATES: dict[str, dict[str, tuple[str, dict, str]]] = {
             {"prior_std": (1.0, 1.0, 1.0, 1.0), "prior_mean": (-200.0, 400.0, 1.0, 0.0)},
             "x0 std 1.0, slower crossing",
         ),
+        "far3k-q0.15": (
+            "v3",
+            {"prior_mean": (-200.0, 3000.0, 2.0, 0.0), "accel_noise_std": 0.15},
+            "the same crossing 3 km from the sensor, gentler manoeuvres",
+        ),
+        "far4k-q0.12": (
+            "v3",
+            {"prior_mean": (-200.0, 4000.0, 2.0, 0.0), "accel_noise_std": 0.12},
+            "the same crossing 4 km from the sensor, gentler manoeuvres",
+        ),
     },
     "lorenz96": {
         "v4": ("v4", {}, "J = 10, obs std 0.07, process std 0.05 (matches both already)"),

@@ -83,7 +83,7 @@ def test_unchanged_scenarios_have_equal_presets(name):
 def test_every_builtin_has_both_presets_and_an_unknown_one_is_a_one_line_error():
     for name in BUILTIN_SCENARIOS:
         assert preset_names(name)[-2:] == ["v4", "v3"]
-        assert preset_names(name) == (["v5", "v4", "v3"] if name == "nlink" else ["v4", "v3"])
+        assert preset_names(name) == (["v5", "v4", "v3"] if name in ("nlink", "bearings") else ["v4", "v3"])
     with pytest.raises(ScenarioError) as info:
         make_scenario("ballistic", preset="v9")
     assert "no preset 'v9'" in str(info.value) and "v4, v3" in str(info.value) and "\n" not in str(info.value)
@@ -212,3 +212,14 @@ def test_nlink_v5_is_the_joint_fit_one_preset_away_and_not_yet_the_defaults():
     assert by_set.describe()["preset"] == "v5" and by_set.describe()["config"] == v5.describe()["config"]
     m0, p0 = v5.prior()
     assert np.allclose(np.sqrt(np.diag(p0)), [1.0] * 3 + [0.1] * 3)
+
+
+def test_bearings_v5_is_the_far_crossing_one_preset_away_and_not_yet_the_defaults():
+    assert make_scenario("bearings").describe()["preset"] == default_preset("bearings") == "v4"
+    v5 = make_scenario("bearings", preset="v5")
+    assert v5.config.prior_mean == (-200.0, 4000.0, 2.0, 0.0) and v5.config.accel_noise_std == 0.12
+    assert v5.config.prior_std == make_scenario("bearings").config.prior_std  # the rest unchanged
+    assert v5.describe()["preset"] == "v5"
+    table = _script().CANDIDATES["bearings"]
+    preset, overrides, _ = table["far4k-q0.12"]  # the candidate the calibration chose
+    assert make_scenario("bearings", preset=preset, **overrides).describe()["preset"] == "v5"

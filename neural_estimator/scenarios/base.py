@@ -25,8 +25,8 @@ defaults), so that every earlier operating point stays one flag away: ``make_sce
 preset="v3")``, ``--preset v3`` on the command line, the nodes' ``preset`` parameter. The built-in
 scenarios have ``v3`` (the constants calibrated to the paper's RMSE rows only) and ``v4`` (the
 defaults: calibrated to the RMSE rows and the spread of the true states, see docs/scenarios.md);
-N-link also has ``v5``, the operating point that fits both jointly, newer than the defaults while
-its networks are trained on it (a preset need not be the defaults to be the newest).
+N-link and bearings also have ``v5``, the operating point that fits both jointly, newer than the
+defaults while their networks are trained on it (a preset need not be the defaults to be the newest).
 ``--set`` applies on top of the preset. :meth:`Scenario.describe` records the preset the constants
 match (``"preset"``; ``"custom"`` when they match none), computed from the constants themselves, so
 a file written before presets existed is labelled too.
@@ -158,7 +158,8 @@ class Scenario(ABC):
     # with variable dimensions should declare its fields here (dx, dy, du are checked after too).
     dimension_fields: ClassVar[dict[str, int]] = {}
     # Named sets of constants: preset name -> overrides of the Config defaults (see "Presets").
-    # Newest first; the built-ins' "v4" is {} (the defaults); N-link's "v5" is newer, not the defaults.
+    # Newest first; the built-ins' "v4" is {} (the defaults); N-link's and bearings' "v5" are newer,
+    # not the defaults.
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def __init__(self, config: Any = None, preset: str | None = None, **overrides: Any) -> None:

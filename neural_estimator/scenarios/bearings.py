@@ -79,12 +79,25 @@ class Bearings(Scenario):
     EKF / UKF ratio (1.7; here 1.6). The paper's EnKF "diverges"; ours does not (see docs/fidelity.md,
     "Fidelity to the paper"). ``--set prior_mean=[0,400,0,-50] --set prior_std=[500,300,5,10]
     --set accel_noise_std=1.0 --set obs_noise_std=0.005`` gives the previous constants.
+
+    Preset ``v5``, the joint fit: the same crossing 4 km north of the sensor with gentler
+    manoeuvres (prior mean (-200, 4000, 2, 0), acceleration noise 0.12 m/s^2). The defaults fit the
+    RMSE rows (distance 0.24-0.43 over seeds 1-3) at a spread of the true states 1.8-1.9x the
+    paper's (0.57-0.66); v5 fits both, 0.30-0.40 and 0.20-0.31 (EKF = UKF there: the geometry is
+    nearly linear, so the paper's 1.7x EKF / UKF ratio is not reproduced and the RMSE distance sits
+    at the geometric mean of its two rows). Newer than the defaults, not yet them: the bearings
+    networks are trained on it first (docs/scenarios.md, "The calibration").
     """
 
     name = "bearings"
     Config = BearingsConfig
-    # Named constants (see neural_estimator.scenarios.base, "Presets"): v4 = the defaults above.
-    presets = {"v4": {}, "v3": {}}
+    # Named constants (see neural_estimator.scenarios.base, "Presets"): v4 = the defaults above;
+    # v5 the joint fit of the RMSE rows and the spread (docstring), not yet the defaults.
+    presets = {
+        "v5": {"prior_mean": (-200.0, 4000.0, 2.0, 0.0), "accel_noise_std": 0.12},
+        "v4": {},
+        "v3": {},
+    }
     state_names = ("px", "py", "vx", "vy")
     pose_states = {"x": 0, "y": 1, "vx": 2, "vy": 3}  # planar pose for Odometry output
     state_units = ("m", "m", "m/s", "m/s")
