@@ -65,6 +65,10 @@ steps than they were trained on; see the README); the card records it and the mo
 bounded by default. Such variants train in zoo_training/context<N>/ and replace no shipped model
 unless --zoo or --install is given.
 
+--fallback-context N does the same for a full-recipe model that the zoo did not take (its validation
+never beat its first epoch, or it lost to the shipped one): its bounded-context variant trains next,
+in STATE/context<N>/, and is installed under the same rules.
+
 --install installs the selected models that are already finished (no training), under the same rules
 as at the end of a run (not its first epoch; lower RMSE than the shipped model on the same set
 unless --no-compare): for a variant that finished in an earlier run, e.g.
@@ -440,6 +444,24 @@ def run_pair(a: argparse.Namespace, scenario, method: str, work: Path, zoo: Path
         print(f"{status_line(work)} [{time.time() - t0:.0f} s this run]", flush=True)
 
 
+def not_shipped(work: Path) -> bool:
+    """A finished training whose model the zoo does not ship: its weights are still in ``work``
+    (:func:`prune` removes them only where the zoo holds the very same file)."""
+    return finished(work) and (work / "model.safetensors").is_file()
+
+
+def run_fallback(a, scenario, method: str, work: Path, state: Path, zoo: Path, stop_at: float | None) -> None:
+    """Train and install the bounded-context variant of a full-recipe model the zoo did not take
+    (--fallback-context N): the zoo's rule for variants (docs/training.md, "Why some models are
+    bounded-context variants"). Its state is STATE/context<N>/, as with --val-context N; resumed
+    like any training, and a no-op once it has finished."""
+    n = a.fallback_context
+    variant_work = work_dir(state / f"context{n}", scenario, method)
+    if not finished(variant_work):
+        print(f"{work.name}: not in the zoo; training its bounded-context variant (context {n})", flush=True)
+    run_pair(argparse.Namespace(**{**vars(a), "val_context": n}), scenario, method, variant_work, zoo, stop_at)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
@@ -494,6 +516,14 @@ def main(argv=None) -> int:
     )
     p.add_argument("--val-context-copies", type=int, default=TrainConfig.val_context_copies)
     p.add_argument(
+        "--fallback-context",
+        type=int,
+        default=0,
+        help="where a finished full-recipe model is not installed (its validation never beat its first "
+        "epoch, or it lost to the shipped one), train its bounded-context variant (context N, in "
+        "STATE/context<N>/) and install that under the same rules",
+    )
+    p.add_argument(
         "--state",
         default=None,
         help="directory of the resumable training states (default zoo_training/, zoo_training/context<N>/ "
@@ -530,6 +560,8 @@ def main(argv=None) -> int:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
+    if a.fallback_context and a.val_context:
+        p.error("--fallback-context follows a full-recipe training; it does not go with --val-context")
     torch.set_num_threads(a.threads)
     tune_allocator()
     state = Path(a.state) if a.state else STATE / f"context{a.val_context}" if a.val_context else STATE
@@ -565,6 +597,8 @@ def main(argv=None) -> int:
                     print(f"{work.name}: not finished, nothing to install ({status_line(work)})", flush=True)
                 continue
             run_pair(a, scenario, method, work, zoo, stop_at)
+            if a.fallback_context and zoo is not None and not_shipped(work):
+                run_fallback(a, scenario, method, work, state, zoo, stop_at)
     return 0
 
 

@@ -929,3 +929,37 @@ def test_train_zoo_leaves_a_pair_that_another_process_holds_and_takes_it_once_re
     assert zoo_script.finished(work) and (zoo / work.name / "model.safetensors").is_file()
     with zoo_script.claimed(work) as mine:  # released at the end of the training
         assert mine is True
+
+
+def test_train_zoo_fallback_context_trains_the_bounded_variant_of_a_model_the_zoo_did_not_take(
+    tmp_path, monkeypatch, capsys
+):
+    """--fallback-context N: a finished full-recipe model the zoo does not take (here: its validation
+    "never beat its first epoch") is followed by its bounded-context variant, trained in
+    STATE/context<N>/ and installed; a second run finds both finished and trains nothing."""
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    real = zoo_script.not_installable
+    # the full-recipe run is refused as a model whose best epoch was its first; the variant is judged as usual
+    refused = "its validation loss never went below its first epoch's"
+    monkeypatch.setattr(zoo_script, "not_installable", lambda w: refused if "context" not in str(w) else real(w))
+    state, zoo = tmp_path / "s", tmp_path / "zoo"
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--state", str(state), "--zoo", str(zoo)]
+    args += ["--trajectories", "12", "--windows-per-epoch", "48", "--val-trajectories", "6"]
+    args += ["--eval-trajectories", "4", "--max-epochs", "2", "--quiet", "--fallback-context", "10"]
+    assert zoo_script.main(args) == 0
+    out = capsys.readouterr().out
+    assert "test_spinner-gru: not installed: its validation loss never went below" in out
+    assert "test_spinner-gru: not in the zoo; training its bounded-context variant (context 10)" in out
+    full, variant = state / "test_spinner-gru", state / "context10" / "test_spinner-gru"
+    assert zoo_script.finished(full) and (full / "model.safetensors").is_file()  # kept: not shipped
+    shipped = json.loads((zoo / "test_spinner-gru" / "card.json").read_text())
+    assert shipped["training"]["recipe"]["val_context"] == 10 == shipped["metrics"]["set"]["context"]
+    assert shipped == json.loads((variant / "card.json").read_text())
+    # resumable and idempotent: nothing left to train
+    assert zoo_script.main(args) == 0
+    out = capsys.readouterr().out
+    assert "training its bounded-context variant" not in out and "installed" not in out
+    # the flag follows a full-recipe run only
+    with pytest.raises(SystemExit):
+        zoo_script.main([*args, "--val-context", "10"])
