@@ -100,7 +100,7 @@ from neural_estimator.training.resume import RESUME_DIR
 from neural_estimator.training.stopping import plateau_rule
 from neural_estimator.training.threads import ThreadGovernor
 from neural_estimator.runtime import tune_allocator
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, make_scenario
+from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, default_preset, make_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
@@ -132,16 +132,24 @@ def same_constants(desc: dict, scenario) -> bool:
 def work_dir(state: Path, scenario, method: str) -> Path:
     """Where (scenario, method) trains on ``scenario``'s constants.
 
-    STATE/<scenario>-<method>/ when that directory is empty or holds a training of these very
-    constants (every training made before presets existed lives there, on the constants of preset
-    v3); otherwise STATE/<preset>/<scenario>-<method>/ (e.g. zoo_training/v4/ballistic-mamba2/ for
-    the recalibrated ballistic), so a training on new constants never meets an old one's state.
+    STATE/<preset>/<scenario>-<method>/ when it holds a training of these constants (e.g.
+    zoo_training/v4/ballistic-mamba2/ for the recalibrated ballistic); else STATE/<scenario>-<method>/
+    when that holds a training of these constants (every training made before presets existed lives
+    there, on the constants of preset v3), or is empty and these are the scenario's default
+    constants; else STATE/<preset>/<scenario>-<method>/. A training on other constants never meets
+    another one's state, and one on a preset newer than the defaults (``v5``) stays in its folder
+    when the defaults move to it.
     """
     legacy = state / f"{scenario.name}-{method}"
-    recorded = recorded_scenario(legacy)
-    if recorded is None or same_constants(recorded, scenario):
+    preset = scenario.describe().get("preset")
+    by_preset = state / (preset or "custom") / legacy.name
+    for where in (by_preset, legacy):
+        recorded = recorded_scenario(where)
+        if recorded is not None and same_constants(recorded, scenario):
+            return where
+    if recorded_scenario(legacy) is None and preset in (None, default_preset(scenario.name)):
         return legacy
-    return state / (scenario.describe().get("preset") or "custom") / legacy.name
+    return by_preset
 
 
 @contextlib.contextmanager
