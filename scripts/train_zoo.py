@@ -8,8 +8,8 @@ stopping patience 30, at most 500 epochs. One deviation, for CPU time: the valid
 
 Each (scenario, model) trains on the scenario's constants (--preset, default the defaults, v4) in
 STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the repository root), or in
-STATE/<preset>/<scenario>-<method>/ when the former holds a training of other constants
-(work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
+STATE/<preset>/<scenario>-<method>/ when the former holds a training of other constants or the
+preset is not the defaults (work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
 AdamW state, scheduler, RNG states, history; safetensors + JSON, no pickle; about 1.5 MB per
 model), small enough to commit so that the next session continues where this one stopped.
 Running the script again resumes every unfinished model from its last finished epoch.
