@@ -12,7 +12,7 @@ are the only difference:
 Each training goes to OUT/<scenario>-<model>-state/ and is skipped when its card is already
 there (so the script can be run again to extend the table). Defaults are the shipped 2 %-budget
 recipe: 20 epochs x 2,000 windows, 400 validation and 400 evaluation trajectories, one thread.
-Output of the session-8 run: experiments/results/loss_units.md.
+Its output: experiments/results/loss_units.md.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the repository root
 STATE/<preset>/<scenario>-<method>/ when the former holds a training of other constants or the
 preset is not the defaults (work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,
 AdamW state, scheduler, RNG states, history; safetensors + JSON, no pickle; about 1.5 MB per
-model), small enough to commit so that the next session continues where this one stopped.
+model), small enough to commit so that the next run, on any machine, continues where this one stopped.
 Running the script again resumes every unfinished model from its last finished epoch.
 Started once per core with the same arguments, the processes share the queue: each pair is
 claimed by one of them (a lock file in its directory, see claimed()) and the others move on. Once a

@@ -1,4 +1,4 @@
-"""scripts/neural_scoreboard.py: the issue-10 table of the shipped neural models beside the paper's."""
+"""scripts/neural_scoreboard.py: the table of the shipped neural models beside the paper's."""
 
 import json
 

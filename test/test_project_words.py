@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-BUILD_WORDS = re.compile(r"\b(sessions?|issues?|waves?)\s*#?\d+", re.I)
+BUILD_WORDS = re.compile(r"\b(sessions?|issues?|waves?)[\s#-]*\d+", re.I)
 OUTSIDE = re.compile(r"\.\./shared/|/work/(main|wt|exp|shared|notes)\b")
 TEXT_SUFFIXES = {".py", ".md", ".sh", ".yaml", ".yml", ".txt", ".cfg", ".toml", ".xml", ".launch", ""}
 

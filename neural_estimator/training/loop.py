@@ -109,7 +109,7 @@ def train(
             training batches (windows/s, time left) and the validation batches.
         deadline: a ``time.time()`` after which no new epoch starts; the run then returns with its
             resume state saved and the card marked "in progress" (no final evaluation). The zoo
-            script uses it to spread training over several sessions.
+            script uses it to spread training over several runs.
         data: (training, validation) trajectories to train on instead of simulating the scenario's
             (recorded data, with a :class:`~neural_estimator.robot.DataScenario`): the recipe's
             trajectories, train_length and val_trajectories then come from these sets, the card
