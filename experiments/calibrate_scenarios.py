@@ -97,7 +97,7 @@ CANDIDATES: dict[str, dict[str, tuple[str, dict, str]]] = {
             {"prior_std": (1.0, 1.0, 1.0), "prior_mean": (90.0, 6.0, 4.0)},
             "x0 std 1.0, drag mean 4 (positive drag without truncation)",
         ),
-        "issue-c4": (
+        "drag1-c4": (
             "v3",
             {"prior_std": (0.3048, 1.2192, 1.0), "prior_mean": (90.0, 6.0, 4.0)},
             "SSMToybox altitude/velocity spread, drag spread 1.0 around 4",

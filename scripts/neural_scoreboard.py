@@ -1,4 +1,4 @@
-"""The shipped neural models beside the paper's, at the issue's evaluation size: which is best per scenario.
+"""The shipped neural models beside the paper's, at a larger evaluation size: which is best per scenario.
 
 For every scenario, each shipped neural model (``neural_estimator/zoo/<scenario>-<method>/``) runs on
 ``--sets`` independent evaluation sets of ``--trajectories`` trajectories (default 3 x 1,000; the
@@ -113,7 +113,7 @@ def legend(rows: dict[str, dict[str, dict]]) -> list[str]:
 
 
 def verdict(rows: dict[str, dict[str, dict]]) -> list[str]:
-    """The issue's two figures, stated with their distance to the targets.
+    """The two tracked figures, stated with their distance to the targets.
 
     A bounded-context variant (``context`` > 0 in its row) is not run the paper's way, so where one is
     the best of its scenario the line also names the best model run continuously, and the SSM count

@@ -122,7 +122,7 @@ def test_ballistic_truncates_non_physical_draws_and_counts_them():
 
 
 def test_a_wide_drag_prior_simulates_and_evaluates_without_an_error():
-    s = make_scenario("ballistic", prior_std="0.3048,1.2192,1.0", dt=0.1)  # the crashing reading
+    s = make_scenario("ballistic", prior_std="0.3048,1.2192,1.0", dt=0.1)  # a reading that once crashed
     data = simulate(s, 40, seed=11)
     assert np.isfinite(data.x).all()
 

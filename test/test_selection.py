@@ -15,7 +15,7 @@ from neural_estimator.scenarios import make_scenario
 ROOT = Path(__file__).resolve().parents[1]
 
 # Every evaluation seed a table here uses or a report quotes: the CLI's and reproduce's default (0),
-# the re-measurement (777), and a range around them.
+# the fidelity measurement's (777), and a range around them.
 EVAL_SEEDS = sorted({0, 1, 7, 11, 777, *range(0, 64)})
 DATA_SEEDS = range(0, 64)  # training data seeds (the zoo's recipe: 0)
 
