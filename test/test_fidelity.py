@@ -111,3 +111,11 @@ def test_finding_3_leaves_bounded_context_variants_out_and_shows_both_counts():
     assert left_out.ours == "5 of 5 run continuously (4 of 5 counting the bounded-context variants)"
     # a continuous GRU ahead of the SSMs still counts against the finding
     assert dict(F.findings(ours, {("bearings", "gru")}))[name].status == "partly"
+
+
+def test_finding_4_says_which_method_leads_when_it_is_not_the_ekf():
+    rmse, _ = _paper()
+    ours = {s: dict(v) for s, v in rmse.items()}
+    ours["quadrotor"].update(ekf=0.385, ukf=0.338, mamba2=0.565)  # the UKF ahead; networks 1.5x the EKF
+    v = dict(F.findings(ours))["the EKF dominates the planar quadrotor, far ahead of every neural model"]
+    assert v.status == "not" and v.ours == "UKF ahead of the EKF; best neural 1.5x EKF"
