@@ -143,11 +143,11 @@ def work_dir(state: Path, scenario, method: str) -> Path:
     legacy = state / f"{scenario.name}-{method}"
     preset = scenario.describe().get("preset")
     by_preset = state / (preset or "custom") / legacy.name
-    for where in (by_preset, legacy):
-        recorded = recorded_scenario(where)
-        if recorded is not None and same_constants(recorded, scenario):
+    recorded = {where: recorded_scenario(where) for where in (by_preset, legacy)}
+    for where, desc in recorded.items():
+        if desc is not None and same_constants(desc, scenario):
             return where
-    if recorded_scenario(legacy) is None and preset in (None, default_preset(scenario.name)):
+    if recorded[legacy] is None and preset in (None, default_preset(scenario.name)):
         return legacy
     return by_preset
 
