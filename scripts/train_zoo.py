@@ -198,7 +198,13 @@ def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
         shutil.rmtree(work / RESUME_DIR)
         removed.append(f"{RESUME_DIR}/")
     weights, shipped = work / "model.safetensors", (zoo / work.name / "model.safetensors") if zoo else None
-    if weights.is_file() and shipped is not None and shipped.is_file() and _sha256(weights) == _sha256(shipped):
+    if (
+        weights.is_file()
+        and shipped is not None
+        and shipped.is_file()
+        and shipped.resolve() != weights.resolve()  # the zoo's own folder, where STATE holds the zoo
+        and _sha256(weights) == _sha256(shipped)
+    ):
         weights.unlink()
         removed.append("model.safetensors")
     (work / LOCK_NAME).unlink(missing_ok=True)

@@ -691,6 +691,23 @@ def test_train_zoo_does_not_install_a_model_that_never_beat_its_first_epoch(tmp_
     assert zoo_script.not_installable(work) is None
 
 
+def test_train_zoo_prune_never_removes_the_weights_of_a_zoo_kept_inside_the_state(tmp_path, capsys):
+    """``--prune --state S --zoo S/zoo``: the zoo's own folders carry cards too, and comparing one
+    with itself must not count as "the zoo ships the same weights"."""
+    zoo_script = _train_zoo()
+    state, zoo = tmp_path / "v5", tmp_path / "v5" / "zoo"
+    finished_card = json.dumps({"training": {"stopped": "plateau"}})
+    for folder in (state / "s-m", zoo / "s-m"):
+        folder.mkdir(parents=True)
+        (folder / "card.json").write_text(finished_card)
+        (folder / "model.safetensors").write_bytes(b"same weights")
+    (state / "s-m" / "resume").mkdir()
+    assert zoo_script.main(["--prune", "--state", str(state), "--zoo", str(zoo)]) == 0
+    assert (zoo / "s-m" / "model.safetensors").read_bytes() == b"same weights"  # the shipped copy stays
+    assert sorted(f.name for f in (state / "s-m").iterdir()) == ["card.json"]  # the training's copy goes
+    assert "zoo/s-m: nothing to remove" in capsys.readouterr().out
+
+
 @pytest.mark.slow
 def test_train_zoo_keeps_the_shipped_model_unless_the_new_one_scores_lower_on_the_same_set(
     tmp_path, monkeypatch, capsys

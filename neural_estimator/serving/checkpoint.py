@@ -69,6 +69,19 @@ def build_from_config(name: str, config: dict[str, Any]) -> nn.Module:
 
 
 # ---- save ---------------------------------------------------------------------------------------
+def savable(model: nn.Module) -> nn.Module:
+    """The model itself on the CPU; elsewhere a CPU copy.
+
+    On a GPU, cuDNN packs a GRU's or LSTM's weights into one shared buffer, which safetensors
+    refuses to save ("no suitable name to keep"); a CPU copy holds each weight in its own tensor.
+    """
+    if all(p.device.type == "cpu" for p in model.parameters()):
+        return model
+    import copy
+
+    return copy.deepcopy(model).cpu()
+
+
 def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normalizer, card: dict[str, Any]) -> Path:
     """Write ``model.safetensors`` and ``card.json`` into ``directory``.
 
@@ -93,7 +106,7 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
     directory.mkdir(parents=True, exist_ok=True)
     weights = directory / WEIGHTS_FILE
     tmp = directory / (WEIGHTS_FILE + ".tmp")
-    save_model(model, str(tmp), metadata={"format": CARD_FORMAT, "method": name}, force_contiguous=True)
+    save_model(savable(model), str(tmp), metadata={"format": CARD_FORMAT, "method": name}, force_contiguous=True)
     os.replace(tmp, weights)
     from neural_estimator.uncertainty.heads import HEAD_FILE
 

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from neural_estimator.serving.card import json_ready
+from neural_estimator.serving.checkpoint import savable
 from neural_estimator.training.recipe import TrainingError
 
 RESUME_DIR = "resume"
@@ -45,7 +46,7 @@ def save_resume(
     tmp = directory.with_name(directory.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    save_model(model, str(tmp / "model.safetensors"), force_contiguous=True)
+    save_model(savable(model), str(tmp / "model.safetensors"), force_contiguous=True)
     opt = optimizer.state_dict()
     tensors, extra = {}, {}
     for pid, slots in opt["state"].items():
