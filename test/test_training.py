@@ -225,6 +225,24 @@ def test_checkpoint_round_trip_gives_identical_outputs(arch, oscillator, tmp_pat
     np.testing.assert_array_equal(again.run(data.y, data.u).x, a.x)
 
 
+def test_a_model_whose_weights_share_one_buffer_saves_and_loads(oscillator, tmp_path):
+    """cuDNN packs a GRU's weights into one buffer on a GPU; the same packing, made here by hand,
+    must save (a plain copy) and load to the same outputs."""
+    data = simulate(oscillator, 4, 30, seed=0)
+    est = estimator_for(oscillator, "gru", data)
+    before = est.run(data.y, data.u).x
+    params = list(est.model.parameters())
+    flat = torch.cat([p.detach().reshape(-1) for p in params])
+    offset = 0
+    for p in params:
+        p.data = flat[offset : offset + p.numel()].view_as(p)
+        offset += p.numel()
+    assert params[0].untyped_storage().data_ptr() == params[-1].untyped_storage().data_ptr()
+    path = save_checkpoint(tmp_path / "packed", est.model, est.normalizer, {"scenario": oscillator.describe()})
+    np.testing.assert_array_equal(load_neural_estimator("gru", oscillator, path).run(data.y, data.u).x, before)
+    assert params[0].untyped_storage().data_ptr() == flat.untyped_storage().data_ptr()  # the model untouched
+
+
 def test_loading_never_unpickles(oscillator, tmp_path, monkeypatch):
     _, path, data = _save(tmp_path, oscillator, "gru")
 

@@ -70,16 +70,24 @@ def build_from_config(name: str, config: dict[str, Any]) -> nn.Module:
 
 # ---- save ---------------------------------------------------------------------------------------
 def savable(model: nn.Module) -> nn.Module:
-    """The model itself on the CPU; elsewhere a CPU copy.
+    """The model itself where every weight owns its storage; else a CPU copy in which each does.
 
-    On a GPU, cuDNN packs a GRU's or LSTM's weights into one shared buffer, which safetensors
-    refuses to save ("no suitable name to keep"); a CPU copy holds each weight in its own tensor.
+    On a GPU, cuDNN packs a GRU's or LSTM's weights into one buffer that each weight is a view of,
+    which safetensors refuses to save ("no suitable name to keep"). Weights tied on purpose (one
+    parameter registered twice) stay tied: the copy keeps each parameter object.
     """
-    if all(p.device.type == "cpu" for p in model.parameters()):
+
+    def packed(p: torch.Tensor) -> bool:
+        return p.device.type != "cpu" or p.untyped_storage().nbytes() != p.numel() * p.element_size()
+
+    if not any(packed(p) for p in model.parameters()):
         return model
     import copy
 
-    return copy.deepcopy(model).cpu()
+    plain = copy.deepcopy(model).cpu()
+    for p in plain.parameters():
+        p.data = p.data.clone()  # its own storage, exactly its size
+    return plain
 
 
 def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normalizer, card: dict[str, Any]) -> Path:
