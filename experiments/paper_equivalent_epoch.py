@@ -1,6 +1,6 @@
 """At which epoch of our own training did each shipped network reach the paper's figure?
 
-    python experiments/paper_equivalent_epoch.py [--measured benchmarks/results/fidelity_v4]
+    python experiments/paper_equivalent_epoch.py [--measured benchmarks/results/fidelity_measured]
 
 Where our network is far more accurate than the paper's (Lorenz 96 GRU 0.071 against 0.127), the
 scenario may be easier than the paper's, or the paper's network less trained than ours. Lorenz 96
@@ -77,7 +77,7 @@ def rows(measured_dir: Path) -> list[str]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--measured", default=str(ROOT / "benchmarks" / "results" / "fidelity_v4"))
+    p.add_argument("--measured", default=str(ROOT / "benchmarks" / "results" / "fidelity_measured"))
     a = p.parse_args(argv)
     print("\n".join(rows(Path(a.measured))))
     return 0

@@ -4,7 +4,7 @@
                                              [--pf-trajectories 100] [--seed 777] [--out DIR]
     python scripts/fidelity_table.py render [--out DIR]
 
-`measure` runs `neural-estimator evaluate` per scenario on the default constants (preset v4): the
+`measure` runs `neural-estimator evaluate` per scenario on the default constants (preset v4; N-link and bearings v5): the
 four classical filters (started from the prior, the live pipeline's start) and every shipped neural
 model trained on those constants; a model trained on other constants is recorded as pending. The PF
 gets its own, smaller, run (it costs 100-300x the other filters). Each run writes
@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = ROOT / "benchmarks" / "results" / "fidelity_v4"
+DEFAULT_OUT = ROOT / "benchmarks" / "results" / "fidelity_measured"
 SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 

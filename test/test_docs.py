@@ -76,7 +76,7 @@ def test_readme_is_a_front_page():
 
 
 def test_readme_headline_table_comes_from_the_committed_measurement():
-    """The headline table equals the one generated from benchmarks/results/fidelity_v4 (the defaults)."""
+    """The headline table equals the one generated from benchmarks/results/fidelity_measured (the defaults)."""
     assert GENERATE.defaults_table() in README
 
 

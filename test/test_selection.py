@@ -120,22 +120,28 @@ def test_work_dir_keeps_trainings_of_other_constants_apart(tmp_path):
     assert zoo_script.work_dir(state, make_scenario("ballistic"), "mamba2") == state / "v4" / "ballistic-mamba2"
 
 
-def test_work_dir_puts_a_preset_newer_than_the_defaults_in_its_own_folder_and_finds_it_there(tmp_path):
-    """A v5 training never takes the legacy folder, even an empty one, and is found in v5/ before
-    and after the defaults move to v5 (there, the legacy folder holds other constants or nothing)."""
+def test_work_dir_keeps_a_preset_in_its_own_folder_before_and_after_it_becomes_the_defaults(tmp_path, monkeypatch):
+    """A preset newer than the defaults (N-link's v5 before it became the defaults) never takes the
+    legacy folder, even an empty one, and its training is found in v5/ after the defaults move to
+    it; with nothing recorded, a training of the defaults takes the legacy folder."""
     zoo_script = _train_zoo()
-    state = tmp_path / "state"
-    v5 = make_scenario("nlink", preset="v5")
-    assert zoo_script.work_dir(state, v5, "mamba2") == state / "v5" / "nlink-mamba2"  # legacy empty
-    assert zoo_script.work_dir(state, make_scenario("nlink"), "mamba2") == state / "nlink-mamba2"  # the defaults
-    (state / "v5" / "nlink-mamba2").mkdir(parents=True)
-    (state / "v5" / "nlink-mamba2" / "card.json").write_text(json.dumps({"scenario": v5.describe()}))
-    assert zoo_script.work_dir(state, v5, "mamba2") == state / "v5" / "nlink-mamba2"
-    # a training of these constants found in the legacy folder (made before presets existed) stays there
-    old = make_scenario("bearings", preset="v5")
-    (state / "bearings-gru").mkdir(parents=True)
-    (state / "bearings-gru" / "card.json").write_text(json.dumps({"scenario": old.describe()}))
-    assert zoo_script.work_dir(state, old, "gru") == state / "bearings-gru"
+    v5 = make_scenario("nlink")  # the defaults today
+    assert v5.describe()["preset"] == "v5"
+    before = tmp_path / "before"
+    monkeypatch.setattr(zoo_script, "default_preset", lambda name: "v4")  # the defaults before the move
+    assert zoo_script.work_dir(before, v5, "mamba2") == before / "v5" / "nlink-mamba2"  # legacy empty
+    (before / "v5" / "nlink-mamba2").mkdir(parents=True)
+    (before / "v5" / "nlink-mamba2" / "card.json").write_text(json.dumps({"scenario": v5.describe()}))
+    monkeypatch.undo()
+    assert zoo_script.work_dir(before, v5, "mamba2") == before / "v5" / "nlink-mamba2"  # found after the move
+    # the legacy folder holding a v4 (= v3) training: a v5 one goes to v5/, the v4 one stays found
+    v4 = make_scenario("nlink", preset="v4")
+    (before / "nlink-gru").mkdir(parents=True)
+    (before / "nlink-gru" / "card.json").write_text(json.dumps({"scenario": v4.describe()}))
+    assert zoo_script.work_dir(before, v5, "gru") == before / "v5" / "nlink-gru"
+    assert zoo_script.work_dir(before, v4, "gru") == before / "nlink-gru"
+    # nothing recorded: the defaults train in the legacy folder
+    assert zoo_script.work_dir(tmp_path / "fresh", v5, "gru") == tmp_path / "fresh" / "nlink-gru"
 
 
 def test_an_installed_model_gets_its_covariance_head_fitted_in_the_packages_zoo_only(tmp_path, monkeypatch, capsys):

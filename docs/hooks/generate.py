@@ -225,12 +225,12 @@ def defaults_table() -> str:
     """The headline RMSE table at the defaults, fresh seeds (README, results page)."""
     from neural_estimator.reproduce.fidelity import headline, load_measured
 
-    return "\n".join(headline(load_measured(ROOT / "benchmarks/results/fidelity_v4")))
+    return "\n".join(headline(load_measured(ROOT / "benchmarks/results/fidelity_measured")))
 
 
 def fidelity_measured() -> str:
     """The fidelity section measured on the default constants (scripts/fidelity_table.py)."""
-    return (ROOT / "benchmarks/results/fidelity_v4/fidelity.md").read_text().strip()
+    return (ROOT / "benchmarks/results/fidelity_measured/fidelity.md").read_text().strip()
 
 
 GENERATORS = {
