@@ -309,6 +309,22 @@ def test_the_calibrated_settings_are_options_every_filter_takes():
     assert calibrated_options("nlink", "gru") == {}
 
 
+def test_every_calibrated_filter_setting_was_chosen_on_its_scenarios_default_constants():
+    """A setting chosen on other constants (before a recalibration moved the defaults) would be
+    served at the defaults without a word: the file records the preset, and it must be today's."""
+    import json
+
+    from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset
+    from neural_estimator.uncertainty.calibrated import CALIBRATED_FILE
+
+    table = json.loads(CALIBRATED_FILE.read_text())
+    assert set(table) == set(BUILTIN_SCENARIOS)
+    for scenario, methods in table.items():
+        assert set(methods) == {"ekf", "ukf", "enkf", "pf"}, scenario
+        for method, entry in methods.items():
+            assert entry["validation"]["preset"] == default_preset(scenario), (scenario, method)
+
+
 def test_new_weights_in_a_checkpoint_drop_the_old_covariance_head(tmp_path):
     """A head fitted on other weights is removed when a checkpoint is written over (retraining):
     the new card has no head and the directory holds no stale head file."""
