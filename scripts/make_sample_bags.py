@@ -10,7 +10,7 @@ Each holds the `scenario`, `observation` and `ground_truth` streams of 2 traject
 A bag records its scenario's constants, so a bag and the shipped models it replays through must be
 made on the same constants. `bags/<scenario>.mcap` is made on the scenario's default constants;
 `--preset P` (other than the default) writes `bags/<scenario>-P.mcap`, for the shipped models still
-trained on that preset (the card names it; `neural-estimator zoo` lists them).
+trained on that preset (the card names it; `python scripts/zoo_table.py` lists the shipped cards).
 """
 
 from __future__ import annotations
