@@ -4,9 +4,10 @@
                                              [--pf-trajectories 100] [--seed 777] [--out DIR]
     python scripts/fidelity_table.py render [--out DIR]
 
-`measure` runs `neural-estimator evaluate` per scenario on the default constants (preset v4; N-link and bearings v5): the
-four classical filters (started from the prior, the live pipeline's start) and every shipped neural
-model trained on those constants; a model trained on other constants is recorded as pending. The PF
+`measure` runs `neural-estimator evaluate` per scenario on the default constants (preset v4; N-link
+and bearings v5): the four classical filters (started from the prior, the live pipeline's start) and
+every shipped neural model trained on those constants; a model trained on other constants is
+recorded as pending. The PF
 gets its own, smaller, run (it costs 100-300x the other filters). Each run writes
 ``DIR/<scenario>[-pf]/results.json`` and is cached, so an interrupted measurement resumes where it
 stopped. `render` prints the fidelity section (`neural_estimator/reproduce/fidelity.py`: the 49

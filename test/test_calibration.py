@@ -1,5 +1,5 @@
-"""The calibrated scenario constants: the defaults (preset v4; N-link and bearings v5) recorded in every file, the earlier
-constants one preset (or --set) away, the caches keyed by new revisions, non-physical draws
+"""The calibrated scenario constants: the defaults (preset v4; N-link and bearings v5) recorded in
+every file, the earlier constants one preset (or --set) away, the caches keyed by new revisions, non-physical draws
 handled by a rule instead of a crash, and the calibration script's two distances."""
 
 import importlib.util
@@ -106,7 +106,8 @@ def test_nlink_and_bearings_defaults_are_the_joint_fit_v5_and_v4_one_preset_away
     assert {k: v for k, v in old["config"].items() if k not in V5[name]} == {
         k: v for k, v in desc["config"].items() if k not in V5[name]
     }
-    by_set = make_scenario(name, **{k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in V5_V4[name].items()})
+    given = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in V5_V4[name].items()}
+    by_set = make_scenario(name, **given)
     assert by_set.describe()["config"] == old["config"] and by_set.describe()["preset"] == "v4"
 
 
