@@ -74,8 +74,8 @@ def preset_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",
         metavar="NAME",
-        help="named set of the scenario's constants, applied before --set (built-ins: v4, the default; "
-        "v3, the constants before the spread calibration; see docs/scenarios.md)",
+        help="named set of the scenario's constants, applied before --set (built-ins: the defaults are v4, "
+        "for nlink and bearings v5; v3, v4 the earlier calibrations; see docs/scenarios.md)",
     )
 
 

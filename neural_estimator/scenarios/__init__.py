@@ -111,9 +111,9 @@ def make_scenario(name: str, preset: str | None = None, **overrides: Any) -> Sce
 
 
 def default_preset(name: str) -> str | None:
-    """The preset that the scenario ``name``'s Config defaults are (for a built-in: ``v4``, the
-    constants every ``make_scenario(name)`` gets, until a newer preset such as N-link's ``v5``
-    becomes its defaults); None for a scenario without presets."""
+    """The preset that the scenario ``name``'s Config defaults are, the constants every
+    ``make_scenario(name)`` gets (for a built-in: ``v4``; N-link and bearings ``v5``); None for a
+    scenario without presets."""
     cls = scenario_class(name)
     return cls.preset_of(cls.Config())
 

@@ -24,9 +24,10 @@ Presets: a scenario's ``presets`` names whole sets of constants (overrides of it
 defaults), so that every earlier operating point stays one flag away: ``make_scenario("ballistic",
 preset="v3")``, ``--preset v3`` on the command line, the nodes' ``preset`` parameter. The built-in
 scenarios have ``v3`` (the constants calibrated to the paper's RMSE rows only) and ``v4`` (the
-defaults: calibrated to the RMSE rows and the spread of the true states, see docs/scenarios.md);
-N-link and bearings also have ``v5``, the operating point that fits both jointly, newer than the
-defaults while their networks are trained on it (a preset need not be the defaults to be the newest).
+defaults of ballistic, Lorenz 96 and quadrotor: calibrated to the RMSE rows and the spread of the
+true states, see docs/scenarios.md); N-link and bearings also have ``v5``, their defaults, the
+operating point that fits both jointly (their ``v4`` equals ``v3``). A preset need not be the
+defaults to be the newest: a new operating point can be named while its networks are trained.
 ``--set`` applies on top of the preset. :meth:`Scenario.describe` records the preset the constants
 match (``"preset"``; ``"custom"`` when they match none), computed from the constants themselves, so
 a file written before presets existed is labelled too.
