@@ -111,6 +111,7 @@ def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
     assert " · 1.087 |" in text  # stability: Lorenz 96 PF drift
     assert " · 732.4 |" in text  # runtime_full_app: N-link EKF on CPU
     assert "### Step mode" in text and "### Sequence mode" in text  # the runtime both ways
+    assert text.count("CPU share of the timed part") == 2  # each mode says whether its CPU was its own
     assert "RMSE all steps" in text and "this project's choice" in text
     # filters start from the prior (the default): the PF's expected failures are marked, with the reason
     main_table = text.split("## Main accuracy")[1].split("## Relative score")[0]
@@ -198,8 +199,22 @@ def test_runtime_is_timed_through_the_real_step_path(tmp_path, monkeypatch):
     r = run_job(Job("runtime", "ballistic", "ekf", steps=10, warmup=2), tmp_path)
     assert calls == {"reset": [1], "step": 12} and not r["cached"]
     assert r["result"]["it_per_s"] < 500  # 10 steps of >= 2 ms
+    # the job waited (slept) through most of its timed part: its CPU share says so
+    assert 0 <= r["result"]["cpu_share"] < 0.5
     again = run_job(Job("runtime", "ballistic", "ekf", steps=10, warmup=2), tmp_path)
     assert again["cached"] and again["result"] == r["result"] and calls["step"] == 12
+
+
+def test_the_report_names_runtime_figures_measured_on_a_shared_cpu():
+    from neural_estimator.reproduce.report import CPU_SHARE_FLOOR, cpu_share_words
+
+    alone = cpu_share_words({("nlink", "ekf"): 0.99, ("bearings", "gru"): 1.01})
+    assert "lowest 0.99 (nlink ekf) of 2 jobs" in alone and "none measured on a shared CPU" in alone
+    shared = cpu_share_words({("nlink", "ekf"): 0.99, ("ballistic", "ukf"): 0.31, ("lorenz96", "pf"): 0.5})
+    assert "2 figures were measured while other work took the CPU" in shared
+    listed = shared.split(f"below {CPU_SHARE_FLOOR}): ")[1]
+    assert listed.startswith("ballistic ukf (0.31), lorenz96 pf (0.50);") and "nlink" not in listed
+    assert 0.5 < CPU_SHARE_FLOOR <= 0.99
 
 
 def test_plan_has_one_job_per_method_set_noise_level_and_runtime():

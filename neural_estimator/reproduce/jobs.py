@@ -34,7 +34,7 @@ from typing import Any
 JOB_KINDS = ("evaluate", "runtime", "train")
 RUNTIME_MODES = ("step", "sequence")  # runtime: one step per call (live) or one whole trajectory per call (run)
 SEQUENCE_REPEATS = 3  # sequence mode: timed calls of run(); the median is reported
-RUNTIME_REVISION = 1  # part of runtime keys: bump when the timing procedure changes
+RUNTIME_REVISION = 2  # part of runtime keys: bump when the timing procedure changes (2: CPU share recorded)
 DONE_FILE = "reproduce-done.json"  # written in a train job's directory once its training finished
 
 
@@ -241,16 +241,17 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
     opts = {"threads": threads} if job.method in CLASSICAL_METHODS else {}
     est = make_estimator(job.method, scenario, device=job.device, seed=job.seed, **opts)
     if job.mode == "sequence":
-        seconds = _time_sequence(est, data, job)
+        seconds, cpu_share = _time_sequence(est, data, job)
     elif job.mode == "step":
         Uprev = previous_controls(data.u)
         est.reset(1)
         for k in range(job.warmup):
             est.step(data.y[:, k], Uprev[:, k])
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for k in range(job.warmup, job.warmup + job.steps):
             est.step(data.y[:, k], Uprev[:, k])
-        seconds = time.perf_counter() - t0
+        seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+        cpu_share = cpu / seconds if seconds > 0 else 1.0
     else:
         raise ValueError(f"unknown runtime mode {job.mode!r}; expected one of {RUNTIME_MODES}")
     result = {
@@ -259,6 +260,9 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
         "seconds": seconds,
         "threads": threads,
         "mode": job.mode,
+        # the process's CPU time over the wall time of the timed part: about 1 (one thread) when the
+        # job had its core to itself, lower when other work took the CPU and the figure understates
+        "cpu_share": cpu_share,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
@@ -267,18 +271,21 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
     return result, False
 
 
-def _time_sequence(est, data, job: Job) -> float:
+def _time_sequence(est, data, job: Job) -> tuple[float, float]:
     """Seconds of one ``run`` over the (1, steps) sequence after the warm-up steps (the median of
-    :data:`SEQUENCE_REPEATS` calls, after one untimed call on the warm-up steps)."""
+    :data:`SEQUENCE_REPEATS` calls, after one untimed call on the warm-up steps), and the CPU share
+    of the timed calls (the process's CPU time over their wall time)."""
     Y, U = data.y[:, job.warmup :], data.u[:, job.warmup :]
     if job.warmup:
         est.run(data.y[:, : job.warmup], data.u[:, : job.warmup])  # first-call costs (allocation, compilation)
     times = []
+    c0 = time.process_time()
     for _ in range(SEQUENCE_REPEATS):
         t0 = time.perf_counter()
         est.run(Y, U)
         times.append(time.perf_counter() - t0)
-    return sorted(times)[len(times) // 2]
+    cpu, wall = time.process_time() - c0, sum(times)
+    return sorted(times)[len(times) // 2], (cpu / wall if wall > 0 else 1.0)
 
 
 def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:

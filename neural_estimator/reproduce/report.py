@@ -95,6 +95,7 @@ class _Results:
     starts: dict[str, dict[str, str]]  # the start each classical cell really got
     ratio: dict[str, dict[str, dict[float, list[float]]]]  # {scenario: {method: {data ratio: [nrmse]}}}
     summ: dict = field(default_factory=dict)  # accuracy summaries (tables.summaries)
+    rt_share: dict[str, dict[tuple[str, str], float]] = field(default_factory=dict)  # {mode: {(s, m): CPU share}}
 
 
 def _gather(settings: Settings, jobs: Sequence[Job], outcome: Outcome) -> _Results:
@@ -127,6 +128,8 @@ def _gather(settings: Settings, jobs: Sequence[Job], outcome: Outcome) -> _Resul
         elif job.experiment == "runtime":
             by_device = r.rt.setdefault(job.mode, {}).setdefault(job.device, {})
             by_device.setdefault(job.scenario, {})[job.method] = res["it_per_s"]
+            if job.device == "cpu" and res.get("cpu_share") is not None:
+                r.rt_share.setdefault(job.mode, {})[(job.scenario, job.method)] = float(res["cpu_share"])
     r.summ = T.summaries(r.acc)
     return r
 
@@ -269,7 +272,29 @@ def _runtime(settings: Settings, r: _Results) -> list[str]:
         for device in r.rt[mode]:
             L += [f"#### {device.upper()}", ""] + T.runtime_table(r.rt[mode], scen, meth, device) + [""]
             L += [T.runtime_ordering(r.rt[mode][device], scen, meth, "gpu" if device != "cpu" else "cpu"), ""]
+            if device == "cpu" and r.rt_share.get(mode):
+                L += [cpu_share_words(r.rt_share[mode]), ""]
     return L
+
+
+CPU_SHARE_FLOOR = 0.9  # below it a CPU figure was measured while other work took the job's core
+
+
+def cpu_share_words(shares: dict[tuple[str, str], float]) -> str:
+    """One sentence on whether the CPU figures above were measured with the CPU to themselves."""
+    (s_low, m_low), low = min(shares.items(), key=lambda kv: kv[1])
+    shared = sorted(f"{s} {m} ({v:.2f})" for (s, m), v in shares.items() if v < CPU_SHARE_FLOOR)
+    head = (
+        f"CPU share of the timed part (the job's CPU time over its wall time; about 1 with the core to itself): "
+        f"lowest {low:.2f} ({s_low} {m_low}) of {len(shares)} jobs"
+    )
+    if not shared:
+        return head + "; none measured on a shared CPU."
+    return (
+        head + f". **{len(shared)} figures were measured while other work took the CPU** (share below "
+        f"{CPU_SHARE_FLOOR}): {', '.join(shared)}; they understate the speed. Measure them again on an otherwise "
+        "idle machine (remove the result cache's runtime/ folder and run the same command)."
+    )
 
 
 def _data_efficiency(settings: Settings, jobs: Sequence[Job], r: _Results, figs: Path) -> list[str]:
