@@ -205,6 +205,37 @@ def test_runtime_is_timed_through_the_real_step_path(tmp_path, monkeypatch):
     assert again["cached"] and again["result"] == r["result"] and calls["step"] == 12
 
 
+def test_sequence_mode_times_enough_calls_for_a_steady_median(monkeypatch):
+    """At least SEQUENCE_REPEATS calls, more until they took SEQUENCE_MIN_SECONDS, never more than
+    SEQUENCE_MAX_REPEATS; a call that waits shows in the CPU share."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from neural_estimator.reproduce import jobs as J
+
+    calls = []
+
+    class Fake:
+        def __init__(self, seconds):
+            self.seconds = seconds
+
+        def run(self, y, u):
+            calls.append(y.shape[1])
+            time.sleep(self.seconds)
+
+    data = SimpleNamespace(y=np.zeros((1, 12, 1)), u=np.zeros((1, 12, 0)))
+    job = Job("runtime", "ballistic", "ekf", steps=10, warmup=2, mode="sequence")
+    monkeypatch.setattr(J, "SEQUENCE_MIN_SECONDS", 0.05)
+    seconds, share = J._time_sequence(Fake(0.02), data, job)
+    assert calls[0] == 2 and set(calls[1:]) == {10}  # one untimed call on the warm-up steps, then the sequence
+    assert len(calls) - 1 == J.SEQUENCE_REPEATS and seconds >= 0.02 and share < 0.5
+    calls.clear()
+    monkeypatch.setattr(J, "SEQUENCE_MAX_REPEATS", 9)
+    J._time_sequence(Fake(0.002), data, job)  # 5 calls take 10 ms: more, up to the cap
+    assert len(calls) - 1 == 9
+
+
 def test_the_report_names_runtime_figures_measured_on_a_shared_cpu():
     from neural_estimator.reproduce.report import CPU_SHARE_FLOOR, cpu_share_words
 

@@ -33,8 +33,12 @@ from typing import Any
 
 JOB_KINDS = ("evaluate", "runtime", "train")
 RUNTIME_MODES = ("step", "sequence")  # runtime: one step per call (live) or one whole trajectory per call (run)
-SEQUENCE_REPEATS = 3  # sequence mode: timed calls of run(); the median is reported
-RUNTIME_REVISION = 2  # part of runtime keys: bump when the timing procedure changes (2: CPU share recorded)
+SEQUENCE_REPEATS = 5  # sequence mode: at least this many timed calls of run(); the median is reported
+SEQUENCE_MIN_SECONDS = 1.0  # ... and more, up to SEQUENCE_MAX_REPEATS, until the calls took this long
+SEQUENCE_MAX_REPEATS = 200
+# part of runtime keys: bump when the timing procedure changes (2: CPU share recorded; 3: sequence
+# mode times at least SEQUENCE_MIN_SECONDS of calls, a 10 ms call having been timed only 3 times)
+RUNTIME_REVISION = 3
 DONE_FILE = "reproduce-done.json"  # written in a train job's directory once its training finished
 
 
@@ -272,15 +276,16 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
 
 
 def _time_sequence(est, data, job: Job) -> tuple[float, float]:
-    """Seconds of one ``run`` over the (1, steps) sequence after the warm-up steps (the median of
-    :data:`SEQUENCE_REPEATS` calls, after one untimed call on the warm-up steps), and the CPU share
-    of the timed calls (the process's CPU time over their wall time)."""
+    """Seconds of one ``run`` over the (1, steps) sequence after the warm-up steps (the median of at
+    least :data:`SEQUENCE_REPEATS` calls, more until they took :data:`SEQUENCE_MIN_SECONDS`, at most
+    :data:`SEQUENCE_MAX_REPEATS`; after one untimed call on the warm-up steps), and the CPU share of
+    the timed calls (the process's CPU time over their wall time)."""
     Y, U = data.y[:, job.warmup :], data.u[:, job.warmup :]
     if job.warmup:
         est.run(data.y[:, : job.warmup], data.u[:, : job.warmup])  # first-call costs (allocation, compilation)
     times = []
     c0 = time.process_time()
-    for _ in range(SEQUENCE_REPEATS):
+    while len(times) < SEQUENCE_REPEATS or (sum(times) < SEQUENCE_MIN_SECONDS and len(times) < SEQUENCE_MAX_REPEATS):
         t0 = time.perf_counter()
         est.run(Y, U)
         times.append(time.perf_counter() - t0)

@@ -23,7 +23,8 @@ RUNTIME_WORDS = {
     "step": "Step by step, the live node's cost: each method's real per-step path (`reset(1)`, then one `step` per "
     "observation)",
     "sequence": "Sequence mode, the paper's apparent method: whole trajectories per call (`run` on one (1, T) "
-    "sequence: the networks' parallel form, the filters' loop over time; the median of {repeats} calls)",
+    "sequence: the networks' parallel form, the filters' loop over time; the median of at least {repeats} calls, "
+    "more until they took {seconds:g} s)",
 }
 
 
@@ -254,7 +255,7 @@ def _rmse_and_noise_figures(settings: Settings, r: _Results, figs: Path) -> list
 
 def _runtime(settings: Settings, r: _Results) -> list[str]:
     """Iterations per second at batch 1, each mode and device, with the orderings."""
-    from neural_estimator.reproduce.jobs import RUNTIME_MODES, SEQUENCE_REPEATS
+    from neural_estimator.reproduce.jobs import RUNTIME_MODES, SEQUENCE_MIN_SECONDS, SEQUENCE_REPEATS
 
     scen, meth, sc = settings.scenarios, settings.methods, settings.scale
     L = [
@@ -268,7 +269,12 @@ def _runtime(settings: Settings, r: _Results) -> list[str]:
     for mode in RUNTIME_MODES:
         if mode not in r.rt:
             continue
-        L += [f"### {mode.capitalize()} mode", "", RUNTIME_WORDS[mode].format(repeats=SEQUENCE_REPEATS) + ".", ""]
+        L += [
+            f"### {mode.capitalize()} mode",
+            "",
+            RUNTIME_WORDS[mode].format(repeats=SEQUENCE_REPEATS, seconds=SEQUENCE_MIN_SECONDS) + ".",
+            "",
+        ]
         for device in r.rt[mode]:
             L += [f"#### {device.upper()}", ""] + T.runtime_table(r.rt[mode], scen, meth, device) + [""]
             L += [T.runtime_ordering(r.rt[mode][device], scen, meth, "gpu" if device != "cpu" else "cpu"), ""]
