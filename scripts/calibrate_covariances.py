@@ -36,6 +36,9 @@ from neural_estimator.uncertainty.fit import CALIBRATION_INDEX
 from neural_estimator.uncertainty.fit import figures as head_figures
 
 OUT = Path(__file__).resolve().parents[1] / "neural_estimator" / "uncertainty" / "calibrated_filters.json"
+# A covariance that must grow more than this (10x in std) to cover the errors is degenerate, not
+# miscalibrated: a scale would give it the right coverage and no meaning, so none is recorded.
+MAX_SCALE = 100.0
 CANDIDATES = {
     "ekf": [{}],
     "ukf": [{}],
@@ -147,6 +150,13 @@ def main(argv: list[str] | None = None) -> int:
                 scale = C.fit_scale(best["eps"], scenario.dx, "band")
             except C.ConsistencyError as exc:
                 print(f"{s_name} {method}: no scale: {exc}", flush=True)
+                scale = None
+            if scale is not None and scale > MAX_SCALE:
+                print(
+                    f"{s_name} {method}: no scale: the fitted {scale:.3g} exceeds {MAX_SCALE:g} "
+                    "(the covariance is degenerate, not miscalibrated)",
+                    flush=True,
+                )
                 scale = None
             after = None
             if scale is not None:

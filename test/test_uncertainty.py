@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 
@@ -313,16 +314,25 @@ def test_every_calibrated_filter_setting_was_chosen_on_its_scenarios_default_con
     """A setting chosen on other constants (before a recalibration moved the defaults) would be
     served at the defaults without a word: the file records the preset, and it must be today's."""
     import json
+    from pathlib import Path
 
     from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset
     from neural_estimator.uncertainty.calibrated import CALIBRATED_FILE
 
+    spec = importlib.util.spec_from_file_location(
+        "calibrate_covariances", Path(__file__).resolve().parents[1] / "scripts" / "calibrate_covariances.py"
+    )
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    MAX_SCALE = script.MAX_SCALE
     table = json.loads(CALIBRATED_FILE.read_text())
     assert set(table) == set(BUILTIN_SCENARIOS)
     for scenario, methods in table.items():
         assert set(methods) == {"ekf", "ukf", "enkf", "pf"}, scenario
         for method, entry in methods.items():
             assert entry["validation"]["preset"] == default_preset(scenario), (scenario, method)
+            # no scale that only dresses a degenerate covariance (scripts/calibrate_covariances.py)
+            assert 0 < entry["options"].get("cov_scale", 1.0) <= MAX_SCALE, (scenario, method)
 
 
 def test_new_weights_in_a_checkpoint_drop_the_old_covariance_head(tmp_path):
