@@ -81,7 +81,7 @@ def _figures(eps: np.ndarray, dx: int) -> dict:
 
 
 def _num(x) -> str:
-    """A figure as the docs print it: 4 decimals for an RMSE-sized number, exponent when huge."""
+    """A NEES figure as the docs print it: 2 decimals, an exponent from 1e4 on; "—" for none."""
     if x is None:
         return "—"
     return f"{x:.1e}" if abs(x) >= 1e4 else f"{x:.2f}"

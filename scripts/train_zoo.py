@@ -6,7 +6,7 @@ AdamW lr 2e-3 (weight decay 1e-5, clip 1.0), ReduceLROnPlateau factor 0.5 / pati
 stopping patience 30, at most 500 epochs. One deviation, for CPU time: the validation set is
 --val-trajectories (default 1,000) full-length trajectories instead of the paper's 8,000.
 
-Each (scenario, model) trains on the scenario's constants (--preset, default the defaults, v4) in
+Each (scenario, model) trains on the scenario's constants (--preset; default the scenario's defaults) in
 STATE/<scenario>-<method>/ (default STATE = zoo_training/ at the repository root), or in
 STATE/<preset>/<scenario>-<method>/ when the former holds a training of other constants or the
 preset is not the defaults (work_dir): the best checkpoint so far (model.safetensors + card.json) and resume/ (weights,

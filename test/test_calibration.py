@@ -56,15 +56,26 @@ V5_V4 = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(V4))
-def test_ballistic_and_quadrotor_defaults_are_preset_v4_and_recorded_in_files(name):
+def _as_set(constants: dict) -> dict:
+    """The constants as --set gives them (lists as comma-separated text)."""
+    return {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in constants.items()}
+
+
+def _defaults_recorded(name: str, constants: dict, preset: str) -> dict:
+    """The scenario's defaults hold ``constants``, are ``preset``, and every file records both."""
     s = make_scenario(name)
     desc = s.describe()
-    for k, v in V4[name].items():
+    for k, v in constants.items():
         assert desc["config"][k] == v, (k, desc["config"][k])
-    assert desc["preset"] == default_preset(name) == "v4"
+    assert desc["preset"] == default_preset(name) == preset
     data = simulate(s, 2, 3, seed=0)
-    assert data.meta["config"] == desc["config"] and data.meta["preset"] == "v4"  # every file records both
+    assert data.meta["config"] == desc["config"] and data.meta["preset"] == preset  # every file records both
+    return desc
+
+
+@pytest.mark.parametrize("name", sorted(V4))
+def test_ballistic_and_quadrotor_defaults_are_preset_v4_and_recorded_in_files(name):
+    _defaults_recorded(name, V4[name], "v4")
 
 
 @pytest.mark.parametrize("name", sorted(V3))
@@ -75,9 +86,7 @@ def test_earlier_constants_are_one_preset_away_and_recorded_as_v3(name):
         assert desc["config"][k] == v
     assert desc["preset"] == "v3"
     # the same constants by --set are recognised as the preset too (files from before presets)
-    by_set = make_scenario(
-        name, **{k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in V3[name].items()}
-    )
+    by_set = make_scenario(name, **_as_set(V3[name]))
     assert by_set.describe() == desc
     # and a description read back from a file rebuilds them
     assert scenario_from_description(json.loads(json.dumps(desc))).describe() == desc
@@ -92,13 +101,7 @@ def test_scenarios_the_v4_calibration_kept_have_equal_v3_and_v4(name):
 
 @pytest.mark.parametrize("name", sorted(V5))
 def test_nlink_and_bearings_defaults_are_the_joint_fit_v5_and_v4_one_preset_away(name):
-    s = make_scenario(name)
-    desc = s.describe()
-    for k, v in V5[name].items():
-        assert desc["config"][k] == v, (k, desc["config"][k])
-    assert desc["preset"] == default_preset(name) == "v5"
-    data = simulate(s, 2, 3, seed=0)
-    assert data.meta["config"] == desc["config"] and data.meta["preset"] == "v5"
+    desc = _defaults_recorded(name, V5[name], "v5")
     old = make_scenario(name, preset="v4").describe()
     for k, v in V5_V4[name].items():
         assert old["config"][k] == v, (k, old["config"][k])
@@ -106,8 +109,7 @@ def test_nlink_and_bearings_defaults_are_the_joint_fit_v5_and_v4_one_preset_away
     assert {k: v for k, v in old["config"].items() if k not in V5[name]} == {
         k: v for k, v in desc["config"].items() if k not in V5[name]
     }
-    given = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in V5_V4[name].items()}
-    by_set = make_scenario(name, **given)
+    by_set = make_scenario(name, **_as_set(V5_V4[name]))
     assert by_set.describe()["config"] == old["config"] and by_set.describe()["preset"] == "v4"
 
 

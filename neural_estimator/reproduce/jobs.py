@@ -254,8 +254,8 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
         t0, c0 = time.perf_counter(), time.process_time()
         for k in range(job.warmup, job.warmup + job.steps):
             est.step(data.y[:, k], Uprev[:, k])
-        seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-        cpu_share = cpu / seconds if seconds > 0 else 1.0
+        seconds = time.perf_counter() - t0
+        cpu_share = _cpu_share(time.process_time() - c0, seconds)
     else:
         raise ValueError(f"unknown runtime mode {job.mode!r}; expected one of {RUNTIME_MODES}")
     result = {
@@ -289,8 +289,12 @@ def _time_sequence(est, data, job: Job) -> tuple[float, float]:
         t0 = time.perf_counter()
         est.run(Y, U)
         times.append(time.perf_counter() - t0)
-    cpu, wall = time.process_time() - c0, sum(times)
-    return sorted(times)[len(times) // 2], (cpu / wall if wall > 0 else 1.0)
+    return sorted(times)[len(times) // 2], _cpu_share(time.process_time() - c0, sum(times))
+
+
+def _cpu_share(cpu_seconds: float, wall_seconds: float) -> float:
+    """The process's CPU time over the wall time of a timed part (1.0 for a part too short to time)."""
+    return cpu_seconds / wall_seconds if wall_seconds > 0 else 1.0
 
 
 def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:
