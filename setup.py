@@ -29,6 +29,8 @@ setup(
         "neural_estimator": [
             "zoo/*/*.safetensors",
             "zoo/*/*.json",
+            "zoo/instances/*/*/*.safetensors",
+            "zoo/instances/*/*/*.json",
             "paper/paper_results.json",
             "nodes/*.xml",
             "uncertainty/calibrated_filters.json",

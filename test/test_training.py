@@ -998,3 +998,31 @@ def test_train_zoo_fallback_context_trains_the_bounded_variant_of_a_model_the_zo
     # the flag follows a full-recipe run only
     with pytest.raises(SystemExit):
         zoo_script.main([*args, "--val-context", "10"])
+
+
+def test_train_zoo_instance_trains_on_its_own_data_set_and_seed_and_is_kept_beside_the_shipped_model(
+    tmp_path, monkeypatch, capsys
+):
+    """--instance K: training set K and initialisation K (the card says so), its own state and zoo
+    folders, installed with no comparison against the shipped model (every instance is kept)."""
+    monkeypatch.setenv("NEURAL_ESTIMATOR_CACHE", str(tmp_path / "cache"))
+    zoo_script = _train_zoo()
+    assert zoo_script.instance_seeds(0) == {"data_index": 0, "init_seed": 0}  # the shipped model's recipe
+    assert zoo_script.instance_paths(2, None, None) == (
+        zoo_script.STATE / "instances" / "i2",
+        zoo_script.ZOO / "instances" / "i2",
+    )
+    args = ["--scenarios", "test_spinner", "--methods", "gru", "--trajectories", "12"]
+    args += ["--windows-per-epoch", "48", "--val-trajectories", "6", "--eval-trajectories", "4"]
+    args += ["--max-epochs", "1", "--quiet"]
+    zoo0, zoo1 = tmp_path / "zoo", tmp_path / "zoo-i1"
+    assert zoo_script.main([*args, "--state", str(tmp_path / "s0"), "--zoo", str(zoo0)]) == 0
+    assert zoo_script.main([*args, "--instance", "1", "--state", str(tmp_path / "s1"), "--zoo", str(zoo1)]) == 0
+    assert "selection set" not in capsys.readouterr().out  # kept without a comparison
+    c0 = json.loads((zoo0 / "test_spinner-gru" / "card.json").read_text())
+    c1 = json.loads((zoo1 / "test_spinner-gru" / "card.json").read_text())
+    assert (c0["data"]["index"], c0["init_seed"]) == (0, 0) and (c1["data"]["index"], c1["init_seed"]) == (1, 1)
+    w0, w1 = weights(zoo0 / "test_spinner-gru"), weights(zoo1 / "test_spinner-gru")
+    assert any(not torch.equal(w0[k], w1[k]) for k in w0)
+    with pytest.raises(SystemExit):
+        zoo_script.main([*args, "--instance", "1", "--val-context", "8"])
