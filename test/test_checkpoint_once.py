@@ -13,6 +13,7 @@ from neural_estimator.evaluation import checkpoint_digest, evaluate
 from neural_estimator.registry import EstimatorError
 from neural_estimator.scenarios import make_scenario
 from neural_estimator.serving import card as C
+from neural_estimator.uncertainty import heads as _heads  # noqa: F401  bound to the real sha256_file before any patch
 
 
 def _counting(monkeypatch):
@@ -69,3 +70,56 @@ def test_a_checkpoint_that_cannot_be_resolved_is_one_line(tmp_path):
         resolved.digest
     # before training, a job's key is made from files that do not exist yet
     assert len(C.checkpoint_digest(tmp_path / "later")) == 32
+
+
+def test_canonical_safetensors_sorts_the_metadata_and_keeps_every_tensor_byte(tmp_path):
+    """A header whose metadata came out in another order (safetensors writes it from a hash map)
+    becomes the sorted one; tensors load equal and the data bytes are untouched."""
+    import json
+
+    import torch
+    from safetensors.torch import load_file
+
+    from neural_estimator.serving.card import canonical_safetensors
+
+    data = torch.arange(6, dtype=torch.float32).numpy().tobytes()
+    header = {
+        "__metadata__": {"method": "gru", "format": "neural_estimator.checkpoint"},
+        "w": {"dtype": "F32", "shape": [2, 3], "data_offsets": [0, 24]},
+    }
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    path = tmp_path / "w.safetensors"
+    path.write_bytes(len(text).to_bytes(8, "little") + text + data)
+    canonical_safetensors(path)
+    raw = path.read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    assert n == len(text) and raw[8 + n :] == data
+    assert list(json.loads(raw[8 : 8 + n])["__metadata__"]) == ["format", "method"]
+    assert torch.equal(load_file(str(path))["w"], torch.arange(6, dtype=torch.float32).view(2, 3))
+    canonical_safetensors(path)
+    assert path.read_bytes() == raw  # idempotent
+
+
+def test_the_same_model_saved_again_is_the_same_file(tmp_path):
+    """Two saves of one model (card entries that vary, e.g. the creation time, aside) write
+    byte-identical weights: the digests and cache keys made from them survive a rerun."""
+    import torch
+
+    from neural_estimator.models import build_model
+    from neural_estimator.scenarios import make_scenario
+    from neural_estimator.serving.checkpoint import save_checkpoint
+    from neural_estimator.serving.normalization import Normalizer
+
+    from neural_estimator.data import simulate
+
+    scenario = make_scenario("lorenz96")
+    torch.manual_seed(0)
+    model = build_model("gru", scenario.dy, scenario.dx, hidden=4, layers=1)
+    norm = Normalizer.from_data(scenario, simulate(scenario, 2, 5, seed=0))
+    card = {"scenario": scenario.describe()}
+    files = set()
+    for i in range(8):
+        save_checkpoint(tmp_path / str(i), model, norm, dict(card))
+        files.add((tmp_path / str(i) / "model.safetensors").read_bytes())
+    assert len(files) == 1

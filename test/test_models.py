@@ -177,6 +177,22 @@ def test_window_attention_matches_naive(T, W, fused):
     torch.testing.assert_close(y, ref, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("T,W", [(9, 16), (50, 7)])  # one block, and the blocked form
+def test_the_window_bias_is_made_once_and_equals_a_fresh_one(T, W):
+    """The ALiBi/window bias is cached per (slopes, T, W): the same tensor for every layer and call,
+    equal to the one computed afresh, and never taken from the cache while a graph is traced."""
+    from neural_estimator.models import layers
+
+    slopes = alibi_slopes(4)
+    first = layers.window_bias(slopes, T, W)
+    assert layers.window_bias(slopes.clone(), T, W) is first
+    assert torch.equal(first, layers._make_window_bias(slopes, T, W))
+    assert layers.window_bias(slopes * 2, T, W) is not first
+    traced = []
+    torch.jit.trace(lambda s: traced.append(layers.window_bias(s, T, W)) or s * 1, (slopes,))
+    assert traced[0] is not first and torch.equal(traced[0], first)
+
+
 @pytest.mark.parametrize("T,W", [(12, 16), (40, 16)])  # one block, and the blocked form
 def test_window_attention_fused_gradients_equal_the_math_path(T, W):
     """The fused kernel (forced: the test fails if torch cannot take it) equals the unfused path,

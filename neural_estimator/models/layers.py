@@ -21,6 +21,7 @@ Shapes: B batch, nh heads, T time, hs head size, W window.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -55,6 +56,52 @@ def _bias(slopes: Tensor, dist: Tensor, allowed: Tensor) -> Tensor:
     return bias.masked_fill(~allowed, float("-inf"))
 
 
+def _cacheable() -> bool:
+    """Whether a bias may come from :func:`_window_bias`'s cache: not while torch traces a graph
+    (an ONNX export or ``torch.jit.trace``), where a cached tensor would enter as a constant made
+    outside the trace."""
+    return not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
+
+
+@functools.lru_cache(maxsize=32)
+def _window_bias(slopes: tuple[float, ...], dtype: torch.dtype, device: torch.device, T: int, window: int) -> Tensor:
+    """The additive ALiBi/window bias of :func:`window_attention` for a length-T sequence: (nh, T, T)
+    when T <= W, else the blocked (nh, nb, W, 2W). It depends on the slopes, T and W only, so it is
+    made once per (slopes, T, W, dtype, device) and reused by every layer and every call (rebuilt in
+    each layer on each call, it was about half of GPT-2's forward at B = 1). Read-only: callers
+    never write into it. At most 32 kept (a few MB each at the paper's sizes)."""
+    return _make_window_bias(torch.tensor(slopes, dtype=dtype, device=device), T, window)
+
+
+def _make_window_bias(slopes: Tensor, T: int, window: int) -> Tensor:
+    """The bias of :func:`_window_bias`, computed (see there)."""
+    device = slopes.device
+    if T <= window:
+        t = torch.arange(T, device=device)
+        dist = t[:, None] - t[None, :]  # (T, T) query minus key position
+        return _bias(slopes, dist, dist >= 0)  # (nh, T, T)
+    W = window
+    nb = -(-T // W)
+    a = torch.arange(W, device=device)
+    j = torch.arange(2 * W, device=device)
+    dist = (a[:, None] + W) - j[None, :]  # (W, 2W): query iW+a minus key (i-1)W+j
+    allowed = (dist >= 0) & (dist < W)
+    allowed = allowed.expand(nb, W, 2 * W).clone()  # (nb, W, 2W)
+    allowed[0, :, :W] = False  # block 0 has no previous block (the zero padding of the operands)
+    return _bias(slopes, dist.expand(nb, W, 2 * W), allowed)  # (nh, nb, W, 2W)
+
+
+def window_bias(slopes: Tensor, T: int, window: int) -> Tensor:
+    """The bias of :func:`window_attention` for a length-T sequence, from the cache where it may be
+    (:func:`_cacheable`). Cached on the CPU only: the key reads the slopes' values, which on a GPU
+    would be a device synchronisation per layer, and there the few small kernels that build the
+    bias are not what a step waits for. Slopes that require a gradient are never cached (ALiBi's are
+    fixed)."""
+    if slopes.device.type == "cpu" and _cacheable() and not slopes.requires_grad:
+        return _window_bias(tuple(slopes.tolist()), slopes.dtype, slopes.device, T, window)
+    return _make_window_bias(slopes, T, window)
+
+
 def window_attention(
     q: Tensor, k: Tensor, v: Tensor, slopes: Tensor, window: int, dropout_p: float = 0.0, fused: bool = True
 ) -> Tensor:
@@ -80,11 +127,8 @@ def window_attention(
         (B, nh, T, hs) attention output.
     """
     B, nh, T, hs = q.shape
-    device = q.device
+    bias = window_bias(slopes, T, window)  # (nh, T, T), or blocked (nh, nb, W, 2W) when T > W
     if T <= window:
-        t = torch.arange(T, device=device)
-        dist = t[:, None] - t[None, :]  # (T, T) query minus key position
-        bias = _bias(slopes, dist, dist >= 0)  # (nh, T, T)
         # A 4-D mask: torch's fused CPU (flash) kernel takes 2-D or 4-D masks only, and falls back
         # to the unfused math path (scores materialised, 3.5x slower here) for any other shape.
         if not fused:
@@ -102,13 +146,6 @@ def window_attention(
     vb = v.view(B, nh, nb, W, hs)
     k2 = torch.cat((F.pad(kb, (0, 0, 0, 0, 1, 0))[:, :, :-1], kb), dim=3)  # (B, nh, nb, 2W, hs)
     v2 = torch.cat((F.pad(vb, (0, 0, 0, 0, 1, 0))[:, :, :-1], vb), dim=3)
-    a = torch.arange(W, device=device)
-    j = torch.arange(2 * W, device=device)
-    dist = (a[:, None] + W) - j[None, :]  # (W, 2W): query iW+a minus key (i-1)W+j
-    allowed = (dist >= 0) & (dist < W)
-    allowed = allowed.expand(nb, W, 2 * W).clone()  # (nb, W, 2W)
-    allowed[0, :, :W] = False  # block 0 has no previous block (the zero padding above)
-    bias = _bias(slopes, dist.expand(nb, W, 2 * W), allowed)  # (nh, nb, W, 2W)
     if not fused:
         y = F.scaled_dot_product_attention(qb, k2, v2, attn_mask=bias, dropout_p=dropout_p)  # (B, nh, nb, W, hs)
         return y.reshape(B, nh, nb * W, hs)[:, :, :T]

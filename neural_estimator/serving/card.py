@@ -79,6 +79,32 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
+def canonical_safetensors(path: str | Path) -> None:
+    """Rewrite a safetensors file's header so that the same tensors and metadata give the same bytes.
+
+    The format is an 8-byte little-endian header length N, N bytes of JSON header (padded with
+    spaces to a multiple of 8), then the tensor data, with offsets relative to the data's start.
+    safetensors' writer orders the tensor entries by name but writes ``__metadata__`` from a hash map,
+    in an order that changes from process to process: two identical trainings gave weight files that
+    differed in those bytes only, and so every digest and cache key made from them. Here the
+    metadata keys are sorted; the tensor entries and the data are kept byte for byte. Idempotent."""
+    path = Path(path)
+    with open(path, "r+b") as fh:
+        n = int.from_bytes(fh.read(8), "little")
+        raw = fh.read(n)
+        header = json.loads(raw)
+        meta = header.get("__metadata__")
+        if not meta:
+            return
+        ordered = {"__metadata__": dict(sorted(meta.items()))}
+        ordered.update((k, v) for k, v in header.items() if k != "__metadata__")
+        text = json.dumps(ordered, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(text) > n:  # never for a reordering (same keys, same values): keep the data where it is
+            raise ValueError(f"{path}: canonical safetensors header is longer than the written one")
+        fh.seek(8)
+        fh.write(text + b" " * (n - len(text)))
+
+
 def software_versions() -> dict[str, str]:
     import safetensors
     import torch  # here, not at the top: reading a card (serving without torch) needs no torch

@@ -33,6 +33,7 @@ from torch import nn
 from neural_estimator.estimator import EstimatorError
 from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
 from neural_estimator.serving.card import (
+    canonical_safetensors,
     CARD_FILE,
     CARD_FORMAT,
     CARD_VERSION,
@@ -115,6 +116,7 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
     weights = directory / WEIGHTS_FILE
     tmp = directory / (WEIGHTS_FILE + ".tmp")
     save_model(savable(model), str(tmp), metadata={"format": CARD_FORMAT, "method": name}, force_contiguous=True)
+    canonical_safetensors(tmp)  # the same weights, the same bytes (and digests, cache keys)
     os.replace(tmp, weights)
     from neural_estimator.uncertainty.heads import HEAD_FILE
 

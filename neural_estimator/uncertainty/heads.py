@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from neural_estimator.serving.card import sha256_file
+from neural_estimator.serving.card import canonical_safetensors, sha256_file
 
 HEAD_FILE = "covariance_head.safetensors"
 HEAD_FORM = "cholesky"
@@ -159,6 +159,7 @@ def save_head(directory: str | Path, head: CholeskyHead, info: dict[str, Any]) -
     tmp = directory / (HEAD_FILE + ".tmp")
     tensors = {k: v.detach().cpu().contiguous().float() for k, v in head.state_dict().items()}
     save_file(tensors, str(tmp), metadata={"format": "neural_estimator.covariance_head", "form": HEAD_FORM})
+    canonical_safetensors(tmp)
     os.replace(tmp, directory / HEAD_FILE)
     return {
         "file": HEAD_FILE,
