@@ -75,13 +75,13 @@ setup(
         "reproduce": ["ray==2.60.0"],
         # ONNX Runtime serving of the recurrent models' steps (backend=onnxruntime); onnx exports them
         "onnx": ["onnxruntime>=1.20", "onnx>=1.16"],
-        "reference": ["filterpy>=1.4.5", "dapper==1.7.1"],  # the filters' independent references
+        "reference": ["filterpy>=2.0.0", "dapper==1.7.1"],  # the filters' independent references
         "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5"],
         "test": [
             "pytest>=8",
             "atheris==3.0.0",
             "ruff==0.14.14",
-            "filterpy>=1.4.5",
+            "filterpy>=2.0.0",
             "dapper==1.7.1",
             "mcap-ros2-support>=0.5",
             "ray==2.60.0",
