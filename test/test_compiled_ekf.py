@@ -42,14 +42,32 @@ def test_compiled_ekf_equals_batched_path(n_vars, substeps, hp):
         np.testing.assert_array_equal(cov, copy)
 
 
-def test_compiled_ekf_is_for_small_batches_of_lorenz96_only():
+def test_compiled_ekf_runs_every_batch_of_lorenz96_unless_capped():
     scen = make_scenario("lorenz96")
     ekf = ExtendedKalmanFilter(scen)
-    ekf.reset(ekf.compiled_max_batch + 1)
+    ekf.reset(5000)
+    assert ekf._compiled is not None
+    ekf.compiled_max_batch = 16  # a cap: larger batches take the batched numpy path
+    ekf.reset(17)
     assert ekf._compiled is None
     other = ExtendedKalmanFilter(make_scenario("bearings"))
     other.reset(1)
     assert other._compiled is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compiled_ekf_over_several_blocks_equals_the_batched_path(threads):
+    """Blocks of 3 streams (7 streams: 3 blocks, the last short) on one and two threads."""
+    scen = make_scenario("lorenz96", n_vars=12)
+    Y = simulate(scen, 7, 30, 4).y.copy()
+    Y[5, 10] = np.nan
+    fast, ref = _pair(scen, threads=threads)
+    for f in (fast, ref):
+        f.block_elements = 3 * f._stream_elements()
+    a, b = fast.run(Y), ref.run(Y)
+    assert len(fast._blocks) == 3 and fast._compiled is not None and ref._compiled is None
+    np.testing.assert_allclose(a.x, b.x, rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(a.cov, b.cov, rtol=1e-10, atol=1e-12)
 
 
 def test_compiled_ekf_flags_a_diverged_stream():

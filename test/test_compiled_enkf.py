@@ -100,15 +100,35 @@ def test_compiled_enkf_init_from_observation():
     _close(fast.run(Y).x, ref.run(Y).x)
 
 
-def test_compiled_enkf_is_for_small_batches_of_lorenz96_only():
+def test_compiled_enkf_runs_every_batch_of_lorenz96_unless_capped():
     enkf = EnsembleKalmanFilter(make_scenario("lorenz96"))
-    enkf.reset(enkf.compiled_max_batch + 1)
+    enkf.reset(5000)
+    assert enkf._compiled is not None and len(enkf._blocks) > 1
+    enkf.compiled_max_batch = 16  # a cap: larger batches take the batched numpy path
+    enkf.reset(17)
     assert enkf._compiled is None
     enkf.reset(1)
     assert enkf._compiled is not None
     other = EnsembleKalmanFilter(make_scenario("bearings"))
     other.reset(1)
     assert other._compiled is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compiled_enkf_over_several_blocks_equals_the_batched_path(threads):
+    """Blocks of 3 streams (7 streams: 3 blocks, the last short) on one and two threads: each block
+    draws the batched path's numbers of that block."""
+    scen = make_scenario("lorenz96", n_vars=12)
+    Y = simulate(scen, 7, 30, 4).y.copy()
+    Y[5, 10] = np.nan
+    fast, ref = _pair(scen, threads=threads)
+    for f in (fast, ref):
+        f.block_elements = 3 * f._stream_elements()
+    a, b = fast.run(Y), ref.run(Y)
+    assert len(fast._blocks) == 3 and fast._compiled is not None and ref._compiled is None
+    _close(a.x, b.x)
+    _close(a.cov, b.cov)
+    np.testing.assert_array_equal(a.diverged, b.diverged)
 
 
 def test_compiled_enkf_flags_a_diverged_stream():

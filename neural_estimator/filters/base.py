@@ -427,6 +427,12 @@ class ClassicalFilter(Estimator):
         return np.broadcast_to(u[:, None, :], (u.shape[0], N, u.shape[1]))
 
 
+def compiled_applies(limit: int | None, batch: int) -> bool:
+    """Whether a filter's compiled kernels run a batch of ``batch`` streams under its
+    ``compiled_max_batch`` ``limit``: None, every batch; an int k, batches of at most k (0: never)."""
+    return limit is None or batch <= limit
+
+
 def observation_determines_state(scenario: Scenario) -> bool:
     """True when one observation determines some state components (``init="observation"`` applies)."""
     m0 = np.asarray(scenario.prior()[0], dtype=np.float64)

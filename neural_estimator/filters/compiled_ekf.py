@@ -6,8 +6,9 @@ At B = 1 the batched EKF spends most of a step on numpy's per-call cost: the den
 equations (:mod:`neural_estimator.filters.ekf`, Lorenz 96's ``f`` and ``jac_f``) in one compiled call
 per phase and stream, in the same order of operations; the tests hold them equal to the batched path.
 
-The EKF uses them for small batches (``ExtendedKalmanFilter.compiled_max_batch``), where the blocks
-of the batched path cannot amortise numpy's per-call cost; larger batches keep the batched path.
+The EKF uses them at every batch (``ExtendedKalmanFilter.compiled_max_batch``), block by block of
+streams on the filter's threads (the kernels release the GIL): at B = 1 the batched path cannot
+amortise numpy's per-call cost, and at large batches the compiled loops still beat it.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ def _predict_one(m, P, Q, inflation2, forcing, h, substeps):
     P[:, :] = 0.5 * (Pp + Pp.T)
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def predict(M, P, Q, inflation2, forcing, h, substeps):
     """:func:`_predict_one` for every stream of M (B, n), P (B, n, n), in place."""
     for b in range(M.shape[0]):
@@ -103,7 +104,7 @@ def _update_one(m, P, y, H, R, joseph):
     P[:, :] = 0.5 * (Pp + Pp.T)
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def update(M, P, Y, skip, H, R, joseph):
     """:func:`_update_one` for every stream not in ``skip``; a singular S gives NaN (diverged)."""
     for b in range(M.shape[0]):

@@ -273,22 +273,23 @@ def estimate(X, mean, cov):
 
 
 @nb.njit(nogil=True, cache=True)
-def step(X, Y, k, forcing, h, substeps, sd_Q, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, phases):
+def step(X, Y, k, forcing, h, substeps, sd_Q, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, phases, block):
     """One filter step of every stream of X (b, N, n) in place (ClassicalFilter's cycle, fused):
     predict (k >= 1), update the streams whose y_k (b, dy) is finite, then the estimate.
 
-    ``phases`` = (predict, update) phase numbers of the keys. Returns (mean (b, n), cov (b, n, n),
+    ``phases`` = (predict, update) phase numbers of the keys; ``block``: the index of this block of
+    streams (its draws are the batched path's draws of that block). Returns (mean (b, n), cov (b, n, n),
     skipped (b,), bad (b,)): bad where the mean or the covariance has a non-finite sum (the
     caller's divergence test)."""
     b, N, n = X.shape
     if k > 0:
-        predict(X, forcing, h, substeps, sd_Q, pool, hc, k, phases[0], 0)
+        predict(X, forcing, h, substeps, sd_Q, pool, hc, k, phases[0], block)
     skip = np.zeros(b, dtype=np.bool_)
     for r in range(b):
         for j in range(Y.shape[1]):
             if not np.isfinite(Y[r, j]):
                 skip[r] = True
-    update(X, Y, skip, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, k, phases[1], 0)
+    update(X, Y, skip, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, k, phases[1], block)
     mean, cov = np.empty((b, n)), np.empty((b, n, n))
     estimate(X, mean, cov)
     bad = np.zeros(b, dtype=np.bool_)

@@ -14,7 +14,7 @@ from functools import partial
 
 import numpy as np
 
-from neural_estimator.filters.base import ClassicalFilter, check_inflation
+from neural_estimator.filters.base import ClassicalFilter, check_inflation, compiled_applies
 from neural_estimator.filters.numerics import ScenarioOps, psd_solve, symmetrize
 
 
@@ -125,10 +125,12 @@ class ExtendedKalmanFilter(ClassicalFilter):
     # overhead smaller blocks multiply. Measured at B = 2000, 2 threads: 11.9k traj-steps/s with
     # 2^17, 14.9k with 2^19, 10.4k with 2^21.
     block_elements = 2**19
-    # Up to this many streams, Lorenz 96 runs on the compiled single-stream kernels
-    # (filters/compiled_ekf.py: the same equations, one compiled call per phase and stream); at
-    # B = 1 numpy's per-call cost is most of a batched step. 0 turns them off.
-    compiled_max_batch = 16
+    # Lorenz 96 runs on the compiled kernels (filters/compiled_ekf.py: the same equations, one
+    # compiled call per phase and block of streams, the blocks on the filter's threads) at every
+    # batch: at B = 1 numpy's per-call cost is most of a batched step, and at B = 1,000 (n = 40, one
+    # thread) they are still 1.5x the batched numpy path per trajectory
+    # (benchmarks/bench_batch_kernels.py). An int caps the batch they run at; 0 turns them off.
+    compiled_max_batch: int | None = None
 
     def _init_state(self, B: int) -> None:
         n = self.scenario.dx
@@ -146,7 +148,7 @@ class ExtendedKalmanFilter(ClassicalFilter):
         """(predict, update) on the compiled single-stream kernels, or None for the batched path."""
         from neural_estimator.scenarios.lorenz96 import Lorenz96
 
-        if B > self.compiled_max_batch or type(self.scenario) is not Lorenz96:
+        if not compiled_applies(self.compiled_max_batch, B) or type(self.scenario) is not Lorenz96:
             return None
         from neural_estimator.filters import compiled_ekf
 
@@ -165,11 +167,15 @@ class ExtendedKalmanFilter(ClassicalFilter):
 
         def predict() -> None:
             own()
-            compiled_ekf.predict(self._m, self._P, Q, inflation2, forcing, h, substeps)
+            m, P = self._m, self._P
+            self._scheduler.for_each(
+                lambda i, sl: compiled_ekf.predict(m[sl], P[sl], Q, inflation2, forcing, h, substeps)
+            )
 
         def update(y: np.ndarray, skip: np.ndarray | None) -> None:
             own()
-            compiled_ekf.update(self._m, self._P, y, no_skip if skip is None else skip, H, R, joseph)
+            m, P, no = self._m, self._P, no_skip if skip is None else skip
+            self._scheduler.for_each(lambda i, sl: compiled_ekf.update(m[sl], P[sl], y[sl], no[sl], H, R, joseph))
 
         return predict, update
 

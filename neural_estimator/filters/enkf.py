@@ -14,7 +14,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from neural_estimator.filters import compiled_enkf
-from neural_estimator.filters.base import PHASE_INIT, PHASE_PREDICT, PHASE_UPDATE, MemberFilter, check_inflation
+from neural_estimator.filters.base import (
+    PHASE_INIT,
+    PHASE_PREDICT,
+    PHASE_UPDATE,
+    MemberFilter,
+    check_inflation,
+    compiled_applies,
+)
 from neural_estimator.filters.compiled_models import compiled_model
 from neural_estimator.filters.localization import localization_tapers
 from neural_estimator.filters.numerics import (
@@ -146,10 +153,13 @@ class EnsembleKalmanFilter(MemberFilter):
 
     method = "enkf"
     HyperParams = EnKFHyperParams
-    # Up to this many streams in one block, Lorenz 96 runs on the compiled kernels
-    # (filters/compiled_enkf.py: the same equations and numpy's very draws, one compiled call per
-    # phase); at B = 1 numpy's per-call cost is most of a batched step. 0 turns them off.
-    compiled_max_batch = 16
+    # Lorenz 96 runs on the compiled kernels (filters/compiled_enkf.py: the same equations and
+    # numpy's very draws, one compiled call per phase and block of streams, the blocks on the
+    # filter's threads) at every batch: at B = 1 numpy's per-call cost is most of a batched step,
+    # and at B = 1,000 (n = 40, one thread) the batched path is slower per trajectory than B = 1
+    # while the compiled one is not (benchmarks/bench_batch_kernels.py). An int caps the batch
+    # they run at; 0 turns them off.
+    compiled_max_batch: int | None = None
 
     def __init__(self, scenario, seed: int = 0, hyperparams=None, **options) -> None:
         super().__init__(scenario, seed=seed, hyperparams=hyperparams, **options)
@@ -170,10 +180,10 @@ class EnsembleKalmanFilter(MemberFilter):
 
     def _compiled_args(self, B: int) -> dict | None:
         """The compiled kernels' constants when they apply (Lorenz 96, H = I, diagonal Q and R, R
-        positive definite, the streams in one block of at most ``compiled_max_batch``), else None."""
+        positive definite, a batch within ``compiled_max_batch``), else None."""
         from neural_estimator.scenarios.lorenz96 import Lorenz96
 
-        if B > self.compiled_max_batch or len(self._blocks) != 1 or type(self.scenario) is not Lorenz96:
+        if not compiled_applies(self.compiled_max_batch, B) or type(self.scenario) is not Lorenz96:
             return None
         if self._sd_Q is None or self._sd_R is None or not np.all(self._sd_R > 0.0):
             return None
@@ -212,7 +222,12 @@ class EnsembleKalmanFilter(MemberFilter):
         c = self._compiled
         if c is None or (self._k == 0 and self.init == "observation"):
             return super()._advance(y, u)
-        mean, cov, self.skipped, bad = compiled_enkf.step(self._own_members(), y, self._k, *c["step"])
+        X, k = self._own_members(), self._k
+        parts = self._for_blocks(lambda i, sl: compiled_enkf.step(X[sl], y[sl], k, *c["step"], i))
+        if len(parts) == 1:
+            mean, cov, self.skipped, bad = parts[0]
+        else:  # (mean, cov, skipped, bad) of every block, stacked over the streams
+            mean, cov, self.skipped, bad = (np.concatenate(p, axis=0) for p in zip(*parts))
         self._k += 1
         if bad.any():
             self.diverged |= bad
@@ -228,8 +243,10 @@ class EnsembleKalmanFilter(MemberFilter):
         c = self._compiled
         if c is None:
             return super()._predict(u)
-        X = self._own_members()
-        compiled_enkf.predict(X, *c["model"], c["sd_Q"], *c["key"], self._k, PHASE_PREDICT, 0)
+        X, k = self._own_members(), self._k
+        self._for_blocks(
+            lambda i, sl: compiled_enkf.predict(X[sl], *c["model"], c["sd_Q"], *c["key"], k, PHASE_PREDICT, i)
+        )
         return None
 
     # The maths is the module-level _update / _estimate; these hooks schedule it over the blocks of
@@ -237,9 +254,11 @@ class EnsembleKalmanFilter(MemberFilter):
     def _update(self, y: np.ndarray, skip: np.ndarray | None) -> None:
         c = self._compiled
         if c is not None:
-            X = self._own_members()
+            X, k = self._own_members(), self._k
             no = c["no_skip"] if skip is None else skip
-            compiled_enkf.update(X, y, no, *c["update"], *c["key"], self._k, PHASE_UPDATE, 0)
+            self._for_blocks(
+                lambda i, sl: compiled_enkf.update(X[sl], y[sl], no[sl], *c["update"], *c["key"], k, PHASE_UPDATE, i)
+            )
             return None
         X_post, _ = self._blockwise(self._update_kernel, self._X, y, phase=PHASE_UPDATE)
         self._X = self._keep(skip, self._X, X_post)
@@ -263,7 +282,7 @@ class EnsembleKalmanFilter(MemberFilter):
             X = self._own_members()
             b, _, n = X.shape
             mean, cov = np.empty((b, n)), np.empty((b, n, n))
-            compiled_enkf.estimate(X, mean, cov)
+            self._for_blocks(lambda i, sl: compiled_enkf.estimate(X[sl], mean[sl], cov[sl]))
             return mean, cov
         mean, cov, _ = self._blockwise(lambda X: (*_estimate(X, self.ops), None), self._X)
         return mean, cov
