@@ -26,6 +26,7 @@ import hashlib
 import json
 import os
 import platform
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -170,7 +171,8 @@ def run_job(
 ) -> dict[str, Any]:
     """Do one job (or read its cached result). Returns ``{"job", "cached", "seconds", "result"}``:
     for ``evaluate`` the result is the run's report as JSON (:func:`neural_estimator.metrics.to_json`),
-    for ``runtime`` ``{"it_per_s", "steps", "seconds"}``.
+    for ``runtime`` ``{"it_per_s", "steps", "seconds"}``; ``node``: the Ray node that ran it (None
+    outside Ray).
 
     ``threads`` bounds the job's own threads (classical filters' pool, torch) so that parallel jobs
     do not oversubscribe the cores they were given. ``after``: results of the jobs this one waits
@@ -194,7 +196,23 @@ def run_job(
         result, cached = _train(job, cache_dir)
     else:
         result, cached = _runtime(job, cache_dir, threads)
-    return {"job": job.to_json(), "cached": cached, "seconds": time.perf_counter() - t0, "result": result}
+    seconds = time.perf_counter() - t0
+    return {"job": job.to_json(), "cached": cached, "seconds": seconds, "result": result, "node": ray_node()}
+
+
+def ray_node() -> str | None:
+    """The id of the Ray node running this job (recorded with its result, so a run on a cluster
+    shows where each job ran), or None outside a Ray task."""
+    if "ray" not in sys.modules:
+        return None
+    import ray
+
+    if not ray.is_initialized():
+        return None
+    try:
+        return ray.get_runtime_context().get_node_id()
+    except Exception:  # noqa: BLE001  an older or stubbed Ray: where a job ran is a report, never a failure
+        return None
 
 
 def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:

@@ -98,6 +98,7 @@ def _write_state(
         if outcome is not None and i in outcome.results:
             r = outcome.results[i]
             row.update(status="cached" if r["cached"] else "computed", seconds=r["seconds"], result=r["result"])
+            row["node"] = r.get("node")
         elif outcome is not None and i in outcome.failed:
             row.update(status="failed", error=outcome.failed[i])
         rows.append(row)
