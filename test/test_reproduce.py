@@ -112,6 +112,11 @@ def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
     assert " · 732.4 |" in text  # runtime_full_app: N-link EKF on CPU
     assert "### Step mode" in text and "### Sequence mode" in text  # the runtime both ways
     assert text.count("CPU share of the timed part") == 2  # each mode says whether its CPU was its own
+    import torch
+
+    if not torch.cuda.is_available():  # the paper's GPU column stays, ours says why it is empty
+        assert text.count("#### GPU") == 2
+        assert "| GRU | not measured (no CUDA) · " in text
     assert "RMSE all steps" in text and "this project's choice" in text
     # filters start from the prior (the default): the PF's expected failures are marked, with the reason
     main_table = text.split("## Main accuracy")[1].split("## Relative score")[0]
@@ -404,3 +409,15 @@ def test_paper_scale_main_tables_use_the_instances_trained_at_20_to_1():
     first_eval = next(i for i, j in enumerate(jobs) if j.kind == "evaluate")
     assert all(j.kind == "train" for j in jobs[:first_eval]) and len(set(jobs)) == len(jobs)
     assert not get_scale("small").main_from_training  # small: the shipped models
+
+
+def test_the_papers_gpu_runtime_stays_beside_not_measured():
+    """No CUDA device: the paper's GPU figures are printed beside "not measured (no CUDA)"."""
+    from neural_estimator.reproduce.tables import runtime_table_not_measured
+
+    lines = runtime_table_not_measured(["ballistic", "bearings"], ["ekf", "gru", "my_plugin_method"], "gpu", "no CUDA")
+    assert lines[0] == "| Method | ballistic | bearings | Avg. |"
+    gru = next(line for line in lines if line.startswith("| GRU |"))
+    assert "not measured (no CUDA) · 1,215,110.8" in gru and "not measured (no CUDA) · 1,215,882.5" in gru
+    assert gru.endswith("not measured (no CUDA) · — |")  # the paper's average covers its five scenarios
+    assert not any("my_plugin_method" in line for line in lines)

@@ -374,6 +374,21 @@ def runtime_table(rt: Mapping[str, Mapping[str, Mapping[str, float]]], scenarios
     return lines
 
 
+def runtime_table_not_measured(scenarios, methods, paper_device: str, why: str) -> list[str]:
+    """The paper's iterations per second on ``paper_device`` beside "not measured (``why``)" for every
+    method and scenario: the paper's column stays in the report where this run has no such device."""
+    lines = _header(["Method"] + list(scenarios) + ["Avg."])
+    all_five = sorted(scenarios) == sorted(paper_value("runtime_full", "cpu") or {})
+    ours = f"not measured ({why})"
+    for m in methods:
+        if m not in PAPER_NAMES:
+            continue
+        cells = [side(ours, paper_value("runtime_full", paper_device, s, m), 1, True) for s in scenarios]
+        cells.append(side(ours, paper_value("runtime_summary", m, paper_device), 1, all_five))
+        lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
+    return lines
+
+
 def data_ratio_table(
     nrmse: Mapping[str, Mapping[str, Mapping[float, list[float]]]], scenarios, methods, ratios: Sequence[float]
 ) -> list[str]:
