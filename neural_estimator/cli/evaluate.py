@@ -200,8 +200,8 @@ def add_evaluate(sub) -> None:
     p.add_argument(
         "--methods",
         default=DEFAULT_METHODS,
-        help="comma-separated (ekf ukf enkf pf gru lstm gpt2 "
-        "filterformer mamba mamba2); with --data: default the --checkpoint methods",
+        help="comma-separated (ekf ukf enkf pf gru lstm gpt2 filterformer mamba mamba2, and the reference rows "
+        "openloop and obsonly, never ranked); with --data: default the --checkpoint methods",
     )
     p.add_argument("--trajectories", type=int, default=8000, help="per evaluation set (paper: 8000)")
     p.add_argument("--horizon", type=int, help="steps (default: the scenario's; paper: 500, quadrotor 200)")
@@ -314,10 +314,11 @@ def _evaluation_request(args):
     """(scenario, recorded datasets or None, methods, checkpoints, recorded estimates, options, info)
     of the evaluate flags, each checked: a one-line CliError otherwise."""
     from neural_estimator.evaluation import recorded_data_methods
+    from neural_estimator.baselines import check_evaluated_method
     from neural_estimator.registry import CLASSICAL_METHODS, check_method
 
     scenario, datasets = scenario_or_data(args)
-    methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
+    methods = [check_evaluated_method(m) for m in args.methods.split(",") if m.strip()]
     checkpoints = parse_checkpoints(args.checkpoint)
     for m in checkpoints:
         check_method(m)
@@ -348,9 +349,13 @@ def _evaluation_request(args):
     if scenario is not None:  # a misspelt filter option fails now, not after the data are simulated
         from neural_estimator.registry import make_estimator
 
+        from neural_estimator.baselines import is_baseline, make_baseline
+
         for m in methods:
             if m in CLASSICAL_METHODS:
                 make_estimator(m, scenario, **options.get(m, {}))
+            elif is_baseline(m):  # obsonly where h determines nothing fails now, in one line
+                make_baseline(m, scenario, **options.get(m, {}))
     if datasets is not None:
         info = dict(
             trajectories=datasets[0].n,
@@ -407,6 +412,7 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
     for line in departure_legend(results):
         print(line)
     print(D.scored_steps(args.warmup))
+    _print_decision(scenario, results)
     _print_consistency(results, scenario.dx)
     print(
         "speed: "
@@ -417,6 +423,18 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
             for m, r in results.items()
         )
     )
+
+
+def _print_decision(scenario, results) -> None:
+    """Per-component RMSE, the paired ratio to the best filter with its interval, the verdict."""
+    from neural_estimator.evaluation.decision import decision_notes, decision_table
+
+    table = decision_table(scenario, results, fmt="text")
+    if table:
+        print("per component (own units, median over runs) and against the best filter:")
+        print(table, end="")
+        for line in decision_notes(scenario, results):
+            print(line)
 
 
 def _print_consistency(results, dx: int) -> None:

@@ -293,6 +293,10 @@ class MetricReport:
     # neural_estimator.consistency.RELIABILITY_LEVELS (None without covariance, or a
     # result stored before this field existed).
     coverage_curve: tuple[float, ...] | None = None
+    # RMSE of each state component over the kept trajectories, in the component's own units:
+    # sqrt( (1 / (|K| T)) sum_{n in K, t} e_{n,t,d}^2 ), so rmse^2 = mean_d rmse_components[d]^2.
+    # None: a result stored before this field existed.
+    rmse_components: tuple[float, ...] | None = None
 
     @property
     def has_covariance(self) -> bool:
@@ -326,6 +330,7 @@ def compute_metrics(
         MAE       = mean   { |e_{n,t,d}| : n in K }
         MedAE     = median { |e_{n,t,d}| : n in K }
         RMSE_t    = sqrt( (1 / (|K| dx)) sum_{n in K, d} e_{n,t,d}^2 )
+        RMSE_d    = sqrt( (1 / (|K| T)) sum_{n in K, t} e_{n,t,d}^2 ),  so RMSE^2 = (1/dx) sum_d RMSE_d^2
         AUC       = sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2
         drift     = mean(RMSE_{T-q+1..T}) / mean(RMSE_{1..q}),  q = max(1, floor(T/4))
         NEES med. = median { eps_{n,t} = e^T P^{-1} e : n in K, all t },  ~dx for a consistent estimator
@@ -420,6 +425,7 @@ def compute_metrics(
             nees=na,
             coverage95=na,
             cov_degenerate=na,
+            rmse_components=(math.inf,) * dx,
             **common,
         )
 
@@ -446,6 +452,7 @@ def compute_metrics(
         drift_ratio=drift_ratio(rmse_t),
         outlier_ratio=int(out.sum()) / n,
         rmse_t=rmse_t,
+        rmse_components=tuple(float(v) for v in np.sqrt(msd)),
         **cov_metrics,
         **common,
     )
