@@ -240,3 +240,36 @@ def test_instances_are_found_run_and_summarised_by_their_median(tmp_path, monkey
     one = evaluate(sc, ["gru"], checkpoints={"gru": [found[0]]}, trajectories=12, horizon=40, sets=1)
     assert one["gru"].n_instances == 1 and "1 instance" in decision_table(sc, one)
     assert math.isfinite(one["gru"].summary["rmse"].median)
+
+
+def test_metrics_verb_prints_the_components_of_given_estimates(tmp_path, capsys):
+    from neural_estimator.data import load_trajectories, save_estimates
+
+    truth = tmp_path / "truth.npz"
+    main(
+        [
+            "simulate",
+            *PLUGIN,
+            "--scenario",
+            "oscillator",
+            "--trajectories",
+            "20",
+            "--horizon",
+            "16",
+            "--out",
+            str(truth),
+        ]
+    )
+    data, _ = load_trajectories(truth)
+    err = np.zeros_like(data.x)
+    err[..., 0] = 0.5  # an error on the first component only
+    save_estimates(tmp_path / "a.npz", data, data.x + err, "biased")
+    save_estimates(tmp_path / "b.npz", data, data.x + 2 * err, "worse")
+    capsys.readouterr()
+    assert main(["metrics", *PLUGIN, str(truth), str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)["methods"]["biased"]
+    assert rep["rmse_components"] == pytest.approx([0.5, 0.0])
+    assert main(["metrics", *PLUGIN, str(truth), str(tmp_path / "a.npz"), str(tmp_path / "b.npz")]) == 0
+    out = capsys.readouterr().out
+    rows = {line.split()[0]: line for line in out.splitlines() if line.startswith(("biased ", "worse "))}
+    assert "0.5" in rows["biased"] and "2.000 [2, 2]" in rows["worse"] and "worse" in rows["worse"].split()[-2:]

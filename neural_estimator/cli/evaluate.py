@@ -159,9 +159,28 @@ def _print_metrics(
         used = {x for v in rows.values() for x in v} | ({D.OUTLIERS} if cells else set())
         for line in notes(scenario_name, list(reports), starts) + D.legend_text(used) + [D.scored_steps(warmup)]:
             print(line)
+        _print_given_decision(truth, estimates, angles, reports, warmup)
     if out:
         _write_table(out, reports)
     return 0
+
+
+def _print_given_decision(truth, estimates, angles, reports, warmup: int) -> None:
+    """The per-component table of given estimates, with the paired ratios (the ``metrics`` verb)."""
+    from types import SimpleNamespace
+
+    from neural_estimator import metrics as M
+    from neural_estimator.evaluation.protocol import MethodResult
+
+    results = {}
+    for m, rep in reports.items():
+        results[m] = MethodResult(m)
+        errs = M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup)
+        results[m].add(rep, errs)
+    dx = truth.x.shape[2]
+    names = truth.meta.get("state_names") or [f"x{d}" for d in range(dx)]
+    units = truth.meta.get("state_units") or [""] * dx
+    _print_decision(SimpleNamespace(state_names=list(names), state_units=list(units), dx=dx), results)
 
 
 def _write_table(path: str, reports) -> None:
@@ -375,6 +394,13 @@ def _evaluation_request(args):
             init=args.init,
             warmup=args.warmup,
         )
+    if datasets is None:
+        from neural_estimator.evaluation.families import check_unsealed
+
+        try:
+            check_unsealed(args.seed)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     if args.horizon is not None and args.horizon < 1:
         raise CliError(f"--horizon must be >= 1 step, got {args.horizon}")
     if not 0 <= args.warmup < info["horizon"]:

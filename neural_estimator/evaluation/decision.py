@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from neural_estimator.evaluation import comparison as C
 from neural_estimator.registry import NEURAL_METHODS
-from neural_estimator.scenarios import Scenario
+from neural_estimator.scenarios import Scenario  # or any object with state_names, state_units and dx
 
 if TYPE_CHECKING:
     from neural_estimator.evaluation.protocol import MethodResult

@@ -50,6 +50,7 @@ from neural_estimator.filters.enkf import EnKFHyperParams
 from neural_estimator.filters.pf import PFHyperParams
 from neural_estimator.options import parse_value
 from neural_estimator.scenarios import Scenario
+from neural_estimator.evaluation.families import check_unsealed
 from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run
 from neural_estimator.evaluation.starts import INIT_MODES, check_init, effective_init  # noqa: F401
 
@@ -303,6 +304,7 @@ def evaluate(
     on_result: Callable[[dict[str, MethodResult]], None] | None = None,
     init: str = "prior",
     warmup: int = M.EVALUATION_WARMUP,
+    sealed: bool = False,
 ) -> dict[str, MethodResult]:
     """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
 
@@ -327,12 +329,16 @@ def evaluate(
             :func:`effective_init`, and each result's ``init`` says which start it got).
         warmup: leading timesteps not scored, for every method alike (default: the paper's 10,
             :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
+        sealed: allow a seed of the sealed family (:mod:`~neural_estimator.evaluation.families`);
+            only the headline measurement passes it, every other caller gets a ValueError.
 
     Returns:
         {method: MethodResult} in the order given.
     """
     methods = [check_evaluated_method(m) for m in methods]
     check_init(init)
+    if datasets is None:
+        check_unsealed(seed, sealed)
     T = scenario.horizon if horizon is None else int(horizon)
     if not 0 <= int(warmup) < T:
         raise ValueError(f"warmup must be in [0, {T}) for a horizon of {T} steps, got {warmup}")
