@@ -273,3 +273,24 @@ def test_metrics_verb_prints_the_components_of_given_estimates(tmp_path, capsys)
     out = capsys.readouterr().out
     rows = {line.split()[0]: line for line in out.splitlines() if line.startswith(("biased ", "worse "))}
     assert "0.5" in rows["biased"] and "2.000 [2, 2]" in rows["worse"] and "worse" in rows["worse"].split()[-2:]
+
+
+def test_coverage_over_every_trajectory_counts_the_outliers():
+    """Unit covariances, unit errors except two trajectories 1000x off: the outlier rule drops them
+    from the kept coverage, not from the coverage over every trajectory."""
+    from neural_estimator import consistency as K
+
+    rng = np.random.default_rng(6)
+    x = rng.standard_normal((40, 50, 2))
+    e = rng.standard_normal(x.shape)
+    e[:2] *= 1e3
+    P = np.broadcast_to(np.eye(2), (40, 50, 2, 2))
+    rep = M.compute_metrics(x, x + e, P_hat=P)
+    assert rep.n_outliers == 2
+    i95 = K.RELIABILITY_LEVELS.index(0.95)
+    assert rep.coverage_curve[i95] == pytest.approx(rep.coverage95)
+    assert rep.coverage_curve_all[i95] == pytest.approx(rep.coverage95 * 38 / 40, abs=1e-3)
+    row = K.consistency_row(rep.scalars(), 2, rep.coverage_curve, rep.coverage_curve_all)
+    assert row["coverage95_all"] < row["coverage95"] and 0.4 < row["coverage50"] < 0.6
+    table = K.format_consistency_table({"ekf": row}, fmt="text")
+    assert "50/90/99% cov." in table and "95% cov. (all)" in table

@@ -134,7 +134,11 @@ def load_run(path: Path) -> tuple[M.MetricReport, float, int, M.TrajectoryErrors
         if meta.get("kind") != "neural_estimator run result" or meta.get("revision") != RESULTS_REVISION:
             return None
         fields = dict(meta["report"])
-        for key in ("rmse_components", "coverage_curve"):  # JSON lists back to the report's tuples
+        for key in (
+            "rmse_components",
+            "coverage_curve",
+            "coverage_curve_all",
+        ):  # JSON lists back to the report's tuples
             if fields.get(key) is not None:
                 fields[key] = tuple(float(v) for v in fields[key])
         report = M.MetricReport(**fields, **{k: arrays[k] for k in _REPORT_ARRAYS})

@@ -163,8 +163,8 @@ def write_evaluation(
 def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "markdown") -> str | None:
     """The consistency table beside :func:`results_table` (:mod:`neural_estimator.consistency`):
     NEES median and mean per state dimension, 95 % coverage (medians over runs), the calibration
-    error of the runs' median reliability curve and a verdict; None when no method reports a
-    covariance."""
+    error of the runs' median reliability curve, the 50/90/99 % coverage, the 95 % coverage over
+    every trajectory (outliers included) and a verdict; None when no method reports a covariance."""
     from neural_estimator import consistency as C
 
     rows = {}
@@ -173,7 +173,9 @@ def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "
             continue
         curves = [rep.coverage_curve for rep in r.reports if rep.coverage_curve is not None]
         curve = np.median(np.asarray(curves, dtype=np.float64), axis=0) if curves else None
-        rows[m] = C.consistency_row(r.summary, dx, curve)
+        alls = [rep.coverage_curve_all for rep in r.reports if rep.coverage_curve_all is not None]
+        curve_all = np.median(np.asarray(alls, dtype=np.float64), axis=0) if alls else None
+        rows[m] = C.consistency_row(r.summary, dx, curve, curve_all)
     if not rows:
         return None
     return C.format_consistency_table(rows, fmt=fmt)

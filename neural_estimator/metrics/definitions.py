@@ -297,6 +297,10 @@ class MetricReport:
     # sqrt( (1 / (|K| T)) sum_{n in K, t} e_{n,t,d}^2 ), so rmse^2 = mean_d rmse_components[d]^2.
     # None: a result stored before this field existed.
     rmse_components: tuple[float, ...] | None = None
+    # The reliability curve over every trajectory, outliers and diverged ones included (a step with
+    # a non-finite NEES counts as not covered): the coverage a user gets, beside the kept-only
+    # ``coverage_curve`` the paper's outlier rule gives. None without covariance.
+    coverage_curve_all: tuple[float, ...] | None = None
 
     @property
     def has_covariance(self) -> bool:
@@ -336,6 +340,7 @@ def compute_metrics(
         NEES med. = median { eps_{n,t} = e^T P^{-1} e : n in K, all t },  ~dx for a consistent estimator
         NEES      = mean { eps_{n,t} : n in K, P_{n,t} usable }
         95%       = share of kept (n, t) with eps_{n,t} <= chi2_{dx}^{-1}(0.95)
+        coverage_curve_all = the same share at each reliability level over every (n, t), outliers included
         Degen.    = share of kept (n, t) whose P_{n,t} is degenerate (eps = inf, see :func:`nees`)
 
     T, t and the sums run over the evaluated steps, warmup..T_total-1 (``warmup`` = 0: every
@@ -443,6 +448,7 @@ def compute_metrics(
         if nees_values.shape != (n, t):
             raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
         cov_metrics = covariance_metrics(nees_values[kept], dx)
+        cov_metrics["coverage_curve_all"] = _coverage_curve(np.where(np.isnan(nees_values), np.inf, nees_values), dx)
     return MetricReport(
         rmse=float(np.sqrt(msd.mean())),
         nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
