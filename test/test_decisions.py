@@ -1,5 +1,5 @@
 """What a team decides on: per-component RMSE, the baselines, the paired ratio and its interval, and
-the median over trained instances (issue 40)."""
+the median over trained instances of a network."""
 
 import json
 import math

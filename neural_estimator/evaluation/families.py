@@ -19,7 +19,7 @@ DEVELOPMENT = "development"
 SEALED = "sealed"
 FAMILIES = (DEVELOPMENT, SEALED)
 SEALED_FLOOR = 1 << 40  # every evaluation seed from here on is sealed
-SEALED_SEED = SEALED_FLOOR + 40  # the headline's measurement on the sealed family (issue 40)
+SEALED_SEED = SEALED_FLOOR + 40  # the one seed the headline measures the sealed family on
 DEVELOPMENT_SEED = 777  # the headline's development run (the fidelity table's fresh seed)
 
 
