@@ -104,6 +104,13 @@ def test_paired_ratio_resamples_instances():
     assert ci3[0] <= r3 <= ci3[1] and ci3[1] - ci3[0] > 10 * (ci1[1] - ci1[0])
 
 
+def test_a_perfect_reference_gives_no_ratio():
+    exact = [[M.TrajectoryErrors(np.zeros((5, 2)), np.ones(5, dtype=bool))]]
+    some = [[M.TrajectoryErrors(np.ones((5, 2)), np.ones(5, dtype=bool))]]
+    ratio, ci = M.paired_ratio(some, exact)
+    assert math.isnan(ratio) and all(math.isnan(v) for v in ci) and M.verdict(ci) == "unknown"
+
+
 def test_paired_ratio_refuses_unpaired_sets():
     rng = np.random.default_rng(2)
     with pytest.raises(M.MetricsError, match="same sets"):
@@ -294,3 +301,21 @@ def test_coverage_over_every_trajectory_counts_the_outliers():
     assert row["coverage95_all"] < row["coverage95"] and 0.4 < row["coverage50"] < 0.6
     table = K.format_consistency_table({"ekf": row}, fmt="text")
     assert "50/90/99% cov." in table and "95% cov. (all)" in table
+
+
+def test_a_bags_report_has_the_per_component_table(tmp_path):
+    """The live evaluator's report (evaluate_bag): each stream's component errors and its ratio."""
+    from neural_estimator.bags.dataset import arrays_to_bag
+    from neural_estimator.bags.report import evaluate_bag, write_report
+    from neural_estimator.data import simulate
+
+    sc = make_scenario("ballistic")
+    data = simulate(sc, 4, 24, seed=3)
+    off = np.zeros_like(data.x)
+    off[..., 1] = 0.2  # the velocity off by 0.2 km/s, the rest exact
+    path = arrays_to_bag(tmp_path / "run.mcap", sc, data.x, data.y, data.u, estimates={"ekf": data.x + off})
+    report = evaluate_bag(path)
+    assert report.reports["ekf"].rmse_components == pytest.approx((0.0, 0.2, 0.0), abs=1e-12)
+    summary = report.summary()
+    assert "velocity [km/s]" in summary and "0.2" in summary.split("velocity [km/s]")[1]
+    assert "velocity [km/s]" in write_report(report)["markdown"].read_text()

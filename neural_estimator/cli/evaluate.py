@@ -167,20 +167,12 @@ def _print_metrics(
 
 def _print_given_decision(truth, estimates, angles, reports, warmup: int) -> None:
     """The per-component table of given estimates, with the paired ratios (the ``metrics`` verb)."""
-    from types import SimpleNamespace
+    from neural_estimator.evaluation.decision import estimates_decision
 
-    from neural_estimator import metrics as M
-    from neural_estimator.evaluation.protocol import MethodResult
-
-    results = {}
-    for m, rep in reports.items():
-        results[m] = MethodResult(m)
-        errs = M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup)
-        results[m].add(rep, errs)
-    dx = truth.x.shape[2]
-    names = truth.meta.get("state_names") or [f"x{d}" for d in range(dx)]
-    units = truth.meta.get("state_units") or [""] * dx
-    _print_decision(SimpleNamespace(state_names=list(names), state_units=list(units), dx=dx), results)
+    text = estimates_decision(truth, estimates, angles, reports, warmup)
+    if text:
+        print("per component (own units) and against the best filter:")
+        print(text, end="")
 
 
 def _write_table(path: str, reports) -> None:

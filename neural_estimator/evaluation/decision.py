@@ -54,7 +54,8 @@ def decision_table(scenario: Scenario, results: Mapping[str, MethodResult], fmt:
             row += ["—", "—"]
         else:
             lo, hi = p["ci95"]
-            row += [f"{p['ratio']:.3f} [{_number(lo, 3)}, {_number(hi, 3)}]", p["verdict"]]
+            ratio = f"{p['ratio']:.3f}" if math.isfinite(p["ratio"]) else "N/A"
+            row += [f"{ratio} [{_number(lo, 3)}, {_number(hi, 3)}]", p["verdict"]]
         row.append(_instances(r))
         body.append(row)
     if fmt == "markdown":
@@ -92,6 +93,31 @@ def decision_notes(scenario: Scenario, results: Mapping[str, MethodResult]) -> l
             f"{C.reference_method(results, full=True)} best among the filters; judge on the Full RMSE"
         )
     return notes
+
+
+def estimates_decision(truth, estimates, angles, reports, warmup: int, fmt: str = "text") -> str:
+    """The decision table and its notes for estimates given as arrays (the ``metrics`` verb, a bag's
+    report): ``truth`` a Trajectories whose meta may name the state components, ``estimates``
+    {method: (x_hat, P or None)}, ``reports`` their :class:`~neural_estimator.metrics.MetricReport`;
+    "" when there is nothing to show."""
+    from types import SimpleNamespace
+
+    from neural_estimator import metrics as M
+    from neural_estimator.evaluation.protocol import MethodResult
+
+    results = {}
+    for m, rep in reports.items():
+        results[m] = MethodResult(m)
+        results[m].add(rep, M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup))
+    dx = truth.x.shape[2]
+    names = truth.meta.get("state_names") or [f"x{d}" for d in range(dx)]
+    units = truth.meta.get("state_units") or [""] * dx
+    states = SimpleNamespace(state_names=list(names), state_units=list(units), dx=dx)
+    table = decision_table(states, results, fmt=fmt)
+    if not table:
+        return ""
+    bullet = "- " if fmt == "markdown" else ""
+    return table + "".join(f"{bullet}{line}\n" for line in decision_notes(states, results))
 
 
 def _instances(result: MethodResult) -> str:

@@ -105,7 +105,8 @@ def paired_ratio(
     for a, b in zip(method, reference):
         if not a or not b or a[0].mse.shape[0] != b[0].mse.shape[0]:
             raise MetricsError("paired runs need at least one run per set, on the same trajectories")
-    point = _median_rmse(method, components, full, None, None) / _median_rmse(reference, components, full, None, None)
+    num, den = _median_rmse(method, components, full, None, None), _median_rmse(reference, components, full, None, None)
+    point = num / den if den > 0 else math.nan  # a perfect reference (RMSE 0) has no ratio
     if not math.isfinite(point):
         return math.nan, (math.nan, math.nan)
     rng = np.random.default_rng(seed)
