@@ -319,3 +319,61 @@ def test_a_bags_report_has_the_per_component_table(tmp_path):
     summary = report.summary()
     assert "velocity [km/s]" in summary and "0.2" in summary.split("velocity [km/s]")[1]
     assert "velocity [km/s]" in write_report(report)["markdown"].read_text()
+
+
+def test_the_reproduce_report_has_each_components_rmse_and_the_instance_count():
+    from neural_estimator.reproduce import tables as T
+
+    runs = {
+        "ballistic": {
+            "ekf": [{"rmse_components": [0.01, 0.04, 0.8]}, {"rmse_components": [0.03, 0.06, 0.9]}],
+            "gru": [{"rmse_components": [0.05, 0.1, 0.85]}] * 3,
+            "pf": [{"rmse": 1.0}],  # a run cached before the components existed: no row
+        }
+    }
+    lines = T.components_table(runs, "ballistic", ["ekf", "gru", "pf"], ["altitude [km]", "v", "c"], {"gru": 3})
+    assert lines[0] == "| Method | altitude [km] | v | c | instances |"
+    assert lines[2] == "| EKF | 0.02 | 0.05 | 0.85 | — |"  # medians over the runs
+    assert lines[3].startswith("| GRU | 0.05 |") and lines[3].endswith("| 3 instances |") and len(lines) == 4
+    one = T.components_table(runs, "ballistic", ["gru"], ["a", "v", "c"], {"gru": 1})
+    assert one[2].endswith("| 1 instance |")
+
+
+def _scaled_results(factors: dict, n=40, rng=None):
+    """MethodResults whose per-trajectory errors are one base error times each method's factor (the
+    paired ratio is then exactly the factor, with a zero-width interval)."""
+    from neural_estimator.evaluation.protocol import MethodResult
+
+    base = (rng or np.random.default_rng(0)).random((n, 2)) + 0.1
+    out = {}
+    for m, f in factors.items():
+        r = MethodResult(m)
+        errs = M.TrajectoryErrors(base * f**2, np.ones(n, dtype=bool))
+        rep = M.compute_metrics(np.zeros((n, 1, 2)), np.sqrt(base * f**2)[:, None, :], spread=1.0)
+        r.add(rep, errs)
+        out[m] = r
+    return out
+
+
+def test_the_findings_are_judged_on_their_intervals():
+    from neural_estimator.reproduce import intervals as I
+
+    assert I.factor_status((25.0, 40.0), 446) == "reproduced"  # at or above sqrt(446) = 21.1
+    assert I.factor_status((3.0, 9.0), 446) == "partly" and I.factor_status((15.0, 30.0), 446) == "undecided"
+    assert I.factor_status((0.9, 1.2), 446) == "not"
+    assert I.approach_status((1.0, 1.1)) == "reproduced" and I.approach_status((1.1, 1.3)) == "undecided"
+    nets = {"gru": 1.2, "lstm": 1.3, "gpt2": 1.4, "filterformer": 3.0, "mamba": 1.1, "mamba2": 1.0}
+    by = {
+        "lorenz96": _scaled_results({"ekf": 1.0, "ukf": 1.0, "enkf": 1.05, **nets}),
+        "quadrotor": _scaled_results({"ekf": 1.0, "pf": 30.0, **nets}),
+        "nlink": _scaled_results({**nets, "mamba": 1.5, "mamba2": 1.25}),  # an SSM behind the GRU here
+        "bearings": _scaled_results({"ekf": 1.0, "enkf": 1.2, **nets}),
+        "ballistic": _scaled_results({"ekf": 1.0, "ukf": 1.0, **nets}),
+    }
+    rows = I.judge(by)
+    assert [j["status"] for j in rows] == ["reproduced", "reproduced", "partly", "not", "partly", "not", "not"]
+    assert rows[0]["compared"] == "mamba2 / ekf" and rows[0]["ratio"] == pytest.approx(1.0)
+    assert rows[1]["ratio"] == pytest.approx(30.0) and rows[1]["ci95"] == pytest.approx([30.0, 30.0])
+    assert "nlink: mamba2 / gru [1.04, 1.04] behind" in rows[2]["compared"]
+    assert rows[4]["compared"].startswith("filterformer / mamba2") and rows[4]["ratio"] == pytest.approx(2.4)
+    assert "| on the interval |" in I.render(rows)
