@@ -377,3 +377,10 @@ def test_the_findings_are_judged_on_their_intervals():
     assert "nlink: mamba2 / gru [1.04, 1.04] behind" in rows[2]["compared"]
     assert rows[4]["compared"].startswith("filterformer / mamba2") and rows[4]["ratio"] == pytest.approx(2.4)
     assert "| on the interval |" in I.render(rows)
+
+
+def test_the_fidelity_page_shows_the_committed_findings_on_intervals():
+    """docs/fidelity.md's table of the findings on intervals is the committed experiment output."""
+    root = Path(__file__).resolve().parents[1]
+    measured = (root / "experiments/results/findings_intervals.md").read_text().split("\n\n", 2)[2].strip()
+    assert measured.startswith("| finding | compared |") and measured in (root / "docs/fidelity.md").read_text()
