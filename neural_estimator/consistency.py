@@ -190,6 +190,8 @@ def consistency_row(
             row[f"coverage{round(level * 100)}"] = float(curve[RELIABILITY_LEVELS.index(level)])
     if curve_all is not None:
         row["coverage95_all"] = float(curve_all[RELIABILITY_LEVELS.index(0.95)])
+        every = med("nees_median_all")
+        row["nees_median_all_per_dim"] = None if every is None else every / dx
     row["verdict"] = verdict(row["nees_mean_per_dim"], c95, row["calibration_error"])
     return row
 
@@ -229,9 +231,9 @@ def format_consistency_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "
             known = r.get("coverage50") is not None
             b.insert(-1, "/".join(num(r.get(f"coverage{q}"), 3) for q in (50, 90, 99)) if known else "—")
     if every:
-        header.insert(-1, "95% cov. (all)")
+        header[-1:-1] = ["NEES med./dx (all)", "95% cov. (all)"]
         for b, r in zip(body, rows.values()):
-            b.insert(-1, num(r.get("coverage95_all"), 3))
+            b[-1:-1] = [num(r.get("nees_median_all_per_dim"), 2), num(r.get("coverage95_all"), 3)]
     last = len(header) - 1
     if fmt == "markdown":
         lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (last - 1) + "---|"]

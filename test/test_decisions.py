@@ -297,10 +297,16 @@ def test_coverage_over_every_trajectory_counts_the_outliers():
     i95 = K.RELIABILITY_LEVELS.index(0.95)
     assert rep.coverage_curve[i95] == pytest.approx(rep.coverage95)
     assert rep.coverage_curve_all[i95] == pytest.approx(rep.coverage95 * 38 / 40, abs=1e-3)
-    row = K.consistency_row(rep.scalars(), 2, rep.coverage_curve, rep.coverage_curve_all)
+    every = np.sum(e**2, axis=-1)  # the NEES under unit covariances, every trajectory
+    assert rep.nees_median_all == pytest.approx(float(np.median(every)))
+    assert rep.nees_median == pytest.approx(float(np.median(every[2:])))
+    row = K.consistency_row(
+        dict(rep.scalars(), nees_median_all=rep.nees_median_all), 2, rep.coverage_curve, rep.coverage_curve_all
+    )
     assert row["coverage95_all"] < row["coverage95"] and 0.4 < row["coverage50"] < 0.6
+    assert row["nees_median_all_per_dim"] == pytest.approx(rep.nees_median_all / 2)
     table = K.format_consistency_table({"ekf": row}, fmt="text")
-    assert "50/90/99% cov." in table and "95% cov. (all)" in table
+    assert "50/90/99% cov." in table and "95% cov. (all)" in table and "NEES med./dx (all)" in table
 
 
 def test_a_bags_report_has_the_per_component_table(tmp_path):

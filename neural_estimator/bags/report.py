@@ -85,7 +85,12 @@ class BagReport:
         from neural_estimator import consistency as C
 
         rows = {
-            m: C.consistency_row(r.scalars(), len(r.spread), r.coverage_curve, r.coverage_curve_all)
+            m: C.consistency_row(
+                dict(r.scalars(), nees_median_all=r.nees_median_all),
+                len(r.spread),
+                r.coverage_curve,
+                r.coverage_curve_all,
+            )
             for m, r in self.reports.items()
             if r.has_covariance
         }

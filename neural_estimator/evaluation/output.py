@@ -175,7 +175,9 @@ def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "
         curve = np.median(np.asarray(curves, dtype=np.float64), axis=0) if curves else None
         alls = [rep.coverage_curve_all for rep in r.reports if rep.coverage_curve_all is not None]
         curve_all = np.median(np.asarray(alls, dtype=np.float64), axis=0) if alls else None
-        rows[m] = C.consistency_row(r.summary, dx, curve, curve_all)
+        every = [rep.nees_median_all for rep in r.reports if rep.nees_median_all is not None]
+        summary = dict(r.summary, nees_median_all=M.median_iqr(every)[0] if every else None)
+        rows[m] = C.consistency_row(summary, dx, curve, curve_all)
     if not rows:
         return None
     return C.format_consistency_table(rows, fmt=fmt)

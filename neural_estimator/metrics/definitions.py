@@ -301,6 +301,7 @@ class MetricReport:
     # a non-finite NEES counts as not covered): the coverage a user gets, beside the kept-only
     # ``coverage_curve`` the paper's outlier rule gives. None without covariance.
     coverage_curve_all: tuple[float, ...] | None = None
+    nees_median_all: float | None = None  # median NEES over every (n, t), outliers included (non-finite: inf)
 
     @property
     def has_covariance(self) -> bool:
@@ -448,7 +449,9 @@ def compute_metrics(
         if nees_values.shape != (n, t):
             raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
         cov_metrics = covariance_metrics(nees_values[kept], dx)
-        cov_metrics["coverage_curve_all"] = _coverage_curve(np.where(np.isnan(nees_values), np.inf, nees_values), dx)
+        every = np.where(np.isnan(nees_values), np.inf, nees_values)  # a step without a NEES is not covered
+        cov_metrics["coverage_curve_all"] = _coverage_curve(every, dx)
+        cov_metrics["nees_median_all"] = float(np.median(every))
     return MetricReport(
         rmse=float(np.sqrt(msd.mean())),
         nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
