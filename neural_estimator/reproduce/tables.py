@@ -241,7 +241,10 @@ def components_table(runs, s: str, methods, names: Sequence[str], instances=None
         comps = [r["rmse_components"] for r in runs.get(s, {}).get(m, []) if r.get("rmse_components")]
         if not comps:
             continue
-        meds = [M.median_iqr(math.inf if v[d] is None else v[d] for v in comps)[0] for d in range(len(names))]
+        # a run whose component count is not the scenario's (a result of other constants) gives N/A
+        meds = [
+            M.median_iqr(math.inf if v[d] is None else v[d] for v in comps if len(v) > d)[0] for d in range(len(names))
+        ]
         cells = [f"{x:.4g}" if math.isfinite(x) else num(x) for x in meds]  # 4 digits: components span 1e-3..1e3
         k = (instances or {}).get(m)
         count = "—" if k is None else "1 instance" if k == 1 else f"{k} instances"
