@@ -317,7 +317,10 @@ def _cmd_evaluate(args) -> int:
         _print_evaluation(args, scenario, results, info, recorded_data=datasets is not None)
     if out is not None:
         write_evaluation(out, scenario, results, info, expected_runs, plot=True)
-        print(f"wrote {out}/table.md, table.csv, consistency.md, results.json, rmse_over_time.png", file=sys.stderr)
+        print(
+            f"wrote {out}/table.md, table.csv, decision.md, consistency.md, results.json, rmse_over_time.png",
+            file=sys.stderr,
+        )
     return 0
 
 
