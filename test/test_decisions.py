@@ -111,6 +111,20 @@ def test_a_perfect_reference_gives_no_ratio():
     assert math.isnan(ratio) and all(math.isnan(v) for v in ci) and M.verdict(ci) == "unknown"
 
 
+def test_a_diverged_method_is_worse_on_the_full_rmse():
+    rng = np.random.default_rng(8)
+    ref = [[_run(rng, 20, 1.0)]]
+    mse = ref[0][0].mse.copy()
+    mse[3] = np.inf  # one diverged trajectory: dropped from the RMSE, infinite in the Full RMSE
+    kept = np.ones(20, dtype=bool)
+    kept[3] = False
+    diverged = [[M.TrajectoryErrors(mse, kept)]]
+    ratio, ci = M.paired_ratio(diverged, ref, full=True)
+    assert ratio == math.inf and ci == (math.inf, math.inf) and M.verdict(ci) == "worse"
+    ratio, ci = M.paired_ratio(diverged, ref)  # on the kept trajectories it is finite
+    assert math.isfinite(ratio) and ci[0] <= ratio <= ci[1]
+
+
 def test_paired_ratio_refuses_unpaired_sets():
     rng = np.random.default_rng(2)
     with pytest.raises(M.MetricsError, match="same sets"):

@@ -54,7 +54,7 @@ def decision_table(scenario: Scenario, results: Mapping[str, MethodResult], fmt:
             row += ["—", "—"]
         else:
             lo, hi = p["ci95"]
-            ratio = f"{p['ratio']:.3f}" if math.isfinite(p["ratio"]) else "N/A"
+            ratio = f"{p['ratio']:.3f}" if math.isfinite(p["ratio"]) else _number(p["ratio"])
             row += [f"{ratio} [{_number(lo, 3)}, {_number(hi, 3)}]", p["verdict"]]
         row.append(_instances(r))
         body.append(row)

@@ -162,6 +162,8 @@ def _best(results, key: str) -> str | None:
 
 
 def _ratio(ratio, ci) -> str:
+    if ratio == math.inf:
+        return "inf (diverged)"
     if ratio is None or not math.isfinite(ratio):
         return "N/A"
     lo, hi = (math.nan if v is None else v for v in ci)

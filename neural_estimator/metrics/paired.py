@@ -98,8 +98,9 @@ def paired_ratio(
         components: the state components scored (None: all, the paper's aggregate).
         full: score every trajectory (the Full RMSE) instead of the kept ones.
 
-    A ratio that is not finite (a method with no kept trajectory, or a zero reference) gives NaN
-    and the interval (NaN, NaN).
+    A method whose RMSE is infinite (it diverged: every trajectory dropped, or ``full`` with a
+    diverged one) against a finite reference gives (inf, (inf, inf)), judged "worse"; a zero or
+    infinite reference gives NaN and the interval (NaN, NaN).
     """
     if len(method) != len(reference) or not method:
         raise MetricsError(f"paired runs need the same sets: {len(method)} against {len(reference)}")
@@ -108,6 +109,8 @@ def paired_ratio(
             raise MetricsError("paired runs need at least one run per set, on the same trajectories")
     num, den = _median_rmse(method, components, full, None, None), _median_rmse(reference, components, full, None, None)
     point = num / den if den > 0 else math.nan  # a perfect reference (RMSE 0) has no ratio
+    if point == math.inf and math.isfinite(den):  # the method diverged where the reference did not
+        return math.inf, (math.inf, math.inf)
     if not math.isfinite(point):
         return math.nan, (math.nan, math.nan)
     counts = _trajectory_draws(tuple(s[0].mse.shape[0] for s in method), replicates, seed)
@@ -173,6 +176,8 @@ def verdict(ci95: tuple[float, float]) -> str:
     """ "better" when the whole interval is below 1, "worse" when above, "tied" when it holds 1
     (and "unknown" without an interval)."""
     lo, hi = ci95
+    if lo == math.inf:  # a diverged method against a finite reference
+        return "worse"
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return "unknown"
     if hi < 1.0:
