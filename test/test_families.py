@@ -5,6 +5,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from neural_estimator.cli import main
@@ -78,3 +79,27 @@ def test_headline_measures_and_renders_on_the_development_family(tmp_path, capsy
     assert table == (out / "headline.md").read_text() and "| ballistic | " in table
     results = json.loads((out / "ballistic" / "results.json").read_text())
     assert "openloop" in results["methods"] and results["methods"]["openloop"]["reference_row"]
+
+
+def test_the_headline_ranks_on_the_full_rmse_where_the_outlier_rule_changes_the_best():
+    """The EnKF is best on its kept trajectories, but the outlier rule dropped its failures: over
+    every trajectory the EKF is best, and the headline says so and ranks on the Full RMSE."""
+    from neural_estimator import metrics as M
+    from neural_estimator.evaluation.headline import headline_row
+    from neural_estimator.evaluation.protocol import MethodResult
+
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((60, 20, 3))
+    errors = {"ekf": 1.0, "enkf": 0.8, "gru": 1.2}
+    results = {}
+    for m, scale in errors.items():
+        e = rng.standard_normal(x.shape) * scale
+        if m == "enkf":
+            e[:3] *= 1e3  # three failures the outlier rule drops
+        rep = M.compute_metrics(x, x + e)
+        results[m] = MethodResult(m)
+        results[m].add(rep, M.trajectory_errors(x, x + e, (), rep.outlier_idx))
+    assert results["enkf"].summary["rmse"].median < results["ekf"].summary["rmse"].median
+    row = headline_row(make_scenario("ballistic"), results)
+    assert row["figure"] == "full_rmse" and row["best_filter"] == "ekf" and row["best_network"] == "gru"
+    assert row["verdict"] == "filter better" and row["ci95"][0] > 1.0
