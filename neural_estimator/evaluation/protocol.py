@@ -313,7 +313,8 @@ def evaluate(
         methods: method names (see :data:`neural_estimator.registry.METHODS`).
         trajectories, horizon, seed, sets: the evaluation sets (paper: 8,000, scenario horizon, 3).
         checkpoints: {method: [checkpoint, ...]} for neural methods; each checkpoint is one instance.
-            A neural method without an entry uses the shipped default model.
+            A neural method without an entry runs every instance the zoo ships (the shipped model
+            and ``zoo/instances/i<K>/``; :mod:`neural_estimator.serving.instances`).
         options: {method: {hyperparameter: value}} for classical filters.
         device: torch device for neural methods.
         memory_budget: bytes per chunk (see :func:`chunk_size`).
