@@ -157,9 +157,16 @@ def verdict(nees_mean_per_dim: float | None, coverage95: float | None, calibrati
     return "consistent"
 
 
-def consistency_row(summary: Mapping[str, Any], dx: int, curve: Sequence[float] | None = None) -> dict[str, Any]:
+def consistency_row(
+    summary: Mapping[str, Any],
+    dx: int,
+    curve: Sequence[float] | None = None,
+    curve_all: Sequence[float] | None = None,
+) -> dict[str, Any]:
     """The consistency figures of one method from its metric summary (``nees_median``, ``nees``,
-    ``coverage95``: numbers, (median, iqr) pairs or Stats) and optionally its reliability curve."""
+    ``coverage95``: numbers, (median, iqr) pairs or Stats) and optionally its reliability curve
+    (kept trajectories: ``coverage50``, ``coverage90``, ``coverage99`` are read off it) and the curve
+    over every trajectory (``curve_all``: ``coverage95_all``, the coverage a user gets)."""
 
     def med(key: str) -> float | None:
         v = summary.get(key)
@@ -178,15 +185,25 @@ def consistency_row(summary: Mapping[str, Any], dx: int, curve: Sequence[float] 
         "coverage95": c95,
         "calibration_error": None if curve is None else calibration_error(curve),
     }
+    if curve is not None:
+        for level in (0.5, 0.9, 0.99):
+            row[f"coverage{round(level * 100)}"] = float(curve[RELIABILITY_LEVELS.index(level)])
+    if curve_all is not None:
+        row["coverage95_all"] = float(curve_all[RELIABILITY_LEVELS.index(0.95)])
+        every = med("nees_median_all")
+        row["nees_median_all_per_dim"] = None if every is None else every / dx
     row["verdict"] = verdict(row["nees_mean_per_dim"], c95, row["calibration_error"])
     return row
 
 
 def format_consistency_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "markdown") -> str:
     """The consistency table beside the accuracy table: NEES med./dx, NEES mean/dx, 95 % coverage,
-    calibration error (mean |coverage(q) - q| over :data:`RELIABILITY_LEVELS`) and the verdict, one
+    calibration error (mean |coverage(q) - q| over :data:`RELIABILITY_LEVELS`), where the rows have
+    them the 50/90/99 % coverage and the 95 % coverage over every trajectory, and the verdict, one
     row per method of ``rows`` ({method: :func:`consistency_row`})."""
     header = ["Method", "NEES med./dx", "NEES mean/dx", "95% cov.", "Cal. err.", "Verdict"]
+    levels = any("coverage50" in r for r in rows.values())  # the 50/90/99 % coverage, when curves are known
+    every = any("coverage95_all" in r for r in rows.values())  # 95 % over every trajectory, outliers included
 
     def num(v: float | None, dec: int) -> str:
         if v is None:
@@ -208,15 +225,25 @@ def format_consistency_table(rows: Mapping[str, Mapping[str, Any]], fmt: str = "
         ]
         for m, r in rows.items()
     ]
+    if levels:
+        header.insert(-1, "50/90/99% cov.")
+        for b, r in zip(body, rows.values()):
+            known = r.get("coverage50") is not None
+            b.insert(-1, "/".join(num(r.get(f"coverage{q}"), 3) for q in (50, 90, 99)) if known else "—")
+    if every:
+        header[-1:-1] = ["NEES med./dx (all)", "95% cov. (all)"]
+        for b, r in zip(body, rows.values()):
+            b[-1:-1] = [num(r.get("nees_median_all_per_dim"), 2), num(r.get("coverage95_all"), 3)]
+    last = len(header) - 1
     if fmt == "markdown":
-        lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * 4 + "---|"]
+        lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (last - 1) + "---|"]
         return "\n".join(lines + ["| " + " | ".join(b) + " |" for b in body]) + "\n"
     if fmt != "text":
         raise ConsistencyError(f"fmt must be 'markdown' or 'text', got {fmt!r}")
     widths = [max(len(r[i]) for r in [header] + body) for i in range(len(header))]
     return (
         "\n".join(
-            "  ".join(c.ljust(w) if i in (0, 5) else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
+            "  ".join(c.ljust(w) if i in (0, last) else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
             for r in [header] + body
         )
         + "\n"

@@ -383,7 +383,15 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
                 "context",  # the bounded context served (0: continuous)
                 "start",  # how a filter started (neural: prior, unused)
                 "marks",  # the departures from the paper's protocol (neural_estimator/departures.py)
+                "rmse_components",  # one summary per state component, in state order
+                "paired",  # the RMSE ratio to the best filter with its 95 % interval
+                "paired_full",  # the same on the Full RMSE
+                "reference_row",  # a baseline, never ranked
+                "instances",  # the trained instances run (count, RMSE of each, checkpoints)
             }
+            assert len(entry["rmse_components"]) == sc.dx
+            assert all(set(stat) == {"median", "iqr", "n", "max", "applies"} for stat in entry["rmse_components"])
+            assert set(entry["paired"]) == {"reference", "ratio", "ci95", "verdict", "instances"}
             assert entry["runs"][0]["rmse_every_step"] >= 0
             assert all(set(stat) == {"median", "iqr", "n", "max", "applies"} for stat in entry["summary"].values())
         assert payload["methods"]["ekf"]["summary"]["nees_median"]["applies"] is True

@@ -97,6 +97,20 @@ def test_a_miss_in_rmse_within_the_factor_in_nrmse_is_the_operating_points_and_r
     assert "| GRU | 1.00x ✓ | 1.00x ✓ | 0.50x |" in text
 
 
+def test_a_match_in_rmse_outside_the_factor_in_nrmse_is_counted_the_other_way():
+    """The NRMSE argument both ways: an RMSE match whose NRMSE misses is counted and named."""
+    rmse, nrmse = _paper()
+    ours_r = {s: dict(v) for s, v in rmse.items()}
+    ours_n = {s: dict(v) for s, v in nrmse.items()}
+    ours_n["bearings"]["mamba"] = 0.588 * 2.5  # the RMSE matches, but 2.5x relative to the spread
+    matched, lucky = F.spread_matches(ours_r, ours_n)
+    assert len(matched) == 49 and [(c.scenario, c.method) for c in lucky] == [("bearings", "mamba")]
+    text = "\n".join(F.section(F.Measured(ours_r, ours_n, {}, [])))
+    assert "of the 49 RMSE cells within 1.5x, 1 are outside 1.5x in NRMSE (bearings Mamba)" in text
+    headline = F.headline(F.Measured(ours_r, ours_n, {}, []))
+    assert "0 of the 0 misses are within 1.5x in NRMSE, and 1 of the 49 matches miss in NRMSE" in "\n".join(headline)
+
+
 def test_finding_3_leaves_bounded_context_variants_out_and_shows_both_counts():
     """The paper runs every model continuously: a bounded-context GRU that beats the SSMs does not
     decide "an SSM is the best neural model"; the count with it is shown beside."""

@@ -118,6 +118,12 @@ def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
         assert text.count("#### GPU") == 2
         assert "| GRU | not measured (no CUDA) · " in text
     assert "RMSE all steps" in text and "this project's choice" in text
+    # beyond the paper: each state component's RMSE in its units, and the networks' instance counts
+    comps = text.split("## Beyond the paper: RMSE per state component")[1].split("## Cross-scenario")[0]
+    assert "| theta1 [rad] |" in comps and "| omega3 [rad/s] |" in comps
+    gru_row = next(line for line in comps.splitlines() if line.startswith("| GRU |"))
+    assert gru_row.endswith(" instance |") or gru_row.endswith(" instances |")
+    assert next(line for line in comps.splitlines() if line.startswith("| EKF |")).endswith("| — |")
     # filters start from the prior (the default): the PF's expected failures are marked, with the reason
     main_table = text.split("## Main accuracy")[1].split("## Relative score")[0]
     assert "Filters start: prior" in main_table

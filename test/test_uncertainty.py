@@ -91,8 +91,8 @@ def test_verdict_bands_and_the_table():
     }
     assert rows["ekf"]["nees_mean_per_dim"] == pytest.approx(1.02) and rows["ekf"]["calibration_error"] == 0.0
     table = C.format_consistency_table(rows)
-    assert "| ekf | 0.93 | 1.02 | 0.950 | 0.000 | consistent |" in table
-    assert "| gru | — | — | — | — | — |" in table
+    assert "| ekf | 0.93 | 1.02 | 0.950 | 0.000 | 0.500/0.900/0.990 | consistent |" in table  # a curve: 50/90/99 %
+    assert "| gru | — | — | — | — | — | — |" in table
 
 
 # ---- the head -------------------------------------------------------------------------------------------

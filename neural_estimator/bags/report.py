@@ -31,6 +31,7 @@ class BagReport:
     warmup: int = 0  # leading steps of every trajectory not scored
     note: str = ""  # why the warm-up differs from the one asked for (a run too short for it)
     starts: dict[str, str] = dataclasses.field(default_factory=dict)  # {method: "prior" | "observation"}; absent: prior
+    decision: dict[str, str] = dataclasses.field(default_factory=dict)  # {fmt: per-component table}, see evaluate_bag
 
     def table(self, fmt: str = "text", marked: bool = False) -> str:
         """The paper's table, one row per method ("markdown", "text" or "csv").
@@ -84,7 +85,12 @@ class BagReport:
         from neural_estimator import consistency as C
 
         rows = {
-            m: C.consistency_row(r.scalars(), len(r.spread), r.coverage_curve)
+            m: C.consistency_row(
+                dict(r.scalars(), nees_median_all=r.nees_median_all),
+                len(r.spread),
+                r.coverage_curve,
+                r.coverage_curve_all,
+            )
             for m, r in self.reports.items()
             if r.has_covariance
         }
@@ -101,6 +107,11 @@ class BagReport:
             f"{self.heading()} from {self.path.name}{extra}\n"
             + mark_rows(self.table("text", marked=True), self.scenario, self.starts)
             + "".join(line + "\n" for line in lines)
+            + (
+                f"per component (own units) and against the best filter:\n{self.decision['text']}"
+                if self.decision
+                else ""
+            )
             + self.consistency("text")
         )
 
@@ -157,6 +168,9 @@ def evaluate_bag(
     reports = {
         m: metrics_mod.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()
     }
+    from neural_estimator.evaluation.decision import estimates_decision
+
+    decision = {f: estimates_decision(truth, estimates, angles, reports, warmup, f) for f in ("text", "markdown")}
     return BagReport(
         path=Path(path),
         scenario=str(truth.meta.get("scenario", "?")),
@@ -168,6 +182,7 @@ def evaluate_bag(
         warmup=warmup,
         note=note,
         starts=dict(starts or {}),
+        decision={f: t for f, t in decision.items() if t},
     )
 
 
@@ -191,6 +206,7 @@ def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[st
         + report.table("markdown", marked=True)
         + (f"\n{legend}" if legend else "")
         + f"\n{steps}\n"
+        + (f"\n{report.decision['markdown']}" if report.decision else "")
         + (f"\n{report.consistency('markdown')}" if report.consistency() else "")
     )
     paths["json"].write_text(json.dumps(report.to_json(), indent=1))

@@ -15,6 +15,7 @@ from neural_estimator.cli.streams import add_live, add_recover, add_replay, cmd_
 from neural_estimator.cli.train import add_train
 from neural_estimator.cli.data import add_dataset, add_scenarios, add_simulate
 from neural_estimator.cli.evaluate import add_evaluate, add_metrics
+from neural_estimator.cli.headline import add_headline
 from neural_estimator.cli.common import CliError, EXIT_BAD_INPUT, OneLineParser
 
 
@@ -29,6 +30,7 @@ _VERBS: list[Callable] = [
     add_scenarios,
     add_reproduce,
     add_dataset,
+    add_headline,
 ]
 
 

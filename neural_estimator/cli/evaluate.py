@@ -159,9 +159,20 @@ def _print_metrics(
         used = {x for v in rows.values() for x in v} | ({D.OUTLIERS} if cells else set())
         for line in notes(scenario_name, list(reports), starts) + D.legend_text(used) + [D.scored_steps(warmup)]:
             print(line)
+        _print_given_decision(truth, estimates, angles, reports, warmup)
     if out:
         _write_table(out, reports)
     return 0
+
+
+def _print_given_decision(truth, estimates, angles, reports, warmup: int) -> None:
+    """The per-component table of given estimates, with the paired ratios (the ``metrics`` verb)."""
+    from neural_estimator.evaluation.decision import estimates_decision
+
+    text = estimates_decision(truth, estimates, angles, reports, warmup)
+    if text:
+        print("per component (own units) and against the best filter:")
+        print(text, end="")
 
 
 def _write_table(path: str, reports) -> None:
@@ -200,8 +211,8 @@ def add_evaluate(sub) -> None:
     p.add_argument(
         "--methods",
         default=DEFAULT_METHODS,
-        help="comma-separated (ekf ukf enkf pf gru lstm gpt2 "
-        "filterformer mamba mamba2); with --data: default the --checkpoint methods",
+        help="comma-separated (ekf ukf enkf pf gru lstm gpt2 filterformer mamba mamba2, and the reference rows "
+        "openloop and obsonly, never ranked); with --data: default the --checkpoint methods",
     )
     p.add_argument("--trajectories", type=int, default=8000, help="per evaluation set (paper: 8000)")
     p.add_argument("--horizon", type=int, help="steps (default: the scenario's; paper: 500, quadrotor 200)")
@@ -306,7 +317,10 @@ def _cmd_evaluate(args) -> int:
         _print_evaluation(args, scenario, results, info, recorded_data=datasets is not None)
     if out is not None:
         write_evaluation(out, scenario, results, info, expected_runs, plot=True)
-        print(f"wrote {out}/table.md, table.csv, consistency.md, results.json, rmse_over_time.png", file=sys.stderr)
+        print(
+            f"wrote {out}/table.md, table.csv, decision.md, consistency.md, results.json, rmse_over_time.png",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -314,10 +328,11 @@ def _evaluation_request(args):
     """(scenario, recorded datasets or None, methods, checkpoints, recorded estimates, options, info)
     of the evaluate flags, each checked: a one-line CliError otherwise."""
     from neural_estimator.evaluation import recorded_data_methods
+    from neural_estimator.baselines import check_evaluated_method
     from neural_estimator.registry import CLASSICAL_METHODS, check_method
 
     scenario, datasets = scenario_or_data(args)
-    methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
+    methods = [check_evaluated_method(m) for m in args.methods.split(",") if m.strip()]
     checkpoints = parse_checkpoints(args.checkpoint)
     for m in checkpoints:
         check_method(m)
@@ -348,9 +363,13 @@ def _evaluation_request(args):
     if scenario is not None:  # a misspelt filter option fails now, not after the data are simulated
         from neural_estimator.registry import make_estimator
 
+        from neural_estimator.baselines import is_baseline, make_baseline
+
         for m in methods:
             if m in CLASSICAL_METHODS:
                 make_estimator(m, scenario, **options.get(m, {}))
+            elif is_baseline(m):  # obsonly where h determines nothing fails now, in one line
+                make_baseline(m, scenario, **options.get(m, {}))
     if datasets is not None:
         info = dict(
             trajectories=datasets[0].n,
@@ -370,6 +389,13 @@ def _evaluation_request(args):
             init=args.init,
             warmup=args.warmup,
         )
+    if datasets is None:
+        from neural_estimator.evaluation.families import check_unsealed
+
+        try:
+            check_unsealed(args.seed)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     if args.horizon is not None and args.horizon < 1:
         raise CliError(f"--horizon must be >= 1 step, got {args.horizon}")
     if not 0 <= args.warmup < info["horizon"]:
@@ -407,6 +433,7 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
     for line in departure_legend(results):
         print(line)
     print(D.scored_steps(args.warmup))
+    _print_decision(scenario, results)
     _print_consistency(results, scenario.dx)
     print(
         "speed: "
@@ -417,6 +444,18 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
             for m, r in results.items()
         )
     )
+
+
+def _print_decision(scenario, results) -> None:
+    """Per-component RMSE, the paired ratio to the best filter with its interval, the verdict."""
+    from neural_estimator.evaluation.decision import decision_notes, decision_table
+
+    table = decision_table(scenario, results, fmt="text")
+    if table:
+        print("per component (own units, median over runs) and against the best filter:")
+        print(table, end="")
+        for line in decision_notes(scenario, results):
+            print(line)
 
 
 def _print_consistency(results, dx: int) -> None:

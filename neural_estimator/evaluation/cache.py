@@ -28,8 +28,9 @@ if TYPE_CHECKING:
 # Part of every cached result's key: bump it when a method's arithmetic or a metric's definition
 # changes, so no result computed by older code is reused. 2: paper-matching NRMSE, NEES columns;
 # 3: every report carries the every-step RMSE beside the scored one (rmse_every_step); 4: scenario
-# presets and the recalibrated defaults (ballistic, quadrotor).
-RESULTS_REVISION = 4
+# presets and the recalibrated defaults (ballistic, quadrotor); 5: per-component RMSE and the
+# per-trajectory errors of every run (rmse_components, the paired comparisons).
+RESULTS_REVISION = 5
 # Options that change how fast a method runs, not what it computes (tested bit-equal): not keyed.
 _SPEED_ONLY_OPTIONS = frozenset({"threads"})
 
@@ -100,9 +101,14 @@ def result_path(cache_root: Path, scenario: Scenario, method: str, key: str) -> 
 _REPORT_ARRAYS = ("rmse_t", "spread", "outlier_idx", "diverged_idx")
 
 
-def save_run(path: Path, report: M.MetricReport, seconds: float, steps: int) -> Path:
-    """Write one run (its metrics, time and size) as .npz + JSON meta, atomically (no pickle)."""
+def save_run(
+    path: Path, report: M.MetricReport, seconds: float, steps: int, errors: M.TrajectoryErrors | None = None
+) -> Path:
+    """Write one run (its metrics, per-trajectory errors, time and size) as .npz + JSON meta,
+    atomically (no pickle)."""
     arrays = {k: np.asarray(getattr(report, k)) for k in _REPORT_ARRAYS}
+    if errors is not None:
+        arrays.update(trajectory_mse=np.asarray(errors.mse), kept=np.asarray(errors.kept))
     scalars = {
         f.name: getattr(report, f.name)
         for f in M.MetricReport.__dataclass_fields__.values()
@@ -118,16 +124,25 @@ def save_run(path: Path, report: M.MetricReport, seconds: float, steps: int) -> 
     return save_npz(path, arrays, meta)  # JSON with allow_nan: inf and NaN survive
 
 
-def load_run(path: Path) -> tuple[M.MetricReport, float, int] | None:
-    """(report, seconds, steps) of a cached run, or None if the file is absent or unreadable (a
-    damaged cache entry is recomputed, never trusted)."""
+def load_run(path: Path) -> tuple[M.MetricReport, float, int, M.TrajectoryErrors] | None:
+    """(report, seconds, steps, per-trajectory errors) of a cached run, or None if the file is absent,
+    unreadable or lacks the per-trajectory errors (a damaged cache entry is recomputed, never trusted)."""
     if not Path(path).is_file():
         return None
     try:
         arrays, meta = load_npz(path)
         if meta.get("kind") != "neural_estimator run result" or meta.get("revision") != RESULTS_REVISION:
             return None
-        report = M.MetricReport(**meta["report"], **{k: arrays[k] for k in _REPORT_ARRAYS})
-        return report, float(meta["seconds"]), int(meta["steps"])
+        fields = dict(meta["report"])
+        for key in (
+            "rmse_components",
+            "coverage_curve",
+            "coverage_curve_all",
+        ):  # JSON lists back to the report's tuples
+            if fields.get(key) is not None:
+                fields[key] = tuple(float(v) for v in fields[key])
+        report = M.MetricReport(**fields, **{k: arrays[k] for k in _REPORT_ARRAYS})
+        errors = M.TrajectoryErrors(np.asarray(arrays["trajectory_mse"], dtype=np.float64), arrays["kept"].astype(bool))
+        return report, float(meta["seconds"]), int(meta["steps"]), errors
     except (DataError, KeyError, TypeError, ValueError):
         return None

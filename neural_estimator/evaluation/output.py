@@ -68,12 +68,23 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
     Every method has the same keys: its ``summary`` has every metric of
     :data:`~neural_estimator.metrics.SCALAR_METRICS` (``applies`` false and null numbers for the
     covariance metrics of a method without covariance), each run in ``runs`` has every report key.
+    Beside them (:mod:`~neural_estimator.evaluation.comparison`): ``rmse_components`` (one summary
+    per state component, in state order), ``paired`` and ``paired_full`` (the ratio of the RMSE,
+    resp. Full RMSE, to the reference's with its 95 % interval), ``instances`` and
+    ``reference_row`` (a baseline, never ranked); at the top, the ``components`` and which are
+    ``not_estimated``.
     """
+    from neural_estimator.evaluation import comparison as C
+
+    pairs, pairs_full = C.paired(results), C.paired(results, full=True)
     return M.to_json(
         {
             "schema": RESULTS_SCHEMA,
             "scenario": scenario.describe(),
             **info,
+            "components": list(scenario.state_names),
+            "not_estimated": C.not_estimated(results),
+            "reference": C.reference_method(results),
             "methods": {
                 m: {
                     "summary": r.summary,
@@ -89,6 +100,15 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
                     ),
                     "seconds": r.seconds,
                     "trajectory_steps_per_second": r.throughput,
+                    "rmse_components": C.component_stats(r),
+                    "paired": pairs.get(m),
+                    "paired_full": pairs_full.get(m),
+                    "reference_row": r.baseline,
+                    "instances": {
+                        "count": r.n_instances,
+                        "rmse_per_instance": C.instance_spread(r) if r.reports else [],
+                        "checkpoints": r.instance_dirs,
+                    },
                 }
                 for m, r in results.items()
             },
@@ -99,7 +119,8 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
 def write_evaluation(
     out: Path, scenario: Scenario, results, info: dict[str, Any], expected_runs: dict[str, int], plot: bool
 ) -> None:
-    """table.md, table.csv, consistency.md and results.json of the runs so far in ``out`` (``complete`` says whether all
+    """table.md, table.csv, decision.md, consistency.md and results.json of the runs so far in ``out``
+    (``complete`` says whether all
     ``expected_runs`` {method: runs} are in), and with ``plot`` the RMSE-time figure."""
 
     done = {m: r for m, r in results.items() if r.reports}
@@ -113,6 +134,13 @@ def write_evaluation(
         + f"\n\n{D.scored_steps(info.get('warmup', 0))}\n"
     )
     (out / "table.csv").write_text(results_table(done, fmt="csv"))
+    from neural_estimator.evaluation.decision import decision_notes, decision_table
+
+    decision = decision_table(scenario, done, fmt="markdown")
+    if decision:
+        (out / "decision.md").write_text(
+            decision + "".join(f"\n- {line}" for line in decision_notes(scenario, done)) + "\n"
+        )
     consistency = consistency_table(done, scenario.dx)
     if consistency:
         (out / "consistency.md").write_text(consistency)
@@ -135,8 +163,8 @@ def write_evaluation(
 def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "markdown") -> str | None:
     """The consistency table beside :func:`results_table` (:mod:`neural_estimator.consistency`):
     NEES median and mean per state dimension, 95 % coverage (medians over runs), the calibration
-    error of the runs' median reliability curve and a verdict; None when no method reports a
-    covariance."""
+    error of the runs' median reliability curve, the 50/90/99 % coverage, the 95 % coverage over
+    every trajectory (outliers included) and a verdict; None when no method reports a covariance."""
     from neural_estimator import consistency as C
 
     rows = {}
@@ -145,7 +173,11 @@ def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "
             continue
         curves = [rep.coverage_curve for rep in r.reports if rep.coverage_curve is not None]
         curve = np.median(np.asarray(curves, dtype=np.float64), axis=0) if curves else None
-        rows[m] = C.consistency_row(r.summary, dx, curve)
+        alls = [rep.coverage_curve_all for rep in r.reports if rep.coverage_curve_all is not None]
+        curve_all = np.median(np.asarray(alls, dtype=np.float64), axis=0) if alls else None
+        every = [rep.nees_median_all for rep in r.reports if rep.nees_median_all is not None]
+        summary = dict(r.summary, nees_median_all=M.median_iqr(every)[0] if every else None)
+        rows[m] = C.consistency_row(summary, dx, curve, curve_all)
     if not rows:
         return None
     return C.format_consistency_table(rows, fmt=fmt)

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from neural_estimator import metrics as M
+from neural_estimator.baselines import check_evaluated_method, is_baseline, make_baseline
 from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError
 from neural_estimator.data.protocol import default_cache_dir
@@ -41,7 +42,6 @@ from neural_estimator.registry import (
     NEURAL_METHODS,
     Estimator,
     Estimates,
-    check_method,
     make_estimator,
     previous_controls,
 )
@@ -50,6 +50,7 @@ from neural_estimator.filters.enkf import EnKFHyperParams
 from neural_estimator.filters.pf import PFHyperParams
 from neural_estimator.options import parse_value
 from neural_estimator.scenarios import Scenario
+from neural_estimator.evaluation.families import check_unsealed
 from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run
 from neural_estimator.evaluation.starts import INIT_MODES, check_init, effective_init  # noqa: F401
 
@@ -70,6 +71,34 @@ class MethodResult:
     cached: int = 0  # runs read from the result cache (their seconds are those of the run that made them)
     context: int = 0  # neural: the bounded context it was served with (0: continuous, the paper's way)
     init: str = "prior"  # classical: how the filters started (INIT_MODES); neural methods ignore it
+    # Per run, beside ``reports``: the per-trajectory errors (for paired comparisons), the index of
+    # the evaluation set and of the trained instance (0 for a classical filter or a baseline).
+    errors: list[M.TrajectoryErrors] = field(default_factory=list)
+    set_index: list[int] = field(default_factory=list)
+    instance: list[int] = field(default_factory=list)
+    instance_dirs: list[str] = field(default_factory=list)  # neural: the checkpoint of each instance
+
+    @property
+    def n_instances(self) -> int:
+        return len(set(self.instance)) if self.instance else 1
+
+    @property
+    def baseline(self) -> bool:
+        """A reference row (:mod:`neural_estimator.baselines`), never ranked among the ten."""
+        return is_baseline(self.method)
+
+    def add(self, report: M.MetricReport, errors: M.TrajectoryErrors, set_index: int = 0, instance: int = 0) -> None:
+        """One more run."""
+        self.reports.append(report)
+        self.errors.append(errors)
+        self.set_index.append(int(set_index))
+        self.instance.append(int(instance))
+
+    def runs_by_set(self) -> list[list[M.TrajectoryErrors]]:
+        """The runs' errors as ``[set][instance]``, sets in order (the shape of
+        :func:`~neural_estimator.metrics.paired_ratio`)."""
+        sets = sorted(set(self.set_index))
+        return [[e for e, j in zip(self.errors, self.set_index) if j == s] for s in sets]
 
     @property
     def summary(self) -> dict[str, M.Stat]:
@@ -91,7 +120,9 @@ def recorded_result(
     report = M.compute_metrics(
         data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)), warmup=warmup
     )
-    return MethodResult(name, [report])
+    result = MethodResult(name)
+    result.add(report, M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup))
+    return result
 
 
 def recorded_data_methods(methods: Sequence[str], checkpoints: Mapping[str, Sequence[str]]) -> list[str]:
@@ -99,6 +130,8 @@ def recorded_data_methods(methods: Sequence[str], checkpoints: Mapping[str, Sequ
     that recorded data do not have, and no model is shipped for recorded data, so each must be a
     neural method given a checkpoint. Raises ValueError naming the first one refused."""
     for m in methods:
+        if is_baseline(m):
+            raise ValueError(f"{m}: recorded data have no model to propagate; baselines need a scenario")
         if m in CLASSICAL_METHODS:
             raise ValueError(
                 f"{m}: recorded data have no model for a classical filter; compare the robot's own "
@@ -271,6 +304,7 @@ def evaluate(
     on_result: Callable[[dict[str, MethodResult]], None] | None = None,
     init: str = "prior",
     warmup: int = M.EVALUATION_WARMUP,
+    sealed: bool = False,
 ) -> dict[str, MethodResult]:
     """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
 
@@ -279,7 +313,8 @@ def evaluate(
         methods: method names (see :data:`neural_estimator.registry.METHODS`).
         trajectories, horizon, seed, sets: the evaluation sets (paper: 8,000, scenario horizon, 3).
         checkpoints: {method: [checkpoint, ...]} for neural methods; each checkpoint is one instance.
-            A neural method without an entry uses the shipped default model.
+            A neural method without an entry runs every instance the zoo ships (the shipped model
+            and ``zoo/instances/i<K>/``; :mod:`neural_estimator.serving.instances`).
         options: {method: {hyperparameter: value}} for classical filters.
         device: torch device for neural methods.
         memory_budget: bytes per chunk (see :func:`chunk_size`).
@@ -295,12 +330,16 @@ def evaluate(
             :func:`effective_init`, and each result's ``init`` says which start it got).
         warmup: leading timesteps not scored, for every method alike (default: the paper's 10,
             :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
+        sealed: allow a seed of the sealed family (:mod:`~neural_estimator.evaluation.families`);
+            only the headline measurement passes it, every other caller gets a ValueError.
 
     Returns:
         {method: MethodResult} in the order given.
     """
-    methods = [check_method(m) for m in methods]
+    methods = [check_evaluated_method(m) for m in methods]
     check_init(init)
+    if datasets is None:
+        check_unsealed(seed, sealed)
     T = scenario.horizon if horizon is None else int(horizon)
     if not 0 <= int(warmup) < T:
         raise ValueError(f"warmup must be in [0, {T}) for a horizon of {T} steps, got {warmup}")
@@ -311,15 +350,16 @@ def evaluate(
     )
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
-    plan = [(m, c) for m in methods for c in list((checkpoints or {}).get(m) or [None])]
+    plan = [(m, k, c) for m in methods for k, c in enumerate(_instances(scenario, m, checkpoints))]
     results = {m: MethodResult(m, init=effective_init(scenario, m, init)) for m in methods}
     n_runs = len(plan) * len(data_sets)
     run_no = 0
-    for m, ckpt in plan:
+    for m, k, ckpt in plan:
         if m in NEURAL_METHODS:  # resolved once: its card read and its weights hashed here, then passed down
             from neural_estimator.serving.card import resolve_checkpoint
 
             ckpt = resolve_checkpoint(ckpt, scenario.name, m)
+            results[m].instance_dirs.append(str(ckpt.directory))
         opts = dict((options or {}).get(m, {}))
         est = None  # built on the first run that is not cached (loading a model takes seconds)
         ckpt_hash = checkpoint_digest(scenario, m, ckpt) if cache_root is not None else None
@@ -337,8 +377,8 @@ def evaluate(
                 )
                 hit = None if recompute else load_run(path)
                 if hit is not None:
-                    report, secs, steps = hit
-                    r.reports.append(report)
+                    report, secs, steps, errs = hit
+                    r.add(report, errs, j, k)
                     r.seconds += secs
                     r.steps += steps
                     r.cached += 1
@@ -349,7 +389,9 @@ def evaluate(
                     if on_result:
                         on_result(results)
                     continue
-            if est is None:
+            if est is None and is_baseline(m):
+                est = make_baseline(m, scenario, **opts)
+            elif est is None:
                 start = {"init": "observation"} if results[m].init == "observation" and "init" not in opts else {}
                 est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts, **start)
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
@@ -367,14 +409,29 @@ def evaluate(
             report = M.compute_metrics(
                 data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt, warmup=warmup
             )
-            r.reports.append(report)
+            errs = M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup)
+            r.add(report, errs, j, k)
             r.seconds += secs
             r.steps += data.n * data.horizon
             if path is not None:
-                save_run(path, report, secs, data.n * data.horizon)
+                save_run(path, report, secs, data.n * data.horizon, errs)
             if on_result:
                 on_result(results)
     return results
+
+
+def _instances(
+    scenario: Scenario, method: str, checkpoints: Mapping[str, Sequence[str | Path]] | None
+) -> list[str | Path | None]:
+    """The checkpoints a method runs with, one per trained instance: those given, else for a neural
+    method every instance the zoo ships (:func:`~neural_estimator.serving.instances.zoo_instances`;
+    None when it ships none, which fails at loading with the command that trains one), else [None]."""
+    given = list((checkpoints or {}).get(method) or [])
+    if given or method not in NEURAL_METHODS:
+        return given or [None]
+    from neural_estimator.serving.instances import zoo_instances
+
+    return list(zoo_instances(scenario.name, method)) or [None]
 
 
 def _note(enabled: bool, message: str) -> None:

@@ -1,8 +1,9 @@
-"""Evaluation metrics of the paper, in four modules:
+"""Evaluation metrics of the paper, in five modules:
 
 - :mod:`~neural_estimator.metrics.definitions`: one run's metrics (errors, RMSE-time
   curve, AUC, drift, NRMSE, NEES, coverage) and :func:`compute_metrics`;
 - :mod:`~neural_estimator.metrics.outliers`: the paper's outlier rule (robust z-score of the log MSE);
+- :mod:`~neural_estimator.metrics.paired`: per-trajectory errors and the paired bootstrap of RMSE ratios;
 - :mod:`~neural_estimator.metrics.summary`: the median and IQR across runs, and the JSON form;
 - :mod:`~neural_estimator.metrics.table`: the extended-metrics table.
 
@@ -38,6 +39,14 @@ from neural_estimator.metrics.outliers import (
     outlier_mask,
     robust_zscores,
 )
+from neural_estimator.metrics.paired import (
+    TrajectoryErrors,
+    estimated_components,
+    paired_ratio,
+    run_rmse,
+    trajectory_errors,
+    verdict,
+)
 from neural_estimator.metrics.summary import Stat, median_iqr, summarize, to_json
 from neural_estimator.metrics.table import DEGENERATE, NOT_APPLICABLE, TABLE_COLUMNS, format_reports, format_table
 
@@ -57,23 +66,29 @@ __all__ = [
     "MetricReport",
     "MetricsError",
     "Stat",
+    "TrajectoryErrors",
     "auc",
     "compute_metrics",
     "covariance_metrics",
     "diverged_mask",
     "drift_ratio",
     "errors",
+    "estimated_components",
     "format_reports",
     "format_table",
     "kept_rmse",
     "median_iqr",
     "nees",
     "outlier_mask",
+    "paired_ratio",
     "rmse_over_time",
     "robust_zscores",
+    "run_rmse",
     "state_spread",
     "summarize",
     "to_json",
+    "verdict",
     "trajectory_mean_nrmse",
+    "trajectory_errors",
     "trajectory_mse",
 ]

@@ -293,6 +293,15 @@ class MetricReport:
     # neural_estimator.consistency.RELIABILITY_LEVELS (None without covariance, or a
     # result stored before this field existed).
     coverage_curve: tuple[float, ...] | None = None
+    # RMSE of each state component over the kept trajectories, in the component's own units:
+    # sqrt( (1 / (|K| T)) sum_{n in K, t} e_{n,t,d}^2 ), so rmse^2 = mean_d rmse_components[d]^2.
+    # None: a result stored before this field existed.
+    rmse_components: tuple[float, ...] | None = None
+    # The reliability curve over every trajectory, outliers and diverged ones included (a step with
+    # a non-finite NEES counts as not covered): the coverage a user gets, beside the kept-only
+    # ``coverage_curve`` the paper's outlier rule gives. None without covariance.
+    coverage_curve_all: tuple[float, ...] | None = None
+    nees_median_all: float | None = None  # median NEES over every (n, t), outliers included (non-finite: inf)
 
     @property
     def has_covariance(self) -> bool:
@@ -326,11 +335,13 @@ def compute_metrics(
         MAE       = mean   { |e_{n,t,d}| : n in K }
         MedAE     = median { |e_{n,t,d}| : n in K }
         RMSE_t    = sqrt( (1 / (|K| dx)) sum_{n in K, d} e_{n,t,d}^2 )
+        RMSE_d    = sqrt( (1 / (|K| T)) sum_{n in K, t} e_{n,t,d}^2 ),  so RMSE^2 = (1/dx) sum_d RMSE_d^2
         AUC       = sum_{t=1}^{T-1} (RMSE_t + RMSE_{t+1}) / 2
         drift     = mean(RMSE_{T-q+1..T}) / mean(RMSE_{1..q}),  q = max(1, floor(T/4))
         NEES med. = median { eps_{n,t} = e^T P^{-1} e : n in K, all t },  ~dx for a consistent estimator
         NEES      = mean { eps_{n,t} : n in K, P_{n,t} usable }
         95%       = share of kept (n, t) with eps_{n,t} <= chi2_{dx}^{-1}(0.95)
+        coverage_curve_all = the same share at each reliability level over every (n, t), outliers included
         Degen.    = share of kept (n, t) whose P_{n,t} is degenerate (eps = inf, see :func:`nees`)
 
     T, t and the sums run over the evaluated steps, warmup..T_total-1 (``warmup`` = 0: every
@@ -420,6 +431,7 @@ def compute_metrics(
             nees=na,
             coverage95=na,
             cov_degenerate=na,
+            rmse_components=(math.inf,) * dx,
             **common,
         )
 
@@ -437,6 +449,9 @@ def compute_metrics(
         if nees_values.shape != (n, t):
             raise MetricsError(f"nees_values must be {(n, t)}, got {nees_values.shape}")
         cov_metrics = covariance_metrics(nees_values[kept], dx)
+        every = np.where(np.isnan(nees_values), np.inf, nees_values)  # a step without a NEES is not covered
+        cov_metrics["coverage_curve_all"] = _coverage_curve(every, dx)
+        cov_metrics["nees_median_all"] = float(np.median(every))
     return MetricReport(
         rmse=float(np.sqrt(msd.mean())),
         nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
@@ -446,6 +461,7 @@ def compute_metrics(
         drift_ratio=drift_ratio(rmse_t),
         outlier_ratio=int(out.sum()) / n,
         rmse_t=rmse_t,
+        rmse_components=tuple(float(v) for v in np.sqrt(msd)),
         **cov_metrics,
         **common,
     )

@@ -18,6 +18,7 @@ from neural_estimator.reproduce.jobs import Job
 from neural_estimator.reproduce.plan import noise_reuses_accuracy
 from neural_estimator.reproduce.settings import INIT_WORDS, Settings, describe_settings
 from neural_estimator.reproduce import tables as T
+from neural_estimator.registry import NEURAL_METHODS
 
 RUNTIME_WORDS = {
     "step": "Step by step, the live node's cost: each method's real per-step path (`reset(1)`, then one `step` per "
@@ -97,6 +98,8 @@ class _Results:
     ratio: dict[str, dict[str, dict[float, list[float]]]]  # {scenario: {method: {data ratio: [nrmse]}}}
     summ: dict = field(default_factory=dict)  # accuracy summaries (tables.summaries)
     rt_share: dict[str, dict[tuple[str, str], float]] = field(default_factory=dict)  # {mode: {(s, m): CPU share}}
+    instances: dict[str, dict[str, int]] = field(default_factory=dict)  # {scenario: {network: instances evaluated}}
+    instance_ids: dict[tuple[str, str], set] = field(default_factory=dict)  # {(scenario, network): {instance}}
 
 
 def _gather(settings: Settings, jobs: Sequence[Job], outcome: Outcome) -> _Results:
@@ -114,6 +117,10 @@ def _gather(settings: Settings, jobs: Sequence[Job], outcome: Outcome) -> _Resul
         job, res = jobs[i], o["result"]
         if job.experiment == "accuracy":
             r.acc[job.scenario][job.method].append(res)
+            if job.kind == "evaluate" and job.method in NEURAL_METHODS:
+                seen = r.instance_ids.setdefault((job.scenario, job.method), set())
+                seen.add(job.instance)
+                r.instances.setdefault(job.scenario, {})[job.method] = len(seen)
             r.every[job.scenario][job.method] += _floats([res.get("rmse_every_step")])
             r.starts[job.scenario][job.method] = res.get("start", job.init)
             if res.get("context"):
@@ -193,6 +200,17 @@ def _accuracy(settings: Settings, r: _Results) -> list[str]:
     L += ["## Extended metrics per scenario (paper: Appendix tables *_extended)", ""]
     for s in scen:
         L += [f"### {s}", ""] + T.extended_table(summ, s, meth, **marking) + [""]
+    L += [
+        "## Beyond the paper: RMSE per state component",
+        "",
+        "Each component in its own units, median over sets x instances (the aggregate RMSE adds components of "
+        "different units; docs/decisions.md).",
+        "",
+    ]
+    for s in scen:
+        sc = make_scenario(s)
+        names = [f"{n} [{u}]" if u else n for n, u in zip(sc.state_names, sc.state_units)][:8]
+        L += [f"### {s}", ""] + T.components_table(r.acc, s, meth, names, r.instances.get(s)) + [""]
     L += [
         "## Cross-scenario NRMSE (paper: Table nrmse_avg_all)",
         "",

@@ -232,6 +232,26 @@ def extended_table(summ, s, methods, *, init: str = "prior", contexts=None, star
     return lines
 
 
+def components_table(runs, s: str, methods, names: Sequence[str], instances=None) -> list[str]:
+    """Beyond the paper: one scenario's RMSE per state component (its own units), the median over
+    sets x instances of each run's ``rmse_components``, and the number of trained instances of each
+    network (``instances`` {method: count}; "1 instance" where one, "—" for a filter)."""
+    lines = _header(["Method"] + list(names) + ["instances"])
+    for m in methods:
+        comps = [r["rmse_components"] for r in runs.get(s, {}).get(m, []) if r.get("rmse_components")]
+        if not comps:
+            continue
+        # a run whose component count is not the scenario's (a result of other constants) gives N/A
+        meds = [
+            M.median_iqr(math.inf if v[d] is None else v[d] for v in comps if len(v) > d)[0] for d in range(len(names))
+        ]
+        cells = [f"{x:.4g}" if math.isfinite(x) else num(x) for x in meds]  # 4 digits: components span 1e-3..1e3
+        k = (instances or {}).get(m)
+        count = "—" if k is None else "1 instance" if k == 1 else f"{k} instances"
+        lines.append(_row([PAPER_NAMES.get(m, m)] + cells + [count]))
+    return lines
+
+
 def nrmse_avg_table(summ, scenarios, methods) -> list[str]:
     """Median and IQR over the scenario-level median NRMSEs (the paper's tab:nrmse_avg_all)."""
     lines = _header(["Method", "Median NRMSE", "(IQR)", "scenarios"])

@@ -1,0 +1,61 @@
+"""The ``headline`` verb: the README's first table, measured on one seed family."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from neural_estimator.cli.common import CliError
+
+
+def add_headline(sub) -> None:
+    p = sub.add_parser(
+        "headline",
+        help="per system: best filter, best network, their paired RMSE ratio with its 95%% interval, the verdict",
+    )
+    p.add_argument(
+        "--family",
+        required=True,
+        choices=("development", "sealed"),
+        help="the seed family of the evaluation sets: development (any time) or sealed (the README's, measured "
+        "once at the end; nothing else reads it)",
+    )
+    p.add_argument("--scenarios", help="comma-separated (default: the paper's five)")
+    p.add_argument("--methods", help="comma-separated (default: all ten; openloop is always added as a reference)")
+    p.add_argument("--trajectories", type=int, default=200, help="per evaluation set (default 200)")
+    p.add_argument("--sets", type=int, default=3, help="evaluation sets per system (default 3)")
+    p.add_argument("--horizon", type=int, help="steps (default: each scenario's)")
+    p.add_argument("--out", default="headline-out", help="directory of headline.md, headline.json, <scenario>/")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_headline)
+
+
+def _cmd_headline(args) -> int:
+    from neural_estimator.baselines import check_evaluated_method
+    from neural_estimator.evaluation.headline import HEADLINE_SCENARIOS, measure_headline
+    from neural_estimator.registry import METHODS
+    from neural_estimator.scenarios import scenario_names
+
+    scenarios = [s.strip() for s in (args.scenarios or ",".join(HEADLINE_SCENARIOS)).split(",") if s.strip()]
+    unknown = [s for s in scenarios if s not in scenario_names()]
+    if unknown:
+        raise CliError(f"unknown scenario {unknown[0]!r}; choose from {', '.join(scenario_names())}")
+    methods = [check_evaluated_method(m) for m in (args.methods or ",".join(METHODS)).split(",") if m.strip()]
+    if args.trajectories < 2 or args.sets < 1:
+        raise CliError(f"--trajectories must be >= 2 and --sets >= 1, got {args.trajectories} and {args.sets}")
+    headline = measure_headline(
+        args.family,
+        scenarios,
+        methods,
+        trajectories=args.trajectories,
+        sets=args.sets,
+        horizon=args.horizon,
+        out=Path(args.out),
+        progress=not args.quiet,
+        note=lambda line: print(line, file=sys.stderr),
+    )
+    from neural_estimator.evaluation.headline import render_headline
+
+    print(render_headline(headline), end="")
+    print(f"wrote {args.out}/headline.md, headline.json and one folder per system", file=sys.stderr)
+    return 0
