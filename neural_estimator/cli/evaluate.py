@@ -166,15 +166,16 @@ def _print_metrics(
 
 def _write_table(path: str, reports) -> None:
     from neural_estimator import metrics as M
+    from neural_estimator.atomic import write_text_atomically
 
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix == ".csv":
-        out.write_text(M.format_reports(reports, fmt="csv"))
+        text = M.format_reports(reports, fmt="csv")
     elif out.suffix == ".json":
-        out.write_text(json.dumps(M.to_json(reports), indent=1, allow_nan=False))
+        text = json.dumps(M.to_json(reports), indent=1, allow_nan=False)
     else:
-        out.write_text(M.format_reports(reports, fmt="markdown"))
+        text = M.format_reports(reports, fmt="markdown")
+    write_text_atomically(out, text)  # a full disk or read-only directory: one line, no empty file
     print(f"wrote {out}")
 
 
