@@ -103,3 +103,24 @@ def test_replay_and_recover_finish_and_copy_nothing_absurd(tmp_path, case):
             assert parse_qos_yaml(copied.offered_qos_profiles) == []  # no profile, not the hostile one
             assert "1000000000000" not in copied.offered_qos_profiles
         out.unlink()
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "rate: 10\nobservation: " + "[" * 5000 + "]" * 5000 + "\n",  # flow nesting
+        "rate: 10\nobservation: " + "{a: " * 5000 + "1" + "}" * 5000 + "\n",
+        "".join(" " * i + "a:\n" for i in range(1200)),  # block nesting
+    ],
+    ids=["flow list", "flow mapping", "block mapping"],
+)
+def test_a_deeply_nested_robot_spec_is_one_line_in_linear_time(tmp_path, text):
+    from neural_estimator.robot import SpecError, load_spec
+
+    path = tmp_path / "spec.yaml"
+    path.write_text(text)
+    t0 = time.perf_counter()
+    with pytest.raises(SpecError, match="nesting depth") as info:
+        load_spec(path)
+    assert time.perf_counter() - t0 < 5.0  # milliseconds through libyaml (the bound is not a timing)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
