@@ -124,3 +124,52 @@ def test_a_deeply_nested_robot_spec_is_one_line_in_linear_time(tmp_path, text):
         load_spec(path)
     assert time.perf_counter() - t0 < 5.0  # milliseconds through libyaml (the bound is not a timing)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def _bag_with_schema(path, schema_bytes: int) -> None:
+    """The sample bag with ``schema_bytes`` of schema text for its /observation type."""
+    src = BagReader(M.__file__.replace("neural_estimator/bags/messages.py", "bags/lorenz96.mcap")).open()
+    try:
+        with BagWriter(path) as out:
+            for conn in src.connections:
+                huge = conn.topic == "/observation"
+                text = conn.msgdef + "\n#" + "x" * schema_bytes if huge else None
+                out.add_topic(conn.topic, conn.msgtype, msgdef=text, type_hash=conn.type_hash if huge else None)
+            for conn, t, raw in src.messages():
+                out.write(conn.topic, t, raw)
+    finally:
+        src.close()
+
+
+def test_an_oversized_schema_is_not_read_and_said_in_one_line(tmp_path):
+    import tracemalloc
+
+    from neural_estimator.bags.reader import MAX_SCHEMA_BYTES
+
+    bag = tmp_path / "schema.mcap"
+    _bag_with_schema(bag, 50 * 2**20)
+    tracemalloc.start()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", BagWarning)
+            with BagReader(bag) as r:
+                conn = r.topics["/observation"]
+                decoded = sum(1 for _ in r.decoded(["/observation"]))  # the Jazzy store knows JointState
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert conn.msgdef == "" and decoded == 400
+    lines = [str(w.message) for w in caught]
+    assert len(lines) == 1 and f"over the bound of {MAX_SCHEMA_BYTES:,}" in lines[0] and "\n" not in lines[0]
+    # the text is neither copied nor decoded: the peak is the one decompressed chunk that holds it
+    # (bounded by max_chunk_bytes), 50.0 MiB measured; copying and decoding it had peaked at 200.0 MiB
+    assert peak < 1.5 * 50 * 2**20, peak
+
+
+def test_a_schema_within_the_bound_is_kept(tmp_path):
+    bag = tmp_path / "schema.mcap"
+    _bag_with_schema(bag, 100_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", BagWarning)
+        with BagReader(bag) as r:
+            assert len(r.topics["/observation"].msgdef) > 100_000
