@@ -482,6 +482,21 @@ def load_bag_dataset(
     return truth, estimates, tuple(run.description.get("angle_states", ()))
 
 
+def outside_note(bag_info: Mapping[str, Any]) -> str:
+    """One line counting the messages set aside because their (trajectory, step) lies outside the
+    run the bag's /scenario announced ('' when none was): a corrupt or forged identity never widens
+    the table, and is never dropped without a word."""
+    outside = {k: int(n) for k, n in (bag_info.get("outside") or {}).items() if n}
+    if not outside:
+        return ""
+    total = sum(outside.values())
+    return (
+        f"{total} message{'s' if total != 1 else ''} outside the announced run set aside ("
+        + ", ".join(f"{k} {n}" for k, n in sorted(outside.items()))
+        + ")"
+    )
+
+
 def left_out_note(bag_info: Mapping[str, Any]) -> str:
     """One line saying what a partly scorable bag left out ('' when nothing was)."""
     parts = []

@@ -125,11 +125,14 @@ def _print_metrics(
     reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()}
     note = ""
     if "bag" in truth.meta:
-        from neural_estimator.bags.dataset import left_out_note
+        from neural_estimator.bags.dataset import left_out_note, outside_note
 
         note = left_out_note(truth.meta["bag"])
         if note:  # a partly scorable bag: say what the table does not cover
             print(f"neural-estimator: note: {note}", file=sys.stderr)
+        aside = outside_note(truth.meta["bag"])
+        if aside:  # the table is right without them, but nothing is ignored without a word
+            print(f"neural-estimator: note: {aside}", file=sys.stderr)
     if as_json:
         print(
             json.dumps(
