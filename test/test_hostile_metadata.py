@@ -173,3 +173,9 @@ def test_a_schema_within_the_bound_is_kept(tmp_path):
         warnings.simplefilter("error", BagWarning)
         with BagReader(bag) as r:
             assert len(r.topics["/observation"].msgdef) > 100_000
+
+
+def test_infinite_durations_as_each_rosbag2_release_records_them():
+    for sec, nsec in ((9223372036, 854775807), (2147483647, 4294967295), (0, 0)):
+        text = f"- deadline: {{sec: {sec}, nsec: {nsec}}}\n  lifespan: {{sec: 0, nsec: 5}}\n"
+        assert parse_qos_yaml(text) == [Qos(deadline=None, lifespan=(0, 5))]

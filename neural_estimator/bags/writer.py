@@ -97,6 +97,10 @@ _POLICIES = {
 }
 _DEFAULTS = {"history": "keep_last", "reliability": "reliable", "durability": "volatile", "liveliness": "automatic"}
 _MAX_SEC = _INFINITE_SEC
+_MAX_NSEC = 2**32 - 1
+# rmw's "infinite" (or default) duration as rosbag2 has recorded it: Jazzy's RMW_DURATION_INFINITE,
+# Humble's and Iron's {2147483647, 4294967295}, and 0 (the default: infinite for these policies)
+_INFINITE_DURATIONS = {(_INFINITE_SEC, _INFINITE_NSEC), (2**31 - 1, 2**32 - 1), (0, 0)}
 
 
 class QosError(ValueError):
@@ -158,8 +162,8 @@ def _profile(i: int, item: object) -> Qos:
         if not isinstance(d, dict):
             raise QosError(f"{where}.{key} = {_short(d)}: not a mapping of sec and nsec")
         sec = whole(d.get("sec", 0), f"{key}.sec", _MAX_SEC)
-        nsec = whole(d.get("nsec", 0), f"{key}.nsec", _INFINITE_NSEC)
-        if (sec, nsec) == (_INFINITE_SEC, _INFINITE_NSEC) or (sec, nsec) == (0, 0):  # rmw: both infinite
+        nsec = whole(d.get("nsec", 0), f"{key}.nsec", _MAX_NSEC)
+        if (sec, nsec) in _INFINITE_DURATIONS:
             return None
         if nsec >= 1_000_000_000:
             raise QosError(f"{where}.{key}.nsec = {nsec}: not below 1e9")
