@@ -13,10 +13,11 @@ from pathlib import Path
 from typing import Any
 
 
+from neural_estimator.atomic import replaced_atomically, temporary_name
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
-from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, parse_qos_yaml
+from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
 from neural_estimator.registry import make_estimator
 
 from neural_estimator.online import (
@@ -172,10 +173,23 @@ def replay(
             counts[method] += _collect(res, t_end, est_topic, cov_topic, out_msgs, skipped, method)
         seconds[method] = spent
 
-    qos = {c.topic: parse_qos_yaml(c.offered_qos_profiles) for c in kept_topics}
+    qos = {c.topic: topic_qos(c.topic, c.offered_qos_profiles) for c in kept_topics}
     types = {c.topic: c for c in kept_topics}
     out_msgs.sort(key=lambda m: m[1])  # stable: per time, input order then methods in order
-    with BagWriter(bag_out, overwrite=overwrite) as out:
+    if Path(bag_out).exists() and not overwrite:
+        raise BagError(f"{bag_out}: file exists (pass overwrite=True to replace it)")
+    try:
+        # complete or absent: a full disk leaves no partial bag under the name asked for
+        with replaced_atomically(bag_out) as tmp:
+            _write_output(tmp, types, qos, out_msgs, scen_topic)
+    except BagError as exc:
+        raise BagError(str(exc).replace(str(temporary_name(Path(bag_out))), str(bag_out))) from None
+    return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
+
+
+def _write_output(path: Path, types: dict, qos: dict, out_msgs: list, scen_topic: str) -> None:
+    """The output bag: the kept input topics with their recorded QoS, then every message in time order."""
+    with BagWriter(path, overwrite=True) as out:
         for topic, conn in types.items():
             out.add_topic(
                 topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None, type_hash=conn.type_hash or None
@@ -188,7 +202,6 @@ def replay(
                     qos=[LATCHED_QOS if topic == scen_topic else STREAM_QOS],
                 )
             out.write(topic, t, raw)
-    return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
 
 
 def _collect(res: StepResult, t: int, est_topic: str, cov_topic: str, out_msgs: list, skipped: dict, method: str):

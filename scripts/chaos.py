@@ -9,7 +9,8 @@ the simulator (the same messages: ``/scenario``, ``/run_status``, ``/observation
 ``/ground_truth``), with one fault injected in the middle of the run. It listens to
 ``/diagnostics``, then reads the nodes' stats files, the evaluator's table and every log, and
 prints one row per case: what the estimators estimated (of the run's messages), what they
-skipped or held, the worst diagnostic level they reported, the evaluator's exit status, UKF RMSE
+skipped or held, the worst diagnostic level they reported (their own status and their input's
+apart), the evaluator's exit status, UKF RMSE
 and what it says it lost, tracebacks in any log, and a verdict against the case's expectation:
 
 - no node dies and no log holds a traceback (the disk-full evaluator exits 1 with one line);
@@ -17,7 +18,10 @@ and what it says it lost, tracebacks in any log, and a verdict against the case'
   diagnostics say WARN (or ERROR) with the count, and the metrics are computed;
 - a restarted publisher's new run starts a fresh stream: UKF RMSE as in the clean run;
 - oversize messages are dropped unread and counted, and their memory is not kept (each estimator's
-  resident memory grows less than 20 MiB over the three 20 MB messages).
+  resident memory grows by less than two of the 20 MB messages over the three: see OVERSIZE_KEPT_MIB).
+
+The table shows each estimator's own status (what it did with the messages) apart from its input
+status (frequency and staleness): after a run ends the input goes stale, ERROR in every case.
 
 Only this script and the nodes it starts use rclpy; the verdicts are assertions on what the nodes
 did, not on timings.
@@ -257,11 +261,24 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
     row["rss_growth_mib"] = {  # ... less what it held just before the fault
         m: round(rss[m] - rss_before[m], 1) if rss.get(m) and rss_before.get(m) else None for m in METHODS
     }
-    if case.expect == "oversize" and not all(g is not None and g < 20 for g in row["rss_growth_mib"].values()):
+    if case.expect == "oversize" and not all(
+        g is not None and g < OVERSIZE_KEPT_MIB for g in row["rss_growth_mib"].values()
+    ):
         row["verdict"] = ("FAIL: " if row["verdict"] == "PASS" else row["verdict"] + "; ") + (
             f"memory kept after the oversize messages: {row['rss_growth_mib']} MiB"
         )
     return row
+
+
+# An estimator that kept the three 20 MB messages would grow by 3 x 19.1 = 57 MiB (measured before
+# the nodes' DDS profile, docs/reliability.md). One that drops them grows by about one message's
+# worth: 19.7 (EKF) and 20.2 MiB (UKF) measured at load average 5 to 7, 20.0 MiB in a failed test run
+# under load, where the criterion was "< 20": a bounded retention (one message's worth for three
+# messages: the last one, or the allocator's arena for its transient decode), not an accumulation.
+# The bound is two messages' worth: it fails a node that keeps two or all three, and sits 1.9x above
+# the retention measured, where "< 20" sat on it.
+OVERSIZE_MESSAGE_MIB = 20e6 / 2**20
+OVERSIZE_KEPT_MIB = 2 * OVERSIZE_MESSAGE_MIB
 
 
 def _rss_mib(pid: int) -> float | None:
@@ -285,7 +302,12 @@ def _summarize(case: Case, d: Path, procs: dict, levels: dict) -> dict:
     ev = logs["evaluator"]
     rmse = re.search(r"^\s*ukf\s*\|?\s*([0-9.]+)", ev, re.M) or re.search(r"ukf\s+([0-9.]+)", ev)
     lost = [ln.strip() for ln in ev.splitlines() if re.match(r"\s+(observation|ground_truth|estimates/)", ln)]
-    worst = {m: max((v for k, v in levels.items() if f"{m} estimator" in k), default=-1) for m in METHODS}
+    # Each estimator publishes two statuses: "<node>: <method> estimator" (what it did with the
+    # messages: faults, drops, divergence) and "<node>: <method> estimator: input <topic>" (the input's
+    # frequency and staleness, ERROR once the run has ended and the input stops). Kept apart: merged,
+    # the staleness after every run's end would read ERROR in every case, the clean one included.
+    worst = {m: max((v for k, v in levels.items() if k.endswith(f"{m} estimator")), default=-1) for m in METHODS}
+    worst_input = {m: max((v for k, v in levels.items() if f"{m} estimator: input " in k), default=-1) for m in METHODS}
     row = {
         "case": case.name,
         "fault": case.what,
@@ -298,6 +320,7 @@ def _summarize(case: Case, d: Path, procs: dict, levels: dict) -> dict:
         },
         "publisher_restarts": {m: (s or {}).get("publisher_restarts") for m, s in stats.items()},
         "worst_level": worst,
+        "worst_input_level": worst_input,
         "returncodes": {n: p.returncode for n, p in procs.items()},
         "ukf_rmse": float(rmse.group(1)) if rmse else None,
         "evaluator_lost": [ln for ln in lost if " 0 lost" not in ln or "not used" in ln],
@@ -337,9 +360,10 @@ def _verdict(case: Case, r: dict) -> str:
 
 def table(rows: list[dict]) -> str:
     lines = [
-        "| case | fault | estimates ekf / ukf | held / dropped (ukf) | worst diagnostics | evaluator exit | "
+        "| case | fault | estimates ekf / ukf | held / dropped (ukf) | worst estimator status ekf / ukf | "
+        "worst input status ekf / ukf | evaluator exit | "
         "UKF RMSE | evaluator says lost | UKF RSS MiB (growth after the fault) | verdict |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     names = {-1: "none", 0: "OK", 1: "WARN", 2: "ERROR"}
     for r in rows:
@@ -347,10 +371,11 @@ def table(rows: list[dict]) -> str:
         dropped = sum(sk.get(k, 0) for k in ("bad", "oversize", "out_of_order", "unconfirmed"))
         est = " / ".join(str(r["estimates"].get(m)) for m in METHODS)
         worst = " / ".join(names.get(r["worst_level"].get(m, -1), "?") for m in METHODS)
+        inputs = " / ".join(names.get(r.get("worst_input_level", {}).get(m, -1), "?") for m in METHODS)
         lost = "; ".join(r["evaluator_lost"]) or ("-" if not r["evaluator_error"] else r["evaluator_error"][-90:])
         rmse = f"{r['ukf_rmse']:.4f}" if r["ukf_rmse"] is not None else "-"
         lines.append(
-            f"| {r['case']} | {r['fault']} | {est} | {sk.get('quarantined', '-')} / {dropped} | {worst} | "
+            f"| {r['case']} | {r['fault']} | {est} | {sk.get('quarantined', '-')} / {dropped} | {worst} | {inputs} | "
             f"{r['returncodes'].get('evaluator')} | {rmse} | {lost} | {r.get('rss_mib', {}).get('ukf')} "
             f"({r.get('rss_growth_mib', {}).get('ukf')}) | "
             f"{r['verdict']} |"

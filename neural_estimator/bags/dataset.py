@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.bags import messages as M
+from neural_estimator.bags.cells import StreamCells
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, LATCHED_QOS, STREAM_QOS, BagWriter
@@ -92,22 +93,24 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
     Raises:
         BagError: no scenario description, or a stream topic holding a different message type.
     """
-    desc, status, pending, rejected = _read_streams(path, namespace, description)
-    cells, received, duplicates = _decode_cells(desc, pending, rejected)
-    traj_ids, N, T, row, outside = _rows(path, desc, cells, received)
+    desc, status, cells, rejected = _read_streams(path, namespace, description)
+    traj_ids, N, T, outside = _rows(path, desc, cells)
     dx, dy = len(desc["state_names"]), len(desc["obs_names"])
     du = len(desc.get("control_names", ()))
+    ids = np.asarray(traj_ids, dtype=np.int64)
 
     def fill(key: str, width: int) -> np.ndarray:
         out = np.full((N, T, width), np.nan)
-        for (n, k), (_, v) in cells.get(key, {}).items():
-            out[row[n], k] = v
+        store = cells.get(key)
+        if store is not None and len(store.n):
+            out[np.searchsorted(ids, store.n), store.k] = store.values
         return out
 
     obs = fill(M.OBSERVATION, dy + du)
     stamps = np.full((N, T), -1, dtype=np.int64)
-    for (n, k), (s, _) in cells.get(M.OBSERVATION, {}).items():
-        stamps[row[n], k] = s
+    if M.OBSERVATION in cells:
+        store = cells[M.OBSERVATION]
+        stamps[np.searchsorted(ids, store.n), store.k] = store.stamps
     x_hat, P_hat = {}, {}
     for key in cells:
         if not key.startswith(M.ESTIMATES + "/"):
@@ -122,9 +125,10 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
     present = {}
     for key in sorted(streams):
         mask = np.zeros((N, T), dtype=bool)
-        for n, k in cells.get(key, {}):
-            mask[row[n], k] = True
+        if key in cells:
+            mask[np.searchsorted(ids, cells[key].n), cells[key].k] = True
         present[key] = mask
+    received = {k: c.messages - outside.get(k, 0) for k, c in cells.items()}
     return RunArrays(
         description=desc,
         trajectories=np.asarray(traj_ids, dtype=np.int64),
@@ -135,8 +139,8 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
         x_hat=x_hat,
         P_hat=P_hat,
         received={k: received.get(k, 0) for k in sorted(streams)},
-        missing={k: total - len(cells.get(k, {})) for k in sorted(streams)},
-        duplicates=duplicates,
+        missing={k: total - (len(cells[k].n) if k in cells else 0) for k in sorted(streams)},
+        duplicates={k: c.duplicates for k, c in cells.items() if c.duplicates},
         rejected=rejected,
         status=status,
         present=present,
@@ -146,9 +150,11 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
 
 def _read_streams(
     path: str | Path, namespace: str, description: Mapping[str, Any] | None
-) -> tuple[dict[str, Any], list[dict[str, Any]], list[tuple[str, bytes]], dict[str, int]]:
-    """(scenario description, run statuses, the raw stream messages (stream key, bytes), rejected
-    messages per stream) of a bag: every topic of the run checked for its message type."""
+) -> tuple[dict[str, Any], list[dict[str, Any]], dict[str, StreamCells], dict[str, int]]:
+    """(scenario description, run statuses, the cells of each vector stream, rejected messages per
+    stream) of a bag: every topic of the run checked for its message type. Stream messages are
+    decoded as they are read (held raw only until the bag's first /scenario message, when that
+    comes after them), into compact :class:`~neural_estimator.bags.cells.StreamCells`."""
     with open_bag(path) as bag:
         roles = {}
         for topic, conn in bag.topics.items():
@@ -171,7 +177,8 @@ def _read_streams(
         desc: dict[str, Any] | None = dict(description) if description is not None else None
         status: list[dict[str, Any]] = []
         rejected: dict[str, int] = {}
-        pending: list[tuple[str, bytes]] = []
+        pending: list[tuple[str, bytes]] = []  # stream messages before the description is known
+        decoder: _CellDecoder | None = None if desc is None else _CellDecoder(desc, rejected)
         for conn, _, raw in bag.messages(list(roles)):
             role = roles[conn.topic]
             key = _stream_key(role)
@@ -179,66 +186,65 @@ def _read_streams(
                 if role.kind == M.SCENARIO:
                     if desc is None:  # the first announcement defines the run: a later one cannot resize it
                         desc = M.decode_scenario(raw)
+                        decoder = _CellDecoder(desc, rejected)
+                        for item in pending:
+                            decoder.add(*item)
+                        pending = []
                     continue
                 if role.kind == M.RUN_STATUS:
                     status.append(M.decode_run_status(raw))
                     continue
-                pending.append((key, raw))
+                if decoder is None:
+                    pending.append((key, bytes(raw)))
+                else:
+                    decoder.add(key, raw)
             except MessageError:
                 rejected[key] = rejected.get(key, 0) + 1
-    if desc is None:
+    if desc is None or decoder is None:
         raise BagError(
             f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
             "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)"
         )
-    return desc, status, pending, rejected
+    return desc, status, {k: c.finish() for k, c in decoder.cells.items()}, rejected
 
 
-def _decode_cells(
-    desc: dict[str, Any], pending: list[tuple[str, bytes]], rejected: dict[str, int]
-) -> tuple[dict[str, dict[tuple[int, int], tuple[int, np.ndarray]]], dict[str, int], dict[str, int]]:
-    """({stream: {(trajectory, step): (stamp, values)}}, received and duplicate messages per
-    stream); a message that does not decode, or names other components, counts as rejected."""
-    cells: dict[str, dict[tuple[int, int], tuple[int, np.ndarray]]] = {}
-    received: dict[str, int] = {}
-    duplicates: dict[str, int] = {}
-    dx = len(desc["state_names"])
-    expected = {
-        M.OBSERVATION: M.observation_labels(desc),
-        M.GROUND_TRUTH: M.state_labels(desc),
-    }
-    state_names, cov_names = M.state_labels(desc), M.covariance_labels(dx)
-    codecs: dict[str, M.VectorCodec] = {}
-    for key, raw in pending:
-        codec = codecs.get(key)
+class _CellDecoder:
+    """Decodes stream messages into each stream's :class:`StreamCells`; a message that does not
+    decode, or names other components than its stream's, counts as rejected."""
+
+    def __init__(self, desc: dict[str, Any], rejected: dict[str, int]) -> None:
+        dx = len(desc["state_names"])
+        self.expected = {M.OBSERVATION: M.observation_labels(desc), M.GROUND_TRUTH: M.state_labels(desc)}
+        self.state_names, self.cov_names = M.state_labels(desc), M.covariance_labels(dx)
+        self.rejected = rejected
+        self.codecs: dict[str, M.VectorCodec] = {}
+        self.cells: dict[str, StreamCells] = {}
+
+    def add(self, key: str, raw: bytes | memoryview) -> None:
+        codec = self.codecs.get(key)
         if codec is None:
             if key.startswith(M.ESTIMATES + "/"):
-                names = cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else state_names
+                names = self.cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else self.state_names
             else:
-                names = expected[key]
-            codec = codecs[key] = M.VectorCodec("", names)
+                names = self.expected[key]
+            codec = self.codecs[key] = M.VectorCodec("", names)
         try:
             vec = codec.decode(raw)
         except MessageError:
-            rejected[key] = rejected.get(key, 0) + 1
-            continue
+            self.rejected[key] = self.rejected.get(key, 0) + 1
+            return
         if vec.names != codec.names:
-            rejected[key] = rejected.get(key, 0) + 1
-            continue
-        store = cells.setdefault(key, {})
-        cell = (vec.trajectory, vec.step)
-        if cell in store:
-            duplicates[key] = duplicates.get(key, 0) + 1
-        store[cell] = (vec.stamp_ns, vec.values)
-        received[key] = received.get(key, 0) + 1
-    return cells, received, duplicates
+            self.rejected[key] = self.rejected.get(key, 0) + 1
+            return
+        store = self.cells.get(key)
+        if store is None:
+            store = self.cells[key] = StreamCells(len(codec.names))
+        store.add(vec.trajectory, vec.step, vec.stamp_ns, vec.values)
 
 
-def _rows(
-    path: str | Path, desc: dict[str, Any], cells: dict, received: dict[str, int]
-) -> tuple[list[int], int, int, dict[int, int], dict[str, int]]:
-    """(trajectory ids, N, T, {trajectory: row}, cells outside the announced run per stream): the
-    arrays' extent, bounded (:func:`max_array_bytes`); cells outside an announced run are dropped."""
+def _rows(path: str | Path, desc: dict[str, Any], cells: dict[str, StreamCells]) -> tuple[list[int], int, int, dict]:
+    """(trajectory ids, N, T, cells outside the announced run per stream): the arrays' extent,
+    bounded (:func:`max_array_bytes`); cells outside an announced run are dropped."""
     dx, dy = len(desc["state_names"]), len(desc["obs_names"])
     du = len(desc.get("control_names", ()))
     run = desc.get("run") if isinstance(desc.get("run"), Mapping) else {}
@@ -257,27 +263,35 @@ def _rows(
     outside: dict[str, int] = {}
     if n_ann and t_ann:  # a cell outside the announced run is a corrupt or forged identity: rejected
         for key, store in cells.items():
-            bad = [c for c in store if not (0 <= c[0] < n_ann and 0 <= c[1] < t_ann)]
-            for c in bad:
-                del store[c]
+            bad = store.drop((store.n >= 0) & (store.n < n_ann) & (store.k >= 0) & (store.k < t_ann))
             if bad:
-                outside[key] = len(bad)
-                received[key] -= len(bad)
+                outside[key] = bad
     # Rows: every trajectory announced by the run (so that a wholly lost one counts as missing)
     # and every one that was received.
-    announced = range(n_ann)
-    traj_ids = sorted({n for store in cells.values() for n, _ in store} | set(announced))
-    horizon = max([k + 1 for store in cells.values() for _, k in store] + [t_ann])
+    traj_ids = np.union1d(np.concatenate([np.zeros(0, np.int64), *(c.n for c in cells.values())]), np.arange(n_ann))
+    horizon = max([int(c.k.max()) + 1 for c in cells.values() if len(c.k)] + [t_ann])
     N, T = len(traj_ids), horizon
     if N * T * cell_bytes > limit:
-        last = max(((n, k) for store in cells.values() for n, k in store), key=lambda c: c[1], default=(0, 0))
+        last = _first_at_largest_step(cells)
         raise BagError(
             f"{path}: the streams span {N} trajectories x {T} steps (largest step index {last[1]}, in trajectory "
             f"{last[0]}): {_gib(N * T * cell_bytes)} as arrays, over the bound of {_gib(limit)} ({MAX_ARRAY_ENV}); "
             "a corrupt identity? A /scenario message announcing the run rejects identities outside it"
         )
-    row = {n: i for i, n in enumerate(traj_ids)}
-    return traj_ids, N, T, row, outside
+    return [int(n) for n in traj_ids], N, T, outside
+
+
+def _first_at_largest_step(cells: dict[str, StreamCells]) -> tuple[int, int]:
+    """(trajectory, step) of the first cell to arrive at the largest step, streams in arrival order."""
+    top = max([int(c.k.max()) for c in cells.values() if len(c.k)], default=None)
+    if top is None:
+        return (0, 0)
+    for store in cells.values():
+        at = np.flatnonzero(store.k == top)
+        if len(at):
+            i = at[np.argmin(store.first[at])]
+            return int(store.n[i]), top
+    return (0, top)
 
 
 def arrays_to_bag(
@@ -480,6 +494,21 @@ def load_bag_dataset(
     truth = Trajectories(run.x[keep], run.y[keep], run.u[keep], meta)
     estimates = {m: (run.x_hat[m][keep], run.P_hat[m][keep] if m in run.P_hat else None) for m in sorted(kept)}
     return truth, estimates, tuple(run.description.get("angle_states", ()))
+
+
+def outside_note(bag_info: Mapping[str, Any]) -> str:
+    """One line counting the messages set aside because their (trajectory, step) lies outside the
+    run the bag's /scenario announced ('' when none was): a corrupt or forged identity never widens
+    the table, and is never dropped without a word."""
+    outside = {k: int(n) for k, n in (bag_info.get("outside") or {}).items() if n}
+    if not outside:
+        return ""
+    total = sum(outside.values())
+    return (
+        f"{total} message{'s' if total != 1 else ''} outside the announced run set aside ("
+        + ", ".join(f"{k} {n}" for k, n in sorted(outside.items()))
+        + ")"
+    )
 
 
 def left_out_note(bag_info: Mapping[str, Any]) -> str:

@@ -49,6 +49,14 @@ MAX_CHUNK_ENV = "NEURAL_ESTIMATOR_MAX_CHUNK_MB"
 DEFAULT_MAX_CHUNK_MB = 64  # rosbag2 writes 768 KiB chunks, this package 256 KiB, the mcap CLI 4 MiB
 
 
+# The longest schema text read (a .msg definition with its dependencies, as rosbag2 stores it; the
+# largest of this package's bags is under 2 KB, and a Jazzy message with every dependency stays
+# under 100 KB). A longer schema is not read (its type's messages decode through the Jazzy type store
+# where it knows the type) and is reported in one warning: a 50 MB schema had cost 438 MB of memory.
+MAX_SCHEMA_BYTES = 1 << 20
+_SCHEMA_HEAD_BYTES = 1 << 16  # id, name and encoding of an oversized schema record: read, then stop
+
+
 def max_chunk_bytes() -> int:
     """The largest uncompressed chunk a bag may declare (bytes): ``$NEURAL_ESTIMATOR_MAX_CHUNK_MB``
     MiB (default 64), checked before decompressing (zstd and lz4)."""
@@ -148,6 +156,7 @@ class BagReader:
         self._chunks: list[_Chunk] = []
         self._loose: list[tuple[int, int, int, bytes]] = []  # messages outside chunks
         self._registered: set[str] = set()
+        self._oversized: dict[str, int] = {}  # schema name -> bytes of a schema text not read
 
     # ---- lifecycle --------------------------------------------------------------------------------
     def open(self) -> "BagReader":
@@ -351,8 +360,9 @@ class BagReader:
                         lost_span += list(span)
             elif finished:
                 if op in (_OP_SCHEMA, _OP_CHANNEL):  # the summary repeats them: a fallback when a
+                    n_read = min(length, MAX_SCHEMA_BYTES + _SCHEMA_HEAD_BYTES) if op == _OP_SCHEMA else length
                     try:  # damaged chunk held the first definition
-                        self._record(op, self._read(body_at, length), loose=False)
+                        self._record(op, self._read(body_at, n_read), loose=False)
                     except (struct.error, UnicodeDecodeError, IndexError):
                         pass
             elif op == _OP_HEADER:
@@ -363,8 +373,10 @@ class BagReader:
                     n = _U32.unpack_from(body, 0)[0]
                     self.profile = body[4 : 4 + n].decode(errors="replace")
             elif op in (_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_METADATA):
+                # of a schema record, no more than its head and a schema text within the bound is read
+                n_read = min(length, MAX_SCHEMA_BYTES + _SCHEMA_HEAD_BYTES) if op == _OP_SCHEMA else length
                 try:
-                    self._record(op, self._read(body_at, length), loose=True)
+                    self._record(op, self._read(body_at, n_read), loose=True)
                 except (struct.error, UnicodeDecodeError, IndexError) as exc:
                     problems.append(f"malformed record at byte {pos} (opcode {op:#04x}): {exc}")
                     lost_bytes += 9 + length
@@ -386,6 +398,13 @@ class BagReader:
             for cid, k in chunk.counts.items():
                 self._channels[cid].msgcount += k
         self.connections = sorted(self._channels.values(), key=lambda c: c.id)
+        for name, n in self._oversized.items():
+            warnings.warn(
+                f"{self.path}: the schema of {name[:80]!r} holds {n:,} bytes, over the bound of "
+                f"{MAX_SCHEMA_BYTES:,}: not read (its messages decode only where the Jazzy type store knows the type)",
+                BagWarning,
+                stacklevel=4,
+            )
         if problems:
             self.damage = BagDamage(
                 path=str(self.path),
@@ -477,6 +496,10 @@ class BagReader:
             name, p = _string(rec, 2)
             enc, p = _string(rec, p)
             n = _U32.unpack_from(rec, p)[0]
+            if n > MAX_SCHEMA_BYTES:  # bounded memory: the text is neither copied nor decoded
+                self._oversized[name] = n
+                self._schemas.setdefault(sid, (name, enc, ""))
+                return
             self._schemas[sid] = (name, enc, bytes(rec[p + 4 : p + 4 + n]).decode(errors="replace"))
         elif op == _OP_CHANNEL:
             cid, sid = struct.unpack_from("<HH", rec, 0)

@@ -17,7 +17,8 @@ from pathlib import Path
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.reader import BagDamage
-from neural_estimator.bags.writer import BagWriter, parse_qos_yaml
+from neural_estimator.atomic import replaced_atomically, temporary_name
+from neural_estimator.bags.writer import BagWriter, QosError, parse_qos_yaml
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,16 +56,16 @@ def recover_bag(src: str | Path, out: str | Path, *, overwrite: bool = False) ->
         raise BagError(f"{out}: recover writes a new file; it cannot overwrite its input")
     if out.exists() and not overwrite:
         raise BagError(f"{out}: file exists (pass overwrite=True to replace it)")
-    tmp = out.with_name(f".{out.stem}.partial.mcap")
+    refused: list[str] = []  # topics whose recorded QoS was out of bounds (announced after the copy)
     try:
-        with warnings.catch_warnings():
+        with replaced_atomically(out) as tmp, warnings.catch_warnings():
             warnings.simplefilter("ignore", BagWarning)  # reported through RecoverResult.damage
             with open_bag(src) as bag, BagWriter(tmp, overwrite=True) as writer:
                 for conn in bag.connections:
                     writer.add_topic(
                         conn.topic,
                         conn.msgtype,
-                        qos=parse_qos_yaml(conn.offered_qos_profiles),
+                        qos=_checked_qos(conn.topic, conn.offered_qos_profiles, refused),
                         msgdef=conn.msgdef or None,
                         type_hash=(conn.type_hash or "") if conn.msgdef else None,
                     )
@@ -76,14 +77,20 @@ def recover_bag(src: str | Path, out: str | Path, *, overwrite: bool = False) ->
                     n += 1
                     run = _count(conn.topic, raw, counts, run)
                 damage, topics = bag.damage, len(bag.connections)
-        tmp.replace(out)
     except BagError as exc:  # errors name the file asked for, not the temporary one
-        tmp.unlink(missing_ok=True)
-        raise BagError(str(exc).replace(str(tmp), str(out))) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        raise BagError(str(exc).replace(str(temporary_name(out)), str(out))) from None
+    for line in refused:
+        warnings.warn(line, BagWarning, stacklevel=2)
     return RecoverResult(out, n, topics, damage, _lost(counts, run))
+
+
+def _checked_qos(topic: str, text: str, refused: list[str]) -> list:
+    """The topic's recorded profiles, or none (defaults) with a line in ``refused`` saying why."""
+    try:
+        return parse_qos_yaml(text)
+    except QosError as exc:
+        refused.append(f"topic {topic}: recorded QoS ignored, defaults used: {exc}")
+        return []
 
 
 def _count(topic: str, raw: bytes, counts: dict[str, int], run: dict | None) -> dict | None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,8 @@ import yaml
 from mcap.writer import CompressionType, Writer
 
 from neural_estimator import __version__
-from neural_estimator.bags.errors import BagError
+from neural_estimator.safe_yaml import YamlError, load_yaml
+from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.messages import TYPESTORE
 
 _INFINITE_SEC, _INFINITE_NSEC = 9223372036, 854775807  # RMW_DURATION_INFINITE as rosbag2 prints it
@@ -84,50 +86,119 @@ def qos_yaml(profiles: Sequence[Qos]) -> str:
     return yaml.safe_dump([p.to_dict() for p in profiles], default_flow_style=False, sort_keys=False).strip()
 
 
+QOS_TEXT_MAX = 64 * 1024  # bytes of one topic's offered_qos_profiles (rosbag2 writes ~400 per publisher)
+QOS_PROFILES_MAX = 64  # publisher profiles per topic
+QOS_DEPTH_MAX = 100_000  # ten times the deepest history this package offers (history_depth 10,000)
+_POLICIES = {
+    "history": ("keep_last", "keep_all", {1: "keep_last", 2: "keep_all"}),
+    "reliability": ("reliable", "best_effort", {1: "reliable", 2: "best_effort"}),
+    "durability": ("volatile", "transient_local", {1: "transient_local", 2: "volatile"}),
+    "liveliness": ("automatic", "manual_by_topic", {1: "automatic", 3: "manual_by_topic"}),
+}
+_DEFAULTS = {"history": "keep_last", "reliability": "reliable", "durability": "volatile", "liveliness": "automatic"}
+_MAX_SEC = _INFINITE_SEC
+_MAX_NSEC = 2**32 - 1
+# rmw's "infinite" (or default) duration as rosbag2 has recorded it: Jazzy's RMW_DURATION_INFINITE,
+# Humble's and Iron's {2147483647, 4294967295}, and 0 (the default: infinite for these policies)
+_INFINITE_DURATIONS = {(_INFINITE_SEC, _INFINITE_NSEC), (2**31 - 1, 2**32 - 1), (0, 0)}
+
+
+class QosError(ValueError):
+    """Recorded QoS metadata this package refuses to use; the message says which field and why."""
+
+
 def parse_qos_yaml(text: str) -> list[Qos]:
-    """Qos profiles back from rosbag2's ``offered_qos_profiles`` YAML (v9 names; v8 integers too)."""
+    """Qos profiles back from rosbag2's ``offered_qos_profiles`` YAML (v9 names; v8 integers too).
+
+    Every field is validated: the text at most :data:`QOS_TEXT_MAX` bytes (libyaml's C loader,
+    nesting bounded), at most :data:`QOS_PROFILES_MAX` profiles, policies of their known names (or
+    rosbag2 v8's integers), depth an integer in [0, :data:`QOS_DEPTH_MAX`], durations integers with
+    0 <= nsec < 1e9. Empty text is no profile.
+
+    Raises:
+        QosError: the first field out of bounds, in one line.
+    """
     if not text:
         return []
     try:
-        items = yaml.safe_load(text) or []
-    except yaml.YAMLError:
+        items = load_yaml(text, "offered_qos_profiles", QOS_TEXT_MAX)
+    except YamlError as exc:
+        raise QosError(str(exc)) from None
+    if items is None:
         return []
-    names = {
-        "history": {1: "keep_last", 2: "keep_all"},
-        "reliability": {1: "reliable", 2: "best_effort"},
-        "durability": {1: "transient_local", 2: "volatile"},
-        "liveliness": {1: "automatic", 3: "manual_by_topic"},
-    }
-    out = []
-    for item in items if isinstance(items, list) else []:
-        if not isinstance(item, dict):
-            continue
+    if not isinstance(items, list):
+        raise QosError(f"offered_qos_profiles is a {type(items).__name__}, not a list of profiles")
+    if len(items) > QOS_PROFILES_MAX:
+        raise QosError(f"offered_qos_profiles lists {len(items)} profiles, over the bound of {QOS_PROFILES_MAX}")
+    return [_profile(i, item) for i, item in enumerate(items)]
 
-        def pol(key: str, default: str) -> str:
-            v = item.get(key, default)
-            return names[key].get(v, default) if isinstance(v, int) else str(v)
 
-        def dur(key: str) -> tuple[int, int] | None:
-            d = item.get(key)
-            if not isinstance(d, dict):
-                return None
-            sec, nsec = int(d.get("sec", 0)), int(d.get("nsec", 0))
-            return None if (sec, nsec) == (_INFINITE_SEC, _INFINITE_NSEC) else (sec, nsec)
+def _profile(i: int, item: object) -> Qos:
+    """One validated profile (see :func:`parse_qos_yaml`)."""
+    where = f"offered_qos_profiles[{i}]"
+    if not isinstance(item, dict):
+        raise QosError(f"{where} is a {type(item).__name__}, not a mapping")
 
-        out.append(
-            Qos(
-                reliability=pol("reliability", "reliable"),
-                durability=pol("durability", "volatile"),
-                history=pol("history", "keep_last"),
-                depth=int(item.get("depth", 10)),
-                deadline=dur("deadline"),
-                lifespan=dur("lifespan"),
-                liveliness=pol("liveliness", "automatic"),
-                liveliness_lease_duration=dur("liveliness_lease_duration"),
-                avoid_ros_namespace_conventions=bool(item.get("avoid_ros_namespace_conventions", False)),
-            )
-        )
-    return out
+    def pol(key: str) -> str:
+        v = item.get(key, _DEFAULTS[key])
+        *names, v8 = _POLICIES[key]
+        if isinstance(v, int) and not isinstance(v, bool) and v in v8:
+            return v8[v]
+        if isinstance(v, str) and v in names:
+            return v
+        if v in ("system_default", 0):  # rmw's "use the default"
+            return _DEFAULTS[key]
+        raise QosError(f"{where}.{key} = {_short(v)}: not one of {', '.join(names)}")
+
+    def whole(v: object, key: str, hi: int) -> int:
+        if not isinstance(v, int) or isinstance(v, bool) or not 0 <= v <= hi:
+            raise QosError(f"{where}.{key} = {_short(v)}: not an integer in [0, {hi}]")
+        return v
+
+    def dur(key: str) -> tuple[int, int] | None:
+        d = item.get(key)
+        if d is None:
+            return None
+        if not isinstance(d, dict):
+            raise QosError(f"{where}.{key} = {_short(d)}: not a mapping of sec and nsec")
+        sec = whole(d.get("sec", 0), f"{key}.sec", _MAX_SEC)
+        nsec = whole(d.get("nsec", 0), f"{key}.nsec", _MAX_NSEC)
+        if (sec, nsec) in _INFINITE_DURATIONS:
+            return None
+        if nsec >= 1_000_000_000:
+            raise QosError(f"{where}.{key}.nsec = {nsec}: not below 1e9")
+        return (sec, nsec)
+
+    avoid = item.get("avoid_ros_namespace_conventions", False)
+    if not isinstance(avoid, bool):
+        raise QosError(f"{where}.avoid_ros_namespace_conventions = {_short(avoid)}: not true or false")
+    return Qos(
+        reliability=pol("reliability"),
+        durability=pol("durability"),
+        history=pol("history"),
+        depth=whole(item.get("depth", 10), "depth", QOS_DEPTH_MAX),
+        deadline=dur("deadline"),
+        lifespan=dur("lifespan"),
+        liveliness=pol("liveliness"),
+        liveliness_lease_duration=dur("liveliness_lease_duration"),
+        avoid_ros_namespace_conventions=avoid,
+    )
+
+
+def topic_qos(topic: str, text: str) -> list[Qos]:
+    """A topic's recorded profiles for a copy or a player; refused metadata is one :class:`BagWarning`
+    line (the topic and the field) and the topic gets no recorded profile, so the caller's default
+    applies and nothing out of bounds is copied or offered."""
+    try:
+        return parse_qos_yaml(text)
+    except QosError as exc:
+        warnings.warn(f"topic {topic}: recorded QoS ignored, defaults used: {exc}", BagWarning, stacklevel=2)
+        return []
+
+
+def _short(v: object) -> str:
+    text = repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 @dataclasses.dataclass

@@ -82,7 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     from neural_estimator.data import DataError
     from neural_estimator.registry import EstimatorError
 
-    handled: tuple[type[BaseException], ...] = (CliError, ScenarioError, DataError, EstimatorError)
+    from neural_estimator.atomic import WriteError
+
+    handled: tuple[type[BaseException], ...] = (CliError, ScenarioError, DataError, EstimatorError, WriteError)
     try:
         from neural_estimator.bags.errors import BagError  # light: the bags package imports rosbags
 

@@ -125,11 +125,14 @@ def _print_metrics(
     reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()}
     note = ""
     if "bag" in truth.meta:
-        from neural_estimator.bags.dataset import left_out_note
+        from neural_estimator.bags.dataset import left_out_note, outside_note
 
         note = left_out_note(truth.meta["bag"])
         if note:  # a partly scorable bag: say what the table does not cover
             print(f"neural-estimator: note: {note}", file=sys.stderr)
+        aside = outside_note(truth.meta["bag"])
+        if aside:  # the table is right without them, but nothing is ignored without a word
+            print(f"neural-estimator: note: {aside}", file=sys.stderr)
     if as_json:
         print(
             json.dumps(
@@ -177,15 +180,16 @@ def _print_given_decision(truth, estimates, angles, reports, warmup: int) -> Non
 
 def _write_table(path: str, reports) -> None:
     from neural_estimator import metrics as M
+    from neural_estimator.atomic import write_text_atomically
 
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix == ".csv":
-        out.write_text(M.format_reports(reports, fmt="csv"))
+        text = M.format_reports(reports, fmt="csv")
     elif out.suffix == ".json":
-        out.write_text(json.dumps(M.to_json(reports), indent=1, allow_nan=False))
+        text = json.dumps(M.to_json(reports), indent=1, allow_nan=False)
     else:
-        out.write_text(M.format_reports(reports, fmt="markdown"))
+        text = M.format_reports(reports, fmt="markdown")
+    write_text_atomically(out, text)  # a full disk or read-only directory: one line, no empty file
     print(f"wrote {out}")
 
 

@@ -22,13 +22,13 @@ from __future__ import annotations
 import io
 import json
 import os
-import threading
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from neural_estimator.atomic import replaced_atomically
 from neural_estimator.data.simulate import Trajectories
 
 _FIXED_TIME = (1980, 1, 1, 0, 0, 0)
@@ -41,20 +41,22 @@ class DataError(ValueError):
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> Path:
     """Write ``arrays`` and ``meta`` (as JSON) to ``path`` byte-for-byte reproducibly."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     items = dict(arrays)
     items["meta"] = np.array(json.dumps(meta, sort_keys=True, allow_nan=True))
-    # A temporary name of this process and thread: parallel jobs (reproduce's Ray workers) that
-    # simulate the same cached set write the same bytes, and must not rename each other's file.
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name in sorted(items):
-            buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.asarray(items[name]), allow_pickle=False)
-            info = zipfile.ZipInfo(name + ".npy", date_time=_FIXED_TIME)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            zf.writestr(info, buf.getvalue())
-    tmp.replace(path)  # never leave a half-written file under the final name
+    # Written under a temporary name of this process and thread, renamed when whole: parallel jobs
+    # (reproduce's Ray workers) that simulate the same cached set must not rename each other's file,
+    # and a full disk or read-only directory leaves nothing under ``path`` (a WriteError says why).
+    with replaced_atomically(path) as tmp:
+        with open(tmp, "wb") as raw:
+            with zipfile.ZipFile(raw, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+                for name in sorted(items):
+                    buf = io.BytesIO()
+                    np.lib.format.write_array(buf, np.asarray(items[name]), allow_pickle=False)
+                    info = zipfile.ZipInfo(name + ".npy", date_time=_FIXED_TIME)
+                    info.compress_type = zipfile.ZIP_DEFLATED
+                    zf.writestr(info, buf.getvalue())
+            raw.flush()
+            os.fsync(raw.fileno())  # a full disk may report itself only here
     return path
 
 

@@ -29,7 +29,7 @@ from rclpy.duration import Duration
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.directory import open_bag
-from neural_estimator.bags.writer import parse_qos_yaml
+from neural_estimator.bags.writer import QosError, parse_qos_yaml
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     InterfaceError,
@@ -92,7 +92,11 @@ class PlayerNode(ExitStatusNode):
             except InterfaceError as exc:
                 self.get_logger().warning(f"'{conn.topic}': {exc}; not played")
                 continue
-            offered = parse_qos_yaml(conn.offered_qos_profiles)
+            try:  # recorded metadata is untrusted: out-of-bounds profiles are refused, never offered
+                offered = parse_qos_yaml(conn.offered_qos_profiles)
+            except QosError as exc:
+                self.get_logger().warning(f"'{conn.topic}': recorded QoS ignored, defaults used: {exc}")
+                offered = []
             qos = from_bag_qos(offered[0], p.min_depth) if offered else stream_qos(p.min_depth)
             name = conn.topic if conn.topic in GLOBAL_TOPICS else conn.topic.lstrip("/")  # in the node's namespace
             self.pubs[conn.topic] = self.create_publisher(cls, name, qos)

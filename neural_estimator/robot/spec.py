@@ -49,6 +49,8 @@ from typing import Any
 
 import numpy as np
 
+from neural_estimator.safe_yaml import YamlError, load_yaml
+
 VECTORS = ("observation", "control", "state")
 ESTIMATE_PREFIX = "estimate/"
 STAMPS = ("header", "log")
@@ -122,6 +124,9 @@ class Spec:
         return hashlib.sha256(json.dumps(self.source, sort_keys=True).encode()).hexdigest()
 
 
+MAX_SPEC_BYTES = 1_000_000  # characters of a spec file (a real one is a few hundred)
+
+
 def load_spec(spec: str | Path | Mapping[str, Any]) -> Spec:
     """Parse a spec from a YAML file or a mapping; errors name the key and the problem in one line."""
     where = "spec"
@@ -134,16 +139,21 @@ def load_spec(spec: str | Path | Mapping[str, Any]) -> Spec:
             text = path.read_text()
         except OSError as exc:
             raise SpecError(f"{path}: cannot read the spec ({exc.strerror or exc})") from None
-        if len(text) > 1_000_000:
-            raise SpecError(f"{path}: a spec of {len(text)} bytes is not a spec")
+        loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: linear, nesting bounded at 1,000
         try:
+            if len(text) > MAX_SPEC_BYTES:
+                raise YamlError(f"{path}: a spec of {len(text)} characters, over the bound of {MAX_SPEC_BYTES}")
             # anchors and aliases are refused before anything is built: a few aliases nested a few
             # levels deep expand a 51 KB file to gigabytes wherever the spec is walked or serialized
-            if any(isinstance(ev, (yaml.AliasEvent,)) for ev in yaml.parse(text, Loader=yaml.SafeLoader)):
+            if any(isinstance(ev, yaml.AliasEvent) for ev in yaml.parse(text, Loader=loader)):
                 raise SpecError(f"{path}: YAML aliases (*name) are not allowed in a spec: write each value out")
-            spec = yaml.safe_load(text)
+            spec = load_yaml(text, str(path), 4 * MAX_SPEC_BYTES)  # characters -> at most 4 bytes each
         except yaml.YAMLError as exc:
-            raise SpecError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+            raise SpecError(f"{path}: not valid YAML ({' '.join(str(exc).split())[:200]})") from None
+        except RecursionError:  # the pure-Python loader, where PyYAML lacks libyaml
+            raise SpecError(f"{path}: YAML nested too deeply") from None
+        except YamlError as exc:
+            raise SpecError(str(exc)) from None
         if not isinstance(spec, Mapping):
             raise SpecError(f"{path}: the spec must be a mapping with rate, observation and state")
     return _parse(dict(spec), where)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
@@ -50,6 +51,19 @@ from neural_estimator.options import OptionError, did_you_mean, parse_value
 # matrices (8 MiB each at 1024) and a scenario description can arrive from the ROS graph, so the
 # bound is checked before anything of that size is allocated (see Scenario.dimension_fields).
 MAX_DIMENSION = 1024
+
+
+# The bound of every numeric constant (each element of a tuple too) that a scenario does not bound
+# itself in ``constant_bounds``: the built-ins' constants are all within 1e4 of zero, and within 1e6
+# squares (covariances: 1e12) and products of two constants stay far from float64's 1.8e308, so a
+# constant beyond it is a typo or an attack, not a system. A scenario with larger constants (an
+# orbit's GM = 3.986e14) declares their bounds. Non-finite values (NaN, inf) are always refused.
+MAX_CONSTANT = 1e6
+
+# Constants that set the work of one simulated step (integration substeps) or of the set-up (Lorenz
+# 96's spin-up) are bounded so that a step costs at most 100x its default and a scenario starts in
+# seconds: 10^9 substeps would run for hours before anything could be said about them.
+WORK_BOUNDS = {"substeps": (1, 100), "spinup_steps": (0, 100_000)}
 
 
 # Constants that describe an evaluation rather than the system: they may differ between a model's
@@ -158,6 +172,10 @@ class Scenario(ABC):
     # built, so a description naming 10^9 variables is refused before any allocation; a scenario
     # with variable dimensions should declare its fields here (dx, dy, du are checked after too).
     dimension_fields: ClassVar[dict[str, int]] = {}
+    # Config fields with their own [low, high] (each element of a tuple field); every other numeric
+    # field is bounded by +-MAX_CONSTANT, and substeps / spinup_steps by WORK_BOUNDS. Checked when
+    # the scenario is built, before anything is simulated.
+    constant_bounds: ClassVar[dict[str, tuple[float, float]]] = {}
     # Named sets of constants: preset name -> overrides of the Config defaults (see "Presets").
     # Newest first; the built-ins' "v4" is {} (the defaults); N-link's and bearings' "v5" are newer,
     # not the defaults.
@@ -171,6 +189,7 @@ class Scenario(ABC):
             cfg = replace_config(cfg, overrides, scenario=self.name)
         self.config = cfg
         self._check_dimension_fields()
+        self._check_constants()
         self._validate()
         self._check_dimensions()
 
@@ -182,6 +201,20 @@ class Scenario(ABC):
                     f"scenario {self.name!r}: {field} = {value} gives {int(value) * per_unit} dimensions, "
                     f"more than the {MAX_DIMENSION} this package accepts"
                 )
+
+    def _check_constants(self) -> None:
+        """Every numeric constant finite and within its bound (see ``constant_bounds``), by name."""
+        for field in dataclasses.fields(self.config):
+            own = {**WORK_BOUNDS, **self.constant_bounds}.get(field.name)
+            lo, hi = own if own is not None else (-MAX_CONSTANT, MAX_CONSTANT)
+            for v in _numbers(getattr(self.config, field.name)):
+                if not math.isfinite(v):
+                    raise ScenarioError(f"scenario {self.name!r}: {field.name} = {v} is not a finite number")
+                if not lo <= v <= hi:
+                    whose = "its bound" if own is not None else "the bound of every constant (MAX_CONSTANT)"
+                    raise ScenarioError(
+                        f"scenario {self.name!r}: {field.name} = {v:g} is outside [{lo:g}, {hi:g}], {whose}"
+                    )
 
     def _check_dimensions(self) -> None:
         for what, n in (("state", self.dx), ("observation", self.dy), ("control", self.du)):
@@ -400,6 +433,23 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
         v = getattr(cfg, f.name)
         out[f.name] = json.loads(json.dumps(_jsonable(v)))
     return out
+
+
+def _numbers(value: Any, depth: int = 0) -> list[float]:
+    """The numbers of a constant (a scalar, or the elements of nested tuples, lists or arrays) as
+    floats; an integer too large for a float is inf (refused as not finite). Booleans and text are
+    not numbers here."""
+    if isinstance(value, (bool, np.bool_, str)) or depth > 4:
+        return []
+    if isinstance(value, (int, np.integer)):
+        return [float(value) if abs(int(value)) < 2**1023 else math.inf]
+    if isinstance(value, (float, np.floating)):
+        return [float(value)]
+    if isinstance(value, np.ndarray):
+        return [float(v) for v in value.ravel()] if value.dtype.kind in "iuf" else []
+    if isinstance(value, (tuple, list)):
+        return [v for e in value for v in _numbers(e, depth + 1)]
+    return []
 
 
 def _jsonable(v: Any) -> Any:

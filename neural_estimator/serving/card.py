@@ -15,6 +15,7 @@ import json
 import math
 import os
 import platform
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +104,50 @@ def canonical_safetensors(path: str | Path) -> None:
             raise ValueError(f"{path}: canonical safetensors header is longer than the written one")
         fh.seek(8)
         fh.write(text + b" " * (n - len(text)))
+
+
+# The most parameters + buffers a card may declare (the paper's models: ~100k), and so the largest
+# weight file read: every element in float64 (8 bytes) plus safetensors' own bound on its JSON header
+# (100 MB). A file above it is refused from its size alone, before a byte of it is read or hashed.
+MAX_MODEL_ELEMENTS = 100_000_000
+MAX_WEIGHT_BYTES = 8 * MAX_MODEL_ELEMENTS + 100_000_000
+
+
+def open_checkpoint_file(directory: Path, name: object, what: str, error: type[Exception] = EstimatorError):
+    """Open the file ``name`` of a checkpoint for reading (binary) after checking that it is one:
+    a plain file name (no directory part), not a symbolic link (opened with ``O_NOFOLLOW``: a link
+    to a file outside the checkpoint is never followed, not even to print its size), a regular file
+    (not a FIFO or a device), and at most :data:`MAX_WEIGHT_BYTES` long. Every refusal is one
+    ``error`` line naming the checkpoint, the file and why."""
+    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
+        raise error(f"{directory / CARD_FILE}: the {what} must be a file name inside the checkpoint, got {name!r}")
+    path = directory / name
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise error(f"checkpoint {directory}: {what} {name} is missing") from None
+    except OSError as exc:
+        if path.is_symlink():
+            raise error(
+                f"checkpoint {directory}: {what} {name} is a symbolic link; it must be a regular file "
+                "inside the checkpoint (copy the file there)"
+            ) from None
+        raise error(f"checkpoint {directory}: cannot open {what} {name} ({exc.strerror or exc})") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise error(f"checkpoint {directory}: {what} {name} is not a regular file")
+        if info.st_size > MAX_WEIGHT_BYTES:
+            raise error(
+                f"checkpoint {directory}: {what} {name} holds {info.st_size:,} bytes, over the bound of "
+                f"{MAX_WEIGHT_BYTES:,} (8 bytes per element of the {MAX_MODEL_ELEMENTS:,} this package loads, "
+                "plus the header)"
+            )
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 def software_versions() -> dict[str, str]:
@@ -272,11 +317,11 @@ def _hash(card: bytes | None, weights: Path) -> tuple[str | None, str]:
     h.update(CARD_FILE.encode())
     h.update(b"missing" if card is None else card)
     h.update(WEIGHTS_FILE.encode())
-    if not weights.is_file():
+    if not weights.is_file() and not weights.is_symlink():
         h.update(b"missing")
         return None, h.hexdigest()
     sha = hashlib.sha256()
-    with open(weights, "rb") as fh:
+    with open_checkpoint_file(weights.parent, weights.name, "weight file") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             sha.update(block)
             h.update(block)
@@ -284,16 +329,11 @@ def _hash(card: bytes | None, weights: Path) -> tuple[str | None, str]:
 
 
 def _weight_file(directory: Path, card: dict[str, Any]) -> Path:
-    """The card's weight file: a file name inside the checkpoint, present."""
+    """The card's weight file: a regular file inside the checkpoint, present, within MAX_WEIGHT_BYTES
+    (:func:`open_checkpoint_file`), checked before anything reads or hashes it."""
     name = card["weights"].get("file", WEIGHTS_FILE)
-    if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
-        raise EstimatorError(
-            f"{directory / CARD_FILE}: the weight file must be a file name inside the checkpoint, got {name!r}"
-        )
-    weights = directory / name
-    if not weights.is_file():
-        raise EstimatorError(f"checkpoint {directory}: weight file {weights.name} is missing")
-    return weights
+    open_checkpoint_file(directory, name, "weight file").close()
+    return directory / name
 
 
 def recorded_data_checkpoint(checkpoint: str) -> "Checkpoint | None":

@@ -37,6 +37,7 @@ from neural_estimator.serving.card import (
     CARD_FILE,
     CARD_FORMAT,
     CARD_VERSION,
+    MAX_MODEL_ELEMENTS,
     WEIGHTS_FILE,
     Checkpoint,
     resolve_checkpoint,
@@ -176,11 +177,9 @@ def load_checkpoint(
     return model, normalizer, card
 
 
-MAX_MODEL_ELEMENTS = 100_000_000  # parameters + buffers a card may declare (the paper's models: ~100k)
-
-
 def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path) -> None:
-    """Refuse a card whose architecture is larger than its weight file or than MAX_MODEL_ELEMENTS,
+    """Refuse a card whose architecture is larger than its weight file or than MAX_MODEL_ELEMENTS, or
+    smaller than its weight file can hold (8 bytes an element plus the header),
     before allocating it: the model is built on torch's meta device (shapes only, no memory)."""
     try:
         with torch.device("meta"):
@@ -201,3 +200,16 @@ def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path) -> No
             f"checkpoint {where}: the card declares {params:,} parameters but the weight file holds "
             f"{weight_bytes:,} bytes: card and weights do not belong together"
         )
+    tensors = len(probe.state_dict())
+    most = 8 * elements + HEADER_BYTES_PER_TENSOR * tensors + 4096
+    if weight_bytes > most:  # checked before the file is hashed: a huge (or sparse) file costs no read
+        raise EstimatorError(
+            f"checkpoint {where}: the weight file holds {weight_bytes:,} bytes, more than the {most:,} that "
+            f"the card's model of {elements:,} elements can fill (8 bytes each, plus the header): card and "
+            "weights do not belong together"
+        )
+
+
+# A safetensors header entry: name, dtype, shape and offsets in JSON, under 200 bytes for this
+# package's tensor names (the zoo's headers: measured in test_checkpoint_files.py); 1 KiB leaves room.
+HEADER_BYTES_PER_TENSOR = 1024

@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from neural_estimator.serving.card import canonical_safetensors, sha256_file
+from neural_estimator.serving.card import canonical_safetensors, open_checkpoint_file, sha256_file
 
 HEAD_FILE = "covariance_head.safetensors"
 HEAD_FORM = "cholesky"
@@ -181,13 +181,9 @@ def load_head(directory: str | Path, entry: dict[str, Any], n: int) -> CholeskyH
 
     directory = Path(directory)
     name = entry.get("file", HEAD_FILE)
-    if not isinstance(name, str) or Path(name).name != name or name in ("", ".", ".."):
-        raise HeadError(
-            f"{directory}: the covariance head file must be a file name inside the checkpoint, got {name!r}"
-        )
+    # a regular file inside the checkpoint, within the weight-file bound: never a link followed
+    open_checkpoint_file(directory, name, "covariance head file", HeadError).close()
     path = directory / name
-    if not path.is_file():
-        raise HeadError(f"checkpoint {directory}: the card names a covariance head, but {name} is missing")
     shrink = entry.get("shrink", 0.0)
     if isinstance(shrink, bool) or not isinstance(shrink, (int, float)) or not 0.0 <= shrink < 1.0:
         raise HeadError(f"checkpoint {directory}: the covariance head's shrink must be in [0, 1), got {shrink!r}")
