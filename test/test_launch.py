@@ -15,6 +15,7 @@ import yaml
 
 from neural_estimator.nodes import graph as G
 from neural_estimator.nodes.launch import PipelineConfig, build_parser
+from ros_tester import fresh_domain
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILES = sorted((ROOT / "launch").glob("*.launch.py"))
@@ -179,7 +180,6 @@ def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch
     replay graph's nodes started from the description, a sample bag played into two estimators,
     recorded and scored by the evaluator (the required node: its exit ends the launch)."""
     pytest.importorskip("rclpy")
-    import random
 
     from neural_estimator import ros2_shim
     from neural_estimator.bags import BagReader
@@ -190,7 +190,7 @@ def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch
     assert ros2_shim.main(["launch", "neural_estimator", "nope.launch.py"]) == 1
     assert ros2_shim.main(["launch", "neural_estimator", "replay.launch.py", "bag=x"]) == 2
     assert "expected <name>:=<value>" in capsys.readouterr().err
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(200, 229)))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain()))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     out = tmp_path / "replay.mcap"
     bag = ROOT / "bags" / "bearings.mcap"

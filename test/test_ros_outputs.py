@@ -7,7 +7,7 @@ import types
 
 import numpy as np
 import pytest
-from ros_tester import Tester
+from ros_tester import Tester, fresh_domain
 
 from neural_estimator.nodes import diagnostics as D
 from neural_estimator.nodes import outputs as O
@@ -307,7 +307,6 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     equals the UKF restarted at the pose (velocities kept) and updated with that observation; a
     set_pose to a GRU node is refused in the log and the node goes on."""
     pytest.importorskip("rclpy")
-    import random
     import signal
     import sys
 
@@ -322,7 +321,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     from neural_estimator.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
-    domain = random.SystemRandom().randint(200, 229)
+    domain = fresh_domain()
     env = isolated_env(domain)
     procs = [
         start_node(

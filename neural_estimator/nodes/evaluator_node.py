@@ -447,7 +447,6 @@ class EvaluatorNode(ExitStatusNode):
                 namespace=self.ns,
                 warmup=warmup,
                 length_name="spec_length (-p spec_length:=N)",
-                stamp="header" if self.sim_time else "log",  # on sim time, estimates carry the bag's clock
             )
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
