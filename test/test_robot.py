@@ -292,6 +292,8 @@ def test_served_live_the_model_scores_what_evaluate_scored_on_the_recordings_clo
     live = reports["gru"].rmse
     print(f"gru: evaluate RMSE {offline:.4f}, live {live:.4f} ({truth.n} trajectories)")
     assert truth.n == 4 and abs(live - offline) <= 0.05 * offline, (offline, live)
+    written = json.loads(rec.with_suffix(".metrics.json").read_text())  # the evaluator's own scoring
+    assert written["trajectories"] == 4 and written["methods"]["gru"]["rmse"] == pytest.approx(live)
     # the estimates' stamps are the recording's ticks; each has a ground-truth message of the same stamp
     with BagReader(rec) as reader:
         first = None
@@ -393,3 +395,33 @@ def test_a_rate_of_a_megahertz_is_refused(bag):
             build_dataset([bag], spec, length=50)
     finally:
         D.MAX_TICKS = bound
+
+
+# ---- every rosbag2 storage ------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_a_sqlite3_copy_of_the_recording_gives_the_same_dataset(bag, tmp_path, capsys):
+    """The same runs written with rosbag2's sqlite3 storage (a directory, and its lone .db3 file) give
+    the dataset of the MCAP recording; `metrics` and the player's reader take it too."""
+    from neural_estimator.bags import open_bag
+
+    sqlite = robot_bag.write_bag(tmp_path / "sqlite", runs=3, seconds=25.0, seed=1, storage="sqlite3")
+    (db3,) = sorted(sqlite.glob("*.db3"))
+    spec = load_spec(SPEC)
+    mcap, est_mcap, _ = build_dataset([bag], spec, length=50)
+    for source in (sqlite, db3):
+        data, est, _ = build_dataset([source], spec, length=50)
+        np.testing.assert_array_equal(data.x, mcap.x)
+        np.testing.assert_array_equal(data.y, mcap.y)
+        np.testing.assert_array_equal(est["robot_filter"], est_mcap["robot_filter"])
+    with open_bag(sqlite) as a, open_bag(bag) as b:
+        assert {t: c.msgcount for t, c in a.topics.items()} == {t: c.msgcount for t, c in b.topics.items()}
+        assert [t for _, t, _ in a.messages(["/gps/fix"])] == [t for _, t, _ in b.messages(["/gps/fix"])]
+    out = tmp_path / "data.npz"
+    assert main(["dataset", str(db3), "--spec", str(SPEC), "--length", "50", "--out", str(out), "--quiet"]) == 0
+    # a file that is not a database: one line naming it
+    bad = tmp_path / "broken.db3"
+    bad.write_bytes(b"not sqlite at all" * 100)
+    capsys.readouterr()
+    assert main(["dataset", str(bad), "--spec", str(SPEC), "--length", "50", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "broken.db3: not a readable rosbag2 sqlite3 database" in err and "Traceback" not in err

@@ -31,6 +31,7 @@ Parameters: ``params/evaluator.yaml``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -459,7 +460,17 @@ class EvaluatorNode(ExitStatusNode):
         )
         md = Path(str(self.bag.path)).with_suffix(".metrics.md")
         md.write_text(M.format_reports(reports, fmt="markdown"))
-        self.get_logger().info(f"wrote {md}")
+        doc = {
+            "bag": str(self.bag.path),
+            "spec": self.p.spec,
+            "trajectories": truth.n,
+            "horizon": truth.horizon,
+            "warmup": warmup,
+            "methods": reports,
+        }
+        js = md.with_suffix(".json")  # <bag>.metrics.json, beside the table, as for a scenario's run
+        js.write_text(json.dumps(M.to_json(doc), indent=1, allow_nan=False))
+        self.get_logger().info(f"wrote {md}, {js}")
         return 0
 
     def on_shutdown(self) -> int:
