@@ -141,6 +141,8 @@ class SimulatorNode(ExitStatusNode):
             if not self._stop.wait(self.p.start_delay):
                 self._publish_run()
         except Exception as exc:  # never leave the node spinning without its run
+            if self._stop.is_set() or not self.context.ok():
+                return  # stopped (SIGINT, SIGTERM) while waiting or publishing: the context went away, no failure
             self.get_logger().fatal(f"simulation failed: {exc!r}")
             request_shutdown(self, 1)
 

@@ -308,10 +308,20 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         rclpy.logging.get_logger(name).fatal(str(exc))
         rclpy.try_shutdown()
         return 1
-    if priority:
-        (node.get_logger().info if applied else node.get_logger().warning)(line)
-    settle_heap()
+    except KeyboardInterrupt:  # Ctrl-C while the node was still starting (loading a model): a clean stop
+        rclpy.try_shutdown()
+        return 0
+    except RCLError:
+        # SIGTERM during start-up: rclpy's handler shut the context down, and the node's next
+        # publisher or timer fails on the invalid context. The same clean stop; a real error is raised.
+        if rclpy.ok():
+            raise
+        rclpy.try_shutdown()
+        return 0
     try:
+        if priority:
+            (node.get_logger().info if applied else node.get_logger().warning)(line)
+        settle_heap()
         spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
