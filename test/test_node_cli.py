@@ -1,4 +1,6 @@
-"""A node stopped while it starts (Ctrl-C or SIGTERM while a model loads) exits 0 without a traceback."""
+"""The node executables as commands: ``--help`` prints the parameters without starting the node, a
+misspelt parameter is one warning with "did you mean", and a node stopped while it starts (Ctrl-C
+or SIGTERM while a model loads) exits 0 without a traceback."""
 
 from __future__ import annotations
 
@@ -13,6 +15,48 @@ import pytest
 from ros_tester import fresh_domain
 
 pytestmark = pytest.mark.ros
+ROOT = Path(__file__).resolve().parents[1]
+NODES = ("simulator", "estimator", "evaluator", "player", "robot_estimator", "lifecycle_estimator")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("node", NODES)
+def test_help_prints_every_parameter_and_starts_nothing(node):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.entry import NODES as MODULES
+    from neural_estimator.nodes.entry import parameter_fields
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run(
+        [sys.executable, "-m", MODULES[node], "--help"], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"usage: ros2 run neural_estimator {node} --ros-args")
+    for f in parameter_fields(node):
+        assert f"\n  {f.name} (" in out.stdout, f.name
+    assert "[INFO]" not in out.stdout + out.stderr  # no node came up
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_the_shipped_params_files_hold_only_known_parameters(node):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.entry import unknown_parameters
+
+    path = ROOT / "params" / f"{'estimator' if node == 'lifecycle_estimator' else node}.yaml"
+    assert unknown_parameters(node, ["--ros-args", "--params-file", str(path)]) == []
+
+
+def test_a_misspelt_parameter_is_one_warning_with_the_closest_name(tmp_path):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.entry import unknown_parameters
+
+    args = ["--ros-args", "-r", "__node:=est", "-p", "methd:=ukf", "-p", "method:=ukf", "-p", "use_sim_time:=true"]
+    assert unknown_parameters("estimator", args) == ["unknown parameter 'methd' (ignored); did you mean 'method'?"]
+    params = tmp_path / "p.yaml"
+    params.write_text("est:\n  ros__parameters:\n    rate_hzz: 3\nother:\n  ros__parameters:\n    zzz: 1\n")
+    got = unknown_parameters("simulator", ["--ros-args", "-r", "__node:=est", "--params-file", str(params)])
+    assert got == ["unknown parameter 'rate_hzz' (ignored); did you mean 'rate_hz'?"]  # not the other node's
+    assert unknown_parameters("player", ["--ros-args", "-p", "qqqq:=1"]) == ["unknown parameter 'qqqq' (ignored)"]
 
 
 def test_run_node_stops_cleanly_when_interrupted_during_start_up(monkeypatch):
@@ -58,7 +102,7 @@ def test_the_robot_estimator_exits_0_on_a_signal_while_loading_and_while_running
     from neural_estimator.cli import main
     from neural_estimator.nodes.launch import isolated_env, node_command
 
-    root = Path(__file__).resolve().parents[1]
+    root = ROOT
     sys.path.insert(0, str(root / "examples"))
     import robot_bag
 
