@@ -176,6 +176,11 @@ def replay(
     types = {c.topic: c for c in kept_topics}
     out_msgs.sort(key=lambda m: m[1])  # stable: per time, input order then methods in order
     with BagWriter(bag_out, overwrite=overwrite) as out:
+        starts = {m: str(o["init"]) for m, o in (options or {}).items() if m in methods and o.get("init")}
+        if starts:  # how the filters started: `metrics` on this bag marks them as the live evaluator does
+            from neural_estimator.bags.report import STARTS_METADATA
+
+            out.metadata[STARTS_METADATA] = starts
         for topic, conn in types.items():
             out.add_topic(
                 topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None, type_hash=conn.type_hash or None

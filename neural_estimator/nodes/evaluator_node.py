@@ -378,6 +378,11 @@ class EvaluatorNode(ExitStatusNode):
         except Exception:
             pass
         total = sum(self.counts.values())
+        starts = dict(item.split("=", 1) for item in self.p.starts if "=" in item)
+        if starts:  # how the filters started, so that `metrics` on this bag marks them as this node does
+            from neural_estimator.bags.report import STARTS_METADATA
+
+            self.bag.metadata[STARTS_METADATA] = starts
         try:
             self.bag.close()
         except BagError as exc:
