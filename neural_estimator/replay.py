@@ -17,6 +17,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, parse_qos_yaml
+from neural_estimator.estimator import EstimatorError
 from neural_estimator.registry import make_estimator
 
 from neural_estimator.online import (
@@ -58,6 +59,7 @@ def replay(
     description: Mapping[str, Any] | None = None,
     order: str = "recorded",
     threads: int = 1,
+    force: bool = False,
     max_gap: int = DEFAULT_MAX_GAP,
     max_gap_seconds: float = DEFAULT_MAX_GAP_SECONDS,
 ) -> ReplayResult:
@@ -104,13 +106,18 @@ def replay(
     with open_bag(bag_in) as bag:
         bag.connection(obs_topic, M.JOINT_STATE)
         desc = dict(description) if description is not None else None
-        if desc is None:
-            if scen_topic not in bag.topics:
-                raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
+        recorded = None  # the bag's own scenario announcement
+        if scen_topic in bag.topics:
             bag.connection(scen_topic, M.STRING)
             for _, _, raw in bag.messages([scen_topic]):
-                desc = M.decode_scenario(raw)
+                recorded = M.decode_scenario(raw)
                 break  # the first announcement defines the run
+        if desc is None:
+            if recorded is None and scen_topic not in bag.topics:
+                raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
+            desc = recorded
+        elif recorded is not None and not force:
+            _check_same_constants(bag_in, recorded, desc)
         kept_topics = [c for c in bag.connections if c.topic not in replaced]
         passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
     if desc is None:
@@ -141,9 +148,18 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        est = make_estimator(
-            method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
-        )
+        try:
+            est = make_estimator(
+                method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
+            )
+        except EstimatorError as exc:
+            if description is None and "other constants" in str(exc):  # the constants are the bag's own data
+                head = str(exc).split(". Use the checkpoint's constants")[0].replace("(requested)", "(this bag)")
+                raise EstimatorError(
+                    f"{head}. The requested constants are this bag's data: replay a bag recorded with the "
+                    "checkpoint's constants (bags/ holds one per preset), or train a model on this bag's"
+                ) from None
+            raise
         online = OnlineEstimator(
             est,
             method,
@@ -205,3 +221,27 @@ def _collect(res: StepResult, t: int, est_topic: str, cov_topic: str, out_msgs: 
     if res.covariance is not None:
         out_msgs.append((cov_topic, t, res.covariance))
     return 1
+
+
+def _check_same_constants(bag: str | Path, recorded: Mapping[str, Any], requested: Mapping[str, Any]) -> None:
+    """A bag announces the constants its data were made with: a description naming others would run
+    estimators (a model of another preset, a filter with other noise) on data they do not describe.
+    Raises BagError naming both, unless the caller forces it."""
+    from neural_estimator.scenarios.base import EVALUATION_CONSTANTS
+
+    if recorded.get("scenario") != requested.get("scenario"):
+        raise BagError(
+            f"{bag}: recorded on scenario {recorded.get('scenario')!r}, not {requested.get('scenario')!r} "
+            "(--scenario): drop --scenario to use the bag's own, or pass --force"
+        )
+    ours, theirs = dict(requested.get("config") or {}), dict(recorded.get("config") or {})
+    diffs = [
+        f"{k}={theirs.get(k, '<absent>')!r} (bag) vs {ours.get(k, '<absent>')!r} (requested)"
+        for k in sorted(set(ours) | set(theirs))
+        if k not in EVALUATION_CONSTANTS and ours.get(k) != theirs.get(k)
+    ]
+    if diffs:
+        raise BagError(
+            f"{bag}: its data were made with other constants than --scenario/--preset/--set name: {'; '.join(diffs)}. "
+            "Drop them to use the bag's own, or pass --force to run the estimators on these data anyway"
+        )
