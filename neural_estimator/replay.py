@@ -105,19 +105,7 @@ def replay(
     replaced |= {M.resolve_topic(M.covariance_topic(m), namespace) for m in methods}
     with open_bag(bag_in) as bag:
         bag.connection(obs_topic, M.JOINT_STATE)
-        desc = dict(description) if description is not None else None
-        recorded = None  # the bag's own scenario announcement
-        if scen_topic in bag.topics:
-            bag.connection(scen_topic, M.STRING)
-            for _, _, raw in bag.messages([scen_topic]):
-                recorded = M.decode_scenario(raw)
-                break  # the first announcement defines the run
-        if desc is None:
-            if recorded is None and scen_topic not in bag.topics:
-                raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
-            desc = recorded
-        elif recorded is not None and not force:
-            _check_same_constants(bag_in, recorded, desc)
+        desc = _description(bag, bag_in, scen_topic, description, force)
         kept_topics = [c for c in bag.connections if c.topic not in replaced]
         passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
     if desc is None:
@@ -148,18 +136,7 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        try:
-            est = make_estimator(
-                method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
-            )
-        except EstimatorError as exc:
-            if description is None and "other constants" in str(exc):  # the constants are the bag's own data
-                head = str(exc).split(". Use the checkpoint's constants")[0].replace("(requested)", "(this bag)")
-                raise EstimatorError(
-                    f"{head}. The requested constants are this bag's data: replay a bag recorded with the "
-                    "checkpoint's constants (bags/ holds one per preset), or train a model on this bag's"
-                ) from None
-            raise
+        est = _estimator(method, scenario, ckpt, device, seed, (options or {}).get(method, {}), description is None)
         online = OnlineEstimator(
             est,
             method,
@@ -192,11 +169,7 @@ def replay(
     types = {c.topic: c for c in kept_topics}
     out_msgs.sort(key=lambda m: m[1])  # stable: per time, input order then methods in order
     with BagWriter(bag_out, overwrite=overwrite) as out:
-        starts = {m: str(o["init"]) for m, o in (options or {}).items() if m in methods and o.get("init")}
-        if starts:  # how the filters started: `metrics` on this bag marks them as the live evaluator does
-            from neural_estimator.bags.report import STARTS_METADATA
-
-            out.metadata[STARTS_METADATA] = starts
+        _record_starts(out, methods, options)
         for topic, conn in types.items():
             out.add_topic(
                 topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None, type_hash=conn.type_hash or None
@@ -221,6 +194,49 @@ def _collect(res: StepResult, t: int, est_topic: str, cov_topic: str, out_msgs: 
     if res.covariance is not None:
         out_msgs.append((cov_topic, t, res.covariance))
     return 1
+
+
+def _estimator(method, scenario, ckpt, device, seed, options, constants_from_bag: bool):
+    """make_estimator; a checkpoint refused for other constants than the bag's own data is pointed
+    at another bag or another model (not at a --preset, which would run it on other data)."""
+    try:
+        return make_estimator(method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict(options))
+    except EstimatorError as exc:
+        if constants_from_bag and "other constants" in str(exc):
+            head = str(exc).split(". Use the checkpoint's constants")[0].replace("(requested)", "(this bag)")
+            raise EstimatorError(
+                f"{head}. The requested constants are this bag's data: replay a bag recorded with the "
+                "checkpoint's constants (bags/ holds one per preset), or train a model on this bag's"
+            ) from None
+        raise
+
+
+def _record_starts(out: BagWriter, methods, options) -> None:
+    """How the filters started (their ``init`` option), as the evaluator records it: `metrics` on the
+    output bag then marks them as the run did."""
+    starts = {m: str(o["init"]) for m, o in (options or {}).items() if m in methods and o.get("init")}
+    if starts:
+        from neural_estimator.bags.report import STARTS_METADATA
+
+        out.metadata[STARTS_METADATA] = starts
+
+
+def _description(bag, bag_in: Path, scen_topic: str, description: Mapping[str, Any] | None, force: bool):
+    """The scenario description to run on: ``description`` (checked against the bag's own
+    announcement unless ``force``), else the bag's first ``scenario`` message (None if it has none)."""
+    recorded = None
+    if scen_topic in bag.topics:
+        bag.connection(scen_topic, M.STRING)
+        for _, _, raw in bag.messages([scen_topic]):
+            recorded = M.decode_scenario(raw)
+            break  # the first announcement defines the run
+    if description is None:
+        if recorded is None and scen_topic not in bag.topics:
+            raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
+        return recorded
+    if recorded is not None and not force:
+        _check_same_constants(bag_in, recorded, description)
+    return dict(description)
 
 
 def _check_same_constants(bag: str | Path, recorded: Mapping[str, Any], requested: Mapping[str, Any]) -> None:
