@@ -54,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
         "--methods", nargs="*", default=["ekf", "gru"], help="methods whose callback work is timed (gru: ORT backend)"
     )
     a = ap.parse_args(argv)
-    os.environ["ROS_DOMAIN_ID"] = str(150 + os.getpid() % 80)
+    from neural_estimator.nodes.launch import pick_domain_id  # NEURAL_ESTIMATOR_DOMAINS, ROS_DOMAIN_ID or 100..199
+
+    os.environ["ROS_DOMAIN_ID"] = str(pick_domain_id())
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
     import rclpy

@@ -13,8 +13,8 @@ The recording holds what a real robot's bag holds:
                                                                   corrected towards each GPS fix (gain 0.2)
 
 Each run is separated from the next by a 2-second gap without messages, so the dataset builder
-cuts the bag into one segment per run. Written with rosbags' rosbag2 writer (MCAP storage), i.e.
-by another tool than this package's own bag writer.
+cuts the bag into one segment per run. Written with rosbags' rosbag2 writer (MCAP storage, or
+sqlite3 with ``--storage sqlite3``), i.e. by another tool than this package's own bag writer.
 
     python examples/robot_bag.py --out runs/robot_bag --runs 6 --seconds 120
     neural-estimator dataset runs/robot_bag --spec examples/robot_spec.yaml --length 200 --out runs/robot.npz
@@ -81,11 +81,12 @@ def simulate_run(rng: np.random.Generator, seconds: float) -> np.ndarray:
     return s
 
 
-def write_bag(out: Path, runs: int, seconds: float, seed: int) -> Path:
+def write_bag(out: Path, runs: int, seconds: float, seed: int, storage: str = "mcap") -> Path:
     rng = np.random.default_rng(seed)
     if out.exists():
         shutil.rmtree(out)
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as bag:
+    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[storage]
+    with Writer(out, version=9, storage_plugin=plugin) as bag:
         conns = {
             topic: bag.add_connection(topic, msgtype, typestore=TS)
             for topic, msgtype in (
@@ -163,8 +164,14 @@ def main(argv=None) -> int:
     p.add_argument("--runs", type=int, default=6)
     p.add_argument("--seconds", type=float, default=120.0, help="length of each run")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--storage",
+        choices=("mcap", "sqlite3"),
+        default="mcap",
+        help="rosbag2 storage (sqlite3: .db3, the older default)",
+    )
     a = p.parse_args(argv)
-    out = write_bag(Path(a.out), a.runs, a.seconds, a.seed)
+    out = write_bag(Path(a.out), a.runs, a.seconds, a.seed, a.storage)
     print(f"{out}: {a.runs} runs x {a.seconds:g} s of /imu, /wheel_odom, /gps/fix, /mocap/pose, /odometry/filtered")
     return 0
 

@@ -18,6 +18,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
+from neural_estimator.estimator import EstimatorError
 from neural_estimator.registry import make_estimator
 
 from neural_estimator.online import (
@@ -59,6 +60,7 @@ def replay(
     description: Mapping[str, Any] | None = None,
     order: str = "recorded",
     threads: int = 1,
+    force: bool = False,
     max_gap: int = DEFAULT_MAX_GAP,
     max_gap_seconds: float = DEFAULT_MAX_GAP_SECONDS,
 ) -> ReplayResult:
@@ -104,14 +106,7 @@ def replay(
     replaced |= {M.resolve_topic(M.covariance_topic(m), namespace) for m in methods}
     with open_bag(bag_in) as bag:
         bag.connection(obs_topic, M.JOINT_STATE)
-        desc = dict(description) if description is not None else None
-        if desc is None:
-            if scen_topic not in bag.topics:
-                raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
-            bag.connection(scen_topic, M.STRING)
-            for _, _, raw in bag.messages([scen_topic]):
-                desc = M.decode_scenario(raw)
-                break  # the first announcement defines the run
+        desc = _description(bag, bag_in, scen_topic, description, force)
         kept_topics = [c for c in bag.connections if c.topic not in replaced]
         passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
     if desc is None:
@@ -142,9 +137,7 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        est = make_estimator(
-            method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
-        )
+        est = _estimator(method, scenario, ckpt, device, seed, (options or {}).get(method, {}), description is None)
         online = OnlineEstimator(
             est,
             method,
@@ -181,15 +174,17 @@ def replay(
     try:
         # complete or absent: a full disk leaves no partial bag under the name asked for
         with replaced_atomically(bag_out) as tmp:
-            _write_output(tmp, types, qos, out_msgs, scen_topic)
+            _write_output(tmp, types, qos, out_msgs, scen_topic, methods, options)
     except BagError as exc:
         raise BagError(str(exc).replace(str(temporary_name(Path(bag_out))), str(bag_out))) from None
     return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
 
 
-def _write_output(path: Path, types: dict, qos: dict, out_msgs: list, scen_topic: str) -> None:
-    """The output bag: the kept input topics with their recorded QoS, then every message in time order."""
+def _write_output(path: Path, types: dict, qos: dict, out_msgs: list, scen_topic: str, methods, options) -> None:
+    """The output bag: how the filters started, the kept input topics with their recorded QoS, then
+    every message in time order."""
     with BagWriter(path, overwrite=True) as out:
+        _record_starts(out, methods, options)
         for topic, conn in types.items():
             out.add_topic(
                 topic, conn.msgtype, qos=qos[topic], msgdef=conn.msgdef or None, type_hash=conn.type_hash or None
@@ -213,3 +208,70 @@ def _collect(res: StepResult, t: int, est_topic: str, cov_topic: str, out_msgs: 
     if res.covariance is not None:
         out_msgs.append((cov_topic, t, res.covariance))
     return 1
+
+
+def _estimator(method, scenario, ckpt, device, seed, options, constants_from_bag: bool):
+    """make_estimator; a checkpoint refused for other constants than the bag's own data is pointed
+    at another bag or another model (not at a --preset, which would run it on other data)."""
+    try:
+        return make_estimator(method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict(options))
+    except EstimatorError as exc:
+        if constants_from_bag and "other constants" in str(exc):
+            head = str(exc).split(". Use the checkpoint's constants")[0].replace("(requested)", "(this bag)")
+            raise EstimatorError(
+                f"{head}. The requested constants are this bag's data: replay a bag recorded with the "
+                "checkpoint's constants (bags/ holds one per preset), or train a model on this bag's"
+            ) from None
+        raise
+
+
+def _record_starts(out: BagWriter, methods, options) -> None:
+    """How the filters started (their ``init`` option), as the evaluator records it: `metrics` on the
+    output bag then marks them as the run did."""
+    starts = {m: str(o["init"]) for m, o in (options or {}).items() if m in methods and o.get("init")}
+    if starts:
+        from neural_estimator.bags.report import STARTS_METADATA
+
+        out.metadata[STARTS_METADATA] = starts
+
+
+def _description(bag, bag_in: Path, scen_topic: str, description: Mapping[str, Any] | None, force: bool):
+    """The scenario description to run on: ``description`` (checked against the bag's own
+    announcement unless ``force``), else the bag's first ``scenario`` message (None if it has none)."""
+    recorded = None
+    if scen_topic in bag.topics:
+        bag.connection(scen_topic, M.STRING)
+        for _, _, raw in bag.messages([scen_topic]):
+            recorded = M.decode_scenario(raw)
+            break  # the first announcement defines the run
+    if description is None:
+        if recorded is None and scen_topic not in bag.topics:
+            raise BagError(f"{bag_in}: no {scen_topic} topic: name the scenario (--scenario NAME [--set ...])")
+        return recorded
+    if recorded is not None and not force:
+        _check_same_constants(bag_in, recorded, description)
+    return dict(description)
+
+
+def _check_same_constants(bag: str | Path, recorded: Mapping[str, Any], requested: Mapping[str, Any]) -> None:
+    """A bag announces the constants its data were made with: a description naming others would run
+    estimators (a model of another preset, a filter with other noise) on data they do not describe.
+    Raises BagError naming both, unless the caller forces it."""
+    from neural_estimator.scenarios.base import EVALUATION_CONSTANTS
+
+    if recorded.get("scenario") != requested.get("scenario"):
+        raise BagError(
+            f"{bag}: recorded on scenario {recorded.get('scenario')!r}, not {requested.get('scenario')!r} "
+            "(--scenario): drop --scenario to use the bag's own, or pass --force"
+        )
+    ours, theirs = dict(requested.get("config") or {}), dict(recorded.get("config") or {})
+    diffs = [
+        f"{k}={theirs.get(k, '<absent>')!r} (bag) vs {ours.get(k, '<absent>')!r} (requested)"
+        for k in sorted(set(ours) | set(theirs))
+        if k not in EVALUATION_CONSTANTS and ours.get(k) != theirs.get(k)
+    ]
+    if diffs:
+        raise BagError(
+            f"{bag}: its data were made with other constants than --scenario/--preset/--set name: {'; '.join(diffs)}. "
+            "Drop them to use the bag's own, or pass --force to run the estimators on these data anyway"
+        )

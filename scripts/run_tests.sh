@@ -7,7 +7,9 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/bootstrap.sh" test
 venv="${NEURAL_ESTIMATOR_VENV:-$root/.venv}"
 cd "$root"
-# Each test file gets its own ROS domain inside the tests; keep this run off any user's graph.
+# Each ROS test picks its own domain from NEURAL_ESTIMATOR_DOMAINS (LO-HI; set it to confine the run to
+# a share of a shared host's domains); anything else keeps off any user's graph on ROS_DOMAIN_ID 77.
+export NEURAL_ESTIMATOR_DOMAINS="${NEURAL_ESTIMATOR_DOMAINS:-200-232}"
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-77}"
 export MPLBACKEND=Agg
 # One BLAS/torch thread per process: the tests use small arrays, where two threads on two cores

@@ -9,7 +9,12 @@ Publishes (relative names, layout of :mod:`neural_estimator.bags.messages`):
 - ``run_status`` (std_msgs/String, JSON, reliable + transient_local depth 1): "started", then
   "complete" with the message count;
 - per step, ``observation`` then ``ground_truth`` (sensor_msgs/JointState, reliable +
-  transient_local, KEEP_LAST ``history_depth``).
+  transient_local, KEEP_LAST ``history_depth``);
+- per step, where the scenario's state holds a pose or a position (``Scenario.pose_states``:
+  bearings, quadrotor), the truth also as ``ground_truth/odometry`` (nav_msgs/Odometry, frame
+  ``frame_id`` -> ``child_frame_id``, same stamp; components the state lacks get the "unknown"
+  variance of :mod:`neural_estimator.nodes.odometry`, the others zero): what pose tools (evo,
+  Foxglove's 3D panel) read, beside the estimators' ``estimates/<method>/odometry``.
 
 Losing nothing at start-up, whatever order the nodes are started in: the node waits until
 ``wait_for_subscribers`` subscriptions match the observation topic (default 1: started by hand,
@@ -40,6 +45,9 @@ from rclpy.duration import Duration
 from sensor_msgs.msg import JointState
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import String
+
+from neural_estimator.nodes.odometry import has_pose, make_odometry
+from neural_estimator.nodes.outputs import TRUTH_ODOMETRY
 
 from neural_estimator.bags import messages as M
 from neural_estimator.nodes.common import (
@@ -78,6 +86,11 @@ class SimulatorParams:
         "the backlog a slow subscriber may build without loss",
     )
     publish_ground_truth: bool = param(True, "publish ground_truth")
+    truth_odometry: bool = param(
+        True, "also publish the truth as nav_msgs/Odometry on ground_truth/odometry where the state holds a pose"
+    )
+    frame_id: str = param("map", "header.frame_id of ground_truth/odometry")
+    child_frame_id: str = param("base_link", "child_frame_id of ground_truth/odometry")
     exit_when_done: bool = param(True, "shut down after the run (after linger seconds)")
     linger: float = param(30.0, "most seconds to wait after the run until every subscriber acknowledged every message")
     stay_after_run: float = param(
@@ -108,6 +121,12 @@ class SimulatorNode(ExitStatusNode):
         self.pub_obs = self.create_publisher(JointState, M.OBSERVATION, stream_qos(p.history_depth))
         self.pub_truth = self.create_publisher(JointState, M.GROUND_TRUTH, stream_qos(p.history_depth))
         self.pub_clock = self.create_publisher(ClockMsg, "/clock", 10) if p.publish_clock else None
+        self.pub_odom = None
+        if p.publish_ground_truth and p.truth_odometry and has_pose(self.scenario.pose_states):
+            from nav_msgs.msg import Odometry
+
+            self._odometry = Odometry
+            self.pub_odom = self.create_publisher(Odometry, TRUTH_ODOMETRY, stream_qos(p.history_depth))
         self.get_logger().info(
             f"{self.scenario.name}: {p.trajectories} trajectories x {self.horizon} steps at {self.rate:g} Hz "
             f"(seed {p.seed}, dt {self.scenario.dt:g} s)"
@@ -122,6 +141,8 @@ class SimulatorNode(ExitStatusNode):
             if not self._stop.wait(self.p.start_delay):
                 self._publish_run()
         except Exception as exc:  # never leave the node spinning without its run
+            if self._stop.is_set() or not self.context.ok():
+                return  # stopped (SIGINT, SIGTERM) while waiting or publishing: the context went away, no failure
             self.get_logger().fatal(f"simulation failed: {exc!r}")
             request_shutdown(self, 1)
 
@@ -185,6 +206,8 @@ class SimulatorNode(ExitStatusNode):
                 self.pub_obs.publish(obs_codec.encode(stamp, n, k, np.concatenate([d.y[n, k], u_prev])))
                 if p.publish_ground_truth:
                     self.pub_truth.publish(truth_codec.encode(stamp, n, k, d.x[n, k]))
+                if self.pub_odom is not None:
+                    self.pub_odom.publish(self._truth_odometry(stamp, d.x[n, k]))
             if self._stop.is_set():
                 return
         elapsed = time.perf_counter() - t0
@@ -199,10 +222,17 @@ class SimulatorNode(ExitStatusNode):
             self._wait_for_acks()
             request_shutdown(self, 0)
 
+    def _truth_odometry(self, stamp: int, x: np.ndarray):
+        """The true state as Odometry: exact (zero variance) where the state has the component."""
+        s = self.scenario
+        return make_odometry(
+            self._odometry, stamp, self.p.frame_id, self.p.child_frame_id, x, np.zeros((s.dx, s.dx)), s.pose_states
+        )
+
     def _wait_for_acks(self) -> None:
         """Exiting drops what subscribers have not acknowledged yet (a slow recorder's backlog)."""
         deadline = time.monotonic() + self.p.linger
-        for pub in (self.pub_obs, self.pub_truth, self.pub_status):
+        for pub in (self.pub_obs, self.pub_truth, self.pub_status, *([self.pub_odom] if self.pub_odom else [])):
             left = deadline - time.monotonic()
             if left <= 0 or self._stop.is_set():
                 break

@@ -40,3 +40,22 @@ class Tester:
         import rclpy
 
         rclpy.try_shutdown(context=self.context)
+
+
+TEST_DOMAINS = (200, 232)  # the launcher's own default is 100..199: a test never meets a demo
+_used_domains: set[int] = set()
+
+
+def fresh_domain() -> int:
+    """A ROS domain for one test: at random from ``NEURAL_ESTIMATOR_DOMAINS`` (``LO-HI``: confine a
+    run of the suite to a share of a host's domains) or else 200..232, not one this process used
+    before while the range has others left."""
+    import random
+
+    from neural_estimator.nodes.launch import domain_range
+
+    lo, hi = domain_range(TEST_DOMAINS)
+    free = [d for d in range(lo, hi + 1) if d not in _used_domains] or list(range(lo, hi + 1))
+    d = random.SystemRandom().choice(free)
+    _used_domains.add(d)
+    return d

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from ros_tester import fresh_domain
 
 pytestmark = pytest.mark.slow  # each test runs the command line in a new Python process
 
@@ -108,14 +109,13 @@ NODE_CASES = [
 @pytest.mark.parametrize("node, params, text", NODE_CASES, ids=[f"{n} {p[0]}" for n, p, _ in NODE_CASES])
 def test_node_bad_start_up_is_one_line_and_status_1(node, params, text, tmp):
     pytest.importorskip("rclpy")
-    import random
 
     from neural_estimator.nodes.launch import isolated_env
 
     cmd = [sys.executable, "-m", "neural_estimator.nodes.entry", node, "--ros-args"]
     for p in _fill(params, tmp):
         cmd += ["-p", p]
-    env = isolated_env(random.SystemRandom().randint(200, 229))
+    env = isolated_env(fresh_domain())
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env, cwd=tmp)
     out = [ln for ln in (res.stdout + res.stderr).splitlines() if ln.strip()]
     fatal = [ln for ln in out if "FATAL" in ln or "error" in ln.lower()]
@@ -197,11 +197,10 @@ def test_reproduce_without_ray_names_the_extra_to_install(tmp):
 @pytest.mark.ros
 def test_node_with_a_bad_realtime_priority_is_one_line_and_status_1(tmp):
     pytest.importorskip("rclpy")
-    import random
 
     from neural_estimator.nodes.launch import isolated_env
 
-    env = isolated_env(random.SystemRandom().randint(200, 229))
+    env = isolated_env(fresh_domain())
     env["NEURAL_ESTIMATOR_REALTIME_PRIORITY"] = "high"
     cmd = [sys.executable, "-m", "neural_estimator.nodes.entry", "estimator", "--ros-args", "-p", "method:=ukf"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env, cwd=tmp)

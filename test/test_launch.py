@@ -15,6 +15,7 @@ import yaml
 
 from neural_estimator.nodes import graph as G
 from neural_estimator.nodes.launch import PipelineConfig, build_parser
+from ros_tester import fresh_domain
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILES = sorted((ROOT / "launch").glob("*.launch.py"))
@@ -179,7 +180,6 @@ def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch
     replay graph's nodes started from the description, a sample bag played into two estimators,
     recorded and scored by the evaluator (the required node: its exit ends the launch)."""
     pytest.importorskip("rclpy")
-    import random
 
     from neural_estimator import ros2_shim
     from neural_estimator.bags import BagReader
@@ -190,7 +190,7 @@ def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch
     assert ros2_shim.main(["launch", "neural_estimator", "nope.launch.py"]) == 1
     assert ros2_shim.main(["launch", "neural_estimator", "replay.launch.py", "bag=x"]) == 2
     assert "expected <name>:=<value>" in capsys.readouterr().err
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(random.SystemRandom().randint(200, 229)))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain()))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     out = tmp_path / "replay.mcap"
     bag = ROOT / "bags" / "bearings.mcap"
@@ -217,3 +217,22 @@ def test_graph_command_prints_the_pip_path_of_a_graph(capsys):
     assert len(lines) == 3 and "neural_estimator.nodes.player_node" in lines[-1] and "__node:=estimator_ekf" in lines[1]
     assert G.main(["replay"]) == 2 and "bag is required" in capsys.readouterr().err
     assert G.main(["live", "methods=ekf"]) == 2 and "expected name:=value" in capsys.readouterr().err
+
+
+def test_ros_domains_come_from_the_range_variable_then_ros_domain_id(monkeypatch):
+    """Tools pick NEURAL_ESTIMATOR_DOMAINS's range, else the user's ROS_DOMAIN_ID, else 100..199;
+    the tests pick from the same range (default 200..232), so one variable confines a whole run."""
+    from neural_estimator.nodes.launch import DomainError, pick_domain_id
+
+    monkeypatch.setenv("NEURAL_ESTIMATOR_DOMAINS", "40-42")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "17")
+    assert {pick_domain_id() for _ in range(30)} <= {40, 41, 42}
+    assert {fresh_domain() for _ in range(6)} <= {40, 41, 42}
+    monkeypatch.delenv("NEURAL_ESTIMATOR_DOMAINS")
+    assert pick_domain_id() == 17
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    assert 100 <= pick_domain_id() <= 199 and 200 <= fresh_domain() <= 232
+    for bad in ("40-300", "x", "9-3"):
+        monkeypatch.setenv("NEURAL_ESTIMATOR_DOMAINS", bad)
+        with pytest.raises(DomainError, match="NEURAL_ESTIMATOR_DOMAINS"):
+            pick_domain_id()

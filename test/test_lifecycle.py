@@ -4,14 +4,13 @@ subscribes and publishes, deactivate stops both; driven through lifecycle_msgs s
 
 from __future__ import annotations
 
-import random
 import signal
 import sys
 import time
 
 import numpy as np
 import pytest
-from ros_tester import Tester
+from ros_tester import Tester, fresh_domain
 
 from neural_estimator.bags import messages as M
 
@@ -32,7 +31,7 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
     from neural_estimator.nodes.launch import isolated_env, node_command, start_node
     from neural_estimator.scenarios import make_scenario
 
-    domain = random.SystemRandom().randint(200, 229)
+    domain = fresh_domain()
     env = isolated_env(domain)
     scen = make_scenario("bearings")
     data = simulate(scen, 1, 20, seed=2)

@@ -575,3 +575,13 @@ def test_degenerate_covariances_are_marked_not_overflowed():
     assert row.endswith("| degen. | degen. | 0.000 | 1.000 |") and "inf" not in row.split("|")[10]
     back = json.loads(json.dumps(to_json(r_all), allow_nan=False))
     assert back["nees_median"] is None and back["cov_degenerate"] == 1.0
+
+
+def test_a_single_set_prints_its_value_without_a_fake_spread():
+    """One evaluation set has no spread: "2.195", not "2.195±0.000"; several sets keep their IQR, 0 too."""
+    from neural_estimator.metrics.summary import Stat
+
+    one = format_table({"gru": {"rmse": Stat(2.195, 0.0, 1, 2.195)}}, fmt="text")
+    assert "2.195" in one and "±" not in one
+    three = format_table({"gru": {"rmse": Stat(2.195, 0.0, 3, 2.195)}}, fmt="text")
+    assert "2.195±0.000" in three

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import random
 import signal
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_tester import Tester
+from ros_tester import Tester, fresh_domain
 
 from neural_estimator.bags import BagReader, BagWarning, arrays_to_bag, bag_to_arrays
 from neural_estimator.bags import messages as M
@@ -110,17 +109,10 @@ def cart(plugin):
     return module.NodeCart()
 
 
-_used_domains: set[int] = set()
-
-
 @pytest.fixture
 def domain() -> int:
-    """A ROS domain of its own for each test (200..229: the launcher picks 100..199)."""
-    while True:
-        d = random.SystemRandom().randint(200, 229)
-        if d not in _used_domains:
-            _used_domains.add(d)
-            return d
+    """A ROS domain of its own for each test (ros_tester.fresh_domain: NEURAL_ESTIMATOR_DOMAINS or 200..232)."""
+    return fresh_domain()
 
 
 class Nodes:

@@ -14,6 +14,7 @@ from neural_estimator.models.onnx_step import export_step  # noqa: E402
 from neural_estimator.serving.onnx_runtime import OrtStep  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
+from ros_tester import fresh_domain  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -189,7 +190,7 @@ assert sys.modules.get("torch") is None
 print(type(est).__name__)
 """
     )
-    env = dict(os.environ, ROS_DOMAIN_ID=str(120 + os.getpid() % 60), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain()), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     out = subprocess.run([sys.executable, "-c", step_code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "OnnxEstimator"

@@ -7,7 +7,7 @@ import types
 
 import numpy as np
 import pytest
-from ros_tester import Tester
+from ros_tester import Tester, fresh_domain
 
 from neural_estimator.nodes import diagnostics as D
 from neural_estimator.nodes import outputs as O
@@ -283,6 +283,14 @@ def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_f
         est = {m: read(f"/estimates/{m}", M.JOINT_STATE) for m in methods}
         odom = {m: read(f"/estimates/{m}/odometry", "nav_msgs/msg/Odometry") for m in methods}
         state = {m: read(f"/estimates/{m}/state", "std_msgs/msg/Float64MultiArray") for m in methods}
+        truth = read("/ground_truth", M.JOINT_STATE)
+        truth_odom = read("/ground_truth/odometry", "nav_msgs/msg/Odometry")
+    # the simulator's truth as Odometry too (pose tools read it): same stamps, the true position, exact
+    assert len(truth_odom) == len(truth) == 30
+    for t, o in zip(truth, truth_odom):
+        assert (o.header.stamp.sec, o.header.stamp.nanosec) == (t.header.stamp.sec, t.header.stamp.nanosec)
+        assert (o.pose.pose.position.x, o.pose.pose.position.y) == (t.position[2], t.position[3])
+        assert o.pose.covariance[0] == 0.0 and o.twist.twist.linear.x == t.position[4]
     for m in methods:
         assert len(odom[m]) == len(state[m]) == len(est[m]) == 30
     covs = {m: np.array(odom[m][-1].pose.covariance).reshape(6, 6) for m in methods}
@@ -307,7 +315,6 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     equals the UKF restarted at the pose (velocities kept) and updated with that observation; a
     set_pose to a GRU node is refused in the log and the node goes on."""
     pytest.importorskip("rclpy")
-    import random
     import signal
     import sys
 
@@ -322,7 +329,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     from neural_estimator.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
-    domain = random.SystemRandom().randint(200, 229)
+    domain = fresh_domain()
     env = isolated_env(domain)
     procs = [
         start_node(

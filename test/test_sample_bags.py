@@ -89,5 +89,16 @@ def test_a_model_of_other_constants_is_refused_on_that_bag_in_one_line(scenario,
     out = tmp_path / "r.mcap"
     assert main(["replay", str(_bag_of(scenario, preset)), "--methods", method, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "other constants" in err and "--preset" in err
+    assert len(err.splitlines()) == 1 and "other constants" in err
+    # the advice leads somewhere: another bag or another model, not a --preset that would be refused
+    assert "--preset" not in err and "replay a bag recorded with the checkpoint's constants" in err
     assert not out.exists()
+    # naming the model's constants instead runs it on data of other constants only with --force
+    card = _card_preset(scenario, method)
+    named = ["--scenario", scenario, "--preset", card] if card not in (None, "custom") else []
+    if named:
+        args = ["replay", str(_bag_of(scenario, preset)), "--methods", method, "--out", str(out), *named]
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert "its data were made with other constants" in err and "--force" in err and not out.exists()
+        assert main(args + ["--force"]) == 0 and out.exists()

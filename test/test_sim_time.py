@@ -3,7 +3,6 @@ launch/robot_estimator.launch.py, started as `neural-estimator live` starts node
 
 from __future__ import annotations
 
-import random
 import signal
 import sys
 from pathlib import Path
@@ -17,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "examples" / "robot_spec.yaml"
 sys.path.insert(0, str(ROOT / "examples"))
 import robot_bag  # noqa: E402
+from ros_tester import fresh_domain  # noqa: E402
 
 pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 
@@ -61,7 +61,7 @@ def test_a_bag_replayed_at_4x_scores_within_one_percent_of_1x(tmp_path):
     model = tmp_path / "gru"
     args = ["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1"]
     assert main(args + ["--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--quiet"]) == 0
-    env = isolated_env(random.SystemRandom().randint(230, 232))
+    env = isolated_env(fresh_domain())
     scores, counts = {}, {}
     for rate in (1.0, 4.0):
         rec = _replay(bag, model, rate, tmp_path, env)

@@ -1,4 +1,6 @@
-"""A rosbag2 bag directory (``metadata.yaml`` + one or more ``.mcap`` files) read as one bag.
+"""A rosbag2 bag directory (``metadata.yaml`` + one or more ``.mcap`` files) read as one bag; and
+:func:`open_bag`, the one entry for a file or a directory of either storage (``.db3``, sqlite3:
+:mod:`neural_estimator.bags.sqlite`).
 
 ``ros2 bag record`` writes a directory, not a file: ``metadata.yaml`` lists the storage files
 (``relative_file_paths``) that split recording produced. :class:`BagDirectory` opens each file
@@ -20,16 +22,25 @@ from typing import Any
 
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.reader import BagDamage, BagReader, Connection
+from neural_estimator.bags.sqlite import SQLITE_SUFFIX, SqliteBag
 
 METADATA_FILE = "metadata.yaml"
 
 
 def bag_files(path: str | Path) -> list[Path]:
-    """The ``.mcap`` files of a rosbag2 directory, in recording order (``metadata.yaml``'s
-    ``relative_file_paths`` where it lists them, else the directory's ``*.mcap`` sorted by name)."""
+    """The storage files of a rosbag2 directory (``.mcap``, or ``.db3`` for sqlite3 storage), in
+    recording order (``metadata.yaml``'s ``relative_file_paths`` where it lists them, else the
+    directory's files of that storage sorted by name)."""
+    return bag_storage(path)[1]
+
+
+def bag_storage(path: str | Path) -> tuple[str, list[Path]]:
+    """``("mcap" | "sqlite3", files)`` of a rosbag2 directory (see :func:`bag_files`): the storage
+    ``metadata.yaml`` names, else the one whose files the directory holds."""
     root = Path(path)
     meta = root / METADATA_FILE
     listed: list[str] = []
+    storage = ""
     if meta.is_file():
         import yaml
 
@@ -47,28 +58,34 @@ def bag_files(path: str | Path) -> list[Path]:
         # a file list names files inside the directory: anything else is refused, never followed
         if not isinstance(listed, list) or not all(isinstance(f, str) and _plain_file_name(f) for f in listed):
             raise BagError(f"{meta}: relative_file_paths must list file names inside the bag directory")
-        storage = info.get("storage_identifier", "mcap")
-        if storage not in ("mcap", "", None):
+        storage = info.get("storage_identifier") or ""
+        if storage not in STORAGES:
             raise BagError(
-                f"{root}: storage {str(storage)[:40]!r} is not supported (only mcap; convert with "
-                f"`rosbags-convert` or `ros2 bag convert`)"
+                f"{root}: storage {str(storage)[:40]!r} is not supported (only {' and '.join(STORAGES)}; convert "
+                f"with `rosbags-convert` or `ros2 bag convert`)"
             )
+    if not storage:  # no metadata (or no storage named): the files say
+        storage = "sqlite3" if not any(root.glob("*.mcap")) and any(root.glob("*.db3")) else "mcap"
+    suffix = STORAGES[storage]
     bound = max_bag_files()
     if len(listed) > bound:
         raise BagError(
             f"{meta}: lists {len(listed)} files, over the bound of {bound} files open at once ({_BOUND_WHY})"
         )
-    files = [root / f for f in listed] if listed else sorted(root.glob("*.mcap"))
+    files = [root / f for f in listed] if listed else sorted(root.glob("*" + suffix))
     if len(files) > bound:
         raise BagError(
-            f"{root}: holds {len(files)} .mcap files, over the bound of {bound} files open at once ({_BOUND_WHY})"
+            f"{root}: holds {len(files)} {suffix} files, over the bound of {bound} files open at once ({_BOUND_WHY})"
         )
     if not files:
-        raise BagError(f"{root}: a directory without .mcap files (not a rosbag2 mcap bag)")
+        raise BagError(f"{root}: a directory without .mcap or .db3 files (not a rosbag2 bag)")
     missing = [str(f) for f in files if not _is_file(f)]
     if missing:
         raise BagError(f"{root}: {METADATA_FILE} lists missing file(s): {', '.join(missing)}")
-    return files
+    return storage, files
+
+
+STORAGES = {"mcap": ".mcap", "sqlite3": ".db3"}  # rosbag2 storage identifier -> its files' suffix
 
 
 MAX_BAG_FILES = 512
@@ -230,11 +247,15 @@ class BagDirectory:
         return self.parts[0].deserialize(raw, conn)
 
 
-def open_bag(path: str | Path, *, strict: bool = False) -> BagReader | BagDirectory:
-    """A reader (not yet opened: use ``with``) for a ``.mcap`` file or a rosbag2 directory."""
+def open_bag(path: str | Path, *, strict: bool = False) -> BagReader | BagDirectory | SqliteBag:
+    """A reader (not yet opened: use ``with``) for a ``.mcap`` file, a ``.db3`` file or a rosbag2
+    directory of either storage (sqlite3 through :mod:`neural_estimator.bags.sqlite`)."""
     p = Path(path)
     if p.is_dir():
-        return BagDirectory(p, strict=strict)
+        storage, files = bag_storage(p)
+        return SqliteBag(p, files) if storage == "sqlite3" else BagDirectory(p, strict=strict)
     if not p.exists():
         raise BagError(f"{p}: no such bag file or directory")
+    if p.suffix == SQLITE_SUFFIX:
+        return SqliteBag(p, [p])
     return BagReader(p, strict=strict)

@@ -276,21 +276,7 @@ class BagReader:
             raise BagError(f"{self.path}: reader is not open (use it as a context manager)")
 
     def _register(self, conn: Connection) -> None:
-        from rosbags.typesys import get_types_from_msg
-
-        types: dict[str, Any] = {}
-        name, text = conn.msgtype, conn.msgdef
-        for part in text.split("=" * 80 + "\n"):
-            if part.startswith("MSG: "):
-                head, _, body = part.partition("\n")
-                name, text = head[5:].strip(), body
-            else:
-                text = part
-            types.update(get_types_from_msg(text, name))
-        try:
-            TYPESTORE.register(types)
-        except Exception as exc:
-            raise BagError(f"{self.path}: cannot use the schema of {conn.msgtype}: {exc}") from None
+        register_schema(conn, self.path)
         self._registered.add(conn.msgtype)
 
     def _read(self, offset: int, n: int) -> bytes:
@@ -527,6 +513,26 @@ class BagReader:
             name, p = _string(rec, 0)
             meta, _ = _string_map(rec, p)
             self.metadata[name] = meta
+
+
+def register_schema(conn: Connection, where: str | Path) -> None:
+    """Register ``conn``'s message type, and the types its ros2msg schema embeds, in the type store
+    (types outside the Jazzy store: a bag's own messages). BagError names the bag otherwise."""
+    from rosbags.typesys import get_types_from_msg
+
+    types: dict[str, Any] = {}
+    name, text = conn.msgtype, conn.msgdef
+    try:
+        for part in text.split("=" * 80 + "\n"):
+            if part.startswith("MSG: "):
+                head, _, body = part.partition("\n")
+                name, text = head[5:].strip(), body
+            else:
+                text = part
+            types.update(get_types_from_msg(text, name))
+        TYPESTORE.register(types)
+    except Exception as exc:
+        raise BagError(f"{where}: cannot use the schema of {conn.msgtype}: {exc}") from None
 
 
 def _records(data: bytes) -> Iterator[tuple[int, memoryview]]:

@@ -186,6 +186,18 @@ def evaluate_bag(
     )
 
 
+STARTS_METADATA = "neural_estimator.starts"  # MCAP metadata record: {method: start mode} of the recorded filters
+
+
+def recorded_starts(path: str | Path) -> dict[str, str]:
+    """{method: "prior" | "observation" | "truth"} the evaluator recorded in a bag (empty when none)."""
+    from neural_estimator.bags.directory import open_bag
+
+    with open_bag(path) as reader:
+        record = dict(getattr(reader, "metadata", {}).get(STARTS_METADATA) or {})
+    return {m: v for m, v in record.items() if v in ("prior", "observation", "truth")}
+
+
 def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[str, Path]:
     """Write ``<prefix>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` (default: beside the bag)."""
     from neural_estimator.plots import plot_rmse_over_time

@@ -249,6 +249,7 @@ class BagWriter:
         self._start_ns: int | None = None
         self._end_ns = 0
         self._closed = False
+        self.metadata: dict[str, dict[str, str]] = {}  # MCAP metadata records written at close: {name: {key: value}}
 
     # ---- lifecycle ----------------------------------------------------------------------------
     def open(self) -> "BagWriter":
@@ -284,6 +285,8 @@ class BagWriter:
         assert self._writer is not None
         try:
             self._writer.add_metadata("rosbag2", {"serialized_metadata": self._bag_metadata()})
+            for name, record in self.metadata.items():
+                self._writer.add_metadata(name, {str(k): str(v) for k, v in record.items()})
             self._writer.finish()
             self._stream.flush()
             os.fsync(self._stream.fileno())

@@ -145,6 +145,10 @@ def _print_metrics(
         )
     else:
         starts = dict(starts or {})
+        if "bag" in truth.meta and not starts:  # the evaluator records how the filters started
+            from neural_estimator.bags.report import recorded_starts
+
+            starts = recorded_starts(files[0])
         for item in getattr(args, "start", None) or ():
             method, sep, mode = item.partition("=")
             if not sep or mode not in ("prior", "truth", "observation"):

@@ -72,6 +72,11 @@ def add_replay(sub) -> None:
         "(the state the first observation determines where h is invertible; Lorenz 96: x0 = y0)",
     )
     p.add_argument("--overwrite", action="store_true")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="run even when --scenario/--preset/--set name other constants than the bag's data were made with",
+    )
     p.add_argument("--metrics", action="store_true", help="print the metrics table of the output bag")
     warmup_flag(p)
     p.set_defaults(func=_cmd_replay)
@@ -107,6 +112,7 @@ def _cmd_replay(args) -> int:
         description=bag_description(args),
         order=args.order,
         threads=args.threads,
+        force=args.force,
     )
     print(
         f"wrote {res.path}: {res.observations} observations; "

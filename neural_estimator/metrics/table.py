@@ -120,8 +120,8 @@ def _cell(st: Stat, decimals: int, show_iqr: bool, nees: bool = False) -> str:
             return DEGENERATE
         return "inf" if st.median > 0 else "-inf"
     med = _number(st.median, decimals)
-    if not show_iqr or math.isnan(st.iqr):
-        return med
+    if not show_iqr or math.isnan(st.iqr) or (st.n == 1 and st.iqr == 0):
+        return med  # one value (a single evaluation set) has no spread: no fake "±0.000"
     iqr = "inf" if math.isinf(st.iqr) else _number(st.iqr, decimals)
     return f"{med}±{iqr}"
 

@@ -291,6 +291,14 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     A :class:`StartupError` while building the node is logged as one fatal line and gives exit
     status 1; otherwise the status is the node's :meth:`ExitStatusNode.on_shutdown`.
     """
+    import sys
+
+    from neural_estimator.nodes import entry
+
+    argv = list(sys.argv[1:] if args is None else args)
+    if name in entry.PARAMETERS and entry.wants_help(argv):
+        print(entry.help_text(name))
+        return 0
     dds_memory_policy()
     priority, bad_priority = 0, ""
     try:
@@ -299,6 +307,9 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         bad_priority = str(exc)  # reported as the start-up error once the logger exists
     applied, line = apply_realtime_priority(priority)  # before rclpy.init: the middleware's threads inherit it
     rclpy.init(args=args)
+    if name in entry.PARAMETERS:
+        for line in entry.unknown_parameters(name, argv):
+            rclpy.logging.get_logger(name).warning(line)
     try:
         if bad_priority:
             raise StartupError(bad_priority)
@@ -308,10 +319,20 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         rclpy.logging.get_logger(name).fatal(str(exc))
         rclpy.try_shutdown()
         return 1
-    if priority:
-        (node.get_logger().info if applied else node.get_logger().warning)(line)
-    settle_heap()
+    except KeyboardInterrupt:  # Ctrl-C while the node was still starting (loading a model): a clean stop
+        rclpy.try_shutdown()
+        return 0
+    except RCLError:
+        # SIGTERM during start-up: rclpy's handler shut the context down, and the node's next
+        # publisher or timer fails on the invalid context. The same clean stop; a real error is raised.
+        if rclpy.ok():
+            raise
+        rclpy.try_shutdown()
+        return 0
     try:
+        if priority:
+            (node.get_logger().info if applied else node.get_logger().warning)(line)
+        settle_heap()
         spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

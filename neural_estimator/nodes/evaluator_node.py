@@ -31,6 +31,7 @@ Parameters: ``params/evaluator.yaml``.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -377,6 +378,11 @@ class EvaluatorNode(ExitStatusNode):
         except Exception:
             pass
         total = sum(self.counts.values())
+        starts = dict(item.split("=", 1) for item in self.p.starts if "=" in item)
+        if starts:  # how the filters started, so that `metrics` on this bag marks them as this node does
+            from neural_estimator.bags.report import STARTS_METADATA
+
+            self.bag.metadata[STARTS_METADATA] = starts
         try:
             self.bag.close()
         except BagError as exc:
@@ -447,7 +453,6 @@ class EvaluatorNode(ExitStatusNode):
                 namespace=self.ns,
                 warmup=warmup,
                 length_name="spec_length (-p spec_length:=N)",
-                stamp="header" if self.sim_time else "log",  # on sim time, estimates carry the bag's clock
             )
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
@@ -460,7 +465,17 @@ class EvaluatorNode(ExitStatusNode):
         )
         md = Path(str(self.bag.path)).with_suffix(".metrics.md")
         md.write_text(M.format_reports(reports, fmt="markdown"))
-        self.get_logger().info(f"wrote {md}")
+        doc = {
+            "bag": str(self.bag.path),
+            "spec": self.p.spec,
+            "trajectories": truth.n,
+            "horizon": truth.horizon,
+            "warmup": warmup,
+            "methods": reports,
+        }
+        js = md.with_suffix(".json")  # <bag>.metrics.json, beside the table, as for a scenario's run
+        js.write_text(json.dumps(M.to_json(doc), indent=1, allow_nan=False))
+        self.get_logger().info(f"wrote {md}, {js}")
         return 0
 
     def on_shutdown(self) -> int:

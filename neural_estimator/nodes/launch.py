@@ -3,16 +3,17 @@
     neural-estimator live --scenario lorenz96 --methods ekf,ukf,gru \
         --trajectories 2 --output runs/l96.mcap
 
-Every process gets the same, otherwise unused ``ROS_DOMAIN_ID`` (random in 100..199 unless given)
-and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (unless set), so a run never meets another one on
-the machine. Start order: the evaluator, then one estimator node per method (``estimator_<method>``),
-then the simulator, told to wait for ``len(methods) + 1`` observation subscribers: it starts once
-everybody listens. The launcher then waits for the evaluator (which exits after writing the bag
-and the metrics), stops the estimators with SIGINT and reports. A node that dies early stops the
-run with its log in the error. This module does not import rclpy: nodes run as
-``python -m <module> --ros-args ...``. The nodes and their parameters come from
-:mod:`neural_estimator.nodes.graph`, the description ``ros2 launch neural_estimator
-live.launch.py`` starts too.
+Every process gets the same ``ROS_DOMAIN_ID`` (:func:`pick_domain_id`: ``--domain-id``, else one
+at random from the range ``NEURAL_ESTIMATOR_DOMAINS`` names, else the caller's ``ROS_DOMAIN_ID``,
+else one at random in 100..199) and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (unless set), so a
+run stays off other graphs on the machine. Start order: the evaluator, then one estimator node per
+method (``estimator_<method>``), then the simulator, told to wait for ``len(methods) + 1``
+observation subscribers: it starts once everybody listens. The launcher then waits for the
+evaluator (which exits after writing the bag and the metrics), stops the estimators with SIGINT
+and reports. A node that dies early stops the run with its log in the error. This module does
+not import rclpy: nodes run as ``python -m <module> --ros-args ...``. The nodes and their
+parameters come from :mod:`neural_estimator.nodes.graph`, the description ``ros2 launch
+neural_estimator live.launch.py`` starts too.
 """
 
 from __future__ import annotations
@@ -68,9 +69,42 @@ def node_command(python: str, module: str, name: str, params: dict[str, Any]) ->
     return command(python, NodeSpec(name, module, params))
 
 
-def pick_domain_id() -> int:
-    """A random ROS domain in 100..199 (Fast DDS ports stay below 65535 up to 232)."""
-    return random.SystemRandom().randint(100, 199)
+DOMAINS_VARIABLE = "NEURAL_ESTIMATOR_DOMAINS"  # LO-HI (or one id): the ROS domains this project may pick
+MAX_DOMAIN_ID = 232  # Fast DDS's ports stay below 65535 up to domain 232
+
+
+class DomainError(ValueError):
+    """A domain range or id that ROS cannot use; the message names the variable and the value."""
+
+
+def domain_range(default: tuple[int, int] = (100, 199)) -> tuple[int, int]:
+    """The inclusive range of ROS domains to pick from: ``NEURAL_ESTIMATOR_DOMAINS`` (``LO-HI`` or one
+    id) when set, else ``default``. Raises DomainError for a malformed range or one outside 0..232."""
+    text = os.environ.get(DOMAINS_VARIABLE, "").strip()
+    if not text:
+        return default
+    lo, sep, hi = text.partition("-")
+    try:
+        lo_i, hi_i = int(lo), int(hi if sep else lo)
+    except ValueError:
+        raise DomainError(f"{DOMAINS_VARIABLE}={text!r}: expected LO-HI (e.g. 40-49) or one domain id") from None
+    if not 0 <= lo_i <= hi_i <= MAX_DOMAIN_ID:
+        raise DomainError(f"{DOMAINS_VARIABLE}={text!r}: need 0 <= LO <= HI <= {MAX_DOMAIN_ID}")
+    return lo_i, hi_i
+
+
+def pick_domain_id(default: tuple[int, int] = (100, 199)) -> int:
+    """The ROS domain a run uses when none is given: one at random from ``NEURAL_ESTIMATOR_DOMAINS``
+    when that is set (a shared host's share of domains), else the caller's ``ROS_DOMAIN_ID`` when
+    set, else one at random from ``default``."""
+    if os.environ.get(DOMAINS_VARIABLE, "").strip():
+        return random.SystemRandom().randint(*domain_range(default))
+    own = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if own:
+        if not own.isdigit() or int(own) > MAX_DOMAIN_ID:
+            raise DomainError(f"ROS_DOMAIN_ID={own!r}: expected a domain id in 0..{MAX_DOMAIN_ID}")
+        return int(own)
+    return random.SystemRandom().randint(*default)
 
 
 def isolated_env(domain_id: int) -> dict[str, str]:
@@ -254,7 +288,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-covariance", action="store_true", help="do not publish covariances")
     p.add_argument("--output", default="", help="bag path (default runs/<scenario>-<date>-<time>.mcap)")
-    p.add_argument("--domain-id", type=int, default=None)
+    p.add_argument(
+        "--domain-id",
+        type=int,
+        default=None,
+        help=f"ROS domain of the run (default: one from {DOMAINS_VARIABLE}=LO-HI when set, else ROS_DOMAIN_ID "
+        "when set, else a random one in 100..199)",
+    )
     p.add_argument("--timeout", type=float, default=600.0)
     p.add_argument(
         "--realtime-priority",
@@ -329,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, terminate)
     try:
         res = run_pipeline(cfg, echo=True)
-    except PipelineError as exc:
+    except (PipelineError, DomainError) as exc:
         print(f"pipeline: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

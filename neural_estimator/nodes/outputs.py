@@ -402,12 +402,16 @@ class SetPose:
 
 
 OUTPUT_SUFFIXES = ("odometry", "pose", "state")
+TRUTH_ODOMETRY = "ground_truth/odometry"  # the simulator's truth as nav_msgs/Odometry (relative name)
 
 
 def is_output_topic(topic: str, namespace: str = "/") -> bool:
-    """True for ``<ns>/estimates/<method>/{odometry,pose,state}`` (what the evaluator records beside
-    the estimate and covariance streams, for viewers such as Foxglove; they are not scored)."""
+    """True for ``<ns>/estimates/<method>/{odometry,pose,state}`` and ``<ns>/ground_truth/odometry``
+    (what the evaluator records beside the scored streams, for viewers such as Foxglove and pose
+    tools such as evo; they are not scored)."""
     ns = "/" + namespace.strip("/")
+    if topic == ("" if ns == "/" else ns) + "/" + TRUTH_ODOMETRY:
+        return True
     prefix = ("" if ns == "/" else ns) + "/estimates/"
     if not topic.startswith(prefix):
         return False

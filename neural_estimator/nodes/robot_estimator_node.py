@@ -7,20 +7,16 @@ The checkpoint's card (``neural-estimator train --data``) carries the spec the m
 with (docs/robot.md). The node needs no scenario: it subscribes to the spec's
 observation and control topics with their own message types (found on the graph when a publisher
 appears, and checked as the evaluator checks foreign types: ``neural_estimator.interfaces``),
-reads the spec's fields from every message, and at every tick of the spec's rate (or on every
-message of its ``trigger`` topic) assembles the observation from each topic's latest message and
-steps the estimator once. A tick at which some topic has no message received within the spec's
-``max_age`` is skipped and counted (the model was trained on ticks with every input fresh).
-Live, ages are measured on receipt (the node's steady clock), since a recording's header stamps
-are of another clock when a bag is played without ``/clock``.
+reads the spec's fields from every message, and hands them to a
+:class:`~neural_estimator.robot.ticker.Ticker`: the dataset builder's ticks and sampling on the
+messages' own stamps (header stamps, or receipt times for a ``stamp: log`` spec), the model
+restarted where ``evaluate`` starts a trajectory (``restart_every``, the card's trajectory
+length by default). So a recording played into the node, at any speed, with or without
+``/clock``, gives the estimates ``neural-estimator evaluate`` scored on the dataset of that
+recording. Every estimate is stamped with its tick: the time, on the recording's (the sensors')
+clock, of the observation it answers.
 
-On sim time (``use_sim_time:=true``, a player with ``publish_clock:=true``: launch/robot_estimator.launch.py
-with ``bag:=``) the ticks are the multiples of dt of the recording's clock, each run once every input
-has delivered a message stamped after it (or the clock is ``sim_delay`` past it), on every input's
-latest message stamped (header, as the spec says) at or before the tick: the dataset builder's
-rule, so a bag played at 4x gives the estimates of 1x.
-
-Publishes ``estimates/<method>`` (sensor_msgs/JointState with the spec's state names, stamped at
+Publishes ``estimates/<method>`` (sensor_msgs/JointState with the spec's state names, stamped with
 the tick), the standard outputs of :mod:`neural_estimator.nodes.outputs` (Odometry or
 PoseWithCovarianceStamped when the state is named like a pose (x, y, yaw, ...), unknown components
 with variance 1e6; the state vector; optional /tf); ``/diagnostics`` every ``diagnostics_period`` s
@@ -32,12 +28,10 @@ is one fatal line at start-up (exit status 1).
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import sys
 import time
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -54,8 +48,9 @@ from neural_estimator.nodes.diagnostics import (
     status_message,
 )
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
-from neural_estimator.robot.dataset import topic_fields
 from neural_estimator.robot.spec import SpecError, topic_values
+from neural_estimator.robot.dataset import message_stamp
+from neural_estimator.robot.ticker import TickEstimate, Ticker
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     InterfaceError,
@@ -84,10 +79,15 @@ class RobotEstimatorParams:
     )
     discovery_period: float = param(0.2, "seconds between looks at the graph for the spec's topics")
     queue_depth: int = param(1000, "input subscriptions' depth (KEEP_LAST): messages buffered while busy")
-    sim_delay: float = param(
+    settle_delay: float = param(
         2.0,
-        "on sim time: a tick at T waits for a message stamped after T on every input, or for the clock to "
-        "reach T + sim_delay (s) when an input is silent",
+        "a tick at T waits for a message stamped at or after T on every input, or for some input's stamps "
+        "to reach T + settle_delay (s) when another is silent",
+    )
+    restart_every: int = param(
+        -1,
+        "restart the model every N valid ticks (and after a gap), as evaluate starts each trajectory: "
+        "-1 = the trajectory length of the model's training data (the card), 0 = never",
     )
     diagnostics_period: float = param(1.0, "seconds between /diagnostics messages")
     expected_rates: tuple[str, ...] = param(
@@ -115,32 +115,17 @@ class RobotEstimatorNode(ExitStatusNode):
         if p.input_qos not in ("sensor_data", "reliable"):
             raise StartupError(f"parameter input_qos must be sensor_data or reliable, got {p.input_qos!r}")
         self.scenario, self.spec, self.method, self.est = _load(p, card)
-        fields = topic_fields(self.spec)
-        inputs = [f.topic for name in ("observation", "control") for f in self.spec.vectors[name]]
-        if self.spec.trigger:
-            inputs.append(self.spec.trigger)
-        self.fields = {t: fields.get(t, ()) for t in dict.fromkeys(inputs)}  # topic -> its fields, in order
-        # each vector's components as (topic, column of that topic's values), resolved once, not per tick
-        self.columns = {
-            name: [(f.topic, self.fields[f.topic].index(f)) for f in self.spec.vectors[name]]
-            for name in ("observation", "control")
-        }
-        self.latest: dict[str, tuple[int, np.ndarray]] = {}  # topic -> (receipt time ns, values)
-        self.history: dict[str, collections.deque] = {}  # on sim time: topic -> (stamp ns, values) not yet used
+        if p.restart_every < -1:
+            raise StartupError(f"parameter restart_every must be -1, 0 or a number of ticks, got {p.restart_every}")
+        restart = self.scenario.config.horizon if p.restart_every == -1 else p.restart_every
+        self.ticker = Ticker(self.spec, self.est, restart, p.settle_delay)
+        self.fields = self.ticker.fields  # topic -> its fields, in order
         self.subs: dict[str, object] = {}
-        self.counts = {"ticks": 0, "estimates": 0, "stale": 0, "bad_messages": 0, "messages": 0}
+        self.counts = {"messages": 0, "bad_messages": 0}
         self._last_log: dict[str, float] = {}
         self._refused: set[str] = set()
-        self._u_prev = np.zeros((1, self.scenario.du))
-        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        # On sim time (a bag played with /clock), ticks follow the player's clock: at every tick time
-        # T_k = k * dt of the sim clock passed, so a bag played at any rate gives the same ticks.
-        self.sim_time = bool(self.get_parameter("use_sim_time").value)
-        self._clock = self.get_clock() if self.sim_time else self._steady
-        self._next_tick: int | None = None  # sim time [ns] of the next tick
         now = time.monotonic()
         self.monitors = {t: self.pd.monitor(t, now, rates.get(t)) for t in self.fields}
-        self.est.reset(1)
         out = p.output_topic or M.estimate_topic(self.method)
         self.pub_est = self.create_publisher(JointState, out, stream_qos(1000))
         try:
@@ -158,16 +143,15 @@ class RobotEstimatorNode(ExitStatusNode):
         except OutputError as exc:
             raise StartupError(str(exc)) from None
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_timer(p.discovery_period, self._discover, clock=self._steady)
-        self.create_timer(p.diagnostics_period, self._diagnostics, clock=self._steady)
-        if not self.spec.trigger and not self.sim_time:
-            self.create_timer(self.spec.dt, self._tick, clock=self._steady)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)  # not /clock: discovery runs before a player's clock
+        self.create_timer(p.discovery_period, self._discover, clock=steady)
+        self.create_timer(p.diagnostics_period, self._diagnostics, clock=steady)
         self.get_logger().info(
             f"{self.method} on recorded-data spec {self.spec.digest()[:12]}: {', '.join(self.fields)} -> '{out}'"
             + self.outputs.describe()
-            + f" at {self.spec.rate:g} Hz"
-            + (" of the sim clock (/clock)" if self.sim_time and not self.spec.trigger else "")
-            + (f" (on {self.spec.trigger})" if self.spec.trigger else "")
+            + (f" on each {self.spec.trigger} message" if self.spec.trigger else f" at {self.spec.rate:g} Hz")
+            + f" of the inputs' {'header stamps' if self.spec.stamp == 'header' else 'receipt times'}"
+            + (f", restarted every {restart} ticks" if restart else "")
         )
         self._discover()
 
@@ -208,80 +192,19 @@ class RobotEstimatorNode(ExitStatusNode):
             self.counts["bad_messages"] += 1
             self._warn(f"field:{topic}", str(exc))
             return
-        now = self._clock.now().nanoseconds
-        self.latest[topic] = (now, values)
-        if self.sim_time and not self.spec.trigger:
-            header = getattr(msg, "header", None)
-            stamp = now
-            if self.spec.stamp == "header" and header is not None:
-                stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-            self.history.setdefault(topic, collections.deque(maxlen=10_000)).append((stamp, values))
-            self._sim_ticks()
-        elif self.spec.trigger == topic:
-            self._tick()
+        receipt = self.get_clock().now().nanoseconds  # ROS time: the player's /clock on sim time
+        for e in self.ticker.push(topic, message_stamp(msg, receipt, self.spec), values):
+            self._publish(e)
 
     # ---- one estimate per tick ------------------------------------------------------------------------
-    def _sim_ticks(self) -> None:
-        """Run every tick T of the sim-time grid (multiples of dt) that is settled, on each input's latest
-        message stamped at or before T (the dataset builder's rule). T is settled when every input has
-        delivered a message stamped after T (messages of one topic arrive in order), or when the sim
-        clock is ``sim_delay`` past T (an input that went silent). Neither depends on the playback rate,
-        so a bag played at 4x gives the ticks and inputs of 1x."""
-        period = int(round(self.spec.dt * 1e9))
-        if self._next_tick is None:
-            first = min(q[0][0] for q in self.history.values())
-            self._next_tick = -(-first // period) * period
-        marks = [self.history[t][-1][0] if self.history.get(t) else None for t in self.fields]
-        settled = min(marks) if None not in marks else -1
-        clock = self.get_clock().now().nanoseconds - int(self.p.sim_delay * 1e9)
-        until = max(settled, clock)
-        if (until - self._next_tick) // period > 100_000:  # a jump of the clock: no input at those ticks
-            skipped = (until - self._next_tick) // period
-            self.counts["ticks"] += int(skipped)
-            self.counts["stale"] += int(skipped)
-            self._next_tick += int(skipped) * period
-        while self._next_tick <= until:
-            self._tick(self._next_tick)
-            self._next_tick += period
-
-    def _at(self, tick: int) -> dict[str, tuple[int, np.ndarray]]:
-        """{topic: (stamp, values)} of each input's latest message stamped at or before ``tick``;
-        older messages that no later tick can use are dropped."""
-        out = {}
-        for topic, queue in self.history.items():
-            while len(queue) > 1 and queue[1][0] <= tick:
-                queue.popleft()
-            if queue and queue[0][0] <= tick:
-                out[topic] = queue[0]
-        return out
-
-    def _tick(self, stamp: int | None = None) -> None:
-        self.counts["ticks"] += 1
-        now = self._clock.now().nanoseconds if stamp is None else stamp
-        latest = self._at(stamp) if self.sim_time and stamp is not None else self.latest
-        max_age = int(self.spec.max_age * 1e9)
-        if any(t not in latest or now - latest[t][0] > max_age for t in self.fields):
-            self.counts["stale"] += 1
-            return
-        y, u = self._vector("observation", latest), self._vector("control", latest)
-        if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
-            self.counts["stale"] += 1
-            return
-        x = np.asarray(self.est.step(y[None], self._u_prev), dtype=np.float64)[0]
-        self._u_prev = u[None]
-        self.counts["estimates"] += 1
-        stamp = self.get_clock().now().nanoseconds if stamp is None else stamp
+    def _publish(self, e: TickEstimate) -> None:
         msg = JointState()
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(e.stamp, 1_000_000_000)
         msg.header.frame_id = self.p.frame_id
         msg.name = list(self.scenario.state_names)
-        msg.position = x.tolist()
+        msg.position = e.x.tolist()
         self.pub_est.publish(msg)
-        cov = self.est.covariance
-        self.outputs.publish(stamp, x, None if cov is None else cov[0])
-
-    def _vector(self, name: str, latest: dict[str, tuple[int, np.ndarray]]) -> np.ndarray:
-        return np.array([latest[topic][1][col] for topic, col in self.columns[name]], dtype=np.float64)
+        self.outputs.publish(e.stamp, e.x, e.cov)
 
     # ---- reporting ------------------------------------------------------------------------------------
     def _warn(self, kind: str, text: str) -> None:
@@ -302,7 +225,8 @@ class RobotEstimatorNode(ExitStatusNode):
         )
         status.level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[level]
         status.message = "running" if message == "ok" else message
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
+        counts = {**self.ticker.counts, **self.counts}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [status] + [status_message(st, status.name, hwid, DiagnosticStatus, KeyValue) for st in inputs]
@@ -317,6 +241,7 @@ def _load(p: RobotEstimatorParams, read=None):
     from neural_estimator.registry import EstimatorError, make_estimator
     from neural_estimator.serving.card import resolve_checkpoint
     from neural_estimator.robot import DataScenario, SpecError, load_spec
+    from neural_estimator.robot.spec import topic_order_lost
     from neural_estimator.scenarios import ScenarioError
 
     if not p.checkpoint:
@@ -332,6 +257,11 @@ def _load(p: RobotEstimatorParams, read=None):
             raise StartupError(
                 f"checkpoint {p.checkpoint}: trained on scenario {desc.get('scenario')!r}, not on recorded "
                 "data with a spec; serve it with the estimator node"
+            )
+        if topic_order_lost(desc["spec"]):
+            raise StartupError(
+                f"checkpoint {p.checkpoint}: its card's spec does not keep the order of the input topics "
+                "(a card written before the order was recorded): retrain the model (neural-estimator train --data)"
             )
         scenario = DataScenario.from_description(desc)
         spec = load_spec(desc["spec"])

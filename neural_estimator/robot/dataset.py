@@ -80,6 +80,15 @@ def topic_fields(spec: Spec) -> dict[str, tuple[Field, ...]]:
     return {t: tuple(fs) for t, fs in out.items()}
 
 
+def message_stamp(msg, t_log: int, spec: Spec) -> int:
+    """A message's time [ns]: its ``header.stamp`` where it has one and the spec says ``stamp: header``,
+    else ``t_log`` (its log time; live, its receipt time)."""
+    header = getattr(msg, "header", None)
+    if spec.stamp == "header" and header is not None and hasattr(header, "stamp"):
+        return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return int(t_log)
+
+
 def read_streams(bag_path: str | Path, spec: Spec) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, int]]:
     """Per topic of the spec (and its trigger): (stamps_ns (M,) sorted, values (M, k)); message counts.
 
@@ -95,10 +104,7 @@ def read_streams(bag_path: str | Path, spec: Spec) -> tuple[dict[str, tuple[np.n
             have = ", ".join(sorted(bag.topics)) or "none"
             raise SpecError(f"{bag_path}: no topic {', '.join(missing)} in this bag (it has: {have})")
         for conn, t_log, msg in bag.decoded(wanted):
-            stamp = t_log
-            header = getattr(msg, "header", None)
-            if spec.stamp == "header" and header is not None and hasattr(header, "stamp"):
-                stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+            stamp = message_stamp(msg, t_log, spec)
             values = topic_values(msg, fields.get(conn.topic, ()), conn.msgtype)
             rows[conn.topic].append((stamp, values))
     streams, counts = {}, {}
@@ -114,21 +120,25 @@ def read_streams(bag_path: str | Path, spec: Spec) -> tuple[dict[str, tuple[np.n
 
 
 def tick_times(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec) -> np.ndarray:
-    """The sample times [ns]: the trigger topic's stamps, or a fixed rate over the common span."""
+    """The sample times [ns]: the trigger topic's stamps, or the multiples of the period (``dt``
+    rounded to a nanosecond) over the common span. Multiples of the period, not offsets from the
+    first message: the robot estimator node ticks on the same grid live
+    (:mod:`~neural_estimator.robot.ticker`), whenever it starts."""
     if spec.trigger:
         return streams[spec.trigger][0]
+    step = int(round(spec.dt * 1e9))
     start = max(int(s[0]) for s, _ in streams.values())
+    start = -(-start // step) * step  # the first multiple of the period in the span
     stop = min(int(s[-1]) for s, _ in streams.values())
     if stop < start:
         return np.zeros(0, dtype=np.int64)
-    step = spec.dt * 1e9
-    n = int(np.floor((stop - start) / step)) + 1
+    n = (stop - start) // step + 1
     if n > MAX_TICKS:
         raise SpecError(
             f"{(stop - start) / 1e9:.1f} s at {spec.rate:g} Hz is {n} samples, "
             f"over the bound of {MAX_TICKS} (MAX_TICKS)"
         )
-    return start + np.round(np.arange(n) * step).astype(np.int64)
+    return start + np.arange(n, dtype=np.int64) * step
 
 
 def sample(

@@ -1,11 +1,13 @@
 """Score a recorded live run of recorded-data estimators against the spec's ground truth.
 
 The evaluator node records the robot's topics and every ``estimates/<method>`` stream (JointState,
-the spec's state names, stamped on the estimator's clock). Scoring reads that bag through the
-spec: the state from the spec's ground-truth fields, each estimate stream mapped onto the state by
-``position[i]`` (angle components wrapped), all sampled at the spec's rate by log time (the one
-clock every recorded stream shares), cut into trajectories of ``length`` steps, and the paper's
-metrics computed per method.
+the spec's state names, stamped by the robot estimator with the tick it answers, on the inputs'
+clock: :mod:`~neural_estimator.robot.ticker`). Scoring reads that bag through the spec: the state
+from the spec's ground-truth fields, each estimate stream mapped onto the state by ``position[i]``
+(angle components wrapped), all sampled at the spec's ticks by the spec's own ``stamp`` rule
+(header stamps, or log times for ``stamp: log``), cut into trajectories of ``length`` steps, and
+the paper's metrics computed per method: the dataset builder's sampling, so a live run scores the
+trajectories ``neural-estimator evaluate`` scored on the recording's dataset.
 """
 
 from __future__ import annotations
@@ -22,11 +24,10 @@ ESTIMATES_PREFIX = "estimates/"
 
 
 def scoring_spec(
-    spec: Spec, topics: list[str], namespace: str = "/", stamp: str = "log"
+    spec: Spec, topics: list[str], namespace: str = "/", stamp: str | None = None
 ) -> tuple[Spec, dict[str, str]]:
     """A spec that reads the ground truth of ``spec`` and every estimate topic among ``topics``,
-    sampled by log time (``stamp="log"``) or by header stamps (``"header"``: a run on sim time,
-    where the estimates are stamped on the recording's clock).
+    sampled by the spec's stamp rule (``stamp`` None) or by ``"header"`` stamps or ``"log"`` times.
 
     Returns the spec and {method: topic}.
     """
@@ -50,7 +51,7 @@ def scoring_spec(
     raw = {
         "rate": spec.rate,
         "max_age": spec.max_age,
-        "stamp": stamp,
+        "stamp": stamp or spec.stamp,
         "observation": state,  # unused by the scoring; the builder wants one
         "state": state,
         "estimates": {m: {topic: fields} for m, topic in methods.items()},
@@ -67,13 +68,12 @@ def score_recording(
     namespace: str = "/",
     warmup: int = M.EVALUATION_WARMUP,
     length_name: str = "--length",
-    stamp: str = "log",
+    stamp: str | None = None,
 ) -> tuple[dict[str, Any], Any]:
     """({method: MetricReport}, the truth Trajectories) of every estimate stream of a recorded run,
     against the spec's ground truth; the first ``warmup`` steps of every trajectory are not scored.
     ``length_name`` is how the caller's user sets ``length`` (a CLI flag, a node parameter), for the
-    error when no trajectory that long can be cut. ``stamp``: "log" (receipt times, one clock for
-    every stream) or "header" (a run on sim time)."""
+    error when no trajectory that long can be cut. ``stamp``: None (the spec's rule), "header" or "log"."""
     spec = spec if isinstance(spec, Spec) else load_spec(spec)
     with open_bag(bag) as reader:
         topics = list(reader.topics)

@@ -186,10 +186,11 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
             if name != "control":
                 raise SpecError(f"{where}: missing {name!r} (a mapping topic: [fields])")
             entry = {}
-        if not isinstance(entry, Mapping):
+        pairs = _topic_pairs(entry)
+        if pairs is None:
             raise SpecError(f"{where}: {name!r} must map topics to lists of fields, got {type(entry).__name__}")
         fields = []
-        for topic, exprs in entry.items():
+        for topic, exprs in pairs:
             if not isinstance(topic, str) or not _TOPIC.fullmatch(topic):
                 raise SpecError(f"{where}: {name}: {topic!r} is not a topic name")
             if isinstance(exprs, str):
@@ -210,11 +211,39 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
     names = _labels(raw.get("names"), "names", vectors, where, default=lambda f: f.expr)
     units = _labels(raw.get("units"), "units", vectors, where, default=lambda f: "rad" if f.is_angle else "")
     source = {k: raw[k] for k in sorted(raw)}
+    # the vectors as [topic, fields] pairs: datasets and cards store the spec as JSON with sorted keys,
+    # which would lose the order of the topics (the order of the model's inputs); the digest covers it
+    for name in VECTORS:
+        if name in source and source[name] is not None:
+            source[name] = _pairs_source(source[name])
+    if estimates:
+        source["estimates"] = {k: _pairs_source(v) for k, v in estimates.items()}
     try:
         json.dumps(source)
     except (TypeError, ValueError):
         raise SpecError(f"{where}: holds values that are not plain text, numbers or lists") from None
     return Spec(rate, max_age, trigger, stamp, vectors, names, units, source)
+
+
+def _topic_pairs(entry: Any) -> list[tuple[Any, Any]] | None:
+    """A vector's (topic, fields) pairs in order: from a mapping (YAML) or from a list of
+    ``[topic, fields]`` pairs (the form datasets and cards record); None for anything else."""
+    if isinstance(entry, Mapping):
+        return list(entry.items())
+    if isinstance(entry, list) and all(isinstance(p, (list, tuple)) and len(p) == 2 for p in entry):
+        return [(p[0], p[1]) for p in entry]
+    return None
+
+
+def topic_order_lost(source: Mapping[str, Any]) -> bool:
+    """Whether a recorded spec (a card's or a dataset's) keeps its inputs' topics as a mapping of more
+    than one topic: recorded before the spec kept their order (JSON with sorted keys reorders a
+    mapping), so the model's input order cannot be told from it."""
+    return any(isinstance(source.get(v), Mapping) and len(source[v]) > 1 for v in ("observation", "control"))
+
+
+def _pairs_source(entry: Any) -> list[list[Any]]:
+    return [[topic, exprs if isinstance(exprs, list) else [exprs]] for topic, exprs in _topic_pairs(entry)]
 
 
 def _positive(value: Any, key: str, where: str) -> float:

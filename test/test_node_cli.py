@@ -1,0 +1,142 @@
+"""The node executables as commands: ``--help`` prints the parameters without starting the node, a
+misspelt parameter is one warning with "did you mean", and a node stopped while it starts (Ctrl-C
+or SIGTERM while a model loads) exits 0 without a traceback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from ros_tester import fresh_domain
+
+pytestmark = pytest.mark.ros
+ROOT = Path(__file__).resolve().parents[1]
+NODES = ("simulator", "estimator", "evaluator", "player", "robot_estimator", "lifecycle_estimator")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("node", NODES)
+def test_help_prints_every_parameter_and_starts_nothing(node):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.entry import NODES as MODULES
+    from neural_estimator.nodes.entry import parameter_fields
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run(
+        [sys.executable, "-m", MODULES[node], "--help"], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"usage: ros2 run neural_estimator {node} --ros-args")
+    for f in parameter_fields(node):
+        assert f"\n  {f.name} (" in out.stdout, f.name
+    assert "[INFO]" not in out.stdout + out.stderr  # no node came up
+
+
+@pytest.mark.parametrize("node", NODES)
+def test_the_shipped_params_files_hold_only_known_parameters(node):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.entry import unknown_parameters
+
+    path = ROOT / "params" / f"{'estimator' if node == 'lifecycle_estimator' else node}.yaml"
+    assert unknown_parameters(node, ["--ros-args", "--params-file", str(path)]) == []
+
+
+def test_a_misspelt_parameter_is_one_warning_with_the_closest_name(tmp_path):
+    pytest.importorskip("rclpy")
+    from neural_estimator.nodes.entry import unknown_parameters
+
+    args = ["--ros-args", "-r", "__node:=est", "-p", "methd:=ukf", "-p", "method:=ukf", "-p", "use_sim_time:=true"]
+    assert unknown_parameters("estimator", args) == ["unknown parameter 'methd' (ignored); did you mean 'method'?"]
+    params = tmp_path / "p.yaml"
+    params.write_text("est:\n  ros__parameters:\n    rate_hzz: 3\nother:\n  ros__parameters:\n    zzz: 1\n")
+    got = unknown_parameters("simulator", ["--ros-args", "-r", "__node:=est", "--params-file", str(params)])
+    assert got == ["unknown parameter 'rate_hzz' (ignored); did you mean 'rate_hz'?"]  # not the other node's
+    assert unknown_parameters("player", ["--ros-args", "-p", "qqqq:=1"]) == ["unknown parameter 'qqqq' (ignored)"]
+
+
+def test_run_node_stops_cleanly_when_interrupted_during_start_up(monkeypatch):
+    pytest.importorskip("rclpy")
+    import rclpy
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.node import Node
+
+    from neural_estimator.nodes.common import run_node
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain()))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+    def interrupted():  # Ctrl-C while loading: KeyboardInterrupt out of the node's constructor
+        raise KeyboardInterrupt
+
+    assert run_node(interrupted, "x", []) == 0
+
+    def terminated():  # SIGTERM while loading: rclpy shut the context down, the next publisher fails
+        from std_msgs.msg import String
+
+        node = Node("x")
+        rclpy.shutdown()
+        node.create_publisher(String, "y", 1)
+        return node
+
+    assert run_node(terminated, "x", []) == 0
+    assert not rclpy.ok()
+
+    def broken():  # a real error while the context is valid is not hidden
+        raise RCLError("boom")
+
+    with pytest.raises(RCLError, match="boom"):
+        run_node(broken, "x", [])
+    rclpy.try_shutdown()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_the_robot_estimator_exits_0_on_a_signal_while_loading_and_while_running(sig, tmp_path):
+    """Signals at both times: during the model load (the node's log has not said it runs) and after."""
+    pytest.importorskip("rclpy")
+    from neural_estimator.cli import main
+    from neural_estimator.nodes.launch import isolated_env, node_command
+
+    root = ROOT
+    sys.path.insert(0, str(root / "examples"))
+    import robot_bag
+
+    bag = robot_bag.write_bag(tmp_path / "bag", runs=1, seconds=8.0, seed=4)
+    data = tmp_path / "data.npz"
+    spec = root / "examples" / "robot_spec.yaml"
+    assert main(["dataset", str(bag), "--spec", str(spec), "--length", "30", "--out", str(data), "--quiet"]) == 0
+    model = tmp_path / "gru"
+    args = ["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1", "--quiet"]
+    assert main(args + ["--windows-per-epoch", "8", "--window", "10", "--warmup", "2", "--val-fraction", "0.5"]) == 0
+    env = isolated_env(fresh_domain())
+    cmd = node_command(sys.executable, "neural_estimator.nodes.robot_estimator_node", "est", {"checkpoint": str(model)})
+    for wait_for_start in (False, True):
+        log = tmp_path / f"est-{wait_for_start}.log"
+        with open(log, "w") as fh:
+            proc = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 60
+        # loading: once the node module is imported (rclpy is up), before the model is ready
+        want = "recorded-data spec" if wait_for_start else None
+        while time.monotonic() < deadline and proc.poll() is None:
+            text = log.read_text()
+            if want is None and os.path.exists(f"/proc/{proc.pid}") and _imported_torch(proc.pid):
+                break
+            if want is not None and want in text:
+                break
+            time.sleep(0.02)
+        proc.send_signal(sig)
+        assert proc.wait(timeout=30) == 0, log.read_text()
+        assert "Traceback" not in log.read_text() and "FATAL" not in log.read_text(), log.read_text()
+
+
+def _imported_torch(pid: int) -> bool:
+    """Whether the process has mapped torch's library (it is loading the model)."""
+    try:
+        return "libtorch" in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
