@@ -7,6 +7,7 @@ node's own per-message code, so a replay gives the estimates a live node would h
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -17,7 +18,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, parse_qos_yaml
-from neural_estimator.registry import make_estimator
+from neural_estimator.registry import make_estimator, per_message_options
 
 from neural_estimator.online import (
     DEFAULT_MAX_GAP,
@@ -116,7 +117,6 @@ def replay(
     if desc is None:
         raise BagError(f"{bag_in}: no message on {scen_topic}: name the scenario (--scenario NAME [--set ...])")
     scenario = scenario_from_description(desc)
-    set_torch_threads(methods, threads)
 
     # The observations in recorded order (as a live node receives them), or by in-band identity.
     observations = []
@@ -141,9 +141,16 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        est = make_estimator(
-            method, scenario, checkpoint=ckpt, device=device, seed=seed, **dict((options or {}).get(method, {}))
+        est = make_estimator(  # the live node's backend (per_message_options), so replay == live
+            method,
+            scenario,
+            checkpoint=ckpt,
+            device=device,
+            seed=seed,
+            **per_message_options(method, dict((options or {}).get(method, {}))),
         )
+        if "torch" in sys.modules:  # not imported where step.onnx serves the model
+            set_torch_threads([method], threads)
         online = OnlineEstimator(
             est,
             method,
