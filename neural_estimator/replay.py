@@ -141,14 +141,8 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        est = make_estimator(  # the live node's backend (per_message_options), so replay == live
-            method,
-            scenario,
-            checkpoint=ckpt,
-            device=device,
-            seed=seed,
-            **per_message_options(method, dict((options or {}).get(method, {}))),
-        )
+        options_of = per_message_options(method, dict((options or {}).get(method, {})))  # the live node's backend
+        est = make_estimator(method, scenario, checkpoint=ckpt, device=device, seed=seed, **options_of)
         if "torch" in sys.modules:  # not imported where step.onnx serves the model
             set_torch_threads([method], threads)
         online = OnlineEstimator(

@@ -31,7 +31,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neural_estimator.estimator import EstimatorError  # noqa: E402
-from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_beside, export_step  # noqa: E402
+from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
+from neural_estimator.serving.export import export_beside  # noqa: E402
 from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
 from neural_estimator.serving.card import default_checkpoint  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402

@@ -50,7 +50,7 @@ What :func:`train` does, in order:
 8. The best model is rebuilt from its checkpoint and, if ``eval_trajectories`` > 0, measured on
    evaluation set 0 with :func:`neural_estimator.metrics.compute_metrics`; the card is completed,
    and its batch-1 step is exported beside it as ``step.onnx``
-   (:func:`neural_estimator.models.onnx_step.export_beside`), which the estimator nodes serve without torch.
+   (:func:`neural_estimator.serving.export.export_beside`), which the estimator nodes serve without torch.
 
 Randomness: ``init_seed`` fixes the initial weights and dropout (torch's global RNG) and the window
 draws (a numpy Generator); the data depend on ``data_seed`` and ``data_index`` only. On CPU two runs
@@ -78,7 +78,8 @@ from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
-from neural_estimator.models.onnx_step import OnnxError, export_beside
+from neural_estimator.models.onnx_step import OnnxError
+from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.checkpoint import load_checkpoint, save_checkpoint
 from neural_estimator.serving.context import bounded_forward
 from neural_estimator.serving.neural import NeuralEstimator, resolve_device
