@@ -143,7 +143,7 @@ def replay(
         ckpt = (checkpoints or {}).get(method)
         options_of = per_message_options(method, dict((options or {}).get(method, {})))  # the live node's backend
         est = make_estimator(method, scenario, checkpoint=ckpt, device=device, seed=seed, **options_of)
-        if "torch" in sys.modules:  # not imported where step.onnx serves the model
+        if sys.modules.get("torch") is not None:  # not imported where step.onnx serves the model
             set_torch_threads([method], threads)
         online = OnlineEstimator(
             est,

@@ -211,3 +211,31 @@ def test_the_design_card_command_serves_without_torch(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+_REPLAY = """
+from neural_estimator.replay import replay
+res = replay({bag!r}, ["mamba"], {out!r})
+assert "torch" not in sys.modules or sys.modules["torch"] is None
+print(res.estimates["mamba"])
+"""
+
+
+@pytest.mark.slow
+def test_replay_serves_as_the_live_node_without_torch(tmp_path):
+    """Replay takes the live node's default (step.onnx, no torch): it runs where torch cannot be
+    imported, and its estimates equal the torch backend's replay of the same bag within 1e-5."""
+    from neural_estimator.bags import bag_to_arrays
+    from neural_estimator.replay import replay
+
+    bag = Path(__file__).resolve().parents[1] / "bags" / "lorenz96.mcap"
+    out = tmp_path / "ort.mcap"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    code = _NO_TORCH + _REPLAY.format(bag=str(bag), out=str(out))
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert int(run.stdout.strip().splitlines()[-1]) > 0
+    ref = replay(bag, ["mamba"], tmp_path / "torch.mcap", options={"mamba": {"backend": "torch"}})
+    a, b = bag_to_arrays(out), bag_to_arrays(ref.path)
+    assert a.x_hat["mamba"].shape == b.x_hat["mamba"].shape
+    np.testing.assert_allclose(a.x_hat["mamba"], b.x_hat["mamba"], rtol=1e-5, atol=1e-5)
