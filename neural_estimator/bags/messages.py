@@ -317,11 +317,12 @@ class VectorCodec:
 
     def decode_values(self, raw: bytes | memoryview) -> tuple[int, int, int, np.ndarray] | None:
         """(stamp_ns, trajectory, step, values) of a message of exactly this stream's names, with
-        ``values`` (n,) a read-only view of ``raw``'s bytes (no copy, no other object made: the
-        per-message path of the estimator node); None for anything else, which :meth:`decode`
+        ``values`` (n,) float64 (its own aligned, writable copy: the message's bytes put them at an
+        address that is not a multiple of 8); nothing else is made (no Vector, no frame_id string:
+        the per-message path of the estimator node). None for anything else, which :meth:`decode`
         then decodes or refuses with its clear error."""
         if type(raw) is not bytes:
-            raw = bytes(raw)  # a view of a buffer that may be reused: the values must own their bytes
+            raw = bytes(raw)
         if len(raw) > self.max_bytes or not raw.startswith(self._ENCAPSULATION):
             return None
         try:
@@ -341,7 +342,7 @@ class VectorCodec:
         traj, step = float(position[0]), float(position[1])
         if not (0 <= traj < _MAX_INDEX and 0 <= step < _MAX_INDEX and traj == int(traj) and step == int(step)):
             return None  # NaN fails the range test too
-        return sec * 1_000_000_000 + nsec, int(traj), int(step), position[2:]
+        return sec * 1_000_000_000 + nsec, int(traj), int(step), position[2:].copy()
 
     def decode(self, raw: bytes | memoryview) -> Vector:
         n_raw = len(raw)
