@@ -295,7 +295,7 @@ class OnlineEstimator:
         return out
 
     def _decode(self, raw: bytes | memoryview) -> _Obs:
-        fast = self._obs_codec.decode_values(raw)  # this stream's exact layout: no copy, no Vector
+        fast = self._obs_codec.decode_values(raw)  # this stream's exact layout: no Vector, no name check
         if fast is None:  # anything else: the full decoding, its checks and their one-line errors
             vec = self._obs_codec.decode(raw)
             fast = vec.stamp_ns, vec.trajectory, vec.step, M.check_labels(vec, self._obs_labels, "observation")
