@@ -29,6 +29,7 @@ setup(
         "neural_estimator": [
             "zoo/*/*.safetensors",
             "zoo/*/*.json",
+            "zoo/*/*.onnx",
             "zoo/instances/*/*/*.safetensors",
             "zoo/instances/*/*/*.json",
             "paper/paper_results.json",
@@ -58,6 +59,9 @@ setup(
         "mcap>=1.2",
         "PyYAML>=6",
         "zstandard>=0.21",
+        # the per-message serving backend (step.onnx beside the card, no torch) and its export at `train`
+        "onnxruntime>=1.20",
+        "onnx>=1.16",
     ],
     extras_require={
         # the nodes: from the ROS 2 install on a ROS machine, or these wheels in a plain venv
@@ -73,8 +77,6 @@ setup(
             "ros-jazzy-ament-index-python",
         ],
         "reproduce": ["ray==2.60.0"],
-        # ONNX Runtime serving of the recurrent models' steps (backend=onnxruntime); onnx exports them
-        "onnx": ["onnxruntime>=1.20", "onnx>=1.16"],
         "reference": ["filterpy>=2.0.0", "dapper==1.7.1"],  # the filters' independent references
         "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5"],
         "test": [
@@ -87,8 +89,6 @@ setup(
             "ray==2.60.0",
             "mkdocs>=1.6",
             "mkdocs-material>=9.5",
-            "onnxruntime>=1.20",
-            "onnx>=1.16",
         ],
     },
     zip_safe=False,

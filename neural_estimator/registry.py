@@ -41,6 +41,22 @@ CLASSICAL_FILTERS: dict[str, type[Estimator]] = {
 assert tuple(CLASSICAL_FILTERS) == CLASSICAL_METHODS
 
 
+PER_MESSAGE_BACKEND = "auto"  # a neural model stepped one message at a time: step.onnx without torch where shipped
+
+
+def per_message_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` of an estimator stepped one message at a time (the estimator nodes, replay): a
+    neural method's backend defaults to ``auto``, ONNX Runtime over the checkpoint's ``step.onnx``
+    (no torch in the process) where it serves the request, torch otherwise
+    (:func:`~neural_estimator.serving.load.per_message_backend`). Batched evaluation and training
+    keep torch (``make_estimator``'s own default). The live node and replay share this default, so
+    replay gives the live node's estimates."""
+    options = dict(options)
+    if check_method(method) in NEURAL_METHODS:
+        options.setdefault("backend", PER_MESSAGE_BACKEND)
+    return options
+
+
 def make_estimator(
     method: str,
     scenario: Scenario,

@@ -7,6 +7,7 @@ node's own per-message code, so a replay gives the estimates a live node would h
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -19,7 +20,7 @@ from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
 from neural_estimator.estimator import EstimatorError
-from neural_estimator.registry import make_estimator
+from neural_estimator.registry import make_estimator, per_message_options
 
 from neural_estimator.online import (
     DEFAULT_MAX_GAP,
@@ -112,7 +113,6 @@ def replay(
     if desc is None:
         raise BagError(f"{bag_in}: no message on {scen_topic}: name the scenario (--scenario NAME [--set ...])")
     scenario = scenario_from_description(desc)
-    set_torch_threads(methods, threads)
 
     # The observations in recorded order (as a live node receives them), or by in-band identity.
     observations = []
@@ -137,7 +137,10 @@ def replay(
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
-        est = _estimator(method, scenario, ckpt, device, seed, (options or {}).get(method, {}), description is None)
+        options_of = per_message_options(method, dict((options or {}).get(method, {})))  # the live node's backend
+        est = _estimator(method, scenario, ckpt, device, seed, options_of, description is None)
+        if sys.modules.get("torch") is not None:  # not imported where step.onnx serves the model
+            set_torch_threads([method], threads)
         online = OnlineEstimator(
             est,
             method,

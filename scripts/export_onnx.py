@@ -5,12 +5,13 @@
     python scripts/export_onnx.py --scenario lorenz96 --method gpt2 --checkpoint runs/my-gpt2 --beside
 
 ``--beside`` writes the network-only graph as ``step.onnx`` in the checkpoint's directory, next to
-its card, with the card's weight digest in the graph: there the estimator (``backend=onnxruntime``,
-the estimator node's ``options:=[backend=onnxruntime]``) serves it with numpy and onnxruntime only,
-without importing torch (docs/performance.md, "Serving without torch"). GPT-2 and Filterformer are
+its card, with the digests of the card's weights and covariance head in the graph (``train`` does
+this itself when it saves a model, and the zoo ships them): there the per-message estimators (the
+estimator nodes and replay, backend ``auto``) serve it with numpy and onnxruntime only, without
+importing torch (docs/performance.md, "Serving without torch"). GPT-2 and Filterformer are
 exported with the attention window they serve with (the card's validation context, or ``--context``):
-their key/value cache of the last W steps is the graph's state; Filterformer's graph also gives its
-covariance.
+their key/value cache of the last W steps is the graph's state. The covariance head's covariance
+(or Filterformer's own) is a graph output.
 
 The graph is made from the checkpoint (card + safetensors weights) by
 :func:`neural_estimator.models.onnx_step.export_step`: the same checkpoint gives the same bytes. By
@@ -31,10 +32,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neural_estimator.estimator import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
+from neural_estimator.serving.export import export_beside  # noqa: E402
 from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
 from neural_estimator.serving.card import default_checkpoint  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
-from neural_estimator.serving.onnx_runtime import ONNX_FILE  # noqa: E402
+from neural_estimator.serving.onnx_runtime import ONNX_FILE, served_files  # noqa: E402
 from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E402
 
 
@@ -59,6 +61,19 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("give --out or --beside (one of them)")
     attention = a.method in ATTENTION
     try:
+        if a.beside and a.context is None:  # the checkpoint's own serving configuration
+            directory = checkpoint_paths(a.checkpoint or default_checkpoint(a.scenario, a.method))[0]
+            written = export_beside(directory)  # the scenario as the card describes it
+            if written is None:
+                print(
+                    f"error: {directory}: validated with a bounded context (restarted copies), which torch serves; "
+                    "--context 0 --out FILE exports the unbounded step",
+                    file=sys.stderr,
+                )
+                return 1
+            data = written.read_bytes()
+            print(f"{written}: {len(data):,} bytes, sha256 {hashlib.sha256(data).hexdigest()[:16]}")
+            return 0
         context = a.context if attention else 0  # the recurrent models' graph is the unbounded step
         est = load_neural_estimator(a.method, make_scenario(a.scenario), checkpoint=a.checkpoint, context=context)
         directory = checkpoint_paths(a.checkpoint or default_checkpoint(a.scenario, a.method))[0]
@@ -69,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
             out,
             normalizer=None if (a.network_only or a.beside) else est.normalizer,
             covariance=est.has_covariance,
-            metadata={"weights_sha256": str(est.card.get("weights", {}).get("sha256", ""))},
+            metadata=served_files(est.card),
         )
     except (EstimatorError, OnnxError, ScenarioError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from neural_estimator.estimator import NEURAL_METHODS
+from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.card import CARD_FILE, default_checkpoint, read_card, write_json
 from neural_estimator.serving.load import load_neural_estimator
 from neural_estimator.scenarios import scenario_from_description
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             entry = save_head(directory, head, info)
             _, card = read_card(directory)  # re-read: write only our entry
             card["covariance_head"] = entry
-            write_json(directory / CARD_FILE, card)
+            write_card(directory, card)
             cal = info["calibration"]
             print(
                 f"{scenario_name}-{method}: scale {cal['scale']:.3g}; calibration set before "
@@ -114,9 +115,16 @@ def fit_recorded(args, settings: FitSettings) -> int:
     head, info = fit_covariance_head(est, settings, print, head_data=fit_data, calibration_data=cal_data)
     _, card = read_card(args.checkpoint)
     card["covariance_head"] = save_head(args.checkpoint, head, info)
-    write_json(Path(args.checkpoint) / CARD_FILE, card)
+    write_card(Path(args.checkpoint), card, DataScenario(fit_data.meta))
     print(f"{args.checkpoint}: scale {info['calibration']['scale']:.3g}; after {_fmt(info['calibration']['after'])}")
     return 0
+
+
+def write_card(directory: Path, card: dict, scenario=None) -> None:
+    """The card with its new head entry, and step.onnx exported anew with that head (the graph
+    records the head's digest and shrinkage; the per-message estimators refuse a stale one)."""
+    write_json(Path(directory) / CARD_FILE, card)
+    export_beside(directory, scenario)
 
 
 def shrink(directory, scenario_name: str, method: str, card: dict) -> None:
@@ -128,7 +136,7 @@ def shrink(directory, scenario_name: str, method: str, card: dict) -> None:
     record = choose_shrink(est, head)
     entry["shrink"] = record["value"]
     entry["shrink_choice"] = record
-    write_json(directory / CARD_FILE, card)
+    write_card(directory, card)
     best = next(c for c in record["candidates"] if c["shrink"] == record["value"])
     print(f"{scenario_name}-{method}: shrink {record['value']}; {_fmt(best)}", flush=True)
 
@@ -145,7 +153,7 @@ def recalibrate(directory, scenario_name: str, method: str, card: dict, settings
     entry["calibration"] = cal
     entry["settings"] = dict(entry.get("settings", {}), scale_target=settings.scale_target)
     card["covariance_head"] = entry
-    write_json(directory / CARD_FILE, card)
+    write_card(directory, card)
     print(
         f"{scenario_name}-{method}: recalibrated, scale {cal['scale']:.3g}; before {_fmt(cal['before'])}; "
         f"after {_fmt(cal['after'])} ({time.time() - t0:.0f} s)",

@@ -231,12 +231,15 @@ def used_seconds(work: Path) -> float:
 
 
 def install(work: Path, zoo: Path) -> Path:
-    """Copy the finished checkpoint (weights + card, not the resume state) into the zoo."""
+    """Copy the finished checkpoint (weights, card and the exported step.onnx where train wrote one;
+    not the resume state) into the zoo."""
     dest = zoo / work.name
     tmp = dest.with_name(dest.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    for name in ("model.safetensors", "card.json"):
+    for name in ("model.safetensors", "card.json", "step.onnx"):
+        if name == "step.onnx" and not (work / name).is_file():
+            continue  # a model validated with a bounded context: torch serves it
         shutil.copy2(work / name, tmp / name)
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)

@@ -25,13 +25,21 @@ def l96():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"])
-def test_onnx_step_equals_torch_step(method, l96):
-    """300 steps (GPT-2 and Filterformer: past a window of 100, so the KV cache wraps), a missing
-    observation included; estimates (and Filterformer's covariance) within 1e-5 relative."""
+def test_onnx_step_equals_torch_step(method, l96, tmp_path):
+    """The step exported at load (a checkpoint without step.onnx beside its card): 300 steps (GPT-2
+    and Filterformer: past a window of 100, so the KV cache wraps), a missing observation included;
+    estimates (and the covariance) within 1e-5 relative."""
+    import shutil
+
+    from neural_estimator.serving.card import default_checkpoint
+
     scen, data = l96
     context = 100 if method in ("gpt2", "filterformer") else 0
-    torch_est = load_neural_estimator(method, scen, context=context)
-    ort_est = load_neural_estimator(method, scen, context=context, backend="onnxruntime")
+    directory = tmp_path / method
+    shutil.copytree(default_checkpoint("lorenz96", method), directory, ignore=shutil.ignore_patterns("step.onnx"))
+    torch_est = load_neural_estimator(method, scen, directory, context=context)
+    ort_est = load_neural_estimator(method, scen, directory, context=context, backend="onnxruntime")
+    assert type(ort_est).__name__ == "NeuralEstimator" and ort_est.backend == "onnxruntime"
     y = data.y[0].copy()
     y[50] = np.nan  # a missing observation: both use the training mean
     torch_est.reset(1)
@@ -56,8 +64,8 @@ def test_onnx_step_equals_torch_step(method, l96):
 
 def test_onnx_backend_refuses_what_it_cannot_serve(l96):
     scen, data = l96
-    with pytest.raises(EstimatorError, match="backend onnxruntime serves"):
-        load_neural_estimator("gru", scen, context=50, backend="onnxruntime")  # restarted copies
+    with pytest.raises(EstimatorError, match="serves the unbounded context"):  # restarted copies
+        load_neural_estimator("gru", scen, context=50, backend="onnxruntime")
     with pytest.raises(EstimatorError, match="backend must be one of"):
         load_neural_estimator("gru", scen, backend="tensorrt")
     est = load_neural_estimator("gru", scen, context=0, backend="onnxruntime")

@@ -199,6 +199,18 @@ def test_dataset_train_evaluate_metrics_from_a_recording(bag, tmp_path, capsys):
     fit = ["--checkpoint", str(out), "--data", str(data), "--calibration-data", str(data), "--steps", "20"]
     assert fit_heads.main(fit) == 0
     assert json.loads((out / "card.json").read_text())["covariance_head"]["fitted_on"]["head"]["recorded"] > 0
+    # step.onnx was exported anew with the head: the nodes' default serves its covariance, equal to torch's
+    from neural_estimator.serving.load import load_neural_estimator
+
+    recorded, _ = load_trajectories(data)
+    served = load_neural_estimator("gru", DataScenario(recorded.meta), out, backend="auto")
+    ref = load_neural_estimator("gru", DataScenario(recorded.meta), out)
+    assert type(served).__name__ == "OnnxEstimator" and served.has_covariance
+    served.reset(1)
+    ref.reset(1)
+    y0, u0 = recorded.y[0, :1], np.zeros((1, recorded.u.shape[-1]))
+    np.testing.assert_allclose(served.step(y0, u0), ref.step(y0, u0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(served.covariance, ref.covariance, rtol=1e-4, atol=1e-5 * np.abs(ref.covariance).max())
     capsys.readouterr()
     assert main(["evaluate", "--data", str(data), "--checkpoint", f"gru={out}", "--quiet"]) == 0
     assert "Verdict" in capsys.readouterr().out  # the model now reports a covariance

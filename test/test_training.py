@@ -388,10 +388,17 @@ def test_training_learns_is_deterministic_and_writes_a_card(oscillator, tmp_path
     assert card["init_seed"] == 0 and card["training"]["recipe"]["lr"] == 2e-3
     assert card["training"]["stopped"] == "max epochs" and card["metrics"]["rmse"] > 0
     assert card["normalization"]["dy"] == 1 and card["created"]
-    # no pickle anywhere: the checkpoint and its resume state are safetensors and JSON only
-    assert {p.suffix for p in a.rglob("*") if p.is_file()} == {".json", ".safetensors"}
+    # no pickle anywhere: the checkpoint and its resume state are safetensors and JSON, and the step graph
+    assert {p.suffix for p in a.rglob("*") if p.is_file()} == {".json", ".safetensors", ".onnx"}
     est = load_neural_estimator("gru", oscillator, a)
     assert est.run(np.zeros((1, 7, 1))).x.shape == (1, 7, 2)
+    # train wrote the batch-1 step beside the card: the per-message default serves it, equal to torch
+    served = load_neural_estimator("gru", oscillator, a, backend="auto")
+    assert served.backend == "onnxruntime" and type(served).__name__ == "OnnxEstimator"
+    est.reset(1)
+    served.reset(1)
+    for y in np.linspace(-1.0, 1.0, 20):
+        np.testing.assert_allclose(served.step(np.array([[y]])), est.step(np.array([[y]])), rtol=1e-5, atol=1e-6)
 
 
 def test_angle_scenario_trains(spinner, tmp_path):
@@ -585,7 +592,7 @@ def test_train_zoo_resumes_unfinished_models_and_installs_finished_ones(tmp_path
     assert t["budget"]["max_epochs"] == 3 and t["budget"]["windows_per_epoch"] == 48
     assert t["converged"] is False and t["lr_reductions"] == 0
     assert card["metrics"]["set"]["trajectories"] == 4
-    assert sorted(p.name for p in (zoo / work.name).iterdir()) == ["card.json", "model.safetensors"]
+    assert sorted(p.name for p in (zoo / work.name).iterdir()) == ["card.json", "model.safetensors", "step.onnx"]
     assert zoo_script.finished(work)
     # the resumed run equals an uninterrupted one
     ref = train(

@@ -16,11 +16,16 @@ ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
 SHIPPED = sorted(p.name for p in ZOO.glob("*-*") if "." not in p.name and (p / "card.json").exists())
 
 
-def test_zoo_holds_only_weights_and_cards():
-    """Weights and card, and the covariance head exactly where the card names one."""
+def test_zoo_holds_only_weights_cards_and_step_graphs():
+    """Weights and card, the covariance head exactly where the card names one, and the exported
+    batch-1 step (step.onnx) beside every model but those validated with a bounded context (restarted
+    copies of the model, which torch serves)."""
     for d in (ZOO / n for n in SHIPPED):
-        head = json.loads((d / "card.json").read_text()).get("covariance_head")
-        expected = ["card.json"] + (["covariance_head.safetensors"] if head else []) + ["model.safetensors"]
+        card = json.loads((d / "card.json").read_text())
+        recipe = card["training"]["recipe"]
+        bounded = bool(recipe.get("val_context")) and card["method"] not in ("gpt2", "filterformer")
+        expected = ["card.json"] + (["covariance_head.safetensors"] if card.get("covariance_head") else [])
+        expected += ["model.safetensors"] + ([] if bounded else ["step.onnx"])
         assert sorted(f.name for f in d.iterdir()) == expected, d
 
 

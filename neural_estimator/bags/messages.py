@@ -85,6 +85,7 @@ _Header = TYPESTORE.types["std_msgs/msg/Header"]
 _Time = TYPESTORE.types["builtin_interfaces/msg/Time"]
 _String = TYPESTORE.types[STRING]
 _EMPTY = np.zeros(0, dtype=np.float64)
+_ZERO8 = bytes(8)  # the empty velocity and effort arrays after position[]
 _MAX_INDEX = 2**53  # identities are float64 in position[]: integers are exact below this
 
 
@@ -313,6 +314,35 @@ class VectorCodec:
                 b"\x00" * 8,
             )
         )
+
+    def decode_values(self, raw: bytes | memoryview) -> tuple[int, int, int, np.ndarray] | None:
+        """(stamp_ns, trajectory, step, values) of a message of exactly this stream's names, with
+        ``values`` (n,) float64 (its own aligned, writable copy: the message's bytes put them at an
+        address that is not a multiple of 8); nothing else is made (no Vector, no frame_id string:
+        the per-message path of the estimator node). None for anything else, which :meth:`decode`
+        then decodes or refuses with its clear error."""
+        if type(raw) is not bytes:
+            raw = bytes(raw)
+        if len(raw) > self.max_bytes or not raw.startswith(self._ENCAPSULATION):
+            return None
+        try:
+            sec, nsec, flen = struct.unpack_from("<iII", raw, 4)
+        except struct.error:
+            return None
+        o = 12 + flen  # end of frame_id (offset from the payload start)
+        o += (-o) % 4
+        if not raw.startswith(self._block, 4 + o):
+            return None
+        o += len(self._block)
+        o += (-o) % 8
+        end = o + 8 * self._n
+        if len(raw) < 4 + end + 8 or not raw.startswith(_ZERO8, 4 + end):
+            return None
+        position = np.frombuffer(raw, dtype="<f8", count=self._n, offset=4 + o)
+        traj, step = float(position[0]), float(position[1])
+        if not (0 <= traj < _MAX_INDEX and 0 <= step < _MAX_INDEX and traj == int(traj) and step == int(step)):
+            return None  # NaN fails the range test too
+        return sec * 1_000_000_000 + nsec, int(traj), int(step), position[2:].copy()
 
     def decode(self, raw: bytes | memoryview) -> Vector:
         n_raw = len(raw)

@@ -19,10 +19,12 @@ checkpoint (card + safetensors weights), so the export is reproducible from the 
 weights give the same graph. ``OrtStep`` serves it; a test holds it equal to the torch step over
 hundreds of steps.
 
-Serving needs ``onnxruntime`` (``pip install onnxruntime``, the ``onnx`` extra); exporting also needs
-torch and ``onnx``. The serving side (``OrtStep``, the torch-free ``OnnxEstimator``) lives in
-:mod:`neural_estimator.serving.onnx_runtime`, which imports no torch: a robot that gets ``step.onnx``
-beside the card (``scripts/export_onnx.py --beside``) serves it without torch.
+Serving needs ``onnxruntime``; exporting also needs torch and ``onnx`` (all three in the runtime
+install). The serving side (``OrtStep``, the torch-free ``OnnxEstimator``) lives in
+:mod:`neural_estimator.serving.onnx_runtime`, which imports no torch:
+:func:`neural_estimator.serving.export.export_beside` writes
+``step.onnx`` beside a checkpoint's card (``train`` does when it saves a model, the zoo ships them,
+``scripts/export_onnx.py --beside``), and the per-message estimators serve it without torch.
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ from std_srvs.srv import Trigger
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import NEURAL_METHODS, EstimatorError, check_method, make_estimator
+from neural_estimator.registry import NEURAL_METHODS, EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,
@@ -182,7 +182,12 @@ class EstimatorNode(ExitStatusNode):
             options.setdefault("init", p.init)
         try:
             est = make_estimator(
-                self.method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options
+                self.method,
+                scenario,
+                checkpoint=p.checkpoint or None,
+                device=p.device,
+                seed=p.seed,
+                **per_message_options(self.method, options),
             )
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None

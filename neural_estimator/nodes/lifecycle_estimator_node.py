@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import EstimatorError, check_method, make_estimator
+from neural_estimator.registry import EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,
@@ -64,7 +64,12 @@ class LifecycleEstimatorNode(LifecycleNode):
             scenario = build_scenario(p.scenario, p.set)
             options = dict(item.split("=", 1) for item in p.options)
             est = make_estimator(
-                method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options
+                method,
+                scenario,
+                checkpoint=p.checkpoint or None,
+                device=p.device,
+                seed=p.seed,
+                **per_message_options(method, options),
             )
         except (EstimatorError, StartupError, ValueError) as exc:
             self.get_logger().error(f"configure failed: {exc}")

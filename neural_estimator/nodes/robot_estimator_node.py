@@ -238,7 +238,7 @@ def _load(p: RobotEstimatorParams, read=None):
     :class:`~neural_estimator.serving.card.Checkpoint` already resolved); StartupError otherwise."""
     from pathlib import Path
 
-    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.registry import EstimatorError, make_estimator, per_message_options
     from neural_estimator.serving.card import resolve_checkpoint
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.robot.spec import topic_order_lost
@@ -266,11 +266,10 @@ def _load(p: RobotEstimatorParams, read=None):
         scenario = DataScenario.from_description(desc)
         spec = load_spec(desc["spec"])
         method = str(card["method"])
-        if p.threads > 0:
-            import torch
-
+        est = make_estimator(method, scenario, checkpoint=ckpt, device=p.device, **per_message_options(method, {}))
+        torch = sys.modules.get("torch")  # absent when step.onnx serves the model without torch
+        if p.threads > 0 and torch is not None:
             torch.set_num_threads(p.threads)
-        est = make_estimator(method, scenario, checkpoint=ckpt, device=p.device)
     except (EstimatorError, ScenarioError, SpecError, KeyError, TypeError) as exc:
         raise StartupError(f"checkpoint {p.checkpoint}: {exc}") from None
     return scenario, spec, method, est

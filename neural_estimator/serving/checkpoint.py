@@ -122,6 +122,9 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
     from neural_estimator.uncertainty.heads import HEAD_FILE
 
     (directory / HEAD_FILE).unlink(missing_ok=True)  # a covariance head belongs to the weights it was fitted on
+    from neural_estimator.serving.onnx_runtime import ONNX_FILE
+
+    (directory / ONNX_FILE).unlink(missing_ok=True)  # so does the exported step (train writes it anew)
     full = {
         "format": CARD_FORMAT,
         "format_version": CARD_VERSION,

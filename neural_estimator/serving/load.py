@@ -13,8 +13,11 @@ from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
 from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
-from neural_estimator.serving.onnx_runtime import ATTENTION, load_onnx_estimator, onnx_beside
+from neural_estimator.options import OptionError, parse_bool, parse_value
+from neural_estimator.serving.onnx_runtime import ATTENTION, WindowMismatch, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
+
+SERVING_BACKENDS = ("auto", "torch", "onnxruntime")
 
 
 def _dims(desc: dict[str, Any]) -> tuple[int, int, int]:
@@ -64,6 +67,25 @@ def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None
         )
 
 
+def per_message_backend(
+    directory: Path, card: dict[str, Any], device: Any = "cpu", context: Any = None, compile_step: Any = False
+) -> str:
+    """The ``auto`` backend's choice for a per-message (batch-1) estimator: ``onnxruntime`` where the
+    checkpoint directory holds ``step.onnx`` and the request is what that graph serves (the cpu, no
+    ``compile_step``, a recurrent model's unbounded context: neither the option ``context`` nor a
+    card validated with a bounded one, whose restarted copies are torch's); ``torch`` otherwise.
+    An attention model's ``context`` other than the exported window falls back to torch at load."""
+    if onnx_beside(directory) is None or str(device).strip().lower() != "cpu":
+        return "torch"
+    try:
+        if parse_bool(compile_step, "compile_step"):
+            return "torch"
+        bounded = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
+    except OptionError as exc:
+        raise EstimatorError(str(exc)) from None
+    return "torch" if bounded and card["method"] not in ATTENTION else "onnxruntime"
+
+
 def validated_context(card: dict[str, Any]) -> dict[str, int]:
     """The bounded context a checkpoint was validated with, as ``NeuralEstimator`` keywords
     (``context``, ``context_copies``), or {} for a model validated the paper's way (continuously):
@@ -107,9 +129,13 @@ def load_neural_estimator(
         backend: ``torch`` or ``onnxruntime``: ``step`` runs the model's step exported to ONNX
             (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 with an unbounded
             context, GPT-2 and Filterformer with their window). Where the checkpoint directory holds
-            ``step.onnx`` (``scripts/export_onnx.py --beside``) that graph is served without torch
+            ``step.onnx`` (written by ``train``, shipped beside the zoo models, or
+            ``scripts/export_onnx.py --beside``) that graph is served without torch
             (:class:`~neural_estimator.serving.onnx_runtime.OnnxEstimator`, batch 1, ``run`` a loop of
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
+            ``auto`` (the per-message default of the estimator nodes and replay, see
+            :func:`per_message_backend`): ``step.onnx`` without torch where the checkpoint has one
+            that serves the request, torch otherwise.
         cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
 
     Raises:
@@ -122,12 +148,30 @@ def load_neural_estimator(
     if card["method"] != m:
         raise EstimatorError(f"checkpoint {directory} holds a {card['method']!r} model, not {m!r}")
     check_scenario(card["scenario"], scenario, str(directory))
+    if backend not in SERVING_BACKENDS:
+        raise EstimatorError(f"{m}: backend must be one of {', '.join(SERVING_BACKENDS)}, got {backend!r}")
+    auto = backend == "auto"
+    if auto:
+        backend = per_message_backend(directory, card, device, context, compile_step)
     if backend == "onnxruntime" and onnx_beside(directory) is not None:  # served without torch
         if str(device).lower() not in ("cpu", "auto"):
             raise EstimatorError(f"{m}: the exported step beside the card serves on the cpu, not {device!r}")
-        if context is None and m not in ATTENTION:  # as validated: a bounded one is not the exported step
-            context = validated_context(card).get("context", 0)
-        return load_onnx_estimator(directory, card, scenario, context=context, covariance=covariance)
+        try:
+            ctx = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
+            covariance, cov_scale = (
+                parse_bool(covariance, "covariance"),
+                float(parse_value(cov_scale, 1.0, "cov_scale")),
+            )
+        except OptionError as exc:
+            raise EstimatorError(str(exc)) from None
+        if m in ATTENTION and context is None:
+            ctx = 0  # the window it was exported with
+        try:
+            return load_onnx_estimator(directory, card, scenario, ctx, covariance, cov_scale)
+        except WindowMismatch:
+            if not auto:
+                raise
+            backend = "torch"  # another window than the exported one: torch sets it
     # torch from here on: imported only where a model is loaded into it
     from neural_estimator.serving.checkpoint import load_checkpoint
     from neural_estimator.serving.neural import NeuralEstimator

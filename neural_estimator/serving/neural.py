@@ -154,7 +154,7 @@ class NeuralEstimator(Estimator):
             graph = OrtStep(export_step(self.model, self.method, covariance=self.has_covariance))
         except OnnxError as exc:
             raise EstimatorError(str(exc)) from None
-        return OnnxEstimator(self.scenario, graph, self.normalizer, self.method, self.card)
+        return OnnxEstimator(self.scenario, graph, self.normalizer, self.method, self.card, cov_scale=self.cov_scale)
 
     @property
     def untrained_steps(self) -> int:

@@ -3,8 +3,9 @@
 :class:`OrtStep` runs a step graph (``neural_estimator.models.onnx_step.export_step``) through
 preallocated bound buffers; :class:`OnnxEstimator` is the estimator over a network-only graph (the
 card's normalisation in numpy); :func:`load_onnx_estimator` serves ``step.onnx`` beside a checkpoint's
-card (``scripts/export_onnx.py --beside``). This module imports neither torch nor the model code: a
-robot needs numpy and onnxruntime (``scripts/requirements-serve.txt``).
+card (written by ``train`` and shipped beside every zoo model that it can serve;
+``scripts/export_onnx.py --beside`` for others). This module imports neither torch nor the model
+code: a robot needs numpy and onnxruntime (``scripts/requirements-serve.txt``).
 """
 
 from __future__ import annotations
@@ -23,9 +24,26 @@ ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (sc
 ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
 
 
+class WindowMismatch(EstimatorError):
+    """The exported attention window is not the one asked for (the ``auto`` backend then uses torch)."""
+
+
 def graph_metadata(session: Any) -> dict[str, str]:
     """The metadata strings of a loaded graph (an onnxruntime InferenceSession)."""
     return dict(session.get_modelmeta().custom_metadata_map)
+
+
+def served_files(card: dict[str, Any]) -> dict[str, str]:
+    """What a graph beside ``card`` was exported from, as its metadata strings: the weights' sha256
+    and the covariance head's (its sha256 and correlation shrinkage, the card's entry; '' without a
+    head). A graph whose strings differ from its card's is stale and is refused."""
+    head = card.get("covariance_head") or {}
+    return {
+        "weights_sha256": str((card.get("weights") or {}).get("sha256") or ""),
+        "covariance_head": json.dumps({"sha256": head.get("sha256", ""), "shrink": head.get("shrink", 0.0)})
+        if head
+        else "",
+    }
 
 
 class OrtStep:
@@ -128,9 +146,18 @@ class OnnxEstimator(Estimator):
         normalizer: the card's normalisation (:class:`~neural_estimator.serving.normalization.Normalizer`).
         method: the method name.
         card: the checkpoint card (provenance; the training warm-up).
+        cov_scale: s > 0, the reported covariance is s times the model's (NeuralEstimator's option).
     """
 
-    def __init__(self, scenario: Any, step: OrtStep, normalizer: Any, method: str, card: dict | None = None) -> None:
+    def __init__(
+        self,
+        scenario: Any,
+        step: OrtStep,
+        normalizer: Any,
+        method: str,
+        card: dict | None = None,
+        cov_scale: float = 1.0,
+    ) -> None:
         super().__init__(scenario)
         self.method = method
         if step.normalized:
@@ -152,7 +179,12 @@ class OnnxEstimator(Estimator):
         f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731 - the kernels' one layout
         self._in_mean, self._in_std = f64(normalizer.in_mean), f64(normalizer.in_std)
         self._out_mean, self._out_std = f64(normalizer.out_mean), f64(normalizer.out_std)
-        self._cov_scale = self._out_std[:, None] * self._out_std[None, :]  # (dx, dx)
+        self.cov_scale = float(cov_scale)
+        if not (np.isfinite(self.cov_scale) and self.cov_scale > 0):
+            raise EstimatorError(f"cov_scale must be a finite number > 0, got {cov_scale!r}")
+        self._cov_scale = self._out_std[:, None] * self._out_std[None, :]  # (dx, dx): sigma_x sigma_x^T
+        if self.cov_scale != 1.0:
+            self._cov_scale = self.cov_scale * self._cov_scale
 
     @property
     def untrained_steps(self) -> int:
@@ -214,18 +246,24 @@ def onnx_beside(directory: str | Path) -> Path | None:
 
 
 def load_onnx_estimator(
-    directory: Path, card: dict[str, Any], scenario: Any, context: int | None = None, covariance: bool = True
+    directory: Path,
+    card: dict[str, Any],
+    scenario: Any,
+    context: int | None = None,
+    covariance: bool = True,
+    cov_scale: float = 1.0,
 ) -> OnnxEstimator:
     """The torch-free estimator of a checkpoint whose directory holds ``step.onnx``.
 
     The caller has read the card and checked it against ``scenario``. The graph must be the
-    network-only step of this card's weights (its ``weights_sha256`` equals the card's: a graph left
-    from other weights is refused, re-export it) and of the method the card names; an attention model
+    network-only step of this card's weights and covariance head (:func:`served_files`: a graph left
+    from other weights or another head is refused, re-export it) and of the method the card names; an attention model
     serves with the window it was exported with (``context``, when given, must equal it).
-    ``covariance`` False ignores Filterformer's covariance output.
+    ``covariance`` False ignores the graph's covariance output (the head's, or Filterformer's own).
 
     Raises:
-        EstimatorError: missing onnxruntime, a graph of other weights, method or window.
+        EstimatorError: missing onnxruntime, a graph of other weights, head or method;
+            :class:`WindowMismatch`: another attention window.
     """
     from neural_estimator.serving.normalization import NormalizationError, Normalizer
 
@@ -238,15 +276,15 @@ def load_onnx_estimator(
     except Exception as exc:  # onnxruntime's own errors for a malformed file
         raise EstimatorError(f"{path}: not a readable ONNX graph ({str(exc).splitlines()[0]})") from None
     meta = step.metadata
-    digest = str((card.get("weights") or {}).get("sha256") or "")
-    if meta.get("method") != method or meta.get("weights_sha256", "") != digest:
+    expected = served_files(card)
+    if meta.get("method") != method or any(meta.get(k, "") != v for k, v in expected.items()):
         raise EstimatorError(
-            f"{path} was exported from other weights or another method than {directory}'s card "
-            f"({meta.get('method')!r}, weights {meta.get('weights_sha256', '')[:12] or '?'}): export it again with "
-            f"scripts/export_onnx.py --beside"
+            f"{path} was exported from other weights, another covariance head or another method than "
+            f"{directory}'s card ({meta.get('method')!r}, weights {meta.get('weights_sha256', '')[:12] or '?'}): "
+            f"export it again with scripts/export_onnx.py --beside"
         )
     if context and method in ATTENTION and int(meta.get("window", 0)) != int(context):
-        raise EstimatorError(
+        raise WindowMismatch(
             f"{path} serves attention window {meta.get('window')}, not context={context}: "
             f"export it with --context {context}"
         )
@@ -258,4 +296,4 @@ def load_onnx_estimator(
         normalizer = Normalizer.from_dict(card["normalization"])
     except NormalizationError as exc:
         raise EstimatorError(f"{directory}: {exc}") from None
-    return OnnxEstimator(scenario, step, normalizer, method, card)
+    return OnnxEstimator(scenario, step, normalizer, method, card, cov_scale=cov_scale)

@@ -48,7 +48,9 @@ What :func:`train` does, in order:
    model, AdamW state, scheduler, RNG states, epoch, best, history (safetensors + JSON, no pickle).
    ``resume=True`` continues from it; a larger ``epochs`` extends a finished run.
 8. The best model is rebuilt from its checkpoint and, if ``eval_trajectories`` > 0, measured on
-   evaluation set 0 with :func:`neural_estimator.metrics.compute_metrics`; the card is completed.
+   evaluation set 0 with :func:`neural_estimator.metrics.compute_metrics`; the card is completed,
+   and its batch-1 step is exported beside it as ``step.onnx``
+   (:func:`neural_estimator.serving.export.export_beside`), which the estimator nodes serve without torch.
 
 Randomness: ``init_seed`` fixes the initial weights and dropout (torch's global RNG) and the window
 draws (a numpy Generator); the data depend on ``data_seed`` and ``data_index`` only. On CPU two runs
@@ -76,6 +78,8 @@ from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
+from neural_estimator.models.onnx_step import OnnxError
+from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.checkpoint import load_checkpoint, save_checkpoint
 from neural_estimator.serving.context import bounded_forward
 from neural_estimator.serving.neural import NeuralEstimator, resolve_device
@@ -421,7 +425,7 @@ class _Run:
         return total / count
 
     def finish(self) -> None:
-        """Step 8: the best model rebuilt from its checkpoint, measured; the final card."""
+        """Step 8: the best model rebuilt from its checkpoint, measured; the final card; step.onnx."""
         cfg, out_dir = self.cfg, self.out_dir
         if self.state["best_epoch"] == 0:
             raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
@@ -442,6 +446,10 @@ class _Run:
                 context_copies=cfg.val_context_copies,
             )
         save_checkpoint(out_dir, best_model, self.sets.norm, self.card(metrics))
+        try:  # the batch-1 step beside the card: the estimator nodes serve it without torch
+            export_beside(out_dir, self.scenario)
+        except OnnxError as exc:
+            raise TrainingError(f"{out_dir}: the model is saved, but not its step.onnx: {exc}") from None
         if not cfg.keep_resume:
             shutil.rmtree(out_dir / RESUME_DIR, ignore_errors=True)
 

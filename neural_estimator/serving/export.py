@@ -1,0 +1,55 @@
+"""Writing ``step.onnx`` beside a checkpoint's card: the graph the per-message estimators serve
+without torch (the estimator nodes and replay, backend ``auto``).
+
+``train`` calls :func:`export_beside` when it saves a model, the covariance-head fitting when it
+changes the head, and ``scripts/export_onnx.py --beside`` on demand; the zoo ships its results. The
+graph is :func:`neural_estimator.models.onnx_step.export_step` of the checkpoint as it serves by
+default, with the digests of the files it was made from in its metadata, so a graph older than its
+card is refused at load rather than served.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from neural_estimator.estimator import EstimatorError
+from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step
+from neural_estimator.scenarios import ScenarioError, scenario_from_description
+from neural_estimator.serving.card import read_card
+from neural_estimator.serving.load import load_neural_estimator
+from neural_estimator.serving.onnx_runtime import ONNX_FILE, served_files
+
+
+def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
+    """Write ``step.onnx`` beside a checkpoint's card: the network-only step of the configuration the
+    checkpoint serves by default, the covariance head included where the card has one, with the
+    digests of the files it was made from (:func:`~neural_estimator.serving.onnx_runtime.served_files`).
+
+    Returns its path, or None (a stale ``step.onnx`` removed) where that configuration is not one
+    exported step: a recurrent model validated with a bounded context (the card's ``val_context``)
+    serves through restarted copies of the model, which stay torch's.
+
+    Args:
+        directory: the checkpoint directory.
+        scenario: the scenario it serves (default: rebuilt from the card; a model trained on recorded
+            data passes its own).
+
+    Raises:
+        OnnxError: the step cannot be exported (the message says why).
+    """
+    directory = Path(directory)
+    out = directory / ONNX_FILE
+    try:
+        _, card = read_card(directory)
+        scenario = scenario_from_description(card["scenario"]) if scenario is None else scenario
+        est = load_neural_estimator(card["method"], scenario, directory, backend="torch")
+    except (EstimatorError, ScenarioError) as exc:
+        raise OnnxError(f"{directory}: {exc}") from None
+    if est.context_by_copies or card["method"] not in EXPORTABLE:
+        out.unlink(missing_ok=True)
+        return None
+    tmp = directory / (ONNX_FILE + ".tmp")
+    export_step(est.model, est.method, tmp, covariance=est.has_covariance, metadata=served_files(card))
+    tmp.replace(out)
+    return out
