@@ -120,7 +120,7 @@ class EstimatorNode(ExitStatusNode):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.stats = EstimatorStats()
         self.input_monitor = self.pd.monitor(self.obs_topic, time.monotonic())
-        self.set_pose = SetPose(self, self.po.set_pose_topic, lambda: self.online)
+        self.set_pose = SetPose(self, self.po.set_pose_topic, lambda: self.online, p.frame_id)
         self._last_log: dict[str, float] = {}
         self._foreign: set[str] = set()
         self._early: list[bytes] = []
