@@ -23,8 +23,12 @@ order a live node received the messages in, so both give the same estimates):
   ``unconfirmed`` otherwise); a held message that becomes the next step of the current stream
   (reordered delivery) is estimated in order. An accepted jump within the trajectory is a gap;
   any other starts a new stream from the prior (``new_run`` when its stamps went back: a
-  restarted publisher). So one stray, forged or corrupted identity costs at most itself, never
-  the real stream, and a restarted publisher's new run takes over after ``confirm`` messages;
+  restarted publisher). A message whose y_k is not finite carries no observation, so it is no
+  evidence for a jump: it is never held and never confirms one (dropped at once, ``stale`` or
+  ``unconfirmed``); only the current stream's successor is estimated from it (predict only).
+  So one stray, forged or corrupted identity costs at most itself, any number of corrupt
+  (non-finite) ones cost only themselves, never the real stream, and a restarted publisher's new
+  run takes over after ``confirm`` messages with observations;
 - a gap (a step later than the next one, accepted) means observations were lost: the missing steps are run as
   predict-only steps (observation NaN, the last received control held), so that the estimate of
   step k is still an estimate of x_k. The bridge is bounded: more than ``max_gap`` missing steps,
@@ -90,6 +94,7 @@ class _Obs(NamedTuple):
     stamp_ns: int
     y: np.ndarray  # (1, dy)
     u_prev: np.ndarray  # (1, du)
+    finite: bool = True  # y holds no NaN or inf (an observation, not a predict-only step)
 
 
 class OnlineEstimator:
@@ -220,6 +225,8 @@ class OnlineEstimator:
                 out += self._drop_held()
         elif m.trajectory == self.trajectory and m.step == self.step and m.stamp_ns == self._last_stamp:
             out.append(StepResult("duplicate", m.trajectory, m.step, m.stamp_ns))
+        elif not m.finite:  # a jump carried by no observation is no evidence for it: dropped at once
+            out.append(StepResult("stale" if self._behind(m) else "unconfirmed", m.trajectory, m.step, m.stamp_ns))
         elif self._held and self._continues_held(m):
             self._held.append(m)
             if len(self._held) >= self.confirm:  # confirmed: the jump and this message are estimated
@@ -283,7 +290,7 @@ class OnlineEstimator:
         y, u_prev = values[None, : self._dy], values[None, self._dy :]
         if not np.all(np.isfinite(u_prev)):
             raise MessageError(f"observation {vec.trajectory}/{vec.step}: control u_prev contains NaN or inf")
-        return _Obs(vec.trajectory, vec.step, vec.stamp_ns, y, u_prev)
+        return _Obs(vec.trajectory, vec.step, vec.stamp_ns, y, u_prev, bool(np.all(np.isfinite(y))))
 
     # ---- one estimator step ------------------------------------------------------------------------
     def _start(self, trajectory: int) -> None:
@@ -338,7 +345,7 @@ class OnlineEstimator:
             reset=new,
             filled=gap,
             restarted=restarted,
-            nonfinite=not bool(np.all(np.isfinite(m.y))),
+            nonfinite=not m.finite,
             diverged=diverged,
             new_run=new_run,
             P=P,
