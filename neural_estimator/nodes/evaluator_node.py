@@ -13,7 +13,8 @@ rosbags rejects). Like ``ros2 bag record`` it subscribes with the QoS the publis
 is delivered), logs receive times, and stores the offered profiles in the channel metadata.
 
 End of a run: after ``run_status`` "complete", when every expected stream holds as many messages
-as the run announced (or when nothing arrived for ``completion_timeout`` s; with no estimate
+as the run announced (or when none of those streams received anything for ``completion_timeout`` s:
+messages on other recorded topics, such as a periodic ``/diagnostics``, are not progress; with no estimate
 stream discovered yet, it waits that long for one), or, for a source without ``run_status`` (a
 foreign bag played, your own nodes), when no stream message arrived for ``idle_timeout`` s, the
 bag is closed, the paper's metrics are
@@ -78,7 +79,8 @@ class EvaluatorParams:
     )
     queue_depth: int = param(10000, "subscription depth (KEEP_LAST): messages buffered while the node is busy")
     completion_timeout: float = param(
-        30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds"
+        30.0,
+        "after 'complete': give up on lagging streams when no scored stream receives anything for this many s",
     )
     chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
     max_message_mb: float = param(
@@ -320,9 +322,12 @@ class EvaluatorNode(ExitStatusNode):
                 )
                 self._finish()
             return
-        lagging = {t: self.counts.get(t, 0) for t in self._required() if self.counts.get(t, 0) < self.expected}
+        required = self._required()
+        lagging = {t: self.counts.get(t, 0) for t in required if self.counts.get(t, 0) < self.expected}
         now = time.monotonic()
-        total = sum(self.counts.values())
+        # progress is what the scored streams received: a periodic topic recorded beside them
+        # (/diagnostics, /tf, the viewers' outputs) would otherwise hold completion_timeout off forever
+        total = sum(self.counts.get(t, 0) for t in required)
         if total != self._progress[0]:
             self._progress = (total, now)
         stalled = now - max(self._progress[1], self.complete_at) > self.p.completion_timeout
