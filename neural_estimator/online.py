@@ -77,6 +77,9 @@ class StepResult:
     diverged: bool = False  # the estimator's stream is diverged (estimates NaN until reset)
     new_run: bool = False  # the stream started here is a new run of the publisher (its stamps went back)
     P: np.ndarray | None = None  # (dx, dx) the method's covariance of this estimate, where it has one
+    # observations of the stream between the previous estimate and this one that never arrived
+    # (bridged as ``filled`` or skipped by a restart; across a trajectory's end where the horizon is known)
+    missed: int = 0
 
 
 STATUSES = (
@@ -310,7 +313,20 @@ class OnlineEstimator:
                 return 0, True
         return gap, False
 
+    def _missed(self, m: _Obs, new_run: bool) -> int:
+        """Steps of the stream between the last processed message and ``m`` that never arrived: the
+        steps in between in one trajectory, or, into the next trajectory with the horizon known,
+        (H - 1 - k_last) + k. Zero for a new run or any other jump (nothing says what was sent)."""
+        if self.trajectory is None or self.step < 0 or new_run:
+            return 0
+        if m.trajectory == self.trajectory:
+            return max(0, m.step - self.step - 1)
+        if self.horizon is not None and m.trajectory == self.trajectory + 1 and self.step < self.horizon:
+            return self.horizon - 1 - self.step + m.step
+        return 0
+
     def _estimate(self, m: _Obs, *, new: bool = False, new_run: bool = False) -> StepResult:
+        missed = self._missed(m, new_run)
         if new:
             self._start(m.trajectory)
         gap = m.step - self.step - 1
@@ -349,6 +365,7 @@ class OnlineEstimator:
             diverged=diverged,
             new_run=new_run,
             P=P,
+            missed=missed,
         )
 
 

@@ -437,6 +437,7 @@ class EstimatorNode(ExitStatusNode):
             s.estimated += 1
             s.resets += res.reset
             s.gap_steps += res.filled
+            s.missed += res.missed
             s.restarts += res.restarted
             s.nonfinite += res.nonfinite
             s.diverged = res.diverged or not np.all(np.isfinite(res.x_hat))
