@@ -22,10 +22,14 @@ computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), th
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
 status 0 (1 if no metrics could be computed). After the table it prints, per stream, the messages
 received and lost and why (malformed, outside the announced run, duplicates, over ``max_message_mb``,
-which are dropped unrecorded). A full or read-only disk stops the recording with one error line,
-closes the bag as far as possible and exits 1. Ctrl-C / SIGTERM close the bag properly too. A bag
-without ``/scenario`` is scored with the ``scenario`` (+ ``set``, ``plugins``) parameters. Timers run
-on the steady clock, so ``use_sim_time:=true`` records like the default.
+which are dropped unrecorded). Two publishers of one run (two simulators on one topic, or a
+restarted one) are detected in-band (:mod:`neural_estimator.nodes.run_identity`: each observation's
+stamp names its run's start) and reported: a warning when the second run appears, and a
+"MIXED RUNS" line after the table with the count per run. A full or read-only disk stops the
+recording with one error line, closes the bag as far as possible and exits 1. Ctrl-C / SIGTERM
+close the bag properly too. A bag without ``/scenario`` is scored with the ``scenario`` (+ ``set``,
+``plugins``) parameters. Timers run on the steady clock, so ``use_sim_time:=true`` records like
+the default.
 Parameters: ``params/evaluator.yaml``.
 """
 
@@ -46,6 +50,7 @@ from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.metrics import EVALUATION_WARMUP
 from neural_estimator.nodes.outputs import is_output_topic
+from neural_estimator.nodes.run_identity import RunIdentity
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     InterfaceError,
@@ -169,6 +174,7 @@ class EvaluatorNode(ExitStatusNode):
         self.expected: int | None = None
         self.complete_at: float | None = None
         self._progress = (0, time.monotonic())  # (messages recorded, when that number last changed)
+        self.identity = RunIdentity()  # the announced run; observations of another one (two publishers)
         self.closed = False
         self._closing = False
         self.description = None
@@ -241,6 +247,8 @@ class EvaluatorNode(ExitStatusNode):
     def _recorder(self, name: str, role: M.TopicRole | None):
         is_status = role is not None and role.kind == M.RUN_STATUS
         is_stream = role is not None and role.kind not in (M.RUN_STATUS, M.SCENARIO)
+        is_scenario = role is not None and role.kind == M.SCENARIO
+        is_observation = role is not None and role.kind == M.OBSERVATION
 
         def record(raw: bytes, info) -> None:
             if self.closed:
@@ -268,6 +276,10 @@ class EvaluatorNode(ExitStatusNode):
                 self._last_stream = time.monotonic()
             if is_status:
                 self._on_status(raw)
+            elif is_scenario or is_observation:
+                mixed = (self.identity.on_scenario if is_scenario else self.identity.on_observation)(raw)
+                if mixed:
+                    self.get_logger().warning(mixed)
 
         return record
 
@@ -294,6 +306,9 @@ class EvaluatorNode(ExitStatusNode):
             self.get_logger().info(
                 f"run started: {status.get('trajectories')} trajectories x {status.get('horizon')} steps"
             )
+            again = self.identity.on_started()
+            if again:
+                self.get_logger().warning(again)
         elif status["status"] == M.STATUS_COMPLETE:
             self.expected = int(status.get("messages", 0))
             self.complete_at = time.monotonic()
@@ -422,6 +437,10 @@ class EvaluatorNode(ExitStatusNode):
             return 1
         print(report.summary(), end="", flush=True)
         print(report.losses(expected=self.expected, dropped=self._dropped()), end="", flush=True)
+        for line in self.identity.report():  # two publishers of one run: the table mixes them
+            print(line, flush=True)
+        if self.identity.mixed:
+            self.get_logger().error(self.identity.report()[0])
         self.get_logger().info("wrote " + ", ".join(str(p) for p in paths.values()))
         return 0
 
