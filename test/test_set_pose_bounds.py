@@ -33,7 +33,7 @@ class _Logger:
     def __init__(self):
         self.lines = []
 
-    def warning(self, text):
+    def warning(self, text, throttle_duration_sec=0.0):
         self.lines.append(("WARN", text))
 
     def info(self, text):

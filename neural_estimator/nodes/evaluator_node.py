@@ -310,7 +310,13 @@ class EvaluatorNode(ExitStatusNode):
             if again:
                 self.get_logger().warning(again)
         elif status["status"] == M.STATUS_COMPLETE:
-            self.expected = int(status.get("messages", 0))
+            messages = status.get("messages", 0)
+            if isinstance(messages, bool) or not isinstance(messages, int) or not 0 <= messages < 2**53:
+                self.get_logger().warning(
+                    f"run_status 'complete' with messages={str(messages)[:40]}: not a count, ignored"
+                )
+                return
+            self.expected = messages
             self.complete_at = time.monotonic()
             self.get_logger().info(f"run complete ({self.expected} observations): waiting for the streams to catch up")
 

@@ -429,8 +429,9 @@ class SetPose:
             mean = set_pose(online.estimator, pose, getattr(online.scenario, "pose_states", {}), self.last, pose_cov)
         except OutputError as exc:
             self.refused += 1
-            text = str(exc)
-            log.warning(text if text.startswith("set_pose") else f"set_pose refused: {text}")
+            text = str(exc) if str(exc).startswith("set_pose") else f"set_pose refused: {exc}"
+            # one line per refusal, at most one a second (a flood of bad poses must not flood the log)
+            log.warning(f"{text} ({self.refused} refused so far)", throttle_duration_sec=1.0)
             return
         self.applied += 1
         self.last = mean

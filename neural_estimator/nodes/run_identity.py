@@ -32,11 +32,12 @@ class RunIdentity:
         self.start_ns: int | None = None
         self.horizon: int | None = None
         self.dt_ns: int | None = None
-        self.announcements: list[int] = []  # every distinct start announced on /scenario, in order
+        self.announcements: list[int] = []  # distinct starts announced on /scenario, in order (the first 17)
         self.started = 0  # run_status "started" messages
         self.checked = 0  # observations compared with the announced run
         self.foreign: dict[int | None, int] = {}  # start -> observations of that other run (None: beyond MAX_STARTS)
         self._codec: M.VectorCodec | None = None
+        self._announced_twice = False
 
     def on_scenario(self, raw: bytes) -> str | None:
         """A ``/scenario`` message: the first announced start is the run; another one is reported."""
@@ -48,9 +49,9 @@ class RunIdentity:
         start, horizon, dt = run.get("start_ns"), run.get("horizon"), run.get("dt_ns")
         if not all(isinstance(v, int) and not isinstance(v, bool) for v in (start, horizon, dt)):
             return None
-        if horizon <= 0 or dt <= 0:
+        if not (0 <= start < 2**63 and 0 < horizon < 2**53 and 0 < dt < 2**63):  # int64 nanoseconds
             return None
-        if start not in self.announcements:
+        if start not in self.announcements and len(self.announcements) <= MAX_STARTS:
             self.announcements.append(start)
         if self.start_ns is None:
             self.start_ns, self.horizon, self.dt_ns = start, horizon, dt
@@ -59,7 +60,8 @@ class RunIdentity:
             except (KeyError, TypeError, ValueError):
                 self._codec = None
             return None
-        if start != self.start_ns and len(self.announcements) == 2:
+        if start != self.start_ns and not self._announced_twice:
+            self._announced_twice = True
             return (
                 f"a second run was announced on /scenario (start_ns {self.start_ns}, then {start}): "
                 "two publishers on one topic, or a restarted one; the recording mixes runs"
