@@ -411,7 +411,7 @@ def run(seconds: float, seed: int, only: set[str] | None, domain: int, workdir: 
                     why = "stopped answering"
                 counted = key in diag and _diagnostics_total(diag[key]) > diag0
                 refused = _warn_lines(logs[t.name]) - log0
-                refused += answered_no  # requests answered "no" (success=False) are refusals too
+                refused = max(refused, answered_no)  # requests answered success=False, or the lines they logged
                 outcome = f"DEAD ({why})" if why else "counted" if counted else "refused" if refused else "alive"
                 deaths += bool(why)
                 rows.append({"node": t.name, "input": inp.name, "outcome": outcome, "sent": sent, "refusals": refused})
@@ -439,6 +439,12 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def default_domain() -> int:
+    """``ROS_DOMAIN_ID`` when set (other ROS users share the host), else a random one in 200..229."""
+    env_domain = os.environ.get("ROS_DOMAIN_ID", "")
+    return int(env_domain) if env_domain.isdigit() else random.SystemRandom().randint(200, 229)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=3.0, help="fuzzing time per node and input (default 3)")
@@ -449,10 +455,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.seconds <= 0:
         ap.error("--seconds must be > 0")
-    domain = a.domain
-    if domain is None:
-        env_domain = os.environ.get("ROS_DOMAIN_ID", "")
-        domain = int(env_domain) if env_domain.isdigit() else random.SystemRandom().randint(200, 229)
+    domain = default_domain() if a.domain is None else a.domain
     workdir = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="fuzz_nodes-"))
     workdir.mkdir(parents=True, exist_ok=True)
     only = {n for n in a.nodes.split(",") if n} or None

@@ -109,7 +109,7 @@ def test_drops_quarantine_and_falling_behind_are_never_ok():
 
 
 def test_steps_a_restart_skipped_are_lost_upstream_and_reported():
-    """Issue 42, item 12: a node 2-4 min behind at 500 Hz never received 46,513 observations (its
+    """A node 2-4 min behind at 500 Hz never received 46,513 observations (its
     DDS queue overflowed) and its diagnostics never went ERROR: a gap longer than max_gap restarts
     the stream with filled = 0, so those steps were counted nowhere. They are now the stream's
     missed steps, in the window's losses and in "observations lost upstream"."""

@@ -1,4 +1,4 @@
-"""The evaluator's end of run counts only the streams it scores (issue 42, item 5): with a periodic
+"""The evaluator's end of run counts only the streams it scores: with a periodic
 /diagnostics recorded beside the run and one estimate stream short, every diagnostics message
 counted as progress, so completion_timeout never fired (the soak's evaluator waited 585 s for its
 wall-clock limit). The decision (EvaluatorNode._check_done) runs here on a stand-in node whose clock

@@ -62,7 +62,7 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
             return call(f"/{target}/get_state", GetState, GetState.Request()).current_state.label
 
         assert state("lc") == "unconfigured"
-        # issue 42: an out-of-order change_state request killed the node ("Transition is not
+        # an out-of-order change_state request killed the node ("Transition is not
         # registered" out of the service callback); it is refused and the node stays where it was
         assert change("lc", Transition.TRANSITION_ACTIVATE) is False and state("lc") == "unconfigured"
         assert change("lc", Transition.TRANSITION_CLEANUP) is False and state("lc") == "unconfigured"

@@ -1,4 +1,4 @@
-"""Corrupt (non-finite) observations cannot move the stream (issue 42, item 3): two NaN observations
+"""Corrupt (non-finite) observations cannot move the stream: two NaN observations
 claiming steps 53 and 54 while the stream was at 50 were taken as a confirmed forward jump; the real
 step 51 then looked like a restarted publisher and the filter was reset to the prior mid-trajectory
 (live GRU RMSE 63.3 -> 72.4; through replay NEES mean 2.4 -> 11.3). A non-finite message is now no

@@ -361,7 +361,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
         for k in range(5):
             pub.publish(obs(k))
         spin_until(lambda: len(est["ukf"]) >= 5 and len(est["gru"]) >= 5)
-        hostile = PoseWithCovarianceStamped()  # issue 42: a 1e308 variance killed the node
+        hostile = PoseWithCovarianceStamped()  # a 1e308 variance once killed the node
         hostile.header.frame_id = "map"
         hostile.pose.pose.orientation.w = 1.0
         hostile.pose.covariance[0] = 1e308

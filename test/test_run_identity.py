@@ -1,4 +1,4 @@
-"""Two publishers of one run are detected in-band (issue 42, item 6): two simulators on one topic
+"""Two publishers of one run are detected in-band: two simulators on one topic
 gave a scored table from mixed runs (EKF RMSE 104 against 57.7 clean), with "run started" logged
 twice in 80 ms and no warning. Each observation's stamp names its run's start
 (stamp - (n T + k) dt), so the evaluator's RunIdentity counts what belongs to another run."""

@@ -1,5 +1,5 @@
 """set_pose refuses what is not a pose in the node's frame, in one WARN line, and the stream goes on
-(issue 42, item 1: a covariance diagonal of 1e308 killed the EKF and UKF nodes; x = 1e308, a
+(a covariance diagonal of 1e308 killed the EKF and UKF nodes; x = 1e308, a
 covariance of 1e200 and frame 'moon' were accepted silently). Plain code: the subscription's
 callback is called with a stand-in node, so a raised exception here is a dead node there."""
 
