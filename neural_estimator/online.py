@@ -314,16 +314,18 @@ class OnlineEstimator:
         return gap, False
 
     def _missed(self, m: _Obs, new_run: bool) -> int:
-        """Steps of the stream between the last processed message and ``m`` that never arrived: the
-        steps in between in one trajectory, or, into the next trajectory with the horizon known,
-        (H - 1 - k_last) + k. Zero for a new run or any other jump (nothing says what was sent)."""
-        if self.trajectory is None or self.step < 0 or new_run:
+        """Steps of the stream between the last processed message (n', k') and ``m`` = (n, k) that
+        never arrived: k - k' - 1 in one trajectory; into a later trajectory with the horizon H
+        known, (H - 1 - k') + (n - n' - 1) H + k (a node that fell behind and lost whole
+        trajectories from its queue); otherwise (H unknown, a new run, an earlier trajectory) at
+        least the k steps of m's trajectory before it."""
+        if self.trajectory is None or self.step < 0:
             return 0
-        if m.trajectory == self.trajectory:
+        if m.trajectory == self.trajectory and not new_run:
             return max(0, m.step - self.step - 1)
-        if self.horizon is not None and m.trajectory == self.trajectory + 1 and self.step < self.horizon:
-            return self.horizon - 1 - self.step + m.step
-        return 0
+        if self.horizon is not None and m.trajectory > self.trajectory and not new_run and self.step < self.horizon:
+            return self.horizon - 1 - self.step + (m.trajectory - self.trajectory - 1) * self.horizon + m.step
+        return m.step
 
     def _estimate(self, m: _Obs, *, new: bool = False, new_run: bool = False) -> StepResult:
         missed = self._missed(m, new_run)
