@@ -83,3 +83,40 @@ def test_foreign_starts_are_counted_in_bounded_memory():
     for i in range(1, 3 * MAX_STARTS):
         ident.on_observation(_run(scen, data, 10**18 + i)[1][0])
     assert len(ident.foreign) == MAX_STARTS + 1 and sum(ident.foreign.values()) == 3 * MAX_STARTS - 1
+
+
+def test_the_evaluators_recorder_reports_a_second_run(monkeypatch):
+    """The evaluator node's recorder (EvaluatorNode._recorder) feeds /scenario and /observation to
+    its RunIdentity and logs the first message of another run; run here on a stand-in node."""
+    import types
+
+    import pytest
+
+    E = pytest.importorskip("neural_estimator.nodes.evaluator_node")
+    scen = make_scenario("bearings")
+    data = simulate(scen, N, T, seed=3)
+    a_announce, a_obs = _run(scen, data, 10**18)
+    _, b_obs = _run(scen, data, 10**18 + 80_000_000)
+    warnings, written = [], []
+    ev = types.SimpleNamespace(
+        closed=False,
+        write_error=None,
+        unrecorded=0,
+        _max_bytes=0,
+        sim_time=False,
+        counts={"/scenario": 0, "/observation": 0},
+        _last_stream=None,
+        identity=RunIdentity(),
+        bag=types.SimpleNamespace(write=lambda *a, **k: written.append(a[0])),
+        get_logger=lambda: types.SimpleNamespace(warning=warnings.append, info=lambda text: None),
+    )
+    info = {"received_timestamp": 1, "source_timestamp": 1}
+    record_scenario = E.EvaluatorNode._recorder(ev, "/scenario", M.topic_role("/scenario"))
+    record_obs = E.EvaluatorNode._recorder(ev, "/observation", M.topic_role("/observation"))
+    record_scenario(a_announce, info)
+    for a, b in zip(a_obs, b_obs):
+        record_obs(a, info)
+        record_obs(b, info)
+    assert len(written) == 1 + 2 * N * T  # everything recorded as it arrived
+    assert len(warnings) == 1 and "belongs to another run" in warnings[0]
+    assert ev.identity.report()[0].startswith(f"MIXED RUNS: {N * T} of {2 * N * T}")
