@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=0,
         help="run the estimators with python -X tracemalloc=FRAMES: each reports where its heap grew after "
-        "2 x --depth estimates (nodes/heap_trace.py; slows them); 0 = off",
+        "--depth estimates (nodes/heap_trace.py; slows them); 0 = off",
     )
     ap.add_argument("--analyze", default="", help="recompute the report of a finished soak directory (its soak.json)")
     args = ap.parse_args(argv)

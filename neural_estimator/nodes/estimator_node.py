@@ -120,7 +120,7 @@ class EstimatorNode(ExitStatusNode):
         self._sim_time_warned = False
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.stats = EstimatorStats()
-        self.heap = HeapTrace(after=2 * p.history_depth)
+        self.heap = HeapTrace(after=p.history_depth)
         self.input_monitor = self.pd.monitor(self.obs_topic, time.monotonic())
         self.set_pose = SetPose(self, self.po.set_pose_topic, lambda: self.online, p.frame_id)
         self._last_log: dict[str, float] = {}
