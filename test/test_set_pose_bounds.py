@@ -67,7 +67,9 @@ HOSTILE = {
 
 
 @pytest.mark.parametrize("method", ["ekf", "ukf"])
-def test_hostile_set_pose_is_refused_in_one_warn_line_and_the_stream_goes_on(method):
+def test_hostile_set_pose_is_refused_in_one_warn_line_and_the_stream_goes_on(method, monkeypatch):
+    clock = iter(range(0, 10**6, 2))  # 2 s between messages: no refusal is a throttled repeat
+    monkeypatch.setattr(O.time, "monotonic", lambda: float(next(clock)))
     scen = make_scenario("bearings")
     online = OnlineEstimator(make_estimator(method, scen), method)
     node = _Node()
@@ -117,3 +119,23 @@ def test_filters_take_a_huge_initial_covariance_without_overflow_or_a_linalg_err
         assert "initial_cov" in str(exc)
     else:
         assert np.all(np.isfinite(f._init_cov))
+
+
+def test_a_flood_of_the_same_refusal_is_one_line_a_second_and_another_reason_is_never_hidden(monkeypatch):
+    now = [0.0]
+    monkeypatch.setattr(O.time, "monotonic", lambda: now[0])
+    scen = make_scenario("bearings")
+    online = OnlineEstimator(make_estimator("ekf", scen), "ekf")
+    node = _Node()
+    sp = O.SetPose(node, "", lambda: online, "map")
+    for _ in range(100):  # 100 in 0.99 s
+        sp._on_pose(_pose(frame="moon"))
+        now[0] += 0.0099
+    sp._on_pose(_pose(x=1e308))  # another reason, at once
+    now[0] = 1.5
+    sp._on_pose(_pose(x=1e308))  # the same again within the second: not repeated
+    sp._on_pose(_pose(frame="moon"))  # the first reason, 1.5 s after its first line
+    texts = [t for _, t in node.logger.lines]
+    assert len(texts) == 3 and sp.refused == 103
+    assert "frame 'moon'" in texts[0] and "(1 refused so far)" in texts[0]
+    assert "ceiling" in texts[1] and "frame 'moon'" in texts[2] and "(103 refused so far)" in texts[2]

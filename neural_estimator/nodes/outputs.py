@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -412,6 +413,7 @@ class SetPose:
         self.last: np.ndarray | None = None  # the last published estimate (the base of the new mean)
         self.applied = 0
         self.refused = 0
+        self._last_refusal = ("", -1e9)  # (text, monotonic time) of the last refusal logged
         self.sub = None
         if topic:
             from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -430,8 +432,12 @@ class SetPose:
         except OutputError as exc:
             self.refused += 1
             text = str(exc) if str(exc).startswith("set_pose") else f"set_pose refused: {exc}"
-            # one line per refusal, at most one a second (a flood of bad poses must not flood the log)
-            log.warning(f"{text} ({self.refused} refused so far)", throttle_duration_sec=1.0)
+            # one line per refusal; a repeat of the last one at most once a second (a flood of bad
+            # poses must not flood the log, and a different reason is never hidden behind it)
+            now = time.monotonic()
+            if text != self._last_refusal[0] or now - self._last_refusal[1] >= 1.0:
+                self._last_refusal = (text, now)
+                log.warning(f"{text} ({self.refused} refused so far)")
             return
         self.applied += 1
         self.last = mean
