@@ -134,8 +134,8 @@ def test_a_flood_of_the_same_refusal_is_one_line_a_second_and_another_reason_is_
     sp._on_pose(_pose(x=1e308))  # another reason, at once
     now[0] = 1.5
     sp._on_pose(_pose(x=1e308))  # the same again within the second: not repeated
-    sp._on_pose(_pose(frame="moon"))  # the first reason, 1.5 s after its first line
+    sp._on_pose(_pose(frame="mars"))  # the first reason (another frame), 1.5 s after its first line
     texts = [t for _, t in node.logger.lines]
     assert len(texts) == 3 and sp.refused == 103
     assert "frame 'moon'" in texts[0] and "(1 refused so far)" in texts[0]
-    assert "ceiling" in texts[1] and "frame 'moon'" in texts[2] and "(103 refused so far)" in texts[2]
+    assert "ceiling" in texts[1] and "frame 'mars'" in texts[2] and "(103 refused so far)" in texts[2]

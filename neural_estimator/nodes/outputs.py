@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -413,7 +414,7 @@ class SetPose:
         self.last: np.ndarray | None = None  # the last published estimate (the base of the new mean)
         self.applied = 0
         self.refused = 0
-        self._last_refusal = ("", -1e9)  # (text, monotonic time) of the last refusal logged
+        self._logged: dict[str, float] = {}  # refusal reason -> when it was last logged (monotonic)
         self.sub = None
         if topic:
             from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -432,11 +433,14 @@ class SetPose:
         except OutputError as exc:
             self.refused += 1
             text = str(exc) if str(exc).startswith("set_pose") else f"set_pose refused: {exc}"
-            # one line per refusal; a repeat of the last one at most once a second (a flood of bad
-            # poses must not flood the log, and a different reason is never hidden behind it)
-            now = time.monotonic()
-            if text != self._last_refusal[0] or now - self._last_refusal[1] >= 1.0:
-                self._last_refusal = (text, now)
+            # one line per refusal, each reason at most once a second: a flood of bad poses must not
+            # flood the log, and one reason must not hide another (the reason: the text without its
+            # quoted values, so 'moon' and 'mars' are one reason; a few dozen templates at most)
+            now, reason = time.monotonic(), re.sub(r"'[^']*'", "''", text)
+            if now - self._logged.get(reason, -1e9) >= 1.0:
+                if len(self._logged) >= 64:
+                    self._logged.clear()
+                self._logged[reason] = now
                 log.warning(f"{text} ({self.refused} refused so far)")
             return
         self.applied += 1
