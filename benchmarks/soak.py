@@ -9,8 +9,10 @@ observations (trajectories of ``--horizon`` steps), exactly as ``neural-estimato
 isolated ROS domain. Every ``--sample-s`` seconds it records each node's resident memory (VmRSS)
 and the load average. At the end it reports, per node:
 
-- RSS at the end of the warm-up (the first ``--warmup-s`` seconds fill the bounded DDS histories),
-  at the end of the stream and the maximum, and the growth after the warm-up (MiB, and MiB/hour);
+- RSS at the end of the warm-up (by default the time the bounded DDS histories take to fill,
+  ``--depth`` messages at the rate, plus 30 s), at the end of the stream and the maximum, the growth
+  after the warm-up (MiB, and MiB/hour), and the RSS slope after the warm-up (MiB/s, least squares
+  over every sample; the flat-memory criterion is a slope under 0.01 MB/s per node);
 - losses: for each estimator, the observations it never estimated and why (its stats file: bad,
   oversize, duplicate, out of order, unconfirmed jumps, missing steps, method failures); for the
   evaluator, the (trajectory, step) cells of each stream the run announced that are not in the
@@ -55,6 +57,20 @@ def rss_mib(pid: int) -> float | None:
     except OSError:
         return None
     return None
+
+
+def rss_slope(points: list[tuple[float, float]]) -> float | None:
+    """Least-squares slope (MiB/s) of RSS samples (t seconds, MiB): b = sum (t - t_mean)(r - r_mean)
+    / sum (t - t_mean)^2. Over every sample after the warm-up, not the last minus the first, so
+    one sample caught during a garbage collection or a malloc trim does not make the trend."""
+    if len(points) < 3:
+        return None
+    tm = sum(t for t, _ in points) / len(points)
+    rm = sum(r for _, r in points) / len(points)
+    var = sum((t - tm) ** 2 for t, _ in points)
+    if var <= 0:
+        return None
+    return sum((t - tm) * (r - rm) for t, r in points) / var
 
 
 def stream_losses(bag: Path, expected: int, horizon: int) -> dict:
@@ -142,6 +158,8 @@ def losses(out: Path, methods: list[str], total: int, horizon: int) -> dict:
             "restarts": s.get("restarts", 0),
             "latency_p50_ms": s.get("latency_p50_ms"),
             "latency_p99_ms": s.get("latency_p99_ms"),
+            "lost_upstream": s.get("lost_upstream"),
+            "heap_growth": s.get("heap_growth"),  # --tracemalloc only
         }
     a, b = rec["publish_span_ns"]
     obs = next((v for k, v in streams.items() if k.endswith("/observation")), None)
@@ -165,7 +183,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="bearings")
     ap.add_argument("--horizon", type=int, default=1000, help="steps per trajectory")
     ap.add_argument("--sample-s", type=float, default=10.0, help="seconds between RSS samples")
-    ap.add_argument("--warmup-s", type=float, default=0.0, help="0 = 10%% of the run, at least 30 s")
+    ap.add_argument(
+        "--warmup-s",
+        type=float,
+        default=0.0,
+        help="0 = the time to fill the DDS histories (--depth / rate) + 30 s, or 10%% of the run if longer",
+    )
+    ap.add_argument(
+        "--depth",
+        type=int,
+        default=100_000,
+        help="queue and history depth of every stream (default 100000, as neural-estimator live at 500 Hz)",
+    )
     ap.add_argument("--metrics", action="store_true", help="let the evaluator compute the paper's metrics at the end")
     ap.add_argument("--out", default="", help="directory for the bag, logs, soak.json (default /tmp/soak-<time>)")
     ap.add_argument(
@@ -174,6 +203,13 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="stop the run (simulator, then evaluator) after this many minutes even if the publisher is behind "
         "(default: minutes + 10); the report then counts against what was published",
+    )
+    ap.add_argument(
+        "--tracemalloc",
+        type=int,
+        default=0,
+        help="run the estimators with python -X tracemalloc=FRAMES: each reports where its heap grew after "
+        "--depth estimates (nodes/heap_trace.py; slows them); 0 = off",
     )
     ap.add_argument("--analyze", default="", help="recompute the report of a finished soak directory (its soak.json)")
     args = ap.parse_args(argv)
@@ -188,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     bag = out / "soak.mcap"
     domain = pick_domain_id()
     env = isolated_env(domain)
-    depth = 100_000  # the bounded DDS histories (as neural-estimator live): filled in the warm-up
+    depth = args.depth  # the bounded DDS histories (as neural-estimator live): filled in the warm-up
     py = sys.executable
     nodes = {
         "evaluator": node_command(
@@ -219,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
                 "history_depth": depth,
             },
         )
+        if args.tracemalloc:  # python -X tracemalloc=N -m ...: each estimator traces its heap
+            nodes[f"estimator_{m}"][1:1] = ["-X", f"tracemalloc={args.tracemalloc}"]
     nodes["simulator"] = node_command(
         py,
         SIMULATOR,
@@ -277,7 +315,10 @@ def main(argv: list[str] | None = None) -> int:
     codes = {n: p.returncode for n, p in procs.items()}
 
     # ---- memory ----------------------------------------------------------------------------------
-    warm = args.warmup_s or max(30.0, 0.1 * 60 * args.minutes)
+    # the warm-up: until every bounded history is full (depth messages at the rate), then 30 s more;
+    # growth before that is the fill-up, after it a leak (a 120 s run at 500 Hz into 100,000-deep
+    # histories had not filled them yet: its 0.33 MB/s was the fill-up)
+    warm = args.warmup_s or max(depth / args.rate_hz + 30.0, 0.1 * 60 * args.minutes)
     end = streaming_end or run_end
     with open(out / "rss.csv", "w") as fh:
         cols = ["t", "load1", *nodes]
@@ -293,7 +334,10 @@ def main(argv: list[str] | None = None) -> int:
             continue
         first, last = after_warm[0], after_warm[-1]
         span_h = max((during[-1][0] - warm) / 3600, 1e-9)
+        slope = rss_slope([(t, v) for t, v in during if t >= warm])
         memory[name] = {
+            "slope_mib_per_s": None if slope is None else round(slope, 5),
+            "samples_after_warmup": len(after_warm),
             "rss_warm_mib": round(first, 1),
             "rss_end_mib": round(last, 1),
             "rss_max_mib": round(max(v for _, v in during), 1),
@@ -358,16 +402,19 @@ def report(r: dict) -> str:
         + f" (the most any node received); the publisher's mean rate over the recorded observations: "
         f"{r.get('recorded_observation_rate_hz')} Hz; losses below count against what was published",
         "",
-        f"| node | RSS after warm-up ({r['warmup_s']:.0f} s) MiB | RSS at end MiB | max MiB | growth MiB | MiB/h |",
-        "|---|---|---|---|---|---|",
+        f"| node | RSS after warm-up ({r['warmup_s']:.0f} s) MiB | RSS at end MiB | max MiB | growth MiB | MiB/h | "
+        "slope after warm-up MiB/s (least squares, samples) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, m in r["memory"].items():
         if m is None:
-            lines.append(f"| {name} | - | - | - | - | - |")
+            lines.append(f"| {name} | - | - | - | - | - | no sample after the warm-up |")
         else:
+            slope = m.get("slope_mib_per_s")
             lines.append(
                 f"| {name} | {m['rss_warm_mib']} | {m['rss_end_mib']} | {m['rss_max_mib']} | "
-                f"{m['growth_mib']} | {m['growth_mib_per_h']} |"
+                f"{m['growth_mib']} | {m['growth_mib_per_h']} | "
+                f"{'-' if slope is None else f'{slope:.4f}'} ({m.get('samples_after_warmup', '-')}) |"
             )
     lines += [
         "",
@@ -384,6 +431,15 @@ def report(r: dict) -> str:
             f"{e['out_of_order']} | {e['unconfirmed']} | {e['gap_steps']} | {e['method_failures']} | "
             f"{e['quarantined']} | {e['restarts']} | {_ms(e['latency_p50_ms'])} | {_ms(e['latency_p99_ms'])} |"
         )
+    for m, e in r["estimators"].items():
+        heap = (e or {}).get("heap_growth")
+        if heap:
+            lines += [
+                "",
+                f"{m}: traced heap grew {heap['traced_growth_kib']} KiB from estimate {heap['baseline_estimates']} "
+                f"to {heap['estimates']}; largest growth by call stack (innermost first):",
+            ]
+            lines += [f"  {t['kib']:+.1f} KiB in {t['blocks']:+d} blocks: {t['where']}" for t in heap["top"][:8]]
     lines += ["", "| recorded stream (evaluator) | messages | cells | lost cells |", "|---|---|---|---|"]
     for topic, s in r["streams"].items():
         if isinstance(s, dict):

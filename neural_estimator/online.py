@@ -23,8 +23,12 @@ order a live node received the messages in, so both give the same estimates):
   ``unconfirmed`` otherwise); a held message that becomes the next step of the current stream
   (reordered delivery) is estimated in order. An accepted jump within the trajectory is a gap;
   any other starts a new stream from the prior (``new_run`` when its stamps went back: a
-  restarted publisher). So one stray, forged or corrupted identity costs at most itself, never
-  the real stream, and a restarted publisher's new run takes over after ``confirm`` messages;
+  restarted publisher). A message whose y_k is not finite carries no observation, so it is no
+  evidence for a jump: it is never held and never confirms one (dropped at once, ``stale`` or
+  ``unconfirmed``); only the current stream's successor is estimated from it (predict only).
+  So one stray, forged or corrupted identity costs at most itself, any number of corrupt
+  (non-finite) ones cost only themselves, never the real stream, and a restarted publisher's new
+  run takes over after ``confirm`` messages with observations;
 - a gap (a step later than the next one, accepted) means observations were lost: the missing steps are run as
   predict-only steps (observation NaN, the last received control held), so that the estimate of
   step k is still an estimate of x_k. The bridge is bounded: more than ``max_gap`` missing steps,
@@ -75,6 +79,9 @@ class StepResult(NamedTuple):
     diverged: bool = False  # the estimator's stream is diverged (estimates NaN until reset)
     new_run: bool = False  # the stream started here is a new run of the publisher (its stamps went back)
     P: np.ndarray | None = None  # (dx, dx) the method's covariance of this estimate, where it has one
+    # observations of the stream between the previous estimate and this one that never arrived
+    # (bridged as ``filled`` or skipped by a restart; across a trajectory's end where the horizon is known)
+    missed: int = 0
 
 
 STATUSES = (
@@ -92,7 +99,7 @@ class _Obs(NamedTuple):
     stamp_ns: int
     y: np.ndarray  # (1, dy)
     u_prev: np.ndarray  # (1, du)
-    nonfinite: bool  # y has NaN or inf (no observation)
+    finite: bool = True  # y holds no NaN or inf (an observation, not a predict-only step)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -237,6 +244,8 @@ class OnlineEstimator:
                 out += self._drop_held()
         elif m.trajectory == self.trajectory and m.step == self.step and m.stamp_ns == self._last_stamp:
             out.append(StepResult("duplicate", m.trajectory, m.step, m.stamp_ns))
+        elif not m.finite:  # a jump carried by no observation is no evidence for it: dropped at once
+            out.append(StepResult("stale" if self._behind(m) else "unconfirmed", m.trajectory, m.step, m.stamp_ns))
         elif self._held and self._continues_held(m):
             self._held.append(m)
             if len(self._held) >= self.confirm:  # confirmed: the jump and this message are estimated
@@ -303,7 +312,7 @@ class OnlineEstimator:
         y_finite, u_finite = finite_parts(values, self._dy)
         if not u_finite:
             raise MessageError(f"observation {trajectory}/{step}: control u_prev contains NaN or inf")
-        return _Obs(trajectory, step, stamp_ns, values[None, : self._dy], values[None, self._dy :], not y_finite)
+        return _Obs(trajectory, step, stamp_ns, values[None, : self._dy], values[None, self._dy :], y_finite)
 
     # ---- one estimator step ------------------------------------------------------------------------
     def _start(self, trajectory: int) -> None:
@@ -323,7 +332,22 @@ class OnlineEstimator:
                 return 0, True
         return gap, False
 
+    def _missed(self, m: _Obs, new_run: bool) -> int:
+        """Steps of the stream between the last processed message (n', k') and ``m`` = (n, k) that
+        never arrived: k - k' - 1 in one trajectory; into a later trajectory with the horizon H
+        known, (H - 1 - k') + (n - n' - 1) H + k (a node that fell behind and lost whole
+        trajectories from its queue); otherwise (H unknown, a new run, an earlier trajectory) at
+        least the k steps of m's trajectory before it."""
+        if self.trajectory is None or self.step < 0:
+            return 0
+        if m.trajectory == self.trajectory and not new_run:
+            return max(0, m.step - self.step - 1)
+        if self.horizon is not None and m.trajectory > self.trajectory and not new_run and self.step < self.horizon:
+            return self.horizon - 1 - self.step + (m.trajectory - self.trajectory - 1) * self.horizon + m.step
+        return m.step
+
     def _estimate(self, m: _Obs, *, new: bool = False, new_run: bool = False) -> StepResult:
+        missed = self._missed(m, new_run)
         if new:
             self._start(m.trajectory)
         gap = m.step - self.step - 1
@@ -358,10 +382,11 @@ class OnlineEstimator:
             reset=new,
             filled=gap,
             restarted=restarted,
-            nonfinite=m.nonfinite,
+            nonfinite=not m.finite,
             diverged=diverged,
             new_run=new_run,
             P=P,
+            missed=missed,
         )
 
 

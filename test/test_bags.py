@@ -562,15 +562,17 @@ def test_online_estimator_stream_rules():
     assert feed(obs(0)) == ["estimated"]
     assert feed(obs(0)) == ["duplicate"]
     assert feed(obs(3)) == ["held"]  # a jump: held until the next message agrees
-    r = online.feed(obs(4, y=[np.nan]), 0.0)
+    assert feed(obs(4, y=[np.nan])) == ["unconfirmed"]  # no observation, no evidence: never a confirmation
+    r = online.feed(obs(4), 0.0)
     assert [x.status for x in r] == ["estimated", "estimated"] and r[0].filled == 2
-    assert r[1].nonfinite and np.isfinite(r[1].x_hat).all()
     assert feed(obs(2)) == ["held"]  # late: held, then dropped as stale once the stream goes on
     for bad in (b"", obs(5, u=[np.nan]), M.encode_vector(0, s.name, 0, 5, ["position"], [0.0])):
         with pytest.raises(MessageError):
             online.feed(bad)
     assert online.step == 4  # bad messages change nothing
-    assert feed(obs(5)) == ["estimated"] and feed(obs(6)) == ["estimated", "stale"]
+    r = online.feed(obs(5, y=[np.nan]), 0.0)  # the stream's next step without an observation: predict only
+    assert [x.status for x in r] == ["estimated"] and r[0].nonfinite and np.isfinite(r[0].x_hat).all()
+    assert feed(obs(6)) == ["estimated", "stale"]
     assert feed(obs(0, n=1)) == ["held"]
     online.max_gap = 2
     r = online.feed(obs(7, n=1), 0.0)

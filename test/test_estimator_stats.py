@@ -106,3 +106,78 @@ def test_drops_quarantine_and_falling_behind_are_never_ok():
     s.estimated += 20
     level, problems = health(s, s.window(3.0), waiting=False, foreign=set())
     assert level == ERROR and problems[0] == "lost 41 messages against 20 estimates"
+
+
+def test_steps_a_restart_skipped_are_lost_upstream_and_reported():
+    """A node 2-4 min behind at 500 Hz never received 46,513 observations (its
+    DDS queue overflowed) and its diagnostics never went ERROR: a gap longer than max_gap restarts
+    the stream with filled = 0, so those steps were counted nowhere. They are now the stream's
+    missed steps, in the window's losses and in "observations lost upstream"."""
+    import numpy as np
+
+    from neural_estimator.bags import messages as M
+    from neural_estimator.data import simulate
+    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.registry import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scen = make_scenario("bearings")
+    data = simulate(scen, 1, 5, seed=1)
+    online = OnlineEstimator(make_estimator("ekf", scen), "ekf", max_gap=1000)
+
+    def obs(k):
+        t = M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt))
+        return M.encode_observation(scen, t, 0, k, data.y[0, k % 5], np.zeros(scen.du))
+
+    s = EstimatorStats()
+    s.window(0.0)
+    sent = (
+        [obs(k) for k in range(5)] + [obs(k) for k in range(3000, 3005)] + [obs(3010), obs(3011)]
+    )  # 3010 confirmed by 3011
+    for raw in sent:
+        for res in online.feed(raw, 0.0):
+            if res.status == "estimated":  # what the node's _handle counts
+                s.estimated += 1
+                s.gap_steps += res.filled
+                s.restarts += res.restarted
+                s.missed += res.missed
+    assert s.estimated == 12 and s.restarts == 1 and s.gap_steps == 5 and s.missed == 2995 + 5
+    s.late_dropped = 5  # five of the missed steps were dropped here as late, not upstream
+    level, problems = health(s, s.window(1.0), waiting=False, foreign=set())
+    assert level == ERROR and problems[0] == "lost 3000 messages against 12 estimates"
+    assert "2995 observations lost upstream (never received)" in problems
+    assert diagnostic_values(s, s.window(2.0), "ekf")["observations lost upstream"] == "2995"
+    assert stats_summary(s, "/est", "ekf")["lost_upstream"] == 2995
+
+
+def test_whole_trajectories_lost_from_a_lagging_nodes_queue_are_counted():
+    """A 4-minute soak at 500 Hz under load: the EKF node jumped from 64/152 to 69/193 (its queue
+    overflowed) and counted only the 193 steps it bridged; with the horizon known, the steps of the
+    trajectories in between are missed too: (H - 1 - 152) + 4 H + 193."""
+    import numpy as np
+
+    from neural_estimator.bags import messages as M
+    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.registry import make_estimator
+    from neural_estimator.scenarios import make_scenario
+
+    scen = make_scenario("bearings")
+    H = 1000
+    online = OnlineEstimator(make_estimator("ekf", scen), "ekf", horizon=H)
+
+    def obs(n, k):
+        t = M.step_stamp_ns(10**18, n * H + k, M.dt_ns(scen.dt))
+        return M.encode_observation(scen, t, n, k, np.zeros(scen.dy), np.zeros(scen.du))
+
+    missed = filled = 0
+    for n, k in [(64, 150), (64, 151), (64, 152), (69, 193), (69, 194), (69, 195)]:
+        for res in online.feed(obs(n, k), 0.0):
+            if res.status == "estimated":
+                missed += res.missed
+                filled += res.filled
+    # (the first message, at step 150, bridges 150 steps from the prior: a late start, not a loss)
+    assert filled == 150 + 193 and missed == (H - 1 - 152) + 4 * H + 193
+    # without the horizon, at least the steps of the new trajectory before the jump
+    blind = OnlineEstimator(make_estimator("ekf", scen), "ekf")
+    got = [r.missed for raw in (obs(64, 152), obs(69, 193), obs(69, 194)) for r in blind.feed(raw, 0.0)]
+    assert sum(got) == 193

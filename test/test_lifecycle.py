@@ -61,9 +61,14 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
             return call(f"/{target}/get_state", GetState, GetState.Request()).current_state.label
 
         assert state("lc") == "unconfigured"
+        # an out-of-order change_state request killed the node ("Transition is not
+        # registered" out of the service callback); it is refused and the node stays where it was
+        assert change("lc", Transition.TRANSITION_ACTIVATE) is False and state("lc") == "unconfigured"
+        assert change("lc", Transition.TRANSITION_CLEANUP) is False and state("lc") == "unconfigured"
         assert change("lc_bad", Transition.TRANSITION_CONFIGURE) is False  # unknown scenario: stays unconfigured
         assert state("lc_bad") == "unconfigured"
         assert change("lc", Transition.TRANSITION_CONFIGURE) and state("lc") == "inactive"
+        assert change("lc", Transition.TRANSITION_CONFIGURE) is False and state("lc") == "inactive"
         estimates, odoms = [], []
         node.create_subscription(
             JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
@@ -72,6 +77,7 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
         pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
         assert node.count_publishers("estimates/ekf") == 0  # inactive: nothing published
         assert change("lc", Transition.TRANSITION_ACTIVATE) and state("lc") == "active"
+        assert change("lc", Transition.TRANSITION_CLEANUP) is False and state("lc") == "active"
         spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ekf") >= 1)
 
         def obs(k):
@@ -103,3 +109,6 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
             except Exception:
                 p.kill()
     assert "configure failed" in (tmp_path / "bad.log").read_text()
+    log = (tmp_path / "lc.log").read_text()
+    assert "FATAL" not in log and "Traceback" not in log
+    assert log.count("change_state refused") == 4

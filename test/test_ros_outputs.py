@@ -368,7 +368,14 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
         for k in range(5):
             pub.publish(obs(k))
         spin_until(lambda: len(est["ukf"]) >= 5 and len(est["gru"]) >= 5)
+        hostile = PoseWithCovarianceStamped()  # a 1e308 variance once killed the node
+        hostile.header.frame_id = "map"
+        hostile.pose.pose.orientation.w = 1.0
+        hostile.pose.covariance[0] = 1e308
+        pose_pub.publish(hostile)
+        spin_until(lambda: "set_pose refused: pose covariance" in (tmp_path / "ukf.log").read_text())
         pose = PoseWithCovarianceStamped()
+        pose.header.frame_id = "map"  # the node's frame_id: any other is refused
         pose.pose.pose.position.x, pose.pose.pose.position.y = 40.0, -25.0
         pose.pose.pose.orientation.w = 1.0
         pose_pub.publish(pose)

@@ -231,8 +231,13 @@ class ClassicalFilter(Estimator):
             raise EstimatorError(f"{self.method}: initial_cov must be ({B}, {n}, {n}), got {P.shape}")
         if not np.all(np.isfinite(P)):
             raise EstimatorError(f"{self.method}: initial_cov contains NaN or inf")
-        P = 0.5 * (P + np.swapaxes(P, -1, -2))
-        if np.any(np.linalg.eigvalsh(P)[..., 0] < -1e-9 * np.maximum(1.0, np.abs(P).max(axis=(-1, -2)))):
+        # halves first: P + P^T overflows to inf for entries above 8.9e307 (a finite input)
+        P = 0.5 * P + 0.5 * np.swapaxes(P, -1, -2)
+        try:
+            low = np.linalg.eigvalsh(P)[..., 0]
+        except np.linalg.LinAlgError:  # LAPACK gives up on entries near the float range's edge
+            raise EstimatorError(f"{self.method}: initial_cov eigenvalues did not converge") from None
+        if np.any(~np.isfinite(low)) or np.any(low < -1e-9 * np.maximum(1.0, np.abs(P).max(axis=(-1, -2)))):
             raise EstimatorError(f"{self.method}: initial_cov is not positive semi-definite")
         return P
 

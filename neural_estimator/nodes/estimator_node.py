@@ -77,6 +77,7 @@ from neural_estimator.nodes.common import (
 )
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
+from neural_estimator.nodes.heap_trace import HeapTrace
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
 from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams, online_estimator
 from neural_estimator.online import OnlineEstimator, warm_up
@@ -119,8 +120,9 @@ class EstimatorNode(ExitStatusNode):
         self._sim_time_warned = False
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.stats = EstimatorStats()
+        self.heap = HeapTrace(after=p.history_depth)
         self.input_monitor = self.pd.monitor(self.obs_topic, time.monotonic())
-        self.set_pose = SetPose(self, self.po.set_pose_topic, lambda: self.online)
+        self.set_pose = SetPose(self, self.po.set_pose_topic, lambda: self.online, p.frame_id)
         self._last_log: dict[str, float] = {}
         self._foreign: set[str] = set()
         self._early: list[bytes] = []
@@ -442,6 +444,7 @@ class EstimatorNode(ExitStatusNode):
             s.estimated += 1
             s.resets += res.reset
             s.gap_steps += res.filled
+            s.missed += res.missed
             s.restarts += res.restarted
             s.nonfinite += res.nonfinite
             s.diverged = res.diverged or not np.all(np.isfinite(res.x_hat))
@@ -501,6 +504,7 @@ class EstimatorNode(ExitStatusNode):
                 "with -p publish_clock:=true)"
             )
         window = self.stats.window(time.monotonic())
+        self.heap.tick(self.stats.estimated)  # a baseline once the histories are full (-X tracemalloc only)
         level, problems = health(
             self.stats, window, waiting=self.online is None, foreign=self._foreign, delay_warn=self.p.delay_warn
         )
@@ -538,6 +542,7 @@ class EstimatorNode(ExitStatusNode):
             path = Path(self.p.stats_file)
             path.parent.mkdir(parents=True, exist_ok=True)
             summary = stats_summary(self.stats, self.get_fully_qualified_name(), self.method)
+            summary["heap_growth"] = self.heap.report(self.stats.estimated)
             path.write_text(json.dumps(summary, indent=1))
         return self.exit_code
 

@@ -63,6 +63,7 @@ _COUNTERS = (
     "quarantined",
     "oversize",
     "late_dropped",
+    "missed",
 )
 
 
@@ -76,6 +77,9 @@ class EstimatorStats:
     early: int = 0
     nonfinite: int = 0
     gap_steps: int = 0
+    # steps of the stream that never reached the estimator: lost upstream (DDS queue overflow, network)
+    # or dropped here as late; bridged (gap_steps) or not (a restart)
+    missed: int = 0
     restarts: int = 0
     resets: int = 0
     manual_resets: int = 0
@@ -147,15 +151,23 @@ BUSY_WARN = 0.9  # a node busy more than this share of the wall time is falling 
 LAG_WARN = 1.0  # s: a message that waited longer than this in the queue means the node is behind
 
 
+def lost_upstream(counts) -> int:
+    """Observations the publisher sent that never reached the node: the stream's missed steps less
+    those the node itself dropped as late (``max_delay``; each of those is a missed step too).
+    ``counts``: a window dict or the stats' totals (a dict of the counters)."""
+    return max(0, counts.get("missed", 0) - counts.get("late_dropped", 0))
+
+
 def health(
     stats: EstimatorStats, window: dict, *, waiting: bool, foreign: set[str], delay_warn: float = 0.1
 ) -> tuple[int, list[str]]:
     """(level OK/WARN/ERROR, problems) of the node over the last diagnostics window.
 
     ERROR: the estimate diverged, the method failed (its stream restarted), or the window lost at
-    least as many messages as it estimated. WARN: any message dropped, skipped or held in the window
-    (bad, oversize, duplicate, out of order, unconfirmed, quarantined, waiting for the scenario),
-    missing steps, stream restarts, non-finite observations, busy more than 90 % of the time or a
+    least as many messages as it estimated (missed steps included, whether bridged or skipped by a
+    restart). WARN: any message dropped, skipped or held in the window (bad, oversize, duplicate,
+    out of order, unconfirmed, quarantined, waiting for the scenario), observations lost upstream
+    (never received), missing steps, stream restarts, non-finite observations, busy more than 90 % of the time or a
     message that waited more than 1 s in the queue (falling behind: the queue grows and DDS drops
     the oldest), observations that waited longer than ``delay_warn`` s for their estimate (p99 of
     the window, published -> estimate published) or were dropped for waiting longer than
@@ -170,12 +182,15 @@ def health(
         level = ERROR
         problems.append(f"{window['errors']} failures inside the method (stream restarted)")
     recent_bad = window["bad"] + window["early"]
-    dropped = recent_bad + window["oversize"] + window["skipped"] + window["gap_steps"]
+    # every missed step: bridged ones (gap_steps) and those a restart skipped, which were counted nowhere
+    missed = max(window["gap_steps"], window.get("missed", 0))
+    dropped = recent_bad + window["oversize"] + window["skipped"] + missed
     notes = [
         (recent_bad, "bad messages dropped"),
         (window["oversize"], "oversize messages dropped"),
         (window["skipped"], "messages skipped (duplicate, out of order or unconfirmed)"),
         (window["quarantined"], "messages quarantined (jump awaiting confirmation)"),
+        (lost_upstream(window), "observations lost upstream (never received)"),
         (window["gap_steps"], "missing steps"),
         (window["restarts"], "stream restarts (gap too long)"),
         (window["nonfinite"], "non-finite observations"),
@@ -227,6 +242,7 @@ def diagnostic_values(stats: EstimatorStats, window: dict, method: str) -> dict[
         "observation delay p50 since start (ms)": f"{d50 * 1e3:.3f}",
         "observation delay p99 since start (ms)": f"{d99 * 1e3:.3f}",
         "late observations dropped": str(stats.late_dropped),
+        "observations lost upstream": str(lost_upstream(vars(stats))),
         "wake-ups": str(stats.wakeups),
         "largest backlog taken": str(stats.max_batch),
         "estimates published": str(stats.estimated),
@@ -268,6 +284,8 @@ def stats_summary(stats: EstimatorStats, node: str, method: str) -> dict:
         "unconfirmed": stats.skipped["unconfirmed"],
         "quarantined": stats.quarantined,
         "gap_steps": stats.gap_steps,
+        "missed": stats.missed,
+        "lost_upstream": lost_upstream(vars(stats)),
         "restarts": stats.restarts,
         "publisher_restarts": stats.publisher_restarts,
         "resets": stats.resets,

@@ -13,7 +13,8 @@ rosbags rejects). Like ``ros2 bag record`` it subscribes with the QoS the publis
 is delivered), logs receive times, and stores the offered profiles in the channel metadata.
 
 End of a run: after ``run_status`` "complete", when every expected stream holds as many messages
-as the run announced (or when nothing arrived for ``completion_timeout`` s; with no estimate
+as the run announced (or when none of those streams received anything for ``completion_timeout`` s:
+messages on other recorded topics, such as a periodic ``/diagnostics``, are not progress; with no estimate
 stream discovered yet, it waits that long for one), or, for a source without ``run_status`` (a
 foreign bag played, your own nodes), when no stream message arrived for ``idle_timeout`` s, the
 bag is closed, the paper's metrics are
@@ -21,10 +22,14 @@ computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), th
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
 status 0 (1 if no metrics could be computed). After the table it prints, per stream, the messages
 received and lost and why (malformed, outside the announced run, duplicates, over ``max_message_mb``,
-which are dropped unrecorded). A full or read-only disk stops the recording with one error line,
-closes the bag as far as possible and exits 1. Ctrl-C / SIGTERM close the bag properly too. A bag
-without ``/scenario`` is scored with the ``scenario`` (+ ``set``, ``plugins``) parameters. Timers run
-on the steady clock, so ``use_sim_time:=true`` records like the default.
+which are dropped unrecorded). Two publishers of one run (two simulators on one topic, or a
+restarted one) are detected in-band (:mod:`neural_estimator.nodes.run_identity`: each observation's
+stamp names its run's start) and reported: a warning when the second run appears, and a
+"MIXED RUNS" line after the table with the count per run. A full or read-only disk stops the
+recording with one error line, closes the bag as far as possible and exits 1. Ctrl-C / SIGTERM
+close the bag properly too. A bag without ``/scenario`` is scored with the ``scenario`` (+ ``set``,
+``plugins``) parameters. Timers run on the steady clock, so ``use_sim_time:=true`` records like
+the default.
 Parameters: ``params/evaluator.yaml``.
 """
 
@@ -46,6 +51,7 @@ from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.metrics import EVALUATION_WARMUP
 from neural_estimator.nodes.outputs import is_output_topic
+from neural_estimator.nodes.run_identity import RunIdentity
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     InterfaceError,
@@ -79,7 +85,8 @@ class EvaluatorParams:
     )
     queue_depth: int = param(10000, "subscription depth (KEEP_LAST): messages buffered while the node is busy")
     completion_timeout: float = param(
-        30.0, "after 'complete': give up on lagging streams when nothing arrives for this many seconds"
+        30.0,
+        "after 'complete': give up on lagging streams when no scored stream receives anything for this many s",
     )
     chunk_size: int = param(DEFAULT_CHUNK_SIZE, "uncompressed bytes per zstd chunk (what a crash can lose)")
     max_message_mb: float = param(
@@ -168,6 +175,7 @@ class EvaluatorNode(ExitStatusNode):
         self.expected: int | None = None
         self.complete_at: float | None = None
         self._progress = (0, time.monotonic())  # (messages recorded, when that number last changed)
+        self.identity = RunIdentity()  # the announced run; observations of another one (two publishers)
         self.closed = False
         self._closing = False
         self.description = None
@@ -240,6 +248,8 @@ class EvaluatorNode(ExitStatusNode):
     def _recorder(self, name: str, role: M.TopicRole | None):
         is_status = role is not None and role.kind == M.RUN_STATUS
         is_stream = role is not None and role.kind not in (M.RUN_STATUS, M.SCENARIO)
+        is_scenario = role is not None and role.kind == M.SCENARIO
+        is_observation = role is not None and role.kind == M.OBSERVATION
 
         def record(raw: bytes, info) -> None:
             if self.closed:
@@ -267,6 +277,10 @@ class EvaluatorNode(ExitStatusNode):
                 self._last_stream = time.monotonic()
             if is_status:
                 self._on_status(raw)
+            elif is_scenario or is_observation:
+                mixed = (self.identity.on_scenario if is_scenario else self.identity.on_observation)(raw)
+                if mixed:
+                    self.get_logger().warning(mixed)
 
         return record
 
@@ -293,8 +307,17 @@ class EvaluatorNode(ExitStatusNode):
             self.get_logger().info(
                 f"run started: {status.get('trajectories')} trajectories x {status.get('horizon')} steps"
             )
+            again = self.identity.on_started()
+            if again:
+                self.get_logger().warning(again)
         elif status["status"] == M.STATUS_COMPLETE:
-            self.expected = int(status.get("messages", 0))
+            messages = status.get("messages", 0)
+            if isinstance(messages, bool) or not isinstance(messages, int) or not 0 <= messages < 2**53:
+                self.get_logger().warning(
+                    f"run_status 'complete' with messages={str(messages)[:40]}: not a count, ignored"
+                )
+                return
+            self.expected = messages
             self.complete_at = time.monotonic()
             self.get_logger().info(f"run complete ({self.expected} observations): waiting for the streams to catch up")
 
@@ -321,9 +344,12 @@ class EvaluatorNode(ExitStatusNode):
                 )
                 self._finish()
             return
-        lagging = {t: self.counts.get(t, 0) for t in self._required() if self.counts.get(t, 0) < self.expected}
+        required = self._required()
+        lagging = {t: self.counts.get(t, 0) for t in required if self.counts.get(t, 0) < self.expected}
         now = time.monotonic()
-        total = sum(self.counts.values())
+        # progress is what the scored streams received: a periodic topic recorded beside them
+        # (/diagnostics, /tf, the viewers' outputs) would otherwise hold completion_timeout off forever
+        total = sum(self.counts.get(t, 0) for t in required)
         if total != self._progress[0]:
             self._progress = (total, now)
         stalled = now - max(self._progress[1], self.complete_at) > self.p.completion_timeout
@@ -423,6 +449,10 @@ class EvaluatorNode(ExitStatusNode):
             return 1
         print(report.summary(), end="", flush=True)
         print(report.losses(expected=self.expected, dropped=self._dropped()), end="", flush=True)
+        for line in self.identity.report():  # two publishers of one run: the table mixes them
+            print(line, flush=True)
+        if self.identity.mixed:
+            self.get_logger().error(self.identity.report()[0])
         self.get_logger().info("wrote " + ", ".join(str(p) for p in paths.values()))
         return 0
 

@@ -11,7 +11,10 @@ needs it); a bad method, scenario or checkpoint fails the transition in one logg
 node stays unconfigured. **activate** creates the estimate publishers (the estimator node's
 topics and standard outputs, :mod:`neural_estimator.nodes.outputs`) and the observation
 subscription; **deactivate** destroys them (observations are not received while inactive);
-**cleanup** drops the method; **shutdown** from any state. Same parameters as the estimator node
+**cleanup** drops the method; **shutdown** from any state. A transition the current state does not
+have (configure twice, activate before configure, cleanup while active), requested through the
+``change_state`` service by id or label, is answered ``success=False`` with one WARN line naming
+the state and the transitions it has; the node stays where it was. Same parameters as the estimator node
 (``params/estimator.yaml``), except that ``scenario`` must be given: configure needs the system.
 The per-message work is :class:`neural_estimator.online.OnlineEstimator`, as in the estimator node.
 """
@@ -52,6 +55,27 @@ class LifecycleEstimatorNode(LifecycleNode):
         self.outputs: Outputs | None = None
         self.counts = {"estimates": 0, "bad": 0, "skipped": 0}
         self._last_log = 0.0
+        # rclpy's change_state service triggers a transition id without checking that the current
+        # state has it; the state machine then raises "Transition is not registered" out of the
+        # service callback, which kills the node. The check goes in front of that callback.
+        self._service_change_state.callback = self._guard_change_state(self._service_change_state.callback)
+
+    def _guard_change_state(self, change_state):
+        def guarded(req, resp):
+            available = {t[0]: t[1] for t in self._state_machine.available_transitions}
+            label = req.transition.label
+            if (label and label not in available.values()) or (not label and req.transition.id not in available):
+                _, state = self._state_machine.current_state
+                asked = repr(label) if label else f"id {req.transition.id}"
+                self.get_logger().warning(
+                    f"change_state refused: transition {asked} is not available in state {state!r} "
+                    f"(available: {', '.join(sorted(available.values())) or 'none'})"
+                )
+                resp.success = False
+                return resp
+            return change_state(req, resp)
+
+        return guarded
 
     # ---- transitions ---------------------------------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -60,6 +62,14 @@ class OutputParams:
 
 class OutputError(ValueError):
     """An output parameter cannot be served (one line)."""
+
+
+# The ceilings of a set_pose message. A position beyond SET_POSE_MAX_ABS metres is not a pose on
+# Earth in any frame a robot uses (ECEF coordinates stay below 6.4e6 m); a variance above
+# SET_POSE_MAX_VARIANCE (a standard deviation of 1e6 m, or of 1e6 rad) says "unknown", which the
+# all-zero covariance (keep the prior P0) says without overflowing the filter's arithmetic.
+SET_POSE_MAX_ABS = 1e7
+SET_POSE_MAX_VARIANCE = 1e12
 
 
 def check_output_params(p: OutputParams) -> None:
@@ -193,6 +203,9 @@ def pose_values(msg) -> dict[str, float]:
     values = dict(zip(POSE_KEYS, (p.position.x, p.position.y, p.position.z, *euler(o.x, o.y, o.z, o.w))))
     if not all(math.isfinite(v) for v in values.values()):
         raise OutputError("pose contains NaN or inf")
+    big = [k for k in ("x", "y", "z") if abs(values[k]) > SET_POSE_MAX_ABS]
+    if big:
+        raise OutputError(f"pose position {', '.join(big)} beyond the ceiling of {SET_POSE_MAX_ABS:g} m")
     return values
 
 
@@ -306,7 +319,18 @@ def pose_covariance(msg) -> np.ndarray | None:
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
     if not np.all(np.isfinite(cov)):
         raise OutputError("pose covariance contains NaN or inf")
-    return None if not cov.any() else cov
+    if not cov.any():
+        return None
+    if np.abs(cov).max() > SET_POSE_MAX_VARIANCE:
+        raise OutputError(
+            f"pose covariance has an entry beyond the ceiling of {SET_POSE_MAX_VARIANCE:g} (all zeros keeps the prior)"
+        )
+    # below the ceiling the sums and eigenvalues cannot overflow: |entries| <= 1e12 -> |P + P^T| <= 2e12
+    if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-12 * np.abs(cov).max()):
+        raise OutputError("pose covariance is not symmetric")
+    if np.linalg.eigvalsh(cov)[0] < -1e-9 * np.abs(cov).max():
+        raise OutputError("pose covariance is not positive semi-definite")
+    return cov
 
 
 def state_covariance(P0: np.ndarray, pose_cov: np.ndarray | None, pose_states: Mapping[str, int]) -> np.ndarray:
@@ -358,25 +382,39 @@ def set_pose(
     return mean
 
 
+def check_pose_frame(frame: str, frame_id: str) -> None:
+    """A set_pose message's ``header.frame_id`` must be the node's ``frame_id`` (the estimate's
+    frame): the node has no transform to bring a pose from another frame into it, and an empty
+    frame is no frame at all."""
+    if frame != frame_id:
+        raise OutputError(f"set_pose in frame {frame!r}, but this node estimates in frame {frame_id!r}: ignored")
+
+
 class SetPose:
     """The ``set_pose`` subscription (geometry_msgs/PoseWithCovarianceStamped, robot_localization's
     topic): each message restarts the filter at that pose (:func:`set_pose`). A message that
-    cannot be used (a neural method, no pose in the state, NaN, a zero quaternion) is logged and
-    counted, never fatal.
+    cannot be used (a neural method, no pose in the state, another frame, NaN, a zero quaternion, a
+    position beyond :data:`SET_POSE_MAX_ABS`, a covariance that is not symmetric positive
+    semi-definite or has an entry beyond :data:`SET_POSE_MAX_VARIANCE`) is refused in one WARN line
+    and counted, never fatal; the stream is then as it was (or, if the filter refused the state,
+    restarted from the prior).
 
     Args:
         node: the rclpy node.
         topic: the topic ('' = no subscription).
         get_online: returns the node's :class:`~neural_estimator.online.OnlineEstimator` (None while
             the scenario is unknown).
+        frame_id: the node's frame: a pose in any other frame is refused.
     """
 
-    def __init__(self, node, topic: str, get_online) -> None:
+    def __init__(self, node, topic: str, get_online, frame_id: str) -> None:
         self.node = node
         self.get_online = get_online
+        self.frame_id = frame_id
         self.last: np.ndarray | None = None  # the last published estimate (the base of the new mean)
         self.applied = 0
         self.refused = 0
+        self._logged: dict[str, float] = {}  # refusal reason -> when it was last logged (monotonic)
         self.sub = None
         if topic:
             from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -389,11 +427,21 @@ class SetPose:
         try:
             if online is None:
                 raise OutputError("set_pose before the scenario is known: ignored")
+            check_pose_frame(msg.header.frame_id, self.frame_id)
             pose, pose_cov = pose_values(msg), pose_covariance(msg)
             mean = set_pose(online.estimator, pose, getattr(online.scenario, "pose_states", {}), self.last, pose_cov)
         except OutputError as exc:
             self.refused += 1
-            log.warning(str(exc))
+            text = str(exc) if str(exc).startswith("set_pose") else f"set_pose refused: {exc}"
+            # one line per refusal, each reason at most once a second: a flood of bad poses must not
+            # flood the log, and one reason must not hide another (the reason: the text without its
+            # quoted values, so 'moon' and 'mars' are one reason; a few dozen templates at most)
+            now, reason = time.monotonic(), re.sub(r"'[^']*'", "''", text)
+            if now - self._logged.get(reason, -1e9) >= 1.0:
+                if len(self._logged) >= 64:
+                    self._logged.clear()
+                self._logged[reason] = now
+                log.warning(f"{text} ({self.refused} refused so far)")
             return
         self.applied += 1
         self.last = mean
