@@ -183,13 +183,9 @@ class EstimatorNode(ExitStatusNode):
         if p.init != "prior" and self.method not in NEURAL_METHODS:
             options.setdefault("init", p.init)
         try:
+            options = per_message_options(self.method, options)  # ONNX Runtime where step.onnx serves it
             est = make_estimator(
-                self.method,
-                scenario,
-                checkpoint=p.checkpoint or None,
-                device=p.device,
-                seed=p.seed,
-                **per_message_options(self.method, options),
+                self.method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options
             )
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
