@@ -1,8 +1,8 @@
 """YAML from files and bags someone else wrote, read in bounded time and memory.
 
-PyYAML's pure-Python loader recurses once per nesting level (a deeply nested robot spec raised
-``RecursionError`` after super-linear time, as issue 42 measured it: 1,000 levels 2.7 s, 20,000
-levels 38 s) and reads any size. :func:`load_yaml` bounds the text's size first (a length check, O(1)), then parses with
+PyYAML's pure-Python loader recurses once per nesting level (a deeply nested robot spec raises
+``RecursionError`` after super-linear time: 1,000 levels 2.7 s, 20,000 levels 38 s) and reads any
+size. :func:`load_yaml` bounds the text's size first (a length check, O(1)), then parses with
 libyaml's C loader (``CSafeLoader``: safe tags only, no Python objects), whose scanner refuses more
 than 1,000 nesting levels in linear time; where PyYAML was built without libyaml, the pure-Python
 ``SafeLoader`` is used under the same size bound and its ``RecursionError`` is caught. Every
