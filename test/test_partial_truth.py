@@ -184,7 +184,7 @@ def test_scoring_on_the_labelled_steps_equals_a_hand_computation():
     lab = rng.random((n, T)) < 0.6
     lab[:, warmup] = True  # every trajectory has a labelled scored step
     x_hat[~lab] += 1e6  # huge errors where there is no truth: never scored
-    rep = M.compute_metrics(x, x_hat, (), warmup=warmup, labelled=lab)
+    rep = M.compute_labelled_metrics(x, x_hat, (), lab, warmup=warmup)
     e, m = (x_hat - x)[:, warmup:], lab[:, warmup:]
     mse_n = np.array([np.mean(e[i][m[i]] ** 2) for i in range(n)])  # each trajectory on its labelled steps
     assert rep.rmse == pytest.approx(math.sqrt(mse_n.mean()), rel=1e-12)
@@ -201,7 +201,7 @@ def test_scoring_on_the_labelled_steps_equals_a_hand_computation():
     errs = M.trajectory_errors(x, x_hat, (), rep.outlier_idx, warmup, lab)
     assert M.run_rmse(errs) == pytest.approx(rep.rmse, rel=1e-12)
     # a fully labelled mask scores exactly as no mask
-    full = M.compute_metrics(x, x + 0.1, (), warmup=warmup, labelled=np.ones((n, T), bool))
+    full = M.compute_labelled_metrics(x, x + 0.1, (), np.ones((n, T), bool), warmup=warmup)
     assert M.to_json(full) == M.to_json(M.compute_metrics(x, x + 0.1, (), warmup=warmup))
     assert full.scored_steps is None
 

@@ -133,7 +133,7 @@ def _print_metrics(
             "--warmup (0 scores every step)"
         )
     reports = {
-        m: M.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup, labelled=truth.labelled)
+        m: M.compute_labelled_metrics(truth.x, xh, angles, truth.labelled, P_hat=P, warmup=warmup)
         for m, (xh, P) in estimates.items()
     }
     note = ""

@@ -326,7 +326,6 @@ def compute_metrics(
     threshold: float = OUTLIER_Z,
     nees_values: np.ndarray | None = None,
     warmup: int = 0,
-    labelled: np.ndarray | None = None,
 ) -> MetricReport:
     """All metrics of one method on one evaluation set.
 
@@ -365,9 +364,6 @@ def compute_metrics(
             caller evaluate chunk by chunk without holding (N, T, dx, dx) covariances.
         warmup: leading timesteps left out of every metric (the protocol uses
             :data:`EVALUATION_WARMUP`); 0 <= warmup < T. Divergence is still judged on every step.
-        labelled: (N, T) bool, the steps with ground truth (recorded data with truth gaps); when
-            some step is unlabelled the metrics are those of :mod:`neural_estimator.metrics.labelled`
-            (labelled steps only; ``spread`` is not supported there).
 
     Returns:
         A :class:`MetricReport`. If every trajectory diverged: RMSE, NRMSE, MAE, MedAE, AUC and the
@@ -377,12 +373,6 @@ def compute_metrics(
         MetricsError: wrong shapes, non-finite ground truth, a spread that is not positive, or a
             warm-up that leaves no step to evaluate.
     """
-    if labelled is not None and not np.all(labelled):
-        if spread is not None:
-            raise MetricsError("labelled steps: the spread is that of the labelled truth; pass no spread")
-        from neural_estimator.metrics.labelled import labelled_metrics  # it builds on this module
-
-        return labelled_metrics(x_true, x_hat, labelled, angle_states, P_hat, diverged, threshold, warmup, nees_values)
     x_true, x_hat = check_pair(x_true, x_hat)
     n, t, dx = x_true.shape
     if isinstance(warmup, bool) or int(warmup) != warmup or not 0 <= int(warmup) < t:

@@ -17,11 +17,12 @@ number, and K the kept trajectories (the outlier rule on M_n; diverged ones alwa
     drift     = mean of the defined RMSE_t in the last quarter / the same in the first quarter
 
 With every step labelled these are :func:`~neural_estimator.metrics.definitions.compute_metrics`'s
-definitions; that function only delegates here when some step is unlabelled, so a fully labelled
-set is scored exactly as before. :func:`~neural_estimator.metrics.paired.trajectory_errors` with
-the same mask gives the M_{n,d} the confidence intervals resample.
-A trajectory with no labelled step after the warm-up is not scored (and counted). Divergence is
-judged on every step, labelled or not: an estimator that blows up in a gap diverged.
+definitions; :func:`compute_labelled_metrics` (what every scorer of recorded data calls) only
+comes here when some step is unlabelled, so a fully labelled set is scored exactly as before.
+:func:`~neural_estimator.metrics.paired.trajectory_errors` with the same mask gives the M_{n,d}
+the confidence intervals resample. A trajectory with no labelled step after the warm-up is not
+scored (and not counted in N). Divergence is judged on every step, labelled or not: an estimator
+that blows up in a gap diverged.
 """
 
 from __future__ import annotations
@@ -31,7 +32,23 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from neural_estimator.metrics import definitions as D
+import neural_estimator.metrics.definitions as D
+
+
+def compute_labelled_metrics(
+    x_true: np.ndarray,
+    x_hat: np.ndarray,
+    angle_states: Sequence[int] = (),
+    labelled: np.ndarray | None = None,
+    **kwargs,
+) -> D.MetricReport:
+    """:func:`~neural_estimator.metrics.definitions.compute_metrics` (its keyword arguments) where
+    ``labelled`` (N, T) is None or all True, else :func:`labelled_metrics` (no ``spread`` there)."""
+    if labelled is None or bool(np.all(labelled)):
+        return D.compute_metrics(x_true, x_hat, angle_states, **kwargs)
+    if kwargs.pop("spread", None) is not None:
+        raise D.MetricsError("labelled steps: the spread is that of the labelled truth; pass no spread")
+    return labelled_metrics(x_true, x_hat, labelled, angle_states, **kwargs)
 
 
 def labelled_metrics(

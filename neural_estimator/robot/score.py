@@ -85,6 +85,6 @@ def score_recording(
     truth, estimates, _ = build_dataset([bag], scoring, length, length_name=length_name)
     angles = scoring.angles("state")
     return {
-        m: M.compute_metrics(truth.x, x_hat, angles, warmup=warmup, labelled=truth.labelled)
+        m: M.compute_labelled_metrics(truth.x, x_hat, angles, truth.labelled, warmup=warmup)
         for m, x_hat in estimates.items()
     }, truth

@@ -74,7 +74,7 @@ from neural_estimator.data.protocol import ChunkSampler, dataset, training_traje
 from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
-from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
+from neural_estimator.metrics import EVALUATION_WARMUP, compute_labelled_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
 from neural_estimator.serving.checkpoint import load_checkpoint, save_checkpoint
 from neural_estimator.serving.context import bounded_forward
@@ -554,8 +554,8 @@ def evaluate(
     )
     out = est.run(data.y, data.u)
     warmup = EVALUATION_WARMUP if data.horizon > EVALUATION_WARMUP else 0
-    report = compute_metrics(
-        data.x, out.x, scenario.angle_states, diverged=out.diverged, warmup=warmup, labelled=data.labelled
+    report = compute_labelled_metrics(  # compute_metrics, on the labelled steps where some have no truth
+        data.x, out.x, scenario.angle_states, data.labelled, diverged=out.diverged, warmup=warmup
     )
     return {
         "set": {
