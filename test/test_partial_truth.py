@@ -219,3 +219,55 @@ def test_evaluate_and_metrics_say_how_many_steps_were_scored(bags, tmp_path, cap
     after = expected[:, M.EVALUATION_WARMUP :]  # the steps after the warm-up
     line = f"partial ground truth: {int(after.sum())} labelled steps scored, {int((~after).sum())} unlabelled"
     assert line in capsys.readouterr().out
+
+
+def test_a_live_runs_truth_gap_is_left_unscored_not_cut(tmp_path):
+    """The evaluator's scoring of a live run (score_recording): a recorded bag with the truth silent in
+    [12, 18) s and an estimate stream at every tick, off by 0.5 m in x where the truth is fresh."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from neural_estimator.robot.score import score_recording
+
+    ts, T_ = robot_bag.TS, robot_bag.T
+    t0, ms = 1_700_000_000 * 10**9, 1_000_000
+    lo, hi = 12_000, 18_000  # the gap [ms]
+    truth_ms = np.array([k * 10 for k in range(3000) if not lo <= k * 10 < hi])
+    ticks_ms = np.arange(300) * 100
+
+    def pose(t_ms):
+        s = t_ms / 1000.0
+        return s, math.sin(s), 0.1 * s  # x, y, yaw
+
+    with Writer(tmp_path / "live", version=9, storage_plugin=StoragePlugin.MCAP) as bag:
+        mocap = bag.add_connection("/mocap/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
+        est = bag.add_connection("/estimates/m", "sensor_msgs/msg/JointState", typestore=ts)
+        events = [(int(t), 0) for t in truth_ms] + [(int(t), 1) for t in ticks_ms]
+        for t, kind in sorted(events):
+            stamp = t0 + t * ms
+            x, y, yaw = pose(t)
+            if kind == 0:
+                p = T_["geometry_msgs/msg/Pose"](
+                    position=T_["geometry_msgs/msg/Point"](x=x, y=y, z=0.0), orientation=robot_bag.quaternion(yaw)
+                )
+                msg = T_["geometry_msgs/msg/PoseStamped"](header=robot_bag.header(stamp, "map"), pose=p)
+                bag.write(mocap, stamp, ts.serialize_cdr(msg, mocap.msgtype))
+            else:
+                msg = T_["sensor_msgs/msg/JointState"](
+                    header=robot_bag.header(stamp, ""),
+                    name=["x", "y", "yaw"],
+                    position=np.array([x + 0.5, y, yaw]),
+                    velocity=np.zeros(0),
+                    effort=np.zeros(0),
+                )
+                bag.write(est, stamp, ts.serialize_cdr(msg, est.msgtype))
+    reports, truth = score_recording(tmp_path / "live", SPEC, length=LENGTH, warmup=0)
+    rep = reports["m"]
+    assert truth.n == 6  # 300 ticks in 6 trajectories: the gap cut nothing
+    # by hand: the truth at a tick is its latest message at most 0.25 s old, else the step is unlabelled
+    latest = np.array([truth_ms[truth_ms <= t].max() for t in ticks_ms])
+    labelled = (ticks_ms - latest) <= 250
+    e = np.array([np.subtract((pose(t)[0] + 0.5, *pose(t)[1:]), pose(s)) for t, s in zip(ticks_ms, latest)])
+    e, labelled = e.reshape(6, LENGTH, 3), labelled.reshape(6, LENGTH)
+    mse_n = [np.mean(e[i][labelled[i]] ** 2) for i in range(6)]
+    assert (rep.scored_steps, rep.unlabelled_steps) == (300 - 57, 57)
+    assert rep.rmse == pytest.approx(math.sqrt(np.mean(mse_n)), rel=1e-9)
