@@ -29,7 +29,9 @@ What :func:`train` does, in order:
 
    with c_d the component weights of ``loss_units`` (:func:`component_weights`): "state" (the
    default) c_d = sigma_d^2 / mean(sigma^2), the squared error in the states' own units up to one
-   constant, as RMSE weighs the components; "normalised" c_d = 1.
+   constant, as RMSE weighs the components; "normalised" c_d = 1. Recorded data with partial
+   ground truth (``Trajectories.labelled`` m_bt): w_bt m_bt instead of w_bt, here and in L_val's
+   mean (labelled steps only), and the state normalisation fitted on labelled steps.
 
 5. Validation after each epoch (the paper does not define it; this is our definition): the model
    in eval mode runs every validation trajectory from t = 0 over its full length (500) and
