@@ -271,3 +271,63 @@ def test_a_live_runs_truth_gap_is_left_unscored_not_cut(tmp_path):
     mse_n = [np.mean(e[i][labelled[i]] ** 2) for i in range(6)]
     assert (rep.scored_steps, rep.unlabelled_steps) == (300 - 57, 57)
     assert rep.rmse == pytest.approx(math.sqrt(np.mean(mse_n)), rel=1e-9)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_served_live_a_recording_with_truth_gaps_scores_what_evaluate_scored(tmp_path, capsys):
+    """The live chain (player -> estimator -> evaluator, default parameters) on a recording whose truth
+    is silent 10 s of each run: the evaluator scores the labelled steps evaluate scored, no more."""
+    pytest.importorskip("rclpy")
+    import json
+    import signal
+
+    from ros_tester import fresh_domain
+
+    from neural_estimator.nodes.launch import ESTIMATOR, EVALUATOR, isolated_env, node_command, start_node
+    from neural_estimator.robot.score import score_recording
+
+    bag = robot_bag.write_bag(tmp_path / "bag", runs=2, seconds=42.0, seed=3, truth_gaps=10.0)
+    data = tmp_path / "data.npz"
+    assert main(["dataset", str(bag), "--spec", str(SPEC), "--length", "200", "--out", str(data), "--quiet"]) == 0
+    model = tmp_path / "gru"
+    args = ["train", "--data", str(data), "--model", "gru", "--out", str(model), "--epochs", "1", "--quiet"]
+    assert main(args + ["--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--val-fraction", "0.25"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(data), "--checkpoint", f"gru={model}", "--json", "--quiet"]) == 0
+    run = json.loads(capsys.readouterr().out)["methods"]["gru"]["runs"][0]
+    assert run["unlabelled_steps"] > 0
+    env = isolated_env(fresh_domain())
+    rec = tmp_path / "live.mcap"
+    procs = []
+    try:
+        for module, name, params in (
+            (EVALUATOR, "rec", dict(output=str(rec), idle_timeout=3.0, topics=["/mocap/pose"], spec=str(SPEC))),
+            (ESTIMATOR, "est", dict(checkpoint=str(model))),
+            (
+                "neural_estimator.nodes.player_node",
+                "player",
+                dict(bag=str(bag), rate=4.0, wait_for_subscribers=1, wait_topic="/imu"),
+            ),
+        ):
+            procs.append(start_node(node_command(sys.executable, module, name, params), tmp_path / f"{name}.log", env))
+        assert procs[0].wait(timeout=180) == 0, "".join(
+            (tmp_path / f"{n}.log").read_text() for n in ("rec", "est", "player")
+        )
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except Exception:
+                p.kill()
+    reports, truth = score_recording(rec, SPEC, length=200)
+    live = reports["gru"]
+    print(f"gru: evaluate RMSE {run['rmse']:.4f}, live {live.rmse:.4f} ({truth.n} trajectories)")
+    assert (live.scored_steps, live.unlabelled_steps) == (run["scored_steps"], run["unlabelled_steps"])
+    assert abs(live.rmse - run["rmse"]) <= 0.05 * run["rmse"], (run["rmse"], live.rmse)
+    written = json.loads(rec.with_suffix(".metrics.json").read_text())  # the evaluator's own scoring
+    assert written["methods"]["gru"]["scored_steps"] == run["scored_steps"]
+    assert written["partial_ground_truth"].startswith("partial ground truth: ")
