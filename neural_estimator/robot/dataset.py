@@ -21,9 +21,9 @@ with rosbags' type store, custom types registered from the bag's own schemas):
    trajectories of ``length`` steps, the remainder dropped and counted, and a trajectory with no
    labelled step dropped and counted.
 
-Before partial ground truth was supported, a truth gap longer than ``max_age`` made its ticks stale:
-the builder cut the trajectory there and dropped the gap. The ticks still span the time every
-topic, the truth included, has messages: a recording's head or tail without truth is not used.
+The truth is not an input because cutting at its gaps would drop them and the pieces shorter than
+a trajectory, and live the estimator never sees it. The ticks still span the time every topic, the
+truth included, has messages: a recording's head or tail without truth is not used.
 
 The result is a :class:`~neural_estimator.data.simulate.Trajectories` whose meta records the spec,
 its digest, the names, units and angles of the three vectors, the rate, every source bag's SHA-256
