@@ -158,6 +158,28 @@ def test_training_reads_the_labelled_steps_only(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_covariance_head_is_fitted_on_the_labelled_steps_only(tmp_path):
+    from neural_estimator.robot import DataScenario
+    from neural_estimator.serving.load import load_neural_estimator
+    from neural_estimator.uncertainty.fit import FitSettings, fit_covariance_head
+
+    data = tiny_dataset()
+    train_on(data, tmp_path, "model")
+    moved = Trajectories(data.x.copy(), data.y, data.u, data.meta, data.labelled)
+    moved.x[~data.labelled] = 1e3  # other placeholders in the gaps
+    est = load_neural_estimator("gru", DataScenario(data.meta), tmp_path / "model", covariance=False)
+    settings = FitSettings(steps=20)
+    heads = [fit_covariance_head(est, settings, head_data=d, calibration_data=d) for d in (data, moved)]
+    assert heads[0][1]["nll_history"] == heads[1][1]["nll_history"]
+    assert heads[0][1]["calibration"]["scale"] == heads[1][1]["calibration"]["scale"]
+    unmasked = Trajectories(moved.x, data.y, data.u, data.meta, None)  # the comparison can fail
+    assert (
+        fit_covariance_head(est, settings, head_data=unmasked, calibration_data=unmasked)[1]["nll_history"]
+        != (heads[0][1]["nll_history"])
+    )
+
+
+@pytest.mark.slow
 def test_a_fully_labelled_mask_trains_as_no_mask(tmp_path):
     from neural_estimator.robot import DataScenario
     from neural_estimator.training.loop import train
