@@ -13,8 +13,13 @@ The recording holds what a real robot's bag holds:
                                                                   corrected towards each GPS fix (gain 0.2)
 
 Each run is separated from the next by a 2-second gap without messages, so the dataset builder
-cuts the bag into one segment per run. Written with rosbags' rosbag2 writer (MCAP storage, or
-sqlite3 with ``--storage sqlite3``), i.e. by another tool than this package's own bag writer.
+cuts the bag into one segment per run. ``--truth-gaps S`` makes the ground truth partial: in each
+run the robot leaves the motion-capture volume for S seconds from 40 % of the run (no
+/mocap/pose messages then; every other topic goes on), as a lab's volume does; the dataset then
+marks those steps unlabelled (docs/robot.md, "Partial ground truth").
+
+Written with rosbags' rosbag2 writer (MCAP storage, or sqlite3 with ``--storage sqlite3``), i.e. by
+another tool than this package's own bag writer.
 
     python examples/robot_bag.py --out runs/robot_bag --runs 6 --seconds 120
     neural-estimator dataset runs/robot_bag --spec examples/robot_spec.yaml --length 200 --out runs/robot.npz
@@ -81,7 +86,13 @@ def simulate_run(rng: np.random.Generator, seconds: float) -> np.ndarray:
     return s
 
 
-def write_bag(out: Path, runs: int, seconds: float, seed: int, storage: str = "mcap") -> Path:
+def truth_gap(seconds: float, gap: float) -> tuple[float, float]:
+    """[start, stop) [s from the run's start] of the run's time outside the motion-capture volume."""
+    start = 0.4 * seconds
+    return start, min(seconds, start + gap)
+
+
+def write_bag(out: Path, runs: int, seconds: float, seed: int, storage: str = "mcap", truth_gaps: float = 0.0) -> Path:
     rng = np.random.default_rng(seed)
     if out.exists():
         shutil.rmtree(out)
@@ -106,21 +117,23 @@ def write_bag(out: Path, runs: int, seconds: float, seed: int, storage: str = "m
             s = simulate_run(rng, seconds)
             bias, scale = 0.01 * rng.normal(), 1.0 + 0.03 * rng.normal()
             fx, fy, fyaw = s[0, 0], s[0, 1], s[0, 2]  # the robot's own filter starts at the truth
+            gap = truth_gap(seconds, truth_gaps) if truth_gaps > 0 else (math.inf, math.inf)
             for k in range(len(s)):
                 x, y, yaw, v, w = s[k]
                 t = t0 + int(round(k * DT * 1e9))
                 accel = (s[k, 3] - s[k - 1, 3]) / DT if k else 0.0
-                put(
-                    "/mocap/pose",
-                    t,
-                    T["geometry_msgs/msg/PoseStamped"](
-                        header=header(t, "map"),
-                        pose=T["geometry_msgs/msg/Pose"](
-                            position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-                            orientation=quaternion(yaw),
+                if not gap[0] <= k * DT < gap[1]:  # outside the volume: no ground truth (no RNG draw either)
+                    put(
+                        "/mocap/pose",
+                        t,
+                        T["geometry_msgs/msg/PoseStamped"](
+                            header=header(t, "map"),
+                            pose=T["geometry_msgs/msg/Pose"](
+                                position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+                                orientation=quaternion(yaw),
+                            ),
                         ),
-                    ),
-                )
+                    )
                 gyro = w + bias + 0.02 * rng.normal()
                 put(
                     "/imu",
@@ -170,9 +183,21 @@ def main(argv=None) -> int:
         default="mcap",
         help="rosbag2 storage (sqlite3: .db3, the older default)",
     )
+    p.add_argument(
+        "--truth-gaps",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="partial ground truth: no /mocap/pose for S seconds of each run, from 40 %% of the run",
+    )
     a = p.parse_args(argv)
-    out = write_bag(Path(a.out), a.runs, a.seconds, a.seed, a.storage)
+    if not 0.0 <= a.truth_gaps < a.seconds:
+        p.error(f"--truth-gaps must be in [0, --seconds) = [0, {a.seconds:g}), got {a.truth_gaps:g}")
+    out = write_bag(Path(a.out), a.runs, a.seconds, a.seed, a.storage, a.truth_gaps)
     print(f"{out}: {a.runs} runs x {a.seconds:g} s of /imu, /wheel_odom, /gps/fix, /mocap/pose, /odometry/filtered")
+    if a.truth_gaps:
+        lo, hi = truth_gap(a.seconds, a.truth_gaps)
+        print(f"ground truth (/mocap/pose) missing from {lo:g} s to {hi:g} s of each run")
     return 0
 
 

@@ -95,13 +95,19 @@ def test_latest_value_alignment_with_staleness_and_nonfinite_ticks():
         "/b": (np.array([0, 50, 100, 150, 500]) * ms, np.array([[10.0], [11], [12], [13], [15]])),
     }
     ticks = np.arange(6) * 100 * ms
-    vectors, stale, nonfinite = sample(streams, s, ticks)
+    vectors, stale, nonfinite, labelled = sample(streams, s, ticks)
     np.testing.assert_array_equal(vectors["observation"][:, 0][:4], [0, 1, 2, 3])
     np.testing.assert_array_equal(vectors["state"][:, 0][:3], [10, 12, 13])  # latest at or before each tick
-    # /b's last message before t = 300 and 400 ms is 150 ms old and older: stale; /a is NaN at 400 ms
-    np.testing.assert_array_equal(stale, [False, False, False, False, True, False])
-    assert not nonfinite[4] and stale[4]  # stale takes precedence in the count
+    # the truth /b's last message before t = 400 ms is 250 ms old: unlabelled, not dropped (partial
+    # ground truth; at 300 ms it is 150 ms old, within max_age); the input /a is NaN at 400 ms: dropped
+    np.testing.assert_array_equal(labelled, [True, True, True, True, False, True])
+    np.testing.assert_array_equal(stale, [False] * 6)
+    np.testing.assert_array_equal(nonfinite, [False, False, False, False, True, False])
     assert segments(~stale & ~nonfinite) == [(0, 4), (5, 6)]
+    # an input going silent is stale: /a ending at 300 ms leaves t = 500 ms with a message 200 ms old
+    late = {"/a": (streams["/a"][0][:4], streams["/a"][1][:4]), "/b": streams["/b"]}
+    _, stale, _, _ = sample(late, s, ticks)
+    np.testing.assert_array_equal(stale, [False] * 5 + [True])
 
 
 # ---- bags -> dataset ------------------------------------------------------------------------------------

@@ -103,6 +103,12 @@ def _cmd_dataset(args) -> int:
         f"wrote {out}: {data.n} trajectories x {data.horizon} steps at {spec.rate:g} Hz "
         f"(dx={data.x.shape[2]}, dy={data.y.shape[2]}, du={data.u.shape[2]})"
     )
+    if data.labelled is not None:  # partial ground truth: say what training and scoring will use
+        print(
+            f"ground truth on {data.meta['labelled_steps']} of {data.x.shape[0] * data.x.shape[1]} steps "
+            f"({data.meta['unlabelled_steps']} unlabelled: kept as inputs, never trained on or scored; "
+            "the 'labelled' mask in the file)"
+        )
     for name, x_hat in estimates.items():
         path = save_estimates(out.with_name(f"{out.stem}.{name}.npz"), data, x_hat, name)
         print(f"wrote {path}: the recorded estimate {name!r} at the same ticks")

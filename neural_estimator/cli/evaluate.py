@@ -22,6 +22,13 @@ from neural_estimator.cli.common import (
 )
 
 
+def _partial_line(reports) -> str:
+    """How many steps were scored and how many had no ground truth, "" when every step had."""
+    from neural_estimator.metrics.labelled import scored_line
+
+    return scored_line(reports)
+
+
 def add_metrics(sub) -> None:
     p = sub.add_parser("metrics", help="the paper's table from a truth file and estimate files (or an MCAP bag)")
     p.add_argument("--plugin", action="append", metavar="FILE", help="Python file registering user scenarios")
@@ -96,6 +103,9 @@ def _print_spec_metrics(args) -> int:
         print(json.dumps(M.to_json({"scenario": "data", "methods": reports}), indent=1, allow_nan=False))
     else:
         print(f"recorded run {args.files[0]}: {truth.n} trajectories x {truth.horizon} steps (spec {args.spec})")
+        partial = _partial_line(reports.values())
+        if partial:
+            print(partial)
         print(M.format_reports(reports, fmt="text"), end="")
     if args.out:
         _write_table(args.out, reports)
@@ -122,7 +132,10 @@ def _print_metrics(
             f"--warmup {warmup} leaves no step of {truth.horizon}-step trajectories to score: pass a smaller "
             "--warmup (0 scores every step)"
         )
-    reports = {m: M.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()}
+    reports = {
+        m: M.compute_labelled_metrics(truth.x, xh, angles, truth.labelled, P_hat=P, warmup=warmup)
+        for m, (xh, P) in estimates.items()
+    }
     note = ""
     if "bag" in truth.meta:
         from neural_estimator.bags.dataset import left_out_note, outside_note
@@ -162,6 +175,8 @@ def _print_metrics(
             {named[m]: r for m, r in reports.items()}, fmt="text", marks={named[m]: c for m, c in cells.items()}
         )
         print(f"{scenario_name}: {truth.n} trajectories x {truth.horizon} steps{_scored(warmup)}")
+        if _partial_line(reports.values()):
+            print(_partial_line(reports.values()))
         print(mark_rows(table, scenario_name, starts), end="")
         used = {x for v in rows.values() for x in v} | ({D.OUTLIERS} if cells else set())
         for line in notes(scenario_name, list(reports), starts) + D.legend_text(used) + [D.scored_steps(warmup)]:
@@ -428,6 +443,9 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
             f"recorded data {args.data}: {info['trajectories']} trajectories x {info['horizon']} steps"
             + _scored(args.warmup)
         )
+        partial = _partial_line(r for res in results.values() for r in res.reports)
+        if partial:
+            print(partial)
     else:
         print(
             f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps"

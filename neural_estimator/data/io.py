@@ -6,6 +6,8 @@ A dataset file holds
     y     (N, T, dy) float64   noisy observations
     u     (N, T, du) float64   controls, u[:, k] acts from step k to k+1 (du may be 0)
     meta  0-d unicode array    JSON: scenario and every constant, seed, names, units, horizon
+    labelled (N, T) bool       only where some step has no ground truth (recorded data): True where
+                               x is ground truth; x holds a placeholder elsewhere, never scored
 
 An estimate file adds
 
@@ -62,7 +64,14 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray], meta: dict[str, An
 
 def save_trajectories(path: str | Path, data: Trajectories) -> Path:
     """Write a dataset file."""
-    return save_npz(path, {"x": data.x, "y": data.y, "u": data.u}, data.meta)
+    return save_npz(path, {"x": data.x, "y": data.y, "u": data.u, **_labelled_array(data)}, data.meta)
+
+
+def _labelled_array(data: Trajectories) -> dict[str, np.ndarray]:
+    """{"labelled": mask} when some step is unlabelled, else {} (a fully labelled file stays as it was)."""
+    if data.labelled is None or bool(np.all(data.labelled)):
+        return {}
+    return {"labelled": np.asarray(data.labelled, dtype=bool)}
 
 
 def save_estimates(
@@ -76,7 +85,7 @@ def save_estimates(
     """Write an estimate file: the dataset plus ``x_hat`` (and ``P_hat``) of ``method``."""
     if x_hat.shape != data.x.shape:
         raise DataError(f"{path}: x_hat has shape {x_hat.shape}, the states have {data.x.shape}")
-    arrays = {"x": data.x, "y": data.y, "u": data.u, "x_hat": x_hat}
+    arrays = {"x": data.x, "y": data.y, "u": data.u, "x_hat": x_hat, **_labelled_array(data)}
     if P_hat is not None:
         arrays["P_hat"] = P_hat
     meta = dict(data.meta, method=method, **(extra_meta or {}))
@@ -130,6 +139,7 @@ def load_trajectories(
                 f"{path}: {key!r} contains NaN or inf in {n_bad} trajectories "
                 f"(first: {int(np.argmax(bad.any(axis=(1, 2))))})"
             )
+    labelled = _checked_labelled(path, arrays, x.shape[:2])
     names = meta.get("state_names")
     if names is not None and len(names) != x.shape[2]:
         raise DataError(f"{path}: x has {x.shape[2]} state components but meta names {len(names)}")
@@ -146,7 +156,19 @@ def load_trajectories(
         if P.shape != x.shape + (x.shape[2],):
             raise DataError(f"{path}: P_hat has shape {P.shape}, expected {x.shape + (x.shape[2],)}")
         extras["P_hat"] = P
-    return Trajectories(x, y, u, meta), extras
+    return Trajectories(x, y, u, meta, labelled), extras
+
+
+def _checked_labelled(path, arrays: dict[str, np.ndarray], shape: tuple[int, int]) -> np.ndarray | None:
+    """The file's ``labelled`` mask (N, T) bool, or None when absent or all True."""
+    if "labelled" not in arrays:
+        return None
+    m = np.asarray(arrays["labelled"])
+    if m.dtype != np.bool_ or m.shape != tuple(shape):
+        raise DataError(f"{path}: 'labelled' must be a ({shape[0]}, {shape[1]}) bool array, got {m.dtype} {m.shape}")
+    if not m.any(axis=1).all():
+        raise DataError(f"{path}: 'labelled' marks no step of trajectory {int(np.argmin(m.any(axis=1)))}")
+    return None if m.all() else m
 
 
 def load_estimates(path: str | Path, truth: Trajectories) -> tuple[np.ndarray, np.ndarray | None, dict]:

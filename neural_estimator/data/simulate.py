@@ -33,12 +33,17 @@ class Trajectories:
         y: (N, T, dy) noisy observations.
         u: (N, T, du) controls, u[:, k] applied from step k to k+1 (du may be 0).
         meta: JSON-serialisable description (scenario and every constant, seed, names, units).
+        labelled: (N, T) bool, True where x holds ground truth; None: every step is labelled (every
+            simulated set). Recorded data whose ground truth has gaps (a robot outside the
+            motion-capture volume) hold a placeholder in x at the other steps, which training and
+            scoring never use (:mod:`neural_estimator.robot.dataset`).
     """
 
     x: np.ndarray
     y: np.ndarray
     u: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    labelled: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -50,16 +55,20 @@ class Trajectories:
 
     def subset(self, index) -> "Trajectories":
         """The trajectories selected by ``index`` (a slice or integer array), same meta."""
-        return Trajectories(self.x[index], self.y[index], self.u[index], dict(self.meta))
+        labelled = None if self.labelled is None else self.labelled[index]
+        return Trajectories(self.x[index], self.y[index], self.u[index], dict(self.meta), labelled)
 
 
 def trajectories_digest(data: Trajectories) -> str:
-    """BLAKE2b of a data set's arrays (x, y, u with their shapes): what a run or a model used."""
+    """BLAKE2b of a data set's arrays (x, y, u with their shapes, and the labelled mask where some
+    step is unlabelled): what a run or a model used."""
     h = hashlib.blake2b(digest_size=16)
     for a in (data.x, data.y, data.u):
         a = np.ascontiguousarray(a, dtype=np.float64)
         h.update(repr(a.shape).encode())
         h.update(a.data)
+    if data.labelled is not None:  # absent for a fully labelled set: its digest stays what it was
+        h.update(b"labelled" + np.packbits(np.ascontiguousarray(data.labelled, dtype=bool)).tobytes())
     return h.hexdigest()
 
 

@@ -108,7 +108,8 @@ def estimates_decision(truth, estimates, angles, reports, warmup: int, fmt: str 
     results = {}
     for m, rep in reports.items():
         results[m] = MethodResult(m)
-        results[m].add(rep, M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup))
+        errs = M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup, truth.labelled)
+        results[m].add(rep, errs)
     dx = truth.x.shape[2]
     names = truth.meta.get("state_names") or [f"x{d}" for d in range(dx)]
     units = truth.meta.get("state_units") or [""] * dx

@@ -117,11 +117,12 @@ def recorded_result(
     no time spent, so no speed is reported. ``warmup``: leading steps not scored (see :func:`evaluate`)."""
     if x_hat.shape != data.x.shape:
         raise DataError(f"recorded estimate {name!r} has shape {x_hat.shape}, the states have {data.x.shape}")
-    report = M.compute_metrics(
-        data.x, x_hat, scenario.angle_states, diverged=~np.isfinite(x_hat).all(axis=(1, 2)), warmup=warmup
+    lab = data.labelled  # partial ground truth: the labelled steps only
+    report = M.compute_labelled_metrics(
+        data.x, x_hat, scenario.angle_states, lab, diverged=~np.isfinite(x_hat).all(axis=(1, 2)), warmup=warmup
     )
     result = MethodResult(name)
-    result.add(report, M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup))
+    result.add(report, M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup, lab))
     return result
 
 
@@ -406,10 +407,16 @@ def evaluate(
                 )
             finally:
                 bar.close()
-            report = M.compute_metrics(
-                data.x, x_hat, scenario.angle_states, diverged=diverged, nees_values=nees_nt, warmup=warmup
+            report = M.compute_labelled_metrics(  # partial ground truth: the labelled steps only
+                data.x,
+                x_hat,
+                scenario.angle_states,
+                data.labelled,
+                diverged=diverged,
+                nees_values=nees_nt,
+                warmup=warmup,
             )
-            errs = M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup)
+            errs = M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup, data.labelled)
             r.add(report, errs, j, k)
             r.seconds += secs
             r.steps += data.n * data.horizon

@@ -1,7 +1,9 @@
-"""Evaluation metrics of the paper, in five modules:
+"""Evaluation metrics of the paper, in six modules:
 
 - :mod:`~neural_estimator.metrics.definitions`: one run's metrics (errors, RMSE-time
   curve, AUC, drift, NRMSE, NEES, coverage) and :func:`compute_metrics`;
+- :mod:`~neural_estimator.metrics.labelled`: the same on the labelled steps only (recorded data
+  whose ground truth has gaps), :func:`compute_labelled_metrics`;
 - :mod:`~neural_estimator.metrics.outliers`: the paper's outlier rule (robust z-score of the log MSE);
 - :mod:`~neural_estimator.metrics.paired`: per-trajectory errors and the paired bootstrap of RMSE ratios;
 - :mod:`~neural_estimator.metrics.summary`: the median and IQR across runs, and the JSON form;
@@ -31,6 +33,7 @@ from neural_estimator.metrics.definitions import (
     trajectory_mean_nrmse,
     trajectory_mse,
 )
+from neural_estimator.metrics.labelled import compute_labelled_metrics, labelled_metrics, scored_line
 from neural_estimator.metrics.outliers import (
     LOG_SCALE_FLOOR,
     MAD_SCALE,
@@ -68,6 +71,7 @@ __all__ = [
     "Stat",
     "TrajectoryErrors",
     "auc",
+    "compute_labelled_metrics",
     "compute_metrics",
     "covariance_metrics",
     "diverged_mask",
@@ -77,6 +81,7 @@ __all__ = [
     "format_reports",
     "format_table",
     "kept_rmse",
+    "labelled_metrics",
     "median_iqr",
     "nees",
     "outlier_mask",
@@ -84,6 +89,7 @@ __all__ = [
     "rmse_over_time",
     "robust_zscores",
     "run_rmse",
+    "scored_line",
     "state_spread",
     "summarize",
     "to_json",

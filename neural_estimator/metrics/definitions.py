@@ -302,6 +302,10 @@ class MetricReport:
     # ``coverage_curve`` the paper's outlier rule gives. None without covariance.
     coverage_curve_all: tuple[float, ...] | None = None
     nees_median_all: float | None = None  # median NEES over every (n, t), outliers included (non-finite: inf)
+    # Partial ground truth (metrics.labelled): the (n, t) after the warm-up scored and those without
+    # ground truth, not scored. None: every step labelled.
+    scored_steps: int | None = None
+    unlabelled_steps: int | None = None
 
     @property
     def has_covariance(self) -> bool:

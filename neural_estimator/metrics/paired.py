@@ -56,15 +56,29 @@ class TrajectoryErrors:
 
 
 def trajectory_errors(
-    x_true: np.ndarray, x_hat: np.ndarray, angle_states: Sequence[int], outlier_idx: np.ndarray, warmup: int = 0
+    x_true: np.ndarray,
+    x_hat: np.ndarray,
+    angle_states: Sequence[int],
+    outlier_idx: np.ndarray,
+    warmup: int = 0,
+    labelled: np.ndarray | None = None,
 ) -> TrajectoryErrors:
     """:class:`TrajectoryErrors` of one run: errors after ``warmup`` steps (angles wrapped),
-    kept = not in ``outlier_idx`` (the report's, diverged included)."""
+    kept = not in ``outlier_idx`` (the report's, diverged included). ``labelled`` (N, T) bool:
+    each trajectory's MSE over its labelled steps (:mod:`neural_estimator.metrics.labelled`); a
+    trajectory with none after the warm-up is not kept (that report did not score it)."""
     x_true, x_hat = check_pair(x_true, x_hat)
     e = wrap_components(x_hat[:, warmup:] - x_true[:, warmup:], tuple(angle_states))
-    with np.errstate(over="ignore", invalid="ignore"):
-        mse = np.mean(e * e, axis=1)  # (N, dx)
     kept = np.ones(x_true.shape[0], dtype=bool)
+    if labelled is not None and not np.all(labelled):
+        m = np.asarray(labelled, dtype=bool)[:, warmup:]
+        count = m.sum(axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            mse = np.where(m[..., None], e * e, 0.0).sum(axis=1) / np.maximum(count, 1)[:, None]
+        kept &= count > 0
+    else:
+        with np.errstate(over="ignore", invalid="ignore"):
+            mse = np.mean(e * e, axis=1)  # (N, dx)
     kept[np.asarray(outlier_idx, dtype=np.int64)] = False
     return TrajectoryErrors(mse, kept)
 

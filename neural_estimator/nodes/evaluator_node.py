@@ -487,9 +487,14 @@ class EvaluatorNode(ExitStatusNode):
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
             return 1
+        from neural_estimator.metrics.labelled import scored_line
+
+        partial = scored_line(reports.values())  # partial ground truth: steps scored and not
         table = M.format_reports(reports, fmt="text")
         print(
-            f"recorded run {self.bag.path}: {truth.n} trajectories x {truth.horizon} steps\n" + table,
+            f"recorded run {self.bag.path}: {truth.n} trajectories x {truth.horizon} steps\n"
+            + (partial + "\n" if partial else "")
+            + table,
             end="",
             flush=True,
         )
@@ -501,6 +506,7 @@ class EvaluatorNode(ExitStatusNode):
             "trajectories": truth.n,
             "horizon": truth.horizon,
             "warmup": warmup,
+            **({"partial_ground_truth": partial} if partial else {}),
             "methods": reports,
         }
         js = md.with_suffix(".json")  # <bag>.metrics.json, beside the table, as for a scenario's run

@@ -9,10 +9,21 @@ with rosbags' type store, custom types registered from the bag's own schemas):
 2. ticks: a fixed rate from the latest first message to the earliest last message over the
    topics, or one tick per message of the ``trigger`` topic;
 3. at each tick every topic contributes its latest message with a stamp at or before the tick;
-   the tick is *stale* when some topic has none, or only one older than ``max_age``, and
-   *non-finite* when a value is NaN or inf (e.g. a zero quaternion); both are dropped and counted;
-4. the valid ticks form segments (runs between dropped ticks); each segment is cut into
-   trajectories of ``length`` steps, the remainder dropped and counted.
+   the tick is *stale* when some input topic (observation, control, estimates) has none, or only
+   one older than ``max_age``, and *non-finite* when an input value is NaN or inf (e.g. a zero
+   quaternion); both are dropped and counted;
+4. the ground truth (the state) is sampled the same way, but a tick where it is stale or
+   non-finite (a robot outside the motion-capture volume) is kept *unlabelled*: the inputs run
+   on through the gap, so a model's state carries across it, and the dataset's ``labelled``
+   mask (N, T) says which steps hold ground truth (x holds the last labelled state of the
+   trajectory at the others, a placeholder that training and scoring never read);
+5. the valid ticks form segments (runs between dropped ticks); each segment is cut into
+   trajectories of ``length`` steps, the remainder dropped and counted, and a trajectory with no
+   labelled step dropped and counted.
+
+The truth is not an input because cutting at its gaps would drop them and the pieces shorter than
+a trajectory, and live the estimator never sees it. The ticks still span the time every topic, the
+truth included, has messages: a recording's head or tail without truth is not used.
 
 The result is a :class:`~neural_estimator.data.simulate.Trajectories` whose meta records the spec,
 its digest, the names, units and angles of the three vectors, the rate, every source bag's SHA-256
@@ -48,11 +59,21 @@ class BagSummary:
     segments: int = 0
     trajectories: int = 0
     remainder: int = 0  # valid ticks at the end of segments, fewer than a trajectory's length
+    labelled: int = 0  # steps of the kept trajectories with ground truth
+    unlabelled: int = 0  # steps of the kept trajectories without
+    unlabelled_trajectories: int = 0  # trajectories dropped for having no labelled step
 
     def line(self) -> str:
+        partial = (
+            f"; {self.unlabelled} of {self.labelled + self.unlabelled} steps unlabelled (no ground truth)"
+            if self.unlabelled or self.unlabelled_trajectories
+            else ""
+        )
+        unlab = f", {self.unlabelled_trajectories} unlabelled trajectories" if self.unlabelled_trajectories else ""
         return (
             f"{self.bag}: {self.ticks} ticks -> {self.trajectories} trajectories from {self.segments} segments; "
-            f"dropped {self.stale} stale, {self.nonfinite} non-finite, {self.remainder} remainder ticks"
+            f"dropped {self.stale} stale, {self.nonfinite} non-finite, {self.remainder} remainder ticks{unlab}"
+            f"{partial}"
         )
 
 
@@ -143,15 +164,16 @@ def tick_times(streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec) ->
 
 def sample(
     streams: dict[str, tuple[np.ndarray, np.ndarray]], spec: Spec, ticks: np.ndarray
-) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """The three vectors at every tick, and the stale and non-finite masks (K,).
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """The vectors at every tick; the stale and non-finite masks (K,) of the inputs (every vector
+    but the state); and the labelled mask (K,): the state fresh and finite.
 
     Each topic contributes its latest message stamped at or before the tick, if no older than
     ``max_age``.
     """
     fields = topic_fields(spec)
     K = ticks.size
-    stale = np.zeros(K, dtype=bool)
+    fresh: dict[str, np.ndarray] = {}
     at: dict[str, np.ndarray] = {}
     max_age = int(round(spec.max_age * 1e9))
     for topic in fields:
@@ -159,15 +181,32 @@ def sample(
         idx = np.searchsorted(stamps, ticks, side="right") - 1
         ok = idx >= 0
         ok[ok] &= (ticks[ok] - stamps[idx[ok]]) <= max_age
-        stale |= ~ok
+        fresh[topic] = ok
         at[topic] = values[np.clip(idx, 0, None)]
-    vectors = {}
+    vectors, usable = {}, {}
     for name in spec.vectors:
         cols = [at[f.topic][:, fields[f.topic].index(f)] for f in spec.vectors[name]]
         vectors[name] = np.stack(cols, axis=1) if cols else np.zeros((K, 0))
-    finite = np.all([np.isfinite(v).all(axis=1) for v in vectors.values()], axis=0) if K else np.zeros(0, bool)
+        topics = {f.topic for f in spec.vectors[name]}
+        is_fresh = np.all([fresh[t] for t in topics], axis=0) if topics else np.ones(K, bool)
+        usable[name] = (is_fresh, np.isfinite(vectors[name]).all(axis=1))
+    inputs = [name for name in spec.vectors if name != "state"]
+    stale = ~np.all([usable[n][0] for n in inputs], axis=0) if inputs else np.zeros(K, bool)
+    finite = np.all([usable[n][1] for n in inputs], axis=0) if inputs else np.ones(K, bool)
     nonfinite = ~stale & ~finite
-    return vectors, stale, nonfinite
+    labelled = usable["state"][0] & usable["state"][1]
+    return vectors, stale, nonfinite, labelled
+
+
+def fill_unlabelled(x: np.ndarray, labelled: np.ndarray) -> np.ndarray:
+    """x (T, dx) with every unlabelled step holding the last labelled state before it (the first
+    labelled one before the first label): a finite placeholder, never read by training or scoring."""
+    if labelled.all():
+        return x
+    idx = np.where(labelled, np.arange(labelled.size), -1)
+    idx = np.maximum.accumulate(idx)
+    idx[idx < 0] = int(np.argmax(labelled))
+    return x[idx]
 
 
 def segments(valid: np.ndarray) -> list[tuple[int, int]]:
@@ -190,7 +229,7 @@ def build_dataset(
     if int(length) < 2:
         raise SpecError(f"trajectory length must be at least 2 steps, got {length}")
     length = int(length)
-    xs, ys, us, summaries, longest = [], [], [], [], 0
+    xs, ys, us, labels, summaries, longest = [], [], [], [], [], 0
     est: dict[str, list[np.ndarray]] = {name: [] for name in spec.estimates}
     for bag in bags:
         try:
@@ -199,18 +238,24 @@ def build_dataset(
             raise SpecError(str(exc)) from None
         summary = BagSummary(str(bag), bag_sha256(bag), counts)
         ticks = tick_times(streams, spec)
-        vectors, stale, nonfinite = sample(streams, spec, ticks)
+        vectors, stale, nonfinite, labelled = sample(streams, spec, ticks)
         summary.ticks, summary.stale, summary.nonfinite = ticks.size, int(stale.sum()), int(nonfinite.sum())
         segs = segments(~stale & ~nonfinite)
         summary.segments = len(segs)
         for lo, hi in segs:
             longest = max(longest, hi - lo)
             n = (hi - lo) // length
-            summary.trajectories += n
             summary.remainder += (hi - lo) - n * length
             for k in range(n):
                 sl = slice(lo + k * length, lo + (k + 1) * length)
-                xs.append(vectors["state"][sl])
+                if not labelled[sl].any():  # no ground truth at all: nothing to train on or score
+                    summary.unlabelled_trajectories += 1
+                    continue
+                summary.trajectories += 1
+                summary.labelled += int(labelled[sl].sum())
+                summary.unlabelled += int((~labelled[sl]).sum())
+                labels.append(labelled[sl])
+                xs.append(fill_unlabelled(vectors["state"][sl], labelled[sl]))
                 ys.append(vectors["observation"][sl])
                 us.append(vectors["control"][sl])
                 for name in est:
@@ -219,13 +264,19 @@ def build_dataset(
         if progress:
             progress(summary.line())
     if not xs:
+        unlab = sum(s.unlabelled_trajectories for s in summaries)
         raise SpecError(
             f"no trajectory of {length} steps: the longest run of valid ticks is {longest} "
             f"(at {spec.rate:g} Hz); pass a smaller {length_name}, or raise max_age in the spec"
+            if not unlab
+            else f"no trajectory of {length} steps with ground truth: all {unlab} have no labelled step "
+            f"(the state's topics are silent or non-finite there)"
         )
     meta = dataset_meta(spec, length, summaries)
     estimates = {name: np.stack(v) for name, v in est.items()}
-    return Trajectories(np.stack(xs), np.stack(ys), np.stack(us), meta), estimates, summaries
+    mask = np.stack(labels)
+    data = Trajectories(np.stack(xs), np.stack(ys), np.stack(us), meta, None if mask.all() else mask)
+    return data, estimates, summaries
 
 
 def dataset_meta(spec: Spec, length: int, summaries: Sequence[BagSummary]) -> dict[str, Any]:
@@ -253,5 +304,9 @@ def dataset_meta(spec: Spec, length: int, summaries: Sequence[BagSummary]) -> di
             "stale_ticks": sum(s.stale for s in summaries),
             "nonfinite_ticks": sum(s.nonfinite for s in summaries),
             "remainder_ticks": sum(s.remainder for s in summaries),
+            "unlabelled_trajectories": sum(s.unlabelled_trajectories for s in summaries),
         },
+        # steps with ground truth (the "labelled" array, saved when some step has none)
+        "labelled_steps": sum(s.labelled for s in summaries),
+        "unlabelled_steps": sum(s.unlabelled for s in summaries),
     }

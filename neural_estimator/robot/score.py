@@ -7,7 +7,9 @@ from the spec's ground-truth fields, each estimate stream mapped onto the state 
 (angle components wrapped), all sampled at the spec's ticks by the spec's own ``stamp`` rule
 (header stamps, or log times for ``stamp: log``), cut into trajectories of ``length`` steps, and
 the paper's metrics computed per method: the dataset builder's sampling, so a live run scores the
-trajectories ``neural-estimator evaluate`` scored on the recording's dataset.
+trajectories ``neural-estimator evaluate`` scored on the recording's dataset. Where the ground
+truth has gaps, those ticks are unlabelled and not scored (:mod:`neural_estimator.metrics.labelled`),
+as in the dataset.
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ def scoring_spec(
         "rate": spec.rate,
         "max_age": spec.max_age,
         "stamp": stamp or spec.stamp,
-        "observation": state,  # unused by the scoring; the builder wants one
+        # unused by the scoring, but the builder wants one: an estimate stream, not the truth, so that
+        # a truth gap leaves its ticks unlabelled (not scored) instead of cutting the trajectories
+        "observation": {methods[min(methods)]: fields[:1]},
         "state": state,
         "estimates": {m: {topic: fields} for m, topic in methods.items()},
         "names": {"state": list(spec.names["state"])},
@@ -80,4 +84,7 @@ def score_recording(
     scoring, _ = scoring_spec(spec, topics, namespace, stamp)
     truth, estimates, _ = build_dataset([bag], scoring, length, length_name=length_name)
     angles = scoring.angles("state")
-    return {m: M.compute_metrics(truth.x, x_hat, angles, warmup=warmup) for m, x_hat in estimates.items()}, truth
+    return {
+        m: M.compute_labelled_metrics(truth.x, x_hat, angles, truth.labelled, warmup=warmup)
+        for m, x_hat in estimates.items()
+    }, truth

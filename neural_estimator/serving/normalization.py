@@ -97,7 +97,13 @@ class Normalizer:
     # ---- fitting -------------------------------------------------------------------------------
     @classmethod
     def fit(
-        cls, y: np.ndarray, u_prev: np.ndarray, x: np.ndarray, angle_states=(), std_floor: float = STD_FLOOR
+        cls,
+        y: np.ndarray,
+        u_prev: np.ndarray,
+        x: np.ndarray,
+        angle_states=(),
+        std_floor: float = STD_FLOOR,
+        labelled: np.ndarray | None = None,
     ) -> "Normalizer":
         """Statistics over every timestep of a training set.
 
@@ -107,6 +113,8 @@ class Normalizer:
             x: (N, T, dx) true states.
             angle_states: angular state components (mean 0, std 1: see the module docstring).
             std_floor: relative floor of the standard deviations.
+            labelled: (N, T) bool, the steps whose x is ground truth (partial ground truth): the
+                state statistics use those only (the inputs' use every step); None: every step.
         """
         y, u_prev, x = (np.asarray(a, dtype=np.float64) for a in (y, u_prev, x))
         if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u_prev)) and np.all(np.isfinite(x))):
@@ -115,6 +123,8 @@ class Normalizer:
         rows = int(np.prod(y.shape[:-1]))
         z = np.concatenate([y.reshape(rows, dy), u_prev.reshape(rows, du)], axis=1)  # (N T, d_in)
         xs = x.reshape(rows, dx)
+        if labelled is not None:  # a placeholder state is no sample of the truth's distribution
+            xs = xs[np.asarray(labelled, dtype=bool).reshape(rows)]
         in_mean, in_std = z.mean(0), z.std(0)
         out_mean, out_std = xs.mean(0), xs.std(0)
         idx = list(angle_states)
@@ -132,7 +142,9 @@ class Normalizer:
     @classmethod
     def from_data(cls, scenario, data, std_floor: float = STD_FLOOR) -> "Normalizer":
         """:meth:`fit` on a :class:`~neural_estimator.data.Trajectories` training set of ``scenario``."""
-        return cls.fit(data.y, previous_controls(data.u), data.x, scenario.angle_states, std_floor)
+        return cls.fit(
+            data.y, previous_controls(data.u), data.x, scenario.angle_states, std_floor, getattr(data, "labelled", None)
+        )
 
     # ---- the maps ------------------------------------------------------------------------------
     def normalize_inputs(self, y: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

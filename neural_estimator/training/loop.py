@@ -29,7 +29,9 @@ What :func:`train` does, in order:
 
    with c_d the component weights of ``loss_units`` (:func:`component_weights`): "state" (the
    default) c_d = sigma_d^2 / mean(sigma^2), the squared error in the states' own units up to one
-   constant, as RMSE weighs the components; "normalised" c_d = 1.
+   constant, as RMSE weighs the components; "normalised" c_d = 1. Recorded data with partial
+   ground truth (``Trajectories.labelled`` m_bt): w_bt m_bt instead of w_bt, here and in L_val's
+   mean (labelled steps only), and the state normalisation fitted on labelled steps.
 
 5. Validation after each epoch (the paper does not define it; this is our definition): the model
    in eval mode runs every validation trajectory from t = 0 over its full length (500) and
@@ -76,7 +78,7 @@ from neural_estimator.data.protocol import ChunkSampler, dataset, training_traje
 from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
-from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics, to_json
+from neural_estimator.metrics import EVALUATION_WARMUP, compute_labelled_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
 from neural_estimator.models.onnx_step import OnnxError
 from neural_estimator.serving.export import export_beside
@@ -181,6 +183,8 @@ class _Sets:
     n_train: int
     recorded: dict[str, str] | None  # the SHA-256 of recorded sets, None for simulated ones
     eval_data: Trajectories | None  # recorded data: the card's metrics on the validation set
+    L_train: torch.Tensor | None = None  # (N, T) float 1/0: steps with ground truth (None: all)
+    L_val: torch.Tensor | None = None
 
 
 def _training_sets(
@@ -219,10 +223,15 @@ def _training_sets(
             torch.as_tensor(x, dtype=torch.float32, device=device),
         )
 
+    def label_mask(data) -> torch.Tensor | None:  # partial ground truth: the loss reads labelled steps only
+        lab = getattr(data, "labelled", None)
+        return None if lab is None else torch.as_tensor(lab, dtype=torch.float32, device=device)
+
     Z_train, X_train = as_tensors(train_data)
     Z_val, X_val = as_tensors(val_data)
     eval_data = val_data if recorded is not None else None
-    return _Sets(cfg, norm, Z_train, X_train, Z_val, X_val, n_train, recorded, eval_data)
+    L_train, L_val = label_mask(train_data), label_mask(val_data)
+    return _Sets(cfg, norm, Z_train, X_train, Z_val, X_val, n_train, recorded, eval_data, L_train, L_val)
 
 
 def _recorded_sets(
@@ -327,6 +336,8 @@ class _Run:
         rows = torch.as_tensor(idx[:, None], device=self.device)  # (B, 1)
         cols = torch.as_tensor(start[:, None] + self.window_cols[None, :], device=self.device)  # (B, L)
         w = torch.as_tensor(self.sampler.loss_weights(start), dtype=torch.float32, device=self.device)  # (B, L)
+        if self.sets.L_train is not None:  # unlabelled steps: weight 0 (their x is a placeholder)
+            w = w * self.sets.L_train[rows, cols]
         return self.sets.Z_train[rows, cols], self.sets.X_train[rows, cols], w
 
     def epoch(self, stop_when, progress: bool, bar) -> None:
@@ -378,7 +389,11 @@ class _Run:
             if gov is not None:
                 gov.before_step()
             z, x, w = self.get_batch()
-            loss = weighted_loss(model(z), x, w, self.angle_mask, self.comp_w)
+            pred = model(z)
+            if self.sets.L_train is not None and not bool(w.sum() > 0):  # a batch with no labelled step
+                loss = 0.0 * pred.sum()  # no information: a zero gradient, not 0 / 0
+            else:
+                loss = weighted_loss(pred, x, w, self.angle_mask, self.comp_w)
             loss_value = loss.item()
             if not math.isfinite(loss_value):
                 raise TrainingError(
@@ -418,11 +433,16 @@ class _Run:
             e2 = e.double().square()
             if self.comp_w is not None:  # the same component weights as the training loss (mean 1)
                 e2 = e2 * self.comp_w.double()
-            total += float(e2.sum())
-            count += e.numel()
+            if self.sets.L_val is None:
+                total += float(e2.sum())
+                count += e.numel()
+            else:  # partial ground truth: the labelled steps only
+                lab = self.sets.L_val[b0 : b0 + cfg.val_batch_size, cfg.warmup :].double()
+                total += float((e2 * lab.unsqueeze(-1)).sum())
+                count += int(lab.sum()) * e.shape[-1]
             bar.update(1)
         model.train()
-        return total / count
+        return total / count if count else math.inf
 
     def finish(self) -> None:
         """Step 8: the best model rebuilt from its checkpoint, measured; the final card; step.onnx."""
@@ -544,7 +564,9 @@ def evaluate(
     )
     out = est.run(data.y, data.u)
     warmup = EVALUATION_WARMUP if data.horizon > EVALUATION_WARMUP else 0
-    report = compute_metrics(data.x, out.x, angle_states=scenario.angle_states, diverged=out.diverged, warmup=warmup)
+    report = compute_labelled_metrics(  # compute_metrics, on the labelled steps where some have no truth
+        data.x, out.x, scenario.angle_states, data.labelled, diverged=out.diverged, warmup=warmup
+    )
     return {
         "set": {
             "role": role,

@@ -82,10 +82,14 @@ def normalised_errors(est, x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     return e / est.normalizer.out_std
 
 
-def kept_trajectories(e: np.ndarray) -> np.ndarray:
-    """(N,) True for the trajectories the metrics' outlier rule keeps (finite, not outliers)."""
+def kept_trajectories(e: np.ndarray, labelled: np.ndarray | None = None) -> np.ndarray:
+    """(N,) True for the trajectories the metrics' outlier rule keeps (finite, not outliers);
+    ``labelled`` (N, T): each trajectory's MSE over its labelled steps (partial ground truth)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        Mn = np.mean(e * e, axis=(1, 2))
+        if labelled is None:
+            Mn = np.mean(e * e, axis=(1, 2))
+        else:
+            Mn = np.where(labelled[..., None], e * e, 0.0).sum(axis=(1, 2)) / np.maximum(labelled.sum(axis=1), 1)
     return ~M.outlier_mask(np.where(np.isfinite(Mn), Mn, np.inf))
 
 
@@ -149,11 +153,17 @@ def _set(
         data = protocol.dataset(est.scenario, "val", index, n, seed=seed)
     h, x_hat = served_features(est, data.y, data.u)
     e = normalised_errors(est, data.x, x_hat)
-    keep = kept_trajectories(e)
+    lab = getattr(data, "labelled", None)  # partial ground truth: no error where there is no truth
+    keep = kept_trajectories(e, lab)
     if log:
         where = f"val index {index}" if data is None else "recorded data"
         log(f"  {name} set: {where}, {keep.sum()}/{len(keep)} trajectories kept, {time.time() - t0:.0f} s")
-    return h[keep, warmup:].reshape(-1, h.shape[-1]), e[keep, warmup:].reshape(-1, dx), int(keep.sum())
+    if lab is None:
+        return h[keep, warmup:].reshape(-1, h.shape[-1]), e[keep, warmup:].reshape(-1, dx), int(keep.sum())
+    sel = np.zeros(lab.shape, dtype=bool)
+    sel[keep, warmup:] = True
+    sel &= lab
+    return h[torch.as_tensor(sel)], e[sel], int(keep.sum())
 
 
 def calibrate_head(
