@@ -8,6 +8,7 @@ benchmarks/bench_scoring_memory.py, not here."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -224,3 +225,21 @@ def test_an_announcement_or_a_span_too_large_is_refused_before_anything_is_alloc
                 bag.write(topic, 1 + i, M.encode_vector(0, "b", n, k, truth, np.zeros(len(truth))))
         with pytest.raises(BagError, match=want):
             bounded.score_bag(path)
+
+
+def test_metrics_verb_scores_a_bag_in_blocks_and_names_a_warmup_too_long(tmp_path, capsys):
+    from neural_estimator.cli import main
+
+    scen = make_scenario("bearings")
+    data = simulate(scen, 5, 16, seed=4)
+    path = tmp_path / "run.mcap"
+    _hostile_bag(path, scen, data)
+    assert main(["metrics", str(path), "--warmup", "16"]) == 2
+    assert "--warmup 16 leaves no step of 16-step trajectories" in capsys.readouterr().err
+    assert main(["metrics", str(path), "--json", "--warmup", "3"]) == 0
+    truth, estimates, angles = load_bag_dataset(path)
+    got = json.loads(capsys.readouterr().out)["methods"]
+    for m, (xh, P) in estimates.items():
+        want = compute_metrics(truth.x, xh, angles, P_hat=P, warmup=3)
+        np.testing.assert_allclose(got[m]["rmse"], want.rmse, rtol=1e-12)
+        np.testing.assert_allclose(got[m]["medae"], want.medae, rtol=1e-12)
