@@ -206,6 +206,9 @@ def test_no_room_for_the_temporary_files_is_one_line(tmp_path):
     with pytest.raises(BagError, match=r"scoring needs temporary files in .*missing.*set TMPDIR") as info:
         bounded.score_bag(path, spill_dir=str(tmp_path / "missing"))
     assert "\n" not in str(info.value)
+    x, xh, _ = _run(n=12)
+    with pytest.raises(MetricsError, match=r"scoring needs temporary files in .*missing.*set TMPDIR"):
+        score_in_blocks(x, xh, spill_dir=str(tmp_path / "missing"))
 
 
 def test_an_announcement_or_a_span_too_large_is_refused_before_anything_is_allocated(tmp_path):

@@ -49,7 +49,6 @@ class SpilledCells:
         self.width = int(width)
         self.record = _HEAD + self.width  # 8-byte words per record
         self.messages = 0
-        self.duplicates = 0  # summed over the blocks as they are read (see block)
         self._dir = Path(directory)
         fd, name = tempfile.mkstemp(dir=self._dir, suffix=".cells")
         os.close(fd)
@@ -129,5 +128,4 @@ class SpilledCells:
         records = (
             np.concatenate(list(self.chunks(path))) if path is not None else np.zeros((0, self.record), np.float64)
         )
-        cells = ResolvedCells(records, self.width)
-        return cells
+        return ResolvedCells(records, self.width)

@@ -22,6 +22,7 @@ M2 = M2_a + M2_b + delta^2 n_a n_b / n, s_d = sqrt(M2 / n).
 from __future__ import annotations
 
 import math
+import tempfile
 from collections.abc import Sequence
 
 import numpy as np
@@ -291,7 +292,13 @@ def score_in_blocks(
         raise MetricsError(f"x_true must be (N, T, dx), got shape {x_true.shape}")
     n, t, dx = x_true.shape
     step = block_trajectories(t, dx)
-    with BlockScorer(t, dx, angle_states, warmup=warmup, covariance=P_hat is not None, spill_dir=spill_dir) as sc:
-        for a in range(0, n, step):
-            sc.add(x_true[a : a + step], x_hat[a : a + step], None if P_hat is None else P_hat[a : a + step])
-        return sc.report(), sc.trajectory_errors()
+    try:
+        with BlockScorer(t, dx, angle_states, warmup=warmup, covariance=P_hat is not None, spill_dir=spill_dir) as sc:
+            for a in range(0, n, step):
+                sc.add(x_true[a : a + step], x_hat[a : a + step], None if P_hat is None else P_hat[a : a + step])
+            return sc.report(), sc.trajectory_errors()
+    except OSError as exc:  # no room for the temporary files: one line
+        where = spill_dir or tempfile.gettempdir()
+        raise MetricsError(
+            f"scoring needs temporary files in {where} (set TMPDIR to another directory): {exc.strerror or exc}"
+        ) from None
