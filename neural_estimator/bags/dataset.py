@@ -149,12 +149,13 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
 
 
 def _read_streams(
-    path: str | Path, namespace: str, description: Mapping[str, Any] | None
+    path: str | Path, namespace: str, description: Mapping[str, Any] | None, store=StreamCells
 ) -> tuple[dict[str, Any], list[dict[str, Any]], dict[str, StreamCells], dict[str, int]]:
     """(scenario description, run statuses, the cells of each vector stream, rejected messages per
     stream) of a bag: every topic of the run checked for its message type. Stream messages are
     decoded as they are read (held raw only until the bag's first /scenario message, when that
-    comes after them), into compact :class:`~neural_estimator.bags.cells.StreamCells`."""
+    comes after them), into compact :class:`~neural_estimator.bags.cells.StreamCells`, or what
+    ``store(width)`` makes (:class:`~neural_estimator.bags.spilled_cells.SpilledCells`: on disk)."""
     with open_bag(path) as bag:
         roles = {}
         for topic, conn in bag.topics.items():
@@ -178,7 +179,7 @@ def _read_streams(
         status: list[dict[str, Any]] = []
         rejected: dict[str, int] = {}
         pending: list[tuple[str, bytes]] = []  # stream messages before the description is known
-        decoder: _CellDecoder | None = None if desc is None else _CellDecoder(desc, rejected)
+        decoder: _CellDecoder | None = None if desc is None else _CellDecoder(desc, rejected, store)
         for conn, _, raw in bag.messages(list(roles)):
             role = roles[conn.topic]
             key = _stream_key(role)
@@ -186,7 +187,7 @@ def _read_streams(
                 if role.kind == M.SCENARIO:
                     if desc is None:  # the first announcement defines the run: a later one cannot resize it
                         desc = M.decode_scenario(raw)
-                        decoder = _CellDecoder(desc, rejected)
+                        decoder = _CellDecoder(desc, rejected, store)
                         for item in pending:
                             decoder.add(*item)
                         pending = []
@@ -212,8 +213,9 @@ class _CellDecoder:
     """Decodes stream messages into each stream's :class:`StreamCells`; a message that does not
     decode, or names other components than its stream's, counts as rejected."""
 
-    def __init__(self, desc: dict[str, Any], rejected: dict[str, int]) -> None:
+    def __init__(self, desc: dict[str, Any], rejected: dict[str, int], store=StreamCells) -> None:
         dx = len(desc["state_names"])
+        self.store = store
         self.expected = {M.OBSERVATION: M.observation_labels(desc), M.GROUND_TRUTH: M.state_labels(desc)}
         self.state_names, self.cov_names = M.state_labels(desc), M.covariance_labels(dx)
         self.rejected = rejected
@@ -238,7 +240,7 @@ class _CellDecoder:
             return
         store = self.cells.get(key)
         if store is None:
-            store = self.cells[key] = StreamCells(len(codec.names))
+            store = self.cells[key] = self.store(len(codec.names))
         store.add(vec.trajectory, vec.step, vec.stamp_ns, vec.values)
 
 

@@ -1,7 +1,8 @@
 """The paper's metrics of a recorded run, computed offline from its bag.
 
-The evaluator node calls this once the run is over; ``neural-estimator metrics run.mcap`` reads the
-same inputs through :func:`~neural_estimator.bags.dataset.load_bag_dataset`.
+The evaluator node calls this once the run is over; ``neural-estimator metrics run.mcap`` scores the
+same way. Both score in memory that does not grow with the recording's length
+(:func:`~neural_estimator.bags.bounded.score_bag`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Any
 
 from neural_estimator import departures as D
 from neural_estimator import metrics as metrics_mod
-from neural_estimator.bags.dataset import left_out_note, load_bag_dataset
+from neural_estimator.bags.dataset import left_out_note
 from neural_estimator.expected_failures import mark_rows, notes
 
 
@@ -160,27 +161,24 @@ def evaluate_bag(
     """
     if short_runs not in ("error", "score_all"):
         raise ValueError(f"short_runs must be 'error' or 'score_all', got {short_runs!r}")
-    truth, estimates, angles = load_bag_dataset(path, namespace=namespace, description=description)
-    note = ""
-    if warmup >= truth.horizon and short_runs == "score_all":
-        note = f"every step scored: the run has {truth.horizon} steps, not more than the {warmup}-step warm-up"
-        warmup = 0
-    reports = {
-        m: metrics_mod.compute_metrics(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()
-    }
+    from neural_estimator.bags.bounded import score_bag
     from neural_estimator.evaluation.decision import estimates_decision
 
-    decision = {f: estimates_decision(truth, estimates, angles, reports, warmup, f) for f in ("text", "markdown")}
+    run = score_bag(path, namespace=namespace, description=description, warmup=warmup, short_runs=short_runs)
+    decision = {
+        f: estimates_decision(run, None, (), run.reports, run.warmup, f, errors=run.errors)
+        for f in ("text", "markdown")
+    }
     return BagReport(
         path=Path(path),
-        scenario=str(truth.meta.get("scenario", "?")),
-        n_trajectories=truth.n,
-        horizon=truth.horizon,
-        dt=float(truth.meta.get("dt", 1.0)),
-        reports=reports,
-        bag=truth.meta["bag"],
-        warmup=warmup,
-        note=note,
+        scenario=str(run.meta.get("scenario", "?")),
+        n_trajectories=run.n,
+        horizon=run.horizon,
+        dt=float(run.meta.get("dt", 1.0)),
+        reports=run.reports,
+        bag=run.meta["bag"],
+        warmup=run.warmup,
+        note=run.note,
         starts=dict(starts or {}),
         decision={f: t for f, t in decision.items() if t},
     )

@@ -79,6 +79,49 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
     return load_truth_and_estimates(files)
 
 
+def _scored_files(files: list[str], args: argparse.Namespace, warmup: int):
+    """(run, {method: MetricReport}, {method: TrajectoryErrors}) of npz files or a bag; ``run`` has
+    the ``n``, ``horizon`` and ``meta`` of what was scored. A bag is scored in bounded memory
+    (:func:`~neural_estimator.bags.bounded.score_bag`); npz files are held as arrays and scored
+    block by block."""
+    from neural_estimator.metrics.streaming import score_in_blocks
+
+    def check(horizon: int) -> None:
+        if not 0 <= warmup < horizon:
+            raise CliError(
+                f"--warmup {warmup} leaves no step of {horizon}-step trajectories to score: pass a smaller "
+                "--warmup (0 scores every step)"
+            )
+
+    if len(files) == 1 and is_bag(files[0]):
+        from neural_estimator.bags.bounded import score_bag
+
+        run = score_bag(
+            files[0],
+            namespace=getattr(args, "namespace", "/") or "/",
+            description=bag_description(args),
+            warmup=warmup,
+            check_horizon=check,
+        )
+        return run, run.reports, run.errors
+    truth, estimates, angles = _estimates_from_files(files, args)
+    check(truth.horizon)
+    if getattr(truth, "labelled", None) is not None:  # partial ground truth: the labelled steps only
+        from neural_estimator import metrics as M
+
+        reports = {
+            m: M.compute_labelled_metrics(truth.x, xh, angles, truth.labelled, P_hat=P, warmup=warmup)
+            for m, (xh, P) in estimates.items()
+        }
+        errors = {
+            m: M.trajectory_errors(truth.x, xh, angles, reports[m].outlier_idx, warmup, truth.labelled)
+            for m, (xh, _) in estimates.items()
+        }
+        return truth, reports, errors
+    scored = {m: score_in_blocks(truth.x, xh, angles, P_hat=P, warmup=warmup) for m, (xh, P) in estimates.items()}
+    return truth, {m: r for m, (r, _) in scored.items()}, {m: e for m, (_, e) in scored.items()}
+
+
 def _cmd_metrics(args) -> int:
     if args.spec:
         return _print_spec_metrics(args)
@@ -125,17 +168,8 @@ def _print_metrics(
     from neural_estimator import metrics as M
     from neural_estimator.expected_failures import mark_rows, notes
 
-    truth, estimates, angles = _estimates_from_files(files, args)
     warmup = getattr(args, "warmup", M.EVALUATION_WARMUP)
-    if not 0 <= warmup < truth.horizon:
-        raise CliError(
-            f"--warmup {warmup} leaves no step of {truth.horizon}-step trajectories to score: pass a smaller "
-            "--warmup (0 scores every step)"
-        )
-    reports = {
-        m: M.compute_labelled_metrics(truth.x, xh, angles, truth.labelled, P_hat=P, warmup=warmup)
-        for m, (xh, P) in estimates.items()
-    }
+    truth, reports, errors = _scored_files(files, args, warmup)
     note = ""
     if "bag" in truth.meta:
         from neural_estimator.bags.dataset import left_out_note, outside_note
@@ -181,17 +215,17 @@ def _print_metrics(
         used = {x for v in rows.values() for x in v} | ({D.OUTLIERS} if cells else set())
         for line in notes(scenario_name, list(reports), starts) + D.legend_text(used) + [D.scored_steps(warmup)]:
             print(line)
-        _print_given_decision(truth, estimates, angles, reports, warmup)
+        _print_given_decision(truth, reports, warmup, errors)
     if out:
         _write_table(out, reports)
     return 0
 
 
-def _print_given_decision(truth, estimates, angles, reports, warmup: int) -> None:
+def _print_given_decision(truth, reports, warmup: int, errors) -> None:
     """The per-component table of given estimates, with the paired ratios (the ``metrics`` verb)."""
     from neural_estimator.evaluation.decision import estimates_decision
 
-    text = estimates_decision(truth, estimates, angles, reports, warmup)
+    text = estimates_decision(truth, None, (), reports, warmup, errors=errors)
     if text:
         print("per component (own units) and against the best filter:")
         print(text, end="")

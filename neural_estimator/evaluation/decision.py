@@ -95,11 +95,14 @@ def decision_notes(scenario: Scenario, results: Mapping[str, MethodResult]) -> l
     return notes
 
 
-def estimates_decision(truth, estimates, angles, reports, warmup: int, fmt: str = "text") -> str:
+def estimates_decision(truth, estimates, angles, reports, warmup: int, fmt: str = "text", errors=None) -> str:
     """The decision table and its notes for estimates given as arrays (the ``metrics`` verb, a bag's
-    report): ``truth`` a Trajectories whose meta may name the state components, ``estimates``
+    report): ``truth`` a Trajectories (with ``errors``: anything with a ``meta``) whose meta may
+    name the state components, ``estimates``
     {method: (x_hat, P or None)}, ``reports`` their :class:`~neural_estimator.metrics.MetricReport`;
-    "" when there is nothing to show."""
+    "" when there is nothing to show. ``errors``: {method: TrajectoryErrors} already computed (a
+    block scorer's, :mod:`neural_estimator.metrics.streaming`), instead of recomputing them from the
+    arrays."""
     from types import SimpleNamespace
 
     from neural_estimator import metrics as M
@@ -108,9 +111,12 @@ def estimates_decision(truth, estimates, angles, reports, warmup: int, fmt: str 
     results = {}
     for m, rep in reports.items():
         results[m] = MethodResult(m)
-        errs = M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup, truth.labelled)
-        results[m].add(rep, errs)
-    dx = truth.x.shape[2]
+        per_trajectory = (errors or {}).get(m)
+        if per_trajectory is None:
+            labelled = getattr(truth, "labelled", None)
+            per_trajectory = M.trajectory_errors(truth.x, estimates[m][0], angles, rep.outlier_idx, warmup, labelled)
+        results[m].add(rep, per_trajectory)
+    dx = next(iter(errors.values())).mse.shape[1] if errors else truth.x.shape[2]
     names = truth.meta.get("state_names") or [f"x{d}" for d in range(dx)]
     units = truth.meta.get("state_units") or [""] * dx
     states = SimpleNamespace(state_names=list(names), state_units=list(units), dx=dx)
