@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.bags.errors import BagError, BagWarning
-from neural_estimator.bags.reader import BagDamage, BagReader, Connection
+from neural_estimator.bags.reader import PartedBag, BagDamage, BagReader, Connection
 from neural_estimator.bags.sqlite import SQLITE_SUFFIX, SqliteBag
 
 METADATA_FILE = "metadata.yaml"
@@ -123,7 +123,7 @@ def _plain_file_name(name: str) -> bool:
     )
 
 
-class BagDirectory:
+class BagDirectory(PartedBag):
     """The files of a rosbag2 directory as one bag (see the module docstring)."""
 
     def __init__(self, path: str | Path, *, strict: bool = False) -> None:
@@ -184,25 +184,6 @@ class BagDirectory:
         for w in caught:  # re-announce the files' damage as the directory's
             warnings.warn(str(w.message), BagWarning, stacklevel=2)
         return self
-
-    def close(self) -> None:
-        for part in self.parts:
-            part.close()
-        self.parts = []
-
-    def __enter__(self) -> "BagDirectory":
-        return self.open()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    @property
-    def topics(self) -> dict[str, Connection]:
-        return {c.topic: c for c in self.connections}
-
-    @property
-    def message_count(self) -> int:
-        return sum(c.msgcount for c in self.connections)
 
     @property
     def start_time(self) -> int:

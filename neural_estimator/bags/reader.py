@@ -135,7 +135,41 @@ class _Chunk:
     counts: dict[int, int] = dataclasses.field(default_factory=dict)  # messages per channel
 
 
-class BagReader:
+class BagSummary:
+    """What every bag reader shares (an MCAP file, a rosbag2 directory, a sqlite3 bag): a context
+    manager over its ``open`` and ``close``, and the summary of its ``connections``."""
+
+    connections: list[Connection]
+
+    def __enter__(self) -> Any:
+        return self.open()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    @property
+    def topics(self) -> dict[str, Connection]:
+        """{topic: connection}."""
+        return {c.topic: c for c in self.connections}
+
+    @property
+    def message_count(self) -> int:
+        return sum(c.msgcount for c in self.connections)
+
+
+class PartedBag(BagSummary):
+    """A bag made of parts, each a bag of its own (a rosbag2 directory's files, a sqlite3 bag's
+    databases): closing it closes every part."""
+
+    parts: list[Any]
+
+    def close(self) -> None:
+        for part in self.parts:
+            part.close()
+        self.parts = []
+
+
+class BagReader(BagSummary):
     """Read messages of one ``.mcap`` file (see the module docstring).
 
     Args:
@@ -177,22 +211,7 @@ class BagReader:
             self._f.close()
             self._f = None
 
-    def __enter__(self) -> "BagReader":
-        return self.open()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
     # ---- summary ----------------------------------------------------------------------------------
-    @property
-    def topics(self) -> dict[str, Connection]:
-        """{topic: connection}."""
-        return {c.topic: c for c in self.connections}
-
-    @property
-    def message_count(self) -> int:
-        return sum(c.msgcount for c in self.connections)
-
     @property
     def start_time(self) -> int:
         """Earliest log time (ns) of the recovered messages (0 for an empty bag)."""

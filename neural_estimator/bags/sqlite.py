@@ -22,12 +22,12 @@ from typing import Any
 
 from neural_estimator.bags.errors import BagError
 from neural_estimator.bags.messages import TYPESTORE
-from neural_estimator.bags.reader import Connection, register_schema
+from neural_estimator.bags.reader import PartedBag, Connection, register_schema
 
 SQLITE_SUFFIX = ".db3"
 
 
-class SqliteBag:
+class SqliteBag(PartedBag):
     """One ``.db3`` file, or the ``.db3`` files of a rosbag2 directory in recording order, as one bag."""
 
     def __init__(self, path: str | Path, files: list[Path]) -> None:
@@ -74,25 +74,6 @@ class SqliteBag:
             raise
         self.connections = list(by_topic.values())
         return self
-
-    def close(self) -> None:
-        for part in self.parts:
-            part.close()
-        self.parts = []
-
-    def __enter__(self) -> "SqliteBag":
-        return self.open()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
-    @property
-    def topics(self) -> dict[str, Connection]:
-        return {c.topic: c for c in self.connections}
-
-    @property
-    def message_count(self) -> int:
-        return sum(c.msgcount for c in self.connections)
 
     @property
     def start_time(self) -> int:
