@@ -186,7 +186,8 @@ def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
     learning rate and seconds) and the recipe that reproduces it (``training.recipe``, ``data``,
     ``init_seed``, ``architecture``). Removed: resume/ (the last epoch's weights, the AdamW moments,
     the scheduler, the RNG states: only a training that goes on needs them) and model.safetensors
-    where the zoo ships the very same weights (byte-identical; a model that was not installed, e.g.
+    where the zoo ships the very same weights, with the step.onnx exported from them (byte-identical
+    weights; a model that was not installed, e.g.
     a --val-context variant, keeps its weights so that --install can still install it), and the
     lock file of :func:`claimed` (a process that opens it later finds the training finished).
     An unfinished training is left as it is: its resume state is what the next run continues from.
@@ -207,6 +208,9 @@ def prune(work: Path, zoo: Path | None = ZOO) -> list[str]:
     ):
         weights.unlink()
         removed.append("model.safetensors")
+        if (work / "step.onnx").is_file():  # the graph of those weights: the zoo ships its own beside them
+            (work / "step.onnx").unlink()
+            removed.append("step.onnx")
     (work / LOCK_NAME).unlink(missing_ok=True)
     return removed
 

@@ -161,7 +161,7 @@ def test_train_then_evaluate_neural_next_to_classical(tmp_path, capsys):
         )
         == 0
     )
-    assert sorted(p.name for p in ckpt.iterdir()) == ["card.json", "model.safetensors"]
+    assert sorted(p.name for p in ckpt.iterdir()) == ["card.json", "model.safetensors", "step.onnx"]
     capsys.readouterr()
     assert (
         main(

@@ -88,7 +88,7 @@ def test_every_python_dependency_has_its_rosdep_key_or_is_pip_only():
         assert ROSDEP_KEYS[dist] in exec_deps, f"{dist}: package.xml lacks <exec_depend>{ROSDEP_KEYS[dist]}"
     python_keys = {d for d in exec_deps if d.startswith("python3-")}
     assert python_keys == {ROSDEP_KEYS[d] for d in _install_requires() if d in ROSDEP_KEYS}
-    assert pip_only == {"torch", "safetensors", "mcap", "zstandard"}
+    assert pip_only == {"torch", "safetensors", "mcap", "zstandard", "onnxruntime", "onnx"}
 
 
 @pytest.mark.slow
