@@ -203,21 +203,7 @@ def _score(
         if run.received.get(M.covariance_topic(m)):
             ok &= run.complete[M.covariance_topic(m)]
         coverage[m] = ok
-    common, kept, methods_left_out = base.copy(), [], {}
-    for m in sorted(coverage, key=lambda m: (-int(coverage[m].sum()), m)):
-        cand = common & coverage[m]
-        if cand.any() and 2 * int(cand.sum()) >= int(common.sum()):
-            common, kept = cand, kept + [m]
-        else:
-            methods_left_out[m] = (
-                f"its stream is complete on {int(coverage[m].sum())} of {int(base.sum())} "
-                "trajectories with complete ground truth"
-            )
-    if not kept or not common.any():
-        raise BagError(
-            f"{path}: no trajectory is complete in the ground truth, observations and an estimate stream "
-            "(missing cells: " + ", ".join(f"{k} {v}" for k, v in run.missing.items() if v) + ")"
-        )
+    common, kept, methods_left_out = DS.scored_methods(path, base, coverage, run.missing)  # as load_bag_dataset
     note = ""
     if warmup >= layout.horizon and short_runs == "score_all":
         note = f"every step scored: the run has {layout.horizon} steps, not more than the {warmup}-step warm-up"

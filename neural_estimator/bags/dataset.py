@@ -410,6 +410,33 @@ def _gib(n: float) -> str:
     return f"{n / 2**30:.1f} GiB"
 
 
+def scored_methods(
+    path, base: np.ndarray, coverage: dict[str, np.ndarray], missing: dict[str, int]
+) -> tuple[np.ndarray, list[str], dict[str, str]]:
+    """(trajectories scored, methods kept, {method left out: why}): the methods are taken greedily,
+    most complete stream first, while each keeps at least half of the trajectories kept so far;
+    ``base`` marks the trajectories with complete ground truth (and observations), ``coverage`` each
+    method's complete ones among them. BagError when no trajectory is left."""
+    common = base.copy()
+    kept: list[str] = []
+    left_out: dict[str, str] = {}
+    for m in sorted(coverage, key=lambda m: (-int(coverage[m].sum()), m)):
+        cand = common & coverage[m]
+        if cand.any() and 2 * int(cand.sum()) >= int(common.sum()):
+            common, kept = cand, kept + [m]
+        else:
+            left_out[m] = (
+                f"its stream is complete on {int(coverage[m].sum())} of {int(base.sum())} "
+                "trajectories with complete ground truth"
+            )
+    if not kept or not common.any():
+        raise BagError(
+            f"{path}: no trajectory is complete in the ground truth, observations and an estimate stream "
+            "(missing cells: " + ", ".join(f"{k} {v}" for k, v in missing.items() if v) + ")"
+        )
+    return common, kept, left_out
+
+
 def load_bag_dataset(
     path: str | Path,
     *,
@@ -458,23 +485,7 @@ def load_bag_dataset(
         if run.received.get(cov_key):
             ok &= run.present[cov_key].all(axis=1)
         coverage[m] = ok
-    common = base.copy()
-    kept: list[str] = []
-    methods_left_out: dict[str, str] = {}
-    for m in sorted(coverage, key=lambda m: (-int(coverage[m].sum()), m)):
-        cand = common & coverage[m]
-        if cand.any() and 2 * int(cand.sum()) >= int(common.sum()):
-            common, kept = cand, kept + [m]
-        else:
-            methods_left_out[m] = (
-                f"its stream is complete on {int(coverage[m].sum())} of {int(base.sum())} "
-                "trajectories with complete ground truth"
-            )
-    if not kept or not common.any():
-        raise BagError(
-            f"{path}: no trajectory is complete in the ground truth, observations and an estimate stream "
-            "(missing cells: " + ", ".join(f"{k} {v}" for k, v in run.missing.items() if v) + ")"
-        )
+    common, kept, methods_left_out = scored_methods(path, base, coverage, run.missing)
     keep = np.flatnonzero(common)
     meta = dict(run.description)
     meta.update(
