@@ -150,7 +150,7 @@ class ExtendedKalmanFilter(ClassicalFilter):
 
         if not compiled_applies(self.compiled_max_batch, B) or type(self.scenario) is not Lorenz96:
             return None
-        from neural_estimator.filters import compiled_ekf
+        from neural_estimator.filters.kernels import ekf as compiled_ekf
 
         cfg = self.scenario.config
         h, substeps = cfg.dt / cfg.substeps, int(cfg.substeps)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.filters import compiled_enkf
+from neural_estimator.filters.kernels import enkf as compiled_enkf
 from neural_estimator.filters.base import (
     PHASE_INIT,
     PHASE_PREDICT,
@@ -22,7 +22,7 @@ from neural_estimator.filters.base import (
     check_inflation,
     compiled_applies,
 )
-from neural_estimator.filters.compiled_models import compiled_model
+from neural_estimator.filters.kernels.nlink import compiled_model
 from neural_estimator.filters.localization import localization_tapers
 from neural_estimator.filters.numerics import (
     ScenarioOps,

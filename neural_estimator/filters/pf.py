@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from neural_estimator.filters import compiled as ck
+from neural_estimator.filters.kernels import rng as ck
 from neural_estimator.filters.base import (
     PHASE_INIT,
     PHASE_PREDICT,
@@ -28,7 +28,7 @@ from neural_estimator.filters.base import (
     PHASE_RESAMPLE,
     MemberFilter,
 )
-from neural_estimator.filters.compiled_models import compiled_model, weighted_moments
+from neural_estimator.filters.kernels.nlink import compiled_model, weighted_moments
 from neural_estimator.filters.numerics import (
     LOG_W_FLOOR,
     effective_sample_size,

@@ -34,7 +34,7 @@ import numba as nb
 import numpy as np
 from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
 
-from neural_estimator.filters.compiled import _l96_rk4, _l96_rk4_rows
+from neural_estimator.filters.kernels.rng import _l96_rk4, _l96_rk4_rows
 from neural_estimator.filters.seeding import sfc64_state
 
 _KI = np.ascontiguousarray(ki_double, dtype=np.uint64)

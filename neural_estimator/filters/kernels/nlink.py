@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from neural_estimator.filters.compiled import _add_noise, _seed_state, lorenz96_predict, lorenz96_transition
+from neural_estimator.filters.kernels.rng import _add_noise, _seed_state, lorenz96_predict, lorenz96_transition
 
 _TWO_PI = 2.0 * math.pi
 
