@@ -1,11 +1,10 @@
-"""Compiled (numba) kernels of the particle filter's predict and weight steps.
+"""Compiled (numba) random numbers of the filters' kernels: two families of standard normals.
 
-The numpy particle filter spends its time, per particle and step, on the process-noise draws
-(numpy's fastest normal generator, SFC64, costs 8.7 ns a number), on the transition f and on the
-likelihood. These kernels fuse them per particle, in one pass over each stream's particles, and
-release the GIL so the filter's worker threads run them side by side.
-
-Random numbers. Each stream draws from its own generator, keyed by (seed, step k, phase, stream
+The PF's keyed generators. The numpy particle filter spends its time, per particle and step, on the
+process-noise draws (numpy's fastest normal generator, SFC64, costs 8.7 ns a number), on the
+transition f and on the likelihood; the PF's kernels fuse them per particle (:func:`add_process_noise`,
+and the scenarios' ``*_predict`` in their own modules, which call :func:`_seed_state` and
+:func:`_add_noise`). Each stream draws from its own generator, keyed by (seed, step k, phase, stream
 index b): the key is mixed by SplitMix64 (Steele, Lea & Flood 2014) into the 256-bit state of a
 xoshiro256** generator (Blackman & Vigna 2018). Standard normals come from the 256-layer ziggurat
 of Marsaglia & Tsang (2000), in the 64-bit form numpy uses (one 64-bit word gives the layer, the
@@ -15,9 +14,12 @@ thread count, block size or batch size. They are not numpy's numbers: the compil
 numpy PF in distribution, and equals it exactly given the same draws (:func:`stream_normals`
 returns a stream's draws, the tests feed them to the numpy path).
 
-Lorenz 96's transition is here (the same RK4, in the same order of operations as ``Lorenz96.f``,
-bit-equal, tested); the other scenarios' kernels are in :mod:`.compiled_models`. Scenarios without
-one keep their numpy ``f``; the compiled noise and likelihood kernels still apply to all.
+numpy's own SFC64 normals (the compiled EnKF, :mod:`.enkf`): the block's generator state is derived
+from the key (seed, step, phase, block) as ``SFC64(SeedSequence(seed, spawn_key=key))`` does
+(:mod:`neural_estimator.filters.seeding`), and the standard normals follow numpy's
+``Generator.standard_normal``: SFC64's 64-bit words through numpy's 256-layer ziggurat, with numpy's
+own tables (as numba's port of numpy's generator carries them); :func:`standard_normals` returns
+them (the tests hold them equal to numpy's).
 """
 
 from __future__ import annotations
@@ -26,6 +28,9 @@ import math
 
 import numba as nb
 import numpy as np
+from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
+
+from neural_estimator.filters.seeding import sfc64_state
 
 # ---- keyed generators ---------------------------------------------------------------------------
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
@@ -219,204 +224,85 @@ def add_process_noise(X, L, sd, seed, k, phase, first_stream):
             _add_noise(X[r, i], s, L, sd, z)
 
 
-# ---- Lorenz 96 ------------------------------------------------------------------------------------
-@nb.njit(inline="always")
-def _l96_field(x, out, forcing):
-    """dX_j/dt = (X_{j+1} - X_{j-2}) X_{j-1} - X_j + F on the ring, in Lorenz96._field's order
-    (the three wrapped ends apart, so the main loop has no index arithmetic modulo J)."""
-    n = x.shape[0]
-    out[0] = (x[1] - x[n - 2]) * x[n - 1] - x[0] + forcing
-    out[1] = (x[2] - x[n - 1]) * x[0] - x[1] + forcing
-    for j in range(2, n - 1):
-        out[j] = (x[j + 1] - x[j - 2]) * x[j - 1] - x[j] + forcing
-    out[n - 1] = (x[0] - x[n - 3]) * x[n - 2] - x[n - 1] + forcing
+# ---- numpy's SFC64 and standard normal (the compiled EnKF) ----------------------------------------
+_NP_KI = np.ascontiguousarray(ki_double, dtype=np.uint64)
+_NP_WI = np.ascontiguousarray(wi_double, dtype=np.float64)
+_NP_FI = np.ascontiguousarray(fi_double, dtype=np.float64)
+_NOR_R = float(ziggurat_nor_r)
+_NOR_INV_R = float(ziggurat_nor_inv_r)
 
 
 @nb.njit(inline="always")
-def _l96_rk4(x, forcing, h, substeps, K, A, M):
-    """``substeps`` RK4 steps of length h on x in place, in rk4()'s order of operations."""
-    n = x.shape[0]
-    half = 0.5 * h
-    sixth = h / 6.0
-    for _ in range(substeps):
-        _l96_field(x, K, forcing)  # k1
-        for j in range(n):
-            A[j] = K[j]
-            M[j] = x[j] + K[j] * half
-        _l96_field(M, K, forcing)  # k2
-        for j in range(n):
-            A[j] += K[j] * 2.0
-            M[j] = x[j] + K[j] * half
-        _l96_field(M, K, forcing)  # k3
-        for j in range(n):
-            A[j] += K[j] * 2.0
-            M[j] = x[j] + K[j] * h
-        _l96_field(M, K, forcing)  # k4
-        for j in range(n):
-            A[j] += K[j]
-            A[j] *= sixth
-            x[j] += A[j]
-
-
-@nb.njit(nogil=True, cache=True)
-def lorenz96_transition(X, forcing, h, substeps):
-    """X (..., N, J) <- f(X): Lorenz 96 RK4 in place (no noise); for the tests and the reference."""
-    flat = X.reshape(-1, X.shape[-1])
-    n = flat.shape[1]
-    K, A, M = np.empty(n), np.empty(n), np.empty(n)
-    for i in range(flat.shape[0]):
-        _l96_rk4(flat[i], forcing, h, substeps, K, A, M)
+def _sfc64_next(s):
+    """SFC64's next 64-bit word; state s = (a, b, c, counter) advanced in place."""
+    a, b, c, w = s[0], s[1], s[2], s[3]
+    tmp = a + b + w
+    s[3] = w + np.uint64(1)
+    s[0] = b ^ (b >> np.uint64(11))
+    s[1] = c + (c << np.uint64(3))
+    s[2] = ((c << np.uint64(24)) | (c >> np.uint64(40))) + tmp
+    return tmp
 
 
 @nb.njit(inline="always")
-def _l96_field_rows(x, out, forcing, m):
-    """:func:`_l96_field` on the first m columns of (J, P) rows: the same operations per state,
-    with the states innermost so the loops vectorise."""
-    n = x.shape[0]
-    for j in range(n):
-        jp, jm1, jm2 = (j + 1) % n, (j - 1) % n, (j - 2) % n
-        for i in range(m):
-            out[j, i] = (x[jp, i] - x[jm2, i]) * x[jm1, i] - x[j, i] + forcing
+def _sfc64_double(s):
+    return float(_sfc64_next(s) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@nb.njit
+def _sfc64_normal_slow(s, idx, rabs, x):
+    """The ziggurat's rare branches (numpy's random_standard_normal): the tail beyond r for layer 0,
+    else the wedge test; NaN asks for a new word."""
+    if idx == 0:
+        while True:
+            xx = -_NOR_INV_R * math.log1p(-_sfc64_double(s))
+            yy = -math.log1p(-_sfc64_double(s))
+            if yy + yy > xx * xx:
+                return -(_NOR_R + xx) if (rabs >> np.uint64(8)) & np.uint64(1) else _NOR_R + xx
+    if (_NP_FI[idx - 1] - _NP_FI[idx]) * _sfc64_double(s) + _NP_FI[idx] < math.exp(-0.5 * x * x):
+        return x
+    return math.nan
 
 
 @nb.njit(inline="always")
-def _l96_rk4_rows(X, forcing, h, substeps, x, K, A, M):
-    """:func:`_l96_rk4` on the m states X (m, J) (m <= P) in place, through (J, P) scratch rows."""
-    m, n = X.shape
-    half = 0.5 * h
-    sixth = h / 6.0
-    for i in range(m):
-        for j in range(n):
-            x[j, i] = X[i, j]
-    for _ in range(substeps):
-        _l96_field_rows(x, K, forcing, m)  # k1
-        for j in range(n):
-            for i in range(m):
-                A[j, i] = K[j, i]
-                M[j, i] = x[j, i] + K[j, i] * half
-        _l96_field_rows(M, K, forcing, m)  # k2
-        for j in range(n):
-            for i in range(m):
-                A[j, i] += K[j, i] * 2.0
-                M[j, i] = x[j, i] + K[j, i] * half
-        _l96_field_rows(M, K, forcing, m)  # k3
-        for j in range(n):
-            for i in range(m):
-                A[j, i] += K[j, i] * 2.0
-                M[j, i] = x[j, i] + K[j, i] * h
-        _l96_field_rows(M, K, forcing, m)  # k4
-        for j in range(n):
-            for i in range(m):
-                A[j, i] += K[j, i]
-                A[j, i] *= sixth
-                x[j, i] += A[j, i]
-    for i in range(m):
-        for j in range(n):
-            X[i, j] = x[j, i]
-
-
-@nb.njit(nogil=True, cache=True)
-def lorenz96_predict(X, forcing, h, substeps, L, sd, seed, k, phase, first_stream):
-    """X (b, N, J) <- f(X) + w per particle: RK4 over each stream's particles as (J, N) rows
-    (vectorised across particles), then the noise particle by particle."""
-    b, N, n = X.shape
-    s = np.empty(4, dtype=np.uint64)
-    z = np.empty(n)
-    x, K, A, M = np.empty((n, N)), np.empty((n, N)), np.empty((n, N)), np.empty((n, N))
-    for r in range(b):
-        _l96_rk4_rows(X[r], forcing, h, substeps, x, K, A, M)
-        _seed_state(s, seed, k, phase, first_stream + r)
-        for i in range(N):
-            _add_noise(X[r, i], s, L, sd, z)
-
-
-# ---- likelihood of a linear observation with diagonal R --------------------------------------------
-@nb.njit(nogil=True, cache=True)
-def linear_log_likelihood(X, H, identity, y, inv_sd, logw):
-    """logw (b, N) += -|(y - H x_i) / sd|^2 / 2 for every particle x_i of X (b, N, n).
-
-    ``identity``: H is the identity (Lorenz 96), the product is skipped.
-    """
-    b, N, n = X.shape
-    m = y.shape[1]
-    for r in range(b):
-        yr = y[r]
-        for i in range(N):
-            x = X[r, i]
-            acc = 0.0
-            for j in range(m):
-                if identity:
-                    hx = x[j]
-                else:
-                    hx = 0.0
-                    for c in range(n):
-                        hx += H[j, c] * x[c]
-                e = (yr[j] - hx) * inv_sd[j]
-                acc += e * e
-            logw[r, i] += -0.5 * acc
-
-
-# ---- weights ---------------------------------------------------------------------------------------
-@nb.njit(nogil=True, cache=True)
-def normalize_log_weights_rows(logw, w, floor):
-    """In place, per row of logw (b, N): ``numerics.normalize_log_weights`` in one kernel.
-
-    m = max_i l_i, d_i = l_i - m, w_i = exp(d_i) / s with s = sum_j exp(d_j) (relative weights with
-    d_i <= floor are exactly 0: no subnormals), l_i <- d_i - log s. A row whose maximum is not
-    finite (all -inf, or a NaN) becomes NaN in both (the caller flags the stream as diverged).
-    """
-    b, N = logw.shape
-    for r in range(b):
-        m = -np.inf
-        nan = False
-        for i in range(N):
-            v = logw[r, i]
-            if v != v:
-                nan = True
-            elif v > m:
-                m = v
-        if nan or not (m > -np.inf and m < np.inf):
-            for i in range(N):
-                logw[r, i] = np.nan
-                w[r, i] = np.nan
+def _sfc64_fill_normals(s, z):
+    """z (1-D) <- the next len(z) standard normals of state s, as numpy's random_standard_normal (a
+    64-bit word: 8 bits layer, 1 sign, 52 abscissa; the rare branches in :func:`_sfc64_normal_slow`), with SFC64's
+    state held in locals across the common branch (stored back only around the rare one), so the
+    compiler keeps it in registers: about twice as fast as a call per number."""
+    a, b, c, w = s[0], s[1], s[2], s[3]
+    i = 0
+    count = z.shape[0]
+    while i < count:
+        tmp = a + b + w
+        w += np.uint64(1)
+        a = b ^ (b >> np.uint64(11))
+        b = c + (c << np.uint64(3))
+        c = ((c << np.uint64(24)) | (c >> np.uint64(40))) + tmp
+        idx = np.int64(tmp & np.uint64(0xFF))
+        r = tmp >> np.uint64(8)
+        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
+        x = float(rabs) * _NP_WI[idx]
+        if r & np.uint64(1):
+            x = -x
+        if rabs < _NP_KI[idx]:
+            z[i] = x
+            i += 1
             continue
-        s = 0.0
-        for i in range(N):
-            d = logw[r, i] - m
-            e = math.exp(d) if d > floor else 0.0
-            logw[r, i] = d
-            w[r, i] = e
-            s += e
-        log_s = math.log(s)
-        for i in range(N):
-            w[r, i] /= s
-            logw[r, i] -= log_s
+        s[0], s[1], s[2], s[3] = a, b, c, w
+        x = _sfc64_normal_slow(s, idx, rabs, x)
+        a, b, c, w = s[0], s[1], s[2], s[3]
+        if not math.isnan(x):
+            z[i] = x
+            i += 1
+    s[0], s[1], s[2], s[3] = a, b, c, w
 
 
-# ---- systematic resampling ------------------------------------------------------------------------
-@nb.njit(nogil=True, cache=True)
-def systematic_resample_rows(X, w, offsets, need):
-    """X[r] <- X[r, idx_r] for the rows r with need[r], in place: systematic resampling with
-    positions p_i = (offsets[r] + i) / N and idx_r[i] = the first j with p_i < c_j, c the cumulative
-    weights with c_{N-1} set to 1 (``numerics.systematic_resample`` on one row, walked in O(N))."""
-    b, N, n = X.shape
-    tmp = np.empty((N, n))
-    c = np.empty(N)
-    for r in range(b):
-        if not need[r]:
-            continue
-        acc = 0.0
-        for j in range(N):
-            acc += w[r, j]
-            c[j] = acc
-        c[N - 1] = 1.0
-        j = 0
-        for i in range(N):
-            p = (offsets[r] + i) / N
-            while j < N - 1 and p >= c[j]:
-                j += 1
-            for m in range(n):
-                tmp[i, m] = X[r, j, m]
-        for i in range(N):
-            for m in range(n):
-                X[r, i, m] = tmp[i, m]
+@nb.njit(cache=True)
+def standard_normals(pool, hc, k0, k1, k2, count):
+    """``count`` draws of ``Generator(SFC64(SeedSequence(seed, spawn_key=(k0, k1, k2)))).standard_normal``
+    (for the tests)."""
+    s = sfc64_state(pool, hc, k0, k1, k2)
+    out = np.empty(count)
+    _sfc64_fill_normals(s, out)
+    return out
