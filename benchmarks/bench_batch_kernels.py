@@ -1,5 +1,5 @@
 """Does batching pay? The EKF and the EnKF on Lorenz 96, time per trajectory at B = 1 and at a large
-batch, on the compiled kernels (filters/compiled_ekf.py, filters/compiled_enkf.py) and on the
+batch, on the compiled kernels (filters/kernels/ekf.py, filters/kernels/enkf.py) and on the
 batched numpy path (``compiled_max_batch = 0``), in one process, rounds interleaved.
 
 A batch should never cost more per trajectory than one stream does. The figures are the process's

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from neural_estimator.data import simulate
-from neural_estimator.filters.compiled_enkf import standard_normals
+from neural_estimator.filters.kernels.rng import standard_normals
 from neural_estimator.filters.enkf import EnsembleKalmanFilter
 from neural_estimator.filters.scheduler import BlockScheduler
 from neural_estimator.filters.seeding import KeyedSFC64

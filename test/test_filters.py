@@ -702,13 +702,13 @@ def test_registry_builds_every_filter():
         assert importlib.import_module("neural_estimator.filters").__dict__[cls.__name__] is cls
 
 
-# ---- the PF's compiled kernels (filters/compiled.py) against the numpy reference path ---------------
+# ---- the PF's compiled kernels (filters/kernels/) against the numpy reference path ------------------
 def test_compiled_normals_are_standard_normal():
     """The keyed ziggurat generator: moments, a KS test, the tail beyond the ziggurat's base strip
     (drawn by a separate branch) at its Gaussian rate, and distinct keys give distinct streams."""
     from scipy import stats
 
-    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.kernels import rng as ck
 
     z = ck.stream_normals(7, 3, 1, 11, 400_000)
     se = 1 / np.sqrt(z.size)
@@ -725,7 +725,7 @@ def test_compiled_normals_are_standard_normal():
 
 @pytest.mark.parametrize("substeps", [1, 3])
 def test_compiled_lorenz96_transition_is_bit_equal(substeps):
-    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.kernels import lorenz96 as ck
 
     s = make_scenario("lorenz96", substeps=substeps)
     X = np.random.default_rng(0).normal(2.3, 3.6, (2, 64, 40))
@@ -738,9 +738,9 @@ def test_compiled_lorenz96_transition_is_bit_equal(substeps):
 @pytest.mark.parametrize("name", ["lorenz96", "nlink", "ballistic", "bearings", "quadrotor", "test_filters_pendulum"])
 def test_compiled_pf_predict_equals_numpy_given_the_same_draws(name):
     """One compiled predict step == the scenario's numpy f plus the stream's keyed draws times sqrt(Q)
-    (Lorenz 96, N-link, ballistic, bearings: the fused kernels of compiled_models; the others: numpy
+    (the built-ins: the fused kernels of filters/kernels; the others: numpy
     f + the compiled noise; angles normalised)."""
-    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.kernels import rng as ck
     from neural_estimator.filters.base import PHASE_PREDICT
 
     s = scenario_or_skip(name)
@@ -793,21 +793,21 @@ def test_compiled_model_transitions_match_the_scenarios():
     """N-link (own sine and cosine: a few ulp) and ballistic (also below ground) kernels. The ballistic
     kernel calls libm's exp; numpy's f is bit-equal to it where numpy's exp is libm's, and within a few
     ulp on CPUs where numpy takes its own AVX-512 exp (last place differs on about 5 % of arguments)."""
-    from neural_estimator.filters import compiled_models as cm
+    from neural_estimator.filters.kernels import ballistic, nlink
 
     rng = np.random.default_rng(0)
     s = make_scenario("nlink", n_links=4)
     x = s.sample_initial(rng, 3000) + rng.normal(0.0, 2.0, (3000, 8))  # 3000: not a multiple of the pass
     X = x.copy()
     _, W, G = s._constants()
-    cm.nlink_transition(X, s.config.dt / s.config.substeps, s.config.substeps, np.ascontiguousarray(W), -G)
+    nlink.nlink_transition(X, s.config.dt / s.config.substeps, s.config.substeps, np.ascontiguousarray(W), -G)
     np.testing.assert_allclose(s.state_residual(X, s.f(x)), 0.0, atol=1e-12)
     b = make_scenario("ballistic", substeps=3)
     x = b.sample_initial(rng, 500)
     x[:250, 0] = rng.normal(0.0, 3.0, 250)  # around and below the ground, where E(a) = 1
     X = x.copy()
     cfg = b.config
-    cm.ballistic_transition(X, cfg.g, cfg.k, cfg.dt / cfg.substeps, cfg.substeps)
+    ballistic.ballistic_transition(X, cfg.g, cfg.k, cfg.dt / cfg.substeps, cfg.substeps)
     np.testing.assert_allclose(X, b.f(x), rtol=1e-14, atol=1e-13)
 
 
@@ -815,7 +815,7 @@ def test_compiled_model_transitions_match_the_scenarios():
 def test_compiled_sincos_is_within_two_ulp():
     import numba as nb
 
-    from neural_estimator.filters import compiled_models as cm
+    from neural_estimator.filters.kernels import trig as cm
 
     @nb.njit
     def both(x, s, c):
@@ -835,7 +835,7 @@ def test_compiled_sincos_is_within_two_ulp():
 def test_compiled_weighted_moments_equal_numpy(name):
     """The PF's compiled estimate: circular mean for angles (straddling the +-pi cut), plain mean
     otherwise, and the weighted covariance of the wrapped residuals, against the numpy path."""
-    from neural_estimator.filters import compiled_models as cm
+    from neural_estimator.filters.kernels import pf as cm
     from neural_estimator.filters.numerics import weighted_covariance
 
     s = make_scenario(name)
@@ -853,7 +853,7 @@ def test_compiled_weighted_moments_equal_numpy(name):
 def test_compiled_weight_normalisation_equals_numpy():
     """log-sum-exp normalisation per row == numerics.normalize_log_weights, including the floor of
     negligible weights (exactly 0) and the rows that must come back NaN (all -inf, or a NaN)."""
-    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.kernels import pf as ck
     from neural_estimator.filters.numerics import LOG_W_FLOOR, normalize_log_weights
 
     logw = np.random.default_rng(2).normal(-5.0, 300.0, (5, 64))
@@ -992,7 +992,7 @@ def test_regularization_jitters_resampled_particles_by_the_spread():
 
 
 def test_compiled_systematic_resampling_equals_numpy_per_row():
-    from neural_estimator.filters import compiled as ck
+    from neural_estimator.filters.kernels import pf as ck
 
     rng = np.random.default_rng(4)
     for N in (1, 7, 256):

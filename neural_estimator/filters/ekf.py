@@ -15,6 +15,8 @@ from functools import partial
 import numpy as np
 
 from neural_estimator.filters.base import ClassicalFilter, check_inflation, compiled_applies
+from neural_estimator.filters.kernels import compiled_model
+from neural_estimator.filters.kernels import ekf as compiled_ekf
 from neural_estimator.filters.numerics import ScenarioOps, psd_solve, symmetrize
 
 
@@ -125,7 +127,7 @@ class ExtendedKalmanFilter(ClassicalFilter):
     # overhead smaller blocks multiply. Measured at B = 2000, 2 threads: 11.9k traj-steps/s with
     # 2^17, 14.9k with 2^19, 10.4k with 2^21.
     block_elements = 2**19
-    # Lorenz 96 runs on the compiled kernels (filters/compiled_ekf.py: the same equations, one
+    # Lorenz 96 runs on the compiled kernels (filters/kernels/ekf.py: the same equations, one
     # compiled call per phase and block of streams, the blocks on the filter's threads) at every
     # batch: at B = 1 numpy's per-call cost is most of a batched step, and at B = 1,000 (n = 40, one
     # thread) they are still 1.5x the batched numpy path per trajectory
@@ -145,18 +147,16 @@ class ExtendedKalmanFilter(ClassicalFilter):
         )
 
     def _compiled_kernels(self, B: int):
-        """(predict, update) on the compiled single-stream kernels, or None for the batched path."""
-        from neural_estimator.scenarios.lorenz96 import Lorenz96
-
-        if not compiled_applies(self.compiled_max_batch, B) or type(self.scenario) is not Lorenz96:
+        """(predict, update) on the compiled single-stream kernels, or None for the batched path (a
+        scenario whose kernels have no ``ekf_model``: all but Lorenz 96)."""
+        if not compiled_applies(self.compiled_max_batch, B):
             return None
-        from neural_estimator.filters import compiled_ekf
-
-        cfg = self.scenario.config
-        h, substeps = cfg.dt / cfg.substeps, int(cfg.substeps)
+        model = compiled_model(self.scenario).ekf_model
+        if model is None:
+            return None
         H = np.ascontiguousarray(self.scenario.obs_matrix(), dtype=np.float64)
         Q, R = np.ascontiguousarray(self.Q), np.ascontiguousarray(self.R)
-        inflation2, forcing, joseph = float(self.hp.inflation) ** 2, float(cfg.forcing), bool(self.hp.joseph_form)
+        inflation2, joseph = float(self.hp.inflation) ** 2, bool(self.hp.joseph_form)
         no_skip = np.zeros(B, dtype=bool)
 
         def own() -> None:  # the last step's covariance was handed out read-only: write a new one
@@ -168,9 +168,7 @@ class ExtendedKalmanFilter(ClassicalFilter):
         def predict() -> None:
             own()
             m, P = self._m, self._P
-            self._scheduler.for_each(
-                lambda i, sl: compiled_ekf.predict(m[sl], P[sl], Q, inflation2, forcing, h, substeps)
-            )
+            self._scheduler.for_each(lambda i, sl: compiled_ekf.predict(m[sl], P[sl], Q, inflation2, *model))
 
         def update(y: np.ndarray, skip: np.ndarray | None) -> None:
             own()

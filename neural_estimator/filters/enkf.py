@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.filters import compiled_enkf
+from neural_estimator.filters.kernels import enkf as compiled_enkf
 from neural_estimator.filters.base import (
     PHASE_INIT,
     PHASE_PREDICT,
@@ -22,7 +22,7 @@ from neural_estimator.filters.base import (
     check_inflation,
     compiled_applies,
 )
-from neural_estimator.filters.compiled_models import compiled_model
+from neural_estimator.filters.kernels import compiled_model
 from neural_estimator.filters.localization import localization_tapers
 from neural_estimator.filters.numerics import (
     ScenarioOps,
@@ -153,7 +153,7 @@ class EnsembleKalmanFilter(MemberFilter):
 
     method = "enkf"
     HyperParams = EnKFHyperParams
-    # Lorenz 96 runs on the compiled kernels (filters/compiled_enkf.py: the same equations and
+    # Lorenz 96 runs on the compiled kernels (filters/kernels/enkf.py: the same equations and
     # numpy's very draws, one compiled call per phase and block of streams, the blocks on the
     # filter's threads) at every batch: at B = 1 numpy's per-call cost is most of a batched step,
     # and at B = 1,000 (n = 40, one thread) the batched path is slower per trajectory than B = 1
@@ -171,7 +171,8 @@ class EnsembleKalmanFilter(MemberFilter):
             self._rho = localization_tapers(scenario, float(self.hp.localization_radius), self.method)
         # f over the members: the scenario's compiled transition where it has one (N-link's RK4 in
         # numpy is half the EnKF's time there), else its numpy f
-        self._transition = compiled_model(scenario).transition or scenario.f
+        self._kernels = compiled_model(scenario)
+        self._transition = self._kernels.transition or scenario.f
 
     def _init_state(self, B: int) -> None:
         draws = self._initial_draws(PHASE_INIT, self.N, self._sqrt_P0, self._sd_P0)
@@ -179,20 +180,19 @@ class EnsembleKalmanFilter(MemberFilter):
         self._compiled = self._compiled_args(B)
 
     def _compiled_args(self, B: int) -> dict | None:
-        """The compiled kernels' constants when they apply (Lorenz 96, H = I, diagonal Q and R, R
-        positive definite, a batch within ``compiled_max_batch``), else None."""
-        from neural_estimator.scenarios.lorenz96 import Lorenz96
-
-        if not compiled_applies(self.compiled_max_batch, B) or type(self.scenario) is not Lorenz96:
+        """The compiled kernels' constants when they apply (a scenario whose kernels give
+        ``enkf_model``: Lorenz 96, H = I; diagonal Q and R, R positive definite, a batch within
+        ``compiled_max_batch``), else None."""
+        model = self._kernels.enkf_model
+        if not compiled_applies(self.compiled_max_batch, B) or model is None:
             return None
         if self._sd_Q is None or self._sd_R is None or not np.all(self._sd_R > 0.0):
             return None
-        cfg = self.scenario.config
         keyed = self._scheduler.keyed
         n = self.scenario.dx
         rho = self._rho if self._rho is not None else (np.ones((n, n)), np.ones((n, n)))
         c = {
-            "model": (float(cfg.forcing), float(cfg.dt) / int(cfg.substeps), int(cfg.substeps)),
+            "model": model,
             "sd_Q": np.ascontiguousarray(self._sd_Q, dtype=np.float64),
             "update": (
                 np.ascontiguousarray(self.R),

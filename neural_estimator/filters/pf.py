@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from neural_estimator.filters import compiled as ck
 from neural_estimator.filters.base import (
     PHASE_INIT,
     PHASE_PREDICT,
@@ -28,7 +27,9 @@ from neural_estimator.filters.base import (
     PHASE_RESAMPLE,
     MemberFilter,
 )
-from neural_estimator.filters.compiled_models import compiled_model, weighted_moments
+from neural_estimator.filters.kernels import compiled_model
+from neural_estimator.filters.kernels import pf as pk
+from neural_estimator.filters.kernels import rng as ck
 from neural_estimator.filters.numerics import (
     LOG_W_FLOOR,
     effective_sample_size,
@@ -143,11 +144,11 @@ class ParticleFilter(MemberFilter):
     process noise everywhere), the likelihood (the scenario's h kernel, or any linear observation
     with diagonal R), the log-sum-exp normalisation of the weights, and the estimate (weighted mean,
     circular for angular states, and covariance, for any scenario with the base class's angle
-    semantics) run as numba kernels
-    (:mod:`neural_estimator.filters.compiled`, :mod:`neural_estimator.filters.compiled_models`),
-    fused per particle or over a stream's particles. Their process noise comes from per-stream
-    keyed generators, not numpy's, so the two paths agree in distribution, and to rounding given
-    the same draws (tested); ``compiled=false`` is the numpy reference path.
+    semantics) run as numba kernels (:mod:`neural_estimator.filters.kernels`: the scenario's own,
+    looked up by its class, and the noise and weight kernels of its ``rng`` and ``pf``), fused per
+    particle or over a stream's particles. Their process noise comes from per-stream keyed
+    generators, not numpy's, so the two paths agree in distribution, and to rounding given the same
+    draws (tested); ``compiled=false`` is the numpy reference path.
     """
 
     method = "pf"
@@ -176,7 +177,7 @@ class ParticleFilter(MemberFilter):
         # noise: sd (diagonal Q) or a full square root L; the unused one is empty
         self._ck_sd = self._sd_Q if self._sd_Q is not None else np.zeros(0)
         self._ck_L = np.ascontiguousarray(self._sqrt_Q) if self._sd_Q is None else np.zeros((0, 0))
-        # the scenario's own f and h kernels (exact built-in classes; a subclass may redefine f or h)
+        # the scenario's own f and h kernels, looked up by its class (none for a subclass, which may redefine f or h)
         model = compiled_model(s)
         self._ck_predict = model.predict
         self._ck_loglik = model.log_likelihood if self._inv_sd_R is not None else None
@@ -235,9 +236,9 @@ class ParticleFilter(MemberFilter):
         if self._ck_loglik is not None:
             self._ck_loglik(X, y, self._inv_sd_R, logw)
         else:
-            ck.linear_log_likelihood(X, self._ck_H[0], self._ck_H[1], y, self._inv_sd_R, logw)
+            pk.linear_log_likelihood(X, self._ck_H[0], self._ck_H[1], y, self._inv_sd_R, logw)
         w = np.empty_like(logw)
-        ck.normalize_log_weights_rows(logw, w, LOG_W_FLOOR)
+        pk.normalize_log_weights_rows(logw, w, LOG_W_FLOOR)
         return logw, w, None
 
     def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +255,7 @@ class ParticleFilter(MemberFilter):
     def _estimate_block(self, X: np.ndarray, w: np.ndarray):
         if self._ck_angles is not None:
             mean, cov = np.empty(X.shape[::2]), np.empty(X.shape[:1] + X.shape[2:] * 2)
-            weighted_moments(X, w, self._ck_angles, mean, cov)
+            pk.weighted_moments(X, w, self._ck_angles, mean, cov)
             return mean, cov, None
         return (*_weighted_estimate(X, w, ops=self.ops), None)
 
@@ -277,7 +278,7 @@ class ParticleFilter(MemberFilter):
         rows = np.flatnonzero(need)
         N = self.N
         if self._compiled:  # the same systematic resampling, walked per row in place
-            ck.systematic_resample_rows(X, w, offsets, need)
+            pk.systematic_resample_rows(X, w, offsets, need)
             if self.hp.rejuvenation_std <= 0 and self.hp.regularization <= 0:  # nothing else to do to X
                 logw[rows] = -np.log(N)
                 w[rows] = 1.0 / N

@@ -6,18 +6,20 @@ per-call overhead: about 40 array operations on (1, N, n) arrays, each 1-5 us wh
 These kernels run the same equations, in the same order of operations where it is cheap to keep
 it, in one compiled call per phase:
 
-- predict: Lorenz 96's RK4 (:mod:`neural_estimator.filters.compiled`, the batched path's compiled
-  transition, bit for bit), plus the process noise;
+- predict: Lorenz 96's RK4 (:mod:`.lorenz96`, the batched path's compiled transition, bit for
+  bit), plus the process noise;
 - update: anomalies, C = A^T B / (N - 1), C_zz, S = C_zz + R (with the localisation tapers when
   set), K^T = S^{-1} C^T (Cholesky), the perturbed observations; then the
   ensemble mean and covariance.
 
-Random numbers are numpy's, bit for bit: the block's generator state is derived from the key
-(seed, step, phase, block) as ``SFC64(SeedSequence(seed, spawn_key=key))`` does
-(:mod:`.seeding`), and the standard normals follow numpy's ``Generator.standard_normal``: SFC64's
-64-bit words through numpy's 256-layer ziggurat, with numpy's own tables (as numba's port of
-numpy's generator carries them). The tests hold the draws equal to numpy's and the filter equal to
+Random numbers are numpy's, bit for bit (:mod:`.rng`'s SFC64 normals): the block's generator state
+is derived from the key (seed, step, phase, block) as ``SFC64(SeedSequence(seed, spawn_key=key))``
+does (:mod:`neural_estimator.filters.seeding`), and the standard normals follow numpy's
+``Generator.standard_normal``. The tests hold the draws equal to numpy's and the filter equal to
 the batched path.
+
+Only Lorenz 96 has these kernels (its predict holds Lorenz 96's RK4): the EnKF takes them where the
+scenario's kernels (:func:`neural_estimator.filters.kernels.compiled_model`) give ``enkf_model``.
 
 The member means, the anomalies, the RK4 and the noise are bit for bit the batched path's. The
 matrix products go to BLAS through numba (scipy's build) instead of numpy's stacked matmul, and S is
@@ -32,93 +34,10 @@ import math
 
 import numba as nb
 import numpy as np
-from numba.np.random._constants import fi_double, ki_double, wi_double, ziggurat_nor_inv_r, ziggurat_nor_r
 
-from neural_estimator.filters.compiled import _l96_rk4, _l96_rk4_rows
+from neural_estimator.filters.kernels.lorenz96 import _l96_rk4, _l96_rk4_rows
+from neural_estimator.filters.kernels.rng import _sfc64_fill_normals
 from neural_estimator.filters.seeding import sfc64_state
-
-_KI = np.ascontiguousarray(ki_double, dtype=np.uint64)
-_WI = np.ascontiguousarray(wi_double, dtype=np.float64)
-_FI = np.ascontiguousarray(fi_double, dtype=np.float64)
-_NOR_R = float(ziggurat_nor_r)
-_NOR_INV_R = float(ziggurat_nor_inv_r)
-
-
-# ---- numpy's SFC64 and standard normal ------------------------------------------------------------
-@nb.njit(inline="always")
-def _sfc64_next(s):
-    """SFC64's next 64-bit word; state s = (a, b, c, counter) advanced in place."""
-    a, b, c, w = s[0], s[1], s[2], s[3]
-    tmp = a + b + w
-    s[3] = w + np.uint64(1)
-    s[0] = b ^ (b >> np.uint64(11))
-    s[1] = c + (c << np.uint64(3))
-    s[2] = ((c << np.uint64(24)) | (c >> np.uint64(40))) + tmp
-    return tmp
-
-
-@nb.njit(inline="always")
-def _sfc64_double(s):
-    return float(_sfc64_next(s) >> np.uint64(11)) * (1.0 / 9007199254740992.0)
-
-
-@nb.njit
-def _normal_slow(s, idx, rabs, x):
-    """The ziggurat's rare branches (numpy's random_standard_normal): the tail beyond r for layer 0,
-    else the wedge test; NaN asks for a new word."""
-    if idx == 0:
-        while True:
-            xx = -_NOR_INV_R * math.log1p(-_sfc64_double(s))
-            yy = -math.log1p(-_sfc64_double(s))
-            if yy + yy > xx * xx:
-                return -(_NOR_R + xx) if (rabs >> np.uint64(8)) & np.uint64(1) else _NOR_R + xx
-    if (_FI[idx - 1] - _FI[idx]) * _sfc64_double(s) + _FI[idx] < math.exp(-0.5 * x * x):
-        return x
-    return math.nan
-
-
-@nb.njit(inline="always")
-def _fill_normals(s, z):
-    """z (1-D) <- the next len(z) standard normals of state s, as numpy's random_standard_normal (a
-    64-bit word: 8 bits layer, 1 sign, 52 abscissa; the rare branches in :func:`_normal_slow`), with SFC64's
-    state held in locals across the common branch (stored back only around the rare one), so the
-    compiler keeps it in registers: about twice as fast as a call per number."""
-    a, b, c, w = s[0], s[1], s[2], s[3]
-    i = 0
-    count = z.shape[0]
-    while i < count:
-        tmp = a + b + w
-        w += np.uint64(1)
-        a = b ^ (b >> np.uint64(11))
-        b = c + (c << np.uint64(3))
-        c = ((c << np.uint64(24)) | (c >> np.uint64(40))) + tmp
-        idx = np.int64(tmp & np.uint64(0xFF))
-        r = tmp >> np.uint64(8)
-        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
-        x = float(rabs) * _WI[idx]
-        if r & np.uint64(1):
-            x = -x
-        if rabs < _KI[idx]:
-            z[i] = x
-            i += 1
-            continue
-        s[0], s[1], s[2], s[3] = a, b, c, w
-        x = _normal_slow(s, idx, rabs, x)
-        a, b, c, w = s[0], s[1], s[2], s[3]
-        if not math.isnan(x):
-            z[i] = x
-            i += 1
-    s[0], s[1], s[2], s[3] = a, b, c, w
-
-
-@nb.njit(cache=True)
-def standard_normals(pool, hc, k0, k1, k2, count):
-    """``count`` draws of ``Generator(SFC64(SeedSequence(seed, spawn_key=(k0, k1, k2)))).standard_normal``
-    (for the tests)."""
-    s = sfc64_state(pool, hc, k0, k1, k2)
-    out = np.empty(count)
-    _fill_normals(s, out)
-    return out
 
 
 # ---- the filter ------------------------------------------------------------------------------------
@@ -142,7 +61,7 @@ def predict(X, forcing, h, substeps, sd_Q, pool, hc, k, phase, block):
                 _l96_rk4(X[r, i], forcing, h, substeps, K, A, M)
     z = np.empty(N * n)
     for r in range(b):
-        _fill_normals(s, z)
+        _sfc64_fill_normals(s, z)
         for i in range(N):
             for j in range(n):
                 X[r, i, j] += z[i * n + j] * sd_Q[j]
@@ -218,7 +137,7 @@ def update(X, Y, skip, R, sd_R, inflation, rho_xy, rho_yy, localize, pool, hc, k
     Kt = np.empty((n, n))
     z = np.empty(N * n)
     for r in range(b):
-        _fill_normals(s, z)  # the draws first: a skipped or failing stream still consumes its own
+        _sfc64_fill_normals(s, z)  # the draws first: a skipped or failing stream still consumes its own
         for i in range(N):
             for j in range(n):
                 E[i, j] = z[i * n + j] * sd_R[j]

@@ -9,6 +9,10 @@ per phase and stream, in the same order of operations; the tests hold them equal
 The EKF uses them at every batch (``ExtendedKalmanFilter.compiled_max_batch``), block by block of
 streams on the filter's threads (the kernels release the GIL): at B = 1 the batched path cannot
 amortise numpy's per-call cost, and at large batches the compiled loops still beat it.
+
+Only Lorenz 96 has these kernels (the predict holds its field and Jacobian): the EKF takes them
+where the scenario's kernels (:func:`neural_estimator.filters.kernels.compiled_model`) give
+``ekf_model`` (the forcing, the RK4 step and the substeps).
 """
 
 from __future__ import annotations
