@@ -10,7 +10,7 @@ every shipped neural model trained on those constants; a model trained on other 
 recorded as pending. The PF
 gets its own, smaller, run (it costs 100-300x the other filters). Each run writes
 ``DIR/<scenario>[-pf]/results.json`` and is cached, so an interrupted measurement resumes where it
-stopped. `render` prints the fidelity section (`neural_estimator/reproduce/fidelity.py`: the 49
+stopped. `render` prints the fidelity section (`neural_estimator/paper/reproduce/fidelity.py`: the 49
 cells within 1.5x, the spread of the states, the paper's seven findings) and writes
 ``DIR/fidelity.md``; docs/fidelity.md shows it (`<!-- generate: fidelity-measured -->`), and the
 README's headline table (between its fidelity-headline markers) is rewritten from the same cells.
@@ -30,7 +30,7 @@ SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 def measure(a: argparse.Namespace) -> int:
     from neural_estimator.cli import main as cli
-    from neural_estimator.reproduce.fidelity import shipped_on_defaults
+    from neural_estimator.paper.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)
     for s in a.scenarios.split(","):
@@ -51,7 +51,7 @@ def measure(a: argparse.Namespace) -> int:
 
 
 def render(a: argparse.Namespace) -> int:
-    from neural_estimator.reproduce.fidelity import load_measured, section
+    from neural_estimator.paper.reproduce.fidelity import load_measured, section
 
     out = Path(a.out)
     got = load_measured(out)
@@ -66,7 +66,7 @@ def render(a: argparse.Namespace) -> int:
 
 def update_readme(got) -> None:
     """Put the headline table (``fidelity.headline``) between the README's fidelity-headline markers."""
-    from neural_estimator.reproduce.fidelity import headline
+    from neural_estimator.paper.reproduce.fidelity import headline
 
     readme = ROOT / "README.md"
     text = readme.read_text()

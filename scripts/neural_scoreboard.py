@@ -32,7 +32,7 @@ import sys
 import time
 from pathlib import Path
 
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator.registry import NEURAL_METHODS
 from neural_estimator.evaluation import evaluate
 from neural_estimator.metrics import EVALUATION_WARMUP
@@ -97,7 +97,7 @@ def table(rows: dict[str, dict[str, dict]], methods: list[str]) -> str:
 
 
 def cell_marks(r: dict) -> list[str]:
-    """The departures of one cell (neural_estimator/departures.py): [c] a bounded context, [o] an RMSE the
+    """The departures of one cell (neural_estimator/paper/departures.py): [c] a bounded context, [o] an RMSE the
     outlier rule decides (its Full RMSE differs by more than the tolerance)."""
     marks = [D.BOUNDED] if r.get("context") else []
     if D.rests_on_outliers(r.get("rmse"), r.get("full_rmse")):

@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     from neural_estimator.cli import main as cli
     from neural_estimator.consistency import RELIABILITY_LEVELS
     from neural_estimator.plots import plot_reliability
-    from neural_estimator.reproduce.fidelity import shipped_on_defaults
+    from neural_estimator.paper.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -382,7 +382,7 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
                 "trajectory_steps_per_second",
                 "context",  # the bounded context served (0: continuous)
                 "start",  # how a filter started (neural: prior, unused)
-                "marks",  # the departures from the paper's protocol (neural_estimator/departures.py)
+                "marks",  # the departures from the paper's protocol (neural_estimator/paper/departures.py)
                 "rmse_components",  # one summary per state component, in state order
                 "paired",  # the RMSE ratio to the best filter with its 95 % interval
                 "paired_full",  # the same on the Full RMSE

@@ -269,7 +269,7 @@ def test_the_live_path_publishes_the_heads_covariance(tmp_path):
 
 
 def test_the_reproduce_report_has_the_consistency_table():
-    from neural_estimator.reproduce import tables as R
+    from neural_estimator.paper.reproduce import tables as R
 
     summ = {
         "lorenz96": {
