@@ -1,6 +1,8 @@
 """The paper's published numbers, as data (``paper_results.json``, transcribed from paper.tex).
 
->>> from neural_estimator.paper import paper_results
+>>> from neural_estimator.paper import PAPER_SCENARIOS, paper_results
+>>> PAPER_SCENARIOS
+('ballistic', 'bearings', 'lorenz96', 'nlink', 'quadrotor')
 >>> paper_results()["accuracy_main"]["ballistic"]["ekf"]["rmse"]
 5.289
 
@@ -23,6 +25,12 @@ from pathlib import Path
 from typing import Any
 
 RESULTS_FILE = Path(__file__).with_name("paper_results.json")
+
+# The paper's five systems, in its column order: everything that belongs to the paper rather than to
+# every built-in scenario (presets v3/v4, the calibrated filter settings, the sample bags, the zoo's
+# folders, the published tables, the reproduce runs) iterates this list. A built-in scenario is
+# registered in neural_estimator.scenarios and need not be one of these.
+PAPER_SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
 def _decode(value: Any) -> Any:

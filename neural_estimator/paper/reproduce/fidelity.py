@@ -36,11 +36,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from neural_estimator.estimator import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.paper import paper_results
+from neural_estimator.paper import PAPER_SCENARIOS, paper_results
 from neural_estimator.paper.reproduce.tables import PAPER_NAMES as LABELS
 
 FACTOR = 1.5
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
+SCENARIOS = PAPER_SCENARIOS
 CLASSICAL, NEURAL = CLASSICAL_METHODS, NEURAL_METHODS
 SSM = ("mamba", "mamba2")
 
