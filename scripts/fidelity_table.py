@@ -23,9 +23,10 @@ import json
 import sys
 from pathlib import Path
 
+from neural_estimator.paper import PAPER_SCENARIOS
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "fidelity_measured"
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
 def measure(a: argparse.Namespace) -> int:
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="verb", required=True)
     m = sub.add_parser("measure", help="run the evaluations, then render")
-    m.add_argument("--scenarios", default=",".join(SCENARIOS))
+    m.add_argument("--scenarios", default=",".join(PAPER_SCENARIOS))
     m.add_argument("--trajectories", type=int, default=200)
     m.add_argument("--pf-trajectories", type=int, default=100)
     m.add_argument("--sets", type=int, default=3)
