@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.paper import PAPER_SCENARIOS
+from neural_estimator.paper.results import PAPER_SCENARIOS
 
 METHOD_IDS = {
     "EKF": "ekf",

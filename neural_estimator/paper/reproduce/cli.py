@@ -8,7 +8,7 @@ from neural_estimator.data.protocol import default_cache_dir
 from neural_estimator.paper.reproduce.run import reproduce
 from neural_estimator.paper.reproduce.settings import ReproduceError, Settings
 from neural_estimator.paper.reproduce.scales import get_scale
-from neural_estimator.paper import PAPER_SCENARIOS
+from neural_estimator.paper.results import PAPER_SCENARIOS
 
 
 def _names(text: str | None, default, check, flag: str) -> list[str]:

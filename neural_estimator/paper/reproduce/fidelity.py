@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from neural_estimator.estimator import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.paper import PAPER_SCENARIOS, paper_results
+from neural_estimator.paper.results import PAPER_SCENARIOS, paper_results
 from neural_estimator.paper.reproduce.tables import PAPER_NAMES as LABELS
 
 FACTOR = 1.5

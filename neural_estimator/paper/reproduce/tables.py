@@ -18,7 +18,7 @@ import numpy as np
 from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.paper.expected_failures import MARK, expected_to_fail, notes
-from neural_estimator.paper import paper_value
+from neural_estimator.paper.results import paper_value
 from neural_estimator.plots import new_figure, save_figure
 
 PAPER_NAMES = {
