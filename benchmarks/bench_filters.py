@@ -50,15 +50,16 @@ import argparse
 import os
 import sys
 
+from neural_estimator.paper import PAPER_SCENARIOS  # no numpy: the thread variables are still unset
+
 METHODS = ("ekf", "ukf", "enkf", "pf")
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
+    p.add_argument("--scenarios", nargs="+", default=list(PAPER_SCENARIOS))
     p.add_argument("--methods", nargs="+", default=list(METHODS))
     p.add_argument("--batch", type=int, default=8000, help="trajectories for the EKF, UKF and EnKF (8000)")
     p.add_argument("--steps", type=int, default=50, help="time steps of the throughput runs (50)")

@@ -1,4 +1,4 @@
-"""The paper's seven findings judged on paired 95 % intervals (neural_estimator/reproduce/intervals.py).
+"""The paper's seven findings judged on paired 95 % intervals (neural_estimator/paper/reproduce/intervals.py).
 
     .venv/bin/python experiments/findings_intervals.py                       # 2 sets x 100 trajectories, seed 777
     .venv/bin/python experiments/findings_intervals.py --trajectories 50 --sets 1
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from neural_estimator import metrics as M
 from neural_estimator.evaluation import evaluate
-from neural_estimator.reproduce.intervals import NEEDED, judge, render
+from neural_estimator.paper.reproduce.intervals import NEEDED, judge, render
 from neural_estimator.scenarios import make_scenario
 
 OUT = Path(__file__).resolve().parent / "results" / "findings_intervals.md"

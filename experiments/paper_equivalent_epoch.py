@@ -32,7 +32,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from neural_estimator.reproduce.fidelity import load_measured, paper_table  # noqa: E402
+from neural_estimator.paper.reproduce.fidelity import load_measured, paper_table  # noqa: E402
 
 ZOO = ROOT / "neural_estimator" / "zoo"
 NEURAL = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")

@@ -8,7 +8,7 @@ or inside a function alike, and module-level imports form no cycle (``test/test_
 every import of the package against this list):
 
 1. ``angles``, ``atomic``, ``safe_yaml``, ``options``, ``interfaces``, ``runtime``, ``metrics``, ``consistency``,
-   ``plots``, ``expected_failures``, ``paper``
+   ``plots``, ``paper`` (the published numbers, the departures' marks, the expected failures)
 2. ``scenarios``: the five nonlinear systems (pure numpy)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
@@ -17,10 +17,9 @@ every import of the package against this list):
 6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo);
    ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
 7. ``registry``: every method by name (``make_estimator``)
-8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``, ``departures``: the
-   training run, MCAP I/O, the evaluation protocol, the per-message estimator, bag replay, recorded
-   robot data, the marks of departures from the paper's protocol
-9. ``reproduce``: the paper's experiments on Ray
+8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``: the training run, MCAP
+   I/O, the evaluation protocol, the per-message estimator, bag replay, recorded robot data
+9. ``paper.reproduce``: the paper's experiments on Ray
 10. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
 """
 

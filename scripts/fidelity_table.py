@@ -10,7 +10,7 @@ every shipped neural model trained on those constants; a model trained on other 
 recorded as pending. The PF
 gets its own, smaller, run (it costs 100-300x the other filters). Each run writes
 ``DIR/<scenario>[-pf]/results.json`` and is cached, so an interrupted measurement resumes where it
-stopped. `render` prints the fidelity section (`neural_estimator/reproduce/fidelity.py`: the 49
+stopped. `render` prints the fidelity section (`neural_estimator/paper/reproduce/fidelity.py`: the 49
 cells within 1.5x, the spread of the states, the paper's seven findings) and writes
 ``DIR/fidelity.md``; docs/fidelity.md shows it (`<!-- generate: fidelity-measured -->`), and the
 README's headline table (between its fidelity-headline markers) is rewritten from the same cells.
@@ -23,14 +23,15 @@ import json
 import sys
 from pathlib import Path
 
+from neural_estimator.paper import PAPER_SCENARIOS
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "fidelity_measured"
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
 def measure(a: argparse.Namespace) -> int:
     from neural_estimator.cli import main as cli
-    from neural_estimator.reproduce.fidelity import shipped_on_defaults
+    from neural_estimator.paper.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)
     for s in a.scenarios.split(","):
@@ -51,7 +52,7 @@ def measure(a: argparse.Namespace) -> int:
 
 
 def render(a: argparse.Namespace) -> int:
-    from neural_estimator.reproduce.fidelity import load_measured, section
+    from neural_estimator.paper.reproduce.fidelity import load_measured, section
 
     out = Path(a.out)
     got = load_measured(out)
@@ -66,7 +67,7 @@ def render(a: argparse.Namespace) -> int:
 
 def update_readme(got) -> None:
     """Put the headline table (``fidelity.headline``) between the README's fidelity-headline markers."""
-    from neural_estimator.reproduce.fidelity import headline
+    from neural_estimator.paper.reproduce.fidelity import headline
 
     readme = ROOT / "README.md"
     text = readme.read_text()
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="verb", required=True)
     m = sub.add_parser("measure", help="run the evaluations, then render")
-    m.add_argument("--scenarios", default=",".join(SCENARIOS))
+    m.add_argument("--scenarios", default=",".join(PAPER_SCENARIOS))
     m.add_argument("--trajectories", type=int, default=200)
     m.add_argument("--pf-trajectories", type=int, default=100)
     m.add_argument("--sets", type=int, default=3)

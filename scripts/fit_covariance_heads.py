@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from neural_estimator.estimator import NEURAL_METHODS
+from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.card import CARD_FILE, default_checkpoint, read_card, write_json
 from neural_estimator.serving.load import load_neural_estimator
@@ -29,12 +30,10 @@ from neural_estimator.scenarios import scenario_from_description
 from neural_estimator.uncertainty.fit import FitSettings, calibrate_head, choose_shrink, fit_covariance_head
 from neural_estimator.uncertainty.heads import load_head, save_head
 
-SCENARIOS = ("bearings", "lorenz96", "nlink", "ballistic", "quadrotor")
-
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS[:3]), choices=SCENARIOS)
+    ap.add_argument("--scenarios", nargs="+", default=["bearings", "lorenz96", "nlink"], choices=PAPER_SCENARIOS)
     ap.add_argument("--methods", nargs="+", default=list(NEURAL_METHODS), choices=NEURAL_METHODS)
     ap.add_argument("--force", action="store_true", help="refit pairs that already have a head")
     ap.add_argument("--head-trajectories", type=int, default=FitSettings.head_trajectories)

@@ -21,7 +21,8 @@ from pathlib import Path
 
 from neural_estimator.bags import arrays_to_bag
 from neural_estimator.data import simulate
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset, make_scenario
+from neural_estimator.paper import PAPER_SCENARIOS
+from neural_estimator.scenarios import default_preset, make_scenario
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 
@@ -38,7 +39,7 @@ def main(argv=None) -> int:
     p.add_argument("--trajectories", type=int, default=2)
     p.add_argument("--horizon", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS), help="comma-separated (default: all five)")
+    p.add_argument("--scenarios", default=",".join(PAPER_SCENARIOS), help="comma-separated (default: the paper's five)")
     p.add_argument("--preset", default=None, help="constants preset (default: each scenario's defaults)")
     a = p.parse_args(argv)
     for name in a.scenarios.split(","):

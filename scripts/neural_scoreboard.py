@@ -32,12 +32,12 @@ import sys
 import time
 from pathlib import Path
 
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator.registry import NEURAL_METHODS
 from neural_estimator.evaluation import evaluate
 from neural_estimator.metrics import EVALUATION_WARMUP
-from neural_estimator.paper import paper_value
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
+from neural_estimator.paper import PAPER_SCENARIOS, paper_value
+from neural_estimator.scenarios import make_scenario
 
 ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
 SSMS = ("mamba", "mamba2")
@@ -97,7 +97,7 @@ def table(rows: dict[str, dict[str, dict]], methods: list[str]) -> str:
 
 
 def cell_marks(r: dict) -> list[str]:
-    """The departures of one cell (neural_estimator/departures.py): [c] a bounded context, [o] an RMSE the
+    """The departures of one cell (neural_estimator/paper/departures.py): [c] a bounded context, [o] an RMSE the
     outlier rule decides (its Full RMSE differs by more than the tolerance)."""
     marks = [D.BOUNDED] if r.get("context") else []
     if D.rests_on_outliers(r.get("rmse"), r.get("full_rmse")):
@@ -162,7 +162,7 @@ def verdict(rows: dict[str, dict[str, dict]]) -> list[str]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
+    p.add_argument("--scenarios", default=",".join(PAPER_SCENARIOS))
     p.add_argument("--methods", default=",".join(NEURAL_METHODS))
     p.add_argument("--trajectories", type=int, default=1000, help="per evaluation set (1,000 or more)")
     p.add_argument("--sets", type=int, default=3)

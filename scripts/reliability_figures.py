@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from neural_estimator.paper import PAPER_SCENARIOS
+
 ROOT = Path(__file__).resolve().parents[1]
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 
 
 def curves_of(results: dict) -> dict[str, list[float]]:
@@ -37,7 +38,7 @@ def curves_of(results: dict) -> dict[str, list[float]]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenarios", default=",".join(SCENARIOS))
+    p.add_argument("--scenarios", default=",".join(PAPER_SCENARIOS))
     p.add_argument("--trajectories", type=int, default=100)
     p.add_argument("--pf-trajectories", type=int, default=50)
     p.add_argument("--seed", type=int, default=777)
@@ -47,7 +48,7 @@ def main(argv=None) -> int:
     from neural_estimator.cli import main as cli
     from neural_estimator.consistency import RELIABILITY_LEVELS
     from neural_estimator.plots import plot_reliability
-    from neural_estimator.reproduce.fidelity import shipped_on_defaults
+    from neural_estimator.paper.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

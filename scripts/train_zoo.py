@@ -100,7 +100,8 @@ from neural_estimator.training.resume import RESUME_DIR
 from neural_estimator.training.stopping import plateau_rule
 from neural_estimator.training.threads import ThreadGovernor
 from neural_estimator.runtime import tune_allocator
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, default_preset, make_scenario
+from neural_estimator.paper import PAPER_SCENARIOS
+from neural_estimator.scenarios import EVALUATION_CONSTANTS, default_preset, make_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
@@ -503,7 +504,7 @@ def run_fallback(a, scenario, method: str, work: Path, state: Path, zoo: Path, s
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scenarios", default=",".join(BUILTIN_SCENARIOS))
+    p.add_argument("--scenarios", default=",".join(PAPER_SCENARIOS))
     p.add_argument(
         "--preset",
         default=None,

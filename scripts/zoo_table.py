@@ -11,17 +11,17 @@ import json
 from pathlib import Path
 
 from neural_estimator.registry import NEURAL_METHODS
-from neural_estimator.scenarios import BUILTIN_SCENARIOS
+from neural_estimator.paper import PAPER_SCENARIOS
 
 ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
 
 
 def main() -> None:
-    print("| model | " + " | ".join(BUILTIN_SCENARIOS) + " |")
-    print("|---|" + "---:|" * len(BUILTIN_SCENARIOS))
+    print("| model | " + " | ".join(PAPER_SCENARIOS) + " |")
+    print("|---|" + "---:|" * len(PAPER_SCENARIOS))
     for m in NEURAL_METHODS:
         cells = []
-        for s in BUILTIN_SCENARIOS:
+        for s in PAPER_SCENARIOS:
             card = ZOO / f"{s}-{m}" / "card.json"
             if not card.exists():
                 cells.append("–")
@@ -57,7 +57,7 @@ def main() -> None:
 def _names(models: set[tuple[str, str]]) -> str:
     """A scenario's name where all its models are in ``models``, else each model as scenario-method."""
     out = []
-    for s in BUILTIN_SCENARIOS:
+    for s in PAPER_SCENARIOS:
         mine = [m for m in NEURAL_METHODS if (s, m) in models]
         if len(mine) == len(NEURAL_METHODS):
             out.append(s)

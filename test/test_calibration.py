@@ -12,8 +12,8 @@ import pytest
 
 from neural_estimator import evaluation
 from neural_estimator.data import protocol, simulate
+from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.scenarios import (
-    BUILTIN_SCENARIOS,
     ScenarioError,
     default_preset,
     make_scenario,
@@ -113,8 +113,8 @@ def test_nlink_and_bearings_defaults_are_the_joint_fit_v5_and_v4_one_preset_away
     assert by_set.describe()["config"] == old["config"] and by_set.describe()["preset"] == "v4"
 
 
-def test_every_builtin_has_both_presets_and_an_unknown_one_is_a_one_line_error():
-    for name in BUILTIN_SCENARIOS:
+def test_every_paper_scenario_has_both_presets_and_an_unknown_one_is_a_one_line_error():
+    for name in PAPER_SCENARIOS:
         assert preset_names(name)[-2:] == ["v4", "v3"]
         assert preset_names(name) == (["v5", "v4", "v3"] if name in ("nlink", "bearings") else ["v4", "v3"])
     with pytest.raises(ScenarioError) as info:
@@ -194,7 +194,7 @@ def test_ratio_distance_uses_the_most_accurate_filter_and_the_papers_best_method
     paper = script.PAPER_RATIO
     assert paper["lorenz96"][1] == pytest.approx(0.048 / 0.013, rel=1e-6)  # the UKF row (NRMSE 0.013)
     assert paper["quadrotor"] == ("ekf", pytest.approx(0.287 / 0.009, rel=1e-6))
-    assert set(paper) == set(BUILTIN_SCENARIOS)
+    assert set(paper) == set(PAPER_SCENARIOS)
 
 
 def test_every_candidate_names_a_preset_and_valid_constants():

@@ -342,7 +342,7 @@ def test_a_bags_report_has_the_per_component_table(tmp_path):
 
 
 def test_the_reproduce_report_has_each_components_rmse_and_the_instance_count():
-    from neural_estimator.reproduce import tables as T
+    from neural_estimator.paper.reproduce import tables as T
 
     runs = {
         "ballistic": {
@@ -376,7 +376,7 @@ def _scaled_results(factors: dict, n=40, rng=None):
 
 
 def test_the_findings_are_judged_on_their_intervals():
-    from neural_estimator.reproduce import intervals as I
+    from neural_estimator.paper.reproduce import intervals as I
 
     assert I.factor_status((25.0, 40.0), 446) == "reproduced"  # at or above sqrt(446) = 21.1
     assert I.factor_status((3.0, 9.0), 446) == "partly" and I.factor_status((15.0, 30.0), 446) == "undecided"

@@ -1,6 +1,6 @@
 """Departures from the paper's protocol are marked where the number is printed, and only there.
 
-Marks (neural_estimator/departures.py): [c] bounded context, [o] the outlier rule decides the RMSE
+Marks (neural_estimator/paper/departures.py): [c] bounded context, [o] the outlier rule decides the RMSE
 (the Full RMSE beside it), [t] / [y] filters started from the truth / the first observation, (!) an
 expected failure under that start; the scored steps are named as this project's choice, and the
 every-step RMSE is in every report and in the reproduce report's main table.
@@ -13,10 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.evaluation import MethodResult, results_table
-from neural_estimator.expected_failures import MARK, expected_to_fail, mark_rows, notes
+from neural_estimator.paper.expected_failures import MARK, expected_to_fail, mark_rows, notes
 
 
 def _report(rng, scale, outliers=0, n=40, t=30, dx=2, warmup=10):
@@ -176,11 +176,11 @@ def _fake_run(tmp_path, init="prior"):
     """write_report on fabricated results: accuracy on lorenz96 and quadrotor for a filter, the PF and
     two networks (GRU with a bounded context on lorenz96), runtime in both modes."""
     pytest.importorskip("ray")
-    from neural_estimator.reproduce.engine import Outcome
-    from neural_estimator.reproduce.jobs import Job
-    from neural_estimator.reproduce.report import write_report
-    from neural_estimator.reproduce.settings import Settings
-    from neural_estimator.reproduce.scales import get_scale
+    from neural_estimator.paper.reproduce.engine import Outcome
+    from neural_estimator.paper.reproduce.jobs import Job
+    from neural_estimator.paper.reproduce.report import write_report
+    from neural_estimator.paper.reproduce.settings import Settings
+    from neural_estimator.paper.reproduce.scales import get_scale
 
     rng = np.random.default_rng(5)
     scale = get_scale("smoke")
@@ -260,9 +260,9 @@ def test_report_times_both_ways_and_says_which_ordering_each_supports(tmp_path):
 
 
 def test_plan_and_jobs_time_both_modes(tmp_path, monkeypatch):
-    from neural_estimator.reproduce.jobs import Job, run_job
-    from neural_estimator.reproduce.plan import plan_jobs
-    from neural_estimator.reproduce.scales import get_scale
+    from neural_estimator.paper.reproduce.jobs import Job, run_job
+    from neural_estimator.paper.reproduce.plan import plan_jobs
+    from neural_estimator.paper.reproduce.scales import get_scale
 
     jobs = [j for j in plan_jobs(get_scale("smoke"), ["ballistic"], ["ekf", "gru"]) if j.kind == "runtime"]
     assert sorted((j.method, j.mode) for j in jobs) == [
@@ -287,7 +287,7 @@ def test_plan_and_jobs_time_both_modes(tmp_path, monkeypatch):
     monkeypatch.setattr(E, "make_estimator", counting)
     seq = run_job(Job("runtime", "ballistic", "ekf", steps=10, warmup=2, mode="sequence"), tmp_path)
     assert seq["result"]["mode"] == "sequence" and seq["result"]["it_per_s"] > 0
-    from neural_estimator.reproduce.jobs import SEQUENCE_MAX_REPEATS, SEQUENCE_REPEATS
+    from neural_estimator.paper.reproduce.jobs import SEQUENCE_MAX_REPEATS, SEQUENCE_REPEATS
 
     # one untimed call on the warm-up steps, then timed calls until enough time is measured
     assert 1 + SEQUENCE_REPEATS <= calls["run"] <= 1 + SEQUENCE_MAX_REPEATS

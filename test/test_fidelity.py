@@ -3,7 +3,7 @@ must hold on the paper's own numbers)."""
 
 import math
 
-from neural_estimator.reproduce import fidelity as F
+from neural_estimator.paper.reproduce import fidelity as F
 
 
 def _paper():

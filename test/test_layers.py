@@ -13,14 +13,15 @@ PACKAGE = Path(neural_estimator.__file__).parent
 
 
 def layers() -> dict[str, int]:
-    """{top-level name: layer number} from the numbered list in the package docstring (the ``names``
-    in lower case on each numbered item, its indented continuation lines included)."""
+    """{name: layer number} from the numbered list in the package docstring (the ``names`` in lower
+    case on each numbered item, its indented continuation lines included). A name is a top-level
+    module or package, or a dotted subpackage (``paper.reproduce``) placed apart from its parent."""
     out = {}
     text = re.sub(r"\n {3}(?=\S)", " ", neural_estimator.__doc__)  # an item's indented continuation lines
     for line in text.splitlines():
         m = re.match(r"(\d+)\. (.*)", line.strip())
         if m:
-            for name in re.findall(r"``([a-z_0-9]+)``", m.group(2)):
+            for name in re.findall(r"``([a-z_0-9]+(?:\.[a-z_0-9]+)?)``", m.group(2)):
                 out[name] = int(m.group(1))
     return out
 
@@ -56,6 +57,8 @@ def layer_of(module: str, table: dict[str, int]) -> int:
     parts = module.split(".")
     if len(parts) == 1:
         return 1  # the package itself holds only __version__
+    if len(parts) > 2 and f"{parts[1]}.{parts[2]}" in table:  # a dotted entry wins over its parent's
+        return table[f"{parts[1]}.{parts[2]}"]
     if parts[1] not in table:
         raise AssertionError(f"{module}: the package docstring does not place '{parts[1]}' in a layer")
     return table[parts[1]]
@@ -111,3 +114,15 @@ def test_module_level_imports_form_no_cycle():
     for n in sorted(graph):
         if n not in state:
             visit(n)
+
+
+def test_a_dotted_entry_is_a_subpackage_and_wins_over_its_parent():
+    table = layers()
+    for name in (n for n in table if "." in n):
+        assert (PACKAGE / Path(*name.split(".")) / "__init__.py").exists(), f"{name}: no such subpackage"
+        assert name.split(".")[0] in table, f"{name}: its parent has no layer"
+    toy = {"a": 1, "a.b": 9}
+    assert layer_of("neural_estimator.a.b.c", toy) == 9
+    assert layer_of("neural_estimator.a.b", toy) == 9
+    assert layer_of("neural_estimator.a.c", toy) == 1
+    assert layer_of("neural_estimator.a", toy) == 1

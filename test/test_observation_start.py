@@ -138,7 +138,7 @@ def test_the_main_job_runs_all_ten_methods_with_none_expected_to_fail():
     from pathlib import Path
 
     from neural_estimator.registry import METHODS
-    from neural_estimator.expected_failures import expected_to_fail
+    from neural_estimator.paper.expected_failures import expected_to_fail
 
     demo = (Path(__file__).resolve().parents[1] / "scripts" / "run_demo.sh").read_text()
     assert "args+=(--init observation)" in demo and "args+=(--scenario lorenz96)" in demo

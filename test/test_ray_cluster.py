@@ -9,9 +9,9 @@ import json
 import pytest
 
 from neural_estimator.cli import main
-from neural_estimator.reproduce.jobs import run_job
-from neural_estimator.reproduce.plan import plan_jobs
-from neural_estimator.reproduce.scales import get_scale
+from neural_estimator.paper.reproduce.jobs import run_job
+from neural_estimator.paper.reproduce.plan import plan_jobs
+from neural_estimator.paper.reproduce.scales import get_scale
 
 pytestmark = pytest.mark.slow  # a two-node Ray cluster and a small reproduce
 

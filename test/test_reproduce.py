@@ -16,10 +16,10 @@ import pytest
 pytest.importorskip("ray")
 
 from neural_estimator.cli import main
-from neural_estimator.reproduce import tables as R
-from neural_estimator.reproduce.jobs import Job, run_job, train_dir
-from neural_estimator.reproduce.plan import plan_jobs
-from neural_estimator.reproduce.scales import SCALES, ScaleError, get_scale
+from neural_estimator.paper.reproduce import tables as R
+from neural_estimator.paper.reproduce.jobs import Job, run_job, train_dir
+from neural_estimator.paper.reproduce.plan import plan_jobs
+from neural_estimator.paper.reproduce.scales import SCALES, ScaleError, get_scale
 
 pytestmark = pytest.mark.slow  # Ray jobs, and the smoke scale of every experiment
 
@@ -83,7 +83,7 @@ def _statuses(out: Path) -> list[tuple[str, str]]:
 def local_ray():
     """One local Ray instance for the module (starting one costs ~10-20 s on the loaded machine);
     ``reproduce`` joins an instance already running in its process and leaves it running."""
-    from neural_estimator.reproduce.engine import init_ray
+    from neural_estimator.paper.reproduce.engine import init_ray
 
     ray = init_ray(None, 2)
     yield ray
@@ -175,7 +175,7 @@ def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
 
 
 def test_a_failed_job_is_reported_and_the_others_go_on(tmp_path):
-    from neural_estimator.reproduce.engine import run_jobs
+    from neural_estimator.paper.reproduce.engine import run_jobs
 
     jobs = [
         Job("evaluate", "ballistic", "no-such-method", trajectories=2, horizon=15),
@@ -223,7 +223,7 @@ def test_sequence_mode_times_enough_calls_for_a_steady_median(monkeypatch):
 
     import numpy as np
 
-    from neural_estimator.reproduce import jobs as J
+    from neural_estimator.paper.reproduce import jobs as J
 
     calls = []
 
@@ -248,7 +248,7 @@ def test_sequence_mode_times_enough_calls_for_a_steady_median(monkeypatch):
 
 
 def test_the_report_names_runtime_figures_measured_on_a_shared_cpu():
-    from neural_estimator.reproduce.report import CPU_SHARE_FLOOR, cpu_share_words
+    from neural_estimator.paper.reproduce.report import CPU_SHARE_FLOOR, cpu_share_words
 
     alone = cpu_share_words({("nlink", "ekf"): 0.99, ("bearings", "gru"): 1.01})
     assert "lowest 0.99 (nlink ekf) of 2 jobs" in alone and "none measured on a shared CPU" in alone
@@ -419,7 +419,7 @@ def test_paper_scale_main_tables_use_the_instances_trained_at_20_to_1():
 
 def test_the_papers_gpu_runtime_stays_beside_not_measured():
     """No CUDA device: the paper's GPU figures are printed beside "not measured (no CUDA)"."""
-    from neural_estimator.reproduce.tables import runtime_table_not_measured
+    from neural_estimator.paper.reproduce.tables import runtime_table_not_measured
 
     lines = runtime_table_not_measured(["ballistic", "bearings"], ["ekf", "gru", "my_plugin_method"], "gpu", "no CUDA")
     assert lines[0] == "| Method | ballistic | bearings | Avg. |"

@@ -8,7 +8,8 @@ import pytest
 from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
 from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset, preset_names
+from neural_estimator.paper import PAPER_SCENARIOS
+from neural_estimator.scenarios import default_preset, preset_names
 from neural_estimator.serving.card import shipped_preset
 
 pytestmark = pytest.mark.slow  # every sample bag through the shipped models
@@ -17,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ZOO = ROOT / "neural_estimator" / "zoo"
 
 
-@pytest.mark.parametrize("scenario", BUILTIN_SCENARIOS)
+@pytest.mark.parametrize("scenario", PAPER_SCENARIOS)
 def test_sample_bag_replays_through_every_classical_method(scenario, tmp_path, capsys):
     bag = ROOT / "bags" / f"{scenario}.mcap"
     with pytest.raises(BagError, match="no estimate stream"):  # nothing to score: an error, not an empty table
@@ -47,7 +48,7 @@ def test_sample_bag_replays_through_every_classical_method(scenario, tmp_path, c
         assert x_hat.shape == truth.x.shape
 
 
-SHIPPED = [(s, m) for s in BUILTIN_SCENARIOS for m in NEURAL_METHODS if (ZOO / f"{s}-{m}" / "card.json").exists()]
+SHIPPED = [(s, m) for s in PAPER_SCENARIOS for m in NEURAL_METHODS if (ZOO / f"{s}-{m}" / "card.json").exists()]
 
 
 def _card_preset(scenario: str, method: str) -> str:

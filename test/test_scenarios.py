@@ -1,8 +1,11 @@
-"""The five built-in scenarios: shapes, Jacobians, noise, overrides, and known answers."""
+"""The built-in scenarios: shapes, Jacobians, noise, overrides, registration and docs (what every
+built-in needs), and the paper's five's known answers."""
 
 from __future__ import annotations
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,10 +13,13 @@ import pytest
 from neural_estimator.scenarios import (
     BUILTIN_SCENARIOS,
     ScenarioError,
+    code_digest,
     complex_step_jacobian,
     make_scenario,
     psd_sqrt,
+    scenario_class,
     scenario_from_description,
+    scenario_names,
 )
 from neural_estimator.scenarios import nlink
 from neural_estimator.scenarios._integrate import rk4
@@ -145,6 +151,34 @@ def test_description_round_trips_through_json(name):
     assert again.config == s.config
     x = prior_states(s, np.random.default_rng(3), (2,))
     np.testing.assert_array_equal(again.h(x), s.h(x))
+
+
+# ---- what every built-in needs: its module, its registration, its docs line ----------------------------
+SCENARIOS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "scenarios.md"
+
+
+def documented_scenarios(text: str) -> list[str]:
+    """The names in the first column of the table of systems in docs/scenarios.md (``text``)."""
+    table = text.split("| name | state x |", 1)[1].split("\n\n", 1)[0]
+    return re.findall(r"^\| `([a-z0-9_]+)` \|", table, flags=re.M)
+
+
+def assert_builtin(name: str, page: str) -> None:
+    """``name`` is a built-in: its module in neural_estimator/scenarios/ (so its code is covered by the
+    package version, not a plugin's digest), registered by name, one row in the docs' table."""
+    cls = scenario_class(name)
+    assert cls.__module__.startswith("neural_estimator.scenarios."), cls.__module__
+    assert code_digest(cls) is None and name in scenario_names() and cls.name == name
+    assert documented_scenarios(page).count(name) == 1, f"{name}: no row (or two) in docs/scenarios.md"
+
+
+@pytest.mark.parametrize("name", BUILTIN_SCENARIOS)
+def test_every_builtin_has_its_module_registration_and_docs_line(name):
+    assert_builtin(name, SCENARIOS_PAGE.read_text())
+
+
+def test_the_docs_table_lists_the_builtins_only():
+    assert set(documented_scenarios(SCENARIOS_PAGE.read_text())) == set(BUILTIN_SCENARIOS)
 
 
 @pytest.mark.parametrize("n_links", [1, 3])

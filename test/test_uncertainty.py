@@ -269,7 +269,7 @@ def test_the_live_path_publishes_the_heads_covariance(tmp_path):
 
 
 def test_the_reproduce_report_has_the_consistency_table():
-    from neural_estimator.reproduce import tables as R
+    from neural_estimator.paper.reproduce import tables as R
 
     summ = {
         "lorenz96": {
@@ -316,7 +316,8 @@ def test_every_calibrated_filter_setting_was_chosen_on_its_scenarios_default_con
     import json
     from pathlib import Path
 
-    from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset
+    from neural_estimator.paper import PAPER_SCENARIOS
+    from neural_estimator.scenarios import default_preset
     from neural_estimator.uncertainty.calibrated import CALIBRATED_FILE
 
     spec = importlib.util.spec_from_file_location(
@@ -326,7 +327,7 @@ def test_every_calibrated_filter_setting_was_chosen_on_its_scenarios_default_con
     spec.loader.exec_module(script)
     MAX_SCALE = script.MAX_SCALE
     table = json.loads(CALIBRATED_FILE.read_text())
-    assert set(table) == set(BUILTIN_SCENARIOS)
+    assert set(table) == set(PAPER_SCENARIOS)
     for scenario, methods in table.items():
         assert set(methods) == {"ekf", "ukf", "enkf", "pf"}, scenario
         for method, entry in methods.items():

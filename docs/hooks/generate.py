@@ -223,7 +223,7 @@ def fidelity() -> str:
 
 def defaults_table() -> str:
     """The headline RMSE table at the defaults, fresh seeds (README, results page)."""
-    from neural_estimator.reproduce.fidelity import headline, load_measured
+    from neural_estimator.paper.reproduce.fidelity import headline, load_measured
 
     return "\n".join(headline(load_measured(ROOT / "benchmarks/results/fidelity_measured")))
 

@@ -12,10 +12,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator import metrics as metrics_mod
 from neural_estimator.bags.dataset import left_out_note
-from neural_estimator.expected_failures import mark_rows, notes
+from neural_estimator.paper.expected_failures import mark_rows, notes
 
 
 @dataclasses.dataclass
@@ -50,7 +50,7 @@ class BagReport:
 
     def marks(self) -> tuple[dict[str, list[str]], dict[str, dict[str, str]], set[str]]:
         """(row marks, cell marks, marks used): [y] / [t] on filters not started from the prior,
-        [o] on an RMSE the outlier rule decides (:mod:`neural_estimator.departures`)."""
+        [o] on an RMSE the outlier rule decides (:mod:`neural_estimator.paper.departures`)."""
         rows = {m: D.row_marks(m, init=self.starts.get(m, "prior")) for m in self.reports}
         rows = {m: v for m, v in rows.items() if v}
         cells = {m: {"rmse": D.OUTLIERS} for m, r in self.reports.items() if D.rests_on_outliers(r.rmse, r.full_rmse)}

@@ -164,9 +164,9 @@ def _print_metrics(
 ) -> int:
     """The metrics table of ``files`` (the ``metrics`` verb, and ``replay --metrics`` on its output);
     ``starts``: {method: start mode} of the filters that made the estimates (default: the prior)."""
-    from neural_estimator import departures as D
+    from neural_estimator.paper import departures as D
     from neural_estimator import metrics as M
-    from neural_estimator.expected_failures import mark_rows, notes
+    from neural_estimator.paper.expected_failures import mark_rows, notes
 
     warmup = getattr(args, "warmup", M.EVALUATION_WARMUP)
     truth, reports, errors = _scored_files(files, args, warmup)
@@ -468,9 +468,9 @@ def _evaluation_request(args):
 
 def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_data: bool) -> None:
     """The table of ``results`` with its heading, notes, marks legend, scored steps and speeds."""
-    from neural_estimator import departures as D
+    from neural_estimator.paper import departures as D
     from neural_estimator.evaluation import departure_legend, results_table
-    from neural_estimator.expected_failures import mark_rows, notes
+    from neural_estimator.paper.expected_failures import mark_rows, notes
 
     if recorded_data:
         print(

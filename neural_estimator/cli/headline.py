@@ -32,11 +32,12 @@ def add_headline(sub) -> None:
 
 def _cmd_headline(args) -> int:
     from neural_estimator.baselines import check_evaluated_method
-    from neural_estimator.evaluation.headline import HEADLINE_SCENARIOS, measure_headline
+    from neural_estimator.evaluation.headline import measure_headline
+    from neural_estimator.paper import PAPER_SCENARIOS
     from neural_estimator.registry import METHODS
     from neural_estimator.scenarios import scenario_names
 
-    scenarios = [s.strip() for s in (args.scenarios or ",".join(HEADLINE_SCENARIOS)).split(",") if s.strip()]
+    scenarios = [s.strip() for s in (args.scenarios or ",".join(PAPER_SCENARIOS)).split(",") if s.strip()]
     unknown = [s for s in scenarios if s not in scenario_names()]
     if unknown:
         raise CliError(f"unknown scenario {unknown[0]!r}; choose from {', '.join(scenario_names())}")

@@ -43,6 +43,6 @@ def _cmd_reproduce(args) -> int:
         import ray.util  # noqa: F401 - the optional dependency of this verb
     except ImportError:
         raise CliError("reproduce runs its jobs on Ray: pip install 'neural_estimator[reproduce]'") from None
-    from neural_estimator.reproduce.cli import run_from_args
+    from neural_estimator.paper.reproduce.cli import run_from_args
 
     return run_from_args(args, CliError)

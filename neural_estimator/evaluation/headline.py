@@ -25,15 +25,15 @@ from typing import Any, Callable
 from neural_estimator import metrics as M
 from neural_estimator.evaluation import comparison as C
 from neural_estimator.evaluation.families import SEALED, family_seed
+from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.registry import CLASSICAL_METHODS, METHODS, NEURAL_METHODS
 
-HEADLINE_SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 _VERDICTS = {"better": "network better", "worse": "filter better", "tied": "tied", "unknown": "unknown"}
 
 
 def measure_headline(
     family: str,
-    scenarios=HEADLINE_SCENARIOS,
+    scenarios=PAPER_SCENARIOS,
     methods=METHODS,
     trajectories: int = 200,
     sets: int = 3,

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.scenarios import Scenario
 
@@ -36,7 +36,7 @@ def departure_marks(
 ) -> tuple[dict[str, list[str]], dict[str, dict[str, str]], set[str]]:
     """(row marks {method: [mark]}, cell marks {method: {metric: mark}}, every mark used): [c] for a
     bounded context, [t] / [y] for filters started from the truth / the first observation, [o] on the
-    RMSE when the outlier rule decides it (:mod:`neural_estimator.departures`)."""
+    RMSE when the outlier rule decides it (:mod:`neural_estimator.paper.departures`)."""
     rows: dict[str, list[str]] = {}
     cells: dict[str, dict[str, str]] = {}
     used: set[str] = set()

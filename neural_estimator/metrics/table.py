@@ -61,7 +61,7 @@ def format_table(
         fmt: "markdown", "text" or "csv".
         iqr_everywhere: also print the IQR of the median-only columns.
         marks: {method: {metric key: mark}}: a mark printed after that cell (markdown and text;
-            :mod:`neural_estimator.departures`), e.g. ``{"pf": {"rmse": "[o]"}}``.
+            :mod:`neural_estimator.paper.departures`), e.g. ``{"pf": {"rmse": "[o]"}}``.
     """
     if fmt not in ("markdown", "text", "csv"):
         raise MetricsError(f"fmt must be 'markdown', 'text' or 'csv', got {fmt!r}")

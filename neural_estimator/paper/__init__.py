@@ -1,55 +1,12 @@
-"""The paper's published numbers, as data (``paper_results.json``, transcribed from paper.tex).
+"""The paper apart from the built-ins: its five scenarios, its published numbers
+(:mod:`~neural_estimator.paper.results`), the marks of departures from its protocol
+(:mod:`~neural_estimator.paper.departures`), its expected failures
+(:mod:`~neural_estimator.paper.expected_failures`) and, a layer higher, its experiments on Ray
+(:mod:`~neural_estimator.paper.reproduce`).
 
->>> from neural_estimator.paper import paper_results
->>> paper_results()["accuracy_main"]["ballistic"]["ekf"]["rmse"]
-5.289
+A module of this package imports from :mod:`neural_estimator.paper.results`, never from this
+``__init__`` (test/test_structure.py)."""
 
-Layout (scenario and method ids as in the package; see :mod:`neural_estimator.paper.transcribe`):
-``accuracy_main[s][m] = {"rmse", "nrmse"}``; ``relative_score[s][m]``;
-``extended[s][m][metric]`` with metric in rmse, full_rmse, nrmse, mae, medae, auc (each
-``{"median", "iqr"}``), outlier_ratio, drift_ratio (numbers); ``nrmse_avg_all[m] = {"median", "iqr"}``;
-``stability[s][m] = {"outlier_ratio", "drift_ratio"}``; ``data_ratio_main[ratio][m]`` with ratio
-"20", "10", "5", "1"; ``runtime_summary[m] = {"cpu", "gpu", "cpu_gpu_ratio"}``;
-``runtime_full[device][s][m]`` (iterations per second). :func:`paper_results` turns the file's
-``"inf"`` into ``float("inf")``; ``None`` is the paper's N/A.
-"""
+from neural_estimator.paper.results import PAPER_SCENARIOS, RESULTS_FILE, paper_results, paper_value
 
-from __future__ import annotations
-
-import copy
-import json
-from functools import lru_cache
-from pathlib import Path
-from typing import Any
-
-RESULTS_FILE = Path(__file__).with_name("paper_results.json")
-
-
-def _decode(value: Any) -> Any:
-    if value == "inf":
-        return float("inf")
-    if isinstance(value, dict):
-        return {k: _decode(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_decode(v) for v in value]
-    return value
-
-
-@lru_cache(maxsize=1)
-def _load() -> dict[str, Any]:
-    return _decode(json.loads(RESULTS_FILE.read_text()))
-
-
-def paper_results() -> dict[str, Any]:
-    """A fresh copy of every published table (callers may modify it)."""
-    return copy.deepcopy(_load())
-
-
-def paper_value(table: str, *keys: str) -> Any:
-    """One published number, or None where the paper has none (N/A, or a method/scenario it lacks)."""
-    node: Any = _load().get(table)
-    for k in keys:
-        if not isinstance(node, dict) or k not in node:
-            return None
-        node = node[k]
-    return copy.deepcopy(node)
+__all__ = ["PAPER_SCENARIOS", "RESULTS_FILE", "paper_results", "paper_value"]

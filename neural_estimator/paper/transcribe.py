@@ -18,6 +18,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from neural_estimator.paper.results import PAPER_SCENARIOS
+
 METHOD_IDS = {
     "EKF": "ekf",
     "UKF": "ukf",
@@ -30,7 +32,7 @@ METHOD_IDS = {
     "Mamba": "mamba",
     "Mamba-2": "mamba2",
 }
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")  # the paper's column order
+SCENARIOS = PAPER_SCENARIOS  # the paper's column order
 EXTENDED_LABELS = {
     "ballistic": "ballistic_reentry_extended",
     "bearings": "bearings_only_tracking_extended",

@@ -16,7 +16,7 @@ mark  meaning
       filter has; the paper's tables start from the prior.
 [y]   a classical filter started from the first observation (``--init observation``): the live
       pipeline's practical start, not the paper's prior.
-(!)   expected to fail here under the paper's start (:mod:`neural_estimator.expected_failures`).
+(!)   expected to fail here under the paper's start (:mod:`neural_estimator.paper.expected_failures`).
 ====  ===============================================================================================
 
 The scored steps are a choice of this project, named in every heading: the protocol scores steps
@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 
-from neural_estimator.expected_failures import MARK as EXPECTED_MARK
+from neural_estimator.paper.expected_failures import MARK as EXPECTED_MARK
 from neural_estimator.metrics import EVALUATION_WARMUP
 
 BOUNDED = "[c]"

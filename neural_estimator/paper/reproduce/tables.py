@@ -1,5 +1,5 @@
 """The tables of the reproduce report: our numbers beside the paper's (:mod:`neural_estimator.paper`), and its
-figures (:mod:`neural_estimator.reproduce.report` writes report.md from them).
+figures (:mod:`neural_estimator.paper.reproduce.report` writes report.md from them).
 
 Table cells read ``ours · paper`` (the paper's value after the dot; ``—`` where the paper has no
 value, e.g. a scenario or method it lacks). Ours are medians (± IQR where the paper gives one)
@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
-from neural_estimator.expected_failures import MARK, expected_to_fail, notes
-from neural_estimator.paper import paper_value
+from neural_estimator.paper.expected_failures import MARK, expected_to_fail, notes
+from neural_estimator.paper.results import paper_value
 from neural_estimator.plots import new_figure, save_figure
 
 PAPER_NAMES = {
@@ -95,7 +95,7 @@ def cell_start(s: str, m: str, init: str = "prior", starts=None) -> str:
 def rmse_marks(summ, s: str, m: str, contexts=None, init: str = "prior", starts=None) -> list[str]:
     """The marks of the RMSE cell of ``m`` on ``s``: [c] (bounded context, ``contexts[s][m]`` > 0), [t] / [y]
     (a filter started from the truth / the first observation) and [o] (the outlier rule decides it:
-    :func:`neural_estimator.departures.rests_on_outliers`)."""
+    :func:`neural_estimator.paper.departures.rests_on_outliers`)."""
     st = summ.get(s, {}).get(m)
     marks = [D.BOUNDED] if (contexts or {}).get(s, {}).get(m) else []
     start = D.start_mark(m, cell_start(s, m, init, starts))
@@ -120,11 +120,11 @@ def accuracy_table(
     """The main table, every departure from the paper's protocol marked where the number is printed.
 
     Columns per scenario: RMSE (the scored steps), RMSE over every step (``every_step[s][m]``: the
-    median over runs; N/A where not measured), NRMSE. Marks (:mod:`neural_estimator.departures`):
+    median over runs; N/A where not measured), NRMSE. Marks (:mod:`neural_estimator.paper.departures`):
     [c] on a bounded-context cell (``contexts[s][m]`` > 0), [o] with the Full RMSE beside an RMSE
     the outlier rule decides, [t] / [y] on a filter started from the truth / the first observation
     (``starts[s][m]``, else ``init``); with ``mark_expected`` the RMSE of an expected failure under that start
-    (:mod:`neural_estimator.expected_failures`) ends with its mark, just before the paper's value.
+    (:mod:`neural_estimator.paper.expected_failures`) ends with its mark, just before the paper's value.
     """
     cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("RMSE", "RMSE all steps", "NRMSE")]
     lines = _header(cols)

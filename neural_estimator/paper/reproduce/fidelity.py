@@ -36,11 +36,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from neural_estimator.estimator import CLASSICAL_METHODS, NEURAL_METHODS
-from neural_estimator.paper import paper_results
-from neural_estimator.reproduce.tables import PAPER_NAMES as LABELS
+from neural_estimator.paper.results import PAPER_SCENARIOS, paper_results
+from neural_estimator.paper.reproduce.tables import PAPER_NAMES as LABELS
 
 FACTOR = 1.5
-SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
+SCENARIOS = PAPER_SCENARIOS
 CLASSICAL, NEURAL = CLASSICAL_METHODS, NEURAL_METHODS
 SSM = ("mamba", "mamba2")
 
@@ -309,7 +309,7 @@ class Measured:
 
     def mark(self, s: str, m: str) -> str:
         """The cell's marks (bounded context, outliers, start; (!) where expected to fail), or ""."""
-        from neural_estimator.expected_failures import MARK, expected_to_fail
+        from neural_estimator.paper.expected_failures import MARK, expected_to_fail
 
         marks = list(self.marks.get((s, m), []))
         if m in CLASSICAL and expected_to_fail(s, m) and MARK not in marks:
@@ -322,8 +322,8 @@ class Measured:
 
     def legend(self) -> list[str]:
         """The legend of the marks used, then the Full RMSE of each [o] cell and the reason of each (!)."""
-        from neural_estimator.departures import OUTLIERS, legend
-        from neural_estimator.expected_failures import notes
+        from neural_estimator.paper.departures import OUTLIERS, legend
+        from neural_estimator.paper.expected_failures import notes
 
         lines = legend(self.used_marks(), self.contexts.values())
         full = [
@@ -500,7 +500,7 @@ def section(measured: Measured) -> list[str]:
         ratio = f"{o / p:.2f}" if o is not None and p else "—"
         L.append(f"| {s} | {_num(o)} | {_num(p)} | {ratio} |")
     L += _nrmse_view(rmse, nrmse)
-    L += ["", "**The paper's findings**, judged by the rules of `neural_estimator/reproduce/fidelity.py`:", ""]
+    L += ["", "**The paper's findings**, judged by the rules of `neural_estimator/paper/reproduce/fidelity.py`:", ""]
     L += ["| finding | ours | paper | |", "| --- | --- | --- | --- |"]
     verdicts = findings(rmse, set(measured.contexts))
     for name, v in verdicts:

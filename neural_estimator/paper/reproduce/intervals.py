@@ -1,6 +1,6 @@
 """The paper's seven findings judged on paired intervals, not on point figures.
 
-:mod:`neural_estimator.reproduce.fidelity` judges each finding on medians. A median ratio of 1.1
+:mod:`neural_estimator.paper.reproduce.fidelity` judges each finding on medians. A median ratio of 1.1
 from 200 trajectories may be noise; here every comparison a finding makes is a paired ratio of two
 methods on the same trajectories with its 95 % bootstrap interval
 (:func:`neural_estimator.metrics.paired_ratio`), and a finding is judged on the interval:
@@ -35,7 +35,7 @@ SSM = ("mamba", "mamba2")
 def paper_factors() -> dict[str, float]:
     """The paper's factors, from its main table: PF / EKF and best network / EKF on the quadrotor,
     the smaller Filterformer / Mamba-2 of Lorenz 96 and N-link, EKF / UKF on ballistic."""
-    from neural_estimator.reproduce.fidelity import paper_table
+    from neural_estimator.paper.reproduce.fidelity import paper_table
 
     p = paper_table()
     q = p["quadrotor"]

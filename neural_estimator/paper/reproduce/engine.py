@@ -1,6 +1,6 @@
 """Run jobs as Ray tasks: local by default, a cluster with ``address``; one progress bar over all.
 
-Each job is one Ray task (:func:`neural_estimator.reproduce.jobs.run_job`). A job that raises is
+Each job is one Ray task (:func:`neural_estimator.paper.reproduce.jobs.run_job`). A job that raises is
 recorded as failed with its one-line error, and the others go on. Results are cached on disk by
 the jobs themselves (keys in :mod:`.jobs`), so a second run, or one after an interruption, reads
 the finished jobs back (``cached``) and computes only the missing ones. On a cluster the cache
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.reproduce.jobs import Job, run_job
+from neural_estimator.paper.reproduce.jobs import Job, run_job
 
 
 @dataclass
@@ -54,7 +54,7 @@ def init_ray(address: str | None, num_cpus: int | None):
     if ray.is_initialized():
         return ray
     # the package must be importable by the workers as it is by the driver (editable installs, tests)
-    root = str(Path(__file__).resolve().parents[2])
+    root = str(Path(__file__).resolve().parents[3])
     env = {
         "env_vars": {
             "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from neural_estimator.reproduce.jobs import RUNTIME_MODES, Job
-from neural_estimator.reproduce.scales import Scale
+from neural_estimator.paper.reproduce.jobs import RUNTIME_MODES, Job
+from neural_estimator.paper.reproduce.scales import Scale
 
 
 def noise_reuses_accuracy(scale: Scale) -> bool:

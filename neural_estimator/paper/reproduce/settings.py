@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.reproduce.scales import Scale
+from neural_estimator.paper.reproduce.scales import Scale
 
 INIT_WORDS = {
     "prior": "classical filters start from the scenario prior, the paper's start",

@@ -1,14 +1,14 @@
-"""The ``reproduce`` verb's arguments -> :func:`neural_estimator.reproduce.run.reproduce`."""
+"""The ``reproduce`` verb's arguments -> :func:`neural_estimator.paper.reproduce.run.reproduce`."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from neural_estimator.data.protocol import default_cache_dir
-from neural_estimator.reproduce.run import reproduce
-from neural_estimator.reproduce.settings import ReproduceError, Settings
-from neural_estimator.reproduce.scales import get_scale
-from neural_estimator.paper.transcribe import SCENARIOS as PAPER_SCENARIOS
+from neural_estimator.paper.reproduce.run import reproduce
+from neural_estimator.paper.reproduce.settings import ReproduceError, Settings
+from neural_estimator.paper.reproduce.scales import get_scale
+from neural_estimator.paper.results import PAPER_SCENARIOS
 
 
 def _names(text: str | None, default, check, flag: str) -> list[str]:

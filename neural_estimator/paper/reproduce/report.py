@@ -1,4 +1,4 @@
-"""The reproduce report: report.md with every table beside the paper's (:mod:`~neural_estimator.reproduce.tables`)
+"""The reproduce report: report.md with every table beside the paper's (:mod:`~neural_estimator.paper.reproduce.tables`)
 and the figures, written from a run's jobs and their outcome."""
 
 from __future__ import annotations
@@ -11,13 +11,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from neural_estimator import consistency as CONSISTENCY
-from neural_estimator import departures as D
+from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
-from neural_estimator.reproduce.engine import Outcome
-from neural_estimator.reproduce.jobs import Job
-from neural_estimator.reproduce.plan import noise_reuses_accuracy
-from neural_estimator.reproduce.settings import INIT_WORDS, Settings, describe_settings
-from neural_estimator.reproduce import tables as T
+from neural_estimator.paper.reproduce.engine import Outcome
+from neural_estimator.paper.reproduce.jobs import Job
+from neural_estimator.paper.reproduce.plan import noise_reuses_accuracy
+from neural_estimator.paper.reproduce.settings import INIT_WORDS, Settings, describe_settings
+from neural_estimator.paper.reproduce import tables as T
 from neural_estimator.registry import NEURAL_METHODS
 
 RUNTIME_WORDS = {
@@ -47,7 +47,7 @@ def versions() -> dict[str, str]:
 
 
 def git_commit() -> str:
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(
@@ -273,7 +273,7 @@ def _rmse_and_noise_figures(settings: Settings, r: _Results, figs: Path) -> list
 
 def _runtime(settings: Settings, r: _Results) -> list[str]:
     """Iterations per second at batch 1, each mode and device, with the orderings."""
-    from neural_estimator.reproduce.jobs import RUNTIME_MODES, SEQUENCE_MIN_SECONDS, SEQUENCE_REPEATS
+    from neural_estimator.paper.reproduce.jobs import RUNTIME_MODES, SEQUENCE_MIN_SECONDS, SEQUENCE_REPEATS
 
     scen, meth, sc = settings.scenarios, settings.methods, settings.scale
     L = [

@@ -11,6 +11,6 @@ Modules, one job each:
   and the markdown report.
 """
 
-from neural_estimator.reproduce.scales import SCALES, Scale, get_scale
+from neural_estimator.paper.reproduce.scales import SCALES, Scale, get_scale
 
 __all__ = ["SCALES", "Scale", "get_scale"]

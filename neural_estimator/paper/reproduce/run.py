@@ -10,11 +10,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.reproduce.engine import Outcome, run_jobs
-from neural_estimator.reproduce.jobs import Job
-from neural_estimator.reproduce.plan import plan_jobs
-from neural_estimator.reproduce.report import write_report
-from neural_estimator.reproduce.settings import ReproduceError, Settings, describe_settings
+from neural_estimator.paper.reproduce.engine import Outcome, run_jobs
+from neural_estimator.paper.reproduce.jobs import Job
+from neural_estimator.paper.reproduce.plan import plan_jobs
+from neural_estimator.paper.reproduce.report import write_report
+from neural_estimator.paper.reproduce.settings import ReproduceError, Settings, describe_settings
 
 STATE_FILE = "reproduce.json"  # in --out: the run's settings and every job's status
 
