@@ -1,7 +1,7 @@
 """The registry of the ten methods: :func:`make_estimator` builds any of them by name.
 
 It sits above both families (:mod:`neural_estimator.filters`, :mod:`neural_estimator.models`), which
-implement the interface of :mod:`neural_estimator.estimator`; that interface is re-exported here, so
+implement the interface of :mod:`neural_estimator.methods.interface`; that interface is re-exported here, so
 ``from neural_estimator.registry import Estimator, EstimatorError, METHODS`` keeps working for the
 layers above.
 """
@@ -12,7 +12,7 @@ import inspect
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from neural_estimator.estimator import (  # noqa: F401  re-exported: the interface, for the layers above
+from neural_estimator.methods.interface import (  # noqa: F401  re-exported: the interface, for the layers above
     CLASSICAL_METHODS,
     METHODS,
     NEURAL_METHODS,

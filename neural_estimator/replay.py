@@ -19,7 +19,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.registry import make_estimator, per_message_options
 
 from neural_estimator.online import (

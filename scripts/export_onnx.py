@@ -30,7 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from neural_estimator.estimator import EstimatorError  # noqa: E402
+from neural_estimator.methods.interface import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
 from neural_estimator.serving.export import export_beside  # noqa: E402
 from neural_estimator.serving.card import checkpoint_paths  # noqa: E402

@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("onnxruntime")
 
 from neural_estimator.data import simulate  # noqa: E402
-from neural_estimator.estimator import EstimatorError, previous_controls  # noqa: E402
+from neural_estimator.methods.interface import EstimatorError, previous_controls  # noqa: E402
 from neural_estimator.registry import make_estimator, per_message_options  # noqa: E402
 from neural_estimator.scenarios import make_scenario, scenario_from_description  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402

@@ -9,7 +9,7 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 
 from neural_estimator.data import simulate  # noqa: E402
-from neural_estimator.estimator import EstimatorError  # noqa: E402
+from neural_estimator.methods.interface import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import export_step  # noqa: E402
 from neural_estimator.serving.onnx_runtime import OrtStep  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402

@@ -190,7 +190,7 @@ def test_estimator_with_a_head_reports_covariance_in_step_and_run(tmp_path, meth
 
 
 def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_path):
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
     from neural_estimator.serving.card import CARD_FILE
     from neural_estimator.serving.load import load_neural_estimator
 

@@ -385,7 +385,7 @@ def _evaluation_request(args):
     """(scenario, recorded datasets or None, methods, checkpoints, recorded estimates, options, info)
     of the evaluate flags, each checked: a one-line CliError otherwise."""
     from neural_estimator.evaluation import recorded_data_methods
-    from neural_estimator.baselines import check_evaluated_method
+    from neural_estimator.filters.baselines import check_evaluated_method
     from neural_estimator.registry import CLASSICAL_METHODS, check_method
 
     scenario, datasets = scenario_or_data(args)
@@ -420,7 +420,7 @@ def _evaluation_request(args):
     if scenario is not None:  # a misspelt filter option fails now, not after the data are simulated
         from neural_estimator.registry import make_estimator
 
-        from neural_estimator.baselines import is_baseline, make_baseline
+        from neural_estimator.filters.baselines import is_baseline, make_baseline
 
         for m in methods:
             if m in CLASSICAL_METHODS:

@@ -31,7 +31,7 @@ def add_headline(sub) -> None:
 
 
 def _cmd_headline(args) -> int:
-    from neural_estimator.baselines import check_evaluated_method
+    from neural_estimator.filters.baselines import check_evaluated_method
     from neural_estimator.evaluation.headline import HEADLINE_SCENARIOS, measure_headline
     from neural_estimator.registry import METHODS
     from neural_estimator.scenarios import scenario_names

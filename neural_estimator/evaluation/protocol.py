@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from neural_estimator import metrics as M
-from neural_estimator.baselines import check_evaluated_method, is_baseline, make_baseline
+from neural_estimator.filters.baselines import check_evaluated_method, is_baseline, make_baseline
 from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError
 from neural_estimator.data.protocol import default_cache_dir
@@ -84,7 +84,7 @@ class MethodResult:
 
     @property
     def baseline(self) -> bool:
-        """A reference row (:mod:`neural_estimator.baselines`), never ranked among the ten."""
+        """A reference row (:mod:`neural_estimator.filters.baselines`), never ranked among the ten."""
         return is_baseline(self.method)
 
     def add(self, report: M.MetricReport, errors: M.TrajectoryErrors, set_index: int = 0, instance: int = 0) -> None:

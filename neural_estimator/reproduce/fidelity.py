@@ -35,7 +35,7 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from neural_estimator.estimator import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods.interface import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.paper import paper_results
 from neural_estimator.reproduce.tables import PAPER_NAMES as LABELS
 

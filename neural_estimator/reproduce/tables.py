@@ -332,7 +332,7 @@ def _family_averages(
     rt_device: Mapping[str, Mapping[str, float]], scenarios, methods
 ) -> tuple[list[float], list[float]]:
     """(filters, networks): each method's mean it/s over the scenarios it ran on."""
-    from neural_estimator.estimator import CLASSICAL_METHODS
+    from neural_estimator.methods.interface import CLASSICAL_METHODS
 
     avg: dict[str, float] = {}
     for m in methods:

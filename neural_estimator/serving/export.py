@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step
 from neural_estimator.scenarios import ScenarioError, scenario_from_description
 from neural_estimator.serving.card import read_card

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.estimator import EstimatorError, check_method
+from neural_estimator.methods.interface import EstimatorError, check_method
 from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
 from neural_estimator.options import OptionError, parse_bool, parse_value
 from neural_estimator.serving.onnx_runtime import ATTENTION, WindowMismatch, load_onnx_estimator, onnx_beside

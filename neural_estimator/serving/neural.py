@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.methods.interface import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.serving.normalization import Normalizer
 from neural_estimator.options import OptionError, parse_bool, parse_value
@@ -58,7 +58,7 @@ def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
 
 
 class NeuralEstimator(Estimator):
-    """A trained sequence model behind the :class:`~neural_estimator.estimator.Estimator` contract.
+    """A trained sequence model behind the :class:`~neural_estimator.methods.interface.Estimator` contract.
 
     Args:
         scenario: the system the model was trained on (dimensions are checked).

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.angles import wrap_components
-from neural_estimator.estimator import Estimator, EstimatorError
+from neural_estimator.methods.interface import Estimator, EstimatorError
 from neural_estimator.serving.onnx_kernels import denormalize, denormalize_covariance, normalize_into
 
 ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (scripts/export_onnx.py --beside)

@@ -77,7 +77,7 @@ from tqdm.auto import tqdm
 from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
 from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
-from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
+from neural_estimator.methods.interface import NEURAL_METHODS, check_method, previous_controls
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_labelled_metrics, to_json
 from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
 from neural_estimator.models.onnx_step import OnnxError

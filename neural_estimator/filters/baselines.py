@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.estimator import Estimator, EstimatorError, check_method
+from neural_estimator.methods.interface import Estimator, EstimatorError, check_method
 from neural_estimator.scenarios import Scenario
 
 BASELINE_METHODS = ("openloop", "obsonly")

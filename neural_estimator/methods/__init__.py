@@ -1,0 +1,1 @@
+"""The methods: the interface every estimator keeps (:mod:`neural_estimator.methods.interface`)."""
