@@ -51,7 +51,7 @@ import numpy as np
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import NEURAL_METHODS, Estimator, EstimatorError
+from neural_estimator.methods.registry import NEURAL_METHODS, Estimator, EstimatorError
 
 DEFAULT_MAX_GAP = 1_000
 DEFAULT_MAX_GAP_SECONDS = 0.25

@@ -187,7 +187,7 @@ def test_served_without_torch_step_and_node(tmp_path):
         _NO_TORCH
         + f"""
 import numpy as np
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 scen = make_scenario("lorenz96")
 est = make_estimator("gru", scen, checkpoint={str(directory)!r}, backend="onnxruntime")

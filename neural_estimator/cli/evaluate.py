@@ -386,7 +386,7 @@ def _evaluation_request(args):
     of the evaluate flags, each checked: a one-line CliError otherwise."""
     from neural_estimator.evaluation import recorded_data_methods
     from neural_estimator.filters.baselines import check_evaluated_method
-    from neural_estimator.registry import CLASSICAL_METHODS, check_method
+    from neural_estimator.methods.registry import CLASSICAL_METHODS, check_method
 
     scenario, datasets = scenario_or_data(args)
     methods = [check_evaluated_method(m) for m in args.methods.split(",") if m.strip()]
@@ -418,7 +418,7 @@ def _evaluation_request(args):
             if m in CLASSICAL_METHODS:
                 options.setdefault(m, {}).setdefault("threads", args.threads)
     if scenario is not None:  # a misspelt filter option fails now, not after the data are simulated
-        from neural_estimator.registry import make_estimator
+        from neural_estimator.methods.registry import make_estimator
 
         from neural_estimator.filters.baselines import is_baseline, make_baseline
 

@@ -33,7 +33,7 @@ def add_headline(sub) -> None:
 def _cmd_headline(args) -> int:
     from neural_estimator.filters.baselines import check_evaluated_method
     from neural_estimator.evaluation.headline import HEADLINE_SCENARIOS, measure_headline
-    from neural_estimator.registry import METHODS
+    from neural_estimator.methods.registry import METHODS
     from neural_estimator.scenarios import scenario_names
 
     scenarios = [s.strip() for s in (args.scenarios or ",".join(HEADLINE_SCENARIOS)).split(",") if s.strip()]

@@ -83,7 +83,7 @@ def add_replay(sub) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from neural_estimator.registry import CLASSICAL_METHODS, check_method
+    from neural_estimator.methods.registry import CLASSICAL_METHODS, check_method
     from neural_estimator.replay import replay
 
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]

@@ -112,7 +112,7 @@ def add_train(sub) -> None:
 def _cmd_train(args) -> int:
     import dataclasses
 
-    from neural_estimator.registry import NEURAL_METHODS, check_method
+    from neural_estimator.methods.registry import NEURAL_METHODS, check_method
     from neural_estimator.training.recipe import TrainConfig, TrainingError
     from neural_estimator.training.loop import train
 

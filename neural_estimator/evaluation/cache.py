@@ -19,7 +19,7 @@ from neural_estimator.data.io import DataError, load_npz, save_npz
 from neural_estimator.data.protocol import SIMULATION_REVISION, code_key
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
 from neural_estimator.evaluation.starts import check_init
-from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods.registry import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.scenarios import Scenario
 
 if TYPE_CHECKING:

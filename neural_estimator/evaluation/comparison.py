@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from neural_estimator import metrics as M
-from neural_estimator.registry import CLASSICAL_METHODS
+from neural_estimator.methods.registry import CLASSICAL_METHODS
 
 if TYPE_CHECKING:
     from neural_estimator.evaluation.protocol import MethodResult

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from neural_estimator.evaluation import comparison as C
-from neural_estimator.registry import NEURAL_METHODS
+from neural_estimator.methods.registry import NEURAL_METHODS
 from neural_estimator.scenarios import Scenario  # or any object with state_names, state_units and dx
 
 if TYPE_CHECKING:

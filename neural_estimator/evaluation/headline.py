@@ -25,7 +25,7 @@ from typing import Any, Callable
 from neural_estimator import metrics as M
 from neural_estimator.evaluation import comparison as C
 from neural_estimator.evaluation.families import SEALED, family_seed
-from neural_estimator.registry import CLASSICAL_METHODS, METHODS, NEURAL_METHODS
+from neural_estimator.methods.registry import CLASSICAL_METHODS, METHODS, NEURAL_METHODS
 
 HEADLINE_SCENARIOS = ("ballistic", "bearings", "lorenz96", "nlink", "quadrotor")
 _VERDICTS = {"better": "network better", "worse": "filter better", "tied": "tied", "unknown": "unknown"}

@@ -37,7 +37,7 @@ from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError
 from neural_estimator.data.protocol import default_cache_dir
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
-from neural_estimator.registry import (
+from neural_estimator.methods.registry import (
     CLASSICAL_METHODS,
     NEURAL_METHODS,
     Estimator,
@@ -311,7 +311,7 @@ def evaluate(
 
     Args:
         scenario: the system (with any overrides, e.g. noise_scale).
-        methods: method names (see :data:`neural_estimator.registry.METHODS`).
+        methods: method names (see :data:`neural_estimator.methods.registry.METHODS`).
         trajectories, horizon, seed, sets: the evaluation sets (paper: 8,000, scenario horizon, 3).
         checkpoints: {method: [checkpoint, ...]} for neural methods; each checkpoint is one instance.
             A neural method without an entry runs every instance the zoo ships (the shipped model

@@ -3,7 +3,7 @@ and the start a method really gets on a scenario."""
 
 from __future__ import annotations
 
-from neural_estimator.registry import CLASSICAL_METHODS
+from neural_estimator.methods.registry import CLASSICAL_METHODS
 from neural_estimator.scenarios import Scenario
 
 INIT_MODES = ("prior", "truth", "observation")

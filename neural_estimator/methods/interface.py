@@ -3,7 +3,7 @@
 The classical filters (:mod:`neural_estimator.filters`) and the neural models
 (:mod:`neural_estimator.models`) implement :class:`Estimator`; the table of methods
 (:mod:`neural_estimator.methods.table`) names each of them and where its factory is, and
-:mod:`neural_estimator.registry` builds any of them by name from the table.
+:mod:`neural_estimator.methods.registry` builds any of them by name from the table.
 
 Contract (every method, classical or neural):
 

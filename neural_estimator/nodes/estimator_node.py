@@ -60,7 +60,7 @@ from std_srvs.srv import Trigger
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.methods import table
-from neural_estimator.registry import EstimatorError, check_method, make_estimator, per_message_options
+from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,

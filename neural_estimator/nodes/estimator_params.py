@@ -13,7 +13,7 @@ from neural_estimator.online import (
     DEFAULT_QUARANTINE_SECONDS,
     OnlineEstimator,
 )
-from neural_estimator.registry import METHODS
+from neural_estimator.methods.registry import METHODS
 
 OBSERVATION_QOS = ("reliable", "sensor_data")
 

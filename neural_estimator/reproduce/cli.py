@@ -19,7 +19,7 @@ def _names(text: str | None, default, check, flag: str) -> list[str]:
 
 
 def run_from_args(args, usage_error: type[Exception]) -> int:
-    from neural_estimator.registry import METHODS, check_method
+    from neural_estimator.methods.registry import METHODS, check_method
 
     try:
         if args.num_cpus is not None and args.num_cpus < 1:

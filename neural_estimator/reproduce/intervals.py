@@ -27,7 +27,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from neural_estimator import metrics as M
-from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods.registry import CLASSICAL_METHODS, NEURAL_METHODS
 
 SSM = ("mamba", "mamba2")
 

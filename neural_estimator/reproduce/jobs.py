@@ -217,7 +217,7 @@ def ray_node() -> str | None:
 
 def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
     from neural_estimator import metrics as M
-    from neural_estimator.registry import CLASSICAL_METHODS
+    from neural_estimator.methods.registry import CLASSICAL_METHODS
     from neural_estimator.evaluation import evaluate
 
     scenario = make_job_scenario(job)
@@ -248,7 +248,7 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
 
 
 def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
-    from neural_estimator.registry import CLASSICAL_METHODS, make_estimator, previous_controls
+    from neural_estimator.methods.registry import CLASSICAL_METHODS, make_estimator, previous_controls
 
     path = runtime_path(cache_dir, job)
     if path.is_file():

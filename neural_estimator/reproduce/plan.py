@@ -49,7 +49,7 @@ def plan_jobs(
     ``init`` (``"prior"``, ``"truth"`` or ``"observation"``): how the classical filters of the accuracy and noise
     evaluations start (:func:`neural_estimator.evaluation.run_method`); neural methods ignore it.
     """
-    from neural_estimator.registry import NEURAL_METHODS
+    from neural_estimator.methods.registry import NEURAL_METHODS
 
     def models(s: str, m: str) -> list[Job | None]:
         """What an accuracy or noise evaluation of ``m`` evaluates: the shipped model (None) or trainings."""

@@ -18,7 +18,7 @@ from neural_estimator.reproduce.jobs import Job
 from neural_estimator.reproduce.plan import noise_reuses_accuracy
 from neural_estimator.reproduce.settings import INIT_WORDS, Settings, describe_settings
 from neural_estimator.reproduce import tables as T
-from neural_estimator.registry import NEURAL_METHODS
+from neural_estimator.methods.registry import NEURAL_METHODS
 
 RUNTIME_WORDS = {
     "step": "Step by step, the live node's cost: each method's real per-step path (`reset(1)`, then one `step` per "
@@ -326,7 +326,7 @@ def cpu_share_words(shares: dict[tuple[str, str], float]) -> str:
 
 def _data_efficiency(settings: Settings, jobs: Sequence[Job], r: _Results, figs: Path) -> list[str]:
     """The data-ratio table and figures (the paper's values alone when no neural method ran)."""
-    from neural_estimator.registry import NEURAL_METHODS
+    from neural_estimator.methods.registry import NEURAL_METHODS
 
     scen, meth, sc = settings.scenarios, settings.methods, settings.scale
     neural = [m for m in meth if m in NEURAL_METHODS]

@@ -4,7 +4,7 @@ The table (:mod:`neural_estimator.methods.table`) names each method's factory as
 text; :func:`make_estimator` resolves it with importlib when a method is built, so this module
 imports nothing above its layer (the filters, models and serving it builds are imported then, and
 only the one asked for: a process that runs an EKF never imports torch). The interface of
-:mod:`neural_estimator.methods.interface` is re-exported here, so ``from neural_estimator.registry
+:mod:`neural_estimator.methods.interface` is re-exported here, so ``from neural_estimator.methods.registry
 import Estimator, EstimatorError, METHODS`` keeps working for the layers above.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import inspect
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from neural_estimator.methods import table
 from neural_estimator.methods.interface import (  # noqa: F401  re-exported: the interface, for the layers above
@@ -27,9 +27,6 @@ from neural_estimator.methods.interface import (  # noqa: F401  re-exported: the
 )
 from neural_estimator.options import did_you_mean
 from neural_estimator.scenarios import Scenario
-
-if TYPE_CHECKING:
-    from neural_estimator.serving.card import Checkpoint
 
 
 PER_MESSAGE_BACKEND = "auto"  # a neural model stepped one message at a time: step.onnx without torch where shipped
@@ -52,7 +49,7 @@ def make_estimator(
     method: str,
     scenario: Scenario,
     *,
-    checkpoint: str | Path | Checkpoint | None = None,
+    checkpoint: str | Path | Any | None = None,  # Any: a serving.card.Checkpoint (layer 6, not imported)
     device: str = "cpu",
     seed: int = 0,
     **options: Any,
