@@ -79,7 +79,7 @@ def replay(
     Args:
         bag_in: a recorded or sample bag (``.mcap`` file or rosbag2 directory) with an
             ``observation`` stream, and a ``scenario`` stream unless ``description`` is given.
-        methods: method names (see :data:`neural_estimator.methods.registry.METHODS`).
+        methods: method names (see :func:`neural_estimator.methods.table.names`).
         bag_out: output ``.mcap``.
         checkpoints: {method: checkpoint} for neural methods (default: the shipped models).
         device, seed: passed to :func:`~neural_estimator.methods.registry.make_estimator`.

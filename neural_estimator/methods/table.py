@@ -45,6 +45,7 @@ class MethodSpec:
     state_space: bool = False  # a selective state-space model (the paper's "SSM" findings)
     exportable: bool = False  # its step exports to ONNX (models/onnx_step.py)
     members: tuple[str, str] | None = None  # (option, "module:Class.field" of its default): members a stream holds
+    architecture: tuple[str, str] | None = None  # ("module:Config", "module:Model") of a network (models/)
     paper_row: int | None = None  # its row in the paper's tables (None: not one of the paper's methods)
 
     def __post_init__(self) -> None:
@@ -74,7 +75,9 @@ def _classical(name: str, display: str, cls: str, row: int, *, seeded: bool = Fa
     )
 
 
-def _neural(name: str, display: str, row: int, context: str, window_key=None, state_space=False) -> MethodSpec:
+def _neural(
+    name: str, display: str, cls: str, row: int, context: str, window_key=None, state_space=False
+) -> MethodSpec:
     return MethodSpec(
         name,
         display,
@@ -89,16 +92,17 @@ def _neural(name: str, display: str, row: int, context: str, window_key=None, st
         window_key=window_key,
         state_space=state_space,
         exportable=True,
+        architecture=(f"neural_estimator.models.{name}:{cls}Config", f"neural_estimator.models.{name}:{cls}Model"),
         paper_row=row,
     )
 
 
-def _baseline(name: str) -> MethodSpec:
+def _baseline(name: str, cls: str) -> MethodSpec:
     return MethodSpec(
         name,
         name,
         "baseline",
-        "neural_estimator.filters.baselines:make_baseline",
+        f"neural_estimator.filters.baselines:{cls}",
         needs_model=True,
         trainable=False,
         takes_init=False,
@@ -128,14 +132,14 @@ TABLE: tuple[MethodSpec, ...] = (
         seeded=True,
         members=("n_particles", "neural_estimator.filters.pf:PFHyperParams.n_particles"),
     ),  # fmt: skip
-    _neural("gru", "GRU", 4, "recurrent"),
-    _neural("lstm", "LSTM", 5, "recurrent"),
-    _neural("gpt2", "GPT-2", 6, "window", window_key="decode_chunk"),
-    _neural("filterformer", "Filterformer", 7, "window", window_key="window"),
-    _neural("mamba", "Mamba", 8, "recurrent", state_space=True),
-    _neural("mamba2", "Mamba-2", 9, "recurrent", state_space=True),
-    _baseline("openloop"),
-    _baseline("obsonly"),
+    _neural("gru", "GRU", "GRU", 4, "recurrent"),
+    _neural("lstm", "LSTM", "LSTM", 5, "recurrent"),
+    _neural("gpt2", "GPT-2", "GPT2", 6, "window", window_key="decode_chunk"),
+    _neural("filterformer", "Filterformer", "Filterformer", 7, "window", window_key="window"),
+    _neural("mamba", "Mamba", "Mamba", 8, "recurrent", state_space=True),
+    _neural("mamba2", "Mamba-2", "Mamba2", 9, "recurrent", state_space=True),
+    _baseline("openloop", "OpenLoop"),
+    _baseline("obsonly", "ObservationOnly"),
 )
 
 
@@ -183,6 +187,23 @@ def paper_names() -> dict[str, str]:
     """{name: display} of the paper's methods, in the paper's row order."""
     rows = sorted((s for s in TABLE if s.paper_row is not None), key=lambda s: s.paper_row)
     return {s.name: s.display for s in rows}
+
+
+def paper_methods(**capabilities: Any) -> tuple[str, ...]:
+    """The paper's methods with these field values, in its row order: ``paper_methods(family="neural")``,
+    ``paper_methods(state_space=True)`` (its SSMs)."""
+    return tuple(m for m in paper_names() if has(m, **capabilities))
+
+
+def labels(*, family: str | tuple[str, ...] | None = ESTIMATOR_FAMILIES, **capabilities: Any) -> tuple[str, ...]:
+    """The display names of :func:`methods` (same arguments)."""
+    return tuple(s.display for s in methods(family=family, **capabilities))
+
+
+def label(name: str) -> str:
+    """The display name of ``name`` (the name itself when the table has none)."""
+    s = find(name)
+    return s.display if s is not None else name
 
 
 def resolve(ref: str) -> Any:
