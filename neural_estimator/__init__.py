@@ -23,6 +23,11 @@ every import of the package against this list):
    robot data, the marks of departures from the paper's protocol
 9. ``reproduce``: the paper's experiments on Ray
 10. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
+
+The table of methods (``methods.table``) sits below the filters, models and serving that build the
+methods: each spec names its factory as ``"module:attribute"`` text, resolved with importlib when the
+method is built (``methods.registry.make_estimator``), as Python entry points are, so no import runs
+upwards.
 """
 
 __version__ = "0.1.0"

@@ -2,8 +2,8 @@
 
 The table (:mod:`neural_estimator.methods.table`) names each method's factory as ``"module:attribute"``
 text; :func:`make_estimator` resolves it with importlib when a method is built, so this module
-imports nothing above its layer (the filters, models and serving it builds are imported then, and
-only the one asked for: a process that runs an EKF never imports torch). The interface of
+imports nothing above its layer (the filters, or the models and serving, are imported then: a
+process that runs an EKF never imports torch). The interface of
 :mod:`neural_estimator.methods.interface` is re-exported here, so ``from neural_estimator.methods.registry
 import Estimator, EstimatorError, METHODS`` keeps working for the layers above.
 """

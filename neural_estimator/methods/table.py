@@ -224,3 +224,17 @@ def members_per_stream(name: str, options: dict[str, Any] | None, parse: Any) ->
         return None
     option, default = s.members
     return parse((options or {}).get(option, resolve(default)), 1, option)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m neural_estimator.methods.table [FAMILY ...]``: the names of the methods compared
+    (or of those families), comma-separated, in table order; scripts/run_demo.sh's default methods."""
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    print(",".join(names(family=tuple(args)) if args else names()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
