@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     import dapper.tools.progressbar
 
     from neural_estimator.data import simulate
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.filters import reference as ref
     from neural_estimator.scenarios import make_scenario
 

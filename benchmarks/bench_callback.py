@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     from neural_estimator.bags import messages as M
     from neural_estimator.data import simulate
     from neural_estimator.online import OnlineEstimator
-    from neural_estimator.registry import make_estimator, per_message_options
+    from neural_estimator.methods.registry import make_estimator, per_message_options
     from neural_estimator.scenarios import make_scenario
 
     load0 = os.getloadavg()[0]

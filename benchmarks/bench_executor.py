@@ -195,7 +195,7 @@ def callback_work(methods: list[str], messages: int) -> dict[str, tuple[float, f
     from neural_estimator.data import simulate
     from neural_estimator.nodes.outputs import StateEncoder
     from neural_estimator.online import OnlineEstimator
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("lorenz96")

@@ -94,7 +94,7 @@ import tracemalloc  # noqa: E402
 import numpy as np  # noqa: E402
 
 from neural_estimator.data.simulate import simulate  # noqa: E402
-from neural_estimator.registry import make_estimator, previous_controls  # noqa: E402
+from neural_estimator.methods.registry import make_estimator, previous_controls  # noqa: E402
 from neural_estimator.filters import reference  # noqa: E402
 from neural_estimator.filters.base import default_threads  # noqa: E402
 from neural_estimator.runtime import tune_allocator  # noqa: E402

@@ -29,7 +29,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from neural_estimator.data.simulate import simulate  # noqa: E402
-from neural_estimator.registry import make_estimator  # noqa: E402
+from neural_estimator.methods.registry import make_estimator  # noqa: E402
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario  # noqa: E402
 
 SETS, TRAJECTORIES = 3, 8000

@@ -72,7 +72,7 @@ def architectures(args) -> None:
 
 def served_run(args) -> None:
     from neural_estimator.data import simulate
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scenario = make_scenario("lorenz96")

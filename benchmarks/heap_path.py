@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     from neural_estimator.nodes.heap_trace import HeapTrace
     from neural_estimator.nodes.outputs import StateEncoder
     from neural_estimator.online import OnlineEstimator
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -27,7 +27,7 @@ import argparse
 import numpy as np
 
 from neural_estimator.data.simulate import simulate
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
 C_TRUE = 3.28  # 1e-3 1/ft in 1/km

@@ -33,7 +33,7 @@ from safetensors.torch import load_file
 
 from neural_estimator.angles import wrap_components
 from neural_estimator.data import evaluation_sets
-from neural_estimator.estimator import previous_controls
+from neural_estimator.methods.interface import previous_controls
 from neural_estimator.metrics import rmse_over_time
 from neural_estimator.serving.checkpoint import load_checkpoint
 from neural_estimator.serving.context import bounded_forward

@@ -53,7 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import json  # noqa: E402
 
 from neural_estimator.data import DataError  # noqa: E402
-from neural_estimator.registry import EstimatorError  # noqa: E402
+from neural_estimator.methods.registry import EstimatorError  # noqa: E402
 from neural_estimator.evaluation import INIT_MODES, evaluate  # noqa: E402
 from neural_estimator.metrics import MetricsError  # noqa: E402
 from neural_estimator.scenarios import ScenarioError, make_scenario, parse_assignments  # noqa: E402

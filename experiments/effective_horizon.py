@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from neural_estimator.data import evaluation_sets
-from neural_estimator.registry import CLASSICAL_METHODS, METHODS, make_estimator
+from neural_estimator.methods.registry import CLASSICAL_METHODS, METHODS, make_estimator
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_metrics
 from neural_estimator.paper import paper_value
 from neural_estimator.scenarios import make_scenario

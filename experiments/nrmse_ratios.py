@@ -18,7 +18,7 @@ import numpy as np
 
 from neural_estimator import metrics as M
 from neural_estimator.data import simulate
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
 PAPER_RATIO_RANGE = {  # min and max RMSE / NRMSE over the ten methods of the paper's appendix tables

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neural_estimator import metrics as M  # noqa: E402
 from neural_estimator.data import simulate  # noqa: E402
-from neural_estimator.registry import make_estimator, previous_controls  # noqa: E402
+from neural_estimator.methods.registry import make_estimator, previous_controls  # noqa: E402
 from neural_estimator.scenarios import make_scenario, parse_assignments  # noqa: E402
 
 

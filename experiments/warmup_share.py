@@ -22,7 +22,7 @@ import argparse
 import numpy as np
 
 from neural_estimator.data import evaluation_sets
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
 

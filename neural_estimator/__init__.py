@@ -11,16 +11,23 @@ every import of the package against this list):
    ``plots``, ``paper`` (the published numbers, the departures' marks, the expected failures)
 2. ``scenarios``: the five nonlinear systems (pure numpy)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
-4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
+4. ``methods``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names), the
+   registry (``make_estimator``)
 5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (the six architectures: GRU, LSTM, GPT-2, Filterformer,
-   Mamba, Mamba-2), ``baselines`` (the open-loop and observation-only reference rows)
+   Mamba, Mamba-2); ``filters.baselines`` holds the open-loop and observation-only reference rows
 6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo);
    ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
-7. ``registry``: every method by name (``make_estimator``)
-8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``: the training run, MCAP
-   I/O, the evaluation protocol, the per-message estimator, bag replay, recorded robot data
+7. (none now: the registry, every method by name, is part of the methods package, layer 4)
+8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``, ``paper.departures``: the
+   training run, MCAP I/O, the evaluation protocol, the per-message estimator, bag replay, recorded
+   robot data, the marks of departures from the paper's protocol
 9. ``paper.reproduce``: the paper's experiments on Ray
 10. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
+
+The table of methods (``methods.table``) sits below the filters, models and serving that build the
+methods: each spec names its factory as ``"module:attribute"`` text, resolved with importlib when the
+method is built (``methods.registry.make_estimator``), as Python entry points are, so no import runs
+upwards.
 """
 
 __version__ = "0.1.0"

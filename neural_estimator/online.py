@@ -51,7 +51,8 @@ import numpy as np
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import NEURAL_METHODS, Estimator, EstimatorError
+from neural_estimator.methods import table
+from neural_estimator.methods.registry import Estimator, EstimatorError
 
 DEFAULT_MAX_GAP = 1_000
 DEFAULT_MAX_GAP_SECONDS = 0.25
@@ -396,7 +397,7 @@ def set_torch_threads(methods: Sequence[str], threads: int) -> None:
     Only touches torch when a neural method is among ``methods``."""
     if threads < 0:
         raise EstimatorError(f"threads must be >= 0 (0 = torch's default), got {threads}")
-    if threads and any(m in NEURAL_METHODS for m in methods):
+    if threads and any(table.has(m, uses_torch=True) for m in methods):
         import torch
 
         torch.set_num_threads(int(threads))

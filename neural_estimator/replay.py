@@ -19,8 +19,8 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
-from neural_estimator.estimator import EstimatorError
-from neural_estimator.registry import make_estimator, per_message_options
+from neural_estimator.methods.interface import EstimatorError
+from neural_estimator.methods.registry import make_estimator, per_message_options
 
 from neural_estimator.online import (
     DEFAULT_MAX_GAP,
@@ -79,10 +79,10 @@ def replay(
     Args:
         bag_in: a recorded or sample bag (``.mcap`` file or rosbag2 directory) with an
             ``observation`` stream, and a ``scenario`` stream unless ``description`` is given.
-        methods: method names (see :data:`neural_estimator.registry.METHODS`).
+        methods: method names (see :func:`neural_estimator.methods.table.names`).
         bag_out: output ``.mcap``.
         checkpoints: {method: checkpoint} for neural methods (default: the shipped models).
-        device, seed: passed to :func:`~neural_estimator.registry.make_estimator`.
+        device, seed: passed to :func:`~neural_estimator.methods.registry.make_estimator`.
         namespace: namespace of the streams.
         options: {method: {option: value}} filter hyperparameters.
         publish_covariance: also write covariance streams where methods have them.

@@ -29,8 +29,8 @@ import numpy as np
 from neural_estimator import consistency as C
 from neural_estimator import metrics as M
 from neural_estimator.data import protocol
-from neural_estimator.estimator import CLASSICAL_METHODS
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.interface import CLASSICAL_METHODS
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 from neural_estimator.uncertainty.fit import CALIBRATION_INDEX
 from neural_estimator.uncertainty.fit import figures as head_figures

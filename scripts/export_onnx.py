@@ -30,8 +30,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from neural_estimator.estimator import EstimatorError  # noqa: E402
-from neural_estimator.models.onnx_step import ATTENTION, EXPORTABLE, OnnxError, export_step  # noqa: E402
+from neural_estimator.methods.interface import EstimatorError  # noqa: E402
+from neural_estimator.methods import table  # noqa: E402
+from neural_estimator.models.onnx_step import OnnxError, export_step  # noqa: E402
 from neural_estimator.serving.export import export_beside  # noqa: E402
 from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
 from neural_estimator.serving.card import default_checkpoint  # noqa: E402
@@ -43,7 +44,7 @@ from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E40
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", required=True)
-    ap.add_argument("--method", required=True, choices=EXPORTABLE)
+    ap.add_argument("--method", required=True, choices=table.names(exportable=True))
     ap.add_argument("--checkpoint", default=None, help="checkpoint directory or card.json (default: the shipped one)")
     ap.add_argument("--out", default=None, help="the .onnx file to write")
     ap.add_argument(
@@ -59,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if (a.out is None) == (not a.beside):
         ap.error("give --out or --beside (one of them)")
-    attention = a.method in ATTENTION
+    attention = table.has(a.method, context="window")
     try:
         if a.beside and a.context is None:  # the checkpoint's own serving configuration
             directory = checkpoint_paths(a.checkpoint or default_checkpoint(a.scenario, a.method))[0]

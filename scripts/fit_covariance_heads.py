@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from neural_estimator.estimator import NEURAL_METHODS
+from neural_estimator.methods.interface import NEURAL_METHODS
 from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.card import CARD_FILE, default_checkpoint, read_card, write_json

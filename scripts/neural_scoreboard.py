@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from neural_estimator.paper import departures as D
-from neural_estimator.registry import NEURAL_METHODS
+from neural_estimator.methods.registry import NEURAL_METHODS
 from neural_estimator.evaluation import evaluate
 from neural_estimator.metrics import EVALUATION_WARMUP
 from neural_estimator.paper import PAPER_SCENARIOS, paper_value

@@ -5,7 +5,7 @@
 # every stream into one MCAP bag, then prints the paper's metrics table. Ends with the table and the
 # bag's path.
 #
-#   scripts/run_demo.sh                          # lorenz96: all ten methods, filters started from y0
+#   scripts/run_demo.sh                          # lorenz96: every method of the table, filters started from y0
 #   scripts/run_demo.sh --init prior             # the paper's start (the Lorenz 96 PF then collapses, marked (!))
 #   scripts/run_demo.sh --scenario bearings --methods ukf,pf,enkf --trajectories 4
 #
@@ -23,7 +23,8 @@ has() { local f; for f in "${args[@]}"; do [ "$f" = "$1" ] && return 0; done; re
 # default scenario: where h determines no state component (bearings) the start is refused.
 has --scenario || has --init || args+=(--init observation)
 has --scenario || args+=(--scenario lorenz96)
-has --methods || args+=(--methods ekf,ukf,enkf,pf,gru,lstm,gpt2,filterformer,mamba,mamba2)
+# every method of the table of methods (neural_estimator/methods/table.py), in its order
+has --methods || args+=(--methods "$("$venv/bin/python" -m neural_estimator.methods.table)")
 has --trajectories || args+=(--trajectories 4)
 has --rate-hz || args+=(--rate-hz 200)
 has --output || args+=(--output "runs/demo-$(date +%Y%m%d-%H%M%S).mcap")

@@ -10,7 +10,7 @@ scored the steps after its warm-up (cards made since the warm-up rule record
 import json
 from pathlib import Path
 
-from neural_estimator.registry import NEURAL_METHODS
+from neural_estimator.methods.registry import NEURAL_METHODS
 from neural_estimator.paper import PAPER_SCENARIOS
 
 ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"

@@ -513,7 +513,7 @@ def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
 
 
 def test_replay_equals_run_and_reads_any_order(tmp_path):
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.replay import replay
 
     s = Cart()
@@ -544,7 +544,7 @@ def test_replay_equals_run_and_reads_any_order(tmp_path):
 
 
 def test_online_estimator_stream_rules():
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.online import OnlineEstimator
 
     s = Cart()

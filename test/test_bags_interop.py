@@ -13,7 +13,7 @@ from neural_estimator import cli
 from neural_estimator.bags import BagWriter, STREAM_QOS, arrays_to_bag, bag_to_arrays, open_bag
 from neural_estimator.bags import messages as M
 from neural_estimator.data import simulate
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.online import OnlineEstimator
 from neural_estimator.replay import replay
 from neural_estimator.scenarios import make_scenario

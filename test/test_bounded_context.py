@@ -7,8 +7,8 @@ from conftest import load_script
 
 import numpy as np
 
-from neural_estimator.estimator import EstimatorError
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.interface import EstimatorError
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.models import build_model
 from neural_estimator.serving.context import bounded_forward, restart_of
 from neural_estimator.scenarios import make_scenario

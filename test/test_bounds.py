@@ -275,7 +275,7 @@ def test_a_corrupt_card_is_one_line(tmp_path, edit, text):
     hung the size check for over 300 s (200,000 modules built on the meta device)."""
     import time
 
-    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.methods.registry import EstimatorError, make_estimator
 
     ckpt = _card(tmp_path, edit)
     t0 = time.monotonic()

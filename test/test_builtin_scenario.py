@@ -23,7 +23,7 @@ import test_uncertainty
 from neural_estimator import scenarios as S
 from neural_estimator.data import simulate
 from neural_estimator.paper import PAPER_SCENARIOS
-from neural_estimator.registry import CLASSICAL_METHODS, make_estimator
+from neural_estimator.methods.registry import CLASSICAL_METHODS, make_estimator
 
 NAME = "toy"
 MODULE = "neural_estimator.scenarios.toy"

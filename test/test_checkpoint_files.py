@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.serving.card import MAX_WEIGHT_BYTES, WEIGHTS_FILE, resolve_checkpoint
 from neural_estimator.serving.checkpoint import HEADER_BYTES_PER_TENSOR, load_checkpoint
 

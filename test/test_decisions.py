@@ -159,9 +159,9 @@ def test_openloop_equals_a_hand_computation_on_the_quadrotor():
 
 
 def test_obsonly_reads_the_observation_where_h_is_invertible_and_is_refused_elsewhere():
-    from neural_estimator.baselines import make_baseline
+    from neural_estimator.filters.baselines import make_baseline
     from neural_estimator.data import simulate
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
 
     sc = make_scenario("lorenz96")
     data = simulate(sc, n=2, horizon=6, seed=1)

@@ -273,7 +273,7 @@ def test_plan_and_jobs_time_both_modes(tmp_path, monkeypatch):
     ]
     assert "mode" not in Job("runtime", "ballistic", "ekf").to_json()  # step mode's keys are unchanged
 
-    import neural_estimator.registry as E
+    import neural_estimator.methods.registry as E
 
     real, calls = E.make_estimator, {"run": 0, "step": 0}
 

@@ -118,7 +118,7 @@ def test_steps_a_restart_skipped_are_lost_upstream_and_reported():
     from neural_estimator.bags import messages as M
     from neural_estimator.data import simulate
     from neural_estimator.online import OnlineEstimator
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")
@@ -158,7 +158,7 @@ def test_whole_trajectories_lost_from_a_lagging_nodes_queue_are_counted():
 
     from neural_estimator.bags import messages as M
     from neural_estimator.online import OnlineEstimator
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")

@@ -8,7 +8,7 @@ import pytest
 
 from neural_estimator.cli import main
 from neural_estimator.data import simulate
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.evaluation import chunk_size, evaluate, results_json, results_table, run_method
 from neural_estimator.scenarios import make_scenario
 

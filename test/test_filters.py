@@ -21,7 +21,7 @@ import pytest
 
 from neural_estimator.angles import wrap_angle
 from neural_estimator.data.simulate import simulate
-from neural_estimator.registry import EstimatorError, make_estimator, previous_controls
+from neural_estimator.methods.registry import EstimatorError, make_estimator, previous_controls
 from neural_estimator.filters import (
     EKFHyperParams,
     EnKFHyperParams,

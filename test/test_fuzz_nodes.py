@@ -14,7 +14,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.nodes import outputs as O
 from neural_estimator.online import OnlineEstimator
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
 pytest.importorskip("rclpy")  # the script imports the node launcher

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from neural_estimator.data import simulate
-from neural_estimator.registry import CLASSICAL_METHODS, EstimatorError, make_estimator
+from neural_estimator.methods.registry import CLASSICAL_METHODS, EstimatorError, make_estimator
 from neural_estimator.evaluation import evaluate, run_method
 from neural_estimator.scenarios import make_scenario
 

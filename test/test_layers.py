@@ -116,10 +116,11 @@ def test_module_level_imports_form_no_cycle():
             visit(n)
 
 
-def test_a_dotted_entry_is_a_subpackage_and_wins_over_its_parent():
+def test_a_dotted_entry_is_a_subpackage_or_module_and_wins_over_its_parent():
     table = layers()
     for name in (n for n in table if "." in n):
-        assert (PACKAGE / Path(*name.split(".")) / "__init__.py").exists(), f"{name}: no such subpackage"
+        where = PACKAGE / Path(*name.split("."))
+        assert (where / "__init__.py").exists() or where.with_suffix(".py").exists(), f"{name}: no such subpackage or module"
         assert name.split(".")[0] in table, f"{name}: its parent has no layer"
     toy = {"a": 1, "a.b": 9}
     assert layer_of("neural_estimator.a.b.c", toy) == 9

@@ -505,7 +505,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
 
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
     from neural_estimator.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario

@@ -19,8 +19,8 @@ import pytest
 pytest.importorskip("onnxruntime")
 
 from neural_estimator.data import simulate  # noqa: E402
-from neural_estimator.estimator import EstimatorError, previous_controls  # noqa: E402
-from neural_estimator.registry import make_estimator, per_message_options  # noqa: E402
+from neural_estimator.methods.interface import EstimatorError, previous_controls  # noqa: E402
+from neural_estimator.methods.registry import make_estimator, per_message_options  # noqa: E402
 from neural_estimator.scenarios import make_scenario, scenario_from_description  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 
@@ -137,7 +137,7 @@ from neural_estimator.bags import messages as M
 from neural_estimator.data import simulate
 from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 from neural_estimator.online import warm_up
-from neural_estimator.registry import make_estimator, per_message_options
+from neural_estimator.methods.registry import make_estimator, per_message_options
 from neural_estimator.scenarios import make_scenario
 
 scen = make_scenario("lorenz96")

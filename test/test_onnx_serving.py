@@ -9,7 +9,7 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 
 from neural_estimator.data import simulate  # noqa: E402
-from neural_estimator.estimator import EstimatorError  # noqa: E402
+from neural_estimator.methods.interface import EstimatorError  # noqa: E402
 from neural_estimator.models.onnx_step import export_step  # noqa: E402
 from neural_estimator.serving.onnx_runtime import OrtStep  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
@@ -187,7 +187,7 @@ def test_served_without_torch_step_and_node(tmp_path):
         _NO_TORCH
         + f"""
 import numpy as np
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 scen = make_scenario("lorenz96")
 est = make_estimator("gru", scen, checkpoint={str(directory)!r}, backend="onnxruntime")

@@ -71,7 +71,7 @@ def test_none_where_the_field_may_be_none():
 
 def test_every_parser_of_the_package_speaks_the_same_grammar():
     """'yes' is a bool for a scenario constant, a filter option, a neural option and a node parameter."""
-    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.methods.registry import EstimatorError, make_estimator
     from neural_estimator.filters.base import build_hyperparams
     from neural_estimator.filters.ekf import EKFHyperParams
     from neural_estimator.filters.pf import ParticleFilter

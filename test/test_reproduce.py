@@ -187,7 +187,7 @@ def test_a_failed_job_is_reported_and_the_others_go_on(tmp_path):
 
 
 def test_runtime_is_timed_through_the_real_step_path(tmp_path, monkeypatch):
-    import neural_estimator.registry as E
+    import neural_estimator.methods.registry as E
     import neural_estimator.evaluation  # noqa: F401  (imported before the patch: it binds make_estimator at import)
 
     real = E.make_estimator

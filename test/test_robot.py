@@ -150,7 +150,7 @@ def test_dataset_errors_name_the_topic_or_field(bag):
 
 @pytest.mark.slow
 def test_data_scenario_has_no_model_and_refuses_classical_filters(bag):
-    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.methods.registry import EstimatorError, make_estimator
 
     data, _, _ = build_dataset([bag], load_spec(SPEC), length=50)
     s = DataScenario(data.meta)

@@ -12,7 +12,7 @@ import pytest
 
 from neural_estimator.cli import main
 from neural_estimator.data import load_trajectories
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.robot import DataScenario, load_spec
 from neural_estimator.robot.ticker import Ticker, replay_bag
 

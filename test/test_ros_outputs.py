@@ -110,7 +110,7 @@ def test_euler_inverts_quaternion_and_set_pose_values():
 
 
 def test_set_pose_restarts_a_filter_at_the_pose_and_refuses_neural_models():
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")
@@ -135,7 +135,7 @@ def test_set_pose_starts_every_filter_at_the_pose_covariance():
     """A pose message's covariance replaces the prior's pose block (its cross terms dropped): the
     EKF/UKF start at it, the EnKF's members and the PF's particles spread by it; all zeros = P0;
     a covariance that is not one is refused in one line and the stream restarts from the prior."""
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")
@@ -323,7 +323,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
 
     from neural_estimator.bags import messages as M
     from neural_estimator.data import simulate
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
     from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
     from neural_estimator.online import OnlineEstimator

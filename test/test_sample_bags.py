@@ -7,7 +7,7 @@ import pytest
 
 from neural_estimator.bags import BagError, bag_to_arrays, load_bag_dataset
 from neural_estimator.cli import main
-from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods.registry import CLASSICAL_METHODS, NEURAL_METHODS
 from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.scenarios import default_preset, preset_names
 from neural_estimator.serving.card import shipped_preset

@@ -253,7 +253,7 @@ def _copy_shipped(tmp_path: Path, edit) -> Path:
 def test_a_card_declaring_a_huge_model_is_refused_before_allocation(tmp_path):
     import tracemalloc
 
-    from neural_estimator.registry import EstimatorError
+    from neural_estimator.methods.registry import EstimatorError
     from neural_estimator.serving.checkpoint import load_checkpoint
 
     ckpt = _copy_shipped(tmp_path, lambda c: c["architecture"]["config"].update(d_model=200_000))
@@ -273,7 +273,7 @@ def test_a_card_declaring_a_huge_model_is_refused_before_allocation(tmp_path):
 
 @pytest.mark.parametrize("name", ["../../etc/passwd", "/etc/passwd", "..", "sub/model.safetensors", 7])
 def test_a_card_cannot_name_a_weight_file_outside_its_checkpoint(tmp_path, name):
-    from neural_estimator.registry import EstimatorError
+    from neural_estimator.methods.registry import EstimatorError
     from neural_estimator.serving.checkpoint import load_checkpoint
 
     ckpt = _copy_shipped(tmp_path, lambda c: c["weights"].update(file=name))

@@ -13,7 +13,7 @@ import pytest
 from neural_estimator.nodes import outputs as O
 from neural_estimator.nodes.odometry import quaternion
 from neural_estimator.online import OnlineEstimator
-from neural_estimator.registry import make_estimator
+from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
 
@@ -109,7 +109,7 @@ def test_filters_take_a_huge_initial_covariance_without_overflow_or_a_linalg_err
     """The cause under the node: 0.5 * (P + P^T) overflowed to inf for a finite 1e308, so eigvalsh
     raised LinAlgError ("Eigenvalues did not converge", with a correlation) or returned NaN and an
     inf covariance was taken silently (without)."""
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
 
     scen = make_scenario("bearings")
     f = make_estimator(method, scen)

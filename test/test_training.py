@@ -13,7 +13,7 @@ import torch
 from safetensors.torch import load_file
 
 from neural_estimator.data import simulate
-from neural_estimator.registry import EstimatorError, make_estimator
+from neural_estimator.methods.registry import EstimatorError, make_estimator
 from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.serving.checkpoint import save_checkpoint
 from neural_estimator.serving.load import load_neural_estimator
@@ -123,7 +123,7 @@ def weights(path):
 def test_normalizer_round_trip_and_statistics(spinner):
     data = simulate(spinner, 20, 50, seed=0)
     norm = Normalizer.from_data(spinner, data)
-    from neural_estimator.registry import previous_controls
+    from neural_estimator.methods.registry import previous_controls
 
     z, skipped = norm.normalize_inputs(data.y, previous_controls(data.u))
     assert z.shape == (20, 50, 2) and not skipped.any()

@@ -190,7 +190,7 @@ def test_estimator_with_a_head_reports_covariance_in_step_and_run(tmp_path, meth
 
 
 def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_path):
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
     from neural_estimator.serving.card import CARD_FILE
     from neural_estimator.serving.load import load_neural_estimator
 
@@ -210,7 +210,7 @@ def test_a_card_without_a_head_serves_as_before_and_a_bad_head_is_refused(tmp_pa
 # ---- calibration of any method: cov_scale ------------------------------------------------------------
 def test_cov_scale_multiplies_the_reported_covariance_of_a_filter_in_step_and_run():
     from neural_estimator.data import simulate
-    from neural_estimator.registry import EstimatorError, make_estimator
+    from neural_estimator.methods.registry import EstimatorError, make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scenario = make_scenario("ballistic")
@@ -297,7 +297,7 @@ def test_the_band_scale_trades_the_tail_for_the_bulk_on_heavy_tailed_errors():
 
 
 def test_the_calibrated_settings_are_options_every_filter_takes():
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
     from neural_estimator.uncertainty.calibrated import calibrated_options
 
@@ -354,7 +354,7 @@ def test_the_onnx_backend_serves_the_heads_covariance_too():
     """A shipped model with a covariance head on ONNX Runtime (the head exported with the step): the
     estimate and the covariance of torch's step, to float32 round-off."""
     pytest.importorskip("onnxruntime")
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scenario = make_scenario("lorenz96")

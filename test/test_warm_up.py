@@ -46,7 +46,7 @@ def test_a_warm_up_that_fails_still_leaves_the_estimator_reset():
 
 def test_a_real_filter_after_warm_up_estimates_as_a_fresh_one():
     sc = make_scenario("lorenz96")
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
 
     warmed, fresh = make_estimator("ekf", sc, seed=0), make_estimator("ekf", sc, seed=0)
     warm_up(warmed, sc)

@@ -9,7 +9,7 @@ import pytest
 
 from neural_estimator import metrics as M
 from neural_estimator.data import simulate
-from neural_estimator.registry import EstimatorError, make_estimator
+from neural_estimator.methods.registry import EstimatorError, make_estimator
 from neural_estimator.scenarios import make_scenario
 
 ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
@@ -114,7 +114,7 @@ def test_shipped_model_loads_on_the_preset_its_card_names(name):
 
 def test_a_shipped_model_says_how_many_leading_steps_its_training_skipped():
     """The estimator node warns about them (a neural model's first estimates were never optimised)."""
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     est = make_estimator("mamba2", make_scenario("lorenz96"))

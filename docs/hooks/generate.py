@@ -12,6 +12,7 @@ reference table or result is typed by hand:
     zoo                  the shipped models, from their cards (neural_estimator/zoo/*/card.json)
     fidelity             the classical rows against the paper, from benchmarks/results/fidelity/*.txt
                          and neural_estimator/paper/paper_results.json
+    methods              the table of methods and what each can do (neural_estimator/methods/table.py)
 
 The node parameters are read from the source with ``ast`` (the node modules import rclpy; the
 site builds without it). ``test/test_docs.py`` holds the params/*.yaml files to the same dataclasses.
@@ -233,7 +234,31 @@ def fidelity_measured() -> str:
     return (ROOT / "benchmarks/results/fidelity_measured/fidelity.md").read_text().strip()
 
 
+def methods_table() -> str:
+    """The table of methods (neural_estimator/methods/table.py): one row per method, in table order."""
+    from neural_estimator.methods import table
+
+    def yes(v: bool) -> str:
+        return "yes" if v else ""
+
+    rows = [
+        "| method | name | family | needs f, h | trained | start modes | torch | seeded | context | ONNX step "
+        "| members | paper row |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s in table.methods(family=None):
+        rows.append(
+            f"| `{s.name}` | {s.display} | {s.family} | {yes(s.needs_model)} | {yes(s.trainable)} | "
+            f"{yes(s.takes_init)} | {yes(s.uses_torch)} | {yes(s.seeded)} | "
+            f"{s.context if s.context != 'none' else ''}{f' (`{s.window_key}`)' if s.window_key else ''} | "
+            f"{yes(s.exportable)} | {f'`{s.members[0]}`' if s.members else ''} | "
+            f"{'' if s.paper_row is None else s.paper_row + 1} |"
+        )
+    return "\n".join(rows)
+
+
 GENERATORS = {
+    "methods": lambda _=None: methods_table(),
     "node-params": params_table,
     "cli": cli_help,
     "scoreboard": lambda _=None: scoreboard(),

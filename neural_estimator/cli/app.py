@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     pre.add_argument("--plugin", action="append")
     known, _ = pre.parse_known_args(argv)
     from neural_estimator.data import DataError
-    from neural_estimator.registry import EstimatorError
+    from neural_estimator.methods.registry import EstimatorError
 
     from neural_estimator.atomic import WriteError
 

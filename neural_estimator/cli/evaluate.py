@@ -20,6 +20,7 @@ from neural_estimator.cli.common import (
     scenario_or_data,
     warmup_flag,
 )
+from neural_estimator.methods import table
 
 
 def _partial_line(reports) -> str:
@@ -246,7 +247,7 @@ def _write_table(path: str, reports) -> None:
     print(f"wrote {out}")
 
 
-DEFAULT_METHODS = "ekf,ukf,enkf,pf"
+DEFAULT_METHODS = ",".join(table.names(family="classical"))
 
 
 def add_evaluate(sub) -> None:
@@ -268,8 +269,8 @@ def add_evaluate(sub) -> None:
     p.add_argument(
         "--methods",
         default=DEFAULT_METHODS,
-        help="comma-separated (ekf ukf enkf pf gru lstm gpt2 filterformer mamba mamba2, and the reference rows "
-        "openloop and obsonly, never ranked); with --data: default the --checkpoint methods",
+        help=f"comma-separated ({' '.join(table.names())}, and the reference rows "
+        f"{' and '.join(table.names(family='baseline'))}, never ranked); with --data: default the --checkpoint methods",
     )
     p.add_argument("--trajectories", type=int, default=8000, help="per evaluation set (paper: 8000)")
     p.add_argument("--horizon", type=int, help="steps (default: the scenario's; paper: 500, quadrotor 200)")
@@ -385,8 +386,8 @@ def _evaluation_request(args):
     """(scenario, recorded datasets or None, methods, checkpoints, recorded estimates, options, info)
     of the evaluate flags, each checked: a one-line CliError otherwise."""
     from neural_estimator.evaluation import recorded_data_methods
-    from neural_estimator.baselines import check_evaluated_method
-    from neural_estimator.registry import CLASSICAL_METHODS, check_method
+    from neural_estimator.filters.baselines import check_evaluated_method
+    from neural_estimator.methods.registry import check_method
 
     scenario, datasets = scenario_or_data(args)
     methods = [check_evaluated_method(m) for m in args.methods.split(",") if m.strip()]
@@ -415,15 +416,15 @@ def _evaluation_request(args):
         if args.threads < 1:
             raise CliError(f"--threads must be >= 1, got {args.threads}")
         for m in methods:
-            if m in CLASSICAL_METHODS:
+            if table.has(m, family="classical"):
                 options.setdefault(m, {}).setdefault("threads", args.threads)
     if scenario is not None:  # a misspelt filter option fails now, not after the data are simulated
-        from neural_estimator.registry import make_estimator
+        from neural_estimator.methods.registry import make_estimator
 
-        from neural_estimator.baselines import is_baseline, make_baseline
+        from neural_estimator.filters.baselines import is_baseline, make_baseline
 
         for m in methods:
-            if m in CLASSICAL_METHODS:
+            if table.has(m, family="classical"):
                 make_estimator(m, scenario, **options.get(m, {}))
             elif is_baseline(m):  # obsonly where h determines nothing fails now, in one line
                 make_baseline(m, scenario, **options.get(m, {}))

@@ -83,7 +83,8 @@ def add_replay(sub) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from neural_estimator.registry import CLASSICAL_METHODS, check_method
+    from neural_estimator.methods import table
+    from neural_estimator.methods.registry import check_method
     from neural_estimator.replay import replay
 
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
@@ -92,7 +93,7 @@ def _cmd_replay(args) -> int:
     starts = {}
     if args.init != "prior":
         for m in methods:
-            if m in CLASSICAL_METHODS:
+            if table.has(m, takes_init=True):
                 options.setdefault(m, {}).setdefault("init", args.init)
                 starts[m] = options[m]["init"]
     if args.threads < 0:

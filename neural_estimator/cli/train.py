@@ -112,13 +112,15 @@ def add_train(sub) -> None:
 def _cmd_train(args) -> int:
     import dataclasses
 
-    from neural_estimator.registry import NEURAL_METHODS, check_method
+    from neural_estimator.methods import table
+    from neural_estimator.methods.registry import check_method
     from neural_estimator.training.recipe import TrainConfig, TrainingError
     from neural_estimator.training.loop import train
 
     method = check_method(args.model)
-    if method not in NEURAL_METHODS:
-        raise CliError(f"--model must be a neural method ({', '.join(NEURAL_METHODS)}), got {args.model!r}")
+    if not table.has(method, trainable=True):
+        trainable = ", ".join(table.names(trainable=True))
+        raise CliError(f"--model must be a neural method ({trainable}), got {args.model!r}")
     scenario, datasets = scenario_or_data(args)
     data = None
     if datasets is not None:

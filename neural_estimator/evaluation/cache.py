@@ -19,7 +19,7 @@ from neural_estimator.data.io import DataError, load_npz, save_npz
 from neural_estimator.data.protocol import SIMULATION_REVISION, code_key
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
 from neural_estimator.evaluation.starts import check_init
-from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods import table
 from neural_estimator.scenarios import Scenario
 
 if TYPE_CHECKING:
@@ -39,7 +39,7 @@ def checkpoint_digest(scenario: Scenario, method: str, checkpoint: str | Path | 
     """BLAKE2b of a neural method's card and weights (the shipped model's when ``checkpoint`` is
     None; a resolved :class:`~neural_estimator.serving.card.Checkpoint` carries its own); None for
     classical filters. A missing file hashes as "missing" (loading will fail)."""
-    if method not in NEURAL_METHODS:
+    if not table.has(method, trainable=True):
         return None
     from neural_estimator.serving import card
 
@@ -84,7 +84,7 @@ def run_key(
             "seed": int(seed),
             "device": str(device),
             "data": data if isinstance(data, str) else dataset_digest(data),
-            **({"init": check_init(init)} if method in CLASSICAL_METHODS else {}),
+            **({"init": check_init(init)} if table.has(method, takes_init=True) else {}),
             **({"warmup": int(warmup)} if warmup else {}),
             **code_key(scenario),
         },

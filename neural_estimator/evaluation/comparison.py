@@ -22,7 +22,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from neural_estimator import metrics as M
-from neural_estimator.registry import CLASSICAL_METHODS
+from neural_estimator.methods import table
 
 if TYPE_CHECKING:
     from neural_estimator.evaluation.protocol import MethodResult
@@ -51,7 +51,7 @@ def reference_method(results: Mapping[str, MethodResult], full: bool = False) ->
     None when nothing is ranked or no RMSE is finite."""
     key = "full_rmse" if full else "rmse"
     pool = ranked(results)
-    filters = {m: r for m, r in pool.items() if m in CLASSICAL_METHODS}
+    filters = {m: r for m, r in pool.items() if table.has(m, family="classical")}
     pool = filters or pool
     scored = {m: r.summary[key].median for m, r in pool.items()}
     scored = {m: v for m, v in scored.items() if math.isfinite(v)}

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from neural_estimator.evaluation import comparison as C
-from neural_estimator.registry import NEURAL_METHODS
+from neural_estimator.methods import table
 from neural_estimator.scenarios import Scenario  # or any object with state_names, state_units and dx
 
 if TYPE_CHECKING:
@@ -129,7 +129,7 @@ def estimates_decision(truth, estimates, angles, reports, warmup: int, fmt: str 
 
 def _instances(result: MethodResult) -> str:
     """Trained instances of a network ('1 instance', or K with the spread of their RMSE); '—' else."""
-    if result.method not in NEURAL_METHODS:
+    if not table.has(result.method, trainable=True):
         return "—"
     k = result.n_instances
     if k == 1:

@@ -25,8 +25,8 @@ from typing import Any, Callable
 from neural_estimator import metrics as M
 from neural_estimator.evaluation import comparison as C
 from neural_estimator.evaluation.families import SEALED, family_seed
+from neural_estimator.methods import table
 from neural_estimator.paper import PAPER_SCENARIOS
-from neural_estimator.registry import CLASSICAL_METHODS, METHODS, NEURAL_METHODS
 
 _VERDICTS = {"better": "network better", "worse": "filter better", "tied": "tied", "unknown": "unknown"}
 
@@ -34,7 +34,7 @@ _VERDICTS = {"better": "network better", "worse": "filter better", "tied": "tied
 def measure_headline(
     family: str,
     scenarios=PAPER_SCENARIOS,
-    methods=METHODS,
+    methods=None,
     trajectories: int = 200,
     sets: int = 3,
     horizon: int | None = None,
@@ -44,13 +44,15 @@ def measure_headline(
     note: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``methods`` (and ``openloop``) on every scenario on ``family``'s seed and return the
-    headline {family, seed, command sizes, rows: [per scenario]}; with ``out``, each scenario's
+    headline {family, seed, command sizes, rows: [per scenario]} (``methods``: default every method
+    of the table); with ``out``, each scenario's
     results (``out/<scenario>/``), headline.json and headline.md are written there."""
     from neural_estimator.evaluation.output import write_evaluation
     from neural_estimator.evaluation.protocol import evaluate
     from neural_estimator.scenarios import make_scenario
 
     seed = family_seed(family)
+    methods = table.names() if methods is None else methods
     rows = []
     for name in scenarios:
         scenario = make_scenario(name)
@@ -84,8 +86,8 @@ def measure_headline(
 
 def headline_row(scenario, results) -> dict[str, Any]:
     """One scenario's line of the headline (see the module docstring)."""
-    filters = {m: r for m, r in C.ranked(results).items() if m in CLASSICAL_METHODS}
-    networks = {m: r for m, r in C.ranked(results).items() if m in NEURAL_METHODS}
+    filters = {m: r for m, r in C.ranked(results).items() if table.has(m, family="classical")}
+    networks = {m: r for m, r in C.ranked(results).items() if table.has(m, family="neural")}
     # the outlier rule decides the ranking when it changes the best filter or the best network
     full = any(_best(group, "rmse") != _best(group, "full_rmse") for group in (filters, networks))
     key = "full_rmse" if full else "rmse"

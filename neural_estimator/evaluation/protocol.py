@@ -32,22 +32,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from neural_estimator import metrics as M
-from neural_estimator.baselines import check_evaluated_method, is_baseline, make_baseline
+from neural_estimator.filters.baselines import check_evaluated_method, is_baseline, make_baseline
 from neural_estimator.data import Trajectories, evaluation_sets
 from neural_estimator.data.io import DataError
 from neural_estimator.data.protocol import default_cache_dir
 from neural_estimator.data.simulate import trajectories_digest as dataset_digest
-from neural_estimator.registry import (
-    CLASSICAL_METHODS,
-    NEURAL_METHODS,
+from neural_estimator.methods import table
+from neural_estimator.methods.registry import (
     Estimator,
     Estimates,
     make_estimator,
     previous_controls,
 )
 from neural_estimator.filters.base import ClassicalFilter
-from neural_estimator.filters.enkf import EnKFHyperParams
-from neural_estimator.filters.pf import PFHyperParams
 from neural_estimator.options import parse_value
 from neural_estimator.scenarios import Scenario
 from neural_estimator.evaluation.families import check_unsealed
@@ -84,7 +81,7 @@ class MethodResult:
 
     @property
     def baseline(self) -> bool:
-        """A reference row (:mod:`neural_estimator.baselines`), never ranked among the ten."""
+        """A reference row (:mod:`neural_estimator.filters.baselines`), never ranked among the ten."""
         return is_baseline(self.method)
 
     def add(self, report: M.MetricReport, errors: M.TrajectoryErrors, set_index: int = 0, instance: int = 0) -> None:
@@ -133,7 +130,7 @@ def recorded_data_methods(methods: Sequence[str], checkpoints: Mapping[str, Sequ
     for m in methods:
         if is_baseline(m):
             raise ValueError(f"{m}: recorded data have no model to propagate; baselines need a scenario")
-        if m in CLASSICAL_METHODS:
+        if table.has(m, needs_model=True):
             raise ValueError(
                 f"{m}: recorded data have no model for a classical filter; compare the robot's own "
                 "filter with --estimate NAME=FILE"
@@ -153,18 +150,14 @@ def chunk_size(
 ) -> int:
     """Trajectories per chunk so one chunk's arrays stay within ``budget`` bytes.
 
-    Per trajectory: outputs T (dx + dx^2) float64 plus the inputs, plus the method's members
+    Per trajectory: outputs T (dx + dx^2) float64 plus the inputs, plus the members its spec names
     (the EnKF's members, the PF's particles, defaults from their hyperparameters; each a few
     dx-vectors of temporaries).
     """
     dx, dy, du = scenario.dx, scenario.dy, scenario.du
     per = horizon * (dx + dx * dx + dy + du) * 8
-    opts = options or {}
-    if method == "pf":
-        members = parse_value(opts.get("n_particles", PFHyperParams.n_particles), 1, "n_particles")
-    elif method == "enkf":
-        members = parse_value(opts.get("n_members", EnKFHyperParams.n_members), 1, "n_members")
-    else:
+    members = table.members_per_stream(method, dict(options or {}), parse_value)  # the spec's members option
+    if members is None:
         members = 2 * dx + 1
     per += members * (dx + dy) * 8 * 6
     return int(max(1, min(n, budget // per)))
@@ -202,7 +195,7 @@ def run_method(
         hi = min(N, lo + chunk)
         t0 = time.perf_counter()
         initial_mean = data.x[lo:hi, 0] if from_truth else None
-        if on_steps is not None and estimator.method in CLASSICAL_METHODS:
+        if on_steps is not None and table.has(estimator.method, family="classical"):
             est = run_stepwise(
                 estimator, data.y[lo:hi], data.u[lo:hi], lambda: on_steps(hi - lo), initial_mean=initial_mean
             )
@@ -210,7 +203,7 @@ def run_method(
             est = estimator.run(data.y[lo:hi], data.u[lo:hi], initial_mean=initial_mean)
         else:
             est = estimator.run(data.y[lo:hi], data.u[lo:hi])
-        if on_steps is not None and estimator.method not in CLASSICAL_METHODS:
+        if on_steps is not None and not table.has(estimator.method, family="classical"):
             on_steps((hi - lo) * data.horizon)
         seconds += time.perf_counter() - t0
         x_hat[lo:hi] = est.x
@@ -269,7 +262,7 @@ def served_context(
     """The bounded context a neural method is served with: the ``context`` option when given, else
     the one its card was validated with (``training.recipe.val_context``); 0 = continuous (the
     paper's way), and 0 for classical filters. Read from the card, so known for cached runs too."""
-    if method not in NEURAL_METHODS:
+    if not table.has(method, trainable=True):
         return 0
     if options and options.get("context") not in (None, ""):
         return int(parse_value(options["context"], 0, "context"))
@@ -311,7 +304,7 @@ def evaluate(
 
     Args:
         scenario: the system (with any overrides, e.g. noise_scale).
-        methods: method names (see :data:`neural_estimator.registry.METHODS`).
+        methods: method names (see :func:`neural_estimator.methods.table.names`).
         trajectories, horizon, seed, sets: the evaluation sets (paper: 8,000, scenario horizon, 3).
         checkpoints: {method: [checkpoint, ...]} for neural methods; each checkpoint is one instance.
             A neural method without an entry runs every instance the zoo ships (the shipped model
@@ -356,7 +349,7 @@ def evaluate(
     n_runs = len(plan) * len(data_sets)
     run_no = 0
     for m, k, ckpt in plan:
-        if m in NEURAL_METHODS:  # resolved once: its card read and its weights hashed here, then passed down
+        if table.has(m, trainable=True):  # resolved once: its card read and its weights hashed here, then passed down
             from neural_estimator.serving.card import resolve_checkpoint
 
             ckpt = resolve_checkpoint(ckpt, scenario.name, m)
@@ -434,7 +427,7 @@ def _instances(
     method every instance the zoo ships (:func:`~neural_estimator.serving.instances.zoo_instances`;
     None when it ships none, which fails at loading with the command that trains one), else [None]."""
     given = list((checkpoints or {}).get(method) or [])
-    if given or method not in NEURAL_METHODS:
+    if given or not table.has(method, trainable=True):
         return given or [None]
     from neural_estimator.serving.instances import zoo_instances
 

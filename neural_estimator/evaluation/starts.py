@@ -3,7 +3,7 @@ and the start a method really gets on a scenario."""
 
 from __future__ import annotations
 
-from neural_estimator.registry import CLASSICAL_METHODS
+from neural_estimator.methods import table
 from neural_estimator.scenarios import Scenario
 
 INIT_MODES = ("prior", "truth", "observation")
@@ -31,7 +31,7 @@ def effective_init(scenario: Scenario, method: str, init: str) -> str:
     is the prior where one observation determines no state component (bearings, ballistic, quadrotor:
     the same computation, so the same cached result), and neural methods always read ``"prior"``."""
     check_init(init)
-    if method not in CLASSICAL_METHODS:
+    if not table.has(method, takes_init=True):
         return "prior"
     if init == "observation":
         from neural_estimator.filters.base import observation_determines_state

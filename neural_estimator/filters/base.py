@@ -31,7 +31,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.methods.interface import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.filters import scheduler
 from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
 from neural_estimator.filters.scheduler import BlockScheduler

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.scenarios import Scenario
 
 

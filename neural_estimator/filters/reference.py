@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.estimator import previous_controls
+from neural_estimator.methods.interface import previous_controls
 from neural_estimator.scenarios import Scenario, psd_sqrt
 
 

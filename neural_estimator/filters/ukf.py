@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.filters.base import ClassicalFilter, check_inflation
 from neural_estimator.filters.numerics import JitterPolicy, ScenarioOps, cholesky, psd_solve, symmetrize
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import torch.nn as nn
 
+from neural_estimator.methods import table
 from neural_estimator.models.filterformer import FilterformerConfig, FilterformerModel
 from neural_estimator.models.gpt2 import GPT2Config, GPT2Model
 from neural_estimator.models.gru import GRUConfig, GRUModel
@@ -30,15 +31,14 @@ from neural_estimator.models.mamba2 import Mamba2Config, Mamba2Model
 
 # The attention models' window hyperparameter (W: the steps a query sees), which bounds their
 # context; the estimators' ``context`` option and ``TrainConfig.val_context`` set it.
-ATTENTION_WINDOW = {"gpt2": "decode_chunk", "filterformer": "window"}
+# (Each method's spec in the table of methods holds it: ``table.spec(name).window_key``.)
+ATTENTION_WINDOW = {s.name: s.window_key for s in table.methods(family=None, context="window")}
 
+# {name: (config class, model class)}: the networks of the table of methods, by their specs' architecture
 ARCHITECTURES: dict[str, tuple[type, type[nn.Module]]] = {
-    "gru": (GRUConfig, GRUModel),
-    "lstm": (LSTMConfig, LSTMModel),
-    "gpt2": (GPT2Config, GPT2Model),
-    "filterformer": (FilterformerConfig, FilterformerModel),
-    "mamba": (MambaConfig, MambaModel),
-    "mamba2": (Mamba2Config, Mamba2Model),
+    s.name: (table.resolve(s.architecture[0]), table.resolve(s.architecture[1]))
+    for s in table.methods(family=None)
+    if s.architecture is not None
 }
 
 

@@ -37,9 +37,7 @@ from typing import Any
 
 import numpy as np
 
-
-EXPORTABLE = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
-ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
+from neural_estimator.methods import table
 
 
 class OnnxError(RuntimeError):
@@ -91,10 +89,11 @@ def export_step(
     (:class:`~neural_estimator.serving.onnx_runtime.OrtStep`), without torch.
 
     Raises:
-        OnnxError: ``method`` is not one of :data:`EXPORTABLE`, or torch's exporter is missing.
+        OnnxError: ``method`` is not exportable (its spec in the table of methods), or torch's exporter
+            is missing.
     """
-    if method not in EXPORTABLE:
-        raise OnnxError(f"{method}: the ONNX step exists for {', '.join(EXPORTABLE)} only")
+    if not table.has(method, exportable=True):
+        raise OnnxError(f"{method}: the ONNX step exists for {', '.join(table.names(exportable=True))} only")
     import torch
 
     model = model.eval()
@@ -182,7 +181,9 @@ def export_step(
         {
             "method": method,
             "initial_fill": json.dumps(fills),
-            **({"window": str(int(flat[0].shape[0]))} if method in ATTENTION else {}),
+            **(
+                {"window": str(int(flat[0].shape[0]))} if table.has(method, context="window") else {}
+            ),  # a KV cache over W
             **(metadata or {}),
         },
     )

@@ -36,13 +36,12 @@ newest is stepped; the older ones are dropped and counted (``late observations d
 the estimator meets the hole as lost observations (predict-only steps within ``max_gap`` /
 ``max_gap_seconds``, else a restart from the prior, both counted).
 
-A message that cannot be used (wrong width or names, NaN control, empty, unparsable, larger than
-any valid one) is logged (throttled), counted in the diagnostics and dropped; the node never stops
-on one. No single message moves the stream: a jump in trajectory or step (or stamps that go back,
-a restarted publisher) is held until the next message confirms it (``confirm``) or the stream
-falls silent (``quarantine_seconds``); see :mod:`neural_estimator.online`. Diagnostics are WARN
-whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An unknown
-method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
+A message that cannot be used (wrong width or names, NaN control, empty, unparsable, larger than any valid one) is
+logged (throttled), counted in the diagnostics and dropped; the node never stops on one. No single message moves the
+stream: a jump in trajectory or step (or stamps that go back, a restarted publisher) is held until the next message
+confirms it (``confirm``) or the stream falls silent (``quarantine_seconds``); see :mod:`neural_estimator.online`.
+Diagnostics are WARN whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An
+unknown method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
 
 from __future__ import annotations
@@ -60,7 +59,8 @@ from std_srvs.srv import Trigger
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import NEURAL_METHODS, EstimatorError, check_method, make_estimator, per_message_options
+from neural_estimator.methods import table
+from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,
@@ -180,7 +180,7 @@ class EstimatorNode(ExitStatusNode):
             options = dict(item.split("=", 1) for item in p.options)
         except ValueError:
             raise StartupError(f"options must be name=value, got {list(p.options)}") from None
-        if p.init != "prior" and self.method not in NEURAL_METHODS:
+        if p.init != "prior" and table.has(self.method, takes_init=True):
             options.setdefault("init", p.init)
         try:
             options = per_message_options(self.method, options)  # ONNX Runtime where step.onnx serves it
@@ -190,7 +190,7 @@ class EstimatorNode(ExitStatusNode):
         except EstimatorError as exc:
             raise StartupError(str(exc)) from None
         torch = sys.modules.get("torch")  # absent when the model is served without torch (step.onnx)
-        if p.threads > 0 and self.method in NEURAL_METHODS and torch is not None:
+        if p.threads > 0 and table.has(self.method, uses_torch=True) and torch is not None:
             torch.set_num_threads(p.threads)
         warm_up(est, scenario)
         self.online = online_estimator(est, self.method, p, horizon)
@@ -228,7 +228,7 @@ class EstimatorNode(ExitStatusNode):
             + " msgs)"
             + (
                 "; served by ONNX Runtime without torch"
-                if self.method in NEURAL_METHODS and not sys.modules.get("torch")
+                if table.has(self.method, uses_torch=True) and not sys.modules.get("torch")
                 else ""
             )
         )

@@ -13,7 +13,7 @@ from neural_estimator.online import (
     DEFAULT_QUARANTINE_SECONDS,
     OnlineEstimator,
 )
-from neural_estimator.registry import METHODS
+from neural_estimator.methods import table
 
 OBSERVATION_QOS = ("reliable", "sensor_data")
 
@@ -22,7 +22,7 @@ OBSERVATION_QOS = ("reliable", "sensor_data")
 class EstimatorParams:
     """Parameters of the estimator node (documented in params/estimator.yaml)."""
 
-    method: str = param("ukf", f"estimation method: one of {', '.join(METHODS)}")
+    method: str = param("ukf", f"estimation method: one of {', '.join(table.names())}")
     scenario: str = param("", "scenario name; empty = take it (with its constants) from the 'scenario' topic")
     set: tuple[str, ...] = param((), "scenario constants as name=value (with scenario set)")
     preset: str = param("", "named constants of that scenario, applied before set (empty = the defaults; e.g. v3)")
@@ -41,8 +41,8 @@ class EstimatorParams:
     options: tuple[str, ...] = param(
         (),
         "method options as name=value: filter hyperparameters (n_particles=2048), neural compile_step=true, "
-        "context=100 (bounded context: restarted copies for GRU/LSTM/Mamba/Mamba-2, "
-        "the attention window for GPT-2/Filterformer)",
+        f"context=100 (bounded context: restarted copies for {'/'.join(table.labels(context='recurrent'))}, "
+        f"the attention window for {'/'.join(table.labels(context='window'))})",
     )
     observation_topic: str = param("observation", "input topic (relative: namespaced and remappable)")
     scenario_topic: str = param("scenario", "topic of the scenario description (when scenario is empty)")

@@ -26,6 +26,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from neural_estimator.methods import table
+
 PACKAGE = "neural_estimator"
 SIMULATOR = "sim_nodes.simulator"
 ESTIMATOR = "neural_estimator.nodes.estimator_node"
@@ -40,7 +42,6 @@ EXECUTABLES = {
     PLAYER: "player",
     ROBOT_ESTIMATOR: "robot_estimator",
 }
-CLASSICAL = ("ekf", "ukf", "enkf", "pf")  # the methods a start mode (--init) concerns
 MAX_DEPTH = 100_000  # queue depth cap (about 30 MB per transient_local stream)
 
 
@@ -124,7 +125,9 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
                 "completion_timeout": 60.0,
                 "topics": list(cfg.record_topics),
                 "queue_depth": depth,
-                "starts": [f"{m}={cfg.init}" for m in cfg.methods if m in CLASSICAL and cfg.init != "prior"],
+                "starts": [
+                    f"{m}={cfg.init}" for m in cfg.methods if table.has(m, takes_init=True) and cfg.init != "prior"
+                ],
             },
             required=True,
         )
@@ -143,7 +146,7 @@ def live_nodes(cfg: PipelineConfig, bag: str) -> list[NodeSpec]:
                     "checkpoint": ckpt.get(m, ""),
                     "device": cfg.device,
                     "seed": cfg.seed,
-                    **({"init": cfg.init} if m in CLASSICAL else {}),
+                    **({"init": cfg.init} if table.has(m, takes_init=True) else {}),  # a start mode (--init)
                     "options": opts.get(m, []),
                     "publish_covariance": cfg.publish_covariance,
                     "stats_file": str(Path(cfg.stats_dir) / f"{m}.json") if cfg.stats_dir else "",

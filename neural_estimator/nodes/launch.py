@@ -310,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
 def check_arguments(a: argparse.Namespace) -> None:
     """Scenario, constants and methods checked before any node starts (a bad name is the command
     line's one-line error, not a node's fatal log after start-up)."""
-    from neural_estimator.estimator import check_method
+    from neural_estimator.methods.interface import check_method
     from neural_estimator.scenarios import load_plugins, make_scenario, parse_assignments
 
     load_plugins(a.plugin)
@@ -327,7 +327,7 @@ def check_arguments(a: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
     from neural_estimator.scenarios import ScenarioError
 
     a = build_parser().parse_args(argv)

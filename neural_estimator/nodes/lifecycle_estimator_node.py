@@ -30,7 +30,7 @@ from sensor_msgs.msg import JointState
 
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.registry import EstimatorError, check_method, make_estimator, per_message_options
+from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,

@@ -366,7 +366,7 @@ def set_pose(
         OutputError: the method has no state to set (a neural model), the state has no pose, or the
             covariance is not a covariance.
     """
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
     from neural_estimator.filters.base import ClassicalFilter
 
     if not isinstance(estimator, ClassicalFilter):

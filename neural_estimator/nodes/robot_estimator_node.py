@@ -238,7 +238,7 @@ def _load(p: RobotEstimatorParams, read=None):
     :class:`~neural_estimator.serving.card.Checkpoint` already resolved); StartupError otherwise."""
     from pathlib import Path
 
-    from neural_estimator.registry import EstimatorError, make_estimator, per_message_options
+    from neural_estimator.methods.registry import EstimatorError, make_estimator, per_message_options
     from neural_estimator.serving.card import resolve_checkpoint
     from neural_estimator.robot import DataScenario, SpecError, load_spec
     from neural_estimator.robot.spec import topic_order_lost

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 
+from neural_estimator.methods import table
 from neural_estimator.paper.expected_failures import MARK as EXPECTED_MARK
 from neural_estimator.metrics import EVALUATION_WARMUP
 
@@ -37,7 +38,6 @@ OUTLIERS = "[o]"
 FROM_TRUTH = "[t]"
 FROM_OBSERVATION = "[y]"
 OUTLIER_TOLERANCE = 0.01  # [o] when |Full RMSE - RMSE| > 1 % of the RMSE (or the Full RMSE is inf)
-CLASSICAL = ("ekf", "ukf", "enkf", "pf")  # the filters a start mode concerns (neural models read y only)
 
 LEGEND = {
     BOUNDED: "bounded context: the model was validated, and is served, with every estimate seeing at most "
@@ -56,8 +56,9 @@ ORDER = (BOUNDED, OUTLIERS, FROM_TRUTH, FROM_OBSERVATION, EXPECTED_MARK)
 
 
 def start_mark(method: str, init: str) -> str | None:
-    """[t] or [y] for a classical filter started from the truth or the first observation; else None."""
-    if method not in CLASSICAL:
+    """[t] or [y] for a method that takes a start mode (the classical filters; neural models read y only)
+    started from the truth or the first observation; else None."""
+    if not table.has(method, takes_init=True):
         return None
     return {"truth": FROM_TRUTH, "observation": FROM_OBSERVATION}.get(init)
 

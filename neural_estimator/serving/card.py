@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from neural_estimator import __version__
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 
 CARD_FORMAT = "neural_estimator.checkpoint"
 CARD_VERSION = 1

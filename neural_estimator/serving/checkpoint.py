@@ -30,7 +30,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from neural_estimator.estimator import EstimatorError
+from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
 from neural_estimator.serving.card import (
     canonical_safetensors,

@@ -13,8 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.estimator import EstimatorError
-from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import EstimatorError
+from neural_estimator.models.onnx_step import OnnxError, export_step
 from neural_estimator.scenarios import ScenarioError, scenario_from_description
 from neural_estimator.serving.card import read_card
 from neural_estimator.serving.load import load_neural_estimator
@@ -46,7 +47,7 @@ def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
         est = load_neural_estimator(card["method"], scenario, directory, backend="torch")
     except (EstimatorError, ScenarioError) as exc:
         raise OnnxError(f"{directory}: {exc}") from None
-    if est.context_by_copies or card["method"] not in EXPORTABLE:
+    if est.context_by_copies or not table.has(card["method"], exportable=True):
         out.unlink(missing_ok=True)
         return None
     tmp = directory / (ONNX_FILE + ".tmp")

@@ -11,10 +11,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from neural_estimator.estimator import EstimatorError, check_method
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import EstimatorError, check_method
 from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
 from neural_estimator.options import OptionError, parse_bool, parse_value
-from neural_estimator.serving.onnx_runtime import ATTENTION, WindowMismatch, load_onnx_estimator, onnx_beside
+from neural_estimator.serving.onnx_runtime import WindowMismatch, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
 SERVING_BACKENDS = ("auto", "torch", "onnxruntime")
@@ -83,7 +84,7 @@ def per_message_backend(
         bounded = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
     except OptionError as exc:
         raise EstimatorError(str(exc)) from None
-    return "torch" if bounded and card["method"] not in ATTENTION else "onnxruntime"
+    return "torch" if bounded and not table.has(card["method"], context="window") else "onnxruntime"
 
 
 def validated_context(card: dict[str, Any]) -> dict[str, int]:
@@ -164,7 +165,7 @@ def load_neural_estimator(
             )
         except OptionError as exc:
             raise EstimatorError(str(exc)) from None
-        if m in ATTENTION and context is None:
+        if table.has(m, context="window") and context is None:
             ctx = 0  # the window it was exported with
         try:
             return load_onnx_estimator(directory, card, scenario, ctx, covariance, cov_scale)

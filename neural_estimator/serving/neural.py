@@ -23,13 +23,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.serving.normalization import Normalizer
 from neural_estimator.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
 
-RECURRENT = ("gru", "lstm", "mamba", "mamba2")  # the methods whose context can be bounded (option context)
 BACKENDS = ("torch", "onnxruntime")  # how step() runs the network (run() always uses torch's parallel form)
 
 CHUNK_TIMESTEPS = 1 << 16  # sequences x steps per parallel forward in run(): bounds activation memory
@@ -58,7 +58,7 @@ def resolve_device(device: str | torch.device | None = "cpu") -> torch.device:
 
 
 class NeuralEstimator(Estimator):
-    """A trained sequence model behind the :class:`~neural_estimator.estimator.Estimator` contract.
+    """A trained sequence model behind the :class:`~neural_estimator.methods.interface.Estimator` contract.
 
     Args:
         scenario: the system the model was trained on (dimensions are checked).
@@ -120,14 +120,14 @@ class NeuralEstimator(Estimator):
         self.card = dict(card or {})
         self.chunk_timesteps = int(chunk_timesteps)
         self.context, self.context_copies = _as_int(context, "context", 0), _as_int(context_copies, "context_copies", 1)
-        self.context_by_copies = bool(self.context) and method in RECURRENT  # bounded by restarted copies
+        self.context_by_copies = bool(self.context) and table.has(method, context="recurrent")  # restarted copies
         if self.context_by_copies and self.context_copies > self.context:
             raise EstimatorError(f"context_copies ({self.context_copies}) must not exceed context ({self.context})")
         if self.context and not self.context_by_copies:
             if not hasattr(self.model, "set_window"):
                 raise EstimatorError(
-                    f"{method}: context applies to {', '.join(RECURRENT)} (restarted copies) and to the "
-                    "attention models gpt2, filterformer (their window)"
+                    f"{method}: context applies to {', '.join(table.names(context='recurrent'))} (restarted "
+                    f"copies) and to the attention models {', '.join(table.names(context='window'))} (their window)"
                 )
             self.model.set_window(self.context)  # the attention models: the window is the bound
         self._state: Any = None
@@ -142,12 +142,13 @@ class NeuralEstimator(Estimator):
 
     def _onnx_step(self):
         """The batch-1 step exported from this model and served by ONNX Runtime (models/onnx_step.py)."""
-        from neural_estimator.models.onnx_step import EXPORTABLE, OnnxError, export_step
+        from neural_estimator.models.onnx_step import OnnxError, export_step
         from neural_estimator.serving.onnx_runtime import OnnxEstimator, OrtStep
 
-        if self.method not in EXPORTABLE or self.context_by_copies or self.dtype != torch.float32:
+        if not table.has(self.method, exportable=True) or self.context_by_copies or self.dtype != torch.float32:
             raise EstimatorError(
-                f"{self.method}: backend onnxruntime serves {', '.join(EXPORTABLE)} in float32, the recurrent "
+                f"{self.method}: backend onnxruntime serves {', '.join(table.names(exportable=True))} in float32, "
+                "the recurrent "
                 "models with an unbounded context (option context=0), the attention models with their window"
             )
         try:

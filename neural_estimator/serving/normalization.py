@@ -1,7 +1,7 @@
 """Z-score normalisation of a neural estimator's inputs and outputs.
 
 Inputs are the paper's z_t = y_t (no controls) or z_t = [y_t, u_{t-1}] (controls; u_{-1} = 0, see
-:func:`neural_estimator.estimator.previous_controls`), outputs the state x_t. With statistics
+:func:`neural_estimator.methods.interface.previous_controls`), outputs the state x_t. With statistics
 taken over every timestep of the training set (all N trajectories x T steps),
 
     z_n = (z - mu_z) / sigma_z          (d_in,)   what the network reads
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.angles import wrap_components
-from neural_estimator.estimator import previous_controls
+from neural_estimator.methods.interface import previous_controls
 
 STD_FLOOR = 1e-6  # relative to max(1, |mean|)
 

@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.angles import wrap_components
-from neural_estimator.estimator import Estimator, EstimatorError
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import Estimator, EstimatorError
 from neural_estimator.serving.onnx_kernels import denormalize, denormalize_covariance, normalize_into
 
 ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (scripts/export_onnx.py --beside)
-ATTENTION = ("gpt2", "filterformer")  # a KV cache over the attention window W: the window is in the graph
 
 
 class WindowMismatch(EstimatorError):
@@ -283,12 +283,12 @@ def load_onnx_estimator(
             f"{directory}'s card ({meta.get('method')!r}, weights {meta.get('weights_sha256', '')[:12] or '?'}): "
             f"export it again with scripts/export_onnx.py --beside"
         )
-    if context and method in ATTENTION and int(meta.get("window", 0)) != int(context):
+    if context and table.has(method, context="window") and int(meta.get("window", 0)) != int(context):
         raise WindowMismatch(
             f"{path} serves attention window {meta.get('window')}, not context={context}: "
             f"export it with --context {context}"
         )
-    if context and method not in ATTENTION:
+    if context and not table.has(method, context="window"):  # the window is in an attention graph
         raise EstimatorError(f"{method}: the exported step serves the unbounded context (context=0), not {context}")
     if not covariance and "cov" in step.outputs:
         step.outputs.pop("cov")  # still computed by the graph, no longer read

@@ -77,9 +77,10 @@ from tqdm.auto import tqdm
 from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
 from neural_estimator.training.recipe import TrainConfig, TrainingError
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
-from neural_estimator.estimator import NEURAL_METHODS, check_method, previous_controls
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import check_method, previous_controls
 from neural_estimator.metrics import EVALUATION_WARMUP, compute_labelled_metrics, to_json
-from neural_estimator.models import ARCHITECTURES, ATTENTION_WINDOW, build_model
+from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.onnx_step import OnnxError
 from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.checkpoint import load_checkpoint, save_checkpoint
@@ -155,9 +156,9 @@ def _checked_arch(arch: str, cfg: TrainConfig) -> tuple[str, str | None]:
     """(architecture, its attention-window hyperparameter or None); the recipe's one-line errors
     before any data are simulated."""
     arch = check_method(arch)
-    if arch not in NEURAL_METHODS:
-        raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(NEURAL_METHODS)}")
-    window_key = ATTENTION_WINDOW.get(arch)  # the attention models bound their context by their window
+    if not table.has(arch, trainable=True):
+        raise TrainingError(f"{arch!r} is a classical filter; train one of: {', '.join(table.names(trainable=True))}")
+    window_key = table.spec(arch).window_key  # the attention models bound their context by their window
     if cfg.val_context and window_key and cfg.model_overrides.get(window_key, cfg.val_context) != cfg.val_context:
         raise TrainingError(
             f"val_context={cfg.val_context} sets {arch}'s attention window {window_key}, "

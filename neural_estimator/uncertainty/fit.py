@@ -35,7 +35,7 @@ import torch
 
 from neural_estimator import metrics as M
 from neural_estimator.data import protocol
-from neural_estimator.estimator import previous_controls
+from neural_estimator.methods.interface import previous_controls
 from neural_estimator.serving.context import bounded_forward
 from neural_estimator import consistency as C
 from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel

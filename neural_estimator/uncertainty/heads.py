@@ -210,7 +210,7 @@ def attach_head(model: nn.Module, directory: str | Path, entry: dict[str, Any]) 
     Raises:
         EstimatorError: the head cannot be read (the message names the checkpoint and the problem).
     """
-    from neural_estimator.estimator import EstimatorError
+    from neural_estimator.methods.interface import EstimatorError
 
     n = int(getattr(model.cfg, "d_out"))
     try:

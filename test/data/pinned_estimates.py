@@ -44,7 +44,7 @@ def _neural(method: str, scenario, X, Y, U):
     from neural_estimator.models import build_model
     from neural_estimator.serving.neural import NeuralEstimator
     from neural_estimator.serving.normalization import Normalizer
-    from neural_estimator.registry import previous_controls
+    from neural_estimator.methods.registry import previous_controls
 
     torch.manual_seed(11)
     model = build_model(method, scenario.dy + scenario.du, scenario.dx).eval()
@@ -54,7 +54,7 @@ def _neural(method: str, scenario, X, Y, U):
 
 def compute(stored: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Every pinned array; with ``stored`` the scenarios and inputs come from the pin file."""
-    from neural_estimator.registry import make_estimator
+    from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import scenario_from_description
 
     out: dict[str, np.ndarray] = {}

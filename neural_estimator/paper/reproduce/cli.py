@@ -19,7 +19,8 @@ def _names(text: str | None, default, check, flag: str) -> list[str]:
 
 
 def run_from_args(args, usage_error: type[Exception]) -> int:
-    from neural_estimator.registry import METHODS, check_method
+    from neural_estimator.methods import table
+    from neural_estimator.methods.registry import check_method
 
     try:
         if args.num_cpus is not None and args.num_cpus < 1:
@@ -27,7 +28,7 @@ def run_from_args(args, usage_error: type[Exception]) -> int:
         settings = Settings(
             scale=get_scale(args.scale),
             scenarios=_names(args.scenarios, PAPER_SCENARIOS, _known_scenario, "--scenarios"),
-            methods=_names(args.methods, METHODS, check_method, "--methods"),
+            methods=_names(args.methods, table.names(), check_method, "--methods"),
             gpu=_cuda(),
             cache_dir=str(args.cache_dir or default_cache_dir()),
             address=args.address,

@@ -35,14 +35,15 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from neural_estimator.estimator import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods import table
 from neural_estimator.paper.results import PAPER_SCENARIOS, paper_results
 from neural_estimator.paper.reproduce.tables import PAPER_NAMES as LABELS
 
 FACTOR = 1.5
 SCENARIOS = PAPER_SCENARIOS
-CLASSICAL, NEURAL = CLASSICAL_METHODS, NEURAL_METHODS
-SSM = ("mamba", "mamba2")
+# the paper's filters, networks and selective state-space models, in its row order (the table of methods)
+CLASSICAL, NEURAL = table.paper_methods(family="classical"), table.paper_methods(family="neural")
+SSM = table.paper_methods(state_space=True)
 
 Table = Mapping[str, Mapping[str, "float | None"]]  # {scenario: {method: RMSE}}
 

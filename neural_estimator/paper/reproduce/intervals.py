@@ -27,9 +27,11 @@ from collections.abc import Mapping
 from typing import Any
 
 from neural_estimator import metrics as M
-from neural_estimator.registry import CLASSICAL_METHODS, NEURAL_METHODS
+from neural_estimator.methods import table
 
-SSM = ("mamba", "mamba2")
+# the paper's filters, networks and selective state-space models, in its row order (the table of methods)
+CLASSICAL_METHODS, NEURAL_METHODS = table.paper_methods(family="classical"), table.paper_methods(family="neural")
+SSM = table.paper_methods(state_space=True)
 
 
 def paper_factors() -> dict[str, float]:

@@ -217,12 +217,12 @@ def ray_node() -> str | None:
 
 def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
     from neural_estimator import metrics as M
-    from neural_estimator.registry import CLASSICAL_METHODS
+    from neural_estimator.methods import table
     from neural_estimator.evaluation import evaluate
 
     scenario = make_job_scenario(job)
     data = job_data(job, cache_dir)
-    options = {job.method: {"threads": threads}} if job.method in CLASSICAL_METHODS else None
+    options = {job.method: {"threads": threads}} if table.has(job.method, family="classical") else None
     checkpoints = None
     if job.train_job is not None:
         ckpt = train_dir(cache_dir, job.train_job)
@@ -248,7 +248,8 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
 
 
 def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], bool]:
-    from neural_estimator.registry import CLASSICAL_METHODS, make_estimator, previous_controls
+    from neural_estimator.methods import table
+    from neural_estimator.methods.registry import make_estimator, previous_controls
 
     path = runtime_path(cache_dir, job)
     if path.is_file():
@@ -260,7 +261,7 @@ def _runtime(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], b
     from neural_estimator.data.protocol import dataset
 
     data = dataset(scenario, "eval", 0, 1, job.warmup + job.steps, job.seed, cache_dir)
-    opts = {"threads": threads} if job.method in CLASSICAL_METHODS else {}
+    opts = {"threads": threads} if table.has(job.method, family="classical") else {}
     est = make_estimator(job.method, scenario, device=job.device, seed=job.seed, **opts)
     if job.mode == "sequence":
         seconds, cpu_share = _time_sequence(est, data, job)

@@ -49,11 +49,11 @@ def plan_jobs(
     ``init`` (``"prior"``, ``"truth"`` or ``"observation"``): how the classical filters of the accuracy and noise
     evaluations start (:func:`neural_estimator.evaluation.run_method`); neural methods ignore it.
     """
-    from neural_estimator.registry import NEURAL_METHODS
+    from neural_estimator.methods import table
 
     def models(s: str, m: str) -> list[Job | None]:
         """What an accuracy or noise evaluation of ``m`` evaluates: the shipped model (None) or trainings."""
-        if m in NEURAL_METHODS and scale.main_from_training:
+        if table.has(m, trainable=True) and scale.main_from_training:
             return [train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances)]
         return [None]
 
@@ -104,7 +104,7 @@ def plan_jobs(
     for job in jobs:
         if job.train_job is not None:
             trainings.setdefault(job.train_job)
-    neural = [m for m in methods if m in NEURAL_METHODS]
+    neural = [m for m in methods if table.has(m, trainable=True)]
     for s in scenarios:
         for m in neural:
             for ratio in scale.data_ratios:
@@ -132,7 +132,7 @@ def plan_jobs(
     for device in devices:
         for s in scenarios:
             for m in methods:
-                if device == "cuda" and m not in NEURAL_METHODS:
+                if device == "cuda" and not table.has(m, uses_torch=True):
                     continue  # our classical filters are numpy: CPU only
                 for mode in RUNTIME_MODES:
                     jobs.append(

@@ -13,12 +13,12 @@ from pathlib import Path
 from neural_estimator import consistency as CONSISTENCY
 from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
+from neural_estimator.methods import table
+from neural_estimator.paper.reproduce import tables as T
 from neural_estimator.paper.reproduce.engine import Outcome
 from neural_estimator.paper.reproduce.jobs import Job
 from neural_estimator.paper.reproduce.plan import noise_reuses_accuracy
 from neural_estimator.paper.reproduce.settings import INIT_WORDS, Settings, describe_settings
-from neural_estimator.paper.reproduce import tables as T
-from neural_estimator.registry import NEURAL_METHODS
 
 RUNTIME_WORDS = {
     "step": "Step by step, the live node's cost: each method's real per-step path (`reset(1)`, then one `step` per "
@@ -117,7 +117,7 @@ def _gather(settings: Settings, jobs: Sequence[Job], outcome: Outcome) -> _Resul
         job, res = jobs[i], o["result"]
         if job.experiment == "accuracy":
             r.acc[job.scenario][job.method].append(res)
-            if job.kind == "evaluate" and job.method in NEURAL_METHODS:
+            if job.kind == "evaluate" and table.has(job.method, family="neural"):
                 seen = r.instance_ids.setdefault((job.scenario, job.method), set())
                 seen.add(job.instance)
                 r.instances.setdefault(job.scenario, {})[job.method] = len(seen)
@@ -326,10 +326,8 @@ def cpu_share_words(shares: dict[tuple[str, str], float]) -> str:
 
 def _data_efficiency(settings: Settings, jobs: Sequence[Job], r: _Results, figs: Path) -> list[str]:
     """The data-ratio table and figures (the paper's values alone when no neural method ran)."""
-    from neural_estimator.registry import NEURAL_METHODS
-
     scen, meth, sc = settings.scenarios, settings.methods, settings.scale
-    neural = [m for m in meth if m in NEURAL_METHODS]
+    neural = [m for m in meth if table.has(m, trainable=True)]
     L = ["## Data efficiency (paper: Table data_ratio_main, figures data_ratio_*)", ""]
     if not neural:
         return (

@@ -17,22 +17,12 @@ import numpy as np
 
 from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
+from neural_estimator.methods import table
 from neural_estimator.paper.expected_failures import MARK, expected_to_fail, notes
 from neural_estimator.paper.results import paper_value
 from neural_estimator.plots import new_figure, save_figure
 
-PAPER_NAMES = {
-    "ekf": "EKF",
-    "ukf": "UKF",
-    "enkf": "EnKF",
-    "pf": "PF",
-    "gru": "GRU",
-    "lstm": "LSTM",
-    "gpt2": "GPT-2",
-    "filterformer": "Filterformer",
-    "mamba": "Mamba",
-    "mamba2": "Mamba-2",
-}
+PAPER_NAMES = table.paper_names()  # {method: the paper's spelling}, the paper's ten in its row order
 EXTENDED = M.TABLE_COLUMNS[:8]  # the paper's eight extended-table columns (RMSE ... Drift)
 SEP = " · "  # between ours and the paper's
 
@@ -129,7 +119,7 @@ def accuracy_table(
     cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("RMSE", "RMSE all steps", "NRMSE")]
     lines = _header(cols)
     for m in methods:
-        cells = [PAPER_NAMES.get(m, m)]
+        cells = [table.label(m)]
         for s in scenarios:
             st = summ.get(s, {}).get(m)
             ours = stat_cell(st and st["rmse"], 3, False)
@@ -205,7 +195,7 @@ def relative_table(summ, scenarios, methods) -> list[str]:
     for m in methods:
         lines.append(
             _row(
-                [PAPER_NAMES.get(m, m)]
+                [table.label(m)]
                 + [
                     side(num(scores[s][m], 1), paper_value("relative_score", s, m), 1, _in_paper(s, m))
                     for s in scenarios
@@ -228,7 +218,7 @@ def extended_table(summ, s, methods, *, init: str = "prior", contexts=None, star
             if k == "rmse" and marks:
                 ours += f" {marks}"
             cells.append(side(ours, paper_value("extended", s, m, k), d, _in_paper(s, m)))
-        lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
+        lines.append(_row([table.label(m)] + cells))
     return lines
 
 
@@ -248,7 +238,7 @@ def components_table(runs, s: str, methods, names: Sequence[str], instances=None
         cells = [f"{x:.4g}" if math.isfinite(x) else num(x) for x in meds]  # 4 digits: components span 1e-3..1e3
         k = (instances or {}).get(m)
         count = "—" if k is None else "1 instance" if k == 1 else f"{k} instances"
-        lines.append(_row([PAPER_NAMES.get(m, m)] + cells + [count]))
+        lines.append(_row([table.label(m)] + cells + [count]))
     return lines
 
 
@@ -263,7 +253,7 @@ def nrmse_avg_table(summ, scenarios, methods) -> list[str]:
         lines.append(
             _row(
                 [
-                    PAPER_NAMES.get(m, m),
+                    table.label(m),
                     side(num(med), paper.get("median"), 3, known),
                     side(num(iqr), paper.get("iqr"), 3, known),
                     str(len(vals)),
@@ -277,7 +267,7 @@ def stability_table(summ, scenarios, methods) -> list[str]:
     cols = ["Method"] + [f"Out. {s}" for s in scenarios] + [f"Drift {s}" for s in scenarios]
     lines = _header(cols)
     for m in methods:
-        cells = [PAPER_NAMES.get(m, m)]
+        cells = [table.label(m)]
         for k in ("outlier_ratio", "drift_ratio"):
             for s in scenarios:
                 st = summ.get(s, {}).get(m)
@@ -293,7 +283,7 @@ def covariance_table(summ, scenarios, methods) -> list[str]:
     cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("NEES med.", "95%")]
     lines = _header(cols)
     for m in methods:
-        cells, any_applies = [PAPER_NAMES.get(m, m)], False
+        cells, any_applies = [table.label(m)], False
         for s in scenarios:
             st = summ.get(s, {}).get(m)
             for k, d in (("nees_median", 2), ("coverage95", 3)):
@@ -314,7 +304,7 @@ def consistency_table(summ, scenarios, methods, dims: Mapping[str, int]) -> list
     cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("NEES mean/dx", "verdict")]
     lines = _header(cols)
     for m in methods:
-        cells, any_applies = [PAPER_NAMES.get(m, m)], False
+        cells, any_applies = [table.label(m)], False
         for s in scenarios:
             st = summ.get(s, {}).get(m)
             if st is None or not st["nees"].applies:
@@ -332,16 +322,14 @@ def _family_averages(
     rt_device: Mapping[str, Mapping[str, float]], scenarios, methods
 ) -> tuple[list[float], list[float]]:
     """(filters, networks): each method's mean it/s over the scenarios it ran on."""
-    from neural_estimator.estimator import CLASSICAL_METHODS
-
     avg: dict[str, float] = {}
     for m in methods:
         vals = [rt_device.get(s, {}).get(m) for s in scenarios]
         vals = [v for v in vals if v is not None and math.isfinite(v)]
         if vals:
             avg[m] = sum(vals) / len(vals)
-    filters = [v for m, v in avg.items() if m in CLASSICAL_METHODS]
-    networks = [v for m, v in avg.items() if m not in CLASSICAL_METHODS]
+    filters = [v for m, v in avg.items() if table.has(m, family="classical")]
+    networks = [v for m, v in avg.items() if not table.has(m, family="classical")]
     return filters, networks
 
 
@@ -390,7 +378,7 @@ def runtime_table(rt: Mapping[str, Mapping[str, Mapping[str, float]]], scenarios
         cells.append(
             side(num(avg, 1), paper_value("runtime_summary", m, paper_device), 1, m in PAPER_NAMES and all_five)
         )
-        lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
+        lines.append(_row([table.label(m)] + cells))
     return lines
 
 
@@ -405,7 +393,7 @@ def runtime_table_not_measured(scenarios, methods, paper_device: str, why: str) 
             continue
         cells = [side(ours, paper_value("runtime_full", paper_device, s, m), 1, True) for s in scenarios]
         cells.append(side(ours, paper_value("runtime_summary", m, paper_device), 1, all_five))
-        lines.append(_row([PAPER_NAMES.get(m, m)] + cells))
+        lines.append(_row([table.label(m)] + cells))
     return lines
 
 
@@ -416,7 +404,7 @@ def data_ratio_table(
     beside tab:data_ratio_main: ``nrmse[scenario][method][ratio] = [NRMSE of each run]``."""
     lines = _header(["Method"] + [f"{r:g}:1" for r in ratios])
     for m in methods:
-        cells = [PAPER_NAMES.get(m, m)]
+        cells = [table.label(m)]
         for r in ratios:
             per_s = [M.median_iqr(nrmse[s][m][r])[0] for s in scenarios if nrmse.get(s, {}).get(m, {}).get(r)]
             ours = M.median_iqr(per_s)[0] if per_s else math.nan
@@ -441,7 +429,7 @@ def plot_data_ratio(by_method: Mapping[str, Mapping[float, list[float]]], path: 
             med.append(q[1]), lo.append(q[1] - q[0]), hi.append(q[2] - q[1])
         x = np.arange(len(methods)) + (k - (len(ratios) - 1) / 2) * width
         ax.bar(x, med, width, yerr=[lo, hi], capsize=2, label=f"{r:g}:1")
-    ax.set_xticks(np.arange(len(methods)), [PAPER_NAMES.get(m, m) for m in methods])
+    ax.set_xticks(np.arange(len(methods)), [table.label(m) for m in methods])
     ax.set_ylabel("NRMSE (median over sets x instances)")
     ax.set_title(title)
     ax.grid(True, axis="y", alpha=0.3)
@@ -451,7 +439,7 @@ def plot_data_ratio(by_method: Mapping[str, Mapping[float, list[float]]], path: 
 
 def data_ratio_paper_table() -> list[str]:
     lines = _header(["Method", "20:1", "10:1", "5:1", "1:1"])
-    for m in ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2"):
+    for m in table.paper_methods(family="neural"):
         lines.append(
             _row([PAPER_NAMES[m]] + [num(paper_value("data_ratio_main", r, m)) for r in ("20", "10", "5", "1")])
         )
@@ -470,7 +458,7 @@ def plot_noise(curves: Mapping[str, Mapping[float, list[float]]], path: Path, ti
             else (np.nan, np.nan)
             for x in xs
         ]
-        (line,) = ax.plot(xs, [st[0] for st in stats], marker="o", label=PAPER_NAMES.get(m, m))
+        (line,) = ax.plot(xs, [st[0] for st in stats], marker="o", label=table.label(m))
         ax.fill_between(xs, [a for a, _ in q], [b for _, b in q], color=line.get_color(), alpha=0.2)
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")

@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.estimator import Estimator, EstimatorError, check_method
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import Estimator, EstimatorError, check_method
 from neural_estimator.scenarios import Scenario
-
-BASELINE_METHODS = ("openloop", "obsonly")
 
 
 class OpenLoop(Estimator):
@@ -74,17 +73,15 @@ class ObservationOnly(OpenLoop):
         return self.scenario.normalize_state(x)
 
 
-_BASELINES: dict[str, type[OpenLoop]] = {"openloop": OpenLoop, "obsonly": ObservationOnly}
-
-
 def is_baseline(method: str) -> bool:
-    return method in BASELINE_METHODS
+    """``method`` is a reference row of the table of methods (family ``baseline``)."""
+    return table.has(method, family="baseline")
 
 
 def check_evaluated_method(method: str) -> str:
     """``method`` if it is one of the ten or a baseline, else the registry's one-line error."""
     name = str(method).strip().lower()
-    if name in BASELINE_METHODS:
+    if is_baseline(name):
         return name
     return check_method(method)
 
@@ -93,6 +90,6 @@ def make_baseline(method: str, scenario: Scenario, **options) -> OpenLoop:
     """Build a baseline by name; baselines take no options (a one-line EstimatorError otherwise)."""
     if options:
         raise EstimatorError(f"{method}: a baseline takes no options, got {', '.join(sorted(options))}")
-    if method not in _BASELINES:
-        raise EstimatorError(f"unknown baseline {method!r}; baselines: {', '.join(BASELINE_METHODS)}")
-    return _BASELINES[method](scenario)
+    if not is_baseline(method):
+        raise EstimatorError(f"unknown baseline {method!r}; baselines: {', '.join(table.names(family='baseline'))}")
+    return table.resolve(table.spec(method).factory)(scenario)

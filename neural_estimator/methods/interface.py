@@ -1,8 +1,9 @@
 """The estimator interface shared by the ten methods (the bottom of the estimator layers).
 
 The classical filters (:mod:`neural_estimator.filters`) and the neural models
-(:mod:`neural_estimator.models`) implement :class:`Estimator`; :mod:`neural_estimator.registry`
-above them is the registry that builds any of the ten by name.
+(:mod:`neural_estimator.models`) implement :class:`Estimator`; the table of methods
+(:mod:`neural_estimator.methods.table`) names each of them and where its factory is, and
+:mod:`neural_estimator.methods.registry` builds any of them by name from the table.
 
 Contract (every method, classical or neural):
 
@@ -32,8 +33,9 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
-from neural_estimator.scenarios import Scenario
+from neural_estimator.methods import table
 from neural_estimator.options import did_you_mean
+from neural_estimator.scenarios import Scenario
 
 
 class EstimatorError(ValueError):
@@ -48,9 +50,11 @@ class Estimates(NamedTuple):
     diverged: np.ndarray  # (B,) True where the stream went non-finite at any step
 
 
-CLASSICAL_METHODS = ("ekf", "ukf", "enkf", "pf")
-NEURAL_METHODS = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
-METHODS = CLASSICAL_METHODS + NEURAL_METHODS
+# The names of the table (neural_estimator.methods.table) when this module was imported, for scripts
+# and tests; the package itself asks the table (table.names(), table.has()) when it needs to know.
+CLASSICAL_METHODS = table.names(family="classical")
+NEURAL_METHODS = table.names(family="neural")
+METHODS = table.names()
 
 
 def previous_controls(U: np.ndarray) -> np.ndarray:
@@ -147,10 +151,12 @@ class Estimator(ABC):
 
 
 def check_method(method: str) -> str:
-    """Return ``method`` lower-cased if known; otherwise an error listing the ten valid names."""
+    """Return ``method`` lower-cased if the table has it (a method compared, not a baseline);
+    otherwise an error listing the valid names."""
     m = str(method).strip().lower().replace("-", "")
-    if m not in METHODS:
+    valid = table.names()
+    if m not in valid:
         raise EstimatorError(
-            f"unknown method {method!r}{did_you_mean(method, METHODS)}; choose one of: {', '.join(METHODS)}"
+            f"unknown method {method!r}{did_you_mean(method, valid)}; choose one of: {', '.join(valid)}"
         )
     return m

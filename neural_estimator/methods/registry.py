@@ -1,18 +1,21 @@
-"""The registry of the ten methods: :func:`make_estimator` builds any of them by name.
+"""The registry: :func:`make_estimator` builds any method of the table by name.
 
-It sits above both families (:mod:`neural_estimator.filters`, :mod:`neural_estimator.models`), which
-implement the interface of :mod:`neural_estimator.estimator`; that interface is re-exported here, so
-``from neural_estimator.registry import Estimator, EstimatorError, METHODS`` keeps working for the
-layers above.
+The table (:mod:`neural_estimator.methods.table`) names each method's factory as ``"module:attribute"``
+text; :func:`make_estimator` resolves it with importlib when a method is built, so this module
+imports nothing above its layer (the filters, or the models and serving, are imported then: a
+process that runs an EKF never imports torch). The interface of
+:mod:`neural_estimator.methods.interface` is re-exported here, so ``from neural_estimator.methods.registry
+import Estimator, EstimatorError, METHODS`` keeps working for the layers above.
 """
 
 from __future__ import annotations
 
 import inspect
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from neural_estimator.estimator import (  # noqa: F401  re-exported: the interface, for the layers above
+from neural_estimator.methods import table
+from neural_estimator.methods.interface import (  # noqa: F401  re-exported: the interface, for the layers above
     CLASSICAL_METHODS,
     METHODS,
     NEURAL_METHODS,
@@ -22,23 +25,8 @@ from neural_estimator.estimator import (  # noqa: F401  re-exported: the interfa
     check_method,
     previous_controls,
 )
-from neural_estimator.filters.ekf import ExtendedKalmanFilter
-from neural_estimator.filters.enkf import EnsembleKalmanFilter
-from neural_estimator.filters.pf import ParticleFilter
-from neural_estimator.filters.ukf import UnscentedKalmanFilter
-from neural_estimator.scenarios import Scenario
 from neural_estimator.options import did_you_mean
-
-if TYPE_CHECKING:
-    from neural_estimator.serving.card import Checkpoint
-
-CLASSICAL_FILTERS: dict[str, type[Estimator]] = {
-    "ekf": ExtendedKalmanFilter,
-    "ukf": UnscentedKalmanFilter,
-    "enkf": EnsembleKalmanFilter,
-    "pf": ParticleFilter,
-}
-assert tuple(CLASSICAL_FILTERS) == CLASSICAL_METHODS
+from neural_estimator.scenarios import Scenario
 
 
 PER_MESSAGE_BACKEND = "auto"  # a neural model stepped one message at a time: step.onnx without torch where shipped
@@ -52,7 +40,7 @@ def per_message_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
     keep torch (``make_estimator``'s own default). The live node and replay share this default, so
     replay gives the live node's estimates."""
     options = dict(options)
-    if check_method(method) in NEURAL_METHODS:
+    if table.has(check_method(method), family="neural"):
         options.setdefault("backend", PER_MESSAGE_BACKEND)
     return options
 
@@ -61,12 +49,12 @@ def make_estimator(
     method: str,
     scenario: Scenario,
     *,
-    checkpoint: str | Path | Checkpoint | None = None,
+    checkpoint: str | Path | Any | None = None,  # Any: a serving.card.Checkpoint (layer 6, not imported)
     device: str = "cpu",
     seed: int = 0,
     **options: Any,
 ) -> Estimator:
-    """Build one of the ten methods for ``scenario``.
+    """Build method ``method`` of the table for ``scenario``, with the factory its spec names.
 
     Classical filters take their settings from ``options`` (paper defaults otherwise) and ``seed``
     for their random draws. Neural models load ``checkpoint`` (a directory or its ``.json`` card, or a
@@ -76,17 +64,15 @@ def make_estimator(
     (``covariance=False`` skips the Filterformer's per-step covariance).
     """
     m = check_method(method)
-    if m in CLASSICAL_FILTERS:
-        return CLASSICAL_FILTERS[m](scenario, seed=seed, **options)
-    # Imported here, not at the top: the neural side imports torch (1-2 s), which a process that
-    # only runs filters (an EKF node, a classical evaluate) should not pay.
-    from neural_estimator.serving.load import load_neural_estimator
-
+    spec = table.spec(m)
+    # Resolved here, not imported at the top: the neural side imports torch (1-2 s), which a process
+    # that only runs filters (an EKF node, a classical evaluate) should not pay.
+    factory = table.resolve(spec.factory)
+    if not spec.trainable:  # built from the scenario: its settings in options, seed for its random draws
+        return factory(scenario, seed=seed, **options)
     # an unknown option is the caller's one-line error, not a TypeError from deep inside
     valid = [
-        n
-        for n in inspect.signature(load_neural_estimator).parameters
-        if n not in ("method", "scenario", "checkpoint", "device")
+        n for n in inspect.signature(factory).parameters if n not in ("method", "scenario", "checkpoint", "device")
     ]
     unknown = sorted(set(options) - set(valid))
     if unknown:
@@ -94,4 +80,4 @@ def make_estimator(
             f"{m}: unknown option(s) {', '.join(unknown)}{did_you_mean(unknown[-1], valid)}; valid: {', '.join(valid)}"
             + (" (torch threads: the threads setting, not an option)" if "threads" in unknown else "")
         )
-    return load_neural_estimator(m, scenario, checkpoint=checkpoint, device=device, **options)
+    return factory(m, scenario, checkpoint=checkpoint, device=device, **options)
