@@ -27,7 +27,7 @@ from neural_estimator.filters.enkf import EnsembleKalmanFilter
 from neural_estimator.filters.pf import ParticleFilter
 from neural_estimator.filters.ukf import UnscentedKalmanFilter
 from neural_estimator.scenarios import Scenario
-from neural_estimator.options import did_you_mean
+from neural_estimator.core.options import did_you_mean
 
 if TYPE_CHECKING:
     from neural_estimator.serving.card import Checkpoint

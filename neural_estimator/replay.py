@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 
-from neural_estimator.atomic import replaced_atomically, temporary_name
+from neural_estimator.core.atomic import replaced_atomically, temporary_name
 from neural_estimator.bags import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag

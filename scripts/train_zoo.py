@@ -99,7 +99,7 @@ from neural_estimator.training.recipe import TrainConfig
 from neural_estimator.training.resume import RESUME_DIR
 from neural_estimator.training.stopping import plateau_rule
 from neural_estimator.training.threads import ThreadGovernor
-from neural_estimator.runtime import tune_allocator
+from neural_estimator.core.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, EVALUATION_CONSTANTS, default_preset, make_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class, parse_message_type
+from neural_estimator.core.interfaces import InterfaceError, check_message_type, is_message_class, parse_message_type
 
 EVIL = "evilpkg/msg/Boom"
 
@@ -76,7 +76,7 @@ def test_a_crafted_package_name_runs_no_code(evil_package):
 def test_a_declared_name_must_still_be_a_rosidl_message_class(evil_package, tmp_path, monkeypatch):
     """A package the index declares (the index is trusted) still has to hold a generated message class."""
     pytest.importorskip("rclpy")
-    from neural_estimator.interfaces import _declared
+    from neural_estimator.core.interfaces import _declared
     from neural_estimator.nodes.common import message_class
 
     index = tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"

@@ -17,7 +17,7 @@ from pathlib import Path
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.reader import BagDamage
-from neural_estimator.atomic import replaced_atomically, temporary_name
+from neural_estimator.core.atomic import replaced_atomically, temporary_name
 from neural_estimator.bags.writer import BagWriter, QosError, parse_qos_yaml
 
 

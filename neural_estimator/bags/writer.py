@@ -29,7 +29,7 @@ import yaml
 from mcap.writer import CompressionType, Writer
 
 from neural_estimator import __version__
-from neural_estimator.safe_yaml import YamlError, load_yaml
+from neural_estimator.core.safe_yaml import YamlError, load_yaml
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.messages import TYPESTORE
 

@@ -233,7 +233,7 @@ def _print_given_decision(truth, reports, warmup: int, errors) -> None:
 
 def _write_table(path: str, reports) -> None:
     from neural_estimator import metrics as M
-    from neural_estimator.atomic import write_text_atomically
+    from neural_estimator.core.atomic import write_text_atomically
 
     out = Path(path)
     if out.suffix == ".csv":

@@ -48,7 +48,7 @@ from neural_estimator.registry import (
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.filters.enkf import EnKFHyperParams
 from neural_estimator.filters.pf import PFHyperParams
-from neural_estimator.options import parse_value
+from neural_estimator.core.options import parse_value
 from neural_estimator.scenarios import Scenario
 from neural_estimator.evaluation.families import check_unsealed
 from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run

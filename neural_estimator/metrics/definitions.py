@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from neural_estimator.angles import wrap_components
+from neural_estimator.core.angles import wrap_components
 from neural_estimator.metrics.checks import MetricsError, check_curve, check_errors, check_pair
 from neural_estimator.metrics.outliers import OUTLIER_Z, outlier_mask
 

@@ -6,7 +6,7 @@
 The checkpoint's card (``neural-estimator train --data``) carries the spec the model was trained
 with (docs/robot.md). The node needs no scenario: it subscribes to the spec's
 observation and control topics with their own message types (found on the graph when a publisher
-appears, and checked as the evaluator checks foreign types: ``neural_estimator.interfaces``),
+appears, and checked as the evaluator checks foreign types: ``neural_estimator.core.interfaces``),
 reads the spec's fields from every message, and hands them to a
 :class:`~neural_estimator.robot.ticker.Ticker`: the dataset builder's ticks and sampling on the
 messages' own stamps (header stamps, or receipt times for a ``stamp: log`` spec), the model

@@ -13,7 +13,7 @@ from typing import Any
 
 from neural_estimator.estimator import EstimatorError, check_method
 from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
-from neural_estimator.options import OptionError, parse_bool, parse_value
+from neural_estimator.core.options import OptionError, parse_bool, parse_value
 from neural_estimator.serving.onnx_runtime import ATTENTION, WindowMismatch, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 

@@ -26,7 +26,7 @@ from torch import nn
 from neural_estimator.estimator import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.serving.normalization import Normalizer
-from neural_estimator.options import OptionError, parse_bool, parse_value
+from neural_estimator.core.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
 
 RECURRENT = ("gru", "lstm", "mamba", "mamba2")  # the methods whose context can be bounded (option context)
