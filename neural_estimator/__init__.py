@@ -7,8 +7,8 @@ Layers, bottom first. A module imports only from its own layer or those below it
 or inside a function alike, and module-level imports form no cycle (``test/test_layers.py`` walks
 every import of the package against this list):
 
-1. ``core`` (angles, atomic, safe_yaml, options, interfaces, runtime), ``metrics``, ``consistency``,
-   ``plots``, ``expected_failures``, ``paper``
+1. ``core`` (angles, atomic, safe_yaml, options, interfaces, runtime), ``metrics`` (with consistency, plots),
+   ``expected_failures``, ``paper``
 2. ``scenarios``: the five nonlinear systems (pure numpy)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)

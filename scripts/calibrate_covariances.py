@@ -7,7 +7,7 @@ validation trajectories (role "val", index CALIBRATION_INDEX of neural_estimator
 evaluation's warm-up left out, the metrics' outlier rule applied). The remedy kept is the one with the
 smallest calibration error (mean |coverage(q) - q| over the reliability levels) among those whose
 RMSE is within 5 % of the paper's setting; then one covariance scale ``cov_scale`` is fitted on the
-same NEES (neural_estimator.consistency.fit_scale, target "band": the smallest calibration error
+same NEES (neural_estimator.metrics.consistency.fit_scale, target "band": the smallest calibration error
 with the 95 % coverage in [0.92, 0.97] on the validation set). The result is written to
 neural_estimator/uncertainty/calibrated_filters.json as the options to pass (``--option
 enkf.inflation=1.05 --option enkf.cov_scale=1.3``) with the validation figures before and after.
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neural_estimator import consistency as C
+from neural_estimator.metrics import consistency as C
 from neural_estimator import metrics as M
 from neural_estimator.data import protocol
 from neural_estimator.estimator import CLASSICAL_METHODS

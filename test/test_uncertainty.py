@@ -12,7 +12,7 @@ import torch
 
 from neural_estimator import metrics as M
 from neural_estimator.models import build_model
-from neural_estimator import consistency as C
+from neural_estimator.metrics import consistency as C
 from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -81,9 +81,9 @@ class BagReport:
         return head + ":\n" + "".join(f"  {line}\n" for line in loss_lines(self.bag, dropped))
 
     def consistency(self, fmt: str = "text") -> str:
-        """The consistency table of the streams that carried a covariance (:mod:`neural_estimator.consistency`),
+        """The consistency table of the streams that carried a covariance (:mod:`neural_estimator.metrics.consistency`),
         or "" when none did."""
-        from neural_estimator import consistency as C
+        from neural_estimator.metrics import consistency as C
 
         rows = {
             m: C.consistency_row(
@@ -198,7 +198,7 @@ def recorded_starts(path: str | Path) -> dict[str, str]:
 
 def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[str, Path]:
     """Write ``<prefix>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` (default: beside the bag)."""
-    from neural_estimator.plots import plot_rmse_over_time
+    from neural_estimator.metrics.plots import plot_rmse_over_time
 
     base = Path(prefix) if prefix is not None else report.path.with_suffix("")
     base.parent.mkdir(parents=True, exist_ok=True)

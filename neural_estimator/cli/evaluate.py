@@ -520,7 +520,7 @@ def _print_decision(scenario, results) -> None:
 
 def _print_consistency(results, dx: int) -> None:
     """The consistency table of the methods that report a covariance (docs/uncertainty.md)."""
-    from neural_estimator.consistency import COVERAGE_BAND, NEES_BAND
+    from neural_estimator.metrics.consistency import COVERAGE_BAND, NEES_BAND
     from neural_estimator.evaluation import consistency_table
 
     table = consistency_table(results, dx, fmt="text")

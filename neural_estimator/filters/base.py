@@ -132,7 +132,7 @@ class ClassicalFilter(Estimator):
         threads: worker threads over blocks of streams (None: :func:`default_threads`). Not a
             hyperparameter: results do not depend on it (see :meth:`block_rng`).
         cov_scale: s > 0, the reported covariance is s P (the filter itself runs on P): a post-hoc
-            calibration fitted on validation data (:mod:`neural_estimator.consistency`,
+            calibration fitted on validation data (:mod:`neural_estimator.metrics.consistency`,
             ``scripts/calibrate_covariances.py``); 1, the paper's, reports P as it is.
 
     Blocks and threads. The B streams are processed in blocks of ``block_size`` consecutive

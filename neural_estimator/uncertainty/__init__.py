@@ -9,6 +9,6 @@
   (``scripts/calibrate_covariances.py`` chose them on validation data).
 
 The figures they are judged by (NEES, coverage, the reliability curve, the calibration scale) are
-:mod:`neural_estimator.consistency`; every method also takes a ``cov_scale`` option (the classical
+:mod:`neural_estimator.metrics.consistency`; every method also takes a ``cov_scale`` option (the classical
 filters and the neural models alike) that multiplies the covariance it reports.
 """
