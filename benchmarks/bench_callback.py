@@ -69,9 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.core >= 0:
         os.sched_setaffinity(0, {a.core})
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.data import simulate
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.registry import make_estimator, per_message_options
     from neural_estimator.scenarios import make_scenario
 

@@ -191,10 +191,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def callback_work(methods: list[str], messages: int) -> dict[str, tuple[float, float]]:
     """p50 / p99 µs of each part of the estimator node's per-message work, outside ROS."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.data import simulate
     from neural_estimator.nodes.outputs import StateEncoder
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 

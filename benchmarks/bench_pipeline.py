@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neural_estimator.bags import bag_to_arrays  # noqa: E402
-from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.stream import messages as M  # noqa: E402
 from neural_estimator.nodes.common import EXECUTOR_ENV  # noqa: E402
 from neural_estimator.nodes.launch import PipelineConfig, PipelineError, PipelineResult, run_pipeline  # noqa: E402
 

@@ -34,12 +34,12 @@ def rss_mib() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.data import simulate
     from neural_estimator.nodes.estimator_stats import EstimatorStats, health
     from neural_estimator.nodes.heap_trace import HeapTrace
     from neural_estimator.nodes.outputs import StateEncoder
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 

@@ -79,7 +79,7 @@ def stream_losses(bag: Path, expected: int, horizon: int) -> dict:
     of each level; and the span of the observations' publish (source) times."""
     from mcap.reader import make_reader
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
 
     codec = M.VectorCodec("", ())
     seen: dict[str, bytearray] = {}

@@ -16,9 +16,10 @@ every import of the package against this list):
    Mamba, Mamba-2), ``baselines`` (the open-loop and observation-only reference rows)
 6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo);
    ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
-7. ``registry``: every method by name (``make_estimator``)
-8. ``training``, ``bags``, ``evaluation``, ``online``, ``replay``, ``robot``, ``departures``: the
-   training run, MCAP I/O, the evaluation protocol, the per-message estimator, bag replay, recorded
+7. ``registry``: every method by name (``make_estimator``); ``stream``: the live message format and the
+   per-message estimator (no ROS)
+8. ``training``, ``bags``, ``evaluation``, ``replay``, ``robot``, ``departures``: the
+   training run, MCAP I/O, the evaluation protocol, bag replay, recorded
    robot data, the marks of departures from the paper's protocol
 9. ``reproduce``: the paper's experiments on Ray
 10. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy

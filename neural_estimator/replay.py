@@ -1,6 +1,6 @@
 """Bag replay: a bag's observations through estimators at full speed, without DDS, into a new bag.
 
-Each observation goes through :class:`~neural_estimator.online.OnlineEstimator`, the estimator
+Each observation goes through :class:`~neural_estimator.stream.online.OnlineEstimator`, the estimator
 node's own per-message code, so a replay gives the estimates a live node would have published.
 """
 
@@ -15,14 +15,14 @@ from typing import Any
 
 
 from neural_estimator.core.atomic import replaced_atomically, temporary_name
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
 from neural_estimator.estimator import EstimatorError
 from neural_estimator.registry import make_estimator, per_message_options
 
-from neural_estimator.online import (
+from neural_estimator.stream.online import (
     DEFAULT_MAX_GAP,
     DEFAULT_MAX_GAP_SECONDS,
     OnlineEstimator,

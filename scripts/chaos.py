@@ -43,7 +43,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.stream import messages as M  # noqa: E402
 from neural_estimator.data import simulate  # noqa: E402
 from neural_estimator.nodes.launch import (  # noqa: E402
     ESTIMATOR,

@@ -8,8 +8,8 @@ Targets (each takes one byte string from the fuzzer):
   ``replay`` and the player do with a bag they are given);
 * ``rosbag2``: the bytes as the ``metadata.yaml`` of a rosbag2 directory beside a valid bag;
 * ``cdr``: the bytes as a CDR message on every stream the nodes accept (observation, ground truth,
-  estimate, covariance: :class:`~neural_estimator.bags.messages.VectorCodec` and
-  :func:`~neural_estimator.bags.messages.decode_vector`);
+  estimate, covariance: :class:`~neural_estimator.stream.messages.VectorCodec` and
+  :func:`~neural_estimator.stream.messages.decode_vector`);
 * ``scenario``: the bytes as a ``scenario`` topic message, decoded and turned into a scenario as
   the estimator node does (:func:`~neural_estimator.scenarios.scenario_from_description`).
 
@@ -41,7 +41,7 @@ import atheris
 with atheris.instrument_imports(include=["neural_estimator"]):
     import numpy as np
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.bags.directory import open_bag
     from neural_estimator.bags.errors import BagError, BagWarning, MessageError
     from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description

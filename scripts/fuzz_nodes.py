@@ -54,7 +54,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.stream import messages as M  # noqa: E402
 from neural_estimator.nodes.launch import ESTIMATOR, EVALUATOR, isolated_env, node_command, start_node  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
 

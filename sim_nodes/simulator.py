@@ -3,7 +3,7 @@
     ros2 run neural_estimator simulator --ros-args -p scenario:=lorenz96 -p trajectories:=2
     python -m sim_nodes.simulator --ros-args -p scenario:=lorenz96       # without ros2
 
-Publishes (relative names, layout of :mod:`neural_estimator.bags.messages`):
+Publishes (relative names, layout of :mod:`neural_estimator.stream.messages`):
 
 - ``scenario`` (std_msgs/String, JSON, reliable + transient_local depth 1) once, first;
 - ``run_status`` (std_msgs/String, JSON, reliable + transient_local depth 1): "started", then
@@ -49,7 +49,7 @@ from std_msgs.msg import String
 from neural_estimator.nodes.odometry import has_pose, make_odometry
 from neural_estimator.nodes.outputs import TRUTH_ODOMETRY
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,

@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from neural_estimator.bags import BagError, BagReader, BagWarning, BagWriter, LATCHED_QOS, MessageError, STREAM_QOS
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
 from neural_estimator.data import simulate
 from neural_estimator.scenarios import Scenario, register_scenario, scenario_from_description
@@ -545,7 +545,7 @@ def test_replay_equals_run_and_reads_any_order(tmp_path):
 
 def test_online_estimator_stream_rules():
     from neural_estimator.registry import make_estimator
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
 
     s = Cart()
     data = simulate(s, 1, 8, seed=2)

@@ -11,10 +11,10 @@ from rosbags.typesys import Stores, get_typestore
 
 from neural_estimator import cli
 from neural_estimator.bags import BagWriter, STREAM_QOS, arrays_to_bag, bag_to_arrays, open_bag
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.data import simulate
 from neural_estimator.registry import make_estimator
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.replay import replay
 from neural_estimator.scenarios import make_scenario
 
@@ -372,7 +372,7 @@ def test_bad_method_options_are_one_line(option, scen, data, tmp_path, capsys):
 
 def test_replay_threads(scen, data, tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from neural_estimator.online import set_torch_threads
+    from neural_estimator.stream.online import set_torch_threads
 
     before = torch.get_num_threads()
     try:

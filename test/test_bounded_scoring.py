@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from neural_estimator.bags import bounded, spilled_cells
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.dataset import load_bag_dataset
 from neural_estimator.bags.errors import BagError
 from neural_estimator.bags.report import evaluate_bag

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from neural_estimator.bags import BagError, BagWriter
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
 from neural_estimator.data import simulate
 from neural_estimator.scenarios import make_scenario

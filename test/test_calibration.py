@@ -223,7 +223,7 @@ def test_a_candidate_that_cannot_be_simulated_prints_one_line_and_the_search_goe
 
 
 def test_the_preset_travels_in_bags_and_result_files():
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.evaluation import evaluate, results_json
 
     s = make_scenario("quadrotor", preset="v3")

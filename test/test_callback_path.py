@@ -9,9 +9,9 @@ import itertools
 import numpy as np
 import pytest
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.online import OnlineEstimator, finite_parts
+from neural_estimator.stream.online import OnlineEstimator, finite_parts
 from neural_estimator.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 

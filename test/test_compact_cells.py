@@ -10,7 +10,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
 from neural_estimator.bags.errors import BagError
 from neural_estimator.bags.writer import BagWriter

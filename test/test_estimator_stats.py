@@ -115,9 +115,9 @@ def test_steps_a_restart_skipped_are_lost_upstream_and_reported():
     missed steps, in the window's losses and in "observations lost upstream"."""
     import numpy as np
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.data import simulate
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
@@ -156,8 +156,8 @@ def test_whole_trajectories_lost_from_a_lagging_nodes_queue_are_counted():
     trajectories in between are missed too: (H - 1 - 152) + 4 H + 193."""
     import numpy as np
 
-    from neural_estimator.bags import messages as M
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream import messages as M
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 

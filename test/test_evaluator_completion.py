@@ -63,7 +63,7 @@ def test_a_scored_stream_that_still_moves_is_waited_for(monkeypatch):
 def test_a_complete_status_with_a_bad_count_is_ignored_not_fatal(monkeypatch, messages):
     """Found by scripts/fuzz_nodes.py: int(status["messages"]) raised inside the recorder's timer
     (a dead evaluator) for "x" or null; such a status is now one warning and ignored."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
 
     clock = [0.0]
     E, ev, _ = _evaluator(monkeypatch, clock)

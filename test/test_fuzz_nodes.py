@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from conftest import load_script
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.nodes import outputs as O
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from ros_tester import Tester, fresh_domain
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 
 pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 

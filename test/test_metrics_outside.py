@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.reader import BagReader
 from neural_estimator.bags.writer import BagWriter
 from neural_estimator.cli.app import main

@@ -21,7 +21,7 @@ import pytest
 from ros_tester import Tester, fresh_domain
 
 from neural_estimator.bags import BagReader, BagWarning, arrays_to_bag, bag_to_arrays
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.data import simulate
 from neural_estimator.nodes.launch import (
     ESTIMATOR,
@@ -507,7 +507,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
 
     from neural_estimator.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")

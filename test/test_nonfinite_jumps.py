@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from neural_estimator.bags import BagWriter, bag_to_arrays
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.data import simulate
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.registry import make_estimator
 from neural_estimator.replay import replay
 from neural_estimator.scenarios import make_scenario

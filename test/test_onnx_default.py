@@ -133,10 +133,10 @@ _PER_MESSAGE = """
 import json
 import numpy as np
 import neural_estimator.nodes.estimator_node  # the node's own imports
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.data import simulate
 from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
-from neural_estimator.online import warm_up
+from neural_estimator.stream.online import warm_up
 from neural_estimator.registry import make_estimator, per_message_options
 from neural_estimator.scenarios import make_scenario
 
@@ -159,7 +159,7 @@ def test_the_node_per_message_path_runs_without_torch_and_equals_torch():
     """The estimator node's per-message path (its imports, the estimator its defaults build, the
     warm-up, OnlineEstimator.feed on CDR messages) in a process where torch cannot be imported;
     its estimates equal those of the torch backend on the same messages."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))

@@ -262,7 +262,7 @@ def test_served_live_the_model_scores_what_evaluate_scored_on_the_recordings_clo
     import json
 
     from neural_estimator.bags import BagReader
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.nodes.launch import ESTIMATOR, EVALUATOR, isolated_env, node_command, start_node
 
     bag = robot_bag.write_bag(tmp_path / "bag", runs=2, seconds=42.0, seed=3)

@@ -259,7 +259,7 @@ def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_f
     vector for every method, each matching the estimate stream."""
     pytest.importorskip("rclpy")
     from neural_estimator.bags import BagReader
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.nodes.launch import PipelineConfig, run_pipeline
 
     methods = ("ekf", "gru", "lstm")
@@ -321,12 +321,12 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from sensor_msgs.msg import JointState
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.data import simulate
     from neural_estimator.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
     from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
     domain = fresh_domain()

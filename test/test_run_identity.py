@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.data import simulate
 from neural_estimator.nodes.run_identity import MAX_STARTS, RunIdentity
 from neural_estimator.scenarios import make_scenario

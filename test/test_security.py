@@ -99,7 +99,7 @@ def ros():
 
 
 def test_the_player_plays_nothing_a_bag_names_that_is_not_a_ros_interface(ros, evil_package, tmp_path):
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.bags.writer import BagWriter
     from neural_estimator.nodes.player_node import PlayerNode
 
@@ -176,7 +176,7 @@ def test_a_description_declaring_a_huge_dimension_is_refused_before_any_allocati
 
 
 def test_an_oversized_or_deeply_nested_json_message_is_refused():
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.bags.errors import MessageError
 
     with pytest.raises(MessageError, match="larger than the"):
@@ -190,7 +190,7 @@ def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
     import time
     import tracemalloc
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.bags.errors import MessageError
 
     codec = M.VectorCodec("lorenz96", [f"y{j}" for j in range(40)])
@@ -209,7 +209,7 @@ def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
 
 
 def test_the_estimator_node_refuses_a_hostile_scenario_and_keeps_serving(ros, tmp_path):
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.nodes.estimator_node import EstimatorNode
     from neural_estimator.scenarios import make_scenario
 
@@ -283,7 +283,7 @@ def test_a_card_cannot_name_a_weight_file_outside_its_checkpoint(tmp_path, name)
 
 def test_no_message_or_card_can_name_a_plugin_to_load(tmp_path):
     """Plugins run code: only the user's explicit --plugin / plugins parameter loads one."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description
 
     marker = tmp_path / "ran"

@@ -253,8 +253,8 @@ def test_evaluate_reports_a_consistency_table_and_the_reliability_curve():
 def test_the_live_path_publishes_the_heads_covariance(tmp_path):
     """The node's per-message path (OnlineEstimator) of a neural model with a head carries its
     covariance in every result and builds the covariance message (no 'not estimated' diagonal)."""
-    from neural_estimator.bags import messages as BM
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream import messages as BM
+    from neural_estimator.stream.online import OnlineEstimator
 
     scenario, data, plain, est = _estimator_with_head(tmp_path)
     online = OnlineEstimator(est, "gru")

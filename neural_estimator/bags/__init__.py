@@ -1,6 +1,6 @@
 """MCAP bags in the rosbag2 layout, and the message layout of every stream (no rclpy here).
 
-- :mod:`~neural_estimator.bags.messages`: topics, names and the array <-> CDR conversions.
+- :mod:`~neural_estimator.stream.messages`: topics, names and the array <-> CDR conversions.
 - :class:`BagWriter` / :class:`BagReader`: one ``.mcap`` file, written as rosbag2 writes it, read
   back even when the recording was cut short; :func:`open_bag` also opens a rosbag2 directory.
 - :func:`bag_to_arrays` / :func:`arrays_to_bag`: a recorded run as arrays keyed by (trajectory,

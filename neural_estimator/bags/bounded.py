@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.bags import dataset as DS
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import BagError
 from neural_estimator.bags.spilled_cells import SpilledCells
 from neural_estimator.metrics.paired import TrajectoryErrors

@@ -1,4 +1,4 @@
-"""A run as arrays <-> a bag: the dataset view of the streams of :mod:`~neural_estimator.bags.messages`.
+"""A run as arrays <-> a bag: the dataset view of the streams of :mod:`~neural_estimator.stream.messages`.
 
 :func:`bag_to_arrays` gathers every vector message of a bag by its in-band identity (trajectory,
 step), whatever order the messages were recorded in, into (N, T, .) arrays; cells without a message
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.cells import StreamCells
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag

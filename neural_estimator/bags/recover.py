@@ -95,7 +95,7 @@ def _checked_qos(topic: str, text: str, refused: list[str]) -> list:
 
 def _count(topic: str, raw: bytes, counts: dict[str, int], run: dict | None) -> dict | None:
     """Count a vector stream's message; return the run a /scenario message announces (else ``run``)."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as M
     from neural_estimator.bags.errors import MessageError
 
     leaf = topic.rsplit("/", 1)[-1]

@@ -22,7 +22,7 @@ publisher, e.g. a driver's sensor-data QoS). Estimate publishers are reliable + 
 with a history bounded in messages (``history_depth``) and in memory (``history_mb``), so a late
 recorder or ``ros2 topic echo --qos-durability transient_local`` gets the start of the stream.
 Timers run on the steady clock, so ``use_sim_time`` without ``/clock`` silences nothing.
-The per-message work is :class:`neural_estimator.online.OnlineEstimator` (the same code as offline
+The per-message work is :class:`neural_estimator.stream.online.OnlineEstimator` (the same code as offline
 replay); this node only wires it to topics. Parameters: ``params/estimator.yaml``.
 
 Staying current. Each wake-up of the executor takes every observation waiting in the subscription
@@ -40,7 +40,7 @@ A message that cannot be used (wrong width or names, NaN control, empty, unparsa
 any valid one) is logged (throttled), counted in the diagnostics and dropped; the node never stops
 on one. No single message moves the stream: a jump in trajectory or step (or stamps that go back,
 a restarted publisher) is held until the next message confirms it (``confirm``) or the stream
-falls silent (``quarantine_seconds``); see :mod:`neural_estimator.online`. Diagnostics are WARN
+falls silent (``quarantine_seconds``); see :mod:`neural_estimator.stream.online`. Diagnostics are WARN
 whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An unknown
 method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
@@ -58,7 +58,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.registry import NEURAL_METHODS, EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
@@ -80,7 +80,7 @@ from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_va
 from neural_estimator.nodes.heap_trace import HeapTrace
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
 from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams, online_estimator
-from neural_estimator.online import OnlineEstimator, warm_up
+from neural_estimator.stream.online import OnlineEstimator, warm_up
 from neural_estimator.serving.card import recorded_data_checkpoint
 
 EARLY_MAX_BYTES = 1 << 20  # an observation kept while waiting for the scenario (width unknown yet): 1 MiB

@@ -26,7 +26,7 @@ import warnings
 
 from rclpy.duration import Duration
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import QosError, parse_qos_yaml

@@ -2,7 +2,7 @@
 
 A run announces itself once on ``/scenario`` with ``run.start_ns`` (the simulation time of its
 first step), ``run.horizon`` T and ``run.dt_ns``; every observation of it is stamped
-``start_ns + (n * T + k) * dt_ns`` (:func:`neural_estimator.bags.messages.step_stamp_ns`). So each
+``start_ns + (n * T + k) * dt_ns`` (:func:`neural_estimator.stream.messages.step_stamp_ns`). So each
 observation carries its run's identity in-band, recoverable exactly in integers:
 
     start(message) = stamp_ns - (n * T + k) * dt_ns
@@ -19,7 +19,7 @@ Plain Python (no rclpy): the evaluator node calls it from its recorder.
 
 from __future__ import annotations
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as M
 from neural_estimator.bags.errors import MessageError
 
 MAX_STARTS = 16  # foreign starts counted one by one; beyond this, together (a bounded dict)

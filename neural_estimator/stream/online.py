@@ -1,7 +1,7 @@
 """Estimation per observation message: the one code path of the live estimator node and of replay.
 
 :class:`OnlineEstimator` turns one observation message (CDR bytes, layout of
-:mod:`neural_estimator.bags.messages`) into the estimate message (and covariance message) of that
+:mod:`neural_estimator.stream.messages`) into the estimate message (and covariance message) of that
 step. The estimator node calls it from its subscription callback; bag replay
 (:func:`neural_estimator.replay.replay`) calls it for every observation of a bag at full speed,
 without DDS. Same bytes in, same calls, same estimates out.
@@ -49,8 +49,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from neural_estimator.bags import messages as M
-from neural_estimator.bags.errors import MessageError
+from neural_estimator.stream import messages as M
+from neural_estimator.stream.errors import MessageError
 from neural_estimator.registry import NEURAL_METHODS, Estimator, EstimatorError
 
 DEFAULT_MAX_GAP = 1_000
