@@ -133,7 +133,7 @@ _PER_MESSAGE = """
 import json
 import numpy as np
 import neural_estimator.nodes.estimator_node  # the node's own imports
-from neural_estimator.stream import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
 from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 from neural_estimator.stream.online import warm_up
@@ -147,7 +147,7 @@ online = online_estimator(est, "mamba", EstimatorParams())
 data = simulate(scen, 1, 60, 5)
 out = []
 for k in range(60):
-    for r in online.feed(M.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0):
+    for r in online.feed(MSG.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0):
         out.append(r.x_hat.tolist())
 assert "torch" not in sys.modules or sys.modules["torch"] is None
 print(json.dumps(out))
@@ -159,7 +159,7 @@ def test_the_node_per_message_path_runs_without_torch_and_equals_torch():
     """The estimator node's per-message path (its imports, the estimator its defaults build, the
     warm-up, OnlineEstimator.feed on CDR messages) in a process where torch cannot be imported;
     its estimates equal those of the torch backend on the same messages."""
-    from neural_estimator.stream import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
@@ -174,7 +174,7 @@ def test_the_node_per_message_path_runs_without_torch_and_equals_torch():
     ref = [
         r.x_hat
         for k in range(60)
-        for r in online.feed(M.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0)
+        for r in online.feed(MSG.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0)
     ]
     assert served.shape == (60, scen.dx)
     np.testing.assert_allclose(served, np.array(ref), rtol=1e-5, atol=1e-5)

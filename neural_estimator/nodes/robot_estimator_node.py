@@ -37,7 +37,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from neural_estimator.stream import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.nodes.diagnostics import (
     OK,
     WARN,
@@ -126,7 +126,7 @@ class RobotEstimatorNode(ExitStatusNode):
         self._refused: set[str] = set()
         now = time.monotonic()
         self.monitors = {t: self.pd.monitor(t, now, rates.get(t)) for t in self.fields}
-        out = p.output_topic or M.estimate_topic(self.method)
+        out = p.output_topic or MSG.estimate_topic(self.method)
         self.pub_est = self.create_publisher(JointState, out, stream_qos(1000))
         try:
             self.outputs = Outputs(
