@@ -18,7 +18,7 @@ every import of the package against this list):
    ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
 7. ``registry``: every method by name (``make_estimator``); ``stream``: the live message format and the
    per-message estimator (no ROS)
-8. ``training``, ``bags``, ``evaluation``, ``replay``, ``robot``, ``departures``: the
+8. ``training``, ``bags``, ``evaluation``, ``robot``, ``departures``: the
    training run, MCAP I/O, the evaluation protocol, bag replay, recorded
    robot data, the marks of departures from the paper's protocol
 9. ``reproduce``: the paper's experiments on Ray

@@ -432,7 +432,7 @@ def test_writer_closes_file_when_body_raises(tmp_path):
 # ---- evaluation inputs and offline replay ----------------------------------------------------------------
 def test_load_bag_dataset_and_report(tmp_path):
     from neural_estimator.bags import load_bag_dataset
-    from neural_estimator.bags.report import evaluate_bag, write_report
+    from neural_estimator.evaluation.bag_report import evaluate_bag, write_report
 
     s = Cart()
     data = simulate(s, 3, 20, seed=5)
@@ -466,7 +466,7 @@ def test_load_bag_dataset_and_report(tmp_path):
 
 
 def test_bag_report_warmup_and_runs_shorter_than_it(tmp_path):
-    from neural_estimator.bags.report import evaluate_bag
+    from neural_estimator.evaluation.bag_report import evaluate_bag
     from neural_estimator.metrics import MetricsError
 
     s = Cart()
@@ -514,7 +514,7 @@ def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
 
 def test_replay_equals_run_and_reads_any_order(tmp_path):
     from neural_estimator.registry import make_estimator
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     s = Cart()
     data = simulate(s, 2, 15, seed=6)

@@ -1,5 +1,5 @@
 """Scoring in memory that does not grow with the recording (metrics/streaming.py, metrics/spill.py,
-bags/spilled_cells.py, bags/bounded.py) gives the figures of the whole-array computation: the
+bags/spilled_cells.py, evaluation/bag_scoring.py) gives the figures of the whole-array computation: the
 block scorer equals compute_metrics, the spilled median equals np.median, and a bag scored block by
 block equals load_bag_dataset + compute_metrics, with missing cells, repeats, messages outside the
 announced run, a diverged stream and a method left out. The memory figures are in
@@ -13,11 +13,12 @@ import json
 import numpy as np
 import pytest
 
-from neural_estimator.bags import bounded, spilled_cells
+from neural_estimator.bags import spilled_cells
+from neural_estimator.evaluation import bag_scoring as bounded
 from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.dataset import load_bag_dataset
 from neural_estimator.bags.errors import BagError
-from neural_estimator.bags.report import evaluate_bag
+from neural_estimator.evaluation.bag_report import evaluate_bag
 from neural_estimator.bags.writer import BagWriter
 from neural_estimator.data import simulate
 from neural_estimator.evaluation.decision import estimates_decision

@@ -131,7 +131,7 @@ def test_recover_onto_a_full_disk_leaves_no_file(scen, tmp_path, monkeypatch):
 
 
 def test_the_loss_lines_say_what_each_stream_lost_and_why():
-    from neural_estimator.bags.report import loss_lines
+    from neural_estimator.evaluation.bag_report import loss_lines
 
     bag = {
         "received": {"observation": 98, "estimates/ukf": 90},

@@ -81,7 +81,7 @@ def _bag_with_qos(path, text):
 @pytest.mark.parametrize("case", ["string depth", "nested 5000 deep", "depth 1e12"])
 def test_replay_and_recover_finish_and_copy_nothing_absurd(tmp_path, case):
     from neural_estimator.bags.recover import recover_bag
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     bag = tmp_path / "hostile.mcap"
     _bag_with_qos(bag, HOSTILE[case])

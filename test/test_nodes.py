@@ -33,7 +33,7 @@ from neural_estimator.nodes.launch import (
     run_pipeline,
     start_node,
 )
-from neural_estimator.replay import replay
+from neural_estimator.evaluation.replay import replay
 
 pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 

@@ -15,7 +15,7 @@ from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
 from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.registry import make_estimator
-from neural_estimator.replay import replay
+from neural_estimator.evaluation.replay import replay
 from neural_estimator.scenarios import make_scenario
 
 T = 80

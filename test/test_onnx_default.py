@@ -214,7 +214,7 @@ def test_the_design_card_command_serves_without_torch(tmp_path):
 
 
 _REPLAY = """
-from neural_estimator.replay import replay
+from neural_estimator.evaluation.replay import replay
 res = replay({bag!r}, ["mamba"], {out!r})
 assert "torch" not in sys.modules or sys.modules["torch"] is None
 print(res.estimates["mamba"])
@@ -226,7 +226,7 @@ def test_replay_serves_as_the_live_node_without_torch(tmp_path):
     """Replay takes the live node's default (step.onnx, no torch): it runs where torch cannot be
     imported, and its estimates equal the torch backend's replay of the same bag within 1e-5."""
     from neural_estimator.bags import bag_to_arrays
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     bag = Path(__file__).resolve().parents[1] / "bags" / "lorenz96.mcap"
     out = tmp_path / "ort.mcap"

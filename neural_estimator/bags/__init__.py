@@ -5,7 +5,7 @@
   back even when the recording was cut short; :func:`open_bag` also opens a rosbag2 directory.
 - :func:`bag_to_arrays` / :func:`arrays_to_bag`: a recorded run as arrays keyed by (trajectory,
   step), and sample bags from simulated data; :func:`load_bag_dataset` for the metrics.
-- :mod:`~neural_estimator.bags.report`: the paper's metrics of a recorded run (imported on demand:
+- :mod:`~neural_estimator.evaluation.bag_report`: the paper's metrics of a recorded run (imported on demand:
   it pulls in scipy and matplotlib).
 """
 

@@ -82,7 +82,7 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
 def _scored_files(files: list[str], args: argparse.Namespace, warmup: int):
     """(run, {method: MetricReport}, {method: TrajectoryErrors}) of npz files or a bag; ``run`` has
     the ``n``, ``horizon`` and ``meta`` of what was scored. A bag is scored in bounded memory
-    (:func:`~neural_estimator.bags.bounded.score_bag`); npz files are held as arrays and scored
+    (:func:`~neural_estimator.evaluation.bag_scoring.score_bag`); npz files are held as arrays and scored
     block by block."""
     from neural_estimator.metrics.streaming import score_in_blocks
 
@@ -94,7 +94,7 @@ def _scored_files(files: list[str], args: argparse.Namespace, warmup: int):
             )
 
     if len(files) == 1 and is_bag(files[0]):
-        from neural_estimator.bags.bounded import score_bag
+        from neural_estimator.evaluation.bag_scoring import score_bag
 
         run = score_bag(
             files[0],
@@ -193,7 +193,7 @@ def _print_metrics(
     else:
         starts = dict(starts or {})
         if "bag" in truth.meta and not starts:  # the evaluator records how the filters started
-            from neural_estimator.bags.report import recorded_starts
+            from neural_estimator.evaluation.bag_report import recorded_starts
 
             starts = recorded_starts(files[0])
         for item in getattr(args, "start", None) or ():

@@ -18,7 +18,7 @@ messages on other recorded topics, such as a periodic ``/diagnostics``, are not 
 stream discovered yet, it waits that long for one), or, for a source without ``run_status`` (a
 foreign bag played, your own nodes), when no stream message arrived for ``idle_timeout`` s, the
 bag is closed, the paper's metrics are
-computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
+computed offline from it (:func:`neural_estimator.evaluation.bag_report.evaluate_bag`), the table is printed
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
 status 0 (1 if no metrics could be computed). After the table it prints, per stream, the messages
 received and lost and why (malformed, outside the announced run, duplicates, over ``max_message_mb``,
@@ -406,7 +406,7 @@ class EvaluatorNode(ExitStatusNode):
         total = sum(self.counts.values())
         starts = dict(item.split("=", 1) for item in self.p.starts if "=" in item)
         if starts:  # how the filters started, so that `metrics` on this bag marks them as this node does
-            from neural_estimator.bags.report import STARTS_METADATA
+            from neural_estimator.evaluation.bag_report import STARTS_METADATA
 
             self.bag.metadata[STARTS_METADATA] = starts
         try:
@@ -429,7 +429,7 @@ class EvaluatorNode(ExitStatusNode):
             request_shutdown(self, code)
 
     def _evaluate(self) -> int:
-        from neural_estimator.bags.report import evaluate_bag, write_report
+        from neural_estimator.evaluation.bag_report import evaluate_bag, write_report
         from neural_estimator.metrics import MetricsError
 
         if self.p.spec:

@@ -3,7 +3,7 @@
 :class:`OnlineEstimator` turns one observation message (CDR bytes, layout of
 :mod:`neural_estimator.stream.messages`) into the estimate message (and covariance message) of that
 step. The estimator node calls it from its subscription callback; bag replay
-(:func:`neural_estimator.replay.replay`) calls it for every observation of a bag at full speed,
+(:func:`neural_estimator.evaluation.replay.replay`) calls it for every observation of a bag at full speed,
 without DDS. Same bytes in, same calls, same estimates out.
 
 Stream rules (one estimator, B = 1), applied in arrival order (replay uses the bag's order, the

@@ -233,7 +233,7 @@ def _record_starts(out: BagWriter, methods, options) -> None:
     output bag then marks them as the run did."""
     starts = {m: str(o["init"]) for m, o in (options or {}).items() if m in methods and o.get("init")}
     if starts:
-        from neural_estimator.bags.report import STARTS_METADATA
+        from neural_estimator.evaluation.bag_report import STARTS_METADATA
 
         out.metadata[STARTS_METADATA] = starts
 

@@ -2,7 +2,7 @@
 
 The evaluator node calls this once the run is over; ``neural-estimator metrics run.mcap`` scores the
 same way. Both score in memory that does not grow with the recording's length
-(:func:`~neural_estimator.bags.bounded.score_bag`).
+(:func:`~neural_estimator.evaluation.bag_scoring.score_bag`).
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ def evaluate_bag(
     """
     if short_runs not in ("error", "score_all"):
         raise ValueError(f"short_runs must be 'error' or 'score_all', got {short_runs!r}")
-    from neural_estimator.bags.bounded import score_bag
+    from neural_estimator.evaluation.bag_scoring import score_bag
     from neural_estimator.evaluation.decision import estimates_decision
 
     run = score_bag(path, namespace=namespace, description=description, warmup=warmup, short_runs=short_runs)

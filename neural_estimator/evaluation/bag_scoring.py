@@ -65,7 +65,7 @@ def score_bag(
     check_horizon: Callable[[int], None] | None = None,
 ) -> ScoredRun:
     """Score every estimate stream of a bag in bounded memory (module docstring). ``warmup`` and
-    ``short_runs`` as :func:`~neural_estimator.bags.report.evaluate_bag`; ``check_horizon(T)``,
+    ``short_runs`` as :func:`~neural_estimator.evaluation.bag_report.evaluate_bag`; ``check_horizon(T)``,
     called once the run's horizon is known and before anything is scored, may raise (the
     ``metrics`` verb's own message for a warm-up too long).
 
