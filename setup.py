@@ -34,7 +34,7 @@ setup(
             "zoo/instances/*/*/*.json",
             "paper/paper_results.json",
             "nodes/*.xml",
-            "uncertainty/calibrated_filters.json",
+            "serving/uncertainty/calibrated_filters.json",
         ]
     },
     data_files=[

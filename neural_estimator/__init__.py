@@ -14,8 +14,8 @@ every import of the package against this list):
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
 5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (the six architectures: GRU, LSTM, GPT-2, Filterformer,
    Mamba, Mamba-2), ``baselines`` (the open-loop and observation-only reference rows)
-6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo);
-   ``uncertainty``: covariance heads on the served models' trunks, their fit and calibration
+6. ``serving``: a trained model as an estimator (checkpoint, card, normalisation, context, the zoo;
+   ``serving.uncertainty``: covariance heads on the served models' trunks, their fit and calibration)
 7. ``registry``: every method by name (``make_estimator``); ``stream``: the live message format and the
    per-message estimator (no ROS)
 8. ``training``, ``bags``, ``evaluation``, ``robot``, ``departures``: the

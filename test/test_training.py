@@ -106,7 +106,7 @@ def estimator_for(scenario, arch, data, seed=0, head=False):
     norm = Normalizer.from_data(scenario, data)
     model = build_model(arch, norm.d_in, scenario.dx)
     if head:
-        from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+        from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel
 
         cov_head = CholeskyHead(model.features(torch.zeros(1, 1, norm.d_in)).shape[-1], scenario.dx)
         with torch.no_grad():

@@ -1,4 +1,4 @@
-"""Covariance heads, consistency metrics and calibration (neural_estimator.uncertainty)."""
+"""Covariance heads, consistency metrics and calibration (neural_estimator.serving.uncertainty)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import torch
 from neural_estimator import metrics as M
 from neural_estimator.models import build_model
 from neural_estimator.metrics import consistency as C
-from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
+from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -299,7 +299,7 @@ def test_the_band_scale_trades_the_tail_for_the_bulk_on_heavy_tailed_errors():
 def test_the_calibrated_settings_are_options_every_filter_takes():
     from neural_estimator.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
-    from neural_estimator.uncertainty.calibrated import calibrated_options
+    from neural_estimator.serving.uncertainty.calibrated import calibrated_options
 
     scenario = make_scenario("nlink")
     for method in ("ekf", "ukf", "enkf", "pf"):
@@ -317,7 +317,7 @@ def test_every_calibrated_filter_setting_was_chosen_on_its_scenarios_default_con
     from pathlib import Path
 
     from neural_estimator.scenarios import BUILTIN_SCENARIOS, default_preset
-    from neural_estimator.uncertainty.calibrated import CALIBRATED_FILE
+    from neural_estimator.serving.uncertainty.calibrated import CALIBRATED_FILE
 
     spec = importlib.util.spec_from_file_location(
         "calibrate_covariances", Path(__file__).resolve().parents[1] / "scripts" / "calibrate_covariances.py"

@@ -118,7 +118,7 @@ def load_neural_estimator(
             default at ``neural_estimator/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
         covariance: report the covariance: the fitted covariance head's where the card has one
-            (``covariance_head``, :mod:`neural_estimator.uncertainty.heads`), else Filterformer's
+            (``covariance_head``, :mod:`neural_estimator.serving.uncertainty.heads`), else Filterformer's
             own; False reports none (and saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
         context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
@@ -178,7 +178,7 @@ def load_neural_estimator(
 
     model, normalizer, card = load_checkpoint(ckpt, device)
     if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
-        from neural_estimator.uncertainty.heads import attach_head
+        from neural_estimator.serving.uncertainty.heads import attach_head
 
         model = attach_head(model, directory, card["covariance_head"])
     if context is None:  # as the checkpoint was chosen: bounded if its validation was

@@ -11,7 +11,7 @@ One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, M
 over the batch to bound memory); a test holds it equal to a loop of :meth:`NeuralEstimator.step`.
 A non-finite observation row is replaced by the training mean (0 after normalisation) and flagged in
 ``skipped``. Filterformer also returns a covariance from its geometric-attention head, and any model
-with a fitted covariance head (:mod:`neural_estimator.uncertainty.heads`) returns that head's; both
+with a fitted covariance head (:mod:`neural_estimator.serving.uncertainty.heads`) returns that head's; both
 are mapped back to state units as diag(sigma_x) C_n diag(sigma_x).
 """
 

@@ -16,7 +16,7 @@ Steps (:func:`fit_covariance_head`):
    model's own, bit for bit);
 2. errors e_t = wrap(x_hat_t - x_t) / sigma_x in normalised units;
 3. the head starts from the constant covariance diag(std(e)^2) and is trained by the Gaussian NLL
-   (:meth:`~neural_estimator.uncertainty.heads.CholeskyHead.nll`) with Adam, minibatches of (n, t);
+   (:meth:`~neural_estimator.serving.uncertainty.heads.CholeskyHead.nll`) with Adam, minibatches of (n, t);
 4. on the calibration set (trajectories the outlier rule of the metrics keeps), the scale s of
    :func:`~neural_estimator.metrics.consistency.fit_scale` (target ``band``: the smallest calibration error
    with the 95 % coverage in [0.92, 0.97]; ``coverage``: exactly 0.95) is stored in the head, and
@@ -38,7 +38,7 @@ from neural_estimator.data import protocol
 from neural_estimator.estimator import previous_controls
 from neural_estimator.serving.context import bounded_forward
 from neural_estimator.metrics import consistency as C
-from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel
 
 HEAD_INDEX = 101
 CALIBRATION_INDEX = 102

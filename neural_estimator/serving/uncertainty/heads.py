@@ -22,7 +22,7 @@ is trained on the frozen trunk by the Gaussian negative log-likelihood of the tr
     NLL = 1/2 || L_t^{-1} e_t ||^2 + sum_i log L_ii + (dx / 2) log 2 pi,  e_t = x_hat_t - x_t (normalised,
           angle components wrapped)
 
-(:mod:`neural_estimator.uncertainty.fit`), so the mean, its weights and the RMSE do not change at all
+(:mod:`neural_estimator.serving.uncertainty.fit`), so the mean, its weights and the RMSE do not change at all
 and the trunk's weight file (and its sha256 in the card) stays as it was. ``s`` is fitted afterwards
 on other validation trajectories (:mod:`neural_estimator.metrics.consistency`).
 
