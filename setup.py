@@ -27,11 +27,11 @@ setup(
     packages=find_packages(include=["neural_estimator", "neural_estimator.*", "sim_nodes", "sim_nodes.*"]),
     package_data={
         "neural_estimator": [
-            "zoo/*/*.safetensors",
-            "zoo/*/*.json",
-            "zoo/*/*.onnx",
-            "zoo/instances/*/*/*.safetensors",
-            "zoo/instances/*/*/*.json",
+            "serving/zoo/*/*.safetensors",
+            "serving/zoo/*/*.json",
+            "serving/zoo/*/*.onnx",
+            "serving/zoo/instances/*/*/*.safetensors",
+            "serving/zoo/instances/*/*/*.json",
             "paper/paper_results.json",
             "nodes/*.xml",
             "serving/uncertainty/calibrated_filters.json",

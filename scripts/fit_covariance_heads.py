@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Fit a covariance head (and its calibration scale) for every shipped model, resumably.
 
-For each (scenario, method) of the shipped zoo (neural_estimator/zoo/<scenario>-<method>/) whose card
+For each (scenario, method) of the shipped zoo (neural_estimator/serving/zoo/<scenario>-<method>/) whose card
 has no ``covariance_head`` yet (or every one with --force), fit a Gaussian head on the model's frozen
 trunk on validation data (neural_estimator.serving.uncertainty.fit), write ``covariance_head.safetensors``
 beside the weights and add the card's ``covariance_head`` entry. The weights and the estimate are

@@ -24,7 +24,7 @@ from neural_estimator.registry import make_estimator, per_message_options  # noq
 from neural_estimator.scenarios import make_scenario, scenario_from_description  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 WITH_GRAPH = sorted(p.name for p in ZOO.glob("*-*") if (p / "step.onnx").is_file())
 
 

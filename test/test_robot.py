@@ -339,7 +339,7 @@ def test_served_live_the_model_scores_what_evaluate_scored_on_the_recordings_clo
     [
         ("", "parameter checkpoint is required"),
         ("/nonexistent/model", "does not exist"),
-        (str(ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
+        (str(ROOT / "neural_estimator" / "serving" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
     ],
 )
 @pytest.mark.ros

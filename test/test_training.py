@@ -862,7 +862,7 @@ def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
 
     from neural_estimator.training.stopping import converged, lr_reductions
 
-    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
     cards = sorted(zoo.glob("*/card.json"))
     for path in cards:
         card = json.loads(path.read_text())

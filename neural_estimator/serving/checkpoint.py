@@ -13,7 +13,7 @@ A checkpoint is a directory holding exactly
 
 The model is rebuilt from the card (``ModelCls(ConfigCls(**config))``) and the weights are read with
 safetensors only: no ``torch.load``, no pickle. Trained defaults ship at
-``neural_estimator/zoo/<scenario>-<method>/``.
+``neural_estimator/serving/zoo/<scenario>-<method>/``.
 
 The card's reading and writing is :mod:`neural_estimator.serving.card`; serving a checkpoint for a
 scenario (the shipped zoo, the scenario check, the estimator) is :mod:`neural_estimator.serving.load`.

@@ -115,7 +115,7 @@ def load_neural_estimator(
         scenario: the system to serve; the checkpoint must have been trained on it.
         checkpoint: a checkpoint directory or its ``card.json``, or a
             :class:`~neural_estimator.serving.card.Checkpoint` already resolved; None -> the shipped
-            default at ``neural_estimator/zoo/<scenario>-<method>/``.
+            default at ``neural_estimator/serving/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
         covariance: report the covariance: the fitted covariance head's where the card has one
             (``covariance_head``, :mod:`neural_estimator.serving.uncertainty.heads`), else Filterformer's
