@@ -10,7 +10,7 @@ package_name = "neural_estimator"
 # The node executables go where `ros2 run neural_estimator <name>` finds them: lib/neural_estimator
 # (setup.cfg), which is what colcon's `setup.py install|develop` makes of console scripts. A wheel
 # (pip) would put them into bin/ under generic names, so pip gets only `neural-estimator`; there
-# the nodes run as `neural-estimator ros2 run neural_estimator <name>` (neural_estimator/ros2_shim.py).
+# the nodes run as `neural-estimator ros2 run neural_estimator <name>` (neural_estimator/cli/ros2_shim.py).
 _NODES = [
     "simulator = neural_estimator.nodes.entry:simulator",
     "estimator = neural_estimator.nodes.entry:estimator",

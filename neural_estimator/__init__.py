@@ -22,7 +22,7 @@ every import of the package against this list):
    training run, MCAP I/O, the evaluation protocol, bag replay, recorded
    robot data, the marks of departures from the paper's protocol
 9. ``reproduce``: the paper's experiments on Ray
-10. front ends: ``cli``, ``nodes``, ``ros2_shim``; only the nodes import rclpy
+10. front ends: ``cli`` (with the pip environments' minimal ``ros2``), ``nodes``; only the nodes import rclpy
 """
 
 __version__ = "0.1.0"

@@ -69,8 +69,8 @@ def main(argv: list[str] | None = None) -> int:
 
     tune_allocator()  # batched numpy work is up to 2x faster (see neural_estimator/core/runtime.py)
     cooperative_threads()  # --threads 2 never slower than one on a busy machine (before torch loads)
-    if argv[:1] == ["ros2"]:  # the minimal `ros2 run` of pip environments (neural_estimator/ros2_shim.py)
-        from neural_estimator.ros2_shim import main as ros2_main
+    if argv[:1] == ["ros2"]:  # the minimal `ros2 run` of pip environments (neural_estimator/cli/ros2_shim.py)
+        from neural_estimator.cli.ros2_shim import main as ros2_main
 
         return ros2_main(argv[1:])
     if argv[:1] == ["live"]:  # its own parser (neural_estimator.nodes.launch); argparse.REMAINDER drops --help
