@@ -24,7 +24,7 @@ _WHEEL = any(cmd in sys.argv for cmd in ("bdist_wheel", "editable_wheel", "dist_
 setup(
     name=package_name,
     version="0.1.0",
-    packages=find_packages(include=["neural_estimator", "neural_estimator.*", "sim_nodes", "sim_nodes.*"]),
+    packages=find_packages(include=["neural_estimator", "neural_estimator.*"]),
     package_data={
         "neural_estimator": [
             "serving/zoo/*/*.safetensors",

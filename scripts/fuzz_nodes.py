@@ -60,7 +60,7 @@ from neural_estimator.scenarios import make_scenario  # noqa: E402
 
 SCENARIO = "bearings"
 LIFECYCLE = "neural_estimator.nodes.lifecycle_estimator_node"
-SIMULATOR = "sim_nodes.simulator"
+SIMULATOR = "neural_estimator.nodes.simulator_node"
 PLAYER = "neural_estimator.nodes.player_node"
 EXTREMES = (float("nan"), float("inf"), -float("inf"), 1e308, -1e308, 5e-324, 0.0, -0.0, 1e-300, 2.0**53)
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"

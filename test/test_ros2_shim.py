@@ -76,7 +76,7 @@ def test_a_wheel_puts_no_generic_command_into_bin(tmp_path):
     root = Path(__file__).resolve().parents[1]
     src = tmp_path / "src"
     src.mkdir()
-    for name in ("setup.py", "setup.cfg", "package.xml", "resource", "neural_estimator", "sim_nodes", "params"):
+    for name in ("setup.py", "setup.cfg", "package.xml", "resource", "neural_estimator", "params"):
         (shutil.copytree if (root / name).is_dir() else shutil.copy)(
             root / name,
             src / name,

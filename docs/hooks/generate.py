@@ -33,7 +33,7 @@ _OUTPUTS = ("neural_estimator/nodes/outputs.py", "OutputParams")
 _INPUTS = ("neural_estimator/nodes/diagnostics.py", "InputDiagnosticsParams")
 # node executable -> the (source file, parameter dataclass) pairs it declares, in declaration order
 NODE_PARAMS = {
-    "simulator": (("sim_nodes/simulator.py", "SimulatorParams"),),
+    "simulator": (("neural_estimator/nodes/simulator_node.py", "SimulatorParams"),),
     "estimator": (("neural_estimator/nodes/estimator_params.py", "EstimatorParams"), _OUTPUTS, _INPUTS),
     "evaluator": (("neural_estimator/nodes/evaluator_node.py", "EvaluatorParams"),),
     "player": (("neural_estimator/nodes/player_node.py", "PlayerParams"),),

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 PACKAGE = "neural_estimator"
-SIMULATOR = "sim_nodes.simulator"
+SIMULATOR = "neural_estimator.nodes.simulator_node"
 ESTIMATOR = "neural_estimator.nodes.estimator_node"
 EVALUATOR = "neural_estimator.nodes.evaluator_node"
 PLAYER = "neural_estimator.nodes.player_node"

@@ -1,7 +1,7 @@
 """Simulator node: publishes a scenario's observations and ground truth at a fixed rate.
 
     ros2 run neural_estimator simulator --ros-args -p scenario:=lorenz96 -p trajectories:=2
-    python -m sim_nodes.simulator --ros-args -p scenario:=lorenz96       # without ros2
+    python -m neural_estimator.nodes.simulator_node --ros-args -p scenario:=lorenz96       # without ros2
 
 Publishes (relative names, layout of :mod:`neural_estimator.stream.messages`):
 
