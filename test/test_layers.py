@@ -160,3 +160,13 @@ def test_module_level_imports_form_no_cycle():
     for n in sorted(graph):
         if n not in state:
             visit(n)
+
+
+def test_the_architecture_page_lists_the_layers_of_the_docstring():
+    """docs/architecture.md's layer table names, layer by layer, what the package docstring names."""
+    page = (PACKAGE.parent / "docs" / "architecture.md").read_text()
+    documented = {}
+    for m in re.finditer(r"^\| (\d+) \| ([^|]+) \|", page, flags=re.M):
+        for name in re.findall(r"`([a-z_0-9.]+)`", m.group(2)):
+            documented[name] = int(m.group(1))
+    assert documented == layers()
