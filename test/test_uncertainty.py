@@ -253,13 +253,13 @@ def test_evaluate_reports_a_consistency_table_and_the_reliability_curve():
 def test_the_live_path_publishes_the_heads_covariance(tmp_path):
     """The node's per-message path (OnlineEstimator) of a neural model with a head carries its
     covariance in every result and builds the covariance message (no 'not estimated' diagonal)."""
-    from neural_estimator.stream import messages as BM
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.stream.online import OnlineEstimator
 
     scenario, data, plain, est = _estimator_with_head(tmp_path)
     online = OnlineEstimator(est, "gru")
     assert online.publish_covariance and not OnlineEstimator(plain, "gru").publish_covariance
-    codec = BM.VectorCodec(scenario.name, BM.observation_labels(scenario))
+    codec = MSG.VectorCodec(scenario.name, MSG.observation_labels(scenario))
     est_ref = est.run(data.y[:1, :5], data.u[:1, :5])
     for k in range(5):
         u_prev = data.u[0, k - 1] if k else np.zeros(scenario.du)

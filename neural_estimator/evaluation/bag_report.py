@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator import departures as D
-from neural_estimator import metrics as metrics_mod
+from neural_estimator import metrics as M
 from neural_estimator.bags.dataset import left_out_note
 from neural_estimator.expected_failures import mark_rows, notes
 
@@ -27,7 +27,7 @@ class BagReport:
     n_trajectories: int
     horizon: int
     dt: float
-    reports: dict[str, metrics_mod.MetricReport]
+    reports: dict[str, M.MetricReport]
     bag: dict[str, Any]  # received / missing / duplicates / rejected / left_out / complete
     warmup: int = 0  # leading steps of every trajectory not scored
     note: str = ""  # why the warm-up differs from the one asked for (a run too short for it)
@@ -41,10 +41,10 @@ class BagReport:
         rows and cells that depart from the paper's protocol carry their marks (:meth:`marks`).
         """
         if not marked or fmt == "csv":
-            return metrics_mod.format_reports(self.reports, fmt=fmt)
+            return M.format_reports(self.reports, fmt=fmt)
         rows, cells, _ = self.marks()
         named = D.marked_names(self.reports, rows)
-        return metrics_mod.format_reports(
+        return M.format_reports(
             {named[m]: r for m, r in self.reports.items()}, fmt=fmt, marks={named[m]: c for m, c in cells.items()}
         )
 
@@ -58,7 +58,7 @@ class BagReport:
         return rows, cells, used
 
     def to_json(self) -> dict[str, Any]:
-        return metrics_mod.to_json(
+        return M.to_json(
             {
                 "bag": str(self.path),
                 "scenario": self.scenario,
@@ -143,7 +143,7 @@ def evaluate_bag(
     *,
     namespace: str = "/",
     description: dict[str, Any] | None = None,
-    warmup: int = metrics_mod.EVALUATION_WARMUP,
+    warmup: int = M.EVALUATION_WARMUP,
     short_runs: str = "error",
     starts: dict[str, str] | None = None,
 ) -> BagReport:
