@@ -14,14 +14,14 @@ import neural_estimator
 PACKAGE = Path(neural_estimator.__file__).parent
 
 
-# The agreed top level of the package (issue #44): at most 16 entries, files and folders alike.
+# The top level of the package: at most 16 entries, files and folders alike.
 TOP_LEVEL = {
     "core", "metrics", "paper", "scenarios", "data", "methods", "filters", "models",
     "serving", "stream", "bags", "training", "evaluation", "robot", "cli", "nodes",
 }  # fmt: skip
-# Entries still at the top while other branches of issue #44 move them: the methods' interface,
-# registry and baselines (into methods/), the paper's departures, expected failures and reproduce/
-# (into paper/). Empty this set when they land; each name must still exist until then.
+# Entries still at the top until they move: the methods' interface, registry and baselines (into
+# methods/), the paper's departures, expected failures and reproduce/ (into paper/). A name leaves
+# this set when its entry moves (the test says which); the set then stays empty.
 MOVING = {"estimator", "registry", "baselines", "departures", "expected_failures", "reproduce"}
 
 
