@@ -10,7 +10,7 @@ package_name = "neural_estimator"
 # The node executables go where `ros2 run neural_estimator <name>` finds them: lib/neural_estimator
 # (setup.cfg), which is what colcon's `setup.py install|develop` makes of console scripts. A wheel
 # (pip) would put them into bin/ under generic names, so pip gets only `neural-estimator`; there
-# the nodes run as `neural-estimator ros2 run neural_estimator <name>` (neural_estimator/ros2_shim.py).
+# the nodes run as `neural-estimator ros2 run neural_estimator <name>` (neural_estimator/cli/ros2_shim.py).
 _NODES = [
     "simulator = neural_estimator.nodes.entry:simulator",
     "estimator = neural_estimator.nodes.entry:estimator",
@@ -24,17 +24,17 @@ _WHEEL = any(cmd in sys.argv for cmd in ("bdist_wheel", "editable_wheel", "dist_
 setup(
     name=package_name,
     version="0.1.0",
-    packages=find_packages(include=["neural_estimator", "neural_estimator.*", "sim_nodes", "sim_nodes.*"]),
+    packages=find_packages(include=["neural_estimator", "neural_estimator.*"]),
     package_data={
         "neural_estimator": [
-            "zoo/*/*.safetensors",
-            "zoo/*/*.json",
-            "zoo/*/*.onnx",
-            "zoo/instances/*/*/*.safetensors",
-            "zoo/instances/*/*/*.json",
+            "serving/zoo/*/*.safetensors",
+            "serving/zoo/*/*.json",
+            "serving/zoo/*/*.onnx",
+            "serving/zoo/instances/*/*/*.safetensors",
+            "serving/zoo/instances/*/*/*.json",
             "paper/paper_results.json",
             "nodes/*.xml",
-            "uncertainty/calibrated_filters.json",
+            "serving/uncertainty/calibrated_filters.json",
         ]
     },
     data_files=[

@@ -69,9 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.core >= 0:
         os.sched_setaffinity(0, {a.core})
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.data import simulate
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.methods.registry import make_estimator, per_message_options
     from neural_estimator.scenarios import make_scenario
 
@@ -99,12 +99,12 @@ def main(argv: list[str] | None = None) -> int:
             continue
         online = OnlineEstimator(est, m)
         handling = OnlineEstimator(_StandIn(est, data.y[0, :1], U[:1]), m)
-        codec = M.VectorCodec(m, M.state_labels(scen))
+        codec = MSG.VectorCodec(m, MSG.state_labels(scen))
         x_out = np.zeros(scen.dx)
         # a long stream of consecutive messages: every one is the successor of the last (no quarantine)
         n_msgs = (a.rounds + 1) * per_round + 1
         raws = [
-            M.encode_observation(scen, 1_000_000 * (k + 1), k // T, k % T, data.y[0, k % T], U[k % T])
+            MSG.encode_observation(scen, 1_000_000 * (k + 1), k // T, k % T, data.y[0, k % T], U[k % T])
             for k in range(n_msgs)
         ]
         online.feed(raws[0], now=0.0)

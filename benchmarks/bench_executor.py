@@ -191,20 +191,20 @@ def main(argv: list[str] | None = None) -> int:
 
 def callback_work(methods: list[str], messages: int) -> dict[str, tuple[float, float]]:
     """p50 / p99 µs of each part of the estimator node's per-message work, outside ROS."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.data import simulate
     from neural_estimator.nodes.outputs import StateEncoder
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("lorenz96")
     n = max(200, messages)
     data = simulate(scen, 1, 2 * n + 1, 0)
-    codec = M.VectorCodec(scen.name, list(scen.obs_names))
+    codec = MSG.VectorCodec(scen.name, list(scen.obs_names))
     raws = [codec.encode(int(k * scen.dt * 1e9), 0, k, data.y[0, k]) for k in range(2 * n + 1)]
-    out_codec = M.VectorCodec("map", M.state_labels(scen))
-    cov_codec = M.VectorCodec("map", M.covariance_labels(scen.dx))
+    out_codec = MSG.VectorCodec("map", MSG.state_labels(scen))
+    cov_codec = MSG.VectorCodec("map", MSG.covariance_labels(scen.dx))
     state = StateEncoder(scen.state_names)
     found: dict[str, tuple[float, float]] = {}
 

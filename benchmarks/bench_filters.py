@@ -97,7 +97,7 @@ from neural_estimator.data.simulate import simulate  # noqa: E402
 from neural_estimator.methods.registry import make_estimator, previous_controls  # noqa: E402
 from neural_estimator.filters import reference  # noqa: E402
 from neural_estimator.filters.base import default_threads  # noqa: E402
-from neural_estimator.runtime import tune_allocator  # noqa: E402
+from neural_estimator.core.runtime import tune_allocator  # noqa: E402
 from neural_estimator.scenarios import Scenario, make_scenario  # noqa: E402
 
 PAPER_SETS, PAPER_TRAJECTORIES = 3, 8000
@@ -206,7 +206,7 @@ def main(args: argparse.Namespace) -> None:
     )
     tuned = tune_allocator()
     thread_counts = sorted(set(args.filter_threads or (1, default_threads())))
-    print(f"Allocator tuned (neural_estimator.runtime): {tuned}. Filter threads measured: {thread_counts}.\n")
+    print(f"Allocator tuned (neural_estimator.core.runtime): {tuned}. Filter threads measured: {thread_counts}.\n")
     t_start = time.perf_counter()
     results = {}  # (scenario, method) -> dict
     for name in args.scenarios:

@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from neural_estimator.bags import bag_to_arrays  # noqa: E402
-from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.stream import messages as MSG  # noqa: E402
 from neural_estimator.nodes.common import EXECUTOR_ENV  # noqa: E402
 from neural_estimator.nodes.launch import PipelineConfig, PipelineError, PipelineResult, run_pipeline  # noqa: E402
 
@@ -53,14 +53,14 @@ def end_to_end_ms(bag: Path, methods: list[str]) -> dict[str, dict[str, float]]:
     """Observation source time -> estimate receive time per method, from the MCAP records."""
     from mcap.reader import make_reader
 
-    codec_cache: dict[str, M.VectorCodec] = {}
+    codec_cache: dict[str, MSG.VectorCodec] = {}
     sent: dict[tuple[int, int], int] = {}
     got: dict[str, list[tuple[tuple[int, int], int]]] = {m: [] for m in methods}
-    wanted = {M.resolve_topic(M.estimate_topic(m)): m for m in methods}
+    wanted = {MSG.resolve_topic(MSG.estimate_topic(m)): m for m in methods}
     with open(bag, "rb") as fh:
         for _, channel, message in make_reader(fh).iter_messages():
             if channel.topic == "/observation" or channel.topic in wanted:
-                codec = codec_cache.setdefault(channel.topic, M.VectorCodec("", ()))
+                codec = codec_cache.setdefault(channel.topic, MSG.VectorCodec("", ()))
                 vec = codec.decode(message.data)
                 key = (vec.trajectory, vec.step)
                 if channel.topic == "/observation":
@@ -84,7 +84,7 @@ def _count_cells(bag: Path):
 
     from mcap.reader import make_reader
 
-    codec = M.VectorCodec("", ())
+    codec = MSG.VectorCodec("", ())
     cells: dict[str, set] = {}
     received: dict[str, int] = {}
     with open(bag, "rb") as fh:
@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         for executor, r in summary.items():
             for m in r["methods"]:
                 e = r["end_to_end_ms"].get(m, {})
-                lost = r["losses"].get(M.estimate_topic(m), -1)
+                lost = r["losses"].get(MSG.estimate_topic(m), -1)
                 print(
                     f"{executor:10s} {m:8s} {e.get('p50', float('nan')):9.2f} {e.get('p99', float('nan')):9.2f} "
                     f"{lost:6d} {r['load_average_1min_before']:5.1f}"

@@ -3,7 +3,7 @@
 Writes synthetic recordings of a 500 Hz run (bearings, 500-step trajectories, ground truth,
 observations, three estimate streams and two covariance streams, as the evaluator records them)
 of each length in ``--minutes``, then scores each in a fresh process, twice: the evaluator node's
-post-run analysis (:func:`neural_estimator.bags.report.evaluate_bag`) and ``neural-estimator
+post-run analysis (:func:`neural_estimator.evaluation.bag_report.evaluate_bag`) and ``neural-estimator
 metrics BAG``. Prints each process's peak resident memory (``ru_maxrss`` of the child) and wall
 time, and each peak as a multiple of the shortest recording's: a scorer whose memory does not grow
 with the run's length prints about 1.0x (the issue's target: within 1.2x from 2 to 20 minutes).
@@ -59,7 +59,8 @@ SCORERS = {
     "evaluator analysis": [
         sys.executable,
         "-c",
-        "import sys; from neural_estimator.bags.report import evaluate_bag; print(evaluate_bag(sys.argv[1]).summary())",
+        "import sys; from neural_estimator.evaluation.bag_report import evaluate_bag; "
+        "print(evaluate_bag(sys.argv[1]).summary())",
     ],
     "metrics": [sys.executable, "-m", "neural_estimator.cli", "metrics"],
 }

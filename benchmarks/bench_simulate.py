@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from neural_estimator.data.simulate import simulate
-from neural_estimator.runtime import tune_allocator
+from neural_estimator.core.runtime import tune_allocator
 from neural_estimator.scenarios import BUILTIN_SCENARIOS, make_scenario
 
 
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=1, help="best of this many runs")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    tuned = tune_allocator()  # as the CLI does (neural_estimator/runtime.py)
+    tuned = tune_allocator()  # as the CLI does (neural_estimator/core/runtime.py)
 
     rows = []
     for name in args.scenarios.split(","):

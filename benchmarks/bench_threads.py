@@ -14,7 +14,7 @@ process beside them (a second job on another core, as when two trainings share t
 Wait policies (``--policies``): ``spin`` is OpenMP's default (libgomp's workers spin for a while
 before sleeping; ``OMP_WAIT_POLICY`` unset), ``passive`` sleeps at once (``OMP_WAIT_POLICY=PASSIVE``),
 ``spincount=N`` spins N iterations, then sleeps (``GOMP_SPINCOUNT=N``, policy unset); what
-``neural-estimator`` sets before torch loads is :data:`neural_estimator.runtime.WAIT_POLICY`.
+``neural-estimator`` sets before torch loads is :data:`neural_estimator.core.runtime.WAIT_POLICY`.
 ``governed`` is passive with the thread count chosen by measurement, as ``neural-estimator train
 --threads N`` does (:class:`neural_estimator.training.threads.ThreadGovernor`, 4-step probes).
 """

@@ -45,7 +45,7 @@ from neural_estimator.models import ARCHITECTURES, build_model
 from neural_estimator.models.dropout import Dropout
 from neural_estimator.serving.neural import resolve_device
 from neural_estimator.training.loss import weighted_loss
-from neural_estimator.runtime import tune_allocator
+from neural_estimator.core.runtime import tune_allocator
 
 EPOCH_WINDOWS = 20_000  # windows per epoch at 20:1 (protocol.windows_per_epoch)
 VAL_STEPS = 8_000 * 500  # validation timesteps per epoch

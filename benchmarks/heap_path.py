@@ -34,12 +34,12 @@ def rss_mib() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.data import simulate
     from neural_estimator.nodes.estimator_stats import EstimatorStats, health
     from neural_estimator.nodes.heap_trace import HeapTrace
     from neural_estimator.nodes.outputs import StateEncoder
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("need 0 < --warmup < --messages")
     scen = make_scenario("bearings")
     data = simulate(scen, 4, a.horizon, seed=0)  # trajectories reused: the stream's identities go on
-    codec = M.VectorCodec(scen.name, M.observation_labels(scen))
+    codec = MSG.VectorCodec(scen.name, MSG.observation_labels(scen))
     online = OnlineEstimator(make_estimator(a.method, scen), a.method, horizon=a.horizon)
     state = StateEncoder(scen.state_names)
     stats = EstimatorStats()
@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     for g in range(a.messages):
         n, k = divmod(g, a.horizon)
-        raw = codec.encode(M.step_stamp_ns(10**18, g, M.dt_ns(scen.dt)), n, k, data.y[n % 4, k])
+        raw = codec.encode(MSG.step_stamp_ns(10**18, g, MSG.dt_ns(scen.dt)), n, k, data.y[n % 4, k])
         for res in online.feed(raw, 0.0):
             if res.status == "estimated":
                 state.encode(res.x_hat, res.P)

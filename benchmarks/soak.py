@@ -79,9 +79,9 @@ def stream_losses(bag: Path, expected: int, horizon: int) -> dict:
     of each level; and the span of the observations' publish (source) times."""
     from mcap.reader import make_reader
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
 
-    codec = M.VectorCodec("", ())
+    codec = MSG.VectorCodec("", ())
     seen: dict[str, bytearray] = {}
     counts: dict[str, int] = {}
     highest: dict[str, int] = {}
@@ -91,17 +91,17 @@ def stream_losses(bag: Path, expected: int, horizon: int) -> dict:
         for _, channel, message in make_reader(fh).iter_messages():
             topic = channel.topic
             if topic == "/diagnostics":
-                msg = M.TYPESTORE.deserialize_cdr(message.data, "diagnostic_msgs/msg/DiagnosticArray")
+                msg = MSG.TYPESTORE.deserialize_cdr(message.data, "diagnostic_msgs/msg/DiagnosticArray")
                 for st in msg.status:
                     lv = {0: "OK", 1: "WARN", 2: "ERROR"}.get(int(st.level), "STALE")
                     d = diag.setdefault(st.name, {"OK": 0, "WARN": 0, "ERROR": 0, "STALE": 0})
                     d[lv] += 1
                 continue
-            role = M.topic_role(topic)
-            if role is None or role.kind in (M.SCENARIO, M.RUN_STATUS):
+            role = MSG.topic_role(topic)
+            if role is None or role.kind in (MSG.SCENARIO, MSG.RUN_STATUS):
                 continue
             counts[topic] = counts.get(topic, 0) + 1
-            if role.kind == M.OBSERVATION:
+            if role.kind == MSG.OBSERVATION:
                 first_pub = message.publish_time if first_pub is None else min(first_pub, message.publish_time)
                 last_pub = message.publish_time if last_pub is None else max(last_pub, message.publish_time)
             try:

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file
 
-from neural_estimator.angles import wrap_components
+from neural_estimator.core.angles import wrap_components
 from neural_estimator.data import evaluation_sets
 from neural_estimator.methods.interface import previous_controls
 from neural_estimator.metrics import rmse_over_time

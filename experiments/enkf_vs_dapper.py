@@ -21,7 +21,7 @@ import numpy as np
 from neural_estimator.data.simulate import simulate
 from neural_estimator.methods.registry import make_estimator
 from neural_estimator.filters.reference import dapper_filter
-from neural_estimator.runtime import tune_allocator
+from neural_estimator.core.runtime import tune_allocator
 from neural_estimator.scenarios import make_scenario
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from neural_estimator.cli import main as cli
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 
 
 def same_recipe(a: dict, b: dict) -> bool:

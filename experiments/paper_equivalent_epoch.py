@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from neural_estimator.paper.reproduce.fidelity import load_measured, paper_table  # noqa: E402
 
-ZOO = ROOT / "neural_estimator" / "zoo"
+ZOO = ROOT / "neural_estimator" / "serving" / "zoo"
 NEURAL = ("gru", "lstm", "gpt2", "filterformer", "mamba", "mamba2")
 
 

@@ -3,13 +3,13 @@
 
 For each scenario and filter, every candidate setting (the field's remedies: the EnKF's
 multiplicative inflation, the PF's regularisation; the paper's setting is always a candidate) runs on
-validation trajectories (role "val", index CALIBRATION_INDEX of neural_estimator.uncertainty.fit, the
+validation trajectories (role "val", index CALIBRATION_INDEX of neural_estimator.serving.uncertainty.fit, the
 evaluation's warm-up left out, the metrics' outlier rule applied). The remedy kept is the one with the
 smallest calibration error (mean |coverage(q) - q| over the reliability levels) among those whose
 RMSE is within 5 % of the paper's setting; then one covariance scale ``cov_scale`` is fitted on the
-same NEES (neural_estimator.consistency.fit_scale, target "band": the smallest calibration error
+same NEES (neural_estimator.metrics.consistency.fit_scale, target "band": the smallest calibration error
 with the 95 % coverage in [0.92, 0.97] on the validation set). The result is written to
-neural_estimator/uncertainty/calibrated_filters.json as the options to pass (``--option
+neural_estimator/serving/uncertainty/calibrated_filters.json as the options to pass (``--option
 enkf.inflation=1.05 --option enkf.cov_scale=1.3``) with the validation figures before and after.
 The paper's settings stay the defaults.
 
@@ -26,16 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
-from neural_estimator import consistency as C
+from neural_estimator.metrics import consistency as C
 from neural_estimator import metrics as M
 from neural_estimator.data import protocol
 from neural_estimator.methods.interface import CLASSICAL_METHODS
 from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
-from neural_estimator.uncertainty.fit import CALIBRATION_INDEX
-from neural_estimator.uncertainty.fit import figures as head_figures
+from neural_estimator.serving.uncertainty.fit import CALIBRATION_INDEX
+from neural_estimator.serving.uncertainty.fit import figures as head_figures
 
-OUT = Path(__file__).resolve().parents[1] / "neural_estimator" / "uncertainty" / "calibrated_filters.json"
+OUT = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "uncertainty" / "calibrated_filters.json"
 # A covariance that must grow more than this (10x in std) to cover the errors is degenerate, not
 # miscalibrated: a scale would give it the right coverage and no meaning, so none is recorded.
 MAX_SCALE = 100.0
@@ -76,7 +76,7 @@ def measure(method: str, scenario, data, options: dict, warmup: int) -> dict:
 
 
 def _figures(eps: np.ndarray, dx: int) -> dict:
-    """The heads' consistency figures (uncertainty.fit.figures) and the share of degenerate steps."""
+    """The heads' consistency figures (serving.uncertainty.fit.figures) and the share of degenerate steps."""
     return {**head_figures(eps, dx), "degenerate": float(1 - np.isfinite(eps).mean())}
 
 

@@ -43,7 +43,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.stream import messages as MSG  # noqa: E402
 from neural_estimator.data import simulate  # noqa: E402
 from neural_estimator.nodes.launch import (  # noqa: E402
     ESTIMATOR,
@@ -83,11 +83,11 @@ CASES = [
 
 
 def _messages(scen, data, start_ns: int, dt_ns: int):
-    obs = M.VectorCodec(scen.name, M.observation_labels(scen))
-    truth = M.VectorCodec(scen.name, M.state_labels(scen))
+    obs = MSG.VectorCodec(scen.name, MSG.observation_labels(scen))
+    truth = MSG.VectorCodec(scen.name, MSG.state_labels(scen))
     for n in range(N):
         for k in range(T):
-            stamp = M.step_stamp_ns(start_ns, n * T + k, dt_ns)
+            stamp = MSG.step_stamp_ns(start_ns, n * T + k, dt_ns)
             u_prev = data.u[n, k - 1] if k else np.zeros(scen.du)
             yield (
                 (n, k),
@@ -99,9 +99,9 @@ def _messages(scen, data, start_ns: int, dt_ns: int):
 def _fault(case: str, scen, data, start_ns: int, dt_ns: int) -> list[tuple[str, bytes]]:
     """(topic, bytes) injected before INJECT_AT."""
     n, k = INJECT_AT
-    stamp = M.step_stamp_ns(start_ns, n * T + k, dt_ns)
+    stamp = MSG.step_stamp_ns(start_ns, n * T + k, dt_ns)
     y, u = data.y[n, k], np.zeros(scen.du)
-    enc = lambda s, tn, tk: M.encode_observation(scen, s, tn, tk, y, u)  # noqa: E731
+    enc = lambda s, tn, tk: MSG.encode_observation(scen, s, tn, tk, y, u)  # noqa: E731
     if case == "forged-trajectory":
         return [("observation", enc(stamp, n + 50, k))]
     if case == "step-jump":
@@ -111,15 +111,15 @@ def _fault(case: str, scen, data, start_ns: int, dt_ns: int) -> list[tuple[str, 
     if case == "step-1e9":
         return [("observation", enc(stamp + 10**9 * dt_ns, n, 10**9))]
     if case == "huge-announcement":
-        return [("scenario", M.encode_scenario(scen.describe(), trajectories=3 * 10**7, horizon=10**9))]
+        return [("scenario", MSG.encode_scenario(scen.describe(), trajectories=3 * 10**7, horizon=10**9))]
     if case == "garbage":
         return [  # the empty one last: a zero-byte sample stalls the DDS writer that sent it (the intruder's)
             ("observation", b"\x00\x01\x00\x00\x07garbage"),
-            ("observation", M.encode_vector(stamp, scen.name, n, k, ["a", "b", "c"], [0.0, 1.0, 2.0])),
+            ("observation", MSG.encode_vector(stamp, scen.name, n, k, ["a", "b", "c"], [0.0, 1.0, 2.0])),
             ("observation", b""),
         ]
     if case == "oversize":
-        big = M.encode_vector(stamp, scen.name, n, k, ["x"] * 1_250_000, np.zeros(1_250_000))  # 20 MB
+        big = MSG.encode_vector(stamp, scen.name, n, k, ["x"] * 1_250_000, np.zeros(1_250_000))  # 20 MB
         return [("observation", big)] * 3
     return []
 
@@ -167,7 +167,7 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
         )
     scen = make_scenario(SCENARIO)
     data = simulate(scen, N, T, seed=7)
-    dt_ns = M.dt_ns(scen.dt)
+    dt_ns = MSG.dt_ns(scen.dt)
     levels: dict[str, int] = {}
     rss: dict[str, float | None] = {}
     rss_before: dict[str, float | None] = {}
@@ -213,9 +213,9 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
         def publish_run(start_ns: int, first_trajectory: int = 0, last: bool = True, fault: bool = True) -> None:
             info = {"trajectories": N, "horizon": T, "messages": N * T}
             pubs["scenario"].publish(
-                M.encode_scenario(scen.describe(), seed=7, rate_hz=RATE_HZ, start_ns=start_ns, dt_ns=dt_ns, **info)
+                MSG.encode_scenario(scen.describe(), seed=7, rate_hz=RATE_HZ, start_ns=start_ns, dt_ns=dt_ns, **info)
             )
-            pubs["run_status"].publish(M.encode_run_status(M.STATUS_STARTED, **info))
+            pubs["run_status"].publish(MSG.encode_run_status(MSG.STATUS_STARTED, **info))
             t0 = time.perf_counter()
             for i, ((n, k), obs, truth) in enumerate(_messages(scen, data, start_ns, dt_ns)):
                 if n < first_trajectory:
@@ -231,7 +231,7 @@ def run_case(case: Case, out: Path, timeout: float = 120.0) -> dict:
                     time.sleep(wait)
                 ex.spin_once(timeout_sec=0)
             if last:
-                pubs["run_status"].publish(M.encode_run_status(M.STATUS_COMPLETE, **info))
+                pubs["run_status"].publish(MSG.encode_run_status(MSG.STATUS_COMPLETE, **info))
 
         start_ns = 10**18
         if case.expect == "restart":  # trajectory 0, then killed; the new run's stamps 10x earlier

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """Fit a covariance head (and its calibration scale) for every shipped model, resumably.
 
-For each (scenario, method) of the shipped zoo (neural_estimator/zoo/<scenario>-<method>/) whose card
+For each (scenario, method) of the shipped zoo (neural_estimator/serving/zoo/<scenario>-<method>/) whose card
 has no ``covariance_head`` yet (or every one with --force), fit a Gaussian head on the model's frozen
-trunk on validation data (neural_estimator.uncertainty.fit), write ``covariance_head.safetensors``
+trunk on validation data (neural_estimator.serving.uncertainty.fit), write ``covariance_head.safetensors``
 beside the weights and add the card's ``covariance_head`` entry. The weights and the estimate are
 untouched. One pair at a time; a pair already done is skipped, so an interrupted run continues.
 
@@ -27,8 +27,8 @@ from neural_estimator.serving.export import export_beside
 from neural_estimator.serving.card import CARD_FILE, default_checkpoint, read_card, write_json
 from neural_estimator.serving.load import load_neural_estimator
 from neural_estimator.scenarios import scenario_from_description
-from neural_estimator.uncertainty.fit import FitSettings, calibrate_head, choose_shrink, fit_covariance_head
-from neural_estimator.uncertainty.heads import load_head, save_head
+from neural_estimator.serving.uncertainty.fit import FitSettings, calibrate_head, choose_shrink, fit_covariance_head
+from neural_estimator.serving.uncertainty.heads import load_head, save_head
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,8 +8,8 @@ Targets (each takes one byte string from the fuzzer):
   ``replay`` and the player do with a bag they are given);
 * ``rosbag2``: the bytes as the ``metadata.yaml`` of a rosbag2 directory beside a valid bag;
 * ``cdr``: the bytes as a CDR message on every stream the nodes accept (observation, ground truth,
-  estimate, covariance: :class:`~neural_estimator.bags.messages.VectorCodec` and
-  :func:`~neural_estimator.bags.messages.decode_vector`);
+  estimate, covariance: :class:`~neural_estimator.stream.messages.VectorCodec` and
+  :func:`~neural_estimator.stream.messages.decode_vector`);
 * ``scenario``: the bytes as a ``scenario`` topic message, decoded and turned into a scenario as
   the estimator node does (:func:`~neural_estimator.scenarios.scenario_from_description`).
 
@@ -41,7 +41,7 @@ import atheris
 with atheris.instrument_imports(include=["neural_estimator"]):
     import numpy as np
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.bags.directory import open_bag
     from neural_estimator.bags.errors import BagError, BagWarning, MessageError
     from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description
@@ -69,10 +69,10 @@ ROSBAG2_METADATA = """rosbag2_bagfile_information:
 """
 _SCENARIO = make_scenario("ballistic")
 _CODECS = [
-    M.VectorCodec(_SCENARIO.name, M.observation_labels(_SCENARIO)),
-    M.VectorCodec(_SCENARIO.name, M.state_labels(_SCENARIO)),
-    M.VectorCodec("ekf", M.state_labels(_SCENARIO)),
-    M.VectorCodec("ekf", M.covariance_labels(_SCENARIO.dx)),
+    MSG.VectorCodec(_SCENARIO.name, MSG.observation_labels(_SCENARIO)),
+    MSG.VectorCodec(_SCENARIO.name, MSG.state_labels(_SCENARIO)),
+    MSG.VectorCodec("ekf", MSG.state_labels(_SCENARIO)),
+    MSG.VectorCodec("ekf", MSG.covariance_labels(_SCENARIO.dx)),
 ]
 
 
@@ -84,14 +84,14 @@ def read_bag(path: Path) -> int:
         with open_bag(path) as reader:
             for conn, _, raw in reader.messages():
                 n += 1
-                if conn.msgtype == M.JOINT_STATE:
+                if conn.msgtype == MSG.JOINT_STATE:
                     try:
-                        M.decode_vector(raw)
+                        MSG.decode_vector(raw)
                     except MessageError:
                         pass
-                elif conn.msgtype == M.STRING:
+                elif conn.msgtype == MSG.STRING:
                     try:
-                        M.decode_string(raw)
+                        MSG.decode_string(raw)
                     except MessageError:
                         pass
     return n
@@ -108,9 +108,9 @@ def decode_streams(data: bytes) -> None:
 def scenario_message(data: bytes) -> None:
     """The bytes as a whole ``scenario`` message (CDR string), and as the JSON text inside one (so
     the fuzzer reaches the description's contents, not only the CDR framing)."""
-    for raw in (data, M.encode_string(data.decode("utf-8", errors="replace"))):
+    for raw in (data, MSG.encode_string(data.decode("utf-8", errors="replace"))):
         try:
-            scenario_from_description(M.decode_scenario(raw))
+            scenario_from_description(MSG.decode_scenario(raw))
         except (MessageError, ScenarioError, KeyError, TypeError, ValueError):  # as the estimator node catches them
             pass
 
@@ -164,9 +164,9 @@ def seeds(name: str) -> list[bytes]:
     if name == "cdr":
         return [c.encode(123, 1, 2, np.arange(len(c.names), dtype=float)) for c in _CODECS]
     messages = [
-        M.encode_scenario(make_scenario(s).describe(), trajectories=2) for s in ("ballistic", "nlink", "lorenz96")
+        MSG.encode_scenario(make_scenario(s).describe(), trajectories=2) for s in ("ballistic", "nlink", "lorenz96")
     ]
-    return messages + [M.decode_string(m).encode() for m in messages]  # and their JSON text
+    return messages + [MSG.decode_string(m).encode() for m in messages]  # and their JSON text
 
 
 def main(argv: list[str] | None = None) -> int:

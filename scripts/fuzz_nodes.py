@@ -54,17 +54,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from neural_estimator.bags import messages as M  # noqa: E402
+from neural_estimator.stream import messages as MSG  # noqa: E402
 from neural_estimator.nodes.launch import ESTIMATOR, EVALUATOR, isolated_env, node_command, start_node  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
 
 SCENARIO = "bearings"
 LIFECYCLE = "neural_estimator.nodes.lifecycle_estimator_node"
-SIMULATOR = "sim_nodes.simulator"
+SIMULATOR = "neural_estimator.nodes.simulator_node"
 PLAYER = "neural_estimator.nodes.player_node"
 EXTREMES = (float("nan"), float("inf"), -float("inf"), 1e308, -1e308, 5e-324, 0.0, -0.0, 1e-300, 2.0**53)
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
-TS = M.TYPESTORE
+TS = MSG.TYPESTORE
 
 
 # ---- hostile messages (CDR bytes, the rosbags type store: no rclpy) -------------------------------------
@@ -106,23 +106,23 @@ def vector_message(rng: random.Random, frame: str, labels: tuple[str, ...]) -> b
     """A hostile message of a vector stream whose valid messages have ``frame`` and ``labels``."""
     n, k = rng.randrange(3), rng.randrange(1000)
     values = np.array([_float(rng) if rng.random() < 0.3 else rng.gauss(0, 50) for _ in labels])
-    valid = M.encode_vector(M.step_stamp_ns(10**18, k, 10**7), frame, n, k, labels, values)
+    valid = MSG.encode_vector(MSG.step_stamp_ns(10**18, k, 10**7), frame, n, k, labels, values)
     family = rng.randrange(6)
     if family == 0:
         return valid  # extreme values, valid shape
     stamp = (rng.choice([0, 2**31 - 1, -(2**31), rng.randrange(2**31)]), rng.choice([0, 999_999_999, 2**32 - 1]))
     if family == 1:  # identities out of range
         ident = [rng.choice([-1.0, 2.0**53, 1e308, float("nan"), float(rng.randrange(10**9)), 0.5]) for _ in range(2)]
-        return _joint_state(stamp, frame, [*M.ID_NAMES, *labels], np.array([*ident, *values]))
+        return _joint_state(stamp, frame, [*MSG.ID_NAMES, *labels], np.array([*ident, *values]))
     if family == 2:  # wrong width or names, foreign frame
         width = rng.choice([0, 1, len(labels) + 1, 50])
-        names = [*M.ID_NAMES, *[_text(rng)[:20] or "v" for _ in range(width)]]
+        names = [*MSG.ID_NAMES, *[_text(rng)[:20] or "v" for _ in range(width)]]
         return _joint_state(stamp, _text(rng), names, np.array([n, k, *[_float(rng) for _ in range(width)]]))
     if family == 3:  # a huge array
         width = rng.choice([10_000, 200_000])
-        return _joint_state(stamp, frame, [*M.ID_NAMES, *["v"] * width], np.zeros(width + 2))
+        return _joint_state(stamp, frame, [*MSG.ID_NAMES, *["v"] * width], np.zeros(width + 2))
     if family == 4:  # names and positions of different lengths
-        return _joint_state(stamp, frame, list(M.ID_NAMES), np.zeros(rng.randrange(0, 100)))
+        return _joint_state(stamp, frame, list(MSG.ID_NAMES), np.zeros(rng.randrange(0, 100)))
     return _garbage(rng, valid)
 
 
@@ -136,19 +136,19 @@ def json_message(rng: random.Random, valid: dict) -> bytes:
         keys += rng.sample(sorted(set(run) | {"horizon", "start_ns", "messages", "status", "dt_ns"}), 2)
         for key in keys:
             run[key] = rng.choice([-1, 0, 10**18, 10**400, 1e308, "x", None, [], {}, True, 5])
-        return M.encode_string(json.dumps(obj))
+        return MSG.encode_string(json.dumps(obj))
     if family == 1:
         value = rng.choice([[], 5, "x", None, {"status": 5}, {"scenario": 1, "state_names": 2}])
-        return M.encode_string(json.dumps(value))
+        return MSG.encode_string(json.dumps(value))
     if family == 2:
         depth = rng.choice([1000, 100_000])
-        return M.encode_string("[" * depth + "]" * depth)
+        return MSG.encode_string("[" * depth + "]" * depth)
     if family == 3:  # invalid UTF-8 in a String
         body = b"\xff\xfe{" + bytes(rng.getrandbits(8) for _ in range(64)) + b"\x00"
         return b"\x00\x01\x00\x00" + struct.pack("<I", len(body)) + body
     if family == 4:
-        return M.encode_string(json.dumps({"status": "x" * 900_000}))
-    return _garbage(rng, M.encode_string(json.dumps(valid)))
+        return MSG.encode_string(json.dumps({"status": "x" * 900_000}))
+    return _garbage(rng, MSG.encode_string(json.dumps(valid)))
 
 
 def pose_message(rng: random.Random) -> bytes:
@@ -197,12 +197,12 @@ class Target(NamedTuple):
 
 def targets(scen) -> list[Target]:
     desc = scen.describe()
-    announce = json.loads(M.decode_string(M.encode_scenario(desc, trajectories=1, horizon=100, start_ns=10**18)))
-    obs = (scen.name, M.observation_labels(scen))
-    truth = (scen.name, M.state_labels(scen))
-    est = ("ekf", M.state_labels(scen))
-    observation = Input("observation", "topic", "observation", M.JOINT_STATE, lambda r: vector_message(r, *obs))
-    scenario = Input("scenario", "topic", "scenario", M.STRING, lambda r: json_message(r, announce))
+    announce = json.loads(MSG.decode_string(MSG.encode_scenario(desc, trajectories=1, horizon=100, start_ns=10**18)))
+    obs = (scen.name, MSG.observation_labels(scen))
+    truth = (scen.name, MSG.state_labels(scen))
+    est = ("ekf", MSG.state_labels(scen))
+    observation = Input("observation", "topic", "observation", MSG.JOINT_STATE, lambda r: vector_message(r, *obs))
+    scenario = Input("scenario", "topic", "scenario", MSG.STRING, lambda r: json_message(r, announce))
     params = Input("parameters", "parameters", "", "", None)
     estimator_inputs = [
         observation,
@@ -229,10 +229,10 @@ def targets(scen) -> list[Target]:
             "/",
             [
                 observation,
-                Input("ground_truth", "topic", "ground_truth", M.JOINT_STATE, lambda r: vector_message(r, *truth)),
-                Input("estimates/ekf", "topic", "estimates/ekf", M.JOINT_STATE, lambda r: vector_message(r, *est)),
+                Input("ground_truth", "topic", "ground_truth", MSG.JOINT_STATE, lambda r: vector_message(r, *truth)),
+                Input("estimates/ekf", "topic", "estimates/ekf", MSG.JOINT_STATE, lambda r: vector_message(r, *est)),
                 scenario,
-                Input("run_status", "topic", "run_status", M.STRING, lambda r: json_message(r, status)),
+                Input("run_status", "topic", "run_status", MSG.STRING, lambda r: json_message(r, status)),
                 params,
             ],
         ),
@@ -310,7 +310,7 @@ def run(seconds: float, seed: int, only: set[str] | None, domain: int, workdir: 
 
     from neural_estimator.nodes.common import latched_qos, stream_qos
 
-    types = {M.JOINT_STATE: JointState, M.STRING: String, POSE: PoseWithCovarianceStamped}
+    types = {MSG.JOINT_STATE: JointState, MSG.STRING: String, POSE: PoseWithCovarianceStamped}
     scen = make_scenario(SCENARIO)
     chosen = [t for t in targets(scen) if only is None or t.name in only]
     env = isolated_env(domain)
@@ -383,7 +383,7 @@ def run(seconds: float, seed: int, only: set[str] | None, domain: int, workdir: 
                 diag0 = _diagnostics_total(diag[key]) if key in diag else 0
                 if inp.kind == "topic" and (inp.target, inp.msgtype) not in pubs:
                     # the QoS the node's own publishers offer on that topic (JSON streams are latched)
-                    qos = latched_qos() if inp.msgtype == M.STRING else stream_qos(100, transient_local=False)
+                    qos = latched_qos() if inp.msgtype == MSG.STRING else stream_qos(100, transient_local=False)
                     pubs[(inp.target, inp.msgtype)] = node.create_publisher(types[inp.msgtype], inp.target, qos)
                     spin(2.0)  # discovery: the estimator subscribes when a publisher appears
                 end = time.monotonic() + seconds

@@ -1,6 +1,6 @@
 """The shipped neural models beside the paper's, at a larger evaluation size: which is best per scenario.
 
-For every scenario, each shipped neural model (``neural_estimator/zoo/<scenario>-<method>/``) runs on
+For every scenario, each shipped neural model (``neural_estimator/serving/zoo/<scenario>-<method>/``) runs on
 ``--sets`` independent evaluation sets of ``--trajectories`` trajectories (default 3 x 1,000; the
 paper: 3 x 8,000) through :func:`neural_estimator.evaluation.evaluate`, and the table prints
 
@@ -39,7 +39,7 @@ from neural_estimator.metrics import EVALUATION_WARMUP
 from neural_estimator.paper import PAPER_SCENARIOS, paper_value
 from neural_estimator.scenarios import make_scenario
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 SSMS = ("mamba", "mamba2")
 L96_TARGET = 0.08
 

@@ -6,7 +6,7 @@
 For each scenario, `neural-estimator evaluate` runs the ten methods (the paper's filter settings,
 started from the prior; the shipped neural models with their covariance heads) on fresh evaluation
 seeds, one set, without the result cache (the reliability curve is recorded per run), and the median
-coverage at each nominal level (`neural_estimator.consistency.RELIABILITY_LEVELS`) is drawn against
+coverage at each nominal level (`neural_estimator.metrics.consistency.RELIABILITY_LEVELS`) is drawn against
 the level. Writes ``OUT/<scenario>.png`` and ``OUT/<scenario>.json`` (the curves). Neural models not
 trained on the scenario's default constants are left out (see scripts/fidelity_table.py).
 """
@@ -46,8 +46,8 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
 
     from neural_estimator.cli import main as cli
-    from neural_estimator.consistency import RELIABILITY_LEVELS
-    from neural_estimator.plots import plot_reliability
+    from neural_estimator.metrics.consistency import RELIABILITY_LEVELS
+    from neural_estimator.metrics.plots import plot_reliability
     from neural_estimator.paper.reproduce.fidelity import shipped_on_defaults
 
     out = Path(a.out)

@@ -16,8 +16,8 @@ export MPLBACKEND=Agg
 # (one of them also running the test's ROS nodes) only contend.
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
 # Lint and formatting first (ruff.toml; under a second): a style slip fails the run like a test.
-"$venv/bin/ruff" check neural_estimator sim_nodes test scripts benchmarks experiments examples docs
-"$venv/bin/ruff" format --check --quiet neural_estimator sim_nodes test scripts benchmarks experiments examples docs
+"$venv/bin/ruff" check neural_estimator test scripts benchmarks experiments examples docs
+"$venv/bin/ruff" format --check --quiet neural_estimator test scripts benchmarks experiments examples docs
 # The documentation site (mkdocs.yml): a broken link, a missing page or a failing generator fails the run.
 NO_MKDOCS_2_WARNING=1 "$venv/bin/python" -m mkdocs build --strict --quiet --site-dir "$root/.cache/site"
 exec "$venv/bin/python" -m pytest -q test "$@"

@@ -26,7 +26,7 @@ finishes the selected unfinished models as they stand, without another epoch (fo
 validation loss has been flat at a learning rate halved many times, where waiting for the paper's
 30-epoch early stopping costs an hour of CPU per model and changes nothing); the card says so.
 A finished model is evaluated on --eval-trajectories trajectories of evaluation set 0 (the card's
-metrics: a report, never a criterion) and installed into neural_estimator/zoo/ with its card, which
+metrics: a report, never a criterion) and installed into neural_estimator/serving/zoo/ with its card, which
 records the budget and whether training converged (early stopping triggered, or the learning rate
 reduced at least three times). It is not installed, and the shipped model stays (the script says
 why), when its best epoch is its first (the recipe did not train it), or when the shipped model of
@@ -99,12 +99,12 @@ from neural_estimator.training.recipe import TrainConfig
 from neural_estimator.training.resume import RESUME_DIR
 from neural_estimator.training.stopping import plateau_rule
 from neural_estimator.training.threads import ThreadGovernor
-from neural_estimator.runtime import tune_allocator
+from neural_estimator.core.runtime import tune_allocator
 from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, default_preset, make_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
-ZOO = ROOT / "neural_estimator" / "zoo"
+ZOO = ROOT / "neural_estimator" / "serving" / "zoo"
 STATE = ROOT / "zoo_training"
 LOCK_NAME = "training.lock"  # see claimed(); not committed (.gitignore)
 ORDER = ("mamba2", "mamba", "gru", "lstm", "gpt2", "filterformer")  # SSMs first, then recurrent, then attention
@@ -479,7 +479,7 @@ def instance_seeds(instance: int) -> dict:
 
 def instance_paths(instance: int, state: Path | None, zoo: Path | None) -> tuple[Path, Path]:
     """Where instance ``instance`` (>= 1) trains and is installed: STATE/instances/i<K>/ and
-    neural_estimator/zoo/instances/i<K>/ unless --state / --zoo say otherwise."""
+    neural_estimator/serving/zoo/instances/i<K>/ unless --state / --zoo say otherwise."""
     name = f"i{instance}"
     return (state or STATE / "instances" / name), (zoo or ZOO / "instances" / name)
 
@@ -569,7 +569,9 @@ def main(argv=None) -> int:
         help="directory of the resumable training states (default zoo_training/, zoo_training/context<N>/ "
         "with --val-context)",
     )
-    p.add_argument("--zoo", default=None, help="where finished models are installed (default neural_estimator/zoo/)")
+    p.add_argument(
+        "--zoo", default=None, help="where finished models are installed (default neural_estimator/serving/zoo/)"
+    )
     p.add_argument(
         "--finish",
         action="store_true",
@@ -603,7 +605,7 @@ def main(argv=None) -> int:
         type=int,
         default=0,
         help="train instance K >= 1 of each selected pair (training set K, initialisation K; the shipped "
-        "model is instance 0), in STATE/instances/i<K>/, installed into neural_estimator/zoo/instances/i<K>/ "
+        "model is instance 0), in STATE/instances/i<K>/, installed into neural_estimator/serving/zoo/instances/i<K>/ "
         "with no comparison against the shipped model: every instance is kept, for medians over instances",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")

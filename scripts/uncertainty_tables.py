@@ -3,7 +3,7 @@
 
 Each DIR holds a results.json; one markdown row per (scenario, method) with the RMSE, the 95 %
 coverage, NEES mean and median per state dimension, the calibration error of the median reliability
-curve and the verdict (neural_estimator.consistency), plus the reliability curves.
+curve and the verdict (neural_estimator.metrics.consistency), plus the reliability curves.
 
     python scripts/uncertainty_tables.py /tmp/eval/lorenz96 /tmp/eval/nlink --label "with head"
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neural_estimator import consistency as C
+from neural_estimator.metrics import consistency as C
 
 
 def rows(directory: Path, label: str | None = None) -> list[str]:

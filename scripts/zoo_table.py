@@ -13,7 +13,7 @@ from pathlib import Path
 from neural_estimator.methods.registry import NEURAL_METHODS
 from neural_estimator.paper import PAPER_SCENARIOS
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 
 
 def main() -> None:

@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from neural_estimator.bags import BagError, BagReader, BagWarning, BagWriter, LATCHED_QOS, MessageError, STREAM_QOS
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
 from neural_estimator.data import simulate
 from neural_estimator.scenarios import Scenario, register_scenario, scenario_from_description
@@ -73,8 +73,8 @@ def test_no_rclpy_in_the_bag_layer():
 
 # ---- message layout ----------------------------------------------------------------------------------
 def test_vector_round_trip_and_identity():
-    raw = M.encode_vector(1_500_000_123, "lorenz96", 3, 41, ["a", "b"], [1.5, -2.0])
-    vec = M.decode_vector(raw)
+    raw = MSG.encode_vector(1_500_000_123, "lorenz96", 3, 41, ["a", "b"], [1.5, -2.0])
+    vec = MSG.decode_vector(raw)
     assert vec.stamp_ns == 1_500_000_123 and vec.frame_id == "lorenz96"
     assert (vec.trajectory, vec.step, vec.names) == (3, 41, ("a", "b"))
     np.testing.assert_array_equal(vec.values, [1.5, -2.0])
@@ -86,13 +86,13 @@ def test_vector_round_trip_and_identity():
 
 def test_observation_layout_with_controls():
     s = Cart()
-    assert M.observation_labels(s) == ("position", "u_prev/force")
-    assert M.observation_labels(s.describe()) == M.observation_labels(s)
-    raw = M.encode_observation(s, 10, 0, 2, [0.3], [-1.0])
-    y, u_prev = M.split_observation(M.decode_vector(raw), s)
+    assert MSG.observation_labels(s) == ("position", "u_prev/force")
+    assert MSG.observation_labels(s.describe()) == MSG.observation_labels(s)
+    raw = MSG.encode_observation(s, 10, 0, 2, [0.3], [-1.0])
+    y, u_prev = MSG.split_observation(MSG.decode_vector(raw), s)
     np.testing.assert_array_equal(y, [0.3])
     np.testing.assert_array_equal(u_prev, [-1.0])
-    assert M.covariance_labels(2) == ("P[0,0]", "P[0,1]", "P[1,0]", "P[1,1]")
+    assert MSG.covariance_labels(2) == ("P[0,0]", "P[0,1]", "P[1,0]", "P[1,1]")
 
 
 @pytest.mark.parametrize(
@@ -100,17 +100,17 @@ def test_observation_layout_with_controls():
     [
         (b"", "empty message"),
         (b"\x00\x01\x00\x00garbage", "cannot parse"),
-        (M.encode_string("hello"), "cannot parse"),
+        (MSG.encode_string("hello"), "cannot parse"),
     ],
 )
 def test_malformed_bytes_are_message_errors(raw, text):
     with pytest.raises(MessageError, match=text):
-        M.decode_vector(raw)
+        MSG.decode_vector(raw)
 
 
 def test_bad_identity_and_names_are_message_errors():
-    ts = M.TYPESTORE
-    J, H, T = ts.types[M.JOINT_STATE], ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    ts = MSG.TYPESTORE
+    J, H, T = ts.types[MSG.JOINT_STATE], ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
     empty = np.zeros(0)
 
     def raw(names, pos):
@@ -121,50 +121,50 @@ def test_bad_identity_and_names_are_message_errors():
             velocity=empty,
             effort=empty,
         )
-        return bytes(ts.serialize_cdr(msg, M.JOINT_STATE))
+        return bytes(ts.serialize_cdr(msg, MSG.JOINT_STATE))
 
     with pytest.raises(MessageError, match="identity"):
-        M.decode_vector(raw(["x", "y"], [0, 1]))
+        MSG.decode_vector(raw(["x", "y"], [0, 1]))
     with pytest.raises(MessageError, match="empty JointState"):
-        M.decode_vector(raw([], []))
+        MSG.decode_vector(raw([], []))
     with pytest.raises(MessageError, match="step index"):
-        M.decode_vector(raw(["trajectory", "step"], [0, 1.5]))
+        MSG.decode_vector(raw(["trajectory", "step"], [0, 1.5]))
     with pytest.raises(MessageError, match="trajectory index"):
-        M.decode_vector(raw(["trajectory", "step"], [np.nan, 1]))
+        MSG.decode_vector(raw(["trajectory", "step"], [np.nan, 1]))
     with pytest.raises(MessageError, match="3 names but 2 positions"):
-        M.decode_vector(raw(["trajectory", "step", "a"], [0, 1]))
-    vec = M.decode_vector(raw(["trajectory", "step", "a"], [0, 1, 2.0]))
+        MSG.decode_vector(raw(["trajectory", "step", "a"], [0, 1]))
+    vec = MSG.decode_vector(raw(["trajectory", "step", "a"], [0, 1, 2.0]))
     with pytest.raises(MessageError, match="1 values"):
-        M.check_labels(vec, ["a", "b"], "observation")
+        MSG.check_labels(vec, ["a", "b"], "observation")
     with pytest.raises(MessageError, match="'a' where 'z'"):
-        M.check_labels(vec, ["z"], "observation")
+        MSG.check_labels(vec, ["z"], "observation")
 
 
 def test_topics_and_namespaces():
-    assert M.resolve_topic("observation") == "/observation"
-    assert M.resolve_topic("estimates/ukf", "/robot1/") == "/robot1/estimates/ukf"
-    assert M.topic_role("/estimates/ukf") == M.TopicRole("estimate", "ukf")
-    assert M.topic_role("/estimates/ukf/covariance") == M.TopicRole("covariance", "ukf")
-    assert M.topic_role("/robot1/observation", "/robot1") == M.TopicRole("observation")
-    assert M.topic_role("/robot1/observation") is None
-    assert M.topic_role("/rosout") is None
-    assert M.topic_role("/estimates/ukf/other") is None
+    assert MSG.resolve_topic("observation") == "/observation"
+    assert MSG.resolve_topic("estimates/ukf", "/robot1/") == "/robot1/estimates/ukf"
+    assert MSG.topic_role("/estimates/ukf") == MSG.TopicRole("estimate", "ukf")
+    assert MSG.topic_role("/estimates/ukf/covariance") == MSG.TopicRole("covariance", "ukf")
+    assert MSG.topic_role("/robot1/observation", "/robot1") == MSG.TopicRole("observation")
+    assert MSG.topic_role("/robot1/observation") is None
+    assert MSG.topic_role("/rosout") is None
+    assert MSG.topic_role("/estimates/ukf/other") is None
 
 
 def test_scenario_and_status_messages():
     s = Cart(horizon=12)
-    desc = M.decode_scenario(M.encode_scenario(s.describe(), seed=3, trajectories=2, horizon=12))
+    desc = MSG.decode_scenario(MSG.encode_scenario(s.describe(), seed=3, trajectories=2, horizon=12))
     assert desc["run"] == {"seed": 3, "trajectories": 2, "horizon": 12}
     assert scenario_from_description(desc).config == s.config
-    st = M.decode_run_status(M.encode_run_status("complete", messages=24))
+    st = MSG.decode_run_status(MSG.encode_run_status("complete", messages=24))
     assert st == {"status": "complete", "messages": 24}
     with pytest.raises(MessageError, match="not JSON"):
-        M.decode_run_status(M.encode_string("{nope"))
+        MSG.decode_run_status(MSG.encode_string("{nope"))
 
 
 def test_stamps_are_integer_nanoseconds():
-    assert M.dt_ns(0.05) == 50_000_000
-    assert M.step_stamp_ns(10**18, 3, M.dt_ns(0.05)) == 10**18 + 150_000_000
+    assert MSG.dt_ns(0.05) == 50_000_000
+    assert MSG.step_stamp_ns(10**18, 3, MSG.dt_ns(0.05)) == 10**18 + 150_000_000
 
 
 # ---- writer and reader -----------------------------------------------------------------------------------
@@ -172,12 +172,12 @@ def _small_bag(path, n=300, chunk_size=2048):
     rng = np.random.default_rng(0)
     written = []
     with BagWriter(path, chunk_size=chunk_size) as bag:
-        bag.add_topic("/observation", M.JOINT_STATE, qos=[STREAM_QOS])
-        bag.add_topic("/scenario", M.STRING, qos=[LATCHED_QOS])
-        bag.write("/scenario", 1, M.encode_string("{}"))
-        written.append(("/scenario", 1, M.encode_string("{}")))
+        bag.add_topic("/observation", MSG.JOINT_STATE, qos=[STREAM_QOS])
+        bag.add_topic("/scenario", MSG.STRING, qos=[LATCHED_QOS])
+        bag.write("/scenario", 1, MSG.encode_string("{}"))
+        written.append(("/scenario", 1, MSG.encode_string("{}")))
         for k in range(n):
-            raw = M.encode_vector(100 + k, "s", 0, k, ["a"], rng.standard_normal(1))
+            raw = MSG.encode_vector(100 + k, "s", 0, k, ["a"], rng.standard_normal(1))
             bag.write("/observation", 100 + k, raw)
             written.append(("/observation", 100 + k, raw))
     return written
@@ -191,9 +191,9 @@ def test_writer_reader_round_trip(tmp_path):
         assert bag.profile == "ros2"
         got = [(c.topic, t, raw) for c, t, raw in bag.messages()]
         conn = bag.topics["/observation"]
-        assert conn.msgtype == M.JOINT_STATE and conn.msgcount == 300
+        assert conn.msgtype == MSG.JOINT_STATE and conn.msgcount == 300
         assert conn.message_encoding == "cdr"
-        assert conn.type_hash == M.TYPESTORE.hash_rihs01(M.JOINT_STATE)
+        assert conn.type_hash == MSG.TYPESTORE.hash_rihs01(MSG.JOINT_STATE)
         assert "MSG: std_msgs/Header" in conn.msgdef and "builtin_interfaces/Time stamp" in conn.msgdef
         qos = yaml.safe_load(conn.offered_qos_profiles)
         assert qos[0]["reliability"] == "reliable" and qos[0]["durability"] == "transient_local"
@@ -211,11 +211,11 @@ def test_reader_orders_by_log_time(tmp_path):
     path = tmp_path / "shuffled.mcap"
     times = np.random.default_rng(1).permutation(200)
     with BagWriter(path, chunk_size=512) as bag:
-        bag.add_topic("/x", M.STRING)
+        bag.add_topic("/x", MSG.STRING)
         for t in times:
-            bag.write("/x", int(t), M.encode_string(str(t)))
+            bag.write("/x", int(t), MSG.encode_string(str(t)))
     with BagReader(path) as bag:
-        got = [(t, M.decode_string(raw)) for _, t, raw in bag.messages()]
+        got = [(t, MSG.decode_string(raw)) for _, t, raw in bag.messages()]
     assert got == [(t, str(t)) for t in range(200)]
 
 
@@ -234,12 +234,12 @@ def test_rosbags_anyreader_reads_our_bags(tmp_path):
     with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
         assert topics == {
-            "/scenario": (M.STRING, 1),
-            "/run_status": (M.STRING, 2),
-            "/observation": (M.JOINT_STATE, 20),
-            "/ground_truth": (M.JOINT_STATE, 20),
-            "/estimates/ukf": (M.JOINT_STATE, 20),
-            "/estimates/ukf/covariance": (M.JOINT_STATE, 20),
+            "/scenario": (MSG.STRING, 1),
+            "/run_status": (MSG.STRING, 2),
+            "/observation": (MSG.JOINT_STATE, 20),
+            "/ground_truth": (MSG.JOINT_STATE, 20),
+            "/estimates/ukf": (MSG.JOINT_STATE, 20),
+            "/estimates/ukf/covariance": (MSG.JOINT_STATE, 20),
         }
         truth = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages() if c.topic == "/ground_truth"]
         qos = reader.connections[0].ext.offered_qos_profiles
@@ -274,7 +274,7 @@ def test_arrays_bag_arrays_round_trip(tmp_path):
     assert run.description["run"]["seed"] == 4
     assert run.scenario.config == s.config
     assert run.trajectories.tolist() == [0, 1, 2]
-    assert run.stamps[0, 0] == 10**18 and run.stamps[1, 0] == 10**18 + 25 * M.dt_ns(s.dt)
+    assert run.stamps[0, 0] == 10**18 and run.stamps[1, 0] == 10**18 + 25 * MSG.dt_ns(s.dt)
     assert np.all(np.diff(run.stamps.reshape(-1)) > 0)  # strictly increasing within the run
     assert set(run.missing.values()) == {0} and not run.rejected and not run.duplicates
 
@@ -283,23 +283,23 @@ def test_bag_to_arrays_keys_by_identity_not_order(tmp_path):
     """Messages recorded in any order, one of them malformed: arrays are still right."""
     s = Cart()
     data = simulate(s, 2, 6, seed=1)
-    obs_names, state_names = M.observation_labels(s), M.state_labels(s)
+    obs_names, state_names = MSG.observation_labels(s), MSG.state_labels(s)
     items = []
     for n in range(2):
         for k in range(6):
             u_prev = data.u[n, k - 1] if k else np.zeros(1)
-            items.append(("/observation", M.encode_vector(0, s.name, n, k, obs_names, np.r_[data.y[n, k], u_prev])))
-            items.append(("/ground_truth", M.encode_vector(0, s.name, n, k, state_names, data.x[n, k])))
+            items.append(("/observation", MSG.encode_vector(0, s.name, n, k, obs_names, np.r_[data.y[n, k], u_prev])))
+            items.append(("/ground_truth", MSG.encode_vector(0, s.name, n, k, state_names, data.x[n, k])))
     order = np.random.default_rng(2).permutation(len(items))
     path = tmp_path / "any_order.mcap"
     with BagWriter(path) as bag:
-        bag.add_topic("/scenario", M.STRING)
-        bag.add_topic("/observation", M.JOINT_STATE)
-        bag.add_topic("/ground_truth", M.JOINT_STATE)
-        bag.write("/scenario", 0, M.encode_scenario(s.describe(), trajectories=2, horizon=6))
+        bag.add_topic("/scenario", MSG.STRING)
+        bag.add_topic("/observation", MSG.JOINT_STATE)
+        bag.add_topic("/ground_truth", MSG.JOINT_STATE)
+        bag.write("/scenario", 0, MSG.encode_scenario(s.describe(), trajectories=2, horizon=6))
         for t, i in enumerate(order):
             bag.write(items[i][0], t + 1, items[i][1])
-        bag.write("/observation", 999, M.encode_vector(0, s.name, 0, 0, ["wrong"], [1.0]))
+        bag.write("/observation", 999, MSG.encode_vector(0, s.name, 0, 0, ["wrong"], [1.0]))
         bag.write("/observation", 1000, items[0][1])  # a duplicate
     run = bag_to_arrays(path)
     np.testing.assert_array_equal(run.x, data.x)
@@ -372,13 +372,13 @@ def test_corrupt_chunk_is_skipped_and_reading_resumes(tmp_path):
 def test_wrong_type_topic_is_an_error(tmp_path):
     path = tmp_path / "wrong.mcap"
     with BagWriter(path) as bag:
-        bag.add_topic("/observation", M.STRING)
-        bag.write("/observation", 1, M.encode_string("not a vector"))
+        bag.add_topic("/observation", MSG.STRING)
+        bag.write("/observation", 1, MSG.encode_string("not a vector"))
     with pytest.raises(BagError, match="'/observation' holds std_msgs/msg/String, expected sensor_msgs/msg/JointState"):
         bag_to_arrays(path)
     with BagReader(path) as bag:
         with pytest.raises(BagError, match="holds std_msgs/msg/String"):
-            bag.connection("/observation", M.JOINT_STATE)
+            bag.connection("/observation", MSG.JOINT_STATE)
         with pytest.raises(BagError, match="no topic '/ground_truth'"):
             bag.connection("/ground_truth")
 
@@ -400,20 +400,20 @@ def test_writer_refuses_misuse(tmp_path):
     path = tmp_path / "a.mcap"
     with BagWriter(path) as bag:
         with pytest.raises(BagError, match="absolute topic names"):
-            bag.add_topic("observation", M.JOINT_STATE)
+            bag.add_topic("observation", MSG.JOINT_STATE)
         with pytest.raises(BagError, match="not declared"):
             bag.write("/nope", 0, b"")
-        bag.add_topic("/a", M.STRING)
+        bag.add_topic("/a", MSG.STRING)
         with pytest.raises(BagError, match="already holds"):
-            bag.add_topic("/a", M.JOINT_STATE)
+            bag.add_topic("/a", MSG.JOINT_STATE)
         with pytest.raises(BagError, match="not in the ROS 2 Jazzy type store"):
             bag.add_topic("/b", "my_msgs/msg/Thing")
     with pytest.raises(BagError, match="file exists"):
         BagWriter(path).open()
     with BagWriter(path, overwrite=True) as bag:
-        bag.write_message("/s", 5, M.TYPESTORE.types[M.STRING](data="hi"))
+        bag.write_message("/s", 5, MSG.TYPESTORE.types[MSG.STRING](data="hi"))
     with BagReader(path) as bag:
-        assert [(c.topic, M.decode_string(r)) for c, _, r in bag.messages()] == [("/s", "hi")]
+        assert [(c.topic, MSG.decode_string(r)) for c, _, r in bag.messages()] == [("/s", "hi")]
         ((conn, _, msg),) = list(bag.decoded())
         assert msg.data == "hi"
 
@@ -422,8 +422,8 @@ def test_writer_closes_file_when_body_raises(tmp_path):
     path = tmp_path / "err.mcap"
     with pytest.raises(RuntimeError):
         with BagWriter(path) as bag:
-            bag.add_topic("/x", M.STRING)
-            bag.write("/x", 1, M.encode_string("kept"))
+            bag.add_topic("/x", MSG.STRING)
+            bag.write("/x", 1, MSG.encode_string("kept"))
             raise RuntimeError("boom")
     with BagReader(path, strict=True) as bag:  # complete, not damaged
         assert bag.message_count == 1
@@ -432,7 +432,7 @@ def test_writer_closes_file_when_body_raises(tmp_path):
 # ---- evaluation inputs and offline replay ----------------------------------------------------------------
 def test_load_bag_dataset_and_report(tmp_path):
     from neural_estimator.bags import load_bag_dataset
-    from neural_estimator.bags.report import evaluate_bag, write_report
+    from neural_estimator.evaluation.bag_report import evaluate_bag, write_report
 
     s = Cart()
     data = simulate(s, 3, 20, seed=5)
@@ -466,7 +466,7 @@ def test_load_bag_dataset_and_report(tmp_path):
 
 
 def test_bag_report_warmup_and_runs_shorter_than_it(tmp_path):
-    from neural_estimator.bags.report import evaluate_bag
+    from neural_estimator.evaluation.bag_report import evaluate_bag
     from neural_estimator.metrics import MetricsError
 
     s = Cart()
@@ -495,7 +495,7 @@ def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
     gappy = tmp_path / "gappy2.mcap"
     with BagWriter(gappy) as out:
         for c, t, raw in msgs:
-            if c.topic == "/estimates/a" and M.decode_vector(raw)[2:4] == (1, 3):
+            if c.topic == "/estimates/a" and MSG.decode_vector(raw)[2:4] == (1, 3):
                 continue
             if not out.has_topic(c.topic):
                 out.add_topic(c.topic, c.msgtype)
@@ -514,7 +514,7 @@ def test_incomplete_trajectories_are_left_out_for_every_method(tmp_path):
 
 def test_replay_equals_run_and_reads_any_order(tmp_path):
     from neural_estimator.methods.registry import make_estimator
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     s = Cart()
     data = simulate(s, 2, 15, seed=6)
@@ -529,7 +529,7 @@ def test_replay_equals_run_and_reads_any_order(tmp_path):
                 out.add_topic(topic, msgtype)
         for t, i in enumerate(order):
             out.write(msgs[i][0], t, msgs[i][3])
-        out.write("/observation", len(msgs), M.encode_vector(0, s.name, 0, 3, ["bad"], [1.0]))
+        out.write("/observation", len(msgs), MSG.encode_vector(0, s.name, 0, 3, ["bad"], [1.0]))
     res = replay(shuffled, ["ekf", "ukf"], tmp_path / "out.mcap", order="identity")
     assert res.estimates == {"ekf": 30, "ukf": 30} and res.rejected == {"ekf": 1, "ukf": 1}
     assert res.per_step_us("ekf") > 0
@@ -545,7 +545,7 @@ def test_replay_equals_run_and_reads_any_order(tmp_path):
 
 def test_online_estimator_stream_rules():
     from neural_estimator.methods.registry import make_estimator
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
 
     s = Cart()
     data = simulate(s, 1, 8, seed=2)
@@ -554,7 +554,7 @@ def test_online_estimator_stream_rules():
     def obs(k, y=None, u=None, n=0):
         y = data.y[0, k] if y is None else y
         u = (data.u[0, k - 1] if k else np.zeros(1)) if u is None else u
-        return M.encode_observation(s, k, n, k, y, u)
+        return MSG.encode_observation(s, k, n, k, y, u)
 
     def feed(raw):
         return [r.status for r in online.feed(raw, 0.0)]
@@ -566,7 +566,7 @@ def test_online_estimator_stream_rules():
     r = online.feed(obs(4), 0.0)
     assert [x.status for x in r] == ["estimated", "estimated"] and r[0].filled == 2
     assert feed(obs(2)) == ["held"]  # late: held, then dropped as stale once the stream goes on
-    for bad in (b"", obs(5, u=[np.nan]), M.encode_vector(0, s.name, 0, 5, ["position"], [0.0])):
+    for bad in (b"", obs(5, u=[np.nan]), MSG.encode_vector(0, s.name, 0, 5, ["position"], [0.0])):
         with pytest.raises(MessageError):
             online.feed(bad)
     assert online.step == 4  # bad messages change nothing
@@ -580,16 +580,18 @@ def test_online_estimator_stream_rules():
 
 
 @pytest.mark.parametrize("frame", ["", "a", "abcd", "lorenz96"])
-@pytest.mark.parametrize("names", [[], ["a"], ["ab", "c"], ["position", "u_prev/force"], list(M.covariance_labels(3))])
+@pytest.mark.parametrize(
+    "names", [[], ["a"], ["ab", "c"], ["position", "u_prev/force"], list(MSG.covariance_labels(3))]
+)
 def test_vector_codec_equals_the_rosbags_serializer(frame, names):
-    codec = M.VectorCodec(frame, names)
+    codec = MSG.VectorCodec(frame, names)
     values = np.random.default_rng(len(names)).standard_normal(len(names))
     for stamp in (0, 1_500_000_123, 10**18 + 7):
-        ref = M.encode_vector(stamp, frame, 3, 17, names, values)
+        ref = MSG.encode_vector(stamp, frame, 3, 17, names, values)
         assert codec.encode(stamp, 3, 17, values) == ref
-        fast, slow = codec.decode(ref), M.decode_vector(ref)
+        fast, slow = codec.decode(ref), MSG.decode_vector(ref)
         assert fast[:5] == slow[:5] and np.array_equal(fast.values, slow.values)
-    other = M.encode_vector(5, frame, 0, 1, ["zz"] * (len(names) + 1), np.zeros(len(names) + 1))
+    other = MSG.encode_vector(5, frame, 0, 1, ["zz"] * (len(names) + 1), np.zeros(len(names) + 1))
     assert codec.decode(other).names == ("zz",) * (len(names) + 1)  # the fallback reads any layout
     with pytest.raises(MessageError, match="empty message"):
         codec.decode(b"")

@@ -11,11 +11,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from neural_estimator import cli
 from neural_estimator.bags import BagWriter, STREAM_QOS, arrays_to_bag, bag_to_arrays, open_bag
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
 from neural_estimator.methods.registry import make_estimator
-from neural_estimator.online import OnlineEstimator
-from neural_estimator.replay import replay
+from neural_estimator.stream.online import OnlineEstimator
+from neural_estimator.evaluation.replay import replay
 from neural_estimator.scenarios import make_scenario
 
 SCEN = "bearings"
@@ -34,13 +34,13 @@ def data(scen):
 
 def _stream_messages(scen, data, start_ns=10**18):
     """(topic, t, raw) of observation and ground truth, as the simulator publishes them."""
-    obs_codec = M.VectorCodec(scen.name, M.observation_labels(scen))
-    truth_codec = M.VectorCodec(scen.name, M.state_labels(scen))
-    period = M.dt_ns(scen.dt)
+    obs_codec = MSG.VectorCodec(scen.name, MSG.observation_labels(scen))
+    truth_codec = MSG.VectorCodec(scen.name, MSG.state_labels(scen))
+    period = MSG.dt_ns(scen.dt)
     out = []
     for n in range(N):
         for k in range(T):
-            t = M.step_stamp_ns(start_ns, n * T + k, period)
+            t = MSG.step_stamp_ns(start_ns, n * T + k, period)
             u_prev = data.u[n, k - 1] if k else np.zeros(scen.du)
             out.append(("/observation", t, obs_codec.encode(t, n, k, np.concatenate([data.y[n, k], u_prev]))))
             out.append(("/ground_truth", t, truth_codec.encode(t, n, k, data.x[n, k])))
@@ -58,7 +58,9 @@ def _rosbags_directory(path, msgs, split=2):
     for i, idx in enumerate(parts):
         sub = path.parent / f"{path.name}_part{i}"
         with Writer(sub, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-            conns = {t: w.add_connection(t, M.JOINT_STATE, typestore=store) for t in ("/observation", "/ground_truth")}
+            conns = {
+                t: w.add_connection(t, MSG.JOINT_STATE, typestore=store) for t in ("/observation", "/ground_truth")
+            }
             for j in idx:
                 topic, t, raw = msgs[j]
                 w.write(conns[topic], t, raw)
@@ -108,18 +110,18 @@ def test_mcap_ros2_written_bag_is_read(scen, data, tmp_path, capsys):
     from mcap_ros2.writer import Writer
 
     store = get_typestore(Stores.ROS2_JAZZY)
-    msgdef = store.generate_msgdef(M.JOINT_STATE, ros_version=2)[0]
+    msgdef = store.generate_msgdef(MSG.JOINT_STATE, ros_version=2)[0]
     path = tmp_path / "mcap_ros2.mcap"
     with open(path, "wb") as f:
         w = Writer(f)
-        schema = w.register_msgdef(M.JOINT_STATE, msgdef)
+        schema = w.register_msgdef(MSG.JOINT_STATE, msgdef)
         ukf = make_estimator("ukf", scen).run(data.y, data.u).x
         for topic, t, raw in _stream_messages(scen, data):
-            vec = M.decode_vector(raw)
+            vec = MSG.decode_vector(raw)
             w.write_message(topic, schema, _as_dict(vec), log_time=t, publish_time=t)
             if topic == "/observation":
                 est = {**_as_dict(vec), "header": {"stamp": _stamp(t), "frame_id": "ukf"}}
-                est["name"] = list(M.ID_NAMES) + list(M.state_labels(scen))
+                est["name"] = list(MSG.ID_NAMES) + list(MSG.state_labels(scen))
                 est["position"] = [vec.trajectory, vec.step] + list(ukf[vec.trajectory, vec.step])
                 w.write_message("/estimates/ukf", schema, est, log_time=t + 1, publish_time=t + 1)
         w.finish()
@@ -136,7 +138,7 @@ def _stamp(t):
 def _as_dict(vec):
     return {
         "header": {"stamp": _stamp(vec.stamp_ns), "frame_id": vec.frame_id},
-        "name": list(M.ID_NAMES) + list(vec.names),
+        "name": list(MSG.ID_NAMES) + list(vec.names),
         "position": [vec.trajectory, vec.step] + list(vec.values),
         "velocity": [],
         "effort": [],
@@ -193,7 +195,7 @@ def test_metrics_never_prints_an_empty_table(scen, data, tmp_path, capsys):
             if not w.has_topic(topic):
                 w.add_topic(topic, msgtype, qos=[STREAM_QOS])
             if topic == "/estimates/ekf":
-                vec = M.decode_vector(raw)
+                vec = MSG.decode_vector(raw)
                 if vec.step > 0:
                     continue
             w.write(topic, t, raw)
@@ -208,7 +210,7 @@ def test_metrics_never_prints_an_empty_table(scen, data, tmp_path, capsys):
                 continue
             if not w.has_topic(topic):
                 w.add_topic(topic, msgtype, qos=[STREAM_QOS])
-            if topic == "/estimates/ekf" and M.decode_vector(raw).step > 3:
+            if topic == "/estimates/ekf" and MSG.decode_vector(raw).step > 3:
                 continue
             w.write(topic, t, raw)
     assert cli.main(["metrics", str(only_ekf)]) == 2
@@ -217,9 +219,9 @@ def test_metrics_never_prints_an_empty_table(scen, data, tmp_path, capsys):
 
 # ---- stream identity ---------------------------------------------------------------------------------------------
 def _obs(scen, data, n, k, start_ns=10**18):
-    t = M.step_stamp_ns(start_ns, n * T + k, M.dt_ns(scen.dt))
+    t = MSG.step_stamp_ns(start_ns, n * T + k, MSG.dt_ns(scen.dt))
     u_prev = data.u[n, k - 1] if k else np.zeros(scen.du)
-    return M.encode_observation(scen, t, n, k, data.y[n, k], u_prev)
+    return MSG.encode_observation(scen, t, n, k, data.y[n, k], u_prev)
 
 
 def _run(online, raws, now=0.0):
@@ -258,15 +260,15 @@ def test_a_stray_message_is_skipped_never_a_reset(scen, data, tmp_path):
 
     # replay processes a bag in recorded order: the same skip, the same estimates as live
     msgs = _stream_messages(scen, data)
-    i = next(j for j, m in enumerate(msgs) if m[0] == "/observation" and M.decode_vector(m[2])[2:4] == (1, 3))
+    i = next(j for j, m in enumerate(msgs) if m[0] == "/observation" and MSG.decode_vector(m[2])[2:4] == (1, 3))
     msgs.insert(i, ("/observation", msgs[i][1], _obs(scen, data, 0, 5)))
     path = tmp_path / "stray.mcap"
     with BagWriter(path) as w:
-        w.add_topic("/scenario", M.STRING)
-        w.write("/scenario", msgs[0][1], M.encode_scenario(scen.describe()))
+        w.add_topic("/scenario", MSG.STRING)
+        w.write("/scenario", msgs[0][1], MSG.encode_scenario(scen.describe()))
         for topic, t, raw in msgs:
             if not w.has_topic(topic):
-                w.add_topic(topic, M.JOINT_STATE)
+                w.add_topic(topic, MSG.JOINT_STATE)
             w.write(topic, t, raw)
     res = replay(path, ["ukf"], tmp_path / "out.mcap")
     assert res.estimates == {"ukf": N * T} and res.skipped == {"ukf": 1}
@@ -289,15 +291,15 @@ def test_one_message_cannot_subvert_the_stream(scen, data, forged, horizon):
     clean = OnlineEstimator(make_estimator("ukf", scen), "ukf", horizon=horizon)
     ref_ids, ref = _estimates(_run(clean, _clean(scen, data)))
     n, k = 1, 4
-    period = M.dt_ns(scen.dt)
-    t_now = M.step_stamp_ns(10**18, n * T + k, period)
+    period = MSG.dt_ns(scen.dt)
+    t_now = MSG.step_stamp_ns(10**18, n * T + k, period)
     bad = {
-        "later trajectory": M.encode_observation(scen, t_now, n + 50, k, data.y[n, k], data.u[n, k - 1]),
-        "step jump": M.encode_observation(scen, t_now + 400 * period, n, k + 400, data.y[n, k], data.u[n, k - 1]),
-        "earlier trajectory, newer stamp": M.encode_observation(
+        "later trajectory": MSG.encode_observation(scen, t_now, n + 50, k, data.y[n, k], data.u[n, k - 1]),
+        "step jump": MSG.encode_observation(scen, t_now + 400 * period, n, k + 400, data.y[n, k], data.u[n, k - 1]),
+        "earlier trajectory, newer stamp": MSG.encode_observation(
             scen, t_now + 10**12, n - 1, 0, data.y[0, 0], np.zeros(scen.du)
         ),
-        "far trajectory start": M.encode_observation(scen, t_now + 10**12, n + 7, 0, data.y[0, 0], np.zeros(scen.du)),
+        "far trajectory start": MSG.encode_observation(scen, t_now + 10**12, n + 7, 0, data.y[0, 0], np.zeros(scen.du)),
     }[forged]
     sent = _clean(scen, data)
     sent.insert(n * T + k, bad)
@@ -345,7 +347,7 @@ def test_quarantine_is_bounded_in_time_and_reordering_is_repaired(scen, data):
 def test_a_step_jump_costs_bounded_time(scen, data):
     online = OnlineEstimator(make_estimator("pf", scen), "pf", max_gap=10**9, max_gap_seconds=0.05, confirm=1)
     online.feed(_obs(scen, data, 0, 0))
-    far = M.encode_observation(scen, 10**18 + 10**15, 0, 10_000_000, data.y[0, 1], data.u[0, 0])
+    far = MSG.encode_observation(scen, 10**18 + 10**15, 0, 10_000_000, data.y[0, 1], data.u[0, 0])
     (_, r) = online.feed(far)
     # restarted without bridging: 10 million PF predict steps would take hours (the work done is
     # asserted, not the wall time, which includes the kernels' first compilation in a fresh clone)
@@ -372,7 +374,7 @@ def test_bad_method_options_are_one_line(option, scen, data, tmp_path, capsys):
 
 def test_replay_threads(scen, data, tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from neural_estimator.online import set_torch_threads
+    from neural_estimator.stream.online import set_torch_threads
 
     before = torch.get_num_threads()
     try:

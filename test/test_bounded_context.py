@@ -107,11 +107,10 @@ def test_the_context_option_refuses_what_it_cannot_do():
 def test_runs_on_a_shipped_model(bc, capsys):
     from conftest import ROOT
 
-    bc.main(["--model", str(ROOT / "neural_estimator/zoo/nlink-mamba2"), "--trajectories", "2", "--copies", "2"])
+    model = str(ROOT / "neural_estimator/serving/zoo/nlink-mamba2")
+    bc.main(["--model", model, "--trajectories", "2", "--copies", "2"])
     out = capsys.readouterr().out.splitlines()
     assert out[2].split()[0] == "inference" and [r.split()[0] for r in out[3:]] == ["continuous", "bounded"]
     assert all(0 < float(v) < 5 for v in out[4].split()[2:])
     with pytest.raises(SystemExit):
-        bc.main(
-            ["--model", str(ROOT / "neural_estimator/zoo/nlink-mamba2"), "--trajectories", "2", "--segments", "0,900"]
-        )
+        bc.main(["--model", model, "--trajectories", "2", "--segments", "0,900"])

@@ -1,5 +1,5 @@
 """Scoring in memory that does not grow with the recording (metrics/streaming.py, metrics/spill.py,
-bags/spilled_cells.py, bags/bounded.py) gives the figures of the whole-array computation: the
+bags/spilled_cells.py, evaluation/bag_scoring.py) gives the figures of the whole-array computation: the
 block scorer equals compute_metrics, the spilled median equals np.median, and a bag scored block by
 block equals load_bag_dataset + compute_metrics, with missing cells, repeats, messages outside the
 announced run, a diverged stream and a method left out. The memory figures are in
@@ -13,11 +13,12 @@ import json
 import numpy as np
 import pytest
 
-from neural_estimator.bags import bounded, spilled_cells
-from neural_estimator.bags import messages as M
+from neural_estimator.bags import spilled_cells
+from neural_estimator.evaluation import bag_scoring as bounded
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.dataset import load_bag_dataset
 from neural_estimator.bags.errors import BagError
-from neural_estimator.bags.report import evaluate_bag
+from neural_estimator.evaluation.bag_report import evaluate_bag
 from neural_estimator.bags.writer import BagWriter
 from neural_estimator.data import simulate
 from neural_estimator.evaluation.decision import estimates_decision
@@ -118,14 +119,14 @@ def _hostile_bag(path, scen, data):
     announced run, a malformed one, a diverged estimate stream and one that is mostly lost."""
     n_traj, horizon = data.x.shape[:2]
     dx = scen.dx
-    obs, truth, cov = M.observation_labels(scen), M.state_labels(scen), M.covariance_labels(dx)
+    obs, truth, cov = MSG.observation_labels(scen), MSG.state_labels(scen), MSG.covariance_labels(dx)
     rng = np.random.default_rng(5)
     topics = ["/scenario", "/observation", "/ground_truth", "/estimates/ekf", "/estimates/ekf/covariance"]
     topics += ["/estimates/gru", "/estimates/pf", "/run_status"]
     with BagWriter(path) as bag:
         for topic in topics:
-            bag.add_topic(topic, M.STRING if topic in ("/scenario", "/run_status") else M.JOINT_STATE)
-        bag.write("/scenario", 0, M.encode_scenario(scen.describe(), trajectories=n_traj, horizon=horizon))
+            bag.add_topic(topic, MSG.STRING if topic in ("/scenario", "/run_status") else MSG.JOINT_STATE)
+        bag.write("/scenario", 0, MSG.encode_scenario(scen.describe(), trajectories=n_traj, horizon=horizon))
         t = 1
 
         def put(topic, raw):
@@ -135,24 +136,26 @@ def _hostile_bag(path, scen, data):
 
         for n in range(n_traj):
             for k in range(horizon):
-                put("/observation", M.encode_vector(t, "b", n, k, obs, data.y[n, k]))
+                put("/observation", MSG.encode_vector(t, "b", n, k, obs, data.y[n, k]))
                 if (n, k) != (3, 7):  # lost: trajectory 3 is left out
-                    put("/ground_truth", M.encode_vector(t, "b", n, k, truth, data.x[n, k]))
+                    put("/ground_truth", MSG.encode_vector(t, "b", n, k, truth, data.x[n, k]))
                 est = data.x[n, k] + 0.2 * rng.normal(size=dx)
                 if n == 5 and k >= 12:
                     est = est * np.nan  # a diverged trajectory
-                put("/estimates/ekf", M.encode_vector(t, "ekf", n, k, truth, est))
+                put("/estimates/ekf", MSG.encode_vector(t, "ekf", n, k, truth, est))
                 a = rng.normal(size=(dx, dx))
-                put("/estimates/ekf/covariance", M.encode_vector(t, "ekf", n, k, cov, (a @ a.T + np.eye(dx)).ravel()))
-                put("/estimates/gru", M.encode_vector(t, "gru", n, k, truth, data.x[n, k] + 0.3 * rng.normal(size=dx)))
+                put("/estimates/ekf/covariance", MSG.encode_vector(t, "ekf", n, k, cov, (a @ a.T + np.eye(dx)).ravel()))
+                put(
+                    "/estimates/gru", MSG.encode_vector(t, "gru", n, k, truth, data.x[n, k] + 0.3 * rng.normal(size=dx))
+                )
                 if n < 2:  # mostly lost: the method is left out rather than shrinking everyone's set
-                    put("/estimates/pf", M.encode_vector(t, "pf", n, k, truth, data.x[n, k]))
-        put("/estimates/gru", M.encode_vector(t, "gru", 1, 2, truth, data.x[1, 2] + 9.0))  # a repeat: the last kept
-        put("/observation", M.encode_vector(t, "b", 0, 3, obs, data.y[0, 3]))  # a repeat
-        put("/estimates/ekf", M.encode_vector(t, "ekf", 0, horizon + 3, truth, data.x[0, 0]))  # outside the run
-        put("/ground_truth", M.encode_vector(t, "b", n_traj + 40, 0, truth, data.x[0, 0]))  # outside the run
-        put("/ground_truth", M.encode_vector(t, "b", 0, 1, ["x"], [1.0]))  # wrong names: rejected
-        put("/run_status", M.encode_string('{"status": "complete"}'))
+                    put("/estimates/pf", MSG.encode_vector(t, "pf", n, k, truth, data.x[n, k]))
+        put("/estimates/gru", MSG.encode_vector(t, "gru", 1, 2, truth, data.x[1, 2] + 9.0))  # a repeat: the last kept
+        put("/observation", MSG.encode_vector(t, "b", 0, 3, obs, data.y[0, 3]))  # a repeat
+        put("/estimates/ekf", MSG.encode_vector(t, "ekf", 0, horizon + 3, truth, data.x[0, 0]))  # outside the run
+        put("/ground_truth", MSG.encode_vector(t, "b", n_traj + 40, 0, truth, data.x[0, 0]))  # outside the run
+        put("/ground_truth", MSG.encode_vector(t, "b", 0, 1, ["x"], [1.0]))  # wrong names: rejected
+        put("/run_status", MSG.encode_string('{"status": "complete"}'))
 
 
 @pytest.mark.parametrize("warmup", [0, 10])
@@ -213,19 +216,19 @@ def test_no_room_for_the_temporary_files_is_one_line(tmp_path):
 
 def test_an_announcement_or_a_span_too_large_is_refused_before_anything_is_allocated(tmp_path):
     scen = make_scenario("bearings")
-    truth = M.state_labels(scen)
+    truth = MSG.state_labels(scen)
     for run, n, k, want in (
         ({"trajectories": 3 * 10**7, "horizon": 1000}, 0, 0, r"announces 30000000 trajectories: .* over the bound of"),
         ({}, 0, 10**8, r"span 1 trajectories x 100000001 steps: .* over the bound of 4.0 GiB"),
     ):
         path = tmp_path / f"big{k}.mcap"
         with BagWriter(path) as bag:
-            bag.add_topic("/scenario", M.STRING)
-            bag.add_topic("/ground_truth", M.JOINT_STATE)
-            bag.add_topic("/estimates/ekf", M.JOINT_STATE)
-            bag.write("/scenario", 0, M.encode_scenario(scen.describe(), **run))
+            bag.add_topic("/scenario", MSG.STRING)
+            bag.add_topic("/ground_truth", MSG.JOINT_STATE)
+            bag.add_topic("/estimates/ekf", MSG.JOINT_STATE)
+            bag.write("/scenario", 0, MSG.encode_scenario(scen.describe(), **run))
             for i, topic in enumerate(("/ground_truth", "/estimates/ekf")):
-                bag.write(topic, 1 + i, M.encode_vector(0, "b", n, k, truth, np.zeros(len(truth))))
+                bag.write(topic, 1 + i, MSG.encode_vector(0, "b", n, k, truth, np.zeros(len(truth))))
         with pytest.raises(BagError, match=want):
             bounded.score_bag(path)
 

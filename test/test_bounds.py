@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from neural_estimator.bags import BagError, BagWriter
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
 from neural_estimator.data import simulate
 from neural_estimator.scenarios import make_scenario
@@ -33,10 +33,10 @@ def _bag_with(path, scen, extra, *, announce=True, N=2, T=6):
             if topic == "/scenario" and not announce:
                 continue
             if not w.has_topic(topic):
-                w.add_topic(topic, M.STRING if topic in ("/scenario", "/run_status") else M.JOINT_STATE)
+                w.add_topic(topic, MSG.STRING if topic in ("/scenario", "/run_status") else MSG.JOINT_STATE)
             w.write(topic, t, raw)
         for n, k in extra:
-            w.write("/observation", msgs[-1][1], M.encode_observation(scen, msgs[-1][1] + 1, n, k, data.y[0, 0], []))
+            w.write("/observation", msgs[-1][1], MSG.encode_observation(scen, msgs[-1][1] + 1, n, k, data.y[0, 0], []))
     return out
 
 
@@ -74,10 +74,10 @@ def test_a_full_disk_is_one_line_not_a_traceback(scen, tmp_path):
     full = tmp_path / "full.mcap"
     full.symlink_to("/dev/full")  # every write: ENOSPC
     w = BagWriter(full, overwrite=True, chunk_size=1024).open()
-    w.add_topic("/observation", M.JOINT_STATE)
+    w.add_topic("/observation", MSG.JOINT_STATE)
     with pytest.raises(BagError) as e:
         for k in range(10_000):
-            w.write("/observation", k, M.encode_observation(scen, k, 0, k, [0.0], []))
+            w.write("/observation", k, MSG.encode_observation(scen, k, 0, k, [0.0], []))
     assert str(e.value) == f"{full}: cannot write: No space left on device"
     with pytest.raises(BagError, match="cannot finish the bag: No space left on device"):
         w.close()
@@ -87,11 +87,11 @@ def test_a_full_disk_is_one_line_not_a_traceback(scen, tmp_path):
 def _short_run_bag(path, scen, n_obs):
     """A bag announcing 2 x 6 steps that holds only ``n_obs`` observations (a recorder that died)."""
     with BagWriter(path) as w:
-        w.add_topic("/scenario", M.STRING)
-        w.add_topic("/observation", M.JOINT_STATE)
-        w.write("/scenario", 0, M.encode_scenario(scen.describe(), trajectories=2, horizon=6))
+        w.add_topic("/scenario", MSG.STRING)
+        w.add_topic("/observation", MSG.JOINT_STATE)
+        w.write("/scenario", 0, MSG.encode_scenario(scen.describe(), trajectories=2, horizon=6))
         for g in range(n_obs):
-            w.write("/observation", g + 1, M.encode_observation(scen, g + 1, g // 6, g % 6, [0.0], []))
+            w.write("/observation", g + 1, MSG.encode_observation(scen, g + 1, g // 6, g % 6, [0.0], []))
     return path
 
 
@@ -131,7 +131,7 @@ def test_recover_onto_a_full_disk_leaves_no_file(scen, tmp_path, monkeypatch):
 
 
 def test_the_loss_lines_say_what_each_stream_lost_and_why():
-    from neural_estimator.bags.report import loss_lines
+    from neural_estimator.evaluation.bag_report import loss_lines
 
     bag = {
         "received": {"observation": 98, "estimates/ukf": 90},

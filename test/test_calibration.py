@@ -223,11 +223,11 @@ def test_a_candidate_that_cannot_be_simulated_prints_one_line_and_the_search_goe
 
 
 def test_the_preset_travels_in_bags_and_result_files():
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.evaluation import evaluate, results_json
 
     s = make_scenario("quadrotor", preset="v3")
-    assert M.decode_scenario(M.encode_scenario(s.describe(), trajectories=1))["preset"] == "v3"
+    assert MSG.decode_scenario(MSG.encode_scenario(s.describe(), trajectories=1))["preset"] == "v3"
     res = evaluate(s, ["ekf"], trajectories=2, horizon=12, sets=1, cache_dir=False, progress=False)
     payload = json.loads(json.dumps(results_json(s, res, complete=True)))
     assert json.dumps(payload).count('"preset": "v3"') >= 1

@@ -9,9 +9,9 @@ import itertools
 import numpy as np
 import pytest
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.online import OnlineEstimator, finite_parts
+from neural_estimator.stream.online import OnlineEstimator, finite_parts
 from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
@@ -22,13 +22,13 @@ def quad():
 
 
 def test_in_place_values_equal_the_full_decoding(quad):
-    codec = M.VectorCodec(quad.name, M.observation_labels(quad))
+    codec = MSG.VectorCodec(quad.name, MSG.observation_labels(quad))
     rng = np.random.default_rng(0)
     for stamp, traj, step in ((0, 0, 0), (1_700_000_000_123_456_789, 3, 499), (-5_000_000_001, 2**40, 7)):
         y, u = rng.normal(size=quad.dy), rng.normal(size=quad.du)
         y[1] = np.nan
-        raw = M.encode_observation(quad, stamp, traj, step, y, u)
-        vec = M.decode_vector(raw)
+        raw = MSG.encode_observation(quad, stamp, traj, step, y, u)
+        vec = MSG.decode_vector(raw)
         got = codec.decode_values(raw)
         assert got is not None and got[:3] == (vec.stamp_ns, vec.trajectory, vec.step) == (stamp, traj, step)
         np.testing.assert_array_equal(got[3], vec.values)
@@ -41,9 +41,9 @@ def test_in_place_values_equal_the_full_decoding(quad):
 
 
 def test_anything_but_the_exact_layout_goes_to_the_full_decoding(quad):
-    codec = M.VectorCodec(quad.name, M.observation_labels(quad))
-    raw = M.encode_observation(quad, 10, 1, 2, np.zeros(quad.dy), np.zeros(quad.du))
-    other = M.encode_vector(
+    codec = MSG.VectorCodec(quad.name, MSG.observation_labels(quad))
+    raw = MSG.encode_observation(quad, 10, 1, 2, np.zeros(quad.dy), np.zeros(quad.du))
+    other = MSG.encode_vector(
         10, quad.name, 1, 2, [f"v{i}" for i in range(quad.dy + quad.du)], np.zeros(quad.dy + quad.du)
     )
     bad = [
@@ -51,7 +51,7 @@ def test_anything_but_the_exact_layout_goes_to_the_full_decoding(quad):
         raw[:-8] + b"\x01" + raw[-7:],  # a non-empty velocity array
         other,  # other names
         b"\x00\x00\x00\x00" + raw[4:],  # big-endian header
-        M.encode_vector(10, quad.name, 1, 2, M.observation_labels(quad), np.zeros(quad.dy + quad.du)).replace(
+        MSG.encode_vector(10, quad.name, 1, 2, MSG.observation_labels(quad), np.zeros(quad.dy + quad.du)).replace(
             np.float64(2.0).tobytes(), np.float64(2.5).tobytes(), 1
         ),  # a fractional step
         raw + bytes(codec.max_bytes),  # larger than any valid message
@@ -76,12 +76,12 @@ def test_finite_parts_equals_numpy():
 def test_the_callback_flags_a_missing_observation_and_refuses_a_bad_control(quad):
     online = OnlineEstimator(make_estimator("ekf", quad), "ekf")
     y, u = np.zeros(quad.dy), np.zeros(quad.du)
-    first = online.feed(M.encode_observation(quad, 1, 0, 0, y, u), now=0.0)[0]
+    first = online.feed(MSG.encode_observation(quad, 1, 0, 0, y, u), now=0.0)[0]
     assert first.status == "estimated" and not first.nonfinite
     y[0] = np.nan
-    second = online.feed(M.encode_observation(quad, 2, 0, 1, y, u), now=0.0)[0]
+    second = online.feed(MSG.encode_observation(quad, 2, 0, 1, y, u), now=0.0)[0]
     assert second.status == "estimated" and second.nonfinite and np.isfinite(second.x_hat).all()
     u[0] = np.inf
     with pytest.raises(MessageError, match="control u_prev contains NaN or inf"):
-        online.feed(M.encode_observation(quad, 3, 0, 2, np.zeros(quad.dy), u), now=0.0)
+        online.feed(MSG.encode_observation(quad, 3, 0, 2, np.zeros(quad.dy), u), now=0.0)
     assert online.step == 1  # the state untouched

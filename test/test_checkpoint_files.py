@@ -17,7 +17,7 @@ from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.serving.card import MAX_WEIGHT_BYTES, WEIGHTS_FILE, resolve_checkpoint
 from neural_estimator.serving.checkpoint import HEADER_BYTES_PER_TENSOR, load_checkpoint
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 
 
 @pytest.fixture

@@ -13,7 +13,7 @@ from neural_estimator.evaluation import checkpoint_digest, evaluate
 from neural_estimator.methods.registry import EstimatorError
 from neural_estimator.scenarios import make_scenario
 from neural_estimator.serving import card as C
-from neural_estimator.uncertainty import heads as _heads  # noqa: F401  bound to the real sha256_file before any patch
+from neural_estimator.serving.uncertainty import heads as _heads  # noqa: F401  bound to the real sha256_file before any patch
 
 
 def _counting(monkeypatch):

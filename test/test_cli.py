@@ -193,7 +193,7 @@ def test_evaluate_on_preset_v3_loads_the_model_trained_on_it(tmp_path, capsys):
 
     from neural_estimator.scenarios import scenario_class
 
-    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
     card = _json.loads((zoo / "ballistic-gru" / "card.json").read_text())
     preset = scenario_class("ballistic").preset_of(card["scenario"]["config"])
     common = ["evaluate", "--scenario", "ballistic", "--methods", "gru", "--trajectories", "3", "--sets", "1"]

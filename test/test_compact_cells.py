@@ -10,7 +10,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.dataset import arrays_to_bag, bag_to_arrays
 from neural_estimator.bags.errors import BagError
 from neural_estimator.bags.writer import BagWriter
@@ -21,8 +21,8 @@ from neural_estimator.scenarios import make_scenario
 def _write(path, scen, items, announce=True, scenario_last=False):
     with BagWriter(path) as bag:
         for topic in ("/scenario", "/observation", "/ground_truth", "/estimates/ekf"):
-            bag.add_topic(topic, M.STRING if topic == "/scenario" else M.JOINT_STATE)
-        desc = M.encode_scenario(scen.describe(), **({"trajectories": 2, "horizon": 6} if announce else {}))
+            bag.add_topic(topic, MSG.STRING if topic == "/scenario" else MSG.JOINT_STATE)
+        desc = MSG.encode_scenario(scen.describe(), **({"trajectories": 2, "horizon": 6} if announce else {}))
         t = 1
         if not scenario_last:
             bag.write("/scenario", 0, desc)
@@ -36,20 +36,20 @@ def _write(path, scen, items, announce=True, scenario_last=False):
 def test_repeats_outside_cells_missing_cells_and_a_late_announcement(tmp_path):
     scen = make_scenario("bearings")
     data = simulate(scen, 2, 6, seed=3)
-    obs, truth = M.observation_labels(scen), M.state_labels(scen)
+    obs, truth = MSG.observation_labels(scen), MSG.state_labels(scen)
     items = []
     for n in range(2):
         for k in range(6):
             if (n, k) == (1, 4):
                 continue  # lost: NaN and counted missing
-            items.append(("/observation", M.encode_vector(10 * k + n, "b", n, k, obs, data.y[n, k])))
-            items.append(("/ground_truth", M.encode_vector(0, "b", n, k, truth, data.x[n, k])))
-            items.append(("/estimates/ekf", M.encode_vector(0, "ekf", n, k, truth, data.x[n, k] + 1)))
-    items.append(("/estimates/ekf", M.encode_vector(0, "ekf", 0, 2, truth, data.x[0, 2] + 7)))  # a repeat: kept
-    items.append(("/observation", M.encode_vector(999, "b", 0, 3, obs, data.y[0, 3] * 2)))  # a repeat
-    items.append(("/observation", M.encode_vector(0, "b", 0, 6, obs, data.y[0, 0])))  # step 6: outside
-    items.append(("/observation", M.encode_vector(0, "b", 5, 0, obs, data.y[0, 0])))  # trajectory 5: outside
-    items.append(("/ground_truth", M.encode_vector(0, "b", 0, 1, ["x"], [1.0])))  # wrong names: rejected
+            items.append(("/observation", MSG.encode_vector(10 * k + n, "b", n, k, obs, data.y[n, k])))
+            items.append(("/ground_truth", MSG.encode_vector(0, "b", n, k, truth, data.x[n, k])))
+            items.append(("/estimates/ekf", MSG.encode_vector(0, "ekf", n, k, truth, data.x[n, k] + 1)))
+    items.append(("/estimates/ekf", MSG.encode_vector(0, "ekf", 0, 2, truth, data.x[0, 2] + 7)))  # a repeat: kept
+    items.append(("/observation", MSG.encode_vector(999, "b", 0, 3, obs, data.y[0, 3] * 2)))  # a repeat
+    items.append(("/observation", MSG.encode_vector(0, "b", 0, 6, obs, data.y[0, 0])))  # step 6: outside
+    items.append(("/observation", MSG.encode_vector(0, "b", 5, 0, obs, data.y[0, 0])))  # trajectory 5: outside
+    items.append(("/ground_truth", MSG.encode_vector(0, "b", 0, 1, ["x"], [1.0])))  # wrong names: rejected
     for late in (False, True):
         path = tmp_path / f"run-{late}.mcap"
         _write(path, scen, items, scenario_last=late)
@@ -73,9 +73,11 @@ def test_repeats_outside_cells_missing_cells_and_a_late_announcement(tmp_path):
 
 def test_without_an_announcement_the_span_error_names_the_first_cell_at_the_largest_step(tmp_path, monkeypatch):
     scen = make_scenario("bearings")
-    obs = M.observation_labels(scen)
-    items = [("/observation", M.encode_vector(0, "b", n, k, obs, np.zeros(len(obs)))) for n, k in ((0, 0), (3, 10**8))]
-    items.append(("/observation", M.encode_vector(0, "b", 1, 10**8, obs, np.zeros(len(obs)))))
+    obs = MSG.observation_labels(scen)
+    items = [
+        ("/observation", MSG.encode_vector(0, "b", n, k, obs, np.zeros(len(obs)))) for n, k in ((0, 0), (3, 10**8))
+    ]
+    items.append(("/observation", MSG.encode_vector(0, "b", 1, 10**8, obs, np.zeros(len(obs)))))
     path = tmp_path / "span.mcap"
     _write(path, scen, items, announce=False)
     with pytest.raises(BagError, match=r"largest step index 100000000, in trajectory 3\)"):

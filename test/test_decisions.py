@@ -299,7 +299,7 @@ def test_metrics_verb_prints_the_components_of_given_estimates(tmp_path, capsys)
 def test_coverage_over_every_trajectory_counts_the_outliers():
     """Unit covariances, unit errors except two trajectories 1000x off: the outlier rule drops them
     from the kept coverage, not from the coverage over every trajectory."""
-    from neural_estimator import consistency as K
+    from neural_estimator.metrics import consistency as K
 
     rng = np.random.default_rng(6)
     x = rng.standard_normal((40, 50, 2))
@@ -326,7 +326,7 @@ def test_coverage_over_every_trajectory_counts_the_outliers():
 def test_a_bags_report_has_the_per_component_table(tmp_path):
     """The live evaluator's report (evaluate_bag): each stream's component errors and its ratio."""
     from neural_estimator.bags.dataset import arrays_to_bag
-    from neural_estimator.bags.report import evaluate_bag, write_report
+    from neural_estimator.evaluation.bag_report import evaluate_bag, write_report
     from neural_estimator.data import simulate
 
     sc = make_scenario("ballistic")

@@ -127,7 +127,7 @@ def test_a_table_without_departures_has_no_marks_and_no_legend():
 
 
 def test_bag_summary_marks_the_live_start_and_drops_the_start_only_failure(tmp_path):
-    from neural_estimator.bags.report import BagReport
+    from neural_estimator.evaluation.bag_report import BagReport
 
     rng = np.random.default_rng(3)
     reports = {"ekf": _report(rng, 0.05, warmup=0), "pf": _report(rng, 0.05, warmup=0)}

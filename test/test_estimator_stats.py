@@ -115,9 +115,9 @@ def test_steps_a_restart_skipped_are_lost_upstream_and_reported():
     missed steps, in the window's losses and in "observations lost upstream"."""
     import numpy as np
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.data import simulate
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
@@ -126,8 +126,8 @@ def test_steps_a_restart_skipped_are_lost_upstream_and_reported():
     online = OnlineEstimator(make_estimator("ekf", scen), "ekf", max_gap=1000)
 
     def obs(k):
-        t = M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt))
-        return M.encode_observation(scen, t, 0, k, data.y[0, k % 5], np.zeros(scen.du))
+        t = MSG.step_stamp_ns(10**18, k, MSG.dt_ns(scen.dt))
+        return MSG.encode_observation(scen, t, 0, k, data.y[0, k % 5], np.zeros(scen.du))
 
     s = EstimatorStats()
     s.window(0.0)
@@ -156,8 +156,8 @@ def test_whole_trajectories_lost_from_a_lagging_nodes_queue_are_counted():
     trajectories in between are missed too: (H - 1 - 152) + 4 H + 193."""
     import numpy as np
 
-    from neural_estimator.bags import messages as M
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream import messages as MSG
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
 
@@ -166,8 +166,8 @@ def test_whole_trajectories_lost_from_a_lagging_nodes_queue_are_counted():
     online = OnlineEstimator(make_estimator("ekf", scen), "ekf", horizon=H)
 
     def obs(n, k):
-        t = M.step_stamp_ns(10**18, n * H + k, M.dt_ns(scen.dt))
-        return M.encode_observation(scen, t, n, k, np.zeros(scen.dy), np.zeros(scen.du))
+        t = MSG.step_stamp_ns(10**18, n * H + k, MSG.dt_ns(scen.dt))
+        return MSG.encode_observation(scen, t, n, k, np.zeros(scen.dy), np.zeros(scen.du))
 
     missed = filled = 0
     for n, k in [(64, 150), (64, 151), (64, 152), (69, 193), (69, 194), (69, 195)]:

@@ -344,7 +344,7 @@ def test_interrupted_evaluate_resumes_from_finished_runs(tmp_path, capsys, monke
 # ---- one table and one JSON schema for every scenario and method ------------------------------------------
 
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 
 
 def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):

@@ -63,7 +63,7 @@ def test_a_scored_stream_that_still_moves_is_waited_for(monkeypatch):
 def test_a_complete_status_with_a_bad_count_is_ignored_not_fatal(monkeypatch, messages):
     """Found by scripts/fuzz_nodes.py: int(status["messages"]) raised inside the recorder's timer
     (a dead evaluator) for "x" or null; such a status is now one warning and ignored."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
 
     clock = [0.0]
     E, ev, _ = _evaluator(monkeypatch, clock)
@@ -71,6 +71,6 @@ def test_a_complete_status_with_a_bad_count_is_ignored_not_fatal(monkeypatch, me
     ev.get_logger = lambda: types.SimpleNamespace(warning=lines.append, info=lambda text: None)
     ev.identity = types.SimpleNamespace(on_started=lambda: None)
     ev.expected = ev.complete_at = None
-    E.EvaluatorNode._on_status(ev, M.encode_run_status(M.STATUS_COMPLETE, messages=messages))
+    E.EvaluatorNode._on_status(ev, MSG.encode_run_status(MSG.STATUS_COMPLETE, messages=messages))
     assert ev.expected is None and ev.complete_at is None
     assert len(lines) == 1 and "not a count, ignored" in lines[0]

@@ -3,7 +3,7 @@
 import numpy as np
 
 from neural_estimator import metrics as M
-from neural_estimator.bags.report import BagReport
+from neural_estimator.evaluation.bag_report import BagReport
 from neural_estimator.paper.expected_failures import EXPECTED_FAILURES, MARK, mark_rows, notes
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from neural_estimator.angles import wrap_angle
+from neural_estimator.core.angles import wrap_angle
 from neural_estimator.data.simulate import simulate
 from neural_estimator.methods.registry import EstimatorError, make_estimator, previous_controls
 from neural_estimator.filters import (

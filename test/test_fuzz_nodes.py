@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from conftest import load_script
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.nodes import outputs as O
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 
@@ -32,7 +32,7 @@ def test_hostile_observations_are_estimated_or_refused_in_one_line(fuzz):
     scen = make_scenario(fuzz.SCENARIO)
     online = OnlineEstimator(make_estimator("ekf", scen), "ekf")
     rng = random.Random(0)
-    labels = M.observation_labels(scen)
+    labels = MSG.observation_labels(scen)
     outcomes = {"estimated": 0, "refused": 0, "other": 0}
     for _ in range(150):
         raw = fuzz.vector_message(rng, scen.name, labels)
@@ -45,7 +45,7 @@ def test_hostile_observations_are_estimated_or_refused_in_one_line(fuzz):
         outcomes["estimated" if any(r.status == "estimated" for r in results) else "other"] += 1
     assert outcomes["refused"] > 50 and outcomes["estimated"] >= 1, outcomes
     online.reset()
-    good = M.encode_observation(scen, 10**18, 0, 0, np.zeros(scen.dy))
+    good = MSG.encode_observation(scen, 10**18, 0, 0, np.zeros(scen.dy))
     assert online.feed(good, 0.0)[0].status == "estimated"
 
 
@@ -64,7 +64,7 @@ def test_hostile_poses_never_escape_the_set_pose_callback(fuzz):
     for _ in range(400):
         raw = fuzz.pose_message(rng)
         try:
-            msg = M.TYPESTORE.deserialize_cdr(raw, fuzz.POSE)  # rclpy refuses what this cannot parse
+            msg = MSG.TYPESTORE.deserialize_cdr(raw, fuzz.POSE)  # rclpy refuses what this cannot parse
         except Exception:
             continue
         parsed += 1
@@ -79,7 +79,7 @@ def test_hostile_json_is_one_line_or_a_description(fuzz):
     for _ in range(200):
         raw = fuzz.json_message(rng, scen.describe())
         try:
-            M.decode_scenario(raw)
+            MSG.decode_scenario(raw)
         except MessageError as exc:
             assert "\n" not in str(exc)
 

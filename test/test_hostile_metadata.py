@@ -9,7 +9,7 @@ import warnings
 
 import pytest
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import BagWarning
 from neural_estimator.bags.reader import BagReader
 from neural_estimator.bags.writer import (
@@ -64,7 +64,7 @@ def _bag_with_qos(path, text):
     """A small scored bag whose /observation channel carries ``text`` as its QoS metadata."""
     import neural_estimator.bags.writer as W
 
-    src = BagReader(M.__file__.replace("neural_estimator/bags/messages.py", "bags/lorenz96.mcap")).open()
+    src = BagReader(MSG.__file__.replace("neural_estimator/stream/messages.py", "bags/lorenz96.mcap")).open()
     real = W.qos_yaml
     try:
         W.qos_yaml = lambda profiles: text if profiles == [Qos(depth=7)] else real(profiles)
@@ -81,7 +81,7 @@ def _bag_with_qos(path, text):
 @pytest.mark.parametrize("case", ["string depth", "nested 5000 deep", "depth 1e12"])
 def test_replay_and_recover_finish_and_copy_nothing_absurd(tmp_path, case):
     from neural_estimator.bags.recover import recover_bag
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     bag = tmp_path / "hostile.mcap"
     _bag_with_qos(bag, HOSTILE[case])
@@ -128,7 +128,7 @@ def test_a_deeply_nested_robot_spec_is_one_line_in_linear_time(tmp_path, text):
 
 def _bag_with_schema(path, schema_bytes: int) -> None:
     """The sample bag with ``schema_bytes`` of schema text for its /observation type."""
-    src = BagReader(M.__file__.replace("neural_estimator/bags/messages.py", "bags/lorenz96.mcap")).open()
+    src = BagReader(MSG.__file__.replace("neural_estimator/stream/messages.py", "bags/lorenz96.mcap")).open()
     try:
         with BagWriter(path) as out:
             for conn in src.connections:

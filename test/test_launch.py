@@ -181,7 +181,7 @@ def test_ros2_launch_of_the_pip_shim_runs_the_replay_graph(tmp_path, monkeypatch
     recorded and scored by the evaluator (the required node: its exit ends the launch)."""
     pytest.importorskip("rclpy")
 
-    from neural_estimator import ros2_shim
+    from neural_estimator.cli import ros2_shim
     from neural_estimator.bags import BagReader
 
     monkeypatch.setattr(ros2_shim, "_real_ros2", lambda: None)

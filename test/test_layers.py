@@ -7,21 +7,30 @@ import ast
 import re
 from pathlib import Path
 
+import pytest
+
 import neural_estimator
 
 PACKAGE = Path(neural_estimator.__file__).parent
 
 
+# The top level of the package: at most 16 entries, files and folders alike.
+TOP_LEVEL = {
+    "core", "metrics", "paper", "scenarios", "data", "methods", "filters", "models",
+    "serving", "stream", "bags", "training", "evaluation", "robot", "cli", "nodes",
+}  # fmt: skip
+
+
 def layers() -> dict[str, int]:
     """{name: layer number} from the numbered list in the package docstring (the ``names`` in lower
     case on each numbered item, its indented continuation lines included). A name is a top-level
-    module or package, or a dotted subpackage (``paper.reproduce``) placed apart from its parent."""
+    module or package, or a dotted path below one (``serving.uncertainty``) placed on its own floor."""
     out = {}
     text = re.sub(r"\n {3}(?=\S)", " ", neural_estimator.__doc__)  # an item's indented continuation lines
     for line in text.splitlines():
         m = re.match(r"(\d+)\. (.*)", line.strip())
         if m:
-            for name in re.findall(r"``([a-z_0-9]+(?:\.[a-z_0-9]+)?)``", m.group(2)):
+            for name in re.findall(r"``([a-z_0-9]+(?:\.[a-z_0-9]+)*)``", m.group(2)):
                 out[name] = int(m.group(1))
     return out
 
@@ -54,19 +63,51 @@ def imports(path: Path) -> list[tuple[str, bool]]:
 
 
 def layer_of(module: str, table: dict[str, int]) -> int:
+    """The layer of ``neural_estimator.<module>``: that of the longest dotted entry of the table it
+    starts with (``paper.reproduce.plan`` is on ``paper.reproduce``'s floor, ``paper.transcribe`` on
+    ``paper``'s)."""
     parts = module.split(".")
     if len(parts) == 1:
         return 1  # the package itself holds only __version__
-    if len(parts) > 2 and f"{parts[1]}.{parts[2]}" in table:  # a dotted entry wins over its parent's
-        return table[f"{parts[1]}.{parts[2]}"]
-    if parts[1] not in table:
-        raise AssertionError(f"{module}: the package docstring does not place '{parts[1]}' in a layer")
-    return table[parts[1]]
+    for end in range(len(parts), 1, -1):
+        if ".".join(parts[1:end]) in table:
+            return table[".".join(parts[1:end])]
+    raise AssertionError(f"{module}: the package docstring does not place '{parts[1]}' in a layer")
+
+
+def top_level_entries() -> set[str]:
+    """The files and folders at the top of the package, ``__init__.py`` and ``__pycache__`` aside."""
+    return {p.stem if p.suffix == ".py" else p.name for p in PACKAGE.iterdir()} - {"__init__", "__pycache__"}
+
+
+def test_a_dotted_entry_places_its_subtree_by_the_longest_prefix():
+    table = {"paper": 1, "paper.reproduce": 9, "cli": 10}
+    assert layer_of("neural_estimator.paper.reproduce.plan", table) == 9
+    assert layer_of("neural_estimator.paper.reproduce", table) == 9
+    assert layer_of("neural_estimator.paper.transcribe", table) == 1
+    assert layer_of("neural_estimator.paper.reproducer", table) == 1  # whole names, not prefixes of text
+    assert layer_of("neural_estimator", table) == 1
+    with pytest.raises(AssertionError, match="does not place 'papers'"):
+        layer_of("neural_estimator.papers.x", table)
+
+
+def test_every_dotted_entry_names_a_part_of_the_package():
+    for name in layers():
+        path = PACKAGE.joinpath(*name.split("."))
+        assert path.with_suffix(".py").is_file() or (path / "__init__.py").is_file(), (
+            f"the package docstring places '{name}', which is no module or package of neural_estimator"
+        )
+
+
+def test_at_most_16_entries_at_the_top_of_the_package():
+    entries = top_level_entries()
+    assert entries <= TOP_LEVEL, f"not in the agreed top level: {sorted(entries - TOP_LEVEL)}"
+    assert len(entries) <= 16
 
 
 def test_every_part_of_the_package_has_a_layer():
     table = layers()
-    assert len(table) >= 20
+    assert set(table.values()) == set(range(1, 11)), "every one of the ten layers names something"
     for path in PACKAGE.iterdir():
         name = path.stem if path.suffix == ".py" else path.name
         if (path.suffix == ".py" and name != "__init__") or (path.is_dir() and (path / "__init__.py").exists()):
@@ -116,14 +157,11 @@ def test_module_level_imports_form_no_cycle():
             visit(n)
 
 
-def test_a_dotted_entry_is_a_subpackage_or_module_and_wins_over_its_parent():
-    table = layers()
-    for name in (n for n in table if "." in n):
-        where = PACKAGE / Path(*name.split("."))
-        assert (where / "__init__.py").exists() or where.with_suffix(".py").exists(), f"{name}: no such subpackage or module"
-        assert name.split(".")[0] in table, f"{name}: its parent has no layer"
-    toy = {"a": 1, "a.b": 9}
-    assert layer_of("neural_estimator.a.b.c", toy) == 9
-    assert layer_of("neural_estimator.a.b", toy) == 9
-    assert layer_of("neural_estimator.a.c", toy) == 1
-    assert layer_of("neural_estimator.a", toy) == 1
+def test_the_architecture_page_lists_the_layers_of_the_docstring():
+    """docs/architecture.md's layer table names, layer by layer, what the package docstring names."""
+    page = (PACKAGE.parent / "docs" / "architecture.md").read_text()
+    documented = {}
+    for m in re.finditer(r"^\| (\d+) \| ([^|]+) \|", page, flags=re.M):
+        for name in re.findall(r"`([a-z_0-9.]+)`", m.group(2)):
+            documented[name] = int(m.group(1))
+    assert documented == layers()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from ros_tester import Tester, fresh_domain
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 
 pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 
@@ -71,7 +71,7 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
         assert change("lc", Transition.TRANSITION_CONFIGURE) is False and state("lc") == "inactive"
         estimates, odoms = [], []
         node.create_subscription(
-            JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
+            JointState, "estimates/ekf", lambda raw: estimates.append(MSG.decode_vector(raw)), stream_qos(100), raw=True
         )
         node.create_subscription(Odometry, "estimates/ekf/odometry", odoms.append, stream_qos(100))
         pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
@@ -81,8 +81,8 @@ def test_lifecycle_estimator_transitions(tmp_path, monkeypatch):
         spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ekf") >= 1)
 
         def obs(k):
-            return M.encode_observation(
-                scen, M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0)
+            return MSG.encode_observation(
+                scen, MSG.step_stamp_ns(10**18, k, MSG.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0)
             )
 
         for k in range(10):

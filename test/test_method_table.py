@@ -151,7 +151,7 @@ def test_queries_answer_from_the_table():
 def test_the_members_of_a_stream_come_from_the_spec():
     from neural_estimator.filters.enkf import EnKFHyperParams
     from neural_estimator.filters.pf import PFHyperParams
-    from neural_estimator.options import parse_value
+    from neural_estimator.core.options import parse_value
 
     assert table.members_per_stream("pf", {}, parse_value) == PFHyperParams.n_particles
     assert table.members_per_stream("enkf", None, parse_value) == EnKFHyperParams.n_members

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.reader import BagReader
 from neural_estimator.bags.writer import BagWriter
 from neural_estimator.cli.app import main
@@ -33,9 +33,9 @@ def test_metrics_says_a_message_outside_the_run_was_set_aside(tmp_path, capsys):
         for conn, t, raw in src.messages():
             out.write(conn.topic, t, raw)
             if conn.topic == "/estimates/ekf":
-                last = (t, M.decode_vector(raw))
+                last = (t, MSG.decode_vector(raw))
         t, vec = last
-        out.write("/estimates/ekf", t + 1, M.encode_vector(t + 1, vec.frame_id, 0, 3_000_000, vec.names, vec.values))
+        out.write("/estimates/ekf", t + 1, MSG.encode_vector(t + 1, vec.frame_id, 0, 3_000_000, vec.names, vec.values))
     assert main(["metrics", str(forged)]) == 0
     got = capsys.readouterr()
     assert _table(got.out) == _table(clean.out)  # the table is the announced run's, unchanged

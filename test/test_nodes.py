@@ -21,7 +21,7 @@ import pytest
 from ros_tester import Tester, fresh_domain
 
 from neural_estimator.bags import BagReader, BagWarning, arrays_to_bag, bag_to_arrays
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
 from neural_estimator.nodes.launch import (
     ESTIMATOR,
@@ -33,7 +33,7 @@ from neural_estimator.nodes.launch import (
     run_pipeline,
     start_node,
 )
-from neural_estimator.replay import replay
+from neural_estimator.evaluation.replay import replay
 
 pytestmark = pytest.mark.ros  # every test here runs ROS 2 nodes
 
@@ -239,7 +239,7 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
 
         estimates, diags = [], []
         node.create_subscription(
-            JointState, "estimates/ekf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
+            JointState, "estimates/ekf", lambda raw: estimates.append(MSG.decode_vector(raw)), stream_qos(100), raw=True
         )
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
         pub = node.create_publisher(JointState, "observation", stream_qos(100, transient_local=False))
@@ -248,24 +248,24 @@ def test_estimator_survives_bad_messages(plugin, cart, nodes, domain, monkeypatc
         foreign = rclpy.create_node("foreign", context=ctx2).create_publisher(String, "observation", 10)
 
         spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ekf") >= 1)
-        labels = M.observation_labels(cart)
+        labels = MSG.observation_labels(cart)
 
         def obs(step, values, names=labels, trajectory=0):
-            return M.encode_vector(step, cart.name, trajectory, step, names, values)
+            return MSG.encode_vector(step, cart.name, trajectory, step, names, values)
 
-        J = M.TYPESTORE.types[M.JOINT_STATE]
+        J = MSG.TYPESTORE.types[MSG.JOINT_STATE]
         empty_joint_state = bytes(
-            M.TYPESTORE.serialize_cdr(
+            MSG.TYPESTORE.serialize_cdr(
                 J(
-                    header=M.TYPESTORE.types["std_msgs/msg/Header"](
-                        stamp=M.TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""
+                    header=MSG.TYPESTORE.types["std_msgs/msg/Header"](
+                        stamp=MSG.TYPESTORE.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""
                     ),
                     name=[],
                     position=np.zeros(0),
                     velocity=np.zeros(0),
                     effort=np.zeros(0),
                 ),
-                M.JOINT_STATE,
+                MSG.JOINT_STATE,
             )
         )
         sequence = [
@@ -507,7 +507,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
 
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
     scen = make_scenario("bearings")
@@ -531,7 +531,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
 
         estimates, odoms, diags = [], [], []
         node.create_subscription(
-            JointState, "estimates/ukf", lambda raw: estimates.append(M.decode_vector(raw)), stream_qos(100), raw=True
+            JointState, "estimates/ukf", lambda raw: estimates.append(MSG.decode_vector(raw)), stream_qos(100), raw=True
         )
         node.create_subscription(Odometry, "estimates/ukf/odometry", odoms.append, stream_qos(100))
         node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
@@ -540,8 +540,8 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         spin_until(lambda: pub.get_subscription_count() >= 1 and node.count_publishers("estimates/ukf/odometry") >= 1)
 
         def obs(n, k, start=10**18):
-            t = M.step_stamp_ns(start, n * 10 + k, M.dt_ns(scen.dt))
-            return M.encode_observation(scen, t, n, k, data.y[n, k], np.zeros(0))
+            t = MSG.step_stamp_ns(start, n * 10 + k, MSG.dt_ns(scen.dt))
+            return MSG.encode_observation(scen, t, n, k, data.y[n, k], np.zeros(0))
 
         sent = (
             [obs(0, k) for k in range(10)]
@@ -580,7 +580,7 @@ def test_estimator_conventions_and_stream_identity(nodes, domain, monkeypatch):
         # quarantine_seconds, then bounded time; diagnostics keep coming during and after it
         n_diag = len(diags)
         t0 = time.monotonic()
-        pub.publish(M.encode_observation(scen, 2 * 10**18, 1, 10_000_000, data.y[1, 9], np.zeros(0)))
+        pub.publish(MSG.encode_observation(scen, 2 * 10**18, 1, 10_000_000, data.y[1, 9], np.zeros(0)))
         spin_until(lambda: len(estimates) >= 21, timeout=20)
         assert time.monotonic() - t0 < 15
         spin_until(lambda: len(diags) >= n_diag + 3)
@@ -616,7 +616,7 @@ def test_player_plays_a_foreign_directory_in_its_namespace(plugin, cart, nodes, 
         conns = {}
         for c, t, raw in reader.messages(["/observation", "/ground_truth"]):  # no /scenario, no /run_status
             if c.topic not in conns:
-                conns[c.topic] = w.add_connection(c.topic, M.JOINT_STATE, typestore=store)
+                conns[c.topic] = w.add_connection(c.topic, MSG.JOINT_STATE, typestore=store)
             w.write(conns[c.topic], t, raw)
     rec = tmp_path / "ns.mcap"
     ns = ("-r", "__ns:=/robot1")
@@ -648,7 +648,7 @@ def test_player_plays_a_foreign_directory_in_its_namespace(plugin, cart, nodes, 
         assert {"/robot1/observation", "/robot1/estimates/ukf"} <= set(reader.topics)
         assert reader.topics["/robot1/estimates/ukf"].msgcount == 40
         clock = [
-            M.TYPESTORE.deserialize_cdr(raw, "rosgraph_msgs/msg/Clock").clock
+            MSG.TYPESTORE.deserialize_cdr(raw, "rosgraph_msgs/msg/Clock").clock
             for _, _, raw in reader.messages(["/clock"])
         ]
     assert len(clock) > 0 and clock[0].sec >= 10**9  # the bag's time (start 10**18 ns), not the wall clock

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from neural_estimator.bags import BagWriter, bag_to_arrays
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.methods.registry import make_estimator
-from neural_estimator.replay import replay
+from neural_estimator.evaluation.replay import replay
 from neural_estimator.scenarios import make_scenario
 
 T = 80
@@ -33,9 +33,9 @@ def data(scen):
 
 
 def _obs(scen, data, k, y=None):
-    t = M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt))
+    t = MSG.step_stamp_ns(10**18, k, MSG.dt_ns(scen.dt))
     u_prev = data.u[0, k - 1] if k else np.zeros(scen.du)
-    return M.encode_observation(scen, t, 0, k, data.y[0, k] if y is None else y, u_prev)
+    return MSG.encode_observation(scen, t, 0, k, data.y[0, k] if y is None else y, u_prev)
 
 
 def _sent(scen, data, corrupt):
@@ -87,9 +87,9 @@ def test_replay_estimates_the_real_stream_as_if_the_corrupt_pair_was_never_sent(
     for name, corrupt in (("clean", ()), ("corrupt", (53, 54))):
         paths[name] = tmp_path / f"{name}.mcap"
         with BagWriter(paths[name]) as w:
-            w.add_topic("/scenario", M.STRING)
-            w.write("/scenario", 0, M.encode_scenario(scen.describe()))
-            w.add_topic("/observation", M.JOINT_STATE)
+            w.add_topic("/scenario", MSG.STRING)
+            w.write("/scenario", 0, MSG.encode_scenario(scen.describe()))
+            w.add_topic("/observation", MSG.JOINT_STATE)
             for i, raw in enumerate(_sent(scen, data, corrupt)):
                 w.write("/observation", 1 + i, raw)
     out = {name: replay(path, ["ekf"], tmp_path / f"{name}-out.mcap") for name, path in paths.items()}

@@ -24,7 +24,7 @@ from neural_estimator.methods.registry import make_estimator, per_message_option
 from neural_estimator.scenarios import make_scenario, scenario_from_description  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 WITH_GRAPH = sorted(p.name for p in ZOO.glob("*-*") if (p / "step.onnx").is_file())
 
 
@@ -133,10 +133,10 @@ _PER_MESSAGE = """
 import json
 import numpy as np
 import neural_estimator.nodes.estimator_node  # the node's own imports
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
 from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
-from neural_estimator.online import warm_up
+from neural_estimator.stream.online import warm_up
 from neural_estimator.methods.registry import make_estimator, per_message_options
 from neural_estimator.scenarios import make_scenario
 
@@ -147,7 +147,7 @@ online = online_estimator(est, "mamba", EstimatorParams())
 data = simulate(scen, 1, 60, 5)
 out = []
 for k in range(60):
-    for r in online.feed(M.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0):
+    for r in online.feed(MSG.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0):
         out.append(r.x_hat.tolist())
 assert "torch" not in sys.modules or sys.modules["torch"] is None
 print(json.dumps(out))
@@ -159,7 +159,7 @@ def test_the_node_per_message_path_runs_without_torch_and_equals_torch():
     """The estimator node's per-message path (its imports, the estimator its defaults build, the
     warm-up, OnlineEstimator.feed on CDR messages) in a process where torch cannot be imported;
     its estimates equal those of the torch backend on the same messages."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
@@ -174,7 +174,7 @@ def test_the_node_per_message_path_runs_without_torch_and_equals_torch():
     ref = [
         r.x_hat
         for k in range(60)
-        for r in online.feed(M.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0)
+        for r in online.feed(MSG.encode_observation(scen, 10**6 * (k + 1), 0, k, data.y[0, k]), now=0.0)
     ]
     assert served.shape == (60, scen.dx)
     np.testing.assert_allclose(served, np.array(ref), rtol=1e-5, atol=1e-5)
@@ -214,7 +214,7 @@ def test_the_design_card_command_serves_without_torch(tmp_path):
 
 
 _REPLAY = """
-from neural_estimator.replay import replay
+from neural_estimator.evaluation.replay import replay
 res = replay({bag!r}, ["mamba"], {out!r})
 assert "torch" not in sys.modules or sys.modules["torch"] is None
 print(res.estimates["mamba"])
@@ -226,7 +226,7 @@ def test_replay_serves_as_the_live_node_without_torch(tmp_path):
     """Replay takes the live node's default (step.onnx, no torch): it runs where torch cannot be
     imported, and its estimates equal the torch backend's replay of the same bag within 1e-5."""
     from neural_estimator.bags import bag_to_arrays
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     bag = Path(__file__).resolve().parents[1] / "bags" / "lorenz96.mcap"
     out = tmp_path / "ort.mcap"

@@ -1,10 +1,10 @@
-"""One grammar for option values (neural_estimator.options), the same in every place that parses text."""
+"""One grammar for option values (neural_estimator.core.options), the same in every place that parses text."""
 
 from __future__ import annotations
 
 import pytest
 
-from neural_estimator.options import OptionError, parse_bool, parse_value
+from neural_estimator.core.options import OptionError, parse_bool, parse_value
 
 
 @pytest.mark.parametrize(

@@ -90,7 +90,7 @@ def test_recover_into_a_read_only_directory(tmp_path, monkeypatch, capsys):
 
 
 def test_metrics_table_onto_a_full_disk(tmp_path, monkeypatch, capsys):
-    import neural_estimator.atomic as atomic
+    import neural_estimator.core.atomic as atomic
 
     scored = tmp_path / "scored.mcap"
     assert main(["replay", BAG, "--methods", "ekf", "--out", str(scored)]) == 0
@@ -103,7 +103,7 @@ def test_metrics_table_onto_a_full_disk(tmp_path, monkeypatch, capsys):
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS, errno.EACCES])
 def test_replaced_atomically_keeps_the_old_file(tmp_path, code):
-    from neural_estimator.atomic import WriteError, replaced_atomically
+    from neural_estimator.core.atomic import WriteError, replaced_atomically
 
     target = tmp_path / "t.csv"
     target.write_text("old")

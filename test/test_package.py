@@ -117,7 +117,7 @@ def test_every_third_party_import_is_a_declared_dependency():
     missing = {}
     for path in (ROOT / "neural_estimator").rglob("*.py"):
         for top in sorted(top_level_imports(path)):
-            if top in sys.stdlib_module_names or top in ("neural_estimator", "sim_nodes") or top in OPTIONAL_IMPORTS:
+            if top in sys.stdlib_module_names or top == "neural_estimator" or top in OPTIONAL_IMPORTS:
                 continue
             if top in ROS_PACKAGES:
                 assert "ros-jazzy-rclpy" in extras["ros"]

@@ -15,7 +15,7 @@ import pytest
 from conftest import top_level_imports
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = [ROOT / "neural_estimator", ROOT / "sim_nodes", ROOT / "launch"]
+SOURCES = [ROOT / "neural_estimator", ROOT / "launch"]
 ROS_TOOLS = {"rclpy", "launch", "launch_ros", "ament_index_python", "tf2_ros"}
 # setup.py's install_requires -> its rosdep key (rosdistro's rosdep/python.yaml)
 ROSDEP_KEYS = {

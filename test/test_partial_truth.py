@@ -161,7 +161,7 @@ def test_training_reads_the_labelled_steps_only(tmp_path):
 def test_a_covariance_head_is_fitted_on_the_labelled_steps_only(tmp_path):
     from neural_estimator.robot import DataScenario
     from neural_estimator.serving.load import load_neural_estimator
-    from neural_estimator.uncertainty.fit import FitSettings, fit_covariance_head
+    from neural_estimator.serving.uncertainty.fit import FitSettings, fit_covariance_head
 
     data = tiny_dataset()
     train_on(data, tmp_path, "model")

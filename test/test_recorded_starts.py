@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from neural_estimator.bags.report import recorded_starts
+from neural_estimator.evaluation.bag_report import recorded_starts
 from neural_estimator.cli import main
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "lorenz96.mcap"

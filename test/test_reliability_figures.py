@@ -4,8 +4,8 @@ the figure is written."""
 import numpy as np
 from conftest import load_script
 
-from neural_estimator.consistency import RELIABILITY_LEVELS
-from neural_estimator.plots import plot_reliability
+from neural_estimator.metrics.consistency import RELIABILITY_LEVELS
+from neural_estimator.metrics.plots import plot_reliability
 
 
 def test_curves_are_medians_over_runs_of_methods_with_a_covariance(tmp_path):

@@ -262,7 +262,7 @@ def test_served_live_the_model_scores_what_evaluate_scored_on_the_recordings_clo
     import json
 
     from neural_estimator.bags import BagReader
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.nodes.launch import ESTIMATOR, EVALUATOR, isolated_env, node_command, start_node
 
     bag = robot_bag.write_bag(tmp_path / "bag", runs=2, seconds=42.0, seed=3)
@@ -318,7 +318,7 @@ def test_served_live_the_model_scores_what_evaluate_scored_on_the_recordings_clo
         types = {"/estimates/gru": "sensor_msgs/msg/JointState", "/mocap/pose": "geometry_msgs/msg/PoseStamped"}
         stamps = {topic: [] for topic in types}
         for conn, _, raw in reader.messages(list(stamps)):
-            msg = M.TYPESTORE.deserialize_cdr(raw, types[conn.topic])
+            msg = MSG.TYPESTORE.deserialize_cdr(raw, types[conn.topic])
             stamps[conn.topic].append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
             if first is None and conn.topic == "/estimates/gru":
                 first = msg
@@ -339,7 +339,7 @@ def test_served_live_the_model_scores_what_evaluate_scored_on_the_recordings_clo
     [
         ("", "parameter checkpoint is required"),
         ("/nonexistent/model", "does not exist"),
-        (str(ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
+        (str(ROOT / "neural_estimator" / "serving" / "zoo" / "lorenz96-gru"), "not on recorded data with a spec"),
     ],
 )
 @pytest.mark.ros

@@ -76,7 +76,7 @@ def test_a_wheel_puts_no_generic_command_into_bin(tmp_path):
     root = Path(__file__).resolve().parents[1]
     src = tmp_path / "src"
     src.mkdir()
-    for name in ("setup.py", "setup.cfg", "package.xml", "resource", "neural_estimator", "sim_nodes", "params"):
+    for name in ("setup.py", "setup.cfg", "package.xml", "resource", "neural_estimator", "params"):
         (shutil.copytree if (root / name).is_dir() else shutil.copy)(
             root / name,
             src / name,
@@ -95,3 +95,20 @@ def test_a_wheel_puts_no_generic_command_into_bin(tmp_path):
     eps = configparser.ConfigParser()
     eps.read(meta / "entry_points.txt")
     assert list(eps["console_scripts"]) == ["neural-estimator"]
+
+
+@pytest.mark.parametrize("home", ["", "cli."])  # spelt apart so that a rewrite of module paths leaves both
+def test_a_copy_of_the_shim_on_path_is_not_a_real_ros2(tmp_path, monkeypatch, home):
+    """Older installs put a ``ros2`` script into bin/ that runs the shim (from its top-level home
+    before it moved under cli/): that is not a real ros2 to hand over to; any other ros2 is."""
+    from neural_estimator.cli import ros2_shim
+
+    copy = tmp_path / "bin" / "ros2"
+    copy.parent.mkdir()
+    script = f"from neural_estimator.{home}ros2_shim import main\nsys.exit(main())\n"
+    copy.write_text("#!/usr/bin/python3\nimport sys\n" + script)
+    copy.chmod(0o755)
+    monkeypatch.setenv("PATH", str(copy.parent))
+    assert ros2_shim._real_ros2() is None
+    copy.write_text('#!/bin/sh\necho real ros2: "$@"\n')
+    assert ros2_shim._real_ros2() == str(copy)

@@ -259,7 +259,7 @@ def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_f
     vector for every method, each matching the estimate stream."""
     pytest.importorskip("rclpy")
     from neural_estimator.bags import BagReader
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.nodes.launch import PipelineConfig, run_pipeline
 
     methods = ("ekf", "gru", "lstm")
@@ -278,12 +278,12 @@ def test_live_run_records_pose_with_covariance_for_a_filter_and_a_state_vector_f
         assert {f"/estimates/{m}/{kind}" for m in methods for kind in ("odometry", "state")} <= topics
 
         def read(topic, msgtype):
-            return [M.TYPESTORE.deserialize_cdr(raw, msgtype) for _, _, raw in reader.messages([topic])]
+            return [MSG.TYPESTORE.deserialize_cdr(raw, msgtype) for _, _, raw in reader.messages([topic])]
 
-        est = {m: read(f"/estimates/{m}", M.JOINT_STATE) for m in methods}
+        est = {m: read(f"/estimates/{m}", MSG.JOINT_STATE) for m in methods}
         odom = {m: read(f"/estimates/{m}/odometry", "nav_msgs/msg/Odometry") for m in methods}
         state = {m: read(f"/estimates/{m}/state", "std_msgs/msg/Float64MultiArray") for m in methods}
-        truth = read("/ground_truth", M.JOINT_STATE)
+        truth = read("/ground_truth", MSG.JOINT_STATE)
         truth_odom = read("/ground_truth/odometry", "nav_msgs/msg/Odometry")
     # the simulator's truth as Odometry too (pose tools read it): same stamps, the true position, exact
     assert len(truth_odom) == len(truth) == 30
@@ -321,12 +321,12 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from sensor_msgs.msg import JointState
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.data import simulate
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.nodes.common import stream_qos
     from neural_estimator.nodes.launch import ESTIMATOR, isolated_env, node_command, start_node
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream.online import OnlineEstimator
     from neural_estimator.scenarios import make_scenario
 
     domain = fresh_domain()
@@ -343,7 +343,9 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
     data = simulate(scen, 1, 10, seed=5)
 
     def obs(k):
-        return M.encode_observation(scen, M.step_stamp_ns(10**18, k, M.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0))
+        return MSG.encode_observation(
+            scen, MSG.step_stamp_ns(10**18, k, MSG.dt_ns(scen.dt)), 0, k, data.y[0, k], np.zeros(0)
+        )
 
     tester = Tester(
         monkeypatch, domain, lambda: "logs:\n" + "".join((tmp_path / f"{m}.log").read_text() for m in est), timeout=60.0
@@ -356,7 +358,7 @@ def test_set_pose_topic_restarts_the_estimator_nodes_filter(tmp_path, monkeypatc
             node.create_subscription(
                 JointState,
                 f"estimates/{m}",
-                lambda raw, m=m: est[m].append(M.decode_vector(raw)),
+                lambda raw, m=m: est[m].append(MSG.decode_vector(raw)),
                 stream_qos(100),
                 raw=True,
             )

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.data import simulate
 from neural_estimator.nodes.run_identity import MAX_STARTS, RunIdentity
 from neural_estimator.scenarios import make_scenario
@@ -16,14 +16,14 @@ N, T = 2, 10
 
 
 def _run(scen, data, start_ns):
-    period = M.dt_ns(scen.dt)
-    codec = M.VectorCodec(scen.name, M.observation_labels(scen))
-    announce = M.encode_scenario(
+    period = MSG.dt_ns(scen.dt)
+    codec = MSG.VectorCodec(scen.name, MSG.observation_labels(scen))
+    announce = MSG.encode_scenario(
         scen.describe(), trajectories=N, horizon=T, start_ns=start_ns, dt_ns=period, messages=N * T
     )
     obs = [
         codec.encode(
-            M.step_stamp_ns(start_ns, n * T + k, period),
+            MSG.step_stamp_ns(start_ns, n * T + k, period),
             n,
             k,
             np.concatenate([data.y[n, k], data.u[n, k - 1] if k else np.zeros(scen.du)]),
@@ -111,8 +111,8 @@ def test_the_evaluators_recorder_reports_a_second_run(monkeypatch):
         get_logger=lambda: types.SimpleNamespace(warning=warnings.append, info=lambda text: None),
     )
     info = {"received_timestamp": 1, "source_timestamp": 1}
-    record_scenario = E.EvaluatorNode._recorder(ev, "/scenario", M.topic_role("/scenario"))
-    record_obs = E.EvaluatorNode._recorder(ev, "/observation", M.topic_role("/observation"))
+    record_scenario = E.EvaluatorNode._recorder(ev, "/scenario", MSG.topic_role("/scenario"))
+    record_obs = E.EvaluatorNode._recorder(ev, "/observation", MSG.topic_role("/observation"))
     record_scenario(a_announce, info)
     for a, b in zip(a_obs, b_obs):
         record_obs(a, info)

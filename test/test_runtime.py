@@ -1,11 +1,11 @@
-"""neural_estimator.runtime: the allocator settings of the entry points."""
+"""neural_estimator.core.runtime: the allocator settings of the entry points."""
 
 from __future__ import annotations
 
 import platform
 import sys
 
-from neural_estimator.runtime import tune_allocator
+from neural_estimator.core.runtime import tune_allocator
 
 
 def test_tune_allocator_applies_on_glibc_and_is_idempotent():

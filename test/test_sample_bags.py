@@ -15,7 +15,7 @@ from neural_estimator.serving.card import shipped_preset
 pytestmark = pytest.mark.slow  # every sample bag through the shipped models
 
 ROOT = Path(__file__).resolve().parents[1]
-ZOO = ROOT / "neural_estimator" / "zoo"
+ZOO = ROOT / "neural_estimator" / "serving" / "zoo"
 
 
 @pytest.mark.parametrize("scenario", PAPER_SCENARIOS)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class, parse_message_type
+from neural_estimator.core.interfaces import InterfaceError, check_message_type, is_message_class, parse_message_type
 
 EVIL = "evilpkg/msg/Boom"
 
@@ -76,7 +76,7 @@ def test_a_crafted_package_name_runs_no_code(evil_package):
 def test_a_declared_name_must_still_be_a_rosidl_message_class(evil_package, tmp_path, monkeypatch):
     """A package the index declares (the index is trusted) still has to hold a generated message class."""
     pytest.importorskip("rclpy")
-    from neural_estimator.interfaces import _declared
+    from neural_estimator.core.interfaces import _declared
     from neural_estimator.nodes.common import message_class
 
     index = tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
@@ -99,15 +99,15 @@ def ros():
 
 
 def test_the_player_plays_nothing_a_bag_names_that_is_not_a_ros_interface(ros, evil_package, tmp_path):
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.bags.writer import BagWriter
     from neural_estimator.nodes.player_node import PlayerNode
 
     bag = tmp_path / "crafted.mcap"
     with BagWriter(bag) as w:
-        w.add_topic("/observation", M.JOINT_STATE)
+        w.add_topic("/observation", MSG.JOINT_STATE)
         w.add_topic("/evil", EVIL, msgdef="int32 x", type_hash="RIHS01_" + "0" * 64)  # as a crafted bag declares it
-        w.write("/observation", 1_000, M.encode_vector(1_000, "", 0, 0, ["y0"], np.zeros(1)))
+        w.write("/observation", 1_000, MSG.encode_vector(1_000, "", 0, 0, ["y0"], np.zeros(1)))
         w.write("/evil", 2_000, b"\x00\x01\x00\x00")
     ros.init(args=["--ros-args", "-p", f"bag:={bag}", "-p", "exit_when_done:=false"])
     node = PlayerNode()
@@ -176,13 +176,13 @@ def test_a_description_declaring_a_huge_dimension_is_refused_before_any_allocati
 
 
 def test_an_oversized_or_deeply_nested_json_message_is_refused():
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.bags.errors import MessageError
 
     with pytest.raises(MessageError, match="larger than the"):
-        M.decode_scenario(M.encode_string("x" * (M.MAX_JSON_BYTES + 1)))
+        MSG.decode_scenario(MSG.encode_string("x" * (MSG.MAX_JSON_BYTES + 1)))
     with pytest.raises(MessageError, match="nests JSON too deeply"):
-        M.decode_scenario(M.encode_string("[" * 200_000))
+        MSG.decode_scenario(MSG.encode_string("[" * 200_000))
 
 
 @pytest.mark.slow
@@ -190,11 +190,11 @@ def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
     import time
     import tracemalloc
 
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.bags.errors import MessageError
 
-    codec = M.VectorCodec("lorenz96", [f"y{j}" for j in range(40)])
-    huge = M.encode_vector(0, "lorenz96", 0, 0, [f"v{j}" for j in range(1_000_000)], np.zeros(1_000_000))
+    codec = MSG.VectorCodec("lorenz96", [f"y{j}" for j in range(40)])
+    huge = MSG.encode_vector(0, "lorenz96", 0, 0, [f"v{j}" for j in range(1_000_000)], np.zeros(1_000_000))
     tracemalloc.start()
     t0 = time.perf_counter()
     try:
@@ -209,7 +209,7 @@ def test_a_jointstate_with_millions_of_entries_is_refused_before_decoding():
 
 
 def test_the_estimator_node_refuses_a_hostile_scenario_and_keeps_serving(ros, tmp_path):
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.nodes.estimator_node import EstimatorNode
     from neural_estimator.scenarios import make_scenario
 
@@ -218,17 +218,17 @@ def test_the_estimator_node_refuses_a_hostile_scenario_and_keeps_serving(ros, tm
     try:
         desc = make_scenario("lorenz96").describe()
         bad = {**desc, "config": {**desc["config"], "n_vars": 10**9}}
-        node._on_scenario(M.encode_scenario(bad))
-        node._on_scenario(M.encode_string("[" * 100_000))
-        node._on_scenario(M.encode_scenario({**desc, "scenario": "no-such-scenario"}))
+        node._on_scenario(MSG.encode_scenario(bad))
+        node._on_scenario(MSG.encode_string("[" * 100_000))
+        node._on_scenario(MSG.encode_scenario({**desc, "scenario": "no-such-scenario"}))
         assert node.online is None and node.context.ok()  # still running, still waiting
-        node._on_scenario(M.encode_scenario(make_scenario("ballistic").describe()))
+        node._on_scenario(MSG.encode_scenario(make_scenario("ballistic").describe()))
         assert node.online is not None and node.online.scenario.name == "ballistic"
-        labels = M.observation_labels(node.online.scenario)
-        huge = M.encode_vector(0, "ballistic", 0, 0, [f"v{j}" for j in range(200_000)], np.zeros(200_000))
+        labels = MSG.observation_labels(node.online.scenario)
+        huge = MSG.encode_vector(0, "ballistic", 0, 0, [f"v{j}" for j in range(200_000)], np.zeros(200_000))
         node._on_observation(huge)
         assert node.stats.oversize == 1 and node.stats.bad == 0 and node.context.ok()  # dropped unread
-        node._on_observation(M.encode_vector(0, "ballistic", 0, 0, labels, np.zeros(len(labels))))
+        node._on_observation(MSG.encode_vector(0, "ballistic", 0, 0, labels, np.zeros(len(labels))))
         assert node.stats.estimated == 1
     finally:
         node.destroy_node()
@@ -283,7 +283,7 @@ def test_a_card_cannot_name_a_weight_file_outside_its_checkpoint(tmp_path, name)
 
 def test_no_message_or_card_can_name_a_plugin_to_load(tmp_path):
     """Plugins run code: only the user's explicit --plugin / plugins parameter loads one."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description
 
     marker = tmp_path / "ran"
@@ -296,5 +296,5 @@ def test_no_message_or_card_can_name_a_plugin_to_load(tmp_path):
         {**desc, "scenario": f"{plugin}:Scenario"},
     ):
         with pytest.raises(ScenarioError, match="unknown scenario"):
-            scenario_from_description(M.decode_scenario(M.encode_scenario(crafted)))
+            scenario_from_description(MSG.decode_scenario(MSG.encode_scenario(crafted)))
     assert not marker.exists()

@@ -83,7 +83,7 @@ def test_installing_compares_on_the_selection_set_only(tmp_path, monkeypatch, ca
 
     monkeypatch.setattr(zoo_script, "dataset", recording)
     scenario = make_scenario("lorenz96")
-    shipped = ROOT / "neural_estimator" / "zoo" / "lorenz96-gru"
+    shipped = ROOT / "neural_estimator" / "serving" / "zoo" / "lorenz96-gru"
     work, zoo = tmp_path / "state" / "lorenz96-gru", tmp_path / "zoo"
     for d in (work, zoo / "lorenz96-gru"):
         d.mkdir(parents=True)

@@ -12,7 +12,7 @@ import pytest
 
 from neural_estimator.nodes import outputs as O
 from neural_estimator.nodes.odometry import quaternion
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.methods.registry import make_estimator
 from neural_estimator.scenarios import make_scenario
 

@@ -84,7 +84,7 @@ def test_the_name_lists_take_the_toy_with_no_edit(toy):
 @pytest.mark.ros
 def test_the_estimator_node_runs_the_toy(toy):
     rclpy = pytest.importorskip("rclpy")
-    from neural_estimator.bags import messages as B
+    from neural_estimator.stream import messages as B
     from neural_estimator.nodes.estimator_node import EstimatorNode
 
     rclpy.init(args=["--ros-args", "-p", f"method:={TOY}", "-p", "scenario:=ballistic"])

@@ -106,7 +106,7 @@ def estimator_for(scenario, arch, data, seed=0, head=False):
     norm = Normalizer.from_data(scenario, data)
     model = build_model(arch, norm.d_in, scenario.dx)
     if head:
-        from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+        from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel
 
         cov_head = CholeskyHead(model.features(torch.zeros(1, 1, norm.d_in)).shape[-1], scenario.dx)
         with torch.no_grad():
@@ -862,7 +862,7 @@ def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
 
     from neural_estimator.training.stopping import converged, lr_reductions
 
-    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+    zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
     cards = sorted(zoo.glob("*/card.json"))
     for path in cards:
         card = json.loads(path.read_text())

@@ -1,4 +1,4 @@
-"""Covariance heads, consistency metrics and calibration (neural_estimator.uncertainty)."""
+"""Covariance heads, consistency metrics and calibration (neural_estimator.serving.uncertainty)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import torch
 
 from neural_estimator import metrics as M
 from neural_estimator.models import build_model
-from neural_estimator import consistency as C
-from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
+from neural_estimator.metrics import consistency as C
+from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -253,13 +253,13 @@ def test_evaluate_reports_a_consistency_table_and_the_reliability_curve():
 def test_the_live_path_publishes_the_heads_covariance(tmp_path):
     """The node's per-message path (OnlineEstimator) of a neural model with a head carries its
     covariance in every result and builds the covariance message (no 'not estimated' diagonal)."""
-    from neural_estimator.bags import messages as BM
-    from neural_estimator.online import OnlineEstimator
+    from neural_estimator.stream import messages as MSG
+    from neural_estimator.stream.online import OnlineEstimator
 
     scenario, data, plain, est = _estimator_with_head(tmp_path)
     online = OnlineEstimator(est, "gru")
     assert online.publish_covariance and not OnlineEstimator(plain, "gru").publish_covariance
-    codec = BM.VectorCodec(scenario.name, BM.observation_labels(scenario))
+    codec = MSG.VectorCodec(scenario.name, MSG.observation_labels(scenario))
     est_ref = est.run(data.y[:1, :5], data.u[:1, :5])
     for k in range(5):
         u_prev = data.u[0, k - 1] if k else np.zeros(scenario.du)
@@ -299,7 +299,7 @@ def test_the_band_scale_trades_the_tail_for_the_bulk_on_heavy_tailed_errors():
 def test_the_calibrated_settings_are_options_every_filter_takes():
     from neural_estimator.methods.registry import make_estimator
     from neural_estimator.scenarios import make_scenario
-    from neural_estimator.uncertainty.calibrated import calibrated_options
+    from neural_estimator.serving.uncertainty.calibrated import calibrated_options
 
     scenario = make_scenario("nlink")
     for method in ("ekf", "ukf", "enkf", "pf"):
@@ -318,7 +318,7 @@ def test_every_calibrated_filter_setting_was_chosen_on_its_scenarios_default_con
 
     from neural_estimator.paper import PAPER_SCENARIOS
     from neural_estimator.scenarios import default_preset
-    from neural_estimator.uncertainty.calibrated import CALIBRATED_FILE
+    from neural_estimator.serving.uncertainty.calibrated import CALIBRATED_FILE
 
     spec = importlib.util.spec_from_file_location(
         "calibrate_covariances", Path(__file__).resolve().parents[1] / "scripts" / "calibrate_covariances.py"

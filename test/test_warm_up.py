@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from neural_estimator.online import WARM_UP_STEPS, warm_up
+from neural_estimator.stream.online import WARM_UP_STEPS, warm_up
 from neural_estimator.scenarios import make_scenario
 
 

@@ -12,7 +12,7 @@ from neural_estimator.data import simulate
 from neural_estimator.methods.registry import EstimatorError, make_estimator
 from neural_estimator.scenarios import make_scenario
 
-ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "zoo"
+ZOO = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
 SHIPPED = sorted(p.name for p in ZOO.glob("*-*") if "." not in p.name and (p / "card.json").exists())
 
 

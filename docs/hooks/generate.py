@@ -9,7 +9,7 @@ reference table or result is typed by hand:
     scoreboard           the neural scoreboard, from docs/results/neural_scoreboard.json
     headline             the README's headline table (RMSE, ours · the paper's), from the small report
     report-section TITLE a section of the committed small-scale report (docs/results/small/report.md)
-    zoo                  the shipped models, from their cards (neural_estimator/zoo/*/card.json)
+    zoo                  the shipped models, from their cards (neural_estimator/serving/zoo/*/card.json)
     fidelity             the classical rows against the paper, from benchmarks/results/fidelity/*.txt
                          and neural_estimator/paper/paper_results.json
     methods              the table of methods and what each can do (neural_estimator/methods/table.py)
@@ -34,7 +34,7 @@ _OUTPUTS = ("neural_estimator/nodes/outputs.py", "OutputParams")
 _INPUTS = ("neural_estimator/nodes/diagnostics.py", "InputDiagnosticsParams")
 # node executable -> the (source file, parameter dataclass) pairs it declares, in declaration order
 NODE_PARAMS = {
-    "simulator": (("sim_nodes/simulator.py", "SimulatorParams"),),
+    "simulator": (("neural_estimator/nodes/simulator_node.py", "SimulatorParams"),),
     "estimator": (("neural_estimator/nodes/estimator_params.py", "EstimatorParams"), _OUTPUTS, _INPUTS),
     "evaluator": (("neural_estimator/nodes/evaluator_node.py", "EvaluatorParams"),),
     "player": (("neural_estimator/nodes/player_node.py", "PlayerParams"),),
@@ -171,12 +171,12 @@ def report_section(title: str) -> str:
 
 
 def zoo() -> str:
-    """The shipped models, one row per card of neural_estimator/zoo: budget, stop, card metrics."""
+    """The shipped models, one row per card of neural_estimator/serving/zoo: budget, stop, card metrics."""
     rows = [
         "| model | loss units | epochs (best) | CPU hours | lr reductions | stopped | RMSE (NRMSE), card |",
         "|---|---|---:|---:|---:|---|---:|",
     ]
-    for card_path in sorted((ROOT / "neural_estimator" / "zoo").glob("*/card.json")):
+    for card_path in sorted((ROOT / "neural_estimator" / "serving" / "zoo").glob("*/card.json")):
         card = json.loads(card_path.read_text())
         t = card["training"]
         recipe = t.get("recipe", {})

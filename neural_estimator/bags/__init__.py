@@ -1,12 +1,11 @@
-"""MCAP bags in the rosbag2 layout, and the message layout of every stream (no rclpy here).
+"""MCAP bags in the rosbag2 layout: storage only (no rclpy here). The message layout of every stream
+is :mod:`neural_estimator.stream.messages`; scoring a recorded run is
+:mod:`neural_estimator.evaluation.bag_report` (in bounded memory: :mod:`~neural_estimator.evaluation.bag_scoring`).
 
-- :mod:`~neural_estimator.bags.messages`: topics, names and the array <-> CDR conversions.
 - :class:`BagWriter` / :class:`BagReader`: one ``.mcap`` file, written as rosbag2 writes it, read
   back even when the recording was cut short; :func:`open_bag` also opens a rosbag2 directory.
 - :func:`bag_to_arrays` / :func:`arrays_to_bag`: a recorded run as arrays keyed by (trajectory,
   step), and sample bags from simulated data; :func:`load_bag_dataset` for the metrics.
-- :mod:`~neural_estimator.bags.report`: the paper's metrics of a recorded run (imported on demand:
-  it pulls in scipy and matplotlib).
 """
 
 from neural_estimator.bags.dataset import RunArrays, arrays_to_bag, bag_to_arrays, load_bag_dataset

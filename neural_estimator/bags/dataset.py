@@ -1,4 +1,4 @@
-"""A run as arrays <-> a bag: the dataset view of the streams of :mod:`~neural_estimator.bags.messages`.
+"""A run as arrays <-> a bag: the dataset view of the streams of :mod:`~neural_estimator.stream.messages`.
 
 :func:`bag_to_arrays` gathers every vector message of a bag by its in-band identity (trajectory,
 step), whatever order the messages were recorded in, into (N, T, .) arrays; cells without a message
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.cells import StreamCells
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
@@ -70,14 +70,14 @@ class RunArrays:
     @property
     def complete(self) -> bool:
         """True when the run announced its end (run_status "complete")."""
-        return any(s.get("status") == M.STATUS_COMPLETE for s in self.status)
+        return any(s.get("status") == MSG.STATUS_COMPLETE for s in self.status)
 
 
-def _stream_key(role: M.TopicRole) -> str:
+def _stream_key(role: MSG.TopicRole) -> str:
     if role.kind == "estimate":
-        return M.estimate_topic(role.method)
+        return MSG.estimate_topic(role.method)
     if role.kind == "covariance":
-        return M.covariance_topic(role.method)
+        return MSG.covariance_topic(role.method)
     return role.kind
 
 
@@ -106,22 +106,22 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
             out[np.searchsorted(ids, store.n), store.k] = store.values
         return out
 
-    obs = fill(M.OBSERVATION, dy + du)
+    obs = fill(MSG.OBSERVATION, dy + du)
     stamps = np.full((N, T), -1, dtype=np.int64)
-    if M.OBSERVATION in cells:
-        store = cells[M.OBSERVATION]
+    if MSG.OBSERVATION in cells:
+        store = cells[MSG.OBSERVATION]
         stamps[np.searchsorted(ids, store.n), store.k] = store.stamps
     x_hat, P_hat = {}, {}
     for key in cells:
-        if not key.startswith(M.ESTIMATES + "/"):
+        if not key.startswith(MSG.ESTIMATES + "/"):
             continue
         method = key.split("/")[1]
-        if key.endswith("/" + M.COVARIANCE_SUFFIX):
+        if key.endswith("/" + MSG.COVARIANCE_SUFFIX):
             P_hat[method] = fill(key, dx * dx).reshape(N, T, dx, dx)
         else:
             x_hat[method] = fill(key, dx)
     total = N * T
-    streams = set(cells) | {M.OBSERVATION, M.GROUND_TRUTH}
+    streams = set(cells) | {MSG.OBSERVATION, MSG.GROUND_TRUTH}
     present = {}
     for key in sorted(streams):
         mask = np.zeros((N, T), dtype=bool)
@@ -132,7 +132,7 @@ def bag_to_arrays(path: str | Path, *, namespace: str = "/", description: Mappin
     return RunArrays(
         description=desc,
         trajectories=np.asarray(traj_ids, dtype=np.int64),
-        x=fill(M.GROUND_TRUTH, dx),
+        x=fill(MSG.GROUND_TRUTH, dx),
         y=obs[..., :dy],
         u_prev=obs[..., dy:],
         stamps=stamps,
@@ -159,19 +159,19 @@ def _read_streams(
     with open_bag(path) as bag:
         roles = {}
         for topic, conn in bag.topics.items():
-            role = M.topic_role(topic, namespace)
+            role = MSG.topic_role(topic, namespace)
             if role is None:
                 continue
-            want = M.STRING if role.kind in (M.SCENARIO, M.RUN_STATUS) else M.JOINT_STATE
+            want = MSG.STRING if role.kind in (MSG.SCENARIO, MSG.RUN_STATUS) else MSG.JOINT_STATE
             if conn.msgtype != want:
                 raise BagError(f"{path}: topic {topic!r} holds {conn.msgtype}, expected {want}")
             roles[topic] = role
-        if not any(r.kind == M.OBSERVATION for r in roles.values()) and not any(
-            r.kind == M.GROUND_TRUTH for r in roles.values()
+        if not any(r.kind == MSG.OBSERVATION for r in roles.values()) and not any(
+            r.kind == MSG.GROUND_TRUTH for r in roles.values()
         ):
             raise BagError(
-                f"{path}: no {M.resolve_topic(M.OBSERVATION, namespace)} or "
-                f"{M.resolve_topic(M.GROUND_TRUTH, namespace)} topic "
+                f"{path}: no {MSG.resolve_topic(MSG.OBSERVATION, namespace)} or "
+                f"{MSG.resolve_topic(MSG.GROUND_TRUTH, namespace)} topic "
                 f"(topics: {', '.join(sorted(bag.topics)) or 'none'})"
             )
 
@@ -184,16 +184,16 @@ def _read_streams(
             role = roles[conn.topic]
             key = _stream_key(role)
             try:
-                if role.kind == M.SCENARIO:
+                if role.kind == MSG.SCENARIO:
                     if desc is None:  # the first announcement defines the run: a later one cannot resize it
-                        desc = M.decode_scenario(raw)
+                        desc = MSG.decode_scenario(raw)
                         decoder = _CellDecoder(desc, rejected, store)
                         for item in pending:
                             decoder.add(*item)
                         pending = []
                     continue
-                if role.kind == M.RUN_STATUS:
-                    status.append(M.decode_run_status(raw))
+                if role.kind == MSG.RUN_STATUS:
+                    status.append(MSG.decode_run_status(raw))
                     continue
                 if decoder is None:
                     pending.append((key, bytes(raw)))
@@ -203,7 +203,7 @@ def _read_streams(
                 rejected[key] = rejected.get(key, 0) + 1
     if desc is None or decoder is None:
         raise BagError(
-            f"{path}: no {M.resolve_topic(M.SCENARIO, namespace)} message: name the scenario "
+            f"{path}: no {MSG.resolve_topic(MSG.SCENARIO, namespace)} message: name the scenario "
             "(--scenario NAME [--set ...] on the command line, -p scenario:=NAME on a node)"
         )
     return desc, status, {k: c.finish() for k, c in decoder.cells.items()}, rejected
@@ -216,20 +216,20 @@ class _CellDecoder:
     def __init__(self, desc: dict[str, Any], rejected: dict[str, int], store=StreamCells) -> None:
         dx = len(desc["state_names"])
         self.store = store
-        self.expected = {M.OBSERVATION: M.observation_labels(desc), M.GROUND_TRUTH: M.state_labels(desc)}
-        self.state_names, self.cov_names = M.state_labels(desc), M.covariance_labels(dx)
+        self.expected = {MSG.OBSERVATION: MSG.observation_labels(desc), MSG.GROUND_TRUTH: MSG.state_labels(desc)}
+        self.state_names, self.cov_names = MSG.state_labels(desc), MSG.covariance_labels(dx)
         self.rejected = rejected
-        self.codecs: dict[str, M.VectorCodec] = {}
+        self.codecs: dict[str, MSG.VectorCodec] = {}
         self.cells: dict[str, StreamCells] = {}
 
     def add(self, key: str, raw: bytes | memoryview) -> None:
         codec = self.codecs.get(key)
         if codec is None:
-            if key.startswith(M.ESTIMATES + "/"):
-                names = self.cov_names if key.endswith("/" + M.COVARIANCE_SUFFIX) else self.state_names
+            if key.startswith(MSG.ESTIMATES + "/"):
+                names = self.cov_names if key.endswith("/" + MSG.COVARIANCE_SUFFIX) else self.state_names
             else:
                 names = self.expected[key]
-            codec = self.codecs[key] = M.VectorCodec("", names)
+            codec = self.codecs[key] = MSG.VectorCodec("", names)
         try:
             vec = codec.decode(raw)
         except MessageError:
@@ -250,10 +250,10 @@ def _rows(path: str | Path, desc: dict[str, Any], cells: dict[str, StreamCells])
     dx, dy = len(desc["state_names"]), len(desc["obs_names"])
     du = len(desc.get("control_names", ()))
     run = desc.get("run") if isinstance(desc.get("run"), Mapping) else {}
-    widths = {M.OBSERVATION: dy + du, M.GROUND_TRUTH: dx}
+    widths = {MSG.OBSERVATION: dy + du, MSG.GROUND_TRUTH: dx}
     for key in cells:
-        if key.startswith(M.ESTIMATES + "/"):
-            widths[key] = dx * dx if key.endswith("/" + M.COVARIANCE_SUFFIX) else dx
+        if key.startswith(MSG.ESTIMATES + "/"):
+            widths[key] = dx * dx if key.endswith("/" + MSG.COVARIANCE_SUFFIX) else dx
     cell_bytes = 8 * sum(widths.values()) + 8 + len(widths)  # values, the stamp, a presence flag per stream
     limit = max_array_bytes()
     n_ann, t_ann = _announced(run.get("trajectories")), _announced(run.get("horizon"))
@@ -347,37 +347,39 @@ def arrays_to_bag(
     for m, a in covariances.items():
         if np.shape(a) != (N, T, scenario.dx, scenario.dx):
             raise BagError(f"covariances[{m!r}] must be {(N, T, scenario.dx, scenario.dx)}, got {np.shape(a)}")
-    period = M.dt_ns(scenario.dt)
-    topic = lambda rel: M.resolve_topic(rel, namespace)  # noqa: E731
-    obs_codec = M.VectorCodec(scenario.name, M.observation_labels(scenario))
-    truth_codec = M.VectorCodec(scenario.name, M.state_labels(scenario))
-    est_codecs = {m: M.VectorCodec(m, M.state_labels(scenario)) for m in estimates}
-    cov_codecs = {m: M.VectorCodec(m, M.covariance_labels(scenario.dx)) for m in covariances}
+    period = MSG.dt_ns(scenario.dt)
+    topic = lambda rel: MSG.resolve_topic(rel, namespace)  # noqa: E731
+    obs_codec = MSG.VectorCodec(scenario.name, MSG.observation_labels(scenario))
+    truth_codec = MSG.VectorCodec(scenario.name, MSG.state_labels(scenario))
+    est_codecs = {m: MSG.VectorCodec(m, MSG.state_labels(scenario)) for m in estimates}
+    cov_codecs = {m: MSG.VectorCodec(m, MSG.covariance_labels(scenario.dx)) for m in covariances}
     info = {"trajectories": N, "horizon": T, "messages": N * T}
     with BagWriter(path, overwrite=overwrite, chunk_size=chunk_size) as bag:
-        bag.add_topic(topic(M.SCENARIO), M.STRING, qos=[LATCHED_QOS])
-        bag.add_topic(topic(M.RUN_STATUS), M.STRING, qos=[LATCHED_QOS])
-        bag.add_topic(topic(M.OBSERVATION), M.JOINT_STATE, qos=[STREAM_QOS])
-        bag.add_topic(topic(M.GROUND_TRUTH), M.JOINT_STATE, qos=[STREAM_QOS])
+        bag.add_topic(topic(MSG.SCENARIO), MSG.STRING, qos=[LATCHED_QOS])
+        bag.add_topic(topic(MSG.RUN_STATUS), MSG.STRING, qos=[LATCHED_QOS])
+        bag.add_topic(topic(MSG.OBSERVATION), MSG.JOINT_STATE, qos=[STREAM_QOS])
+        bag.add_topic(topic(MSG.GROUND_TRUTH), MSG.JOINT_STATE, qos=[STREAM_QOS])
         for m in estimates:
-            bag.add_topic(topic(M.estimate_topic(m)), M.JOINT_STATE, qos=[STREAM_QOS])
+            bag.add_topic(topic(MSG.estimate_topic(m)), MSG.JOINT_STATE, qos=[STREAM_QOS])
         for m in covariances:
-            bag.add_topic(topic(M.covariance_topic(m)), M.JOINT_STATE, qos=[STREAM_QOS])
+            bag.add_topic(topic(MSG.covariance_topic(m)), MSG.JOINT_STATE, qos=[STREAM_QOS])
         run = {"start_ns": int(start_ns), "dt_ns": period, "rate_hz": None, **info, **dict(run_info or {})}
-        bag.write(topic(M.SCENARIO), start_ns, M.encode_scenario(scenario.describe(), **run))
-        bag.write(topic(M.RUN_STATUS), start_ns, M.encode_run_status(M.STATUS_STARTED, **info))
+        bag.write(topic(MSG.SCENARIO), start_ns, MSG.encode_scenario(scenario.describe(), **run))
+        bag.write(topic(MSG.RUN_STATUS), start_ns, MSG.encode_run_status(MSG.STATUS_STARTED, **info))
         stamp = start_ns
         for n in range(N):
             for k in range(T):
-                stamp = M.step_stamp_ns(start_ns, n * T + k, period)
+                stamp = MSG.step_stamp_ns(start_ns, n * T + k, period)
                 u_prev = u[n, k - 1] if k else np.zeros(scenario.du)
-                bag.write(topic(M.OBSERVATION), stamp, obs_codec.encode(stamp, n, k, np.concatenate([y[n, k], u_prev])))
-                bag.write(topic(M.GROUND_TRUTH), stamp, truth_codec.encode(stamp, n, k, x[n, k]))
+                bag.write(
+                    topic(MSG.OBSERVATION), stamp, obs_codec.encode(stamp, n, k, np.concatenate([y[n, k], u_prev]))
+                )
+                bag.write(topic(MSG.GROUND_TRUTH), stamp, truth_codec.encode(stamp, n, k, x[n, k]))
                 for m, a in estimates.items():
-                    bag.write(topic(M.estimate_topic(m)), stamp, est_codecs[m].encode(stamp, n, k, a[n, k]))
+                    bag.write(topic(MSG.estimate_topic(m)), stamp, est_codecs[m].encode(stamp, n, k, a[n, k]))
                 for m, a in covariances.items():
-                    bag.write(topic(M.covariance_topic(m)), stamp, cov_codecs[m].encode(stamp, n, k, a[n, k]))
-        bag.write(topic(M.RUN_STATUS), stamp, M.encode_run_status(M.STATUS_COMPLETE, **info))
+                    bag.write(topic(MSG.covariance_topic(m)), stamp, cov_codecs[m].encode(stamp, n, k, a[n, k]))
+        bag.write(topic(MSG.RUN_STATUS), stamp, MSG.encode_run_status(MSG.STATUS_COMPLETE, **info))
     return Path(path)
 
 
@@ -465,23 +467,24 @@ def load_bag_dataset(
     from neural_estimator.data import Trajectories
 
     run = bag_to_arrays(path, namespace=namespace, description=description)
-    est_topic = M.resolve_topic(M.estimate_topic("<method>"), namespace)
+    est_topic = MSG.resolve_topic(MSG.estimate_topic("<method>"), namespace)
     if not run.x_hat:
         raise BagError(
             f"{path}: no estimate stream ({est_topic}) to score; add one with "
             "`neural-estimator replay BAG --methods ... --out OUT.mcap`"
         )
-    if not run.received.get(M.GROUND_TRUTH):
+    if not run.received.get(MSG.GROUND_TRUTH):
         raise BagError(
-            f"{path}: no {M.resolve_topic(M.GROUND_TRUTH, namespace)} messages: nothing to score the estimates against"
+            f"{path}: no {MSG.resolve_topic(MSG.GROUND_TRUTH, namespace)} messages: "
+            "nothing to score the estimates against"
         )
-    base = run.present[M.GROUND_TRUTH].all(axis=1)
-    if run.received.get(M.OBSERVATION):
-        base &= run.present[M.OBSERVATION].all(axis=1)
+    base = run.present[MSG.GROUND_TRUTH].all(axis=1)
+    if run.received.get(MSG.OBSERVATION):
+        base &= run.present[MSG.OBSERVATION].all(axis=1)
     coverage = {}
     for m in run.x_hat:  # a diverged estimate (NaN values) is present, not missing
-        ok = base & run.present[M.estimate_topic(m)].all(axis=1)
-        cov_key = M.covariance_topic(m)
+        ok = base & run.present[MSG.estimate_topic(m)].all(axis=1)
+        cov_key = MSG.covariance_topic(m)
         if run.received.get(cov_key):
             ok &= run.present[cov_key].all(axis=1)
         coverage[m] = ok

@@ -1,14 +1,14 @@
-"""Errors of the bag layer: every message names the file or the message and the problem."""
+"""Errors of the bag layer: every message names the file or the message and the problem.
+
+``BagError`` and ``MessageError`` are defined with the message format (:mod:`neural_estimator.stream.errors`:
+a malformed message is a ``BagError`` whether it came from a bag or from a live topic) and importable
+from here as before."""
 
 from __future__ import annotations
 
+from neural_estimator.stream.errors import BagError, MessageError
 
-class BagError(ValueError):
-    """A bag file that cannot be written or read as asked (missing, not MCAP, wrong topic type...)."""
-
-
-class MessageError(BagError):
-    """One message that does not follow the layout of :mod:`neural_estimator.bags.messages`."""
+__all__ = ["BagError", "BagWarning", "MessageError"]
 
 
 class BagWarning(UserWarning):

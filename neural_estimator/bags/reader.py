@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from neural_estimator.bags.errors import BagError, BagWarning
-from neural_estimator.bags.messages import TYPESTORE
+from neural_estimator.stream.messages import TYPESTORE
 
 try:
     import zstandard

@@ -17,7 +17,7 @@ from pathlib import Path
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.reader import BagDamage
-from neural_estimator.atomic import replaced_atomically, temporary_name
+from neural_estimator.core.atomic import replaced_atomically, temporary_name
 from neural_estimator.bags.writer import BagWriter, QosError, parse_qos_yaml
 
 
@@ -95,17 +95,17 @@ def _checked_qos(topic: str, text: str, refused: list[str]) -> list:
 
 def _count(topic: str, raw: bytes, counts: dict[str, int], run: dict | None) -> dict | None:
     """Count a vector stream's message; return the run a /scenario message announces (else ``run``)."""
-    from neural_estimator.bags import messages as M
+    from neural_estimator.stream import messages as MSG
     from neural_estimator.bags.errors import MessageError
 
     leaf = topic.rsplit("/", 1)[-1]
     try:
-        if leaf == M.SCENARIO:
-            desc = M.decode_scenario(raw)
+        if leaf == MSG.SCENARIO:
+            desc = MSG.decode_scenario(raw)
             return desc.get("run") if isinstance(desc.get("run"), dict) else run
     except MessageError:
         return run
-    if leaf in (M.OBSERVATION, M.GROUND_TRUTH, M.COVARIANCE_SUFFIX) or f"/{M.ESTIMATES}/" in topic:
+    if leaf in (MSG.OBSERVATION, MSG.GROUND_TRUTH, MSG.COVARIANCE_SUFFIX) or f"/{MSG.ESTIMATES}/" in topic:
         counts[topic] = counts.get(topic, 0) + 1
     return run
 

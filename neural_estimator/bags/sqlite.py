@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.bags.errors import BagError
-from neural_estimator.bags.messages import TYPESTORE
+from neural_estimator.stream.messages import TYPESTORE
 from neural_estimator.bags.reader import PartedBag, Connection, register_schema
 
 SQLITE_SUFFIX = ".db3"

@@ -29,9 +29,9 @@ import yaml
 from mcap.writer import CompressionType, Writer
 
 from neural_estimator import __version__
-from neural_estimator.safe_yaml import YamlError, load_yaml
+from neural_estimator.core.safe_yaml import YamlError, load_yaml
 from neural_estimator.bags.errors import BagError, BagWarning
-from neural_estimator.bags.messages import TYPESTORE
+from neural_estimator.stream.messages import TYPESTORE
 
 _INFINITE_SEC, _INFINITE_NSEC = 9223372036, 854775807  # RMW_DURATION_INFINITE as rosbag2 prints it
 DEFAULT_CHUNK_SIZE = 256 * 1024  # bytes of uncompressed records per chunk (the unit recovered after a crash)
@@ -74,7 +74,7 @@ class Qos:
         }
 
 
-# QoS of the streams of this package (see neural_estimator.bags.messages and the nodes).
+# QoS of the streams of this package (see neural_estimator.stream.messages and the nodes).
 STREAM_QOS = Qos(reliability="reliable", durability="transient_local", depth=1000)
 LATCHED_QOS = Qos(reliability="reliable", durability="transient_local", depth=1)
 

@@ -65,12 +65,12 @@ def _one_line_warnings() -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _one_line_warnings()
-    from neural_estimator.runtime import cooperative_threads, tune_allocator
+    from neural_estimator.core.runtime import cooperative_threads, tune_allocator
 
-    tune_allocator()  # batched numpy work is up to 2x faster (see neural_estimator/runtime.py)
+    tune_allocator()  # batched numpy work is up to 2x faster (see neural_estimator/core/runtime.py)
     cooperative_threads()  # --threads 2 never slower than one on a busy machine (before torch loads)
-    if argv[:1] == ["ros2"]:  # the minimal `ros2 run` of pip environments (neural_estimator/ros2_shim.py)
-        from neural_estimator.ros2_shim import main as ros2_main
+    if argv[:1] == ["ros2"]:  # the minimal `ros2 run` of pip environments (neural_estimator/cli/ros2_shim.py)
+        from neural_estimator.cli.ros2_shim import main as ros2_main
 
         return ros2_main(argv[1:])
     if argv[:1] == ["live"]:  # its own parser (neural_estimator.nodes.launch); argparse.REMAINDER drops --help
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     from neural_estimator.data import DataError
     from neural_estimator.methods.registry import EstimatorError
 
-    from neural_estimator.atomic import WriteError
+    from neural_estimator.core.atomic import WriteError
 
     handled: tuple[type[BaseException], ...] = (CliError, ScenarioError, DataError, EstimatorError, WriteError)
     try:

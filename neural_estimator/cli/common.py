@@ -46,7 +46,7 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):  # noqa: D102 - argparse's
         import re
 
-        from neural_estimator.options import did_you_mean
+        from neural_estimator.core.options import did_you_mean
 
         m = re.match(r"unrecognized arguments: (.*)", message)
         if m:
@@ -154,7 +154,7 @@ def parse_checkpoints(items: list[str] | None) -> dict[str, list[str]]:
 
 def parse_options(items: list[str] | None) -> dict[str, dict[str, Any]]:
     """{method: {name: text}}: the values stay text, parsed by the method against each option's type
-    (:mod:`neural_estimator.options`)."""
+    (:mod:`neural_estimator.core.options`)."""
     out: dict[str, dict[str, Any]] = {}
     for item in items or ():
         key, sep, value = item.partition("=")

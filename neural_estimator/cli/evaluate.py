@@ -83,7 +83,7 @@ def _estimates_from_files(files: list[str], args: argparse.Namespace | None = No
 def _scored_files(files: list[str], args: argparse.Namespace, warmup: int):
     """(run, {method: MetricReport}, {method: TrajectoryErrors}) of npz files or a bag; ``run`` has
     the ``n``, ``horizon`` and ``meta`` of what was scored. A bag is scored in bounded memory
-    (:func:`~neural_estimator.bags.bounded.score_bag`); npz files are held as arrays and scored
+    (:func:`~neural_estimator.evaluation.bag_scoring.score_bag`); npz files are held as arrays and scored
     block by block."""
     from neural_estimator.metrics.streaming import score_in_blocks
 
@@ -95,7 +95,7 @@ def _scored_files(files: list[str], args: argparse.Namespace, warmup: int):
             )
 
     if len(files) == 1 and is_bag(files[0]):
-        from neural_estimator.bags.bounded import score_bag
+        from neural_estimator.evaluation.bag_scoring import score_bag
 
         run = score_bag(
             files[0],
@@ -194,7 +194,7 @@ def _print_metrics(
     else:
         starts = dict(starts or {})
         if "bag" in truth.meta and not starts:  # the evaluator records how the filters started
-            from neural_estimator.bags.report import recorded_starts
+            from neural_estimator.evaluation.bag_report import recorded_starts
 
             starts = recorded_starts(files[0])
         for item in getattr(args, "start", None) or ():
@@ -234,7 +234,7 @@ def _print_given_decision(truth, reports, warmup: int, errors) -> None:
 
 def _write_table(path: str, reports) -> None:
     from neural_estimator import metrics as M
-    from neural_estimator.atomic import write_text_atomically
+    from neural_estimator.core.atomic import write_text_atomically
 
     out = Path(path)
     if out.suffix == ".csv":
@@ -521,7 +521,7 @@ def _print_decision(scenario, results) -> None:
 
 def _print_consistency(results, dx: int) -> None:
     """The consistency table of the methods that report a covariance (docs/uncertainty.md)."""
-    from neural_estimator.consistency import COVERAGE_BAND, NEES_BAND
+    from neural_estimator.metrics.consistency import COVERAGE_BAND, NEES_BAND
     from neural_estimator.evaluation import consistency_table
 
     table = consistency_table(results, dx, fmt="text")

@@ -85,7 +85,7 @@ def add_replay(sub) -> None:
 def _cmd_replay(args) -> int:
     from neural_estimator.methods import table
     from neural_estimator.methods.registry import check_method
-    from neural_estimator.replay import replay
+    from neural_estimator.evaluation.replay import replay
 
     methods = [check_method(m) for m in args.methods.split(",") if m.strip()]
     ckpts = {m: paths[-1] for m, paths in parse_checkpoints(args.checkpoint).items()}

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.atomic import replaced_atomically
+from neural_estimator.core.atomic import replaced_atomically
 from neural_estimator.data.simulate import Trajectories
 
 _FIXED_TIME = (1980, 1, 1, 0, 0, 0)

@@ -6,7 +6,10 @@
 - :mod:`~neural_estimator.evaluation.cache`: the result cache and its keys;
 - :mod:`~neural_estimator.evaluation.output`: the table, its marks, results.json and an output folder.
 
-Their public names are importable from here.
+Their public names are importable from here. Imported on demand (not from here): a recorded run
+scored from its bag (:mod:`~neural_estimator.evaluation.bag_report`, in bounded memory through
+:mod:`~neural_estimator.evaluation.bag_scoring`) and a bag run through estimators
+(:mod:`~neural_estimator.evaluation.replay`).
 """
 
 from neural_estimator.evaluation.cache import (

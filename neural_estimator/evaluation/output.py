@@ -149,7 +149,7 @@ def write_evaluation(
     tmp.write_text(json.dumps(payload, indent=1, allow_nan=False))
     tmp.replace(out / "results.json")
     if plot:
-        from neural_estimator.plots import plot_rmse_over_time
+        from neural_estimator.metrics.plots import plot_rmse_over_time
 
         plot_rmse_over_time(
             {m: [rep.rmse_t for rep in r.reports] for m, r in done.items()},
@@ -161,11 +161,11 @@ def write_evaluation(
 
 
 def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "markdown") -> str | None:
-    """The consistency table beside :func:`results_table` (:mod:`neural_estimator.consistency`):
+    """The consistency table beside :func:`results_table` (:mod:`neural_estimator.metrics.consistency`):
     NEES median and mean per state dimension, 95 % coverage (medians over runs), the calibration
     error of the runs' median reliability curve, the 50/90/99 % coverage, the 95 % coverage over
     every trajectory (outliers included) and a verdict; None when no method reports a covariance."""
-    from neural_estimator import consistency as C
+    from neural_estimator.metrics import consistency as C
 
     rows = {}
     for m, r in results.items():

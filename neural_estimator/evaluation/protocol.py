@@ -45,7 +45,7 @@ from neural_estimator.methods.registry import (
     previous_controls,
 )
 from neural_estimator.filters.base import ClassicalFilter
-from neural_estimator.options import parse_value
+from neural_estimator.core.options import parse_value
 from neural_estimator.scenarios import Scenario
 from neural_estimator.evaluation.families import check_unsealed
 from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run

@@ -35,7 +35,7 @@ from neural_estimator.methods.interface import Estimates, Estimator, EstimatorEr
 from neural_estimator.filters import scheduler
 from neural_estimator.filters.numerics import ScenarioOps, gaussian, sqrt_factor, symmetrize
 from neural_estimator.filters.scheduler import BlockScheduler
-from neural_estimator.options import OptionError, did_you_mean, is_optional, parse_value
+from neural_estimator.core.options import OptionError, did_you_mean, is_optional, parse_value
 from neural_estimator.scenarios import Scenario
 
 FILTER_INITS = ("prior", "observation")
@@ -77,7 +77,7 @@ def build_hyperparams(cls: type, method: str, hyperparams: Any, options: dict[st
     if not isinstance(base, cls):
         raise EstimatorError(f"{method}: hyperparams must be a {cls.__name__}, got {type(base).__name__}")
     values = {}
-    for name, value in options.items():  # text parsed by the field's type (neural_estimator.options)
+    for name, value in options.items():  # text parsed by the field's type (neural_estimator.core.options)
         try:
             values[name] = parse_value(value, getattr(base, name), name, optional=is_optional(fields[name].type))
         except OptionError as exc:
@@ -110,7 +110,7 @@ def check_covariance(name: str, method: str, cov: Any, n: int, definite: bool = 
 
 def check_cov_scale(method: str, value: Any) -> float:
     """The ``cov_scale`` option as a float > 0 (text accepted), else a one-line EstimatorError."""
-    from neural_estimator.options import OptionError, parse_value
+    from neural_estimator.core.options import OptionError, parse_value
 
     try:
         s = float(parse_value(value, 1.0, "cov_scale"))
@@ -132,7 +132,7 @@ class ClassicalFilter(Estimator):
         threads: worker threads over blocks of streams (None: :func:`default_threads`). Not a
             hyperparameter: results do not depend on it (see :meth:`block_rng`).
         cov_scale: s > 0, the reported covariance is s P (the filter itself runs on P): a post-hoc
-            calibration fitted on validation data (:mod:`neural_estimator.consistency`,
+            calibration fitted on validation data (:mod:`neural_estimator.metrics.consistency`,
             ``scripts/calibrate_covariances.py``); 1, the paper's, reports P as it is.
 
     Blocks and threads. The B streams are processed in blocks of ``block_size`` consecutive

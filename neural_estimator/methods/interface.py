@@ -34,7 +34,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from neural_estimator.methods import table
-from neural_estimator.options import did_you_mean
+from neural_estimator.core.options import did_you_mean
 from neural_estimator.scenarios import Scenario
 
 

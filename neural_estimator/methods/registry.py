@@ -25,7 +25,7 @@ from neural_estimator.methods.interface import (  # noqa: F401  re-exported: the
     check_method,
     previous_controls,
 )
-from neural_estimator.options import did_you_mean
+from neural_estimator.core.options import did_you_mean
 from neural_estimator.scenarios import Scenario
 
 

@@ -20,7 +20,7 @@ import importlib
 from dataclasses import dataclass
 from typing import Any
 
-from neural_estimator.options import did_you_mean
+from neural_estimator.core.options import did_you_mean
 
 FAMILIES = ("classical", "neural", "hybrid", "baseline")  # a hybrid: the system's f and h with a learned part
 ESTIMATOR_FAMILIES = ("classical", "neural", "hybrid")  # the methods compared; baselines are reference rows

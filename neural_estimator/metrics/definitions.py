@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from neural_estimator.angles import wrap_components
+from neural_estimator.core.angles import wrap_components
 from neural_estimator.metrics.checks import MetricsError, check_curve, check_errors, check_pair
 from neural_estimator.metrics.outliers import OUTLIER_Z, outlier_mask
 
@@ -290,7 +290,7 @@ class MetricReport:
     # a result stored before this field existed.
     rmse_every_step: float | None = None
     # Reliability curve: coverage of the chi-square region at each nominal level of
-    # neural_estimator.consistency.RELIABILITY_LEVELS (None without covariance, or a
+    # neural_estimator.metrics.consistency.RELIABILITY_LEVELS (None without covariance, or a
     # result stored before this field existed).
     coverage_curve: tuple[float, ...] | None = None
     # RMSE of each state component over the kept trajectories, in the component's own units:
@@ -545,8 +545,8 @@ def covariance_metrics(eps: np.ndarray, dx: int) -> dict[str, float]:
 
 
 def _coverage_curve(eps: np.ndarray, dx: int) -> tuple[float, ...]:
-    """Coverage at every reliability level (:mod:`neural_estimator.consistency`)."""
-    from neural_estimator.consistency import coverage_curve
+    """Coverage at every reliability level (:mod:`neural_estimator.metrics.consistency`)."""
+    from neural_estimator.metrics.consistency import coverage_curve
 
     return tuple(float(c) for c in coverage_curve(eps, dx))
 

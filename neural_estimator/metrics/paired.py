@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.angles import wrap_components
+from neural_estimator.core.angles import wrap_components
 from neural_estimator.metrics.checks import MetricsError, check_pair
 
 BOOTSTRAP_REPLICATES = 1000

@@ -141,7 +141,7 @@ class BlockScorer:
         95 % bound, steps within each reliability level's bound (NaN: not covered)."""
         from scipy.special import chdtri
 
-        from neural_estimator.consistency import RELIABILITY_LEVELS, chi2_quantile
+        from neural_estimator.metrics.consistency import RELIABILITY_LEVELS, chi2_quantile
 
         if self._bounds is None:
             self._bounds = np.concatenate(

@@ -203,7 +203,7 @@ class FilterformerModel(nn.Module):
         mean, cov = self.head.moments(h)
         return mean, cov, state
 
-    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.serving.uncertainty) --
     def features(self, z: Tensor) -> Tensor:
         """(B, T, D): the encoding the geometric-attention head reads, ``forward(z) == head.mean(features(z))``."""
         return self.encode(z)

@@ -82,7 +82,7 @@ class GRUModel(nn.Module):
             for k in range(self.cfg.layers)
         ]
 
-    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.serving.uncertainty) --
     def features(self, z: Tensor) -> Tensor:
         """(B, T, H): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
         h, _ = self.rnn(self.input_proj(z))  # (B, T, H)

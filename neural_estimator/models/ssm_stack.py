@@ -98,7 +98,7 @@ class SSMEstimator(nn.Module):
         h, new = self.step_features(z_t, state)
         return F.linear(h, self.head.weight, self.head.bias), new  # (B, d_out)
 
-    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.uncertainty) --
+    # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.serving.uncertainty) --
     def features(self, z: Tensor, reference: bool = False) -> Tensor:
         """(B, T, d): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""
         h = self.input_proj(z)  # (B, T, d)

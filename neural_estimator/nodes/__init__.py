@@ -1,5 +1,5 @@
-"""The ROS 2 nodes (estimator, evaluator, player) and the process launcher.
+"""The ROS 2 nodes (simulator, estimator, evaluator, player) and the process launcher.
 
-Only modules of this package (and ``sim_nodes``) import rclpy. Importing the package itself does
-not: :mod:`neural_estimator.nodes.launch` starts the nodes as processes and runs without rclpy.
+Only modules of this package import rclpy. Importing the package itself does not:
+:mod:`neural_estimator.nodes.launch` starts the nodes as processes and runs without rclpy.
 """

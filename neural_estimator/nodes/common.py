@@ -26,9 +26,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 
 from neural_estimator.bags.writer import Qos
-from neural_estimator.interfaces import InterfaceError, check_message_type, is_message_class
+from neural_estimator.core.interfaces import InterfaceError, check_message_type, is_message_class
 from neural_estimator.nodes.realtime import RealtimeError, apply_realtime_priority, requested_priority
-from neural_estimator.options import OptionError, parse_value
+from neural_estimator.core.options import OptionError, parse_value
 
 RCLError = _rclpy.RCLError  # rclpy's error type for rcl failures (not exported elsewhere in rclpy 7.1)
 
@@ -89,7 +89,7 @@ def _type_name(kind: Any) -> str:
 
 def _coerce(name: str, value: Any, kind: Any, default: Any) -> Any:
     """A parameter's value of its declared type, by the package's one grammar
-    (:mod:`neural_estimator.options`: ``true/yes/on/1`` are true for a bool, as on the command line)."""
+    (:mod:`neural_estimator.core.options`: ``true/yes/on/1`` are true for a bool, as on the command line)."""
     if value is None:
         return default
     # a typed stand-in for the default: the parameter kinds are bool, int, float, str and tuple[str, ...]
@@ -160,7 +160,7 @@ def from_bag_qos(q: Qos, min_depth: int = 1) -> QoSProfile:
 def message_class(msgtype: str) -> type:
     """The rclpy message class of ``pkg/msg/Type``, for a name someone else chose (a bag, the graph).
 
-    The name is checked first (:func:`neural_estimator.interfaces.check_message_type`: the form
+    The name is checked first (:func:`neural_estimator.core.interfaces.check_message_type`: the form
     ``<package>/msg/<Type>`` and a package the ament index declares as a ROS interface package),
     so no other package's import-time code runs; then only ``<package>.msg`` is imported and the
     class must be a rosidl message class. Every refusal is an :class:`InterfaceError` (one line).

@@ -13,7 +13,7 @@ import sys
 
 # executable name -> module whose main() runs the node
 NODES = {
-    "simulator": "sim_nodes.simulator",
+    "simulator": "neural_estimator.nodes.simulator_node",
     "estimator": "neural_estimator.nodes.estimator_node",
     "evaluator": "neural_estimator.nodes.evaluator_node",
     "player": "neural_estimator.nodes.player_node",
@@ -27,7 +27,7 @@ _INPUTS = ("neural_estimator.nodes.diagnostics", "InputDiagnosticsParams")
 _ROBOT = (("neural_estimator.nodes.robot_estimator_node", "RobotEstimatorParams"), _OUTPUTS, _INPUTS)
 _ESTIMATOR = (("neural_estimator.nodes.estimator_params", "EstimatorParams"), _OUTPUTS, _INPUTS)
 PARAMETERS = {
-    "simulator": (("sim_nodes.simulator", "SimulatorParams"),),
+    "simulator": (("neural_estimator.nodes.simulator_node", "SimulatorParams"),),
     "estimator": _ESTIMATOR + _ROBOT[:1],  # the estimator becomes the robot estimator for a `train --data` model
     "evaluator": (("neural_estimator.nodes.evaluator_node", "EvaluatorParams"),),
     "player": (("neural_estimator.nodes.player_node", "PlayerParams"),),

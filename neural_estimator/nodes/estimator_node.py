@@ -22,7 +22,7 @@ publisher, e.g. a driver's sensor-data QoS). Estimate publishers are reliable + 
 with a history bounded in messages (``history_depth``) and in memory (``history_mb``), so a late
 recorder or ``ros2 topic echo --qos-durability transient_local`` gets the start of the stream.
 Timers run on the steady clock, so ``use_sim_time`` without ``/clock`` silences nothing.
-The per-message work is :class:`neural_estimator.online.OnlineEstimator` (the same code as offline
+The per-message work is :class:`neural_estimator.stream.online.OnlineEstimator` (the same code as offline
 replay); this node only wires it to topics. Parameters: ``params/estimator.yaml``.
 
 Staying current. Each wake-up of the executor takes every observation waiting in the subscription
@@ -39,7 +39,7 @@ the estimator meets the hole as lost observations (predict-only steps within ``m
 A message that cannot be used (wrong width or names, NaN control, empty, unparsable, larger than any valid one) is
 logged (throttled), counted in the diagnostics and dropped; the node never stops on one. No single message moves the
 stream: a jump in trajectory or step (or stamps that go back, a restarted publisher) is held until the next message
-confirms it (``confirm``) or the stream falls silent (``quarantine_seconds``); see :mod:`neural_estimator.online`.
+confirms it (``confirm``) or the stream falls silent (``quarantine_seconds``); see :mod:`neural_estimator.stream.online`.
 Diagnostics are WARN whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An
 unknown method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
@@ -57,7 +57,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.methods import table
 from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
@@ -80,7 +80,7 @@ from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_va
 from neural_estimator.nodes.heap_trace import HeapTrace
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
 from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams, online_estimator
-from neural_estimator.online import OnlineEstimator, warm_up
+from neural_estimator.stream.online import OnlineEstimator, warm_up
 from neural_estimator.serving.card import recorded_data_checkpoint
 
 EARLY_MAX_BYTES = 1 << 20  # an observation kept while waiting for the scenario (width unknown yet): 1 MiB
@@ -110,7 +110,7 @@ class EstimatorNode(ExitStatusNode):
             raise StartupError("history_depth must be >= 1 and history_mb > 0")
         load_plugins(p.plugins)
         self.online: OnlineEstimator | None = None
-        self.out_topic = p.output_topic or M.estimate_topic(self.method)
+        self.out_topic = p.output_topic or MSG.estimate_topic(self.method)
         self.pub_est = None  # created with the scenario: their depth depends on the message size
         self.pub_cov = None  # (and a covariance topic that never carries a message would keep a
         self.outputs = None  # recorder waiting for it)
@@ -144,7 +144,7 @@ class EstimatorNode(ExitStatusNode):
 
     def _subscribe_when_published(self) -> None:
         """Create the observation subscription once a JointState publisher exists, with its durability."""
-        pubs = [i for i in self.get_publishers_info_by_topic(self.obs_topic) if i.topic_type == M.JOINT_STATE]
+        pubs = [i for i in self.get_publishers_info_by_topic(self.obs_topic) if i.topic_type == MSG.JOINT_STATE]
         p = self.p
         if p.observation_qos == "reliable":
             best_effort = [i for i in pubs if i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT]
@@ -200,7 +200,7 @@ class EstimatorNode(ExitStatusNode):
         self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(self.depths["estimates"]))
         if self.online.publish_covariance:
             self.pub_cov = self.create_publisher(
-                JointState, f"{self.out_topic}/{M.COVARIANCE_SUFFIX}", stream_qos(self.depths["covariance"])
+                JointState, f"{self.out_topic}/{MSG.COVARIANCE_SUFFIX}", stream_qos(self.depths["covariance"])
             )
         try:
             self.outputs = Outputs(
@@ -255,7 +255,7 @@ class EstimatorNode(ExitStatusNode):
 
     def _on_scenario(self, raw: bytes) -> None:
         try:
-            desc = M.decode_scenario(raw)
+            desc = MSG.decode_scenario(raw)
         except MessageError as exc:
             self._warn("scenario", f"ignoring a scenario message: {exc}")
             return
@@ -521,13 +521,13 @@ class EstimatorNode(ExitStatusNode):
         """Publishers of another type on the observation topic never reach this node (DDS does not
         match them): say so instead of waiting silently."""
         for info in self.get_publishers_info_by_topic(self.obs_topic):
-            if info.topic_type != M.JOINT_STATE:
+            if info.topic_type != MSG.JOINT_STATE:
                 key = f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type})"
                 if key not in self._foreign:
                     self._foreign.add(key)
                     self.get_logger().error(
                         f"'{self.obs_topic}' has a publisher of the wrong type: {key}; "
-                        f"expected {M.JOINT_STATE}. Its messages cannot reach this node."
+                        f"expected {MSG.JOINT_STATE}. Its messages cannot reach this node."
                     )
 
     def on_shutdown(self) -> int:

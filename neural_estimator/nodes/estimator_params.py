@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 from neural_estimator.nodes.common import param
-from neural_estimator.online import (
+from neural_estimator.stream.online import (
     DEFAULT_CONFIRM,
     DEFAULT_MAX_GAP,
     DEFAULT_MAX_GAP_SECONDS,

@@ -9,7 +9,7 @@ import numpy as np
 
 OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 
-SKIP_REASONS = ("duplicate", "stale", "unconfirmed")  # messages skipped without an estimate (see online.py)
+SKIP_REASONS = ("duplicate", "stale", "unconfirmed")  # messages skipped without an estimate (see stream/online.py)
 
 
 class LatencyRing:

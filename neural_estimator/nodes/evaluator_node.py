@@ -18,7 +18,7 @@ messages on other recorded topics, such as a periodic ``/diagnostics``, are not 
 stream discovered yet, it waits that long for one), or, for a source without ``run_status`` (a
 foreign bag played, your own nodes), when no stream message arrived for ``idle_timeout`` s, the
 bag is closed, the paper's metrics are
-computed offline from it (:func:`neural_estimator.bags.report.evaluate_bag`), the table is printed
+computed offline from it (:func:`neural_estimator.evaluation.bag_report.evaluate_bag`), the table is printed
 and ``<bag>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` are written beside the bag; exit
 status 0 (1 if no metrics could be computed). After the table it prints, per stream, the messages
 received and lost and why (malformed, outside the announced run, duplicates, over ``max_message_mb``,
@@ -46,7 +46,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.writer import DEFAULT_CHUNK_SIZE, BagWriter
 from neural_estimator.metrics import EVALUATION_WARMUP
@@ -203,14 +203,14 @@ class EvaluatorNode(ExitStatusNode):
         for name, types in self.get_topic_names_and_types():
             if name in self.subs:
                 continue
-            role = M.topic_role(name, self.ns)
+            role = MSG.topic_role(name, self.ns)
             if role is None and name not in self.extra and not is_output_topic(name, self.ns):
                 continue
             pubs = self.get_publishers_info_by_topic(name)
             if not pubs:
                 continue
             if role is not None:
-                want = M.STRING if role.kind in (M.SCENARIO, M.RUN_STATUS) else M.JOINT_STATE
+                want = MSG.STRING if role.kind in (MSG.SCENARIO, MSG.RUN_STATUS) else MSG.JOINT_STATE
                 wrong = sorted({i.topic_type for i in pubs if i.topic_type != want})
                 if wrong and name not in self._refused:
                     self._refused.add(name)
@@ -245,11 +245,11 @@ class EvaluatorNode(ExitStatusNode):
             self._records[name] = self._recorder(name, role)
             self.get_logger().info(f"recording '{name}' ({msgtype})")
 
-    def _recorder(self, name: str, role: M.TopicRole | None):
-        is_status = role is not None and role.kind == M.RUN_STATUS
-        is_stream = role is not None and role.kind not in (M.RUN_STATUS, M.SCENARIO)
-        is_scenario = role is not None and role.kind == M.SCENARIO
-        is_observation = role is not None and role.kind == M.OBSERVATION
+    def _recorder(self, name: str, role: MSG.TopicRole | None):
+        is_status = role is not None and role.kind == MSG.RUN_STATUS
+        is_stream = role is not None and role.kind not in (MSG.RUN_STATUS, MSG.SCENARIO)
+        is_scenario = role is not None and role.kind == MSG.SCENARIO
+        is_observation = role is not None and role.kind == MSG.OBSERVATION
 
         def record(raw: bytes, info) -> None:
             if self.closed:
@@ -299,18 +299,18 @@ class EvaluatorNode(ExitStatusNode):
 
     def _on_status(self, raw: bytes) -> None:
         try:
-            status = M.decode_run_status(raw)
+            status = MSG.decode_run_status(raw)
         except MessageError as exc:
             self.get_logger().warning(f"unreadable run_status: {exc}")
             return
-        if status["status"] == M.STATUS_STARTED:
+        if status["status"] == MSG.STATUS_STARTED:
             self.get_logger().info(
                 f"run started: {status.get('trajectories')} trajectories x {status.get('horizon')} steps"
             )
             again = self.identity.on_started()
             if again:
                 self.get_logger().warning(again)
-        elif status["status"] == M.STATUS_COMPLETE:
+        elif status["status"] == MSG.STATUS_COMPLETE:
             messages = status.get("messages", 0)
             if isinstance(messages, bool) or not isinstance(messages, int) or not 0 <= messages < 2**53:
                 self.get_logger().warning(
@@ -323,15 +323,15 @@ class EvaluatorNode(ExitStatusNode):
 
     # ---- end of run -----------------------------------------------------------------------------------
     def _required(self) -> list[str]:
-        topic = lambda rel: M.resolve_topic(rel, self.ns)  # noqa: E731
-        req = [topic(M.OBSERVATION)]
-        if topic(M.GROUND_TRUTH) in self.subs:
-            req.append(topic(M.GROUND_TRUTH))
-        req += [topic(M.estimate_topic(m)) for m in self.required_methods]
+        topic = lambda rel: MSG.resolve_topic(rel, self.ns)  # noqa: E731
+        req = [topic(MSG.OBSERVATION)]
+        if topic(MSG.GROUND_TRUTH) in self.subs:
+            req.append(topic(MSG.GROUND_TRUTH))
+        req += [topic(MSG.estimate_topic(m)) for m in self.required_methods]
         req += [
             t
             for t in self.subs
-            if M.topic_role(t, self.ns) and M.topic_role(t, self.ns).kind in ("estimate", "covariance")
+            if MSG.topic_role(t, self.ns) and MSG.topic_role(t, self.ns).kind in ("estimate", "covariance")
         ]
         return sorted(set(req))
 
@@ -356,7 +356,7 @@ class EvaluatorNode(ExitStatusNode):
         if lagging and not stalled:
             return
         no_estimates = not any(
-            M.topic_role(t, self.ns).kind == "estimate" for t in self.subs if M.topic_role(t, self.ns)
+            MSG.topic_role(t, self.ns).kind == "estimate" for t in self.subs if MSG.topic_role(t, self.ns)
         )
         if no_estimates and now - self.complete_at <= self.p.completion_timeout:
             return  # an estimator started after the run still serves it from its history: wait for it
@@ -406,7 +406,7 @@ class EvaluatorNode(ExitStatusNode):
         total = sum(self.counts.values())
         starts = dict(item.split("=", 1) for item in self.p.starts if "=" in item)
         if starts:  # how the filters started, so that `metrics` on this bag marks them as this node does
-            from neural_estimator.bags.report import STARTS_METADATA
+            from neural_estimator.evaluation.bag_report import STARTS_METADATA
 
             self.bag.metadata[STARTS_METADATA] = starts
         try:
@@ -429,7 +429,7 @@ class EvaluatorNode(ExitStatusNode):
             request_shutdown(self, code)
 
     def _evaluate(self) -> int:
-        from neural_estimator.bags.report import evaluate_bag, write_report
+        from neural_estimator.evaluation.bag_report import evaluate_bag, write_report
         from neural_estimator.metrics import MetricsError
 
         if self.p.spec:
@@ -460,17 +460,17 @@ class EvaluatorNode(ExitStatusNode):
         """{stream key: {reason: count}} of what this node itself did not record."""
         out: dict[str, dict[str, int]] = {}
         for topic, n in self.oversize.items():
-            role = M.topic_role(topic, self.ns)
+            role = MSG.topic_role(topic, self.ns)
             if role is not None:
-                key = M.estimate_topic(role.method) if role.kind == "estimate" else role.kind
+                key = MSG.estimate_topic(role.method) if role.kind == "estimate" else role.kind
                 if role.kind == "covariance":
-                    key = M.covariance_topic(role.method)
+                    key = MSG.covariance_topic(role.method)
                 out.setdefault(key, {})["oversize (dropped by the evaluator)"] = n
         return out
 
     def _evaluate_spec(self) -> int:
         """Score the recorded estimate streams through the spec (recorded-data models: no scenario)."""
-        from neural_estimator import metrics as M
+        from neural_estimator.metrics import format_reports
         from neural_estimator.robot import SpecError
         from neural_estimator.robot.score import score_recording
 
@@ -490,7 +490,7 @@ class EvaluatorNode(ExitStatusNode):
         from neural_estimator.metrics.labelled import scored_line
 
         partial = scored_line(reports.values())  # partial ground truth: steps scored and not
-        table = M.format_reports(reports, fmt="text")
+        table = format_reports(reports, fmt="text")
         print(
             f"recorded run {self.bag.path}: {truth.n} trajectories x {truth.horizon} steps\n"
             + (partial + "\n" if partial else "")
@@ -499,7 +499,7 @@ class EvaluatorNode(ExitStatusNode):
             flush=True,
         )
         md = Path(str(self.bag.path)).with_suffix(".metrics.md")
-        md.write_text(M.format_reports(reports, fmt="markdown"))
+        md.write_text(MSG.format_reports(reports, fmt="markdown"))
         doc = {
             "bag": str(self.bag.path),
             "spec": self.p.spec,
@@ -510,7 +510,7 @@ class EvaluatorNode(ExitStatusNode):
             "methods": reports,
         }
         js = md.with_suffix(".json")  # <bag>.metrics.json, beside the table, as for a scenario's run
-        js.write_text(json.dumps(M.to_json(doc), indent=1, allow_nan=False))
+        js.write_text(json.dumps(MSG.to_json(doc), indent=1, allow_nan=False))
         self.get_logger().info(f"wrote {md}, {js}")
         return 0
 

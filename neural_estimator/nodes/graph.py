@@ -29,7 +29,7 @@ from typing import Any
 from neural_estimator.methods import table
 
 PACKAGE = "neural_estimator"
-SIMULATOR = "sim_nodes.simulator"
+SIMULATOR = "neural_estimator.nodes.simulator_node"
 ESTIMATOR = "neural_estimator.nodes.estimator_node"
 EVALUATOR = "neural_estimator.nodes.evaluator_node"
 PLAYER = "neural_estimator.nodes.player_node"

@@ -16,7 +16,7 @@ have (configure twice, activate before configure, cleanup while active), request
 ``change_state`` service by id or label, is answered ``success=False`` with one WARN line naming
 the state and the transitions it has; the node stays where it was. Same parameters as the estimator node
 (``params/estimator.yaml``), except that ``scenario`` must be given: configure needs the system.
-The per-message work is :class:`neural_estimator.online.OnlineEstimator`, as in the estimator node.
+The per-message work is :class:`neural_estimator.stream.online.OnlineEstimator`, as in the estimator node.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
 from neural_estimator.nodes.common import (
@@ -42,7 +42,7 @@ from neural_estimator.nodes.common import (
 )
 from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
 from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
-from neural_estimator.online import OnlineEstimator
+from neural_estimator.stream.online import OnlineEstimator
 
 
 class LifecycleEstimatorNode(LifecycleNode):
@@ -106,7 +106,7 @@ class LifecycleEstimatorNode(LifecycleNode):
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         p, scenario = self.p, self.online.scenario
-        out = p.output_topic or M.estimate_topic(self.method)
+        out = p.output_topic or MSG.estimate_topic(self.method)
         qos = stream_qos(p.history_depth)
         try:
             self.outputs = Outputs(
@@ -126,7 +126,7 @@ class LifecycleEstimatorNode(LifecycleNode):
         self.pub_est = self.create_publisher(JointState, out, qos)
         self.pub_cov = None
         if self.online.publish_covariance:
-            self.pub_cov = self.create_publisher(JointState, f"{out}/{M.COVARIANCE_SUFFIX}", qos)
+            self.pub_cov = self.create_publisher(JointState, f"{out}/{MSG.COVARIANCE_SUFFIX}", qos)
         sub_qos = QoSProfile(
             depth=max(1, p.queue_depth),
             reliability=ReliabilityPolicy.RELIABLE

@@ -402,7 +402,7 @@ class SetPose:
     Args:
         node: the rclpy node.
         topic: the topic ('' = no subscription).
-        get_online: returns the node's :class:`~neural_estimator.online.OnlineEstimator` (None while
+        get_online: returns the node's :class:`~neural_estimator.stream.online.OnlineEstimator` (None while
             the scenario is unknown).
         frame_id: the node's frame: a pose in any other frame is refused.
     """

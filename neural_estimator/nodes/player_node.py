@@ -26,7 +26,7 @@ import warnings
 
 from rclpy.duration import Duration
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import BagError, BagWarning
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import QosError, parse_qos_yaml
@@ -85,7 +85,7 @@ class PlayerNode(ExitStatusNode):
         for conn in self.reader.connections:
             if p.topics and conn.topic not in p.topics:
                 continue
-            if not p.topics and not p.play_estimates and f"/{M.ESTIMATES}/" in conn.topic:
+            if not p.topics and not p.play_estimates and f"/{MSG.ESTIMATES}/" in conn.topic:
                 continue
             try:
                 cls = message_class(conn.msgtype)

@@ -6,7 +6,7 @@
 The checkpoint's card (``neural-estimator train --data``) carries the spec the model was trained
 with (docs/robot.md). The node needs no scenario: it subscribes to the spec's
 observation and control topics with their own message types (found on the graph when a publisher
-appears, and checked as the evaluator checks foreign types: ``neural_estimator.interfaces``),
+appears, and checked as the evaluator checks foreign types: ``neural_estimator.core.interfaces``),
 reads the spec's fields from every message, and hands them to a
 :class:`~neural_estimator.robot.ticker.Ticker`: the dataset builder's ticks and sampling on the
 messages' own stamps (header stamps, or receipt times for a ``stamp: log`` spec), the model
@@ -37,7 +37,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.nodes.diagnostics import (
     OK,
     WARN,
@@ -126,7 +126,7 @@ class RobotEstimatorNode(ExitStatusNode):
         self._refused: set[str] = set()
         now = time.monotonic()
         self.monitors = {t: self.pd.monitor(t, now, rates.get(t)) for t in self.fields}
-        out = p.output_topic or M.estimate_topic(self.method)
+        out = p.output_topic or MSG.estimate_topic(self.method)
         self.pub_est = self.create_publisher(JointState, out, stream_qos(1000))
         try:
             self.outputs = Outputs(

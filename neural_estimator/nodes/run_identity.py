@@ -2,7 +2,7 @@
 
 A run announces itself once on ``/scenario`` with ``run.start_ns`` (the simulation time of its
 first step), ``run.horizon`` T and ``run.dt_ns``; every observation of it is stamped
-``start_ns + (n * T + k) * dt_ns`` (:func:`neural_estimator.bags.messages.step_stamp_ns`). So each
+``start_ns + (n * T + k) * dt_ns`` (:func:`neural_estimator.stream.messages.step_stamp_ns`). So each
 observation carries its run's identity in-band, recoverable exactly in integers:
 
     start(message) = stamp_ns - (n * T + k) * dt_ns
@@ -19,7 +19,7 @@ Plain Python (no rclpy): the evaluator node calls it from its recorder.
 
 from __future__ import annotations
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
 
 MAX_STARTS = 16  # foreign starts counted one by one; beyond this, together (a bounded dict)
@@ -36,13 +36,13 @@ class RunIdentity:
         self.started = 0  # run_status "started" messages
         self.checked = 0  # observations compared with the announced run
         self.foreign: dict[int | None, int] = {}  # start -> observations of that other run (None: beyond MAX_STARTS)
-        self._codec: M.VectorCodec | None = None
+        self._codec: MSG.VectorCodec | None = None
         self._announced_twice = False
 
     def on_scenario(self, raw: bytes) -> str | None:
         """A ``/scenario`` message: the first announced start is the run; another one is reported."""
         try:
-            desc = M.decode_scenario(raw)
+            desc = MSG.decode_scenario(raw)
         except MessageError:
             return None  # the evaluator's loss lines and the scoring report unreadable announcements
         run = desc.get("run") if isinstance(desc.get("run"), dict) else {}
@@ -56,7 +56,7 @@ class RunIdentity:
         if self.start_ns is None:
             self.start_ns, self.horizon, self.dt_ns = start, horizon, dt
             try:
-                self._codec = M.VectorCodec(str(desc["scenario"]), M.observation_labels(desc))
+                self._codec = MSG.VectorCodec(str(desc["scenario"]), MSG.observation_labels(desc))
             except (KeyError, TypeError, ValueError):
                 self._codec = None
             return None

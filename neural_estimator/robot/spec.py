@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.safe_yaml import YamlError, load_yaml
+from neural_estimator.core.safe_yaml import YamlError, load_yaml
 
 VECTORS = ("observation", "control", "state")
 ESTIMATE_PREFIX = "estimate/"

@@ -25,7 +25,7 @@ from neural_estimator.scenarios.base import (
     parse_assignments,
     psd_sqrt,
 )
-from neural_estimator.options import did_you_mean
+from neural_estimator.core.options import did_you_mean
 
 # name -> "module:Class" for the built-ins (imported on first use) or a Scenario subclass.
 _REGISTRY: dict[str, Any] = {

@@ -44,8 +44,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from neural_estimator.angles import weighted_mean, wrap_components
-from neural_estimator.options import OptionError, did_you_mean, parse_value
+from neural_estimator.core.angles import weighted_mean, wrap_components
+from neural_estimator.core.options import OptionError, did_you_mean, parse_value
 
 # The largest state, observation or control dimension a scenario may have. A filter holds dx x dx
 # matrices (8 MiB each at 1024) and a scenario description can arrive from the ROS graph, so the
@@ -462,7 +462,7 @@ def _jsonable(v: Any) -> Any:
 
 def _coerce(value: Any, default: Any, name: str, scenario: str) -> Any:
     """Convert ``value`` (often a command-line string) to the type of the field's default
-    (:func:`neural_estimator.options.parse_value`, the package's one grammar)."""
+    (:func:`neural_estimator.core.options.parse_value`, the package's one grammar)."""
     try:
         return parse_value(value, default, name)
     except OptionError as exc:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neural_estimator.angles import wrap_angle
+from neural_estimator.core.angles import wrap_angle
 from neural_estimator.scenarios.base import Scenario, ScenarioError
 
 

@@ -28,7 +28,7 @@ CARD_FORMAT = "neural_estimator.checkpoint"
 CARD_VERSION = 1
 WEIGHTS_FILE = "model.safetensors"
 CARD_FILE = "card.json"
-ZOO_DIR = Path(__file__).resolve().parents[1] / "zoo"
+ZOO_DIR = Path(__file__).resolve().parent / "zoo"
 
 
 # ---- JSON that never holds inf/NaN tokens ---------------------------------------------------------

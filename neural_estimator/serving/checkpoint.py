@@ -13,7 +13,7 @@ A checkpoint is a directory holding exactly
 
 The model is rebuilt from the card (``ModelCls(ConfigCls(**config))``) and the weights are read with
 safetensors only: no ``torch.load``, no pickle. Trained defaults ship at
-``neural_estimator/zoo/<scenario>-<method>/``.
+``neural_estimator/serving/zoo/<scenario>-<method>/``.
 
 The card's reading and writing is :mod:`neural_estimator.serving.card`; serving a checkpoint for a
 scenario (the shipped zoo, the scenario check, the estimator) is :mod:`neural_estimator.serving.load`.
@@ -119,7 +119,7 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
     save_model(savable(model), str(tmp), metadata={"format": CARD_FORMAT, "method": name}, force_contiguous=True)
     canonical_safetensors(tmp)  # the same weights, the same bytes (and digests, cache keys)
     os.replace(tmp, weights)
-    from neural_estimator.uncertainty.heads import HEAD_FILE
+    from neural_estimator.serving.uncertainty.heads import HEAD_FILE
 
     (directory / HEAD_FILE).unlink(missing_ok=True)  # a covariance head belongs to the weights it was fitted on
     from neural_estimator.serving.onnx_runtime import ONNX_FILE

@@ -14,7 +14,7 @@ from typing import Any
 from neural_estimator.methods import table
 from neural_estimator.methods.interface import EstimatorError, check_method
 from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolve_checkpoint  # noqa: F401 (the zoo)
-from neural_estimator.options import OptionError, parse_bool, parse_value
+from neural_estimator.core.options import OptionError, parse_bool, parse_value
 from neural_estimator.serving.onnx_runtime import WindowMismatch, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
 
@@ -116,10 +116,10 @@ def load_neural_estimator(
         scenario: the system to serve; the checkpoint must have been trained on it.
         checkpoint: a checkpoint directory or its ``card.json``, or a
             :class:`~neural_estimator.serving.card.Checkpoint` already resolved; None -> the shipped
-            default at ``neural_estimator/zoo/<scenario>-<method>/``.
+            default at ``neural_estimator/serving/zoo/<scenario>-<method>/``.
         device: cpu, cuda, cuda:N or auto.
         covariance: report the covariance: the fitted covariance head's where the card has one
-            (``covariance_head``, :mod:`neural_estimator.uncertainty.heads`), else Filterformer's
+            (``covariance_head``, :mod:`neural_estimator.serving.uncertainty.heads`), else Filterformer's
             own; False reports none (and saves memory in ``run``).
         compile_step: serve ``step`` through ``torch.compile`` (see NeuralEstimator).
         context, context_copies: bound every estimate's context (GRU, LSTM, Mamba, Mamba-2; see
@@ -179,7 +179,7 @@ def load_neural_estimator(
 
     model, normalizer, card = load_checkpoint(ckpt, device)
     if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
-        from neural_estimator.uncertainty.heads import attach_head
+        from neural_estimator.serving.uncertainty.heads import attach_head
 
         model = attach_head(model, directory, card["covariance_head"])
     if context is None:  # as the checkpoint was chosen: bounded if its validation was

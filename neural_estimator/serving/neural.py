@@ -11,7 +11,7 @@ One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, M
 over the batch to bound memory); a test holds it equal to a loop of :meth:`NeuralEstimator.step`.
 A non-finite observation row is replaced by the training mean (0 after normalisation) and flagged in
 ``skipped``. Filterformer also returns a covariance from its geometric-attention head, and any model
-with a fitted covariance head (:mod:`neural_estimator.uncertainty.heads`) returns that head's; both
+with a fitted covariance head (:mod:`neural_estimator.serving.uncertainty.heads`) returns that head's; both
 are mapped back to state units as diag(sigma_x) C_n diag(sigma_x).
 """
 
@@ -27,7 +27,7 @@ from neural_estimator.methods import table
 from neural_estimator.methods.interface import Estimates, Estimator, EstimatorError, previous_controls
 from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
 from neural_estimator.serving.normalization import Normalizer
-from neural_estimator.options import OptionError, parse_bool, parse_value
+from neural_estimator.core.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
 
 BACKENDS = ("torch", "onnxruntime")  # how step() runs the network (run() always uses torch's parallel form)

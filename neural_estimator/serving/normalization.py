@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.angles import wrap_components
+from neural_estimator.core.angles import wrap_components
 from neural_estimator.methods.interface import previous_controls
 
 STD_FLOOR = 1e-6  # relative to max(1, |mean|)

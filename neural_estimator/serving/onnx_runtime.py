@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from neural_estimator.angles import wrap_components
+from neural_estimator.core.angles import wrap_components
 from neural_estimator.methods import table
 from neural_estimator.methods.interface import Estimator, EstimatorError
 from neural_estimator.serving.onnx_kernels import denormalize, denormalize_covariance, normalize_into

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from neural_estimator import consistency as CONSISTENCY
+from neural_estimator.metrics import consistency as CONSISTENCY
 from neural_estimator.paper import departures as D
 from neural_estimator import metrics as M
 from neural_estimator.methods import table
@@ -242,7 +242,7 @@ def _accuracy(settings: Settings, r: _Results) -> list[str]:
 
 def _rmse_and_noise_figures(settings: Settings, r: _Results, figs: Path) -> list[str]:
     """The RMSE-over-time figures and the observation-noise figures."""
-    from neural_estimator.plots import plot_rmse_over_time
+    from neural_estimator.metrics.plots import plot_rmse_over_time
     from neural_estimator.scenarios import make_scenario
 
     scen, meth, sc = settings.scenarios, settings.methods, settings.scale

@@ -20,7 +20,7 @@ from neural_estimator import metrics as M
 from neural_estimator.methods import table
 from neural_estimator.paper.expected_failures import MARK, expected_to_fail, notes
 from neural_estimator.paper.results import paper_value
-from neural_estimator.plots import new_figure, save_figure
+from neural_estimator.metrics.plots import new_figure, save_figure
 
 PAPER_NAMES = table.paper_names()  # {method: the paper's spelling}, the paper's ten in its row order
 EXTENDED = M.TABLE_COLUMNS[:8]  # the paper's eight extended-table columns (RMSE ... Drift)
@@ -297,9 +297,9 @@ def covariance_table(summ, scenarios, methods) -> list[str]:
 
 def consistency_table(summ, scenarios, methods, dims: Mapping[str, int]) -> list[str]:
     """Beyond the paper: mean NEES per state dimension and the verdict of
-    :func:`neural_estimator.consistency.verdict` (scenario -> dx in ``dims``), where a method
+    :func:`neural_estimator.metrics.consistency.verdict` (scenario -> dx in ``dims``), where a method
     reports a covariance."""
-    from neural_estimator import consistency as C
+    from neural_estimator.metrics import consistency as C
 
     cols = ["Method"] + [f"{s} {k}" for s in scenarios for k in ("NEES mean/dx", "verdict")]
     lines = _header(cols)

@@ -2,7 +2,7 @@
 
 The evaluator node calls this once the run is over; ``neural-estimator metrics run.mcap`` scores the
 same way. Both score in memory that does not grow with the recording's length
-(:func:`~neural_estimator.bags.bounded.score_bag`).
+(:func:`~neural_estimator.evaluation.bag_scoring.score_bag`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from neural_estimator.paper import departures as D
-from neural_estimator import metrics as metrics_mod
+from neural_estimator import metrics as M
 from neural_estimator.bags.dataset import left_out_note
 from neural_estimator.paper.expected_failures import mark_rows, notes
 
@@ -27,7 +27,7 @@ class BagReport:
     n_trajectories: int
     horizon: int
     dt: float
-    reports: dict[str, metrics_mod.MetricReport]
+    reports: dict[str, M.MetricReport]
     bag: dict[str, Any]  # received / missing / duplicates / rejected / left_out / complete
     warmup: int = 0  # leading steps of every trajectory not scored
     note: str = ""  # why the warm-up differs from the one asked for (a run too short for it)
@@ -41,10 +41,10 @@ class BagReport:
         rows and cells that depart from the paper's protocol carry their marks (:meth:`marks`).
         """
         if not marked or fmt == "csv":
-            return metrics_mod.format_reports(self.reports, fmt=fmt)
+            return M.format_reports(self.reports, fmt=fmt)
         rows, cells, _ = self.marks()
         named = D.marked_names(self.reports, rows)
-        return metrics_mod.format_reports(
+        return M.format_reports(
             {named[m]: r for m, r in self.reports.items()}, fmt=fmt, marks={named[m]: c for m, c in cells.items()}
         )
 
@@ -58,7 +58,7 @@ class BagReport:
         return rows, cells, used
 
     def to_json(self) -> dict[str, Any]:
-        return metrics_mod.to_json(
+        return M.to_json(
             {
                 "bag": str(self.path),
                 "scenario": self.scenario,
@@ -81,9 +81,9 @@ class BagReport:
         return head + ":\n" + "".join(f"  {line}\n" for line in loss_lines(self.bag, dropped))
 
     def consistency(self, fmt: str = "text") -> str:
-        """The consistency table of the streams that carried a covariance (:mod:`neural_estimator.consistency`),
+        """The consistency table of the streams that carried a covariance (:mod:`neural_estimator.metrics.consistency`),
         or "" when none did."""
-        from neural_estimator import consistency as C
+        from neural_estimator.metrics import consistency as C
 
         rows = {
             m: C.consistency_row(
@@ -143,7 +143,7 @@ def evaluate_bag(
     *,
     namespace: str = "/",
     description: dict[str, Any] | None = None,
-    warmup: int = metrics_mod.EVALUATION_WARMUP,
+    warmup: int = M.EVALUATION_WARMUP,
     short_runs: str = "error",
     starts: dict[str, str] | None = None,
 ) -> BagReport:
@@ -161,7 +161,7 @@ def evaluate_bag(
     """
     if short_runs not in ("error", "score_all"):
         raise ValueError(f"short_runs must be 'error' or 'score_all', got {short_runs!r}")
-    from neural_estimator.bags.bounded import score_bag
+    from neural_estimator.evaluation.bag_scoring import score_bag
     from neural_estimator.evaluation.decision import estimates_decision
 
     run = score_bag(path, namespace=namespace, description=description, warmup=warmup, short_runs=short_runs)
@@ -198,7 +198,7 @@ def recorded_starts(path: str | Path) -> dict[str, str]:
 
 def write_report(report: BagReport, prefix: str | Path | None = None) -> dict[str, Path]:
     """Write ``<prefix>.metrics.md``, ``.metrics.json`` and ``.rmse.png`` (default: beside the bag)."""
-    from neural_estimator.plots import plot_rmse_over_time
+    from neural_estimator.metrics.plots import plot_rmse_over_time
 
     base = Path(prefix) if prefix is not None else report.path.with_suffix("")
     base.parent.mkdir(parents=True, exist_ok=True)

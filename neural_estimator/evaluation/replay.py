@@ -1,6 +1,6 @@
 """Bag replay: a bag's observations through estimators at full speed, without DDS, into a new bag.
 
-Each observation goes through :class:`~neural_estimator.online.OnlineEstimator`, the estimator
+Each observation goes through :class:`~neural_estimator.stream.online.OnlineEstimator`, the estimator
 node's own per-message code, so a replay gives the estimates a live node would have published.
 """
 
@@ -14,15 +14,15 @@ from pathlib import Path
 from typing import Any
 
 
-from neural_estimator.atomic import replaced_atomically, temporary_name
-from neural_estimator.bags import messages as M
+from neural_estimator.core.atomic import replaced_atomically, temporary_name
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
 from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.methods.registry import make_estimator, per_message_options
 
-from neural_estimator.online import (
+from neural_estimator.stream.online import (
     DEFAULT_MAX_GAP,
     DEFAULT_MAX_GAP_SECONDS,
     OnlineEstimator,
@@ -101,12 +101,12 @@ def replay(
         raise BagError(f"order must be 'recorded' or 'identity', got {order!r}")
     if bag_in.resolve() == bag_out.resolve():
         raise BagError(f"{bag_out}: replay cannot overwrite its input bag")
-    obs_topic = M.resolve_topic(M.OBSERVATION, namespace)
-    scen_topic = M.resolve_topic(M.SCENARIO, namespace)
-    replaced = {M.resolve_topic(M.estimate_topic(m), namespace) for m in methods}
-    replaced |= {M.resolve_topic(M.covariance_topic(m), namespace) for m in methods}
+    obs_topic = MSG.resolve_topic(MSG.OBSERVATION, namespace)
+    scen_topic = MSG.resolve_topic(MSG.SCENARIO, namespace)
+    replaced = {MSG.resolve_topic(MSG.estimate_topic(m), namespace) for m in methods}
+    replaced |= {MSG.resolve_topic(MSG.covariance_topic(m), namespace) for m in methods}
     with open_bag(bag_in) as bag:
-        bag.connection(obs_topic, M.JOINT_STATE)
+        bag.connection(obs_topic, MSG.JOINT_STATE)
         desc = _description(bag, bag_in, scen_topic, description, force)
         kept_topics = [c for c in bag.connections if c.topic not in replaced]
         passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
@@ -122,7 +122,7 @@ def replay(
         key: tuple[int, int, int] = (0, 0, i)
         if order == "identity":
             try:
-                vec = M.decode_vector(raw)
+                vec = MSG.decode_vector(raw)
                 key = (vec.trajectory, vec.step, i)
             except MessageError:
                 key = (-1, -1, i)  # unparsable ones keep bag order
@@ -133,7 +133,7 @@ def replay(
     added_scenario = not any(c.topic == scen_topic for c in kept_topics)
     if added_scenario:  # the output names its scenario even when the input did not
         t0 = min((t for _, t, _ in passthrough), default=0)
-        out_msgs.insert(0, (scen_topic, t0, M.encode_scenario(desc)))
+        out_msgs.insert(0, (scen_topic, t0, MSG.encode_scenario(desc)))
     counts, seconds, rejected, skipped = {}, {}, {}, {}
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
@@ -149,8 +149,8 @@ def replay(
             max_gap_seconds=max_gap_seconds,
             horizon=(desc.get("run") or {}).get("horizon"),
         )
-        est_topic = M.resolve_topic(M.estimate_topic(method), namespace)
-        cov_topic = M.resolve_topic(M.covariance_topic(method), namespace)
+        est_topic = MSG.resolve_topic(MSG.estimate_topic(method), namespace)
+        cov_topic = MSG.resolve_topic(MSG.covariance_topic(method), namespace)
         counts[method], rejected[method], skipped[method], spent = 0, 0, 0, 0.0
         for _, t, raw in observations:
             t0 = time.perf_counter()
@@ -196,7 +196,7 @@ def _write_output(path: Path, types: dict, qos: dict, out_msgs: list, scen_topic
             if not out.has_topic(topic):
                 out.add_topic(
                     topic,
-                    M.STRING if topic == scen_topic else M.JOINT_STATE,
+                    MSG.STRING if topic == scen_topic else MSG.JOINT_STATE,
                     qos=[LATCHED_QOS if topic == scen_topic else STREAM_QOS],
                 )
             out.write(topic, t, raw)
@@ -233,7 +233,7 @@ def _record_starts(out: BagWriter, methods, options) -> None:
     output bag then marks them as the run did."""
     starts = {m: str(o["init"]) for m, o in (options or {}).items() if m in methods and o.get("init")}
     if starts:
-        from neural_estimator.bags.report import STARTS_METADATA
+        from neural_estimator.evaluation.bag_report import STARTS_METADATA
 
         out.metadata[STARTS_METADATA] = starts
 
@@ -243,9 +243,9 @@ def _description(bag, bag_in: Path, scen_topic: str, description: Mapping[str, A
     announcement unless ``force``), else the bag's first ``scenario`` message (None if it has none)."""
     recorded = None
     if scen_topic in bag.topics:
-        bag.connection(scen_topic, M.STRING)
+        bag.connection(scen_topic, MSG.STRING)
         for _, _, raw in bag.messages([scen_topic]):
-            recorded = M.decode_scenario(raw)
+            recorded = MSG.decode_scenario(raw)
             break  # the first announcement defines the run
     if description is None:
         if recorded is None and scen_topic not in bag.topics:

@@ -16,9 +16,9 @@ Steps (:func:`fit_covariance_head`):
    model's own, bit for bit);
 2. errors e_t = wrap(x_hat_t - x_t) / sigma_x in normalised units;
 3. the head starts from the constant covariance diag(std(e)^2) and is trained by the Gaussian NLL
-   (:meth:`~neural_estimator.uncertainty.heads.CholeskyHead.nll`) with Adam, minibatches of (n, t);
+   (:meth:`~neural_estimator.serving.uncertainty.heads.CholeskyHead.nll`) with Adam, minibatches of (n, t);
 4. on the calibration set (trajectories the outlier rule of the metrics keeps), the scale s of
-   :func:`~neural_estimator.consistency.fit_scale` (target ``band``: the smallest calibration error
+   :func:`~neural_estimator.metrics.consistency.fit_scale` (target ``band``: the smallest calibration error
    with the 95 % coverage in [0.92, 0.97]; ``coverage``: exactly 0.95) is stored in the head, and
    the set's figures before and after it are recorded (``calibrate_head``; the script's
    ``--recalibrate`` refits the scale alone).
@@ -37,8 +37,8 @@ from neural_estimator import metrics as M
 from neural_estimator.data import protocol
 from neural_estimator.methods.interface import previous_controls
 from neural_estimator.serving.context import bounded_forward
-from neural_estimator import consistency as C
-from neural_estimator.uncertainty.heads import CholeskyHead, GaussianModel
+from neural_estimator.metrics import consistency as C
+from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel
 
 HEAD_INDEX = 101
 CALIBRATION_INDEX = 102
@@ -233,7 +233,7 @@ SHRINK_GRID = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
 def choose_shrink(est, head: CholeskyHead, n: int = 1000, log=None) -> dict[str, Any]:
     """The smallest correlation shrinkage rho of :data:`SHRINK_GRID` whose mean NEES / dx on a larger
     validation set (role "val", index :data:`SHRINK_INDEX`, ``n`` trajectories) is within
-    :data:`~neural_estimator.consistency.NEES_BAND` (the last one if none is); returns the card's
+    :data:`~neural_estimator.metrics.consistency.NEES_BAND` (the last one if none is); returns the card's
     ``shrink`` record with every candidate's figures. ``head.shrink`` is left at the choice."""
     h, e, kept = _set(est, "shrink", SHRINK_INDEX, n, log, time.time())
     dx, tried = est.scenario.dx, []

@@ -1,7 +1,7 @@
 """The smallest ``ros2 run``: lets the documented commands work the same in a pip virtual environment.
 
 pip installs of ROS 2 (the ros-jazzy-* wheels) have no ``ros2`` command line. This module is
-reached as ``neural-estimator ros2 ...`` (or ``python -m neural_estimator.ros2_shim``; pip puts no
+reached as ``neural-estimator ros2 ...`` (or ``python -m neural_estimator.cli.ros2_shim``; pip puts no
 generic ``ros2`` into ``bin/``) and understands
 
     ros2 run <package> <executable> [args ...]      (e.g. --ros-args -p method:=mamba)
@@ -40,7 +40,7 @@ def _real_ros2() -> str | None:
                 head = cand.read_bytes()[:4096]
             except OSError:
                 continue
-            if b"neural_estimator.ros2_shim" not in head:
+            if b"ros2_shim" not in head:  # this module, now or in its top-level home of older installs
                 return str(cand)
     return None
 

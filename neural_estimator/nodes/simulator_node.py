@@ -1,9 +1,9 @@
 """Simulator node: publishes a scenario's observations and ground truth at a fixed rate.
 
     ros2 run neural_estimator simulator --ros-args -p scenario:=lorenz96 -p trajectories:=2
-    python -m sim_nodes.simulator --ros-args -p scenario:=lorenz96       # without ros2
+    python -m neural_estimator.nodes.simulator_node --ros-args -p scenario:=lorenz96       # without ros2
 
-Publishes (relative names, layout of :mod:`neural_estimator.bags.messages`):
+Publishes (relative names, layout of :mod:`neural_estimator.stream.messages`):
 
 - ``scenario`` (std_msgs/String, JSON, reliable + transient_local depth 1) once, first;
 - ``run_status`` (std_msgs/String, JSON, reliable + transient_local depth 1): "started", then
@@ -49,7 +49,7 @@ from std_msgs.msg import String
 from neural_estimator.nodes.odometry import has_pose, make_odometry
 from neural_estimator.nodes.outputs import TRUTH_ODOMETRY
 
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,
@@ -116,10 +116,10 @@ class SimulatorNode(ExitStatusNode):
         self.horizon = p.horizon or self.scenario.horizon
         self.rate = p.rate_hz or 1.0 / self.scenario.dt
         self.data = simulate(self.scenario, p.trajectories, self.horizon, p.seed)
-        self.pub_scenario = self.create_publisher(String, M.SCENARIO, latched_qos())
-        self.pub_status = self.create_publisher(String, M.RUN_STATUS, latched_qos())
-        self.pub_obs = self.create_publisher(JointState, M.OBSERVATION, stream_qos(p.history_depth))
-        self.pub_truth = self.create_publisher(JointState, M.GROUND_TRUTH, stream_qos(p.history_depth))
+        self.pub_scenario = self.create_publisher(String, MSG.SCENARIO, latched_qos())
+        self.pub_status = self.create_publisher(String, MSG.RUN_STATUS, latched_qos())
+        self.pub_obs = self.create_publisher(JointState, MSG.OBSERVATION, stream_qos(p.history_depth))
+        self.pub_truth = self.create_publisher(JointState, MSG.GROUND_TRUTH, stream_qos(p.history_depth))
         self.pub_clock = self.create_publisher(ClockMsg, "/clock", 10) if p.publish_clock else None
         self.pub_odom = None
         if p.publish_ground_truth and p.truth_odometry and has_pose(self.scenario.pose_states):
@@ -165,11 +165,11 @@ class SimulatorNode(ExitStatusNode):
     def _publish_run(self) -> None:
         p, s, d = self.p, self.scenario, self.data
         N, T = d.n, d.horizon
-        period = M.dt_ns(s.dt)
+        period = MSG.dt_ns(s.dt)
         start_ns = time.time_ns()
         info = {"trajectories": N, "horizon": T, "messages": N * T}
         self.pub_scenario.publish(
-            M.encode_scenario(
+            MSG.encode_scenario(
                 s.describe(),
                 seed=p.seed,
                 trajectories=N,
@@ -181,9 +181,9 @@ class SimulatorNode(ExitStatusNode):
                 node=self.get_fully_qualified_name(),
             )
         )
-        self.pub_status.publish(M.encode_run_status(M.STATUS_STARTED, **info))
-        obs_codec = M.VectorCodec(s.name, M.observation_labels(s))
-        truth_codec = M.VectorCodec(s.name, M.state_labels(s))
+        self.pub_status.publish(MSG.encode_run_status(MSG.STATUS_STARTED, **info))
+        obs_codec = MSG.VectorCodec(s.name, MSG.observation_labels(s))
+        truth_codec = MSG.VectorCodec(s.name, MSG.state_labels(s))
         zeros = np.zeros(s.du)
         t0 = time.perf_counter()
         late = 0
@@ -197,7 +197,7 @@ class SimulatorNode(ExitStatusNode):
                         return
                 elif wait < -0.01:
                     late += 1
-                stamp = M.step_stamp_ns(start_ns, g, period)
+                stamp = MSG.step_stamp_ns(start_ns, g, period)
                 if self.pub_clock is not None:
                     clock = ClockMsg()
                     clock.clock.sec, clock.clock.nanosec = divmod(stamp, 1_000_000_000)
@@ -211,7 +211,7 @@ class SimulatorNode(ExitStatusNode):
             if self._stop.is_set():
                 return
         elapsed = time.perf_counter() - t0
-        self.pub_status.publish(M.encode_run_status(M.STATUS_COMPLETE, elapsed_s=elapsed, **info))
+        self.pub_status.publish(MSG.encode_run_status(MSG.STATUS_COMPLETE, elapsed_s=elapsed, **info))
         self.get_logger().info(
             f"run complete: {N * T} observations in {elapsed:.2f} s ({N * T / max(elapsed, 1e-9):.0f} Hz achieved, "
             f"{late} steps more than 10 ms late)"

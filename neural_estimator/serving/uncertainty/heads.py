@@ -22,9 +22,9 @@ is trained on the frozen trunk by the Gaussian negative log-likelihood of the tr
     NLL = 1/2 || L_t^{-1} e_t ||^2 + sum_i log L_ii + (dx / 2) log 2 pi,  e_t = x_hat_t - x_t (normalised,
           angle components wrapped)
 
-(:mod:`neural_estimator.uncertainty.fit`), so the mean, its weights and the RMSE do not change at all
+(:mod:`neural_estimator.serving.uncertainty.fit`), so the mean, its weights and the RMSE do not change at all
 and the trunk's weight file (and its sha256 in the card) stays as it was. ``s`` is fitted afterwards
-on other validation trajectories (:mod:`neural_estimator.consistency`).
+on other validation trajectories (:mod:`neural_estimator.metrics.consistency`).
 
 :class:`GaussianModel` wraps a trunk and its head behind the interface the estimator already uses for
 Filterformer (``forward_with_cov``, ``step_with_cov``); everything else passes through to the trunk.

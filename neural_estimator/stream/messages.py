@@ -60,7 +60,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from neural_estimator.bags.errors import MessageError
+from neural_estimator.stream.errors import MessageError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 

@@ -79,7 +79,7 @@ def plot_reliability(
 
     Args:
         curves: {method: coverage at each of ``levels`` (the median over runs)}.
-        levels: the nominal levels q (``neural_estimator.consistency.RELIABILITY_LEVELS``).
+        levels: the nominal levels q (``neural_estimator.metrics.consistency.RELIABILITY_LEVELS``).
         path: output PNG.
         title: figure title (e.g. the scenario).
     """

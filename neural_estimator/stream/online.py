@@ -1,9 +1,9 @@
 """Estimation per observation message: the one code path of the live estimator node and of replay.
 
 :class:`OnlineEstimator` turns one observation message (CDR bytes, layout of
-:mod:`neural_estimator.bags.messages`) into the estimate message (and covariance message) of that
+:mod:`neural_estimator.stream.messages`) into the estimate message (and covariance message) of that
 step. The estimator node calls it from its subscription callback; bag replay
-(:func:`neural_estimator.replay.replay`) calls it for every observation of a bag at full speed,
+(:func:`neural_estimator.evaluation.replay.replay`) calls it for every observation of a bag at full speed,
 without DDS. Same bytes in, same calls, same estimates out.
 
 Stream rules (one estimator, B = 1), applied in arrival order (replay uses the bag's order, the
@@ -49,8 +49,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
-from neural_estimator.bags import messages as M
-from neural_estimator.bags.errors import MessageError
+from neural_estimator.stream import messages as MSG
+from neural_estimator.stream.errors import MessageError
 from neural_estimator.methods import table
 from neural_estimator.methods.registry import Estimator, EstimatorError
 
@@ -160,11 +160,11 @@ class OnlineEstimator:
         self.confirm = int(confirm)
         self.quarantine_seconds = float(quarantine_seconds)
         self.horizon = int(horizon) if horizon else None
-        self._obs_labels = M.observation_labels(self.scenario)
-        self._obs_codec = M.VectorCodec(self.scenario.name, self._obs_labels)
+        self._obs_labels = MSG.observation_labels(self.scenario)
+        self._obs_codec = MSG.VectorCodec(self.scenario.name, self._obs_labels)
         frame = method if frame_id is None else frame_id
-        self._est_codec = M.VectorCodec(frame, M.state_labels(self.scenario))
-        self._cov_codec = M.VectorCodec(frame, M.covariance_labels(self.scenario.dx))
+        self._est_codec = MSG.VectorCodec(frame, MSG.state_labels(self.scenario))
+        self._cov_codec = MSG.VectorCodec(frame, MSG.covariance_labels(self.scenario.dx))
         self._dy = self.scenario.dy
         self.trajectory: int | None = None
         self.step = -1
@@ -308,7 +308,7 @@ class OnlineEstimator:
         fast = self._obs_codec.decode_values(raw)  # this stream's exact layout: no Vector, no name check
         if fast is None:  # anything else: the full decoding, its checks and their one-line errors
             vec = self._obs_codec.decode(raw)
-            fast = vec.stamp_ns, vec.trajectory, vec.step, M.check_labels(vec, self._obs_labels, "observation")
+            fast = vec.stamp_ns, vec.trajectory, vec.step, MSG.check_labels(vec, self._obs_labels, "observation")
         stamp_ns, trajectory, step, values = fast
         y_finite, u_finite = finite_parts(values, self._dy)
         if not u_finite:

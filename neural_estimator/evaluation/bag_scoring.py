@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.bags import dataset as DS
-from neural_estimator.bags import messages as M
+from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import BagError
 from neural_estimator.bags.spilled_cells import SpilledCells
 from neural_estimator.metrics.paired import TrajectoryErrors
@@ -65,7 +65,7 @@ def score_bag(
     check_horizon: Callable[[int], None] | None = None,
 ) -> ScoredRun:
     """Score every estimate stream of a bag in bounded memory (module docstring). ``warmup`` and
-    ``short_runs`` as :func:`~neural_estimator.bags.report.evaluate_bag`; ``check_horizon(T)``,
+    ``short_runs`` as :func:`~neural_estimator.evaluation.bag_report.evaluate_bag`; ``check_horizon(T)``,
     called once the run's horizon is known and before anything is scored, may raise (the
     ``metrics`` verb's own message for a warm-up too long).
 
@@ -152,7 +152,7 @@ class _Completeness:
 
     def __init__(self, layout: _Layout, cells: dict[str, SpilledCells], status, rejected) -> None:
         n, t = len(layout.ids), layout.horizon
-        streams = sorted(set(cells) | {M.OBSERVATION, M.GROUND_TRUTH})
+        streams = sorted(set(cells) | {MSG.OBSERVATION, MSG.GROUND_TRUTH})
         self.complete = {k: np.zeros(n, dtype=bool) for k in streams}
         distinct = dict.fromkeys(streams, 0)
         duplicates = dict.fromkeys(cells, 0)
@@ -172,11 +172,11 @@ class _Completeness:
         self.missing = {k: n * t - distinct[k] for k in streams}
         self.duplicates = {k: v for k, v in duplicates.items() if v}
         self.rejected = rejected
-        self.run_complete = any(s.get("status") == M.STATUS_COMPLETE for s in status)
+        self.run_complete = any(s.get("status") == MSG.STATUS_COMPLETE for s in status)
         self.methods = sorted(
             k.split("/")[1]
             for k in cells
-            if k.startswith(M.ESTIMATES + "/") and not k.endswith("/" + M.COVARIANCE_SUFFIX)
+            if k.startswith(MSG.ESTIMATES + "/") and not k.endswith("/" + MSG.COVARIANCE_SUFFIX)
         )
 
 
@@ -184,24 +184,25 @@ def _score(
     path, namespace: str, layout: _Layout, run: _Completeness, cells, warmup: int, short_runs: str, tmp: str
 ) -> ScoredRun:
     """Choose the scored trajectories and methods as load_bag_dataset does, then score them."""
-    est_topic = M.resolve_topic(M.estimate_topic("<method>"), namespace)
+    est_topic = MSG.resolve_topic(MSG.estimate_topic("<method>"), namespace)
     if not run.methods:
         raise BagError(
             f"{path}: no estimate stream ({est_topic}) to score; add one with "
             "`neural-estimator replay BAG --methods ... --out OUT.mcap`"
         )
-    if not run.received.get(M.GROUND_TRUTH):
+    if not run.received.get(MSG.GROUND_TRUTH):
         raise BagError(
-            f"{path}: no {M.resolve_topic(M.GROUND_TRUTH, namespace)} messages: nothing to score the estimates against"
+            f"{path}: no {MSG.resolve_topic(MSG.GROUND_TRUTH, namespace)} messages: "
+            "nothing to score the estimates against"
         )
-    base = run.complete[M.GROUND_TRUTH].copy()
-    if run.received.get(M.OBSERVATION):
-        base &= run.complete[M.OBSERVATION]
+    base = run.complete[MSG.GROUND_TRUTH].copy()
+    if run.received.get(MSG.OBSERVATION):
+        base &= run.complete[MSG.OBSERVATION]
     coverage = {}
     for m in run.methods:
-        ok = base & run.complete[M.estimate_topic(m)]
-        if run.received.get(M.covariance_topic(m)):
-            ok &= run.complete[M.covariance_topic(m)]
+        ok = base & run.complete[MSG.estimate_topic(m)]
+        if run.received.get(MSG.covariance_topic(m)):
+            ok &= run.complete[MSG.covariance_topic(m)]
         coverage[m] = ok
     common, kept, methods_left_out = DS.scored_methods(path, base, coverage, run.missing)  # as load_bag_dataset
     note = ""
@@ -210,7 +211,7 @@ def _score(
         warmup = 0
     angles = tuple(layout.desc.get("angle_states", ()))
     dx, t = layout.dx, layout.horizon
-    with_cov = {m for m in kept if M.covariance_topic(m) in cells}
+    with_cov = {m for m in kept if MSG.covariance_topic(m) in cells}
     scorers = {
         m: BlockScorer(t, dx, angles, warmup=warmup, covariance=m in with_cov, spill_dir=tmp) for m in sorted(kept)
     }
@@ -222,12 +223,12 @@ def _score(
             start += len(ids)
             if not rows.any():
                 continue
-            x = _dense(cells[M.GROUND_TRUTH].block(int(b)), ids, t, dx)[rows]
+            x = _dense(cells[MSG.GROUND_TRUTH].block(int(b)), ids, t, dx)[rows]
             for m, scorer in scorers.items():
-                xh = _dense(cells[M.estimate_topic(m)].block(int(b)), ids, t, dx)[rows]
+                xh = _dense(cells[MSG.estimate_topic(m)].block(int(b)), ids, t, dx)[rows]
                 P = None
                 if m in with_cov:
-                    P = _dense(cells[M.covariance_topic(m)].block(int(b)), ids, t, dx * dx)[rows]
+                    P = _dense(cells[MSG.covariance_topic(m)].block(int(b)), ids, t, dx * dx)[rows]
                     P = P.reshape(-1, t, dx, dx)
                 scorer.add(x, xh, P)
         reports = {m: s.report() for m, s in scorers.items()}
