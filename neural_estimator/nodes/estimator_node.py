@@ -39,7 +39,7 @@ the estimator meets the hole as lost observations (predict-only steps within ``m
 A message that cannot be used (wrong width or names, NaN control, empty, unparsable, larger than any valid one) is
 logged (throttled), counted in the diagnostics and dropped; the node never stops on one. No single message moves the
 stream: a jump in trajectory or step (or stamps that go back, a restarted publisher) is held until the next message
-confirms it (``confirm``) or the stream falls silent (``quarantine_seconds``); see :mod:`neural_estimator.stream.online`.
+confirms it (``confirm``) or the stream falls silent (``quarantine_seconds``; :mod:`neural_estimator.stream.online`).
 Diagnostics are WARN whenever messages are dropped, skipped, held or the node is busy more than 90 % of the time. An
 unknown method, scenario or a missing checkpoint is one fatal line at start-up and exit status 1.
 """
