@@ -9,7 +9,7 @@ every import of the package against this list):
 
 1. ``angles``, ``atomic``, ``safe_yaml``, ``options``, ``interfaces``, ``runtime``, ``metrics``, ``consistency``,
    ``plots``, ``expected_failures``, ``paper``
-2. ``scenarios``: the five nonlinear systems (pure numpy)
+2. ``scenarios``: the five nonlinear systems (numpy; their f and h in torch on request, imported lazily)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``estimator``: the interface of the ten methods (``Estimator``, ``Estimates``, errors, method names)
 5. ``filters`` (EKF, UKF, EnKF, PF), ``models`` (the six architectures: GRU, LSTM, GPT-2, Filterformer,
