@@ -123,6 +123,7 @@ def test_a_scenario_without_a_differentiable_form_says_none():
     assert DataScenario(meta).torch_dynamics() is None
 
 
+@pytest.mark.slow  # a subprocess (2 s)
 def test_the_scenarios_import_without_torch():
     """torch is imported by torch_dynamics() only: building and running every scenario leaves it out."""
     code = (
