@@ -31,7 +31,7 @@ import time
 
 import torch
 
-from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
+from neural_estimator.models import ARCHITECTURES, SystemDims, build_model, count_parameters
 
 D_IN = D_OUT = 40  # Lorenz 96
 
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     print("|---|---:|---:|---:|" + ("---:|---:|" if args.compile else "") + "---:|---:|")
     for name in args.archs:
-        model = build_model(name, D_IN, D_OUT).eval()
+        model = build_model(name, SystemDims(dx=D_OUT, dy=D_IN)).eval()
         p50, p99, c50, c99 = step_latency(model, args.steps, args.warmup)
         cols = f" {p50:.3f} / {p99:.3f} | {c50:.3f} / {c99:.3f} |"
         if args.compile:

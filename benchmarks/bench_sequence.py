@@ -25,7 +25,7 @@ import time
 import numpy as np
 import torch
 
-from neural_estimator.models import ARCHITECTURES, build_model
+from neural_estimator.models import ARCHITECTURES, SystemDims, build_model
 from neural_estimator.models import layers
 
 D = 40  # Lorenz 96
@@ -44,7 +44,7 @@ def median_seconds(fn, repeats: int) -> float:
 def architectures(args) -> None:
     torch.manual_seed(0)
     x = torch.randn(1, args.seq_len, D)
-    models = {a: build_model(a, D, D).eval() for a in ARCHITECTURES}
+    models = {a: build_model(a, SystemDims(dx=D, dy=D)).eval() for a in ARCHITECTURES}
     uncached = layers._make_window_bias
     cached = layers.window_bias
     rows: dict[tuple[str, str], list[float]] = {}

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CHILD = r"""
 import json, sys, time
 import torch
-from neural_estimator.models import build_model
+from neural_estimator.models import SystemDims, build_model
 arch, threads, iters, governed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
 torch.set_num_threads(threads)
 gov = None
@@ -43,7 +43,7 @@ if governed:
     from neural_estimator.training.threads import ThreadGovernor
     gov = ThreadGovernor(threads, probe_steps=4)
 torch.manual_seed(0)
-model = build_model(arch, 40, 40).train()
+model = build_model(arch, SystemDims(dx=40, dy=40)).train()
 opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
 z, x = torch.randn(64, 100, 40), torch.randn(64, 100, 40)
 times = []

@@ -41,7 +41,7 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from neural_estimator.models import ARCHITECTURES, build_model
+from neural_estimator.models import ARCHITECTURES, SystemDims, build_model
 from neural_estimator.models.dropout import Dropout
 from neural_estimator.serving.neural import resolve_device
 from neural_estimator.training.loss import weighted_loss
@@ -75,7 +75,7 @@ def set_scan(model: torch.nn.Module, scan: str) -> None:
 
 def step_flops(arch: str, args: argparse.Namespace) -> float:
     """FLOPs of one forward + backward on the *before* path (FlopCounterMode), see the module docstring."""
-    model = build_model(arch, args.d_in, args.d_out)
+    model = build_model(arch, SystemDims(dx=args.d_out, dy=args.d_in))
     set_scan(model, BEFORE.get(arch, "fused"))
     z = torch.randn(args.batch, args.window, args.d_in)
     with FlopCounterMode(display=False) as counter:
@@ -102,7 +102,7 @@ def gemm_rate(args: argparse.Namespace, reps: int = 20) -> float:
 
 def bench_arch(arch: str, args: argparse.Namespace, device: torch.device, scan: str | None = None) -> dict[str, float]:
     torch.manual_seed(0)
-    model = build_model(arch, args.d_in, args.d_out).to(device).train()
+    model = build_model(arch, SystemDims(dx=args.d_out, dy=args.d_in)).to(device).train()
     if scan:
         set_scan(model, scan)
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-5)

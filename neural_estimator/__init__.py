@@ -11,7 +11,7 @@ every import of the package against this list):
    values, ROS interface checks, the allocator), ``metrics`` (the paper's metrics, the covariances'
    consistency, figures), ``paper`` (the published numbers, the paper's five scenarios, the expected
    failures)
-2. ``scenarios``: the five nonlinear systems (pure numpy; an optional differentiable torch form)
+2. ``scenarios``: the five nonlinear systems (numpy; their f and h in torch on request, imported lazily)
 3. ``data``: simulation, the paper's protocol of data sets, the dataset files
 4. ``methods``: the table of methods (a ``MethodSpec`` each), the interface of the methods
    (``Estimator``, ``Estimates``, errors) and the registry (``make_estimator()``)

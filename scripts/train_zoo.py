@@ -271,7 +271,7 @@ def selection_rmse(checkpoint: Path, scenario, trajectories: int, seed: int = 0,
     (evaluate, reproduce, the neural scoreboard), so choosing between models on one of them would
     select on the test set; and not a training's own validation set (index 0-2), on which the new
     model's best epoch was already chosen."""
-    model, norm, card = load_checkpoint(checkpoint, device)
+    model, norm, card = load_checkpoint(checkpoint, device, scenario)
     data = dataset(scenario, "val", SELECTION_INDEX, trajectories, None, seed)
     metrics = evaluate(
         scenario,

@@ -9,7 +9,7 @@ import numpy as np
 
 from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.methods.registry import make_estimator
-from neural_estimator.models import build_model
+from neural_estimator.models import SystemDims, build_model
 from neural_estimator.serving.context import bounded_forward, restart_of
 from neural_estimator.scenarios import make_scenario
 
@@ -33,7 +33,7 @@ def test_every_step_sees_at_most_length_steps_and_nearly_that_many(length, copie
 @pytest.mark.slow
 def test_bounded_forward_is_the_model_on_each_steps_window():
     torch.manual_seed(0)
-    model = build_model("mamba2", 3, 2).double().eval()
+    model = build_model("mamba2", SystemDims(dx=2, dy=3)).double().eval()
     z = torch.randn(2, 37, 3, dtype=torch.float64)
     with torch.no_grad():
         y = bounded_forward(model, z, 10, 3)
@@ -73,8 +73,8 @@ def test_the_context_option_of_an_attention_model_is_its_window(method, key):
     data = simulate(scenario, 2, 40, seed=7)
     norm = Normalizer.from_data(scenario, data)
     torch.manual_seed(0)
-    model = build_model(method, norm.d_in, scenario.dx)
-    narrow = build_model(method, norm.d_in, scenario.dx, **{key: 12})
+    model = build_model(method, scenario)
+    narrow = build_model(method, scenario, **{key: 12})
     narrow.load_state_dict(model.state_dict())
     free = NeuralEstimator(scenario, model, norm, method, covariance=False).run(data.y, data.u).x
     bounded_est = NeuralEstimator(scenario, model, norm, method, covariance=False, context=12)
@@ -93,7 +93,7 @@ def test_the_context_option_of_an_attention_model_is_its_window(method, key):
 def test_the_context_option_refuses_what_it_cannot_do():
     scenario = make_scenario("nlink")
     with pytest.raises(ValueError, match="attention window must be >= 1"):
-        build_model("gpt2", 3, 2).set_window(0)
+        build_model("gpt2", SystemDims(dx=2, dy=3)).set_window(0)
     with pytest.raises(EstimatorError, match="context must be >= 0"):
         make_estimator("mamba2", scenario, context=-1)
     with pytest.raises(EstimatorError, match="context_copies .20. must not exceed context .10."):

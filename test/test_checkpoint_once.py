@@ -115,7 +115,7 @@ def test_the_same_model_saved_again_is_the_same_file(tmp_path):
 
     scenario = make_scenario("lorenz96")
     torch.manual_seed(0)
-    model = build_model("gru", scenario.dy, scenario.dx, hidden=4, layers=1)
+    model = build_model("gru", scenario, hidden=4, layers=1)
     norm = Normalizer.from_data(scenario, simulate(scenario, 2, 5, seed=0))
     card = {"scenario": scenario.describe()}
     files = set()

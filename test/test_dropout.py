@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn as nn
 
-from neural_estimator.models import build_model
+from neural_estimator.models import SystemDims, build_model
 from neural_estimator.models.dropout import Dropout, dropped_fraction, keep_mask
 from neural_estimator.models.layers import alibi_slopes, window_attention
 
@@ -116,7 +116,7 @@ def test_attention_dropout_is_unbiased(T, W):
 @pytest.mark.parametrize("name", ["gpt2", "filterformer"])
 def test_attention_models_train_with_the_fast_dropout_and_evaluate_without_it(name):
     torch.manual_seed(6)
-    model = build_model(name, 3, 2).double()
+    model = build_model(name, SystemDims(dx=2, dy=3)).double()
     assert any(isinstance(m, Dropout) for m in model.modules())
     assert not any(isinstance(m, nn.Dropout) for m in model.modules())
     z = torch.randn(2, 30, 3, dtype=torch.float64)

@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
+from neural_estimator.models import ARCHITECTURES, SystemDims, build_model, count_parameters, model_dims
 from neural_estimator.models.filterformer import FilterformerModel
 from neural_estimator.models.cpu_scan import mamba_scan_fused, ssd_scan_fused
 from neural_estimator.models.layers import alibi_slopes, window_attention
@@ -36,7 +36,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tiny tensors: one in
 
 def make(name: str, d_in: int = 5, d_out: int = 3, seed: int = 0, **overrides) -> torch.nn.Module:
     torch.manual_seed(seed)
-    return build_model(name, d_in, d_out, **overrides)
+    return build_model(name, SystemDims(dx=d_out, dy=d_in), **overrides)
 
 
 def step_loop(model: torch.nn.Module, z: torch.Tensor) -> torch.Tensor:
@@ -132,22 +132,36 @@ def test_gradients_flow_blocked_attention(name):
 
 def test_build_model_rejects_unknown():
     with pytest.raises(KeyError, match="unknown architecture"):
-        build_model("transformer", 1, 1)
+        build_model("transformer", SystemDims(dx=1, dy=1))
     with pytest.raises(KeyError, match="unknown hyperparameter"):
-        build_model("gru", 1, 1, hidden_size=3)
-    assert build_model("gru", 2, 3, hidden=7).cfg.hidden == 7
+        build_model("gru", SystemDims(dx=1, dy=1), hidden_size=3)
+    with pytest.raises(KeyError, match="come from the scenario"):
+        build_model("gru", SystemDims(dx=1, dy=1), d_in=4)
+    assert build_model("gru", SystemDims(dx=3, dy=2), hidden=7).cfg.hidden == 7
+
+
+@pytest.mark.parametrize("scenario", list(SCENARIO_DIMS))
+def test_build_model_sizes_the_network_from_the_scenario(scenario):
+    """d_in = dy + du (z_k = [y_k, u_{k-1}]) and d_out = dx, read from the scenario itself."""
+    from neural_estimator.scenarios import make_scenario
+
+    system = make_scenario(scenario)
+    assert model_dims(system) == SCENARIO_DIMS[scenario]
+    cfg = build_model("gru", system).cfg
+    assert (cfg.d_in, cfg.d_out) == (system.dy + system.du, system.dx)
+    assert model_dims(SystemDims(dx=6, dy=3, du=2)) == (5, 6)
 
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("scenario", list(SCENARIO_DIMS))
 def test_parameter_budget(name, scenario):
     """The paper's hyperparameters give about 100k parameters (within 15%) on every scenario."""
-    n = count_parameters(build_model(name, *SCENARIO_DIMS[scenario]))
+    n = count_parameters(build_model(name, SystemDims(dx=SCENARIO_DIMS[scenario][1], dy=SCENARIO_DIMS[scenario][0])))
     assert abs(n - 100_000) <= 15_000, n
 
 
 def test_known_parameter_counts_lorenz96():
-    counts = {name: count_parameters(build_model(name, 40, 40)) for name in NAMES}
+    counts = {name: count_parameters(build_model(name, SystemDims(dx=40, dy=40))) for name in NAMES}
     assert counts == {
         "gru": 94_645,
         "lstm": 97_315,
@@ -218,7 +232,7 @@ def test_window_attention_fused_gradients_equal_the_math_path(T, W):
 @pytest.mark.parametrize("name", ["gpt2", "filterformer"])
 def test_attention_models_fused_equals_math_path(name):
     torch.manual_seed(3)
-    model = build_model(name, 3, 2).double().eval()
+    model = build_model(name, SystemDims(dx=2, dy=3)).double().eval()
     z = torch.randn(2, 300, 3, dtype=torch.float64)  # longer than GPT-2's window: the blocked form too
     with torch.no_grad():
         fused = model(z)
@@ -432,7 +446,7 @@ MAMBA2_MIXER_64 = {  # d_model=64, d_state=48, d_conv=4, expand=2, headdim=16, n
     "name,mixer,n_layer,d_model", [("mamba", MAMBA_MIXER_80, 2, 80), ("mamba2", MAMBA2_MIXER_64, 3, 64)]
 )
 def test_mamba_state_dict_layout(name, mixer, n_layer, d_model):
-    model = build_model(name, 40, 40)
+    model = build_model(name, SystemDims(dx=40, dy=40))
     shapes = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     expected = {
         "input_proj.weight": (d_model, 40),

@@ -104,7 +104,7 @@ def estimator_for(scenario, arch, data, seed=0, head=False):
     """A freshly initialised model of ``arch``; ``head``: with a random covariance head on its trunk."""
     torch.manual_seed(seed)
     norm = Normalizer.from_data(scenario, data)
-    model = build_model(arch, norm.d_in, scenario.dx)
+    model = build_model(arch, scenario)
     if head:
         from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel
 
@@ -460,7 +460,7 @@ def test_compiled_step_equals_eager_step(oscillator, tmp_path):
     data = simulate(oscillator, 8, 40, seed=0)
     norm = Normalizer.from_data(oscillator, data)
     torch.manual_seed(0)
-    model = build_model("gru", oscillator.dy + oscillator.du, oscillator.dx)
+    model = build_model("gru", oscillator)
     eager = NeuralEstimator(oscillator, model, norm, "gru")
     compiled = NeuralEstimator(oscillator, model, norm, "gru", compile_step="true")
     a, b = eager.run(data.y[:2], data.u[:2]).x, np.empty((2, 40, 2))

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from neural_estimator import metrics as M
-from neural_estimator.models import build_model
+from neural_estimator.models import SystemDims, build_model
 from neural_estimator.metrics import consistency as C
 from neural_estimator.serving.uncertainty.heads import CholeskyHead, GaussianModel, HeadError, load_head, save_head
 
@@ -124,7 +124,7 @@ def test_cholesky_head_covariance_and_nll_against_torch_distributions():
 def test_gaussian_model_keeps_the_estimate_and_steps_as_it_runs(name):
     """forward_with_cov's mean is the trunk's forward bit for bit; a loop of step_with_cov equals it."""
     torch.manual_seed(0)
-    trunk = build_model(name, 5, 3, **({"decode_chunk": 16} if name == "gpt2" else {})).eval()
+    trunk = build_model(name, SystemDims(dx=3, dy=5), **({"decode_chunk": 16} if name == "gpt2" else {})).eval()
     head = CholeskyHead(trunk.features(torch.zeros(1, 1, 5)).shape[-1], 3)
     with torch.no_grad():
         head.linear.weight.normal_(0, 0.2)
@@ -156,7 +156,7 @@ def _estimator_with_head(tmp_path, method="gru", **kwargs):
     data = simulate(scenario, 3, 30, seed=3)
     norm = Normalizer.from_data(scenario, data)
     torch.manual_seed(0)
-    model = build_model(method, norm.d_in, scenario.dx)
+    model = build_model(method, scenario)
     save_checkpoint(tmp_path, model, norm, {"scenario": scenario.describe()})
     head = CholeskyHead(model.features(torch.zeros(1, 1, norm.d_in)).shape[-1], scenario.dx)
     with torch.no_grad():

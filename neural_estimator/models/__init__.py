@@ -13,11 +13,19 @@ hyperparameters)`` and an ``nn.Module`` ``XxxModel(cfg)`` with:
 
 Filterformer also has ``forward_with_cov(z) -> (mean, cov)`` and ``step_with_cov(z_t, state) ->
 (mean, cov, state)`` with cov (..., d_out, d_out).
+
+A model is built for a system: ``build_model(name, scenario, **hp)`` takes the scenario the model
+will estimate (a :class:`~neural_estimator.scenarios.Scenario`, recorded data's
+``DataScenario``, or :class:`SystemDims` where only the dimensions are known) and sizes the network
+from it, ``d_in = dy + du`` (z_k = [y_k, u_{k-1}]) and ``d_out = dx``. The six architectures see
+nothing of the scenario beyond these dimensions; an architecture that uses the system's equations
+(a KalmanNet-style hybrid, with ``scenario.torch_dynamics()``) gets them through the same call.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import torch.nn as nn
 
@@ -42,20 +50,55 @@ ARCHITECTURES: dict[str, tuple[type, type[nn.Module]]] = {
 }
 
 
-def build_model(name: str, d_in: int, d_out: int, **overrides: Any) -> nn.Module:
-    """Build architecture ``name`` with the paper's hyperparameters, changed by ``overrides``.
+class System(Protocol):
+    """What :func:`build_model` reads of a scenario: its state, observation and control dimensions."""
+
+    @property
+    def dx(self) -> int: ...
+
+    @property
+    def dy(self) -> int: ...
+
+    @property
+    def du(self) -> int: ...
+
+
+@dataclass(frozen=True)
+class SystemDims:
+    """A system known only by its dimensions (dx states, dy observations, du controls): a
+    checkpoint card whose scenario cannot be rebuilt here, a benchmark, a test of the networks."""
+
+    dx: int
+    dy: int
+    du: int = 0
+
+
+def model_dims(scenario: System) -> tuple[int, int]:
+    """(d_in, d_out) = (dy + du, dx) of a model for ``scenario``: it reads z_k = [y_k, u_{k-1}] and
+    returns x_hat_k."""
+    return int(scenario.dy) + int(scenario.du), int(scenario.dx)
+
+
+def build_model(name: str, scenario: System, **hp: Any) -> nn.Module:
+    """Build architecture ``name`` for ``scenario`` with the paper's hyperparameters, changed by ``hp``.
+
+    ``d_in`` and ``d_out`` come from the scenario (:func:`model_dims`), never from ``hp``.
 
     Raises:
-        KeyError: unknown architecture, or an override that is not a field of its config.
+        KeyError: unknown architecture, or a hyperparameter that is not a field of its config.
     """
     if name not in ARCHITECTURES:
         raise KeyError(f"unknown architecture {name!r}; choose one of: {', '.join(ARCHITECTURES)}")
     config_cls, model_cls = ARCHITECTURES[name]
-    fields = set(config_cls.__dataclass_fields__)
-    unknown = sorted(set(overrides) - fields)
+    fields = set(config_cls.__dataclass_fields__) - {"d_in", "d_out"}
+    unknown = sorted(set(hp) - fields)
     if unknown:
-        raise KeyError(f"{name}: unknown hyperparameter(s) {unknown}; valid: {sorted(fields - {'d_in', 'd_out'})}")
-    return model_cls(config_cls(d_in=d_in, d_out=d_out, **overrides))
+        raise KeyError(
+            f"{name}: unknown hyperparameter(s) {unknown}; valid: {sorted(fields)} "
+            "(d_in and d_out come from the scenario)"
+        )
+    d_in, d_out = model_dims(scenario)
+    return model_cls(config_cls(d_in=d_in, d_out=d_out, **hp))
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -65,8 +108,11 @@ def count_parameters(model: nn.Module) -> int:
 
 __all__ = [
     "ARCHITECTURES",
+    "System",
+    "SystemDims",
     "build_model",
     "count_parameters",
+    "model_dims",
     "GRUConfig",
     "GRUModel",
     "LSTMConfig",

@@ -159,6 +159,12 @@ class Ballistic(Scenario):
         jac[..., 0, 0] = d / np.sqrt(cfg.r0**2 + d * d)
         return jac
 
+    def torch_dynamics(self):
+        """f and h in torch, differentiable (:class:`~neural_estimator.scenarios.differentiable.BallisticTorch`)."""
+        from neural_estimator.scenarios.differentiable import BallisticTorch
+
+        return BallisticTorch(self)
+
     # ---- noise and prior -----------------------------------------------------------------------
     def process_cov(self) -> np.ndarray:
         return np.diag(np.square(np.asarray(self.config.process_noise_std, dtype=np.float64)))

@@ -298,6 +298,14 @@ class Scenario(ABC):
         """d h / d x at x; (..., dy, dx). Default: complex step."""
         return complex_step_jacobian(self.h, x)
 
+    def torch_dynamics(self) -> Any:
+        """The differentiable form of :meth:`f` and :meth:`h`: an object with ``f(x, u)`` and ``h(x)``
+        on batched torch tensors (float64 capable), the same arithmetic as the numpy form, so that a
+        method can backpropagate through the system (the five built-ins:
+        :mod:`neural_estimator.scenarios.differentiable`, torch imported only when this is called).
+        None (the default) where the scenario has none."""
+        return None
+
     def obs_matrix(self) -> np.ndarray | None:
         """H (dy, dx) when the observation is exactly linear, h(x) = H x, else None (the default).
 

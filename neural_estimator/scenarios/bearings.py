@@ -139,6 +139,12 @@ class Bearings(Scenario):
         jac[..., 0, 1] = px / r2
         return jac
 
+    def torch_dynamics(self):
+        """f and h in torch, differentiable (:class:`~neural_estimator.scenarios.differentiable.BearingsTorch`)."""
+        from neural_estimator.scenarios.differentiable import BearingsTorch
+
+        return BearingsTorch(self)
+
     def process_cov(self) -> np.ndarray:
         t = float(self.config.dt)
         g = np.array([[0.5 * t * t, 0.0], [0.0, 0.5 * t * t], [t, 0.0], [0.0, t]])  # (4, 2)

@@ -277,6 +277,12 @@ class Lorenz96(Scenario):
         """H = I; (..., J) -> (..., J)."""
         return np.array(x, copy=True)
 
+    def torch_dynamics(self):
+        """f and h in torch, differentiable (:class:`~neural_estimator.scenarios.differentiable.Lorenz96Torch`)."""
+        from neural_estimator.scenarios.differentiable import Lorenz96Torch
+
+        return Lorenz96Torch(self)
+
     def localization_distances(self) -> tuple[np.ndarray, np.ndarray]:
         """(d_xy, d_yy) for EnKF localisation: the cyclic index distance on the ring,
         d(i, j) = min(|i - j|, J - |i - j|); every observation sits on its variable (H = I)."""

@@ -353,6 +353,12 @@ class NLinkPendulum(Scenario):
         jac[..., 1::2, :n] = below * (lengths * np.sin(th))[..., None, :]
         return jac
 
+    def torch_dynamics(self):
+        """f and h in torch, differentiable (:class:`~neural_estimator.scenarios.differentiable.NLinkTorch`)."""
+        from neural_estimator.scenarios.differentiable import NLinkTorch
+
+        return NLinkTorch(self)
+
     def energy(self, x: np.ndarray) -> np.ndarray:
         """Total mechanical energy [J]; (..., 2N) -> (...)."""
         x = np.asarray(x, dtype=np.float64)

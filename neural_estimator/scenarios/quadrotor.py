@@ -219,6 +219,12 @@ class PlanarQuadrotor(Scenario):
         x = np.asarray(x)
         return np.broadcast_to(self._c(), x.shape[:-1] + (3, 6)).copy()
 
+    def torch_dynamics(self):
+        """f and h in torch, differentiable (:class:`~neural_estimator.scenarios.differentiable.QuadrotorTorch`)."""
+        from neural_estimator.scenarios.differentiable import QuadrotorTorch
+
+        return QuadrotorTorch(self)
+
     # ---- noise, prior and controls -------------------------------------------------------------
     def process_cov(self) -> np.ndarray:
         q = float(self.config.process_noise_std) ** 2

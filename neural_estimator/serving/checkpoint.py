@@ -11,8 +11,10 @@ A checkpoint is a directory holding exactly
                           evaluation set (when measured), software versions, creation date,
                           and the sha256 of model.safetensors
 
-The model is rebuilt from the card (``ModelCls(ConfigCls(**config))``) and the weights are read with
-safetensors only: no ``torch.load``, no pickle. Trained defaults ship at
+The model is rebuilt for its scenario (:func:`~neural_estimator.models.build_model`): the scenario
+being served, or the one the card describes (:func:`system_of_card`), with the card's hyperparameters;
+the card's ``d_in`` / ``d_out`` must be that scenario's. The weights are read with safetensors only:
+no ``torch.load``, no pickle. Trained defaults ship at
 ``neural_estimator/serving/zoo/<scenario>-<method>/``.
 
 The card's reading and writing is :mod:`neural_estimator.serving.card`; serving a checkpoint for a
@@ -31,7 +33,7 @@ import torch
 from torch import nn
 
 from neural_estimator.methods.interface import EstimatorError
-from neural_estimator.models import ARCHITECTURES, build_model, count_parameters
+from neural_estimator.models import ARCHITECTURES, System, SystemDims, build_model, count_parameters, model_dims
 from neural_estimator.serving.card import (
     canonical_safetensors,
     CARD_FILE,
@@ -58,12 +60,34 @@ def architecture_of(model: nn.Module) -> tuple[str, dict[str, Any]]:
     raise EstimatorError(f"{type(model).__name__} is not one of the registered architectures")
 
 
-def build_from_config(name: str, config: dict[str, Any]) -> nn.Module:
-    """Rebuild an (untrained) model from a card's architecture name and full config dict
-    (:func:`~neural_estimator.models.build_model`, its errors as EstimatorError naming the card's values)."""
-    config = dict(config)
+def system_of_card(card: dict[str, Any]) -> System:
+    """The system a checkpoint was trained on, from its card's scenario description: the scenario
+    itself where it can be rebuilt here (a built-in, or a registered plugin, with the card's
+    constants); else (recorded data, a plugin not loaded) its dimensions, read from the
+    description's names (:class:`~neural_estimator.models.SystemDims`)."""
+    from neural_estimator.scenarios import ScenarioError, scenario_from_description
+
+    desc = card.get("scenario")
+    desc = desc if isinstance(desc, dict) else {}
     try:
-        return build_model(name, config.pop("d_in"), config.pop("d_out"), **config)
+        return scenario_from_description(desc)
+    except (ScenarioError, KeyError, TypeError, ValueError, AttributeError):
+        return SystemDims(*(len(desc.get(k) or ()) for k in ("state_names", "obs_names", "control_names")))
+
+
+def build_from_config(name: str, config: dict[str, Any], system: System) -> nn.Module:
+    """Rebuild an (untrained) model for ``system`` from a card's architecture name and full config
+    dict (:func:`~neural_estimator.models.build_model`, its errors as EstimatorError naming the card's
+    values); the config's ``d_in`` and ``d_out`` must be the system's (``dy + du``, ``dx``)."""
+    config = dict(config)
+    dims = (config.pop("d_in", None), config.pop("d_out", None))
+    if dims != model_dims(system):
+        raise EstimatorError(
+            f"cannot build {name!r} from the card's config: it maps d_in={dims[0]} to d_out={dims[1]}, but its "
+            f"system has dy + du = {model_dims(system)[0]}, dx = {model_dims(system)[1]}"
+        )
+    try:
+        return build_model(name, system, **config)
     except KeyError as exc:
         raise EstimatorError(f"cannot build {name!r} from the card's config: {str(exc).strip(chr(39))}") from None
     except (TypeError, ValueError, AssertionError) as exc:
@@ -145,11 +169,16 @@ def save_checkpoint(directory: str | Path, model: nn.Module, normalizer: Normali
 
 # ---- load ---------------------------------------------------------------------------------------
 def load_checkpoint(
-    checkpoint: str | Path | Checkpoint, device: str | torch.device = "cpu"
+    checkpoint: str | Path | Checkpoint, device: str | torch.device = "cpu", scenario: System | None = None
 ) -> tuple[nn.Module, Normalizer, dict[str, Any]]:
     """(model in eval mode on ``device``, normalizer, card) of a checkpoint directory, its card, or a
     :class:`~neural_estimator.serving.card.Checkpoint` already resolved (its card is not read again,
     its weights not hashed again).
+
+    ``scenario``: the system the model is built for (:func:`~neural_estimator.models.build_model`);
+    None: the one its card describes (:func:`system_of_card`). Either way the card's ``d_in`` and
+    ``d_out`` must be its dimensions; whether the checkpoint may serve a scenario (its name and
+    constants) is :func:`~neural_estimator.serving.load.check_scenario`'s question.
 
     Raises:
         EstimatorError: missing or corrupt card or weights, weights that do not match the card.
@@ -164,8 +193,9 @@ def load_checkpoint(
     except NormalizationError as exc:
         raise EstimatorError(f"{directory / CARD_FILE}: {exc}") from None
     weights = ckpt.weights
-    check_model_size(arch, weights.stat().st_size, directory)
-    model = build_from_config(arch["name"], arch["config"])
+    system = system_of_card(card) if scenario is None else scenario
+    check_model_size(arch, weights.stat().st_size, directory, system)
+    model = build_from_config(arch["name"], arch["config"], system)
     expected = card["weights"].get("sha256")
     if expected and ckpt.sha256 != expected:
         raise EstimatorError(
@@ -180,13 +210,13 @@ def load_checkpoint(
     return model, normalizer, card
 
 
-def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path) -> None:
+def check_model_size(arch: dict[str, Any], weight_bytes: int, where: Path, system: System) -> None:
     """Refuse a card whose architecture is larger than its weight file or than MAX_MODEL_ELEMENTS, or
     smaller than its weight file can hold (8 bytes an element plus the header),
     before allocating it: the model is built on torch's meta device (shapes only, no memory)."""
     try:
         with torch.device("meta"):
-            probe = build_from_config(arch["name"], arch["config"])
+            probe = build_from_config(arch["name"], arch["config"], system)
     except EstimatorError:
         raise
     except Exception as exc:  # a card's config that the architecture rejects

@@ -177,7 +177,7 @@ def load_neural_estimator(
     from neural_estimator.serving.checkpoint import load_checkpoint
     from neural_estimator.serving.neural import NeuralEstimator
 
-    model, normalizer, card = load_checkpoint(ckpt, device)
+    model, normalizer, card = load_checkpoint(ckpt, device, scenario)
     if covariance and card.get("covariance_head"):  # a fitted covariance head (replaces Filterformer's own)
         from neural_estimator.serving.uncertainty.heads import attach_head
 

@@ -298,7 +298,7 @@ class _Run:
         # step 3: the model under torch.manual_seed(init_seed) (initial weights and dropout)
         torch.manual_seed(cfg.init_seed)
         overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
-        self.model = build_model(arch, sets.norm.d_in, scenario.dx, **overrides).to(device)
+        self.model = build_model(arch, scenario, **overrides).to(device)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
             self.optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
@@ -450,7 +450,7 @@ class _Run:
         cfg, out_dir = self.cfg, self.out_dir
         if self.state["best_epoch"] == 0:
             raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
-        best_model, _, _ = load_checkpoint(out_dir, self.device)
+        best_model, _, _ = load_checkpoint(out_dir, self.device, self.scenario)
         metrics = None
         if cfg.eval_trajectories:
             metrics = evaluate(

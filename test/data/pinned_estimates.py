@@ -47,7 +47,7 @@ def _neural(method: str, scenario, X, Y, U):
     from neural_estimator.methods.registry import previous_controls
 
     torch.manual_seed(11)
-    model = build_model(method, scenario.dy + scenario.du, scenario.dx).eval()
+    model = build_model(method, scenario).eval()
     normalizer = Normalizer.fit(np.nan_to_num(Y), previous_controls(U), X, scenario.angle_states)
     return NeuralEstimator(scenario, model, normalizer, method)
 
