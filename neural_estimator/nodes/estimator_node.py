@@ -73,6 +73,7 @@ from neural_estimator.nodes.common import (
     run_node,
     stream_qos,
     trim_heap,
+    warn_throttled,
 )
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
@@ -500,10 +501,7 @@ class EstimatorNode(ExitStatusNode):
         return self.exit_code
 
     def _warn(self, kind: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_log.get(kind, -1e9) >= self.p.log_throttle:
-            self._last_log[kind] = now
-            self.get_logger().warning(text)
+        warn_throttled(self, self._last_log, kind, text, self.p.log_throttle)
 
 
 def _make_node() -> ExitStatusNode:

@@ -4,7 +4,8 @@ warmed up and wrapped for per-message updates, the standard outputs made, and on
 
 The estimator node runs it at start-up (or when the scenario is announced), the lifecycle node in its
 configure and activate transitions; both turn a :class:`~neural_estimator.nodes.common.StartupError`
-into their own failure (exit status 1, or a failed transition).
+into their own failure (exit status 1, or a failed transition). The robot estimator makes its
+standard outputs here too.
 """
 
 from __future__ import annotations

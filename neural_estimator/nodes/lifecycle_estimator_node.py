@@ -25,7 +25,6 @@ as in the estimator node.
 from __future__ import annotations
 
 import sys
-import time
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -41,6 +40,7 @@ from neural_estimator.nodes.common import (
     load_plugins,
     run_node,
     stream_qos,
+    warn_throttled,
 )
 from neural_estimator.nodes.estimator_params import EstimatorParams
 from neural_estimator.nodes.estimator_setup import build_online, checked_method, publish_result, standard_outputs
@@ -57,7 +57,7 @@ class LifecycleEstimatorNode(LifecycleNode):
         self.entities: list = []  # publishers and the subscription of the active state
         self.outputs: Outputs | None = None
         self.counts = {"estimates": 0, "bad": 0, "skipped": 0}
-        self._last_log = 0.0
+        self._last_log: dict[str, float] = {}
         # rclpy's change_state service triggers a transition id without checking that the current
         # state has it; the state machine then raises "Transition is not registered" out of the
         # service callback, which kills the node. The check goes in front of that callback.
@@ -197,10 +197,7 @@ class LifecycleEstimatorNode(LifecycleNode):
             self.counts["estimates"] += 1
 
     def _warn(self, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_log >= self.p.log_throttle:
-            self._last_log = now
-            self.get_logger().warning(text)
+        warn_throttled(self, self._last_log, "observation", text, self.p.log_throttle)
 
 
 def main(args: list[str] | None = None) -> int:
