@@ -1,4 +1,4 @@
-"""The setup the nodes share (issue #44): the estimator and lifecycle nodes read their method's options
+"""The setup the nodes share: the estimator and lifecycle nodes read their method's options
 through one function (nodes/estimator_setup.py), and the evaluator and robot estimator resolve a
 published type and throttle their warnings through one each (nodes/common.py). No ROS graph: the
 functions are called with stand-in nodes."""

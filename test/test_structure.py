@@ -1,7 +1,7 @@
 """The package stays readable: modules of one job at most 600 lines, functions of at most 100 lines of
-code and at most 100 lines with their signature and docstring (issue #44: a function that long is
-split into named steps; the maths beside the equations is wanted, so a long docstring leaves less room
-for code, not more), and no import cycle at all, counting the imports inside functions too
+code and at most 100 lines with their signature and docstring (a function that long is split into
+named steps; the maths beside the equations is wanted, so a long docstring leaves less room for code,
+not more), and no import cycle at all, counting the imports inside functions too
 (test_layers.py holds the layers and the module-level imports)."""
 
 from __future__ import annotations
