@@ -389,9 +389,9 @@ def compute_metrics(
     M = Md.mean(axis=1)  # (N,) the paper's M_n
     div, out = _flags(x_hat, M, diverged, threshold)
     kept = ~out
-    common = _shared_fields(M, Md, s, div, out, warmup, every_step)
+    common = report_fields(M, Md, s, div, out, warmup, every_step)
     if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
-        return _all_diverged(t, dx, P_hat is not None or nees_values is not None, common)
+        return all_diverged_report(t, dx, P_hat is not None or nees_values is not None, common)
 
     msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories (rmse = rmse_kept)
     abs_e = np.abs(e[kept])  # (|K|, T, dx)
@@ -438,8 +438,10 @@ def _flags(x_hat: np.ndarray, M: np.ndarray, diverged, threshold: float) -> tupl
     return div, outlier_mask(M_rule, threshold)
 
 
-def _shared_fields(M, Md, s, div, out, warmup: int, every_step: float | None) -> dict:
-    """The report's fields computed alike whether or not any trajectory is kept."""
+def report_fields(M, Md, s, div, out, warmup: int, every_step: float | None) -> dict:
+    """The report's fields computed alike whether or not any trajectory is kept (``M`` (N,) the M_n,
+    ``Md`` (N, dx), ``s`` the spread, ``div`` and ``out`` the diverged and outlier masks); the
+    in-memory and the streaming scorer share them."""
     n, kept, n_div = M.shape[0], ~out, int(div.sum())
     rmse_kept = math.inf if not kept.any() else float(np.sqrt(Md[kept].mean(axis=0).mean()))
     return dict(
@@ -458,7 +460,7 @@ def _shared_fields(M, Md, s, div, out, warmup: int, every_step: float | None) ->
     )
 
 
-def _all_diverged(t: int, dx: int, has_p: bool, common: dict) -> MetricReport:
+def all_diverged_report(t: int, dx: int, has_p: bool, common: dict) -> MetricReport:
     """The report when no trajectory is kept: inf errors, NaN ratios (covariance metrics NaN if any)."""
     na = math.nan if has_p else None
     return MetricReport(
