@@ -334,14 +334,7 @@ def evaluate(
     check_init(init)
     if datasets is None:
         check_unsealed(seed, sealed)
-    T = scenario.horizon if horizon is None else int(horizon)
-    if not 0 <= int(warmup) < T:
-        raise ValueError(f"warmup must be in [0, {T}) for a horizon of {T} steps, got {warmup}")
-    data_sets = (
-        list(datasets)
-        if datasets is not None
-        else evaluation_sets(scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
-    )
+    data_sets = _data_sets(scenario, datasets, seed, trajectories, horizon, sets, cache_dir, warmup)
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
     plan = [(m, k, c) for m in methods for k, c in enumerate(_instances(scenario, m, checkpoints))]
@@ -361,55 +354,20 @@ def evaluate(
         for j, data in enumerate(data_sets):
             run_no += 1
             r = results[m]
+            label = f"{scenario.name} {m} set {j + 1}/{len(data_sets)}"
             path = None
             if cache_root is not None:
-                path = result_path(
-                    cache_root,
-                    scenario,
-                    m,
-                    run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup),
-                )
-                hit = None if recompute else load_run(path)
-                if hit is not None:
-                    report, secs, steps, errs = hit
-                    r.add(report, errs, j, k)
-                    r.seconds += secs
-                    r.steps += steps
-                    r.cached += 1
-                    _note(
-                        progress,
-                        f"{scenario.name} {m} set {j + 1}/{len(data_sets)}: cached result reused ({path.name})",
-                    )
+                key = run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup)
+                path = result_path(cache_root, scenario, m, key)
+                if not recompute and _reused(path, r, j, k, progress, label):
                     if on_result:
                         on_result(results)
                     continue
-            if est is None and is_baseline(m):
-                est = make_baseline(m, scenario, **opts)
-            elif est is None:
-                start = {"init": "observation"} if results[m].init == "observation" and "init" not in opts else {}
-                est = make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts, **start)
+            if est is None:
+                est = _built(scenario, m, ckpt, device, seed, opts, results[m].init)
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
-            bar = _progress(
-                data.n * data.horizon,
-                progress,
-                f"{scenario.name} {m} set {j + 1}/{len(data_sets)} (run {run_no}/{n_runs})",
-            )
-            try:
-                x_hat, nees_nt, diverged, secs = run_method(
-                    est, data, chunk, scenario.angle_states, on_steps=bar.update, init=results[m].init
-                )
-            finally:
-                bar.close()
-            report = M.compute_labelled_metrics(  # partial ground truth: the labelled steps only
-                data.x,
-                x_hat,
-                scenario.angle_states,
-                data.labelled,
-                diverged=diverged,
-                nees_values=nees_nt,
-                warmup=warmup,
-            )
-            errs = M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup, data.labelled)
+            bar = _progress(data.n * data.horizon, progress, f"{label} (run {run_no}/{n_runs})")
+            report, errs, secs = _scored_run(est, scenario, data, chunk, bar, results[m].init, warmup)
             r.add(report, errs, j, k)
             r.seconds += secs
             r.steps += data.n * data.horizon
@@ -418,6 +376,61 @@ def evaluate(
             if on_result:
                 on_result(results)
     return results
+
+
+def _data_sets(scenario: Scenario, datasets, seed: int, trajectories: int, horizon, sets: int, cache_dir, warmup):
+    """The evaluation sets (``datasets`` as given, else generated or read from the cache), the
+    warm-up checked against the horizon first."""
+    T = scenario.horizon if horizon is None else int(horizon)
+    if not 0 <= int(warmup) < T:
+        raise ValueError(f"warmup must be in [0, {T}) for a horizon of {T} steps, got {warmup}")
+    if datasets is not None:
+        return list(datasets)
+    return evaluation_sets(scenario, seed=seed, trajectories=trajectories, horizon=T, sets=sets, cache_dir=cache_dir)
+
+
+def _reused(path: Path, r: MethodResult, j: int, k: int, progress: bool, label: str) -> bool:
+    """The run cached at ``path`` added to ``r`` as set ``j`` of instance ``k`` (True), or False where
+    none is cached there."""
+    hit = load_run(path)
+    if hit is None:
+        return False
+    report, secs, steps, errs = hit
+    r.add(report, errs, j, k)
+    r.seconds += secs
+    r.steps += steps
+    r.cached += 1
+    _note(progress, f"{label}: cached result reused ({path.name})")
+    return True
+
+
+def _built(scenario: Scenario, m: str, ckpt, device: str, seed: int, opts: dict, init: str):
+    """The estimator of method ``m`` (a baseline, a filter started as ``init`` asks, or a model)."""
+    if is_baseline(m):
+        return make_baseline(m, scenario, **opts)
+    start = {"init": "observation"} if init == "observation" and "init" not in opts else {}
+    return make_estimator(m, scenario, checkpoint=ckpt, device=device, seed=seed, **opts, **start)
+
+
+def _scored_run(est, scenario: Scenario, data: Trajectories, chunk: int, bar, init: str, warmup: int) -> tuple:
+    """One run of ``est`` over one evaluation set, scored: (report, per-trajectory errors, seconds)."""
+    try:
+        x_hat, nees_nt, diverged, secs = run_method(
+            est, data, chunk, scenario.angle_states, on_steps=bar.update, init=init
+        )
+    finally:
+        bar.close()
+    report = M.compute_labelled_metrics(  # partial ground truth: the labelled steps only
+        data.x,
+        x_hat,
+        scenario.angle_states,
+        data.labelled,
+        diverged=diverged,
+        nees_values=nees_nt,
+        warmup=warmup,
+    )
+    errs = M.trajectory_errors(data.x, x_hat, scenario.angle_states, report.outlier_idx, warmup, data.labelled)
+    return report, errs, secs
 
 
 def _instances(

@@ -103,35 +103,12 @@ def replay(
         raise BagError(f"{bag_out}: replay cannot overwrite its input bag")
     obs_topic = MSG.resolve_topic(MSG.OBSERVATION, namespace)
     scen_topic = MSG.resolve_topic(MSG.SCENARIO, namespace)
-    replaced = {MSG.resolve_topic(MSG.estimate_topic(m), namespace) for m in methods}
-    replaced |= {MSG.resolve_topic(MSG.covariance_topic(m), namespace) for m in methods}
-    with open_bag(bag_in) as bag:
-        bag.connection(obs_topic, MSG.JOINT_STATE)
-        desc = _description(bag, bag_in, scen_topic, description, force)
-        kept_topics = [c for c in bag.connections if c.topic not in replaced]
-        passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
-    if desc is None:
-        raise BagError(f"{bag_in}: no message on {scen_topic}: name the scenario (--scenario NAME [--set ...])")
+    desc, kept_topics, passthrough = _read_input(bag_in, methods, namespace, obs_topic, scen_topic, description, force)
     scenario = scenario_from_description(desc)
-
-    # The observations in recorded order (as a live node receives them), or by in-band identity.
-    observations = []
-    for i, (topic, t, raw) in enumerate(passthrough):
-        if topic != obs_topic:
-            continue
-        key: tuple[int, int, int] = (0, 0, i)
-        if order == "identity":
-            try:
-                vec = MSG.decode_vector(raw)
-                key = (vec.trajectory, vec.step, i)
-            except MessageError:
-                key = (-1, -1, i)  # unparsable ones keep bag order
-        observations.append((key, t, raw))
-    observations.sort(key=lambda o: o[0])
+    observations = _ordered_observations(passthrough, obs_topic, order)
 
     out_msgs: list[tuple[str, int, bytes]] = list(passthrough)
-    added_scenario = not any(c.topic == scen_topic for c in kept_topics)
-    if added_scenario:  # the output names its scenario even when the input did not
+    if not any(c.topic == scen_topic for c in kept_topics):  # the output names its scenario even when the input did not
         t0 = min((t for _, t, _ in passthrough), default=0)
         out_msgs.insert(0, (scen_topic, t0, MSG.encode_scenario(desc)))
     counts, seconds, rejected, skipped = {}, {}, {}, {}
@@ -149,38 +126,88 @@ def replay(
             max_gap_seconds=max_gap_seconds,
             horizon=(desc.get("run") or {}).get("horizon"),
         )
-        est_topic = MSG.resolve_topic(MSG.estimate_topic(method), namespace)
-        cov_topic = MSG.resolve_topic(MSG.covariance_topic(method), namespace)
-        counts[method], rejected[method], skipped[method], spent = 0, 0, 0, 0.0
-        for _, t, raw in observations:
-            t0 = time.perf_counter()
-            now = t * 1e-9 if order == "recorded" else 0.0  # the receive time: held jumps time out as live
-            try:
-                results = online.poll(now) + online.feed(raw, now)
-            except MessageError:
-                rejected[method] += 1
-                continue
-            finally:
-                spent += time.perf_counter() - t0
-            for res in results:
-                counts[method] += _collect(res, t, est_topic, cov_topic, out_msgs, skipped, method)
-        t_end = observations[-1][1] if observations else 0
-        for res in online.flush():
-            counts[method] += _collect(res, t_end, est_topic, cov_topic, out_msgs, skipped, method)
-        seconds[method] = spent
+        counts[method], rejected[method], skipped[method] = 0, 0, 0
+        seconds[method] = _run_method(
+            online, method, namespace, observations, order, out_msgs, counts, rejected, skipped
+        )
 
+    _write_atomically(bag_out, kept_topics, out_msgs, scen_topic, methods, options, overwrite)
+    return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
+
+
+def _read_input(bag_in: Path, methods, namespace: str, obs_topic: str, scen_topic: str, description, force: bool):
+    """The input bag read once: the scenario description to run on, the connections kept in the output
+    (all but the replayed methods' estimate and covariance streams) and their messages in bag order."""
+    replaced = {MSG.resolve_topic(MSG.estimate_topic(m), namespace) for m in methods}
+    replaced |= {MSG.resolve_topic(MSG.covariance_topic(m), namespace) for m in methods}
+    with open_bag(bag_in) as bag:
+        bag.connection(obs_topic, MSG.JOINT_STATE)
+        desc = _description(bag, bag_in, scen_topic, description, force)
+        kept_topics = [c for c in bag.connections if c.topic not in replaced]
+        passthrough = [(conn.topic, t, raw) for conn, t, raw in bag.messages([c.topic for c in kept_topics])]
+    if desc is None:
+        raise BagError(f"{bag_in}: no message on {scen_topic}: name the scenario (--scenario NAME [--set ...])")
+    return desc, kept_topics, passthrough
+
+
+def _ordered_observations(passthrough: list, obs_topic: str, order: str) -> list:
+    """The observations in recorded order (as a live node receives them), or by in-band identity."""
+    observations = []
+    for i, (topic, t, raw) in enumerate(passthrough):
+        if topic != obs_topic:
+            continue
+        key: tuple[int, int, int] = (0, 0, i)
+        if order == "identity":
+            try:
+                vec = MSG.decode_vector(raw)
+                key = (vec.trajectory, vec.step, i)
+            except MessageError:
+                key = (-1, -1, i)  # unparsable ones keep bag order
+        observations.append((key, t, raw))
+    observations.sort(key=lambda o: o[0])
+    return observations
+
+
+def _run_method(
+    online: OnlineEstimator, method: str, namespace: str, observations: list, order: str, out_msgs: list, *tallies
+) -> float:
+    """One method over every observation, its estimates appended to ``out_msgs``; ``tallies`` are the
+    (counts, rejected, skipped) dicts it adds to. Returns the seconds spent in the estimator."""
+    counts, rejected, skipped = tallies
+    est_topic = MSG.resolve_topic(MSG.estimate_topic(method), namespace)
+    cov_topic = MSG.resolve_topic(MSG.covariance_topic(method), namespace)
+    spent = 0.0
+    for _, t, raw in observations:
+        t0 = time.perf_counter()
+        now = t * 1e-9 if order == "recorded" else 0.0  # the receive time: held jumps time out as live
+        try:
+            results = online.poll(now) + online.feed(raw, now)
+        except MessageError:
+            rejected[method] += 1
+            continue
+        finally:
+            spent += time.perf_counter() - t0
+        for res in results:
+            counts[method] += _collect(res, t, est_topic, cov_topic, out_msgs, skipped, method)
+    t_end = observations[-1][1] if observations else 0
+    for res in online.flush():
+        counts[method] += _collect(res, t_end, est_topic, cov_topic, out_msgs, skipped, method)
+    return spent
+
+
+def _write_atomically(bag_out: Path, kept_topics: list, out_msgs: list, scen_topic: str, methods, options, overwrite):
+    """The output bag written complete or not at all: a full disk leaves no partial bag under the name
+    asked for."""
     qos = {c.topic: topic_qos(c.topic, c.offered_qos_profiles) for c in kept_topics}
     types = {c.topic: c for c in kept_topics}
     out_msgs.sort(key=lambda m: m[1])  # stable: per time, input order then methods in order
     if Path(bag_out).exists() and not overwrite:
         raise BagError(f"{bag_out}: file exists (pass overwrite=True to replace it)")
     try:
-        # complete or absent: a full disk leaves no partial bag under the name asked for
         with replaced_atomically(bag_out) as tmp:
             _write_output(tmp, types, qos, out_msgs, scen_topic, methods, options)
     except BagError as exc:
         raise BagError(str(exc).replace(str(temporary_name(Path(bag_out))), str(bag_out))) from None
-    return ReplayResult(bag_out, len(observations), counts, seconds, rejected, skipped)
 
 
 def _write_output(path: Path, types: dict, qos: dict, out_msgs: list, scen_topic: str, methods, options) -> None:

@@ -374,15 +374,10 @@ def compute_metrics(
             warm-up that leaves no step to evaluate.
     """
     x_true, x_hat = check_pair(x_true, x_hat)
+    warmup, every_step, x_true, x_hat, P_hat, nees_values, diverged = _cut_warmup(
+        warmup, x_true, x_hat, angle_states, P_hat, nees_values, diverged, threshold
+    )
     n, t, dx = x_true.shape
-    if isinstance(warmup, bool) or int(warmup) != warmup or not 0 <= int(warmup) < t:
-        raise MetricsError(f"warmup must be an integer in [0, {t}) for {t} timesteps, got {warmup!r}")
-    warmup = int(warmup)
-    every_step = None
-    if warmup:
-        every_step = kept_rmse(errors(x_true, x_hat, angle_states), diverged, threshold)
-        x_true, x_hat, P_hat, nees_values, diverged = _after_warmup(warmup, x_true, x_hat, P_hat, nees_values, diverged)
-        t = t - warmup
     if not np.isfinite(x_true).all():
         raise MetricsError("x_true holds non-finite values; ground truth must be finite")
     s = _resolve_spread(x_true, spread)  # (dx,)
@@ -392,6 +387,47 @@ def compute_metrics(
         sq = e * e  # (N, T, dx)
         Md = sq.mean(axis=1)  # (N, dx) per-trajectory, per-component MSE
     M = Md.mean(axis=1)  # (N,) the paper's M_n
+    div, out = _flags(x_hat, M, diverged, threshold)
+    kept = ~out
+    common = report_fields(M, Md, s, div, out, warmup, every_step)
+    if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
+        return all_diverged_report(t, dx, P_hat is not None or nees_values is not None, common)
+
+    msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories (rmse = rmse_kept)
+    abs_e = np.abs(e[kept])  # (|K|, T, dx)
+    rmse_t = np.sqrt(sq[kept].mean(axis=(0, 2)))  # (T,)
+    return MetricReport(
+        rmse=float(np.sqrt(msd.mean())),
+        nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
+        mae=float(abs_e.mean()),
+        medae=float(np.median(abs_e)),
+        auc=auc(rmse_t),
+        drift_ratio=drift_ratio(rmse_t),
+        outlier_ratio=int(out.sum()) / n,
+        rmse_t=rmse_t,
+        rmse_components=tuple(float(v) for v in np.sqrt(msd)),
+        **_covariance_part(e, P_hat, nees_values, kept),
+        **common,
+    )
+
+
+def _cut_warmup(warmup, x_true, x_hat, angle_states, P_hat, nees_values, diverged, threshold) -> tuple:
+    """The warm-up checked and left out: (warmup, the every-step RMSE or None, x_true, x_hat, P_hat,
+    nees_values, diverged) from step ``warmup`` on (see :func:`_after_warmup`)."""
+    t = x_true.shape[1]
+    if isinstance(warmup, bool) or int(warmup) != warmup or not 0 <= int(warmup) < t:
+        raise MetricsError(f"warmup must be an integer in [0, {t}) for {t} timesteps, got {warmup!r}")
+    warmup = int(warmup)
+    if not warmup:
+        return warmup, None, x_true, x_hat, P_hat, nees_values, diverged
+    every_step = kept_rmse(errors(x_true, x_hat, angle_states), diverged, threshold)
+    return (warmup, every_step, *_after_warmup(warmup, x_true, x_hat, P_hat, nees_values, diverged))
+
+
+def _flags(x_hat: np.ndarray, M: np.ndarray, diverged, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """(diverged, outlier) masks (N,): non-finite estimates, overflowing M_n or a caller's flag
+    diverge; a diverged trajectory is always an outlier."""
+    n = M.shape[0]
     div = diverged_mask(x_hat) | ~np.isfinite(M)  # overflowing squared errors are divergence too
     if diverged is not None:
         extra = np.asarray(diverged, dtype=bool)
@@ -399,12 +435,17 @@ def compute_metrics(
             raise MetricsError(f"diverged must be ({n},), got {extra.shape}")
         div = div | extra
     M_rule = np.where(div, np.inf, M)  # diverged -> non-finite -> always flagged
-    out = outlier_mask(M_rule, threshold)  # (N,)
-    kept = ~out
-    n_div = int(div.sum())
-    full_rmse = math.inf if n_div else float(np.sqrt(M.mean()))
-    common = dict(
-        full_rmse=full_rmse,
+    return div, outlier_mask(M_rule, threshold)
+
+
+def report_fields(M, Md, s, div, out, warmup: int, every_step: float | None) -> dict:
+    """The report's fields computed alike whether or not any trajectory is kept (``M`` (N,) the M_n,
+    ``Md`` (N, dx), ``s`` the spread, ``div`` and ``out`` the diverged and outlier masks); the
+    in-memory and the streaming scorer share them."""
+    n, kept, n_div = M.shape[0], ~out, int(div.sum())
+    rmse_kept = math.inf if not kept.any() else float(np.sqrt(Md[kept].mean(axis=0).mean()))
+    return dict(
+        full_rmse=math.inf if n_div else float(np.sqrt(M.mean())),
         nrmse=math.inf if n_div else trajectory_mean_nrmse(Md, s),
         diverged_ratio=n_div / n,
         n_trajectories=n,
@@ -415,33 +456,34 @@ def compute_metrics(
         outlier_idx=np.flatnonzero(out),
         diverged_idx=np.flatnonzero(div),
         warmup=warmup,
+        rmse_every_step=rmse_kept if every_step is None else every_step,
     )
-    rmse_kept = math.inf if not kept.any() else float(np.sqrt(Md[kept].mean(axis=0).mean()))
-    common["rmse_every_step"] = rmse_kept if every_step is None else every_step
 
-    if not kept.any():  # every trajectory diverged: explicit inf / NaN, no crash
-        has_p = P_hat is not None or nees_values is not None
-        na = math.nan if has_p else None
-        return MetricReport(
-            rmse=math.inf,
-            nrmse_spread=math.inf,
-            mae=math.inf,
-            medae=math.inf,
-            auc=math.inf,
-            drift_ratio=math.nan,
-            outlier_ratio=math.nan,
-            rmse_t=np.full(t, np.inf),
-            nees_median=na,
-            nees=na,
-            coverage95=na,
-            cov_degenerate=na,
-            rmse_components=(math.inf,) * dx,
-            **common,
-        )
 
-    msd = Md[kept].mean(axis=0)  # (dx,) MSE per component over kept trajectories (rmse = rmse_kept)
-    abs_e = np.abs(e[kept])  # (|K|, T, dx)
-    rmse_t = np.sqrt(sq[kept].mean(axis=(0, 2)))  # (T,)
+def all_diverged_report(t: int, dx: int, has_p: bool, common: dict) -> MetricReport:
+    """The report when no trajectory is kept: inf errors, NaN ratios (covariance metrics NaN if any)."""
+    na = math.nan if has_p else None
+    return MetricReport(
+        rmse=math.inf,
+        nrmse_spread=math.inf,
+        mae=math.inf,
+        medae=math.inf,
+        auc=math.inf,
+        drift_ratio=math.nan,
+        outlier_ratio=math.nan,
+        rmse_t=np.full(t, np.inf),
+        nees_median=na,
+        nees=na,
+        coverage95=na,
+        cov_degenerate=na,
+        rmse_components=(math.inf,) * dx,
+        **common,
+    )
+
+
+def _covariance_part(e: np.ndarray, P_hat, nees_values, kept: np.ndarray) -> dict[str, float | None]:
+    """The covariance metrics from ``P_hat`` or precomputed ``nees_values`` (all None without either)."""
+    n, t, dx = e.shape
     cov_metrics: dict[str, float | None] = dict.fromkeys(COVARIANCE_METRICS)
     if P_hat is not None:
         P_hat = np.asarray(P_hat, dtype=np.float64)
@@ -456,19 +498,7 @@ def compute_metrics(
         every = np.where(np.isnan(nees_values), np.inf, nees_values)  # a step without a NEES is not covered
         cov_metrics["coverage_curve_all"] = _coverage_curve(every, dx)
         cov_metrics["nees_median_all"] = float(np.median(every))
-    return MetricReport(
-        rmse=float(np.sqrt(msd.mean())),
-        nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
-        mae=float(abs_e.mean()),
-        medae=float(np.median(abs_e)),
-        auc=auc(rmse_t),
-        drift_ratio=drift_ratio(rmse_t),
-        outlier_ratio=int(out.sum()) / n,
-        rmse_t=rmse_t,
-        rmse_components=tuple(float(v) for v in np.sqrt(msd)),
-        **cov_metrics,
-        **common,
-    )
+    return cov_metrics
 
 
 def _after_warmup(warmup: int, x_true, x_hat, P_hat, nees_values, diverged) -> tuple:

@@ -129,17 +129,7 @@ def labelled_metrics(
     per_t = m_k.sum(axis=0)  # kept trajectories labelled at each step
     with np.errstate(invalid="ignore", divide="ignore"):
         rmse_t = np.where(per_t > 0, np.sqrt(sq_k.sum(axis=(0, 2)) / (np.maximum(per_t, 1) * dx)), np.nan)
-    cov: dict = {}
-    if P_hat is not None:
-        P = np.asarray(P_hat, dtype=np.float64)
-        if P.shape != (n, t, dx, dx):
-            raise D.MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P.shape}")
-        nees_values = D.nees(e_all, P)
-    if nees_values is not None:
-        eps = np.asarray(nees_values, dtype=np.float64)
-        if eps.shape != (n, t):
-            raise D.MetricsError(f"nees_values must be {(n, t)}, got {eps.shape}")
-        cov = D.covariance_metrics(eps[:, warmup:][scored][kept][m_k][None, :], dx)  # labelled kept steps
+    cov = _labelled_covariance(e_all, P_hat, nees_values, warmup, scored, kept, m_k)
     return D.MetricReport(
         rmse=float(np.sqrt(msd.mean())),
         nrmse_spread=float(np.sqrt(np.mean(msd / s**2))),
@@ -153,6 +143,23 @@ def labelled_metrics(
         **cov,
         **common,
     )
+
+
+def _labelled_covariance(e_all, P_hat, nees_values, warmup: int, scored, kept, m_k) -> dict:
+    """The covariance metrics over the labelled steps of the kept trajectories after the warm-up, from
+    ``P_hat`` (N, T, dx, dx) or precomputed ``nees_values`` (N, T); {} without either."""
+    n, t, dx = e_all.shape
+    if P_hat is not None:
+        P = np.asarray(P_hat, dtype=np.float64)
+        if P.shape != (n, t, dx, dx):
+            raise D.MetricsError(f"P_hat must be {(n, t, dx, dx)}, got {P.shape}")
+        nees_values = D.nees(e_all, P)
+    if nees_values is None:
+        return {}
+    eps = np.asarray(nees_values, dtype=np.float64)
+    if eps.shape != (n, t):
+        raise D.MetricsError(f"nees_values must be {(n, t)}, got {eps.shape}")
+    return D.covariance_metrics(eps[:, warmup:][scored][kept][m_k][None, :], dx)  # labelled kept steps
 
 
 def _kept_rmse(e: np.ndarray, m: np.ndarray, div: np.ndarray, threshold: float) -> float:

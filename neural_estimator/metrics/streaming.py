@@ -164,40 +164,10 @@ class BlockScorer:
         out = outlier_mask(np.where(div, np.inf, m), self.threshold)
         kept = ~out
         self.kept = kept
-        n_div = int(div.sum())
-        common = dict(
-            full_rmse=math.inf if n_div else float(np.sqrt(m.mean())),
-            nrmse=math.inf if n_div else D.trajectory_mean_nrmse(md, s),
-            diverged_ratio=n_div / n,
-            n_trajectories=n,
-            n_outliers=int(out.sum()),
-            n_diverged=n_div,
-            all_diverged=n_div == n,
-            spread=s,
-            outlier_idx=np.flatnonzero(out),
-            diverged_idx=np.flatnonzero(div),
-            warmup=self.warmup,
-        )
-        rmse_kept = math.inf if not kept.any() else float(np.sqrt(md[kept].mean(axis=0).mean()))
-        common["rmse_every_step"] = self._every_step_rmse() if self.warmup else rmse_kept
+        every_step = self._every_step_rmse() if self.warmup else None
+        common = D.report_fields(m, md, s, div, out, self.warmup, every_step)
         if not kept.any():
-            na = math.nan if self.covariance else None
-            return D.MetricReport(
-                rmse=math.inf,
-                nrmse_spread=math.inf,
-                mae=math.inf,
-                medae=math.inf,
-                auc=math.inf,
-                drift_ratio=math.nan,
-                outlier_ratio=math.nan,
-                rmse_t=np.full(t, np.inf),
-                nees_median=na,
-                nees=na,
-                coverage95=na,
-                cov_degenerate=na,
-                rmse_components=(math.inf,) * dx,
-                **common,
-            )
+            return D.all_diverged_report(t, dx, bool(self.covariance), common)
         k = int(kept.sum())
         msd = md[kept].mean(axis=0)  # (dx,)
         rmse_t = np.sqrt(self._sq.sum_rows(kept) / (k * dx))  # (T,)

@@ -114,70 +114,14 @@ def export_step(
         return (mean,), _flatten(new)
 
     if normalizer is None:
-
-        class Step(torch.nn.Module):
-            def __init__(self) -> None:
-                super().__init__()
-                self.model = model
-
-            def forward(self, z, *state):
-                outs, new = network(z, state)
-                return (*outs, *new)
-
-        args: tuple = (torch.zeros(1, d_in), *flat)
-        names_in, names_out = ["z"], ["mean"] + (["cov"] if with_cov else [])
+        step, args, names_in, names_out = _network_module(model, network, flat, with_cov, d_in)
     else:
-        n = normalizer
-        dy, du = int(n.dy), int(n.du)
-
-        def t(a):
-            return torch.as_tensor(np.asarray(a, dtype=np.float64)).reshape(1, -1)
-
-        in_mean, in_std, out_mean, out_std = t(n.in_mean), t(n.in_std), t(n.out_mean), t(n.out_std)
-
-        class Step(torch.nn.Module):  # the arithmetic of Normalizer.normalize_inputs / denormalize_states
-            def __init__(self) -> None:
-                super().__init__()
-                self.model = model
-
-            def forward(self, y, *rest):
-                u, state = (rest[0], rest[1:]) if du else (None, rest)
-                finite = torch.isfinite(y).all(dim=-1, keepdim=True)  # (1, 1)
-                zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], torch.zeros_like(y))
-                z = torch.cat([zy, (u - in_mean[:, dy:]) / in_std[:, dy:]], dim=-1) if du else zy
-                outs, new = network(z.float(), state)
-                x = outs[0].double() * out_std + out_mean
-                if with_cov:  # diag(sigma_x) C diag(sigma_x), as Normalizer.denormalize_covariance
-                    cov = outs[1].double() * (out_std.reshape(1, -1, 1) * out_std.reshape(1, 1, -1))
-                    return (x, cov, ~finite, *new)
-                return (x, ~finite, *new)
-
-        args = (torch.zeros(1, dy, dtype=torch.float64),)
-        args += (torch.zeros(1, du, dtype=torch.float64),) if du else ()
-        args += tuple(flat)
-        names_in = ["y"] + (["u"] if du else [])
-        names_out = ["x"] + (["covariance"] if with_cov else []) + ["skipped"]
-
+        step, args, names_in, names_out = _estimator_module(model, network, flat, with_cov, normalizer)
     _register_symbolics()
     names_in = names_in + [f"state_{i}" for i in range(len(flat))]
     names_out = names_out + [f"new_state_{i}" for i in range(len(flat))]
-    buf = io.BytesIO()
-    try:
-        with torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the exporter's notes on batch sizes and its deprecation
-            torch.onnx.export(
-                Step().eval(),
-                args,
-                buf,
-                input_names=names_in,
-                output_names=names_out,
-                opset_version=OPSET,
-                dynamo=False,
-            )
-    except ImportError as exc:
-        raise OnnxError(f"exporting needs the onnx package ({exc}): pip install onnx") from None
     data = _with_metadata(
-        buf.getvalue(),
+        _exported(step, args, names_in, names_out),
         {
             "method": method,
             "initial_fill": json.dumps(fills),
@@ -190,6 +134,83 @@ def export_step(
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+def _network_module(model: Any, network, flat: list, with_cov: bool, d_in: int) -> tuple:
+    """The network alone as a module (z float32 in, mean float32 out): (module, example inputs,
+    input names, output names), the state's names not yet appended."""
+    import torch
+
+    class Step(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, z, *state):
+            outs, new = network(z, state)
+            return (*outs, *new)
+
+    args: tuple = (torch.zeros(1, d_in), *flat)
+    return Step(), args, ["z"], ["mean"] + (["cov"] if with_cov else [])
+
+
+def _estimator_module(model: Any, network, flat: list, with_cov: bool, normalizer: Any) -> tuple:
+    """The whole estimator step, the checkpoint's normalisation around the network, as a module:
+    (module, example inputs, input names, output names), the state's names not yet appended."""
+    import torch
+
+    n = normalizer
+    dy, du = int(n.dy), int(n.du)
+
+    def t(a):
+        return torch.as_tensor(np.asarray(a, dtype=np.float64)).reshape(1, -1)
+
+    in_mean, in_std, out_mean, out_std = t(n.in_mean), t(n.in_std), t(n.out_mean), t(n.out_std)
+
+    class Step(torch.nn.Module):  # the arithmetic of Normalizer.normalize_inputs / denormalize_states
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, y, *rest):
+            u, state = (rest[0], rest[1:]) if du else (None, rest)
+            finite = torch.isfinite(y).all(dim=-1, keepdim=True)  # (1, 1)
+            zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], torch.zeros_like(y))
+            z = torch.cat([zy, (u - in_mean[:, dy:]) / in_std[:, dy:]], dim=-1) if du else zy
+            outs, new = network(z.float(), state)
+            x = outs[0].double() * out_std + out_mean
+            if with_cov:  # diag(sigma_x) C diag(sigma_x), as Normalizer.denormalize_covariance
+                cov = outs[1].double() * (out_std.reshape(1, -1, 1) * out_std.reshape(1, 1, -1))
+                return (x, cov, ~finite, *new)
+            return (x, ~finite, *new)
+
+    args: tuple = (torch.zeros(1, dy, dtype=torch.float64),)
+    args += (torch.zeros(1, du, dtype=torch.float64),) if du else ()
+    args += tuple(flat)
+    names_in = ["y"] + (["u"] if du else [])
+    return Step(), args, names_in, ["x"] + (["covariance"] if with_cov else []) + ["skipped"]
+
+
+def _exported(step: Any, args: tuple, names_in: list[str], names_out: list[str]) -> bytes:
+    """torch's (TorchScript) exporter on ``step`` at :data:`OPSET`: the graph's bytes."""
+    import torch
+
+    buf = io.BytesIO()
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the exporter's notes on batch sizes and its deprecation
+            torch.onnx.export(
+                step.eval(),
+                args,
+                buf,
+                input_names=names_in,
+                output_names=names_out,
+                opset_version=OPSET,
+                dynamo=False,
+            )
+    except ImportError as exc:
+        raise OnnxError(f"exporting needs the onnx package ({exc}): pip install onnx") from None
+    return buf.getvalue()
 
 
 def _with_metadata(data: bytes, props: dict[str, str]) -> bytes:

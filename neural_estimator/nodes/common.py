@@ -13,6 +13,7 @@ import dataclasses
 import gc
 import importlib
 import os
+import time
 import typing
 from collections.abc import Callable
 from pathlib import Path
@@ -174,6 +175,28 @@ def message_class(msgtype: str) -> type:
     if not is_message_class(cls, name):
         raise InterfaceError(f"message type {msgtype!r}: {package}.msg.{name} is not a ROS message class")
     return cls
+
+
+def subscribable_class(node: Node, topic: str, msgtype: str, refused: set[str], what: str) -> type | None:
+    """The class to subscribe ``topic`` with (:func:`message_class` of the type it is published with),
+    or None where the type is refused: one ERROR line the first time (``'<topic>': <why>; not <what>``),
+    the topic then kept in ``refused`` (the evaluator and the robot estimator alike)."""
+    try:
+        return message_class(msgtype)
+    except InterfaceError as exc:
+        if topic not in refused:
+            refused.add(topic)
+            node.get_logger().error(f"'{topic}': {exc}; not {what}")
+        return None
+
+
+def warn_throttled(node: Node, last_log: dict[str, float], kind: str, text: str, every: float) -> None:
+    """``text`` as one WARN line of ``node``, unless a warning of the same ``kind`` went out less than
+    ``every`` seconds ago (``last_log``: kind -> when its last one went out, monotonic seconds)."""
+    now = time.monotonic()
+    if now - last_log.get(kind, -1e9) >= every:
+        last_log[kind] = now
+        node.get_logger().warning(text)
 
 
 # ---- scenarios -----------------------------------------------------------------------------------------

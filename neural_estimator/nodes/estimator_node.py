@@ -60,7 +60,7 @@ from std_srvs.srv import Trigger
 from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
 from neural_estimator.methods import table
-from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
+from neural_estimator.methods.registry import EstimatorError, check_method
 from neural_estimator.nodes.common import (
     ExitStatusNode,
     StartupError,
@@ -71,16 +71,17 @@ from neural_estimator.nodes.common import (
     load_plugins,
     peek_param,
     run_node,
-    settle_heap,
     stream_qos,
     trim_heap,
+    warn_throttled,
 )
 from neural_estimator.nodes.diagnostics import InputDiagnosticsParams, hardware_id, status_message
 from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_values, health, stats_summary
 from neural_estimator.nodes.heap_trace import HeapTrace
-from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs, SetPose
-from neural_estimator.nodes.estimator_params import OBSERVATION_QOS, EstimatorParams, online_estimator
-from neural_estimator.stream.online import OnlineEstimator, warm_up
+from neural_estimator.nodes.outputs import OutputParams, SetPose
+from neural_estimator.nodes.estimator_params import EstimatorParams
+from neural_estimator.nodes.estimator_setup import build_online, checked_method, publish_result, standard_outputs
+from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.serving.card import recorded_data_checkpoint
 
 EARLY_MAX_BYTES = 1 << 20  # an observation kept while waiting for the scenario (width unknown yet): 1 MiB
@@ -96,18 +97,7 @@ class EstimatorNode(ExitStatusNode):
         self.p = p = declare_params(self, EstimatorParams)
         self.po = declare_params(self, OutputParams)
         self.pd = declare_params(self, InputDiagnosticsParams)
-        try:
-            self.method = check_method(p.method)
-        except EstimatorError as exc:
-            raise StartupError(str(exc)) from None
-        if p.checkpoint and not _exists(p.checkpoint):
-            raise StartupError(f"checkpoint {p.checkpoint!r} does not exist")
-        if p.observation_qos not in OBSERVATION_QOS:
-            raise StartupError(
-                f"parameter observation_qos must be one of {', '.join(OBSERVATION_QOS)}, got {p.observation_qos!r}"
-            )
-        if p.history_mb <= 0 or p.history_depth < 1:
-            raise StartupError("history_depth must be >= 1 and history_mb > 0")
+        self.method = checked_method(p)
         load_plugins(p.plugins)
         self.online: OnlineEstimator | None = None
         self.out_topic = p.output_topic or MSG.estimate_topic(self.method)
@@ -176,25 +166,7 @@ class EstimatorNode(ExitStatusNode):
     # ---- setup -------------------------------------------------------------------------------------
     def _build(self, scenario, horizon: int | None = None) -> None:
         p = self.p
-        try:
-            options = dict(item.split("=", 1) for item in p.options)
-        except ValueError:
-            raise StartupError(f"options must be name=value, got {list(p.options)}") from None
-        if p.init != "prior" and table.has(self.method, takes_init=True):
-            options.setdefault("init", p.init)
-        try:
-            options = per_message_options(self.method, options)  # ONNX Runtime where step.onnx serves it
-            est = make_estimator(
-                self.method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options
-            )
-        except EstimatorError as exc:
-            raise StartupError(str(exc)) from None
-        torch = sys.modules.get("torch")  # absent when the model is served without torch (step.onnx)
-        if p.threads > 0 and table.has(self.method, uses_torch=True) and torch is not None:
-            torch.set_num_threads(p.threads)
-        warm_up(est, scenario)
-        self.online = online_estimator(est, self.method, p, horizon)
-        settle_heap()  # the model's objects, built now, out of the collector's reach
+        est, self.online = build_online(self.method, scenario, p, horizon)
         dx = scenario.dx
         self.depths = {"estimates": self._depth(dx), "covariance": self._depth(dx * dx)}
         self.pub_est = self.create_publisher(JointState, self.out_topic, stream_qos(self.depths["estimates"]))
@@ -202,21 +174,10 @@ class EstimatorNode(ExitStatusNode):
             self.pub_cov = self.create_publisher(
                 JointState, f"{self.out_topic}/{MSG.COVARIANCE_SUFFIX}", stream_qos(self.depths["covariance"])
             )
-        try:
-            self.outputs = Outputs(
-                self,
-                self.po,
-                self.out_topic,
-                stream_qos(self._depth(90)),
-                p.frame_id,
-                p.child_frame_id,
-                scenario.state_names,
-                getattr(scenario, "pose_states", {}),
-                p.publish_odometry,
-                state_qos=stream_qos(self._depth(dx * (dx + 1))),
-            )
-        except OutputError as exc:
-            raise StartupError(str(exc)) from None
+        state_qos = stream_qos(self._depth(dx * (dx + 1)))
+        self.outputs = standard_outputs(
+            self, self.po, p, self.out_topic, stream_qos(self._depth(90)), scenario, state_qos=state_qos
+        )
         self.get_logger().info(
             f"{self.method} on {scenario.name} (dx={scenario.dx}, dy={scenario.dy}, du={scenario.du}): "
             f"'{self.resolve_topic_name(p.observation_topic)}' -> "
@@ -468,10 +429,7 @@ class EstimatorNode(ExitStatusNode):
         s.record(time.perf_counter() - t0)
 
     def _publish(self, res) -> None:
-        self.pub_est.publish(res.estimate)
-        if res.covariance is not None and self.pub_cov is not None:
-            self.pub_cov.publish(res.covariance)
-        self.outputs.publish(res.stamp_ns, res.x_hat, res.P)
+        publish_result(res, self.pub_est, self.pub_cov, self.outputs)
         self.set_pose.last = res.x_hat
 
     def _on_reset(self, request, response):
@@ -543,16 +501,7 @@ class EstimatorNode(ExitStatusNode):
         return self.exit_code
 
     def _warn(self, kind: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_log.get(kind, -1e9) >= self.p.log_throttle:
-            self._last_log[kind] = now
-            self.get_logger().warning(text)
-
-
-def _exists(path: str) -> bool:
-    from pathlib import Path
-
-    return Path(path).exists()
+        warn_throttled(self, self._last_log, kind, text, self.p.log_throttle)
 
 
 def _make_node() -> ExitStatusNode:

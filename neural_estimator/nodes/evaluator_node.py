@@ -54,15 +54,15 @@ from neural_estimator.nodes.outputs import is_output_topic
 from neural_estimator.nodes.run_identity import RunIdentity
 from neural_estimator.nodes.common import (
     ExitStatusNode,
-    InterfaceError,
     StartupError,
     declare_params,
-    message_class,
     param,
     request_shutdown,
     run_node,
+    subscribable_class,
     to_bag_qos,
     trim_heap,
+    warn_throttled,
 )
 
 
@@ -231,12 +231,8 @@ class EvaluatorNode(ExitStatusNode):
                 if all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
                 else DurabilityPolicy.VOLATILE,
             )
-            try:
-                cls = message_class(msgtype)
-            except InterfaceError as exc:
-                if name not in self._refused:
-                    self._refused.add(name)
-                    self.get_logger().error(f"'{name}': {exc}; not recorded")
+            cls = subscribable_class(self, name, msgtype, self._refused, "recorded")
+            if cls is None:
                 continue
             self.bag.add_topic(name, msgtype, qos=[to_bag_qos(q) for q in offered])
             self.counts[name] = 0
@@ -377,10 +373,7 @@ class EvaluatorNode(ExitStatusNode):
         self._finish()
 
     def _warn(self, kind: str, text: str, every: float = 2.0) -> None:
-        now = time.monotonic()
-        if now - self._last_log.get(kind, -1e9) >= every:
-            self._last_log[kind] = now
-            self.get_logger().warning(text)
+        warn_throttled(self, self._last_log, kind, text, every)
 
     def _close(self) -> None:
         if self.closed or self._closing:

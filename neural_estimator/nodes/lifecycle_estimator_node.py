@@ -16,13 +16,15 @@ have (configure twice, activate before configure, cleanup while active), request
 ``change_state`` service by id or label, is answered ``success=False`` with one WARN line naming
 the state and the transitions it has; the node stays where it was. Same parameters as the estimator node
 (``params/estimator.yaml``), except that ``scenario`` must be given: configure needs the system.
-The per-message work is :class:`neural_estimator.stream.online.OnlineEstimator`, as in the estimator node.
+Configure and activate run the estimator node's own setup (:mod:`neural_estimator.nodes.estimator_setup`:
+the same checks of the parameters, method options, ``init``, ``preset``, ``threads`` and warm-up, the
+same standard outputs), and the per-message work is :class:`neural_estimator.stream.online.OnlineEstimator`,
+as in the estimator node.
 """
 
 from __future__ import annotations
 
 import sys
-import time
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -30,18 +32,19 @@ from sensor_msgs.msg import JointState
 
 from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import MessageError
-from neural_estimator.methods.registry import EstimatorError, check_method, make_estimator, per_message_options
+from neural_estimator.methods.registry import EstimatorError
 from neural_estimator.nodes.common import (
     StartupError,
     build_scenario,
     declare_params,
     load_plugins,
     run_node,
-    settle_heap,
     stream_qos,
+    warn_throttled,
 )
-from neural_estimator.nodes.estimator_params import EstimatorParams, online_estimator
-from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
+from neural_estimator.nodes.estimator_params import EstimatorParams
+from neural_estimator.nodes.estimator_setup import build_online, checked_method, publish_result, standard_outputs
+from neural_estimator.nodes.outputs import OutputParams, Outputs
 from neural_estimator.stream.online import OnlineEstimator
 
 
@@ -54,7 +57,7 @@ class LifecycleEstimatorNode(LifecycleNode):
         self.entities: list = []  # publishers and the subscription of the active state
         self.outputs: Outputs | None = None
         self.counts = {"estimates": 0, "bad": 0, "skipped": 0}
-        self._last_log = 0.0
+        self._last_log: dict[str, float] = {}
         # rclpy's change_state service triggers a transition id without checking that the current
         # state has it; the state machine then raises "Transition is not registered" out of the
         # service callback, which kills the node. The check goes in front of that callback.
@@ -80,27 +83,18 @@ class LifecycleEstimatorNode(LifecycleNode):
     # ---- transitions ---------------------------------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         p = self.p
-        try:
-            method = check_method(p.method)
+        try:  # the estimator node's setup (estimator_setup), here at configure
+            method = checked_method(p)
             if not p.scenario:
                 raise StartupError("parameter scenario is required by the lifecycle estimator (configure builds it)")
             load_plugins(p.plugins)
-            scenario = build_scenario(p.scenario, p.set)
-            options = dict(item.split("=", 1) for item in p.options)
-            est = make_estimator(
-                method,
-                scenario,
-                checkpoint=p.checkpoint or None,
-                device=p.device,
-                seed=p.seed,
-                **per_message_options(method, options),
-            )
+            scenario = build_scenario(p.scenario, p.set, preset=p.preset)
+            _, online = build_online(method, scenario, p)
         except (EstimatorError, StartupError, ValueError) as exc:
             self.get_logger().error(f"configure failed: {exc}")
             return TransitionCallbackReturn.FAILURE
         self.method = method
-        self.online = online_estimator(est, method, p)
-        settle_heap()  # the model's objects, built now, out of the collector's reach
+        self.online = online
         self.get_logger().info(f"configured: {method} on {scenario.name}")
         return TransitionCallbackReturn.SUCCESS
 
@@ -109,18 +103,8 @@ class LifecycleEstimatorNode(LifecycleNode):
         out = p.output_topic or MSG.estimate_topic(self.method)
         qos = stream_qos(p.history_depth)
         try:
-            self.outputs = Outputs(
-                self,
-                self.po,
-                out,
-                qos,
-                p.frame_id,
-                p.child_frame_id,
-                scenario.state_names,
-                getattr(scenario, "pose_states", {}),
-                p.publish_odometry,
-            )
-        except OutputError as exc:
+            self.outputs = standard_outputs(self, self.po, p, out, qos, scenario)
+        except StartupError as exc:
             self.get_logger().error(f"activate failed: {exc}")
             return TransitionCallbackReturn.FAILURE
         self.pub_est = self.create_publisher(JointState, out, qos)
@@ -209,17 +193,11 @@ class LifecycleEstimatorNode(LifecycleNode):
             if res.status != "estimated":
                 self.counts["skipped"] += 1
                 continue
-            self.pub_est.publish(res.estimate)
-            if res.covariance is not None and self.pub_cov is not None:
-                self.pub_cov.publish(res.covariance)
-            self.outputs.publish(res.stamp_ns, res.x_hat, res.P)
+            publish_result(res, self.pub_est, self.pub_cov, self.outputs)
             self.counts["estimates"] += 1
 
     def _warn(self, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_log >= self.p.log_throttle:
-            self._last_log = now
-            self.get_logger().warning(text)
+        warn_throttled(self, self._last_log, "observation", text, self.p.log_throttle)
 
 
 def main(args: list[str] | None = None) -> int:

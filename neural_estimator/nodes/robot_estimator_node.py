@@ -47,19 +47,20 @@ from neural_estimator.nodes.diagnostics import (
     parse_rates,
     status_message,
 )
-from neural_estimator.nodes.outputs import OutputError, OutputParams, Outputs
+from neural_estimator.nodes.estimator_setup import standard_outputs
+from neural_estimator.nodes.outputs import OutputParams
 from neural_estimator.robot.spec import SpecError, topic_values
 from neural_estimator.robot.dataset import message_stamp
 from neural_estimator.robot.ticker import TickEstimate, Ticker
 from neural_estimator.nodes.common import (
     ExitStatusNode,
-    InterfaceError,
     StartupError,
     declare_params,
-    message_class,
     param,
     run_node,
     stream_qos,
+    subscribable_class,
+    warn_throttled,
 )
 
 
@@ -128,20 +129,7 @@ class RobotEstimatorNode(ExitStatusNode):
         self.monitors = {t: self.pd.monitor(t, now, rates.get(t)) for t in self.fields}
         out = p.output_topic or MSG.estimate_topic(self.method)
         self.pub_est = self.create_publisher(JointState, out, stream_qos(1000))
-        try:
-            self.outputs = Outputs(
-                self,
-                self.po,
-                out,
-                stream_qos(1000),
-                p.frame_id,
-                p.child_frame_id,
-                self.scenario.state_names,
-                self.scenario.pose_states,
-                p.publish_odometry,
-            )
-        except OutputError as exc:
-            raise StartupError(str(exc)) from None
+        self.outputs = standard_outputs(self, self.po, p, out, stream_qos(1000), self.scenario)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         steady = Clock(clock_type=ClockType.STEADY_TIME)  # not /clock: discovery runs before a player's clock
         self.create_timer(p.discovery_period, self._discover, clock=steady)
@@ -165,11 +153,8 @@ class RobotEstimatorNode(ExitStatusNode):
             if topic in self.subs or topic not in types or topic in self._refused:
                 continue
             msgtype = types[topic][0]
-            try:
-                cls = message_class(msgtype)
-            except InterfaceError as exc:
-                self._refused.add(topic)
-                self.get_logger().error(f"'{topic}': {exc}; not subscribed")
+            cls = subscribable_class(self, topic, msgtype, self._refused, "subscribed")
+            if cls is None:
                 continue
             qos = QoSProfile(
                 depth=max(1, self.p.queue_depth),
@@ -208,10 +193,7 @@ class RobotEstimatorNode(ExitStatusNode):
 
     # ---- reporting ------------------------------------------------------------------------------------
     def _warn(self, kind: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_log.get(kind, -1e9) >= self.p.log_throttle:
-            self._last_log[kind] = now
-            self.get_logger().warning(text)
+        warn_throttled(self, self._last_log, kind, text, self.p.log_throttle)
 
     def _diagnostics(self) -> None:
         hwid = hardware_id(self.get_fully_qualified_name(), self.method)

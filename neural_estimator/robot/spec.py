@@ -164,6 +164,29 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
     unknown = sorted(set(raw) - known)
     if unknown:
         raise SpecError(f"{where}: unknown key(s) {unknown}; known: {sorted(known)}")
+    rate, max_age, trigger, stamp = _timing(raw, where)
+    vectors = {}
+    estimates = raw.get("estimates") or {}
+    if not isinstance(estimates, Mapping) or not all(
+        isinstance(k, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", k) for k in estimates
+    ):
+        raise SpecError(f"{where}: estimates must map names (letters, digits, _) to topic: [fields] mappings")
+    for name in (*VECTORS, *(ESTIMATE_PREFIX + k for k in estimates)):
+        entry = raw.get(name) if name in VECTORS else estimates[name[len(ESTIMATE_PREFIX) :]]
+        fields = _vector_fields(name, entry, where)
+        vectors[name] = fields
+        if name.startswith(ESTIMATE_PREFIX) and len(fields) != len(vectors["state"]):
+            raise SpecError(
+                f"{where}: {name} has {len(fields)} fields; an estimate needs one per state component "
+                f"({len(vectors['state'])})"
+            )
+    names = _labels(raw.get("names"), "names", vectors, where, default=lambda f: f.expr)
+    units = _labels(raw.get("units"), "units", vectors, where, default=lambda f: "rad" if f.is_angle else "")
+    return Spec(rate, max_age, trigger, stamp, vectors, names, units, _source(raw, estimates, where))
+
+
+def _timing(raw: dict[str, Any], where: str) -> tuple[float, float, str | None, str]:
+    """(rate, max_age, trigger, stamp) of a spec, checked."""
     rate = _positive(raw.get("rate"), "rate", where)
     if rate > MAX_RATE:
         raise SpecError(f"{where}: rate {rate:g} Hz is over the bound of {MAX_RATE:g} Hz")
@@ -174,45 +197,40 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
     stamp = raw.get("stamp", "header")
     if stamp not in STAMPS:
         raise SpecError(f"{where}: stamp must be one of {list(STAMPS)}, got {stamp!r}")
-    vectors = {}
-    estimates = raw.get("estimates") or {}
-    if not isinstance(estimates, Mapping) or not all(
-        isinstance(k, str) and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", k) for k in estimates
-    ):
-        raise SpecError(f"{where}: estimates must map names (letters, digits, _) to topic: [fields] mappings")
-    for name in (*VECTORS, *(ESTIMATE_PREFIX + k for k in estimates)):
-        entry = raw.get(name) if name in VECTORS else estimates[name[len(ESTIMATE_PREFIX) :]]
-        if entry is None:
-            if name != "control":
-                raise SpecError(f"{where}: missing {name!r} (a mapping topic: [fields])")
-            entry = {}
-        pairs = _topic_pairs(entry)
-        if pairs is None:
-            raise SpecError(f"{where}: {name!r} must map topics to lists of fields, got {type(entry).__name__}")
-        fields = []
-        for topic, exprs in pairs:
-            if not isinstance(topic, str) or not _TOPIC.fullmatch(topic):
-                raise SpecError(f"{where}: {name}: {topic!r} is not a topic name")
-            if isinstance(exprs, str):
-                exprs = [exprs]
-            if not isinstance(exprs, list) or not exprs:
-                raise SpecError(f"{where}: {name}: {topic}: expected a list of fields, got {exprs!r}")
-            fields += [parse_field(topic, e, f"{where}: {name}: {topic}") for e in exprs]
-        if name != "control" and not fields:
-            raise SpecError(f"{where}: {name!r} names no field")
-        if len(fields) > MAX_COMPONENTS:
-            raise SpecError(f"{where}: {name!r} has {len(fields)} components, more than {MAX_COMPONENTS}")
-        vectors[name] = tuple(fields)
-        if name.startswith(ESTIMATE_PREFIX) and len(fields) != len(vectors["state"]):
-            raise SpecError(
-                f"{where}: {name} has {len(fields)} fields; an estimate needs one per state component "
-                f"({len(vectors['state'])})"
-            )
-    names = _labels(raw.get("names"), "names", vectors, where, default=lambda f: f.expr)
-    units = _labels(raw.get("units"), "units", vectors, where, default=lambda f: "rad" if f.is_angle else "")
+    return rate, max_age, trigger, stamp
+
+
+def _vector_fields(name: str, entry: Any, where: str) -> tuple:
+    """The fields of vector (or estimate) ``name`` from its ``topic: [fields]`` entry, checked; an
+    absent ``control`` has none."""
+    if entry is None:
+        if name != "control":
+            raise SpecError(f"{where}: missing {name!r} (a mapping topic: [fields])")
+        entry = {}
+    pairs = _topic_pairs(entry)
+    if pairs is None:
+        raise SpecError(f"{where}: {name!r} must map topics to lists of fields, got {type(entry).__name__}")
+    fields = []
+    for topic, exprs in pairs:
+        if not isinstance(topic, str) or not _TOPIC.fullmatch(topic):
+            raise SpecError(f"{where}: {name}: {topic!r} is not a topic name")
+        if isinstance(exprs, str):
+            exprs = [exprs]
+        if not isinstance(exprs, list) or not exprs:
+            raise SpecError(f"{where}: {name}: {topic}: expected a list of fields, got {exprs!r}")
+        fields += [parse_field(topic, e, f"{where}: {name}: {topic}") for e in exprs]
+    if name != "control" and not fields:
+        raise SpecError(f"{where}: {name!r} names no field")
+    if len(fields) > MAX_COMPONENTS:
+        raise SpecError(f"{where}: {name!r} has {len(fields)} components, more than {MAX_COMPONENTS}")
+    return tuple(fields)
+
+
+def _source(raw: dict[str, Any], estimates: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """The spec as recorded (checked to be JSON): the vectors as [topic, fields] pairs, since datasets
+    and cards store the spec as JSON with sorted keys, which would lose the order of the topics (the
+    order of the model's inputs); the digest covers it."""
     source = {k: raw[k] for k in sorted(raw)}
-    # the vectors as [topic, fields] pairs: datasets and cards store the spec as JSON with sorted keys,
-    # which would lose the order of the topics (the order of the model's inputs); the digest covers it
     for name in VECTORS:
         if name in source and source[name] is not None:
             source[name] = _pairs_source(source[name])
@@ -222,7 +240,7 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
         json.dumps(source)
     except (TypeError, ValueError):
         raise SpecError(f"{where}: holds values that are not plain text, numbers or lists") from None
-    return Spec(rate, max_age, trigger, stamp, vectors, names, units, source)
+    return source
 
 
 def _topic_pairs(entry: Any) -> list[tuple[Any, Any]] | None:

@@ -155,18 +155,7 @@ def load_neural_estimator(
     if auto:
         backend = per_message_backend(directory, card, device, context, compile_step)
     if backend == "onnxruntime" and onnx_beside(directory) is not None:  # served without torch
-        if str(device).lower() not in ("cpu", "auto"):
-            raise EstimatorError(f"{m}: the exported step beside the card serves on the cpu, not {device!r}")
-        try:
-            ctx = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
-            covariance, cov_scale = (
-                parse_bool(covariance, "covariance"),
-                float(parse_value(cov_scale, 1.0, "cov_scale")),
-            )
-        except OptionError as exc:
-            raise EstimatorError(str(exc)) from None
-        if table.has(m, context="window") and context is None:
-            ctx = 0  # the window it was exported with
+        ctx, covariance, cov_scale = _onnx_options(m, card, device, context, covariance, cov_scale)
         try:
             return load_onnx_estimator(directory, card, scenario, ctx, covariance, cov_scale)
         except WindowMismatch:
@@ -202,3 +191,21 @@ def load_neural_estimator(
         backend=backend,
         cov_scale=cov_scale,
     )
+
+
+def _onnx_options(m: str, card: dict, device: str, context, covariance, cov_scale) -> tuple:
+    """(context, covariance, cov_scale) parsed for the exported step beside the card, which serves on
+    the cpu; an attention model without a ``context`` asked keeps the window it was exported with."""
+    if str(device).lower() not in ("cpu", "auto"):
+        raise EstimatorError(f"{m}: the exported step beside the card serves on the cpu, not {device!r}")
+    try:
+        ctx = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
+        covariance, cov_scale = (
+            parse_bool(covariance, "covariance"),
+            float(parse_value(cov_scale, 1.0, "cov_scale")),
+        )
+    except OptionError as exc:
+        raise EstimatorError(str(exc)) from None
+    if table.has(m, context="window") and context is None:
+        ctx = 0  # the window it was exported with
+    return ctx, covariance, cov_scale

@@ -51,17 +51,30 @@ def plan_jobs(
     """
     from neural_estimator.methods import table
 
-    def models(s: str, m: str) -> list[Job | None]:
-        """What an accuracy or noise evaluation of ``m`` evaluates: the shipped model (None) or trainings."""
-        if table.has(m, trainable=True) and scale.main_from_training:
-            return [train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances)]
-        return [None]
-
-    jobs: list[Job] = []
+    jobs = _accuracy_jobs(scale, scenarios, methods, init, table.names(trainable=True))
+    jobs += _noise_jobs(scale, scenarios, methods, init, table.names(trainable=True))
     trainings: dict[Job, None] = {}  # every train job once, in order
+    for job in jobs:
+        if job.train_job is not None:
+            trainings.setdefault(job.train_job)
+    jobs += _ratio_jobs(scale, scenarios, [m for m in methods if table.has(m, trainable=True)], trainings)
+    jobs = list(trainings) + jobs  # trainings first (the engine submits them first anyway)
+    return jobs + _runtime_jobs(scale, scenarios, methods, gpu, table.names(trainable=True))
+
+
+def _models(scale: Scale, s: str, m: str, neural_methods) -> list[Job | None]:
+    """What an accuracy or noise evaluation of ``m`` evaluates: the shipped model (None) or trainings."""
+    if m in neural_methods and scale.main_from_training:
+        return [train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances)]
+    return [None]
+
+
+def _accuracy_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], init: str, neural_methods):
+    """Every method on every evaluation set of every scenario."""
+    jobs: list[Job] = []
     for s in scenarios:
         for m in methods:
-            for tj in models(s, m):
+            for tj in _models(scale, s, m, neural_methods):
                 for j in range(scale.sets):
                     jobs.append(
                         Job(
@@ -78,12 +91,18 @@ def plan_jobs(
                             instance=tj.instance if tj else 0,
                         )
                     )
+    return jobs
+
+
+def _noise_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], init: str, neural_methods):
+    """The accuracy evaluation per noise scale (the nominal one left out where it is the accuracy run)."""
+    jobs: list[Job] = []
     for s in scenarios:
         for m in methods:
             for ns in scale.noise_scales:
                 if ns == 1.0 and noise_reuses_accuracy(scale):
                     continue
-                for tj in models(s, m):
+                for tj in _models(scale, s, m, neural_methods):
                     for j in range(scale.noise_sets):
                         jobs.append(
                             Job(
@@ -101,10 +120,13 @@ def plan_jobs(
                                 instance=tj.instance if tj else 0,
                             )
                         )
-    for job in jobs:
-        if job.train_job is not None:
-            trainings.setdefault(job.train_job)
-    neural = [m for m in methods if table.has(m, trainable=True)]
+    return jobs
+
+
+def _ratio_jobs(scale: Scale, scenarios: Sequence[str], neural: Sequence[str], trainings: dict) -> list[Job]:
+    """Data efficiency: each neural method trained at every ratio (its train jobs added to
+    ``trainings``), each instance evaluated on every set."""
+    jobs: list[Job] = []
     for s in scenarios:
         for m in neural:
             for ratio in scale.data_ratios:
@@ -127,12 +149,17 @@ def plan_jobs(
                                 train_job=tj,
                             )
                         )
-    jobs = list(trainings) + jobs  # trainings first (the engine submits them first anyway)
+    return jobs
+
+
+def _runtime_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool, neural_methods):
+    """Batch-1 throughput in every mode on CPU, and on GPU for the neural methods when ``gpu``."""
+    jobs: list[Job] = []
     devices = ["cpu"] + (["cuda"] if gpu else [])
     for device in devices:
         for s in scenarios:
             for m in methods:
-                if device == "cuda" and not table.has(m, uses_torch=True):
+                if device == "cuda" and m not in neural_methods:
                     continue  # our classical filters are numpy: CPU only
                 for mode in RUNTIME_MODES:
                     jobs.append(

@@ -1,0 +1,94 @@
+"""The setup the nodes share: the estimator and lifecycle nodes read their method's options
+through one function (nodes/estimator_setup.py), and the evaluator and robot estimator resolve a
+published type and throttle their warnings through one each (nodes/common.py). No ROS graph: the
+functions are called with stand-in nodes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from neural_estimator.nodes import common  # noqa: E402
+from neural_estimator.nodes.common import StartupError, subscribable_class, warn_throttled  # noqa: E402
+from neural_estimator.nodes.estimator_params import EstimatorParams  # noqa: E402
+from neural_estimator.nodes.estimator_setup import checked_method, method_options  # noqa: E402
+
+
+class _Logger:
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, str]] = []
+
+    def error(self, text: str) -> None:
+        self.lines.append(("error", text))
+
+    def warning(self, text: str) -> None:
+        self.lines.append(("warning", text))
+
+
+class _Node:
+    def __init__(self) -> None:
+        self.logger = _Logger()
+
+    def get_logger(self) -> _Logger:
+        return self.logger
+
+
+def _params(**changes) -> EstimatorParams:
+    return dataclasses.replace(EstimatorParams(), **changes)
+
+
+def test_method_options_add_a_filters_start_but_not_a_models():
+    p = _params(options=("n_particles=64",), init="observation")
+    assert method_options("pf", p) == {"n_particles": "64", "init": "observation"}
+    assert method_options("pf", _params(options=("init=prior",), init="observation"))["init"] == "prior"
+    assert "init" not in method_options("gru", p)  # a neural method has no start to choose
+    assert method_options("gru", p)["backend"] == "auto"  # the per-message backend, as replay's
+    assert "init" not in method_options("ekf", _params())  # the default start is the filter's own
+
+
+def test_an_option_that_is_not_name_value_is_one_startup_error():
+    with pytest.raises(StartupError, match=r"options must be name=value, got \['n_particles'\]"):
+        method_options("pf", _params(options=("n_particles",)))
+
+
+@pytest.mark.parametrize(
+    "changes, words",
+    [
+        (dict(method="kalmanette"), "kalmanette"),
+        (dict(checkpoint="/no/such/checkpoint"), "does not exist"),
+        (dict(observation_qos="fast"), "observation_qos must be one of"),
+        (dict(history_depth=0), "history_depth must be >= 1"),
+    ],
+)
+def test_the_parameters_both_estimator_nodes_check_before_building(changes, words):
+    assert checked_method(_params(method="ekf")) == "ekf"
+    with pytest.raises(StartupError, match=words):
+        checked_method(_params(**changes))
+
+
+def test_a_type_that_cannot_be_subscribed_is_refused_once():
+    node, refused = _Node(), set()
+    assert subscribable_class(node, "/odd", "no_such_pkg/msg/Thing", refused, "recorded") is None
+    assert subscribable_class(node, "/odd", "no_such_pkg/msg/Thing", refused, "recorded") is None
+    assert refused == {"/odd"}
+    assert len(node.logger.lines) == 1
+    level, text = node.logger.lines[0]
+    assert level == "error" and text.startswith("'/odd': ") and text.endswith("; not recorded")
+    cls = subscribable_class(node, "/js", "sensor_msgs/msg/JointState", refused, "recorded")
+    assert cls is not None and cls.__name__ == "JointState" and refused == {"/odd"}
+
+
+def test_warnings_of_one_kind_are_throttled_and_other_kinds_are_not(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr(common.time, "monotonic", lambda: now[0])
+    node, last = _Node(), {}
+    warn_throttled(node, last, "gap", "a", 2.0)
+    warn_throttled(node, last, "gap", "b", 2.0)  # the same kind within 2 s: not logged
+    warn_throttled(node, last, "held", "c", 2.0)  # another kind: logged
+    now[0] += 2.0
+    warn_throttled(node, last, "gap", "d", 2.0)  # 2 s later: logged again
+    assert [t for _, t in node.logger.lines] == ["a", "c", "d"]
+    assert {level for level, _ in node.logger.lines} == {"warning"}
