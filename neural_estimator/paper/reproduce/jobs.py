@@ -229,6 +229,12 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
         if not (ckpt / DONE_FILE).is_file():
             raise RuntimeError(f"{ckpt}: the model of {job.train_job.label} is not trained")
         checkpoints = {job.method: [str(ckpt)]}
+    elif table.has(job.method, trainable=True):
+        # one job, one model: the shipped model itself (instance 0), not every instance the zoo also
+        # ships (evaluate's default), whose report this job would drop and whose runs it would redo
+        from neural_estimator.serving.card import default_checkpoint
+
+        checkpoints = {job.method: [str(default_checkpoint(scenario.name, job.method))]}
     result = evaluate(
         scenario,
         [job.method],
