@@ -92,7 +92,7 @@ def test_readme_and_docs_name_every_cli_verb():
 # ---- commands ---------------------------------------------------------------------------------------
 def _parse_cli(line: str) -> None:
     from neural_estimator.cli import build_parser
-    from neural_estimator.cli.common import OneLineParser
+    from neural_estimator.core.arguments import OneLineParser
     from neural_estimator.nodes.launch import build_parser as live_parser
 
     argv = shlex.split(line)[1:]

@@ -16,7 +16,8 @@ from neural_estimator.cli.train import add_train
 from neural_estimator.cli.data import add_dataset, add_scenarios, add_simulate
 from neural_estimator.cli.evaluate import add_evaluate, add_metrics
 from neural_estimator.cli.headline import add_headline
-from neural_estimator.cli.common import CliError, EXIT_BAD_INPUT, OneLineParser
+from neural_estimator.cli.common import CliError
+from neural_estimator.core.arguments import EXIT_BAD_INPUT, OneLineParser
 
 
 _VERBS: list[Callable] = [

@@ -259,7 +259,7 @@ def run_graph(specs: list[NodeSpec], python: str = sys.executable, poll: float =
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from neural_estimator.cli.common import OneLineParser  # one-line usage errors with "did you mean"
+    from neural_estimator.core.arguments import OneLineParser  # one-line usage errors with "did you mean"
 
     p = OneLineParser(
         prog="neural-estimator live", description="Live comparison on ROS 2: simulator -> estimators -> evaluator."
