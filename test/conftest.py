@@ -60,6 +60,15 @@ def oscillator():
     return EXAMPLE.Oscillator()
 
 
+@pytest.fixture
+def spinner():
+    """A small controlled system with an angular state (training_cases.Spinner: the neural-estimator,
+    checkpoint, training and zoo tests)."""
+    from training_cases import Spinner
+
+    return Spinner()
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Small models on a shared 2-core machine: one intra-op thread avoids spin-wait contention
