@@ -79,3 +79,42 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+# ---- the live node tests (test/test_nodes_*.py; node_cases.py) ------------------------------------------
+@pytest.fixture(scope="module")
+def plugin(tmp_path_factory) -> str:
+    """The node tests' scenario (node_cases.PLUGIN, a cart pushed by a force) as a plugin file."""
+    from node_cases import PLUGIN
+
+    path = tmp_path_factory.mktemp("plugin") / "nodecart.py"
+    path.write_text(PLUGIN)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def cart(plugin):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("nodecart_plugin", plugin)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.NodeCart()
+
+
+@pytest.fixture
+def domain() -> int:
+    """A ROS domain of its own for each test (ros_tester.fresh_domain: NEURAL_ESTIMATOR_DOMAINS or 200..232)."""
+    from ros_tester import fresh_domain
+
+    return fresh_domain()
+
+
+@pytest.fixture
+def nodes(domain, tmp_path):
+    """The node processes of one test (node_cases.Nodes), stopped at its end."""
+    from node_cases import Nodes
+
+    n = Nodes(domain, tmp_path)
+    yield n
+    n.stop_all()
