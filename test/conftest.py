@@ -2,6 +2,7 @@
 
 import ast
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
@@ -30,6 +31,41 @@ def pytest_configure(config):
         "markers", "slow: a second or more on its own (live runs, training, statistical references, subprocesses)"
     )
     config.addinivalue_line("markers", "colcon: builds the package as a ROS 2 workspace with colcon")
+    _confine_worker_domains()
+
+
+# Tests that start a local Ray (a raylet, an object store and its ports each): one worker runs them all.
+RAY_MODULES = {"test_reproduce.py", "test_ray_cluster.py"}
+
+
+def _confine_worker_domains() -> None:
+    """Under pytest-xdist (scripts/run_tests.sh runs the suite on two workers), each worker takes its own
+    share of ``NEURAL_ESTIMATOR_DOMAINS`` (default 200..232), so that two workers' ROS tests never meet
+    on one domain: every ROS test and tool picks its domain from that variable."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if not worker.startswith("gw"):
+        return
+    from ros_tester import TEST_DOMAINS
+
+    from neural_estimator.nodes.launch import DOMAINS_VARIABLE, domain_range
+
+    count, index = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), int(worker[2:])
+    lo, hi = domain_range(TEST_DOMAINS)
+    share = (hi - lo + 1) // count
+    if share < 1:
+        raise pytest.UsageError(f"{DOMAINS_VARIABLE}={lo}-{hi}: fewer ROS domains than the {count} test workers")
+    os.environ[DOMAINS_VARIABLE] = f"{lo + index * share}-{lo + (index + 1) * share - 1}"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """With ``--dist loadgroup`` (scripts/run_tests.sh): a test file's tests run on one worker (its
+    module-scoped fixtures are built once), and the files that start Ray share one worker."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    for item in items:
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group("ray" if name in RAY_MODULES else name))
 
 
 def load_script(relative: str):
