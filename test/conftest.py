@@ -34,10 +34,6 @@ def pytest_configure(config):
     _confine_worker_domains()
 
 
-# Tests that start a local Ray (a raylet, an object store and its ports each): one worker runs them all.
-RAY_MODULES = {"test_reproduce.py", "test_ray_cluster.py"}
-
-
 def _confine_worker_domains() -> None:
     """Under pytest-xdist (scripts/run_tests.sh runs the suite on two workers), each worker takes its own
     share of ``NEURAL_ESTIMATOR_DOMAINS`` (default 200..232), so that two workers' ROS tests never meet
@@ -55,17 +51,6 @@ def _confine_worker_domains() -> None:
     if share < 1:
         raise pytest.UsageError(f"{DOMAINS_VARIABLE}={lo}-{hi}: fewer ROS domains than the {count} test workers")
     os.environ[DOMAINS_VARIABLE] = f"{lo + index * share}-{lo + (index + 1) * share - 1}"
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config, items):
-    """With ``--dist loadgroup`` (scripts/run_tests.sh): a test file's tests run on one worker (its
-    module-scoped fixtures are built once), and the files that start Ray share one worker."""
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
-        return
-    for item in items:
-        name = item.path.name
-        item.add_marker(pytest.mark.xdist_group("ray" if name in RAY_MODULES else name))
 
 
 def load_script(relative: str):
