@@ -81,6 +81,7 @@ setup(
         "docs": ["mkdocs>=1.6", "mkdocs-material>=9.5"],
         "test": [
             "pytest>=8",
+            "pytest-xdist>=3.6",
             "atheris==3.0.0",
             "ruff==0.14.14",
             "filterpy>=2.0.0",

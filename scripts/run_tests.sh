@@ -20,4 +20,8 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_
 "$venv/bin/ruff" format --check --quiet neural_estimator test scripts benchmarks experiments examples docs
 # The documentation site (mkdocs.yml): a broken link, a missing page or a failing generator fails the run.
 NO_MKDOCS_2_WARNING=1 "$venv/bin/python" -m mkdocs build --strict --quiet --site-dir "$root/.cache/site"
-exec "$venv/bin/python" -m pytest -q test "$@"
+# Two pytest-xdist workers (NEURAL_ESTIMATOR_TEST_WORKERS; 0: one process): much of the suite waits on ROS
+# discovery and node start-up, and the other core works meanwhile. --dist loadfile: a test file's tests
+# stay on one worker (its module fixtures built once); each worker takes its own share of
+# NEURAL_ESTIMATOR_DOMAINS (test/conftest.py), and each Ray test starts a Ray of its own.
+exec "$venv/bin/python" -m pytest -q -n "${NEURAL_ESTIMATOR_TEST_WORKERS:-2}" --dist loadfile test "$@"

@@ -2,6 +2,7 @@
 
 import ast
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
@@ -30,6 +31,26 @@ def pytest_configure(config):
         "markers", "slow: a second or more on its own (live runs, training, statistical references, subprocesses)"
     )
     config.addinivalue_line("markers", "colcon: builds the package as a ROS 2 workspace with colcon")
+    _confine_worker_domains()
+
+
+def _confine_worker_domains() -> None:
+    """Under pytest-xdist (scripts/run_tests.sh runs the suite on two workers), each worker takes its own
+    share of ``NEURAL_ESTIMATOR_DOMAINS`` (default 200..232), so that two workers' ROS tests never meet
+    on one domain: every ROS test and tool picks its domain from that variable."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if not worker.startswith("gw"):
+        return
+    from ros_tester import TEST_DOMAINS
+
+    from neural_estimator.nodes.launch import DOMAINS_VARIABLE, domain_range
+
+    count, index = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), int(worker[2:])
+    lo, hi = domain_range(TEST_DOMAINS)
+    share = (hi - lo + 1) // count
+    if share < 1:
+        raise pytest.UsageError(f"{DOMAINS_VARIABLE}={lo}-{hi}: fewer ROS domains than the {count} test workers")
+    os.environ[DOMAINS_VARIABLE] = f"{lo + index * share}-{lo + (index + 1) * share - 1}"
 
 
 def load_script(relative: str):
@@ -60,6 +81,15 @@ def oscillator():
     return EXAMPLE.Oscillator()
 
 
+@pytest.fixture
+def spinner():
+    """A small controlled system with an angular state (training_cases.Spinner: the neural-estimator,
+    checkpoint, training and zoo tests)."""
+    from training_cases import Spinner
+
+    return Spinner()
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Small models on a shared 2-core machine: one intra-op thread avoids spin-wait contention
@@ -70,3 +100,42 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+# ---- the live node tests (test/test_nodes_*.py; node_cases.py) ------------------------------------------
+@pytest.fixture(scope="module")
+def plugin(tmp_path_factory) -> str:
+    """The node tests' scenario (node_cases.PLUGIN, a cart pushed by a force) as a plugin file."""
+    from node_cases import PLUGIN
+
+    path = tmp_path_factory.mktemp("plugin") / "nodecart.py"
+    path.write_text(PLUGIN)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def cart(plugin):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("nodecart_plugin", plugin)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.NodeCart()
+
+
+@pytest.fixture
+def domain() -> int:
+    """A ROS domain of its own for each test (ros_tester.fresh_domain: NEURAL_ESTIMATOR_DOMAINS or 200..232)."""
+    from ros_tester import fresh_domain
+
+    return fresh_domain()
+
+
+@pytest.fixture
+def nodes(domain, tmp_path):
+    """The node processes of one test (node_cases.Nodes), stopped at its end."""
+    from node_cases import Nodes
+
+    n = Nodes(domain, tmp_path)
+    yield n
+    n.stop_all()

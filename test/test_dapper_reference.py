@@ -8,7 +8,7 @@ both filter the same truth and observations:
   exact arithmetic): the means agree to 1e-6 of the state's scale (measured 3e-8).
 - EnKF vs DAPPER's EnKF('PertObs'): same algorithm, different random draws (and DAPPER centres its
   observation perturbations): per-trajectory RMSE equal within 4 standard errors of the paired
-  difference plus 5 % (the paired test of test_filters.paired_rmse_check).
+  difference plus 5 % (the paired test of filter_cases.paired_rmse_check).
 - The sakov2008 setting (observation variance 1): with inflation and localisation, ours in
   DAPPER's published RMSE band (0.18-0.24 after burn-in); DAPPER's EnKF is run beside it on the
   same data and printed.

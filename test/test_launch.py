@@ -219,6 +219,36 @@ def test_graph_command_prints_the_pip_path_of_a_graph(capsys):
     assert G.main(["live", "methods=ekf"]) == 2 and "expected name:=value" in capsys.readouterr().err
 
 
+def test_each_test_worker_takes_its_own_share_of_the_ros_domains(monkeypatch):
+    """Under pytest-xdist (scripts/run_tests.sh) each worker confines NEURAL_ESTIMATOR_DOMAINS to its
+    share (test/conftest.py), so two workers' ROS tests never meet on one domain."""
+    import os
+
+    from conftest import _confine_worker_domains
+
+    from neural_estimator.nodes.launch import domain_range
+
+    shares = []
+    for worker in ("gw0", "gw1", "gw2"):
+        monkeypatch.setenv("NEURAL_ESTIMATOR_DOMAINS", "200-232")
+        monkeypatch.setenv("PYTEST_XDIST_WORKER", worker)
+        monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "3")
+        _confine_worker_domains()
+        shares.append(set(range(domain_range()[0], domain_range()[1] + 1)))
+    assert [len(s) for s in shares] == [11, 11, 11] and set().union(*shares) == set(range(200, 233))
+    monkeypatch.delenv("NEURAL_ESTIMATOR_DOMAINS")  # the tests' default range, 200..232, is shared out too
+    monkeypatch.setenv("PYTEST_XDIST_WORKER", "gw1")
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+    _confine_worker_domains()
+    assert os.environ["NEURAL_ESTIMATOR_DOMAINS"] == "216-231"
+    monkeypatch.setenv("NEURAL_ESTIMATOR_DOMAINS", "40")  # one domain, two workers: refused, never shared
+    with pytest.raises(pytest.UsageError, match="fewer ROS domains than the 2 test workers"):
+        _confine_worker_domains()
+    monkeypatch.delenv("PYTEST_XDIST_WORKER")  # not under xdist: the range is left alone
+    _confine_worker_domains()
+    assert os.environ["NEURAL_ESTIMATOR_DOMAINS"] == "40"
+
+
 def test_ros_domains_come_from_the_range_variable_then_ros_domain_id(monkeypatch):
     """Tools pick NEURAL_ESTIMATOR_DOMAINS's range, else the user's ROS_DOMAIN_ID, else 100..199;
     the tests pick from the same range (default 200..232), so one variable confines a whole run."""

@@ -258,3 +258,34 @@ def test_compiled_pre_and_post_processing_equal_the_numpy_expressions_to_the_bit
     np.testing.assert_array_equal(p, c * scale)
     c[0, 0, 3] = np.nan
     assert not denormalize_covariance(c, scale)[1]
+
+
+def test_an_interrupt_while_onnxruntime_initialises_is_a_stop_not_a_missing_package(monkeypatch):
+    """ONNX Runtime's extension turns a Ctrl-C during its initialisation into "ImportError: initialization
+    failed" (the interrupt in its chain): that is a KeyboardInterrupt (the node stops with status 0,
+    test_node_cli.py), while an ImportError of its own still names the package to install."""
+    import builtins
+    import sys
+
+    real_import = builtins.__import__
+
+    def failing(interrupt):
+        def fake_import(name, *args, **kwargs):
+            if name != "onnxruntime":
+                return real_import(name, *args, **kwargs)
+            try:
+                if interrupt:
+                    raise KeyboardInterrupt
+                raise OSError("libonnxruntime.so: cannot open shared object file")
+            except BaseException:
+                raise ImportError("initialization failed")  # noqa: B904  as the extension does
+
+        return fake_import
+
+    monkeypatch.delitem(sys.modules, "onnxruntime", raising=False)  # imported afresh (restored after)
+    monkeypatch.setattr(builtins, "__import__", failing(True))
+    with pytest.raises(KeyboardInterrupt):
+        OrtStep(b"")
+    monkeypatch.setattr(builtins, "__import__", failing(False))
+    with pytest.raises(EstimatorError, match="needs the onnxruntime package"):
+        OrtStep(b"")

@@ -85,7 +85,11 @@ def local_ray():
     ``reproduce`` joins an instance already running in its process and leaves it running."""
     from neural_estimator.paper.reproduce.engine import init_ray
 
-    ray = init_ray(None, 2)
+    # A Ray of its own: with no address, ray.init joins any Ray running on the host (another test
+    # worker's two-node cluster, test_ray_cluster.py, or another user's), where num_cpus is refused.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RAY_ADDRESS", "local")
+        ray = init_ray(None, 2)
     yield ray
     ray.shutdown()
 

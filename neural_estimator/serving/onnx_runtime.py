@@ -62,7 +62,9 @@ class OrtStep:
     def __init__(self, graph: bytes | str | Path, threads: int = 1) -> None:
         try:
             import onnxruntime as ort
-        except ImportError:
+        except ImportError as exc:
+            if _interrupted(exc):  # Ctrl-C while its extension initialises: a stop, not a missing package
+                raise KeyboardInterrupt from None
             raise EstimatorError("backend onnxruntime needs the onnxruntime package: pip install onnxruntime") from None
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = max(1, int(threads))
@@ -297,3 +299,15 @@ def load_onnx_estimator(
     except NormalizationError as exc:
         raise EstimatorError(f"{directory}: {exc}") from None
     return OnnxEstimator(scenario, step, normalizer, method, card, cov_scale=cov_scale)
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether an ImportError stands for a KeyboardInterrupt: ONNX Runtime's extension reports a Ctrl-C
+    during its initialisation as "ImportError: initialization failed", the interrupt in its chain."""
+    chain, seen = [], exc.__cause__ or exc.__context__
+    while seen is not None and not any(seen is c for c in chain):
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        chain.append(seen)
+        seen = seen.__cause__ or seen.__context__
+    return False
