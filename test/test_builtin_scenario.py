@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import test_calibration
-import test_filters
+import test_filters_contract
+import test_filters_references
 import test_scenario_constants
 import test_scenarios
 import test_uncertainty
@@ -115,7 +116,7 @@ def test_the_every_builtin_tests_accept_the_toy(toy_page):
     test_scenarios.test_overrides_and_unknown_names(NAME)
     test_scenarios.test_description_round_trips_through_json(NAME)
     test_scenario_constants.test_every_built_in_constant_is_within_its_bound()  # every registered name
-    test_filters.test_obs_matrix_declarations_are_true(NAME)
+    test_filters_references.test_obs_matrix_declarations_are_true(NAME)
     # without presets, a calibrated entry, sample bags or zoo folders: those tests are the paper's five's
     assert S.preset_names(NAME) == [] and S.default_preset(NAME) is None
     test_calibration.test_every_paper_scenario_has_both_presets_and_an_unknown_one_is_a_one_line_error()
@@ -144,10 +145,10 @@ def test_the_toy_simulates_and_every_classical_filter_tracks_it(toy_page, method
 
 @pytest.mark.parametrize("method", CLASSICAL_METHODS)
 def test_the_filter_contract_tests_accept_the_toy(toy_page, method):
-    test_filters.test_run_equals_loop_of_step(method, NAME)
-    test_filters.test_threads_do_not_change_results(method, NAME)
+    test_filters_contract.test_run_equals_loop_of_step(method, NAME)
+    test_filters_contract.test_threads_do_not_change_results(method, NAME)
     if method in ("ekf", "ukf"):
-        test_filters.test_blocking_does_not_change_results(method, NAME)
+        test_filters_contract.test_blocking_does_not_change_results(method, NAME)
 
 
 def test_nothing_of_the_toy_is_left_behind(monkeypatch, tmp_path):

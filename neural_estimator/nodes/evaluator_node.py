@@ -463,7 +463,7 @@ class EvaluatorNode(ExitStatusNode):
 
     def _evaluate_spec(self) -> int:
         """Score the recorded estimate streams through the spec (recorded-data models: no scenario)."""
-        from neural_estimator.metrics import format_reports
+        from neural_estimator.metrics import format_reports, to_json
         from neural_estimator.robot import SpecError
         from neural_estimator.robot.score import score_recording
 
@@ -492,7 +492,7 @@ class EvaluatorNode(ExitStatusNode):
             flush=True,
         )
         md = Path(str(self.bag.path)).with_suffix(".metrics.md")
-        md.write_text(MSG.format_reports(reports, fmt="markdown"))
+        md.write_text(format_reports(reports, fmt="markdown"))
         doc = {
             "bag": str(self.bag.path),
             "spec": self.p.spec,
@@ -503,7 +503,7 @@ class EvaluatorNode(ExitStatusNode):
             "methods": reports,
         }
         js = md.with_suffix(".json")  # <bag>.metrics.json, beside the table, as for a scenario's run
-        js.write_text(json.dumps(MSG.to_json(doc), indent=1, allow_nan=False))
+        js.write_text(json.dumps(to_json(doc), indent=1, allow_nan=False))
         self.get_logger().info(f"wrote {md}, {js}")
         return 0
 
