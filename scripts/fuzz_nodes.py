@@ -7,7 +7,9 @@ The nodes are started as ``neural-estimator live`` starts them, in one ROS domai
 (``--domain``, else ``ROS_DOMAIN_ID`` when set, else a random one in 200..229; discovery kept to
 this machine): an EKF and a GRU estimator node (``bearings``), the lifecycle estimator (configured
 and activated by this script), the evaluator (``exit_when_done:=false``, so it stays up after a
-run it was told ended), and a simulator and a player, each in a namespace of its own where nobody
+run it was told ended), the robot estimator (a GRU this script first trains on a short recording of
+examples/robot_bag.py's robot, served on that robot's own sensor topics), and a simulator and a
+player, each in a namespace of its own where nobody
 subscribes, so they wait (their only inputs are their parameter services). Then, for each node and
 each of its inputs (a subscription or a service), for ``--seconds``, this script sends messages
 or requests of the input's type drawn at random from families of hostile values:
@@ -19,6 +21,9 @@ or requests of the input's type drawn at random from families of hostile values:
 - JSON streams (``scenario``, ``run_status``): valid announcements with hostile fields (horizon
   10^18, start_ns "x", messages -1 or 1e308, status 5), random JSON, 100,000-deep nesting,
   invalid UTF-8, 900 kB strings;
+- the robot's own sensor topics (``/imu``, ``/wheel_odom``, ``/gps/fix``: Imu, Odometry,
+  PointStamped): every float field extreme, stamps at the int32 and uint32 edges, foreign and
+  10 kB frames, and garbage made from such messages;
 - ``set_pose``: poses and covariances with extreme floats, asymmetric or indefinite covariances,
   zero quaternions, foreign frames, and garbage bytes;
 - services: lifecycle ``change_state`` with random transition ids (0..255) and labels, in any
@@ -62,6 +67,7 @@ SCENARIO = "bearings"
 LIFECYCLE = "neural_estimator.nodes.lifecycle_estimator_node"
 SIMULATOR = "neural_estimator.nodes.simulator_node"
 PLAYER = "neural_estimator.nodes.player_node"
+ROBOT = "neural_estimator.nodes.robot_estimator_node"
 EXTREMES = (float("nan"), float("inf"), -float("inf"), 1e308, -1e308, 5e-324, 0.0, -0.0, 1e-300, 2.0**53)
 POSE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TS = MSG.TYPESTORE
@@ -178,6 +184,84 @@ def pose_message(rng: random.Random) -> bytes:
     return _garbage(rng, raw) if family == 4 else raw
 
 
+def _header(rng: random.Random, frame: str):
+    t = TS.types
+    sec = rng.choice([0, 1_700_000_000, 2**31 - 1, -(2**31), rng.randrange(2**31)])
+    nsec = rng.choice([0, 999_999_999, 2**32 - 1, rng.randrange(10**9)])
+    return t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec, nsec), frame_id=rng.choice([frame, frame, _text(rng)])
+    )
+
+
+def _vec(rng: random.Random, name: str) -> object:
+    return TS.types[f"geometry_msgs/msg/{name}"](*[_float(rng) for _ in range(4 if name == "Quaternion" else 3)])
+
+
+def _cov(rng: random.Random, n: int) -> np.ndarray:
+    return np.array([_float(rng) if rng.random() < 0.3 else 0.0 for _ in range(n)], dtype=np.float64)
+
+
+def robot_message(rng: random.Random, msgtype: str) -> bytes:
+    """A hostile message of a robot's own sensor topic (Imu, Odometry or PointStamped, the types of
+    examples/robot_bag.py's recording): every float field extreme or random, stamps at the int32 and
+    uint32 edges, foreign and 10 kB frames; or garbage made from such a message."""
+    t = TS.types
+    header = _header(rng, "base_link")
+    if msgtype == "sensor_msgs/msg/Imu":
+        msg = t[msgtype](
+            header=header,
+            orientation=_vec(rng, "Quaternion"),
+            orientation_covariance=_cov(rng, 9),
+            angular_velocity=_vec(rng, "Vector3"),
+            angular_velocity_covariance=_cov(rng, 9),
+            linear_acceleration=_vec(rng, "Vector3"),
+            linear_acceleration_covariance=_cov(rng, 9),
+        )
+    elif msgtype == "nav_msgs/msg/Odometry":
+        pose = t["geometry_msgs/msg/Pose"](position=_vec(rng, "Point"), orientation=_vec(rng, "Quaternion"))
+        twist = t["geometry_msgs/msg/Twist"](linear=_vec(rng, "Vector3"), angular=_vec(rng, "Vector3"))
+        msg = t[msgtype](
+            header=header,
+            child_frame_id=_text(rng),
+            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=_cov(rng, 36)),
+            twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=_cov(rng, 36)),
+        )
+    else:
+        msg = t[msgtype](header=header, point=_vec(rng, "Point"))
+    raw = bytes(TS.serialize_cdr(msg, msgtype))
+    return _garbage(rng, raw) if rng.random() < 0.2 else raw
+
+
+ROBOT_TOPICS = (  # the spec's observation topics (examples/robot_spec.yaml) and their types
+    ("/imu", "sensor_msgs/msg/Imu"),
+    ("/wheel_odom", "nav_msgs/msg/Odometry"),
+    ("/gps/fix", "geometry_msgs/msg/PointStamped"),
+)
+
+
+def robot_checkpoint(workdir: Path) -> Path:
+    """A small GRU trained on a recording of examples/robot_bag.py's robot (dataset + train, as
+    docs/robot.md does; one epoch of 16 windows: the node's plumbing, not accuracy)."""
+    sys.path.insert(0, str(ROOT / "examples"))
+    import robot_bag
+
+    from neural_estimator.cli import main as cli
+
+    out = workdir / "robot-gru"
+    if (out / "card.json").is_file():
+        return out
+    bag = robot_bag.write_bag(workdir / "robot-bag", runs=1, seconds=8.0, seed=4)
+    data = workdir / "robot-data.npz"
+    data.unlink(missing_ok=True)
+    spec = str(ROOT / "examples" / "robot_spec.yaml")
+    if cli(["dataset", str(bag), "--spec", spec, "--length", "30", "--out", str(data), "--quiet"]):
+        raise SystemExit("could not make the robot dataset")
+    args = ["train", "--data", str(data), "--model", "gru", "--out", str(out), "--epochs", "1", "--quiet"]
+    if cli(args + ["--windows-per-epoch", "16", "--window", "20", "--warmup", "2", "--val-fraction", "0.5"]):
+        raise SystemExit("could not train the robot model")
+    return out
+
+
 # ---- the nodes and their inputs ----------------------------------------------------------------------
 class Input(NamedTuple):
     name: str  # the table's column
@@ -235,6 +319,14 @@ def targets(scen) -> list[Target]:
                 Input("run_status", "topic", "run_status", MSG.STRING, lambda r: json_message(r, status)),
                 params,
             ],
+        ),
+        Target(
+            "robot_estimator",
+            ROBOT,
+            {"checkpoint": ""},  # filled in by run(): a model trained on a recording (robot_checkpoint)
+            "/",
+            [Input(topic, "topic", topic, kind, lambda r, k=kind: robot_message(r, k)) for topic, kind in ROBOT_TOPICS]
+            + [params],
         ),
         Target("simulator", SIMULATOR, {"scenario": SCENARIO, "wait_timeout": 0.0}, "/fuzz_sim", [params]),
         Target(
@@ -310,7 +402,13 @@ def run(seconds: float, seed: int, only: set[str] | None, domain: int, workdir: 
 
     from neural_estimator.nodes.common import latched_qos, stream_qos
 
+    from geometry_msgs.msg import PointStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Imu
+
     types = {MSG.JOINT_STATE: JointState, MSG.STRING: String, POSE: PoseWithCovarianceStamped}
+    types.update({"sensor_msgs/msg/Imu": Imu, "nav_msgs/msg/Odometry": Odometry})
+    types["geometry_msgs/msg/PointStamped"] = PointStamped
     scen = make_scenario(SCENARIO)
     chosen = [t for t in targets(scen) if only is None or t.name in only]
     env = isolated_env(domain)
@@ -320,6 +418,8 @@ def run(seconds: float, seed: int, only: set[str] | None, domain: int, workdir: 
         params = dict(t.params)
         if t.module == EVALUATOR:
             params["output"] = str(workdir / "fuzz.mcap")
+        if t.module == ROBOT:
+            params["checkpoint"] = str(robot_checkpoint(workdir))
         cmd = node_command(sys.executable, t.module, t.name, params)
         if t.namespace != "/":
             cmd += ["-r", f"__ns:={t.namespace}"]

@@ -93,3 +93,47 @@ def test_the_fuzzer_kills_no_node(fuzz, tmp_path):
     assert deaths == 0, fuzz.table(rows)
     assert len(rows) == 5 + 3 + 6 and not any(r["outcome"].startswith("DEAD") for r in rows)
     assert {r["outcome"] for r in rows if r["node"] == "estimator_ekf" and r["input"] == "observation"} == {"counted"}
+
+
+def test_hostile_robot_messages_never_escape_the_robot_estimator_path(fuzz):
+    """What the robot estimator node runs per message (its fields read by the spec, the stamp, the
+    Ticker) takes the fuzzer's hostile Imu / Odometry / PointStamped messages: values it reads are
+    a SpecError (counted) or numbers the ticker takes, never another exception; DDS drops the
+    garbage that does not deserialise (as rclpy would)."""
+    from neural_estimator.robot import load_spec
+    from neural_estimator.robot.dataset import message_stamp
+    from neural_estimator.robot.spec import SpecError, topic_values
+    from neural_estimator.robot.ticker import Ticker
+
+    spec = load_spec(fuzz.ROOT / "examples" / "robot_spec.yaml")
+
+    class Zeros:  # the estimator's place in the node: estimates of the spec's state width
+        covariance = None
+
+        def reset(self, batch):
+            pass
+
+        def step(self, y, u):
+            assert y.shape == (1, 5)
+            return np.zeros((1, 3))
+
+    ticker = Ticker(spec, Zeros(), restart_every=30, settle_delay=1.0)
+    rng = random.Random(1)
+    read = refused = dropped = 0
+    for _ in range(100):
+        for topic, msgtype in fuzz.ROBOT_TOPICS:
+            raw = fuzz.robot_message(rng, msgtype)
+            try:
+                msg = fuzz.TS.deserialize_cdr(raw, msgtype)
+            except Exception:
+                dropped += 1  # DDS would not deliver it
+                continue
+            try:
+                values = topic_values(msg, ticker.fields[topic], msgtype)
+            except SpecError as exc:
+                assert "\n" not in str(exc)
+                refused += 1
+                continue
+            ticker.push(topic, message_stamp(msg, 0, spec), values)
+            read += 1
+    assert read > 150 and dropped > 10, (read, refused, dropped)
