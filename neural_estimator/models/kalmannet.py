@@ -97,9 +97,11 @@ class KalmanNetModel(nn.Module):
     """KalmanNet-style estimator (module docstring): ``forward(z)``, ``step``, ``rollout``.
 
     The step state is a tuple ``(x_post, x_post_prev, x_prior_prev, y_prev, started, h)``: the
-    physical x_{k-1|k-1}, x_{k-2|k-2}, x_{k-1|k-2} (B, dx), the last used physical observation
-    (B, dy), a (B, 1) flag that is 0 before the first step (k = 0: no predict) and the GRU's hidden
-    state (1, B, H).
+    physical x_{k-1|k-1}, x_{k-2|k-2}, x_{k-1|k-2} (B, dx) held as offsets from the prior mean m0
+    (x = m0 + offset), the last used physical observation (B, dy), a (B, 1) flag that is 0 before
+    the first step (k = 0: no predict) and the GRU's hidden state (1, B, H). Every tensor of the
+    starting state is zeros (the offsets make it so), which the exported ONNX step requires
+    (:mod:`neural_estimator.models.onnx_step` resets its state buffers to one constant each).
     """
 
     reads_missing_observations = True  # the server passes NaN for an unusable y (predict only)
@@ -119,8 +121,10 @@ class KalmanNetModel(nn.Module):
         self.scenario_name = str(getattr(system, "name", "system"))
         import numpy as np  # the prior is numpy; torch owns the model
 
-        m0 = torch.as_tensor(np.asarray(system.prior()[0], dtype=np.float64), dtype=torch.float32)
-        self.register_buffer("m0", m0)
+        # the served scenario's prior, as f and h are (not saved); float64, cast to the state's dtype
+        # where used, so that a model moved to float64 has it to the last bit
+        m0 = torch.as_tensor(np.asarray(system.prior()[0], dtype=np.float64), dtype=torch.float64)
+        self.register_buffer("m0", m0, persistent=False)
         self.register_buffer("in_mean", torch.zeros(dy + du))
         self.register_buffer("in_std", torch.ones(dy + du))
         self.register_buffer("out_mean", torch.zeros(dx))
@@ -140,7 +144,8 @@ class KalmanNetModel(nn.Module):
     def set_normalization(self, norm: Any) -> None:
         """Copy a :class:`~neural_estimator.serving.normalization.Normalizer`'s statistics into the
         buffers (saved with the weights), so the model maps normalised z to physical y, u and
-        physical x back to normalised x."""
+        physical x back to normalised x. They take the model's dtype now: call it after a change
+        of dtype (``model.double()``), not before, to keep them to float64's precision."""
         if (int(norm.dy), int(norm.du), int(norm.dx)) != (self.dy, self.du, self.dx):
             raise HybridSystemError(
                 f"kalmannet: normalisation statistics are for dy={norm.dy}, du={norm.du}, dx={norm.dx}; "
@@ -155,14 +160,16 @@ class KalmanNetModel(nn.Module):
         p = self.gain.weight
         device = p.device if device is None else device
         dtype = p.dtype if dtype is None else dtype
-        m0 = self.m0.to(device=device, dtype=dtype).expand(batch, self.dx).clone()
+        def zeros(*shape: int) -> Tensor:
+            return torch.zeros(*shape, device=device, dtype=dtype)
+
         return (
-            m0,
-            m0.clone(),
-            m0.clone(),
-            torch.zeros(batch, self.dy, device=device, dtype=dtype),
-            torch.zeros(batch, 1, device=device, dtype=dtype),
-            torch.zeros(1, batch, self.cfg.hidden, device=device, dtype=dtype),
+            zeros(batch, self.dx),  # x_{-1|-1} = m0: offset 0
+            zeros(batch, self.dx),
+            zeros(batch, self.dx),
+            zeros(batch, self.dy),
+            zeros(batch, 1),
+            zeros(1, batch, self.cfg.hidden),
         )
 
     def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
@@ -197,15 +204,17 @@ class KalmanNetModel(nn.Module):
         return r / std
 
     def _step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:
-        x_post, x_post_prev, x_prior_prev, y_prev, started, h = state
+        o_post, o_post_prev, o_prior_prev, y_prev, started, h = state
         dy = self.dy
+        m0 = self.m0.to(o_post.dtype)
+        x_post, x_post_prev, x_prior_prev = o_post + m0, o_post_prev + m0, o_prior_prev + m0
         y_std, y_mean = self.in_std[:dy], self.in_mean[:dy]
         y_n = z_t[..., :dy]
         seen = torch.isfinite(y_n).all(dim=-1, keepdim=True)  # (B, 1): a usable observation
         y = torch.where(seen, y_n, torch.zeros_like(y_n)) * y_std + y_mean
         u = z_t[..., dy:] * self.in_std[dy:] + self.in_mean[dy:] if self.du else None
         # predict (k >= 1); the prior mean at k = 0
-        x_prior = torch.where(started > 0, self._guard(self.dynamics.f(x_post, u)), self.m0.to(x_post.dtype))
+        x_prior = torch.where(started > 0, self._guard(self.dynamics.f(x_post, u)), m0.expand_as(x_post))
         y_pred = self.dynamics.h(x_prior)
         innov = self._obs_diff(y, y_pred)
         d_obs = torch.where(started > 0, self._obs_diff(y, y_prev), torch.zeros_like(y))
@@ -229,9 +238,9 @@ class KalmanNetModel(nn.Module):
         upd = torch.where(self.angle_states, _wrap(upd), upd)
         x_new = self._guard(upd)
         new_state = (
-            x_new,
-            x_post,
-            x_prior,
+            x_new - m0,
+            o_post,
+            x_prior - m0,
             torch.where(seen, y, y_prev),
             torch.ones_like(started),
             torch.where(seen, h_new, h[0])[None],
@@ -256,6 +265,22 @@ class KalmanNetModel(nn.Module):
     def _state_diff(self, a: Tensor, b: Tensor) -> Tensor:
         d = a - b
         return torch.where(self.angle_states, _wrap(d), d)
+
+    @property
+    def onnx_blocker(self) -> str | None:
+        """Why this model's step cannot be exported to ONNX, or None: the system's f and h are probed
+        once with torch's exporter (:func:`neural_estimator.models.onnx_step.unsupported_reason`;
+        N-link's f solves its mass-matrix system with ``torch.linalg.solve``, which opset 17 lacks,
+        so the N-link hybrid is served by torch; the other four export)."""
+        if "_onnx_blocker" not in self.__dict__:
+            from neural_estimator.models.onnx_step import unsupported_reason
+
+            dyn, x = self.dynamics, torch.zeros(1, self.dx) + self.m0.detach().cpu().float()
+            u = torch.zeros(1, self.du)
+            fn = (lambda a, b: (dyn.f(a, b), dyn.h(a))) if self.du else (lambda a: (dyn.f(a, None), dyn.h(a)))
+            args = (x, u) if self.du else (x,)
+            self.__dict__["_onnx_blocker"] = unsupported_reason(fn, args, f"{self.scenario_name}'s f or h")
+        return self.__dict__["_onnx_blocker"]
 
     def extra_repr(self) -> str:
         return f"scenario={self.scenario_name!r}, dx={self.dx}, dy={self.dy}, du={self.du}"
