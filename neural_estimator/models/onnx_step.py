@@ -7,17 +7,17 @@ the model's own ``step`` traced at batch 1::
     inputs:  z (1, d_in) float32 (normalised [y_k, u_{k-1}]), state_0 ... state_{S-1}
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
-with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM
-state per layer; KalmanNet: its filter's memory, then the GRU's h; GPT-2: the (W,) slot mask, then
-each layer's (2, 1, nh, W, hs) keys and values; Filterformer: the mask and its one attention's cache). The attention models serve a bounded key/value
-cache of the last W steps (their attention window, the ``context`` option), so their step graph has
-fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's covariance
-(normalised units), when exported with ``covariance``. A state that does not start at zeros (the
-attention models' mask starts at -inf: no slot filled) is recorded in the graph's metadata
-(``initial_fill``), which ``OrtStep`` resets to. :func:`export_step` makes it from the loaded
-checkpoint (card + safetensors weights), so the export is reproducible from the card: the same
-weights give the same graph. ``OrtStep`` serves it; a test holds it equal to the torch step over
-hundreds of steps.
+with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM state
+per layer; KalmanNet: its filter's memory, then the GRU's h; GPT-2: the (W,) slot mask, then each
+layer's (2, 1, nh, W, hs) keys and values; Filterformer: the mask and its one attention's cache).
+The attention models serve a bounded key/value cache of the last W steps (their attention window,
+the ``context`` option), so their step graph has fixed shapes too; Filterformer's graph also outputs
+``cov`` (1, d_out, d_out), its head's covariance (normalised units), when exported with
+``covariance``. A state that does not start at zeros (the attention models' mask starts at -inf: no
+slot filled) is recorded in the graph's metadata (``initial_fill``), which ``OrtStep`` resets to.
+:func:`export_step` makes it from the loaded checkpoint (card + safetensors weights), so the export
+is reproducible from the card: the same weights give the same graph. ``OrtStep`` serves it; a test
+holds it equal to the torch step over hundreds of steps.
 
 Serving needs ``onnxruntime``; exporting also needs torch and ``onnx`` (all three in the runtime
 install). The serving side (``OrtStep``, the torch-free ``OnnxEstimator``) lives in

@@ -14,7 +14,8 @@ A non-finite observation row is replaced by the training mean (0 after normalisa
 ``skipped``; a model that reads missing observations itself (``reads_missing_observations``: the
 KalmanNet hybrid, which then predicts without an update) gets NaN there instead. Filterformer also
 returns a covariance from its geometric-attention head, and any model with a fitted covariance head
-(:mod:`neural_estimator.serving.uncertainty.heads`) returns that head's; both are mapped back to state units as diag(sigma_x) C_n diag(sigma_x).
+(:mod:`neural_estimator.serving.uncertainty.heads`) returns that head's; both are mapped back to
+state units as diag(sigma_x) C_n diag(sigma_x).
 """
 
 from __future__ import annotations
