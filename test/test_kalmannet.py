@@ -45,6 +45,14 @@ def hybrid(name: str, seed: int = 0, gain_scale: float = 10.0, dtype=torch.float
     return scenario, model, norm, data
 
 
+def zero_gain(model) -> None:
+    """K = 0: the fixed model-based part and the network's."""
+    with torch.no_grad():
+        model.gain.weight.zero_()
+        model.gain.bias.zero_()
+        model.gain_prior.zero_()
+
+
 def inputs(norm: Normalizer, data, dtype=torch.float32) -> torch.Tensor:
     z, _ = norm.normalize_inputs(data.y, previous_controls(data.u))
     return torch.as_tensor(z, dtype=dtype)
@@ -104,6 +112,21 @@ def test_the_gain_changes_the_estimate():
     assert (x[:, 1:] - x0[:, 1:]).abs().max() > 1e-2
 
 
+@pytest.mark.parametrize("name", ["lorenz96", "quadrotor", "nlink"])
+def test_the_fixed_gain_is_half_the_least_squares_correction(name):
+    """K0 = 0.5 pinv(H_n) in normalised units, H_n h's Jacobian at m0 scaled by the statistics: where h
+    sees every direction it is asked about, H_n K0 = 0.5 I; N-link's h at the hanging prior sees the
+    angles only (d pz / d theta = sin 0 = 0), so there H_n K0 is half a projector of rank 3."""
+    scenario, model, norm, _ = hybrid(name, dtype=torch.float64)
+    m0 = scenario.prior()[0]
+    h_n = scenario.jac_h(m0[None])[0] * norm.out_std[None, :] / norm.in_std[: scenario.dy, None]
+    prod = h_n @ model.gain_prior.numpy()
+    assert np.linalg.matrix_rank(prod, tol=1e-6) == (3 if name == "nlink" else scenario.dy)
+    np.testing.assert_allclose(prod @ prod, 0.5 * prod, atol=1e-9)  # 0.5 times a projector
+    if name != "nlink":
+        np.testing.assert_allclose(prod, 0.5 * np.eye(scenario.dy), atol=1e-9)
+
+
 @pytest.mark.parametrize("name", ["ballistic", "bearings"])
 def test_the_predicted_observation_is_made_before_y_k_is_read(name):
     scenario, model, norm, data = hybrid(name)
@@ -137,9 +160,8 @@ def test_the_observation_residual_wraps_a_bearing():
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_a_zero_gain_is_the_open_loop_baseline(name):
     scenario, model, norm, data = hybrid(name, dtype=torch.float64)
+    zero_gain(model)
     with torch.no_grad():
-        model.gain.weight.zero_()
-        model.gain.bias.zero_()
         x_n = model(inputs(norm, data, torch.float64)).numpy()
     x = norm.denormalize_states(x_n)
     ref = table.resolve(table.spec("openloop").factory)(scenario).run(data.y, data.u).x
@@ -149,9 +171,7 @@ def test_a_zero_gain_is_the_open_loop_baseline(name):
 def test_gradients_flow_through_f():
     """d x_{k|k} / d x_{k-1|k-1} with a zero gain is f's Jacobian (the scenario's analytic one)."""
     scenario, model, norm, _ = hybrid("nlink", dtype=torch.float64)
-    with torch.no_grad():
-        model.gain.weight.zero_()
-        model.gain.bias.zero_()
+    zero_gain(model)
     x_prev = np.array([0.3, -0.2, 0.5, 0.1, 0.0, -0.4])
     state = list(model.init_state(1))
     offset = torch.tensor(x_prev[None] - scenario.prior()[0], requires_grad=True)
