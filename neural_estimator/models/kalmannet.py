@@ -51,7 +51,9 @@ is then a reasonable fixed-gain filter rather than the open loop or a random gai
 learns the correction (the paper's network outputs the whole gain). Why: started at K = 0 on
 Lorenz 96, 40 Adam steps at lr 1e-3 drove some trajectories into the chaotic system's runaway and
 the loss to 1e4-1e5; started at K0 the untrained model is at 0.0495 RMSE against the EKF's 0.0492
-(50 trajectories x 100 steps; a probe, not a benchmark).
+(50 trajectories x 100 steps; a probe, not a benchmark). K0 is only as good as the linearisation
+at m0: on N-link (hanging prior, large swings) it hurts (docs/methods.md); ``prior_gain=0`` removes
+it.
 
 Covariance: none. KalmanNet tracks no error covariance (the learned gain replaces the Riccati
 recursion that would carry one); any matrix reported from it would be invented.
