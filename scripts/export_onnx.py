@@ -1,4 +1,4 @@
-"""Write a neural model's batch-1 step as an ONNX graph (for ONNX Runtime serving).
+"""Write a neural model's (or the KalmanNet hybrid's) batch-1 step as an ONNX graph (for ONNX Runtime serving).
 
     python scripts/export_onnx.py --scenario lorenz96 --method gru --out gru_step.onnx
     python scripts/export_onnx.py --scenario lorenz96 --method mamba --checkpoint runs/my-mamba --out m.onnx
@@ -33,12 +33,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neural_estimator.methods.interface import EstimatorError  # noqa: E402
 from neural_estimator.methods import table  # noqa: E402
 from neural_estimator.models.onnx_step import OnnxError, export_step  # noqa: E402
-from neural_estimator.serving.export import export_beside  # noqa: E402
+from neural_estimator.serving.export import export_beside, torch_only_reason  # noqa: E402
 from neural_estimator.serving.card import checkpoint_paths  # noqa: E402
 from neural_estimator.serving.card import default_checkpoint  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 from neural_estimator.serving.onnx_runtime import ONNX_FILE, served_files  # noqa: E402
-from neural_estimator.scenarios import ScenarioError, make_scenario  # noqa: E402
+from neural_estimator.scenarios import ScenarioError, make_scenario, scenario_from_description  # noqa: E402
+from neural_estimator.serving.card import read_card  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,11 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             directory = checkpoint_paths(a.checkpoint or default_checkpoint(a.scenario, a.method))[0]
             written = export_beside(directory)  # the scenario as the card describes it
             if written is None:
-                print(
-                    f"error: {directory}: validated with a bounded context (restarted copies), which torch serves; "
-                    "--context 0 --out FILE exports the unbounded step",
-                    file=sys.stderr,
-                )
+                print(f"error: {directory}: {_why_torch(directory)}", file=sys.stderr)
                 return 1
             data = written.read_bytes()
             print(f"{written}: {len(data):,} bytes, sha256 {hashlib.sha256(data).hexdigest()[:16]}")
@@ -92,6 +89,16 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print(f"{out}: {len(data):,} bytes, sha256 {hashlib.sha256(data).hexdigest()[:16]}")
     return 0
+
+
+def _why_torch(directory: Path) -> str:
+    """Why ``export_beside`` wrote no graph for ``directory`` (a bounded context, or a hybrid's system
+    without an ONNX form), with the way out where there is one."""
+    _, card = read_card(directory)
+    est = load_neural_estimator(card["method"], scenario_from_description(card["scenario"]), directory)
+    reason = torch_only_reason(est) or "its step is not exported"
+    hint = "; --context 0 --out FILE exports the unbounded step" if est.context_by_copies else ""
+    return reason + hint
 
 
 if __name__ == "__main__":

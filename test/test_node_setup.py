@@ -92,3 +92,47 @@ def test_warnings_of_one_kind_are_throttled_and_other_kinds_are_not(monkeypatch)
     warn_throttled(node, last, "gap", "d", 2.0)  # 2 s later: logged again
     assert [t for _, t in node.logger.lines] == ["a", "c", "d"]
     assert {level for level, _ in node.logger.lines} == {"warning"}
+
+
+@pytest.mark.parametrize("name, backend", [("lorenz96", "onnxruntime"), ("nlink", "torch")])
+def test_the_estimator_nodes_host_the_hybrid(tmp_path, name, backend):
+    """``method:=kalmannet`` goes through the networks' setup: its checkpoint, the per-message backend
+    (the exported step where the system's f and h export, torch for N-link), a stream stepped message
+    by message equal to the batched estimator, a dropped reading predicted through."""
+    import numpy as np
+    import torch
+
+    from neural_estimator.data import simulate
+    from neural_estimator.methods.registry import previous_controls
+    from neural_estimator.models import build_model
+    from neural_estimator.nodes.estimator_setup import build_online
+    from neural_estimator.scenarios import make_scenario
+    from neural_estimator.serving.checkpoint import save_checkpoint
+    from neural_estimator.serving.export import export_beside
+    from neural_estimator.serving.load import load_neural_estimator
+    from neural_estimator.serving.normalization import Normalizer
+    from neural_estimator.stream import messages as MSG
+
+    scenario = make_scenario(name)
+    data = simulate(scenario, 2, 10, seed=3)
+    norm = Normalizer.from_data(scenario, data)
+    torch.manual_seed(0)
+    model = build_model("kalmannet", scenario)
+    model.set_normalization(norm)
+    save_checkpoint(tmp_path, model, norm, {"scenario": scenario.describe()})
+    export_beside(tmp_path, scenario)
+    p = _params(method="kalmannet", checkpoint=str(tmp_path))
+    method = checked_method(p)
+    assert method_options(method, p)["backend"] == "auto"
+    est, online = build_online(method, scenario, p)
+    assert est.backend == backend and est.covariance is None
+    y = data.y[0].copy()
+    y[4] = np.nan
+    u = previous_controls(data.u)[0]
+    got = []
+    for k in range(10):
+        (r,) = online.feed(MSG.encode_observation(scenario, k, 0, k, y[k], u[k]), 0.0)
+        assert r.status == "estimated"
+        got.append(r.x_hat)
+    ref = load_neural_estimator("kalmannet", scenario, tmp_path, backend="torch").run(y[None], data.u[:1]).x[0]
+    np.testing.assert_allclose(np.array(got), ref, rtol=1e-5, atol=1e-5 * float(np.max(norm.out_std)))

@@ -32,6 +32,7 @@ def add_headline(sub) -> None:
 
 def _cmd_headline(args) -> int:
     from neural_estimator.evaluation.headline import measure_headline
+    from neural_estimator.evaluation.headline import HEADLINE_FAMILIES
     from neural_estimator.filters.baselines import check_evaluated_method
     from neural_estimator.methods import table
     from neural_estimator.paper import PAPER_SCENARIOS
@@ -41,7 +42,8 @@ def _cmd_headline(args) -> int:
     unknown = [s for s in scenarios if s not in scenario_names()]
     if unknown:
         raise CliError(f"unknown scenario {unknown[0]!r}; choose from {', '.join(scenario_names())}")
-    methods = [check_evaluated_method(m) for m in (args.methods or ",".join(table.names())).split(",") if m.strip()]
+    default = ",".join(table.names(family=HEADLINE_FAMILIES))
+    methods = [check_evaluated_method(m) for m in (args.methods or default).split(",") if m.strip()]
     if args.trajectories < 2 or args.sets < 1:
         raise CliError(f"--trajectories must be >= 2 and --sets >= 1, got {args.trajectories} and {args.sets}")
     headline = measure_headline(

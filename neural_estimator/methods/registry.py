@@ -34,13 +34,13 @@ PER_MESSAGE_BACKEND = "auto"  # a neural model stepped one message at a time: st
 
 def per_message_options(method: str, options: dict[str, Any]) -> dict[str, Any]:
     """``options`` of an estimator stepped one message at a time (the estimator nodes, replay): a
-    neural method's backend defaults to ``auto``, ONNX Runtime over the checkpoint's ``step.onnx``
-    (no torch in the process) where it serves the request, torch otherwise
+    trained method's (a network's, the hybrid's) backend defaults to ``auto``, ONNX Runtime over
+    the checkpoint's ``step.onnx`` (no torch in the process) where it serves the request, torch otherwise
     (:func:`~neural_estimator.serving.load.per_message_backend`). Batched evaluation and training
     keep torch (``make_estimator``'s own default). The live node and replay share this default, so
     replay gives the live node's estimates."""
     options = dict(options)
-    if table.has(check_method(method), family="neural"):
+    if table.has(check_method(method), trainable=True):  # the networks and the hybrid: checkpoints
         options.setdefault("backend", PER_MESSAGE_BACKEND)
     return options
 

@@ -97,6 +97,25 @@ def _neural(
     )
 
 
+def _hybrid(name: str, display: str, cls: str) -> MethodSpec:
+    """A model-aided network: the scenario's f and h (needs_model) with a trained part, served by the
+    networks' factory from a checkpoint; its model class takes the scenario (models.build_model)."""
+    return MethodSpec(
+        name,
+        display,
+        "hybrid",
+        "neural_estimator.serving.load:load_neural_estimator",
+        needs_model=True,
+        trainable=True,
+        takes_init=False,
+        uses_torch=True,
+        seeded=False,
+        context="recurrent",
+        exportable=True,
+        architecture=(f"neural_estimator.models.{name}:{cls}Config", f"neural_estimator.models.{name}:{cls}Model"),
+    )
+
+
 def _baseline(name: str, cls: str) -> MethodSpec:
     return MethodSpec(
         name,
@@ -138,6 +157,7 @@ TABLE: tuple[MethodSpec, ...] = (
     _neural("filterformer", "Filterformer", "Filterformer", 7, "window", window_key="window"),
     _neural("mamba", "Mamba", "Mamba", 8, "recurrent", state_space=True),
     _neural("mamba2", "Mamba-2", "Mamba2", 9, "recurrent", state_space=True),
+    _hybrid("kalmannet", "KalmanNet", "KalmanNet"),  # not one of the paper's rows (issue 45)
     _baseline("openloop", "OpenLoop"),
     _baseline("obsonly", "ObservationOnly"),
 )

@@ -33,6 +33,7 @@ from neural_estimator.methods import table
 from neural_estimator.models.filterformer import FilterformerConfig, FilterformerModel
 from neural_estimator.models.gpt2 import GPT2Config, GPT2Model
 from neural_estimator.models.gru import GRUConfig, GRUModel
+from neural_estimator.models.kalmannet import KalmanNetConfig, KalmanNetModel
 from neural_estimator.models.lstm import LSTMConfig, LSTMModel
 from neural_estimator.models.mamba import MambaConfig, MambaModel
 from neural_estimator.models.mamba2 import Mamba2Config, Mamba2Model
@@ -84,8 +85,13 @@ def build_model(name: str, scenario: System, **hp: Any) -> nn.Module:
 
     ``d_in`` and ``d_out`` come from the scenario (:func:`model_dims`), never from ``hp``.
 
+    A hybrid (family "hybrid" in the table of methods: KalmanNet) uses the system's equations, so
+    its model class also takes ``scenario`` itself, ``model_cls(cfg, scenario)``.
+
     Raises:
         KeyError: unknown architecture, or a hyperparameter that is not a field of its config.
+        ValueError: a hybrid for a system without a differentiable f and h (``SystemDims``, recorded
+            data without a model): a one-line message.
     """
     if name not in ARCHITECTURES:
         raise KeyError(f"unknown architecture {name!r}; choose one of: {', '.join(ARCHITECTURES)}")
@@ -98,7 +104,8 @@ def build_model(name: str, scenario: System, **hp: Any) -> nn.Module:
             "(d_in and d_out come from the scenario)"
         )
     d_in, d_out = model_dims(scenario)
-    return model_cls(config_cls(d_in=d_in, d_out=d_out, **hp))
+    cfg = config_cls(d_in=d_in, d_out=d_out, **hp)
+    return model_cls(cfg, scenario) if table.has(name, family="hybrid") else model_cls(cfg)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -125,4 +132,6 @@ __all__ = [
     "MambaModel",
     "Mamba2Config",
     "Mamba2Model",
+    "KalmanNetConfig",
+    "KalmanNetModel",
 ]

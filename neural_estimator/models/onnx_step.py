@@ -7,17 +7,17 @@ the model's own ``step`` traced at batch 1::
     inputs:  z (1, d_in) float32 (normalised [y_k, u_{k-1}]), state_0 ... state_{S-1}
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
-with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM
-state per layer; GPT-2: the (W,) slot mask, then each layer's (2, 1, nh, W, hs) keys and values;
-Filterformer: the mask and its one attention's cache). The attention models serve a bounded key/value
-cache of the last W steps (their attention window, the ``context`` option), so their step graph has
-fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's covariance
-(normalised units), when exported with ``covariance``. A state that does not start at zeros (the
-attention models' mask starts at -inf: no slot filled) is recorded in the graph's metadata
-(``initial_fill``), which ``OrtStep`` resets to. :func:`export_step` makes it from the loaded
-checkpoint (card + safetensors weights), so the export is reproducible from the card: the same
-weights give the same graph. ``OrtStep`` serves it; a test holds it equal to the torch step over
-hundreds of steps.
+with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM state
+per layer; KalmanNet: its filter's memory, then the GRU's h; GPT-2: the (W,) slot mask, then each
+layer's (2, 1, nh, W, hs) keys and values; Filterformer: the mask and its one attention's cache).
+The attention models serve a bounded key/value cache of the last W steps (their attention window,
+the ``context`` option), so their step graph has fixed shapes too; Filterformer's graph also outputs
+``cov`` (1, d_out, d_out), its head's covariance (normalised units), when exported with
+``covariance``. A state that does not start at zeros (the attention models' mask starts at -inf: no
+slot filled) is recorded in the graph's metadata (``initial_fill``), which ``OrtStep`` resets to.
+:func:`export_step` makes it from the loaded checkpoint (card + safetensors weights), so the export
+is reproducible from the card: the same weights give the same graph. ``OrtStep`` serves it; a test
+holds it equal to the torch step over hundreds of steps.
 
 Serving needs ``onnxruntime``; exporting also needs torch and ``onnx`` (all three in the runtime
 install). The serving side (``OrtStep``, the torch-free ``OnnxEstimator``) lives in
@@ -101,7 +101,11 @@ def export_step(
     state0 = model.init_state(1, device=p.device, dtype=torch.float32)
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
-    d_in = model.input_proj.in_features
+    d_in = model.input_proj.in_features if hasattr(model, "input_proj") else int(model.cfg.d_in)
+    blocker = getattr(model, "onnx_blocker", None)  # a hybrid whose system's f or h has no ONNX form
+    if blocker:
+        raise OnnxError(f"{method}: {blocker}")
+    missing_nan = bool(getattr(model, "reads_missing_observations", False))
     with_cov = bool(covariance) and hasattr(model, "step_with_cov")
     fills = _starting_fills(method, flat)
 
@@ -116,7 +120,7 @@ def export_step(
     if normalizer is None:
         step, args, names_in, names_out = _network_module(model, network, flat, with_cov, d_in)
     else:
-        step, args, names_in, names_out = _estimator_module(model, network, flat, with_cov, normalizer)
+        step, args, names_in, names_out = _estimator_module(model, network, flat, with_cov, normalizer, missing_nan)
     _register_symbolics()
     names_in = names_in + [f"state_{i}" for i in range(len(flat))]
     names_out = names_out + [f"new_state_{i}" for i in range(len(flat))]
@@ -128,12 +132,46 @@ def export_step(
             **(
                 {"window": str(int(flat[0].shape[0]))} if table.has(method, context="window") else {}
             ),  # a KV cache over W
+            **({"missing_observations": "nan"} if missing_nan else {}),  # see OnnxEstimator.step
             **(metadata or {}),
         },
     )
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+# Operations a trace records that the exporter's own passes fold away before it looks for ONNX forms
+# (a Python number read from a tensor, a constant lifted into the graph).
+_TRACE_ONLY = frozenset({"aten::Int", "aten::Float", "aten::ScalarImplicit", "aten::lift_fresh"})
+
+
+def unsupported_reason(fn: Any, args: tuple, what: str) -> str | None:
+    """Why ``fn(*args)`` has no ONNX form at :data:`OPSET`, or None when it exports: the probe a hybrid
+    makes of its system's f and h before its step is exported (``KalmanNetModel.onnx_blocker``;
+    N-link's f solves its mass-matrix system with ``aten::linalg_solve``, which opset 17 lacks).
+
+    ``fn`` is traced and its aten operations looked up in torch's table of ONNX forms (no export is
+    attempted: a failed export prints its whole graph to the process's stderr)."""
+    import torch
+    from torch.onnx._internal.torchscript_exporter.registration import registry
+
+    _register_symbolics()
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's notes on Python values
+        graph = torch.jit.trace(fn, args, check_trace=False).graph
+    missing = sorted(
+        {
+            n.kind()
+            for n in graph.nodes()
+            if n.kind().startswith("aten::")
+            and n.kind() not in _TRACE_ONLY
+            and not registry.is_registered_op(n.kind(), OPSET)
+        }
+    )
+    if not missing:
+        return None
+    return f"{what} uses {', '.join(missing)}, with no ONNX form at opset {OPSET}; it is served by torch"
 
 
 def _network_module(model: Any, network, flat: list, with_cov: bool, d_in: int) -> tuple:
@@ -154,9 +192,13 @@ def _network_module(model: Any, network, flat: list, with_cov: bool, d_in: int) 
     return Step(), args, ["z"], ["mean"] + (["cov"] if with_cov else [])
 
 
-def _estimator_module(model: Any, network, flat: list, with_cov: bool, normalizer: Any) -> tuple:
+def _estimator_module(
+    model: Any, network, flat: list, with_cov: bool, normalizer: Any, missing_nan: bool = False
+) -> tuple:
     """The whole estimator step, the checkpoint's normalisation around the network, as a module:
-    (module, example inputs, input names, output names), the state's names not yet appended."""
+    (module, example inputs, input names, output names), the state's names not yet appended.
+    ``missing_nan``: a non-finite y reaches the model as NaN (a hybrid then only predicts) instead of
+    the training mean 0."""
     import torch
 
     n = normalizer
@@ -175,7 +217,8 @@ def _estimator_module(model: Any, network, flat: list, with_cov: bool, normalize
         def forward(self, y, *rest):
             u, state = (rest[0], rest[1:]) if du else (None, rest)
             finite = torch.isfinite(y).all(dim=-1, keepdim=True)  # (1, 1)
-            zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], torch.zeros_like(y))
+            missing = torch.full_like(y, float("nan")) if missing_nan else torch.zeros_like(y)
+            zy = torch.where(finite, (y - in_mean[:, :dy]) / in_std[:, :dy], missing)
             z = torch.cat([zy, (u - in_mean[:, dy:]) / in_std[:, dy:]], dim=-1) if du else zy
             outs, new = network(z.float(), state)
             x = outs[0].double() * out_std + out_mean

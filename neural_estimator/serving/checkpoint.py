@@ -34,6 +34,7 @@ from torch import nn
 
 from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.models import ARCHITECTURES, System, SystemDims, build_model, count_parameters, model_dims
+from neural_estimator.models.kalmannet import HybridSystemError
 from neural_estimator.serving.card import (
     canonical_safetensors,
     CARD_FILE,
@@ -64,7 +65,8 @@ def system_of_card(card: dict[str, Any]) -> System:
     """The system a checkpoint was trained on, from its card's scenario description: the scenario
     itself where it can be rebuilt here (a built-in, or a registered plugin, with the card's
     constants); else (recorded data, a plugin not loaded) its dimensions, read from the
-    description's names (:class:`~neural_estimator.models.SystemDims`)."""
+    description's names (:class:`~neural_estimator.models.SystemDims`), which serve a network but
+    not a hybrid (it needs the system's f and h: :func:`build_from_config` refuses it in one line)."""
     from neural_estimator.scenarios import ScenarioError, scenario_from_description
 
     desc = card.get("scenario")
@@ -88,6 +90,8 @@ def build_from_config(name: str, config: dict[str, Any], system: System) -> nn.M
         )
     try:
         return build_model(name, system, **config)
+    except HybridSystemError as exc:  # a hybrid whose card's scenario has no f and h here
+        raise EstimatorError(f"cannot build {name!r}: {exc}") from None
     except KeyError as exc:
         raise EstimatorError(f"cannot build {name!r} from the card's config: {str(exc).strip(chr(39))}") from None
     except (TypeError, ValueError, AssertionError) as exc:

@@ -28,8 +28,9 @@ def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
     digests of the files it was made from (:func:`~neural_estimator.serving.onnx_runtime.served_files`).
 
     Returns its path, or None (a stale ``step.onnx`` removed) where that configuration is not one
-    exported step: a recurrent model validated with a bounded context (the card's ``val_context``)
-    serves through restarted copies of the model, which stay torch's.
+    exported step (:func:`torch_only_reason` says why): a recurrent model validated with a bounded
+    context (the card's ``val_context``) serves through restarted copies of the model, which stay
+    torch's; a hybrid whose system's f or h has no ONNX form (N-link's linear solve).
 
     Args:
         directory: the checkpoint directory.
@@ -47,10 +48,18 @@ def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
         est = load_neural_estimator(card["method"], scenario, directory, backend="torch")
     except (EstimatorError, ScenarioError) as exc:
         raise OnnxError(f"{directory}: {exc}") from None
-    if est.context_by_copies or not table.has(card["method"], exportable=True):
+    if torch_only_reason(est) is not None or not table.has(card["method"], exportable=True):
         out.unlink(missing_ok=True)
         return None
     tmp = directory / (ONNX_FILE + ".tmp")
     export_step(est.model, est.method, tmp, covariance=est.has_covariance, metadata=served_files(card))
     tmp.replace(out)
     return out
+
+
+def torch_only_reason(est: Any) -> str | None:
+    """Why a loaded estimator's default serving configuration has no exported step (so its
+    per-message backend is torch), or None where it has one."""
+    if est.context_by_copies:
+        return "validated with a bounded context (restarted copies), which torch serves"
+    return getattr(est.model, "onnx_blocker", None)  # a hybrid's system without an ONNX form

@@ -1,6 +1,7 @@
 """The estimator interface over a trained sequence model: normalise, run the network, denormalise.
 
-One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2). At step k
+One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, Mamba-2) and the
+KalmanNet hybrid (:mod:`neural_estimator.models.kalmannet`). At step k
 
     z_k   = [y_k, u_{k-1}]                           (the paper's input; u_{-1} = 0)
     z_n   = (z_k - mu_z) / sigma_z                   (training-set statistics, see normalization.py)
@@ -10,9 +11,11 @@ One class serves all six architectures (GRU, LSTM, GPT-2, Filterformer, Mamba, M
 :meth:`NeuralEstimator.run` uses the model's parallel form over whole sequences instead (chunked
 over the batch to bound memory); a test holds it equal to a loop of :meth:`NeuralEstimator.step`.
 A non-finite observation row is replaced by the training mean (0 after normalisation) and flagged in
-``skipped``. Filterformer also returns a covariance from its geometric-attention head, and any model
-with a fitted covariance head (:mod:`neural_estimator.serving.uncertainty.heads`) returns that head's; both
-are mapped back to state units as diag(sigma_x) C_n diag(sigma_x).
+``skipped``; a model that reads missing observations itself (``reads_missing_observations``: the
+KalmanNet hybrid, which then predicts without an update) gets NaN there instead. Filterformer also
+returns a covariance from its geometric-attention head, and any model with a fitted covariance head
+(:mod:`neural_estimator.serving.uncertainty.heads`) returns that head's; both are mapped back to
+state units as diag(sigma_x) C_n diag(sigma_x).
 """
 
 from __future__ import annotations
@@ -63,9 +66,10 @@ class NeuralEstimator(Estimator):
     Args:
         scenario: the system the model was trained on (dimensions are checked).
         model: a module of :mod:`neural_estimator.models` (``forward``, ``init_state``, ``step``;
-            Filterformer also ``forward_with_cov`` and ``step_with_cov``).
+            Filterformer also ``forward_with_cov`` and ``step_with_cov``). A hybrid (KalmanNet) is
+            served the same way; it has no covariance (it tracks none).
         normalizer: the training-set statistics.
-        method: the method name (``gru``, ``lstm``, ``gpt2``, ``filterformer``, ``mamba``, ``mamba2``).
+        method: the method name (a trainable method of the table: the six networks, the hybrid).
         device: ``cpu``, ``cuda``, ``cuda:N`` or ``auto``.
         covariance: report the covariance where the model has one (Filterformer). False skips it,
             which saves (B, T, dx, dx) memory in :meth:`run`.
@@ -189,7 +193,7 @@ class NeuralEstimator(Estimator):
             return self._step_onnx(y, u_prev)
         y, u_prev = self.check_step(y, u_prev)
         self.start_streams_if_none(y.shape[0])  # the first step after construction starts y's batch
-        z, self.skipped = self.normalizer.normalize_inputs(y, u_prev)  # (B, d_in), (B,)
+        z, self.skipped = self._inputs(y, u_prev)  # (B, d_in), (B,)
         z_t = torch.as_tensor(z, dtype=self.dtype, device=self.device)
         with torch.inference_mode():
             if self.context_by_copies:
@@ -242,7 +246,7 @@ class NeuralEstimator(Estimator):
         Y, U = self.check_sequences(Y, U)
         B, T, _ = Y.shape
         dx = self.scenario.dx
-        Z, skipped = self.normalizer.normalize_inputs(Y, previous_controls(U))  # (B, T, d_in), (B, T)
+        Z, skipped = self._inputs(Y, previous_controls(U))  # (B, T, d_in), (B, T)
         xs = np.empty((B, T, dx))
         covs = np.empty((B, T, dx, dx)) if self.has_covariance else None
         self.model.eval()
@@ -267,6 +271,14 @@ class NeuralEstimator(Estimator):
         self.skipped = skipped[:, -1] if T else np.zeros(B, dtype=bool)
         self.covariance = covs[:, -1] if covs is not None and T else None
         return Estimates(xs, covs, diverged)
+
+    def _inputs(self, y: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The normalised z and the skipped flags; an unusable y row is NaN for a model that reads
+        missing observations itself (a hybrid predicts without an update), the training mean 0 else."""
+        z, skipped = self.normalizer.normalize_inputs(y, u_prev)
+        if skipped.any() and getattr(self.model, "reads_missing_observations", False):
+            z[skipped, : self.normalizer.dy] = np.nan
+        return z, skipped
 
     def _denormalize_cov(self, cov: torch.Tensor) -> np.ndarray:
         """The model's covariance in state units, times ``cov_scale``."""

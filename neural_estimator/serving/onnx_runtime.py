@@ -137,8 +137,9 @@ class OnnxEstimator(Estimator):
     with numpy and onnxruntime only (no torch).
 
     The arithmetic of :class:`~neural_estimator.serving.neural.NeuralEstimator`'s step: normalise
-    [y_k, u_{k-1}] in float64 with the card's statistics (a non-finite y becomes the training mean and
-    is flagged in ``skipped``), the network in float32, denormalise (angles wrapped; Filterformer's
+    [y_k, u_{k-1}] in float64 with the card's statistics (a non-finite y becomes the training mean, or
+    NaN for a graph whose metadata says ``missing_observations: nan``, a hybrid that then predicts
+    only, and is flagged in ``skipped``), the network in float32, denormalise (angles wrapped; Filterformer's
     covariance as diag(sigma_x) C diag(sigma_x)). Written into the graph's bound buffers, because at
     20-90 us a step every numpy call counts. ``run`` is the base class's loop of :meth:`step`.
 
@@ -175,6 +176,7 @@ class OnnxEstimator(Estimator):
         self.backend = "onnxruntime"
         self.context = int(step.metadata.get("window", 0))  # the attention window the graph serves (0: recurrent)
         self.context_by_copies = False
+        self._missing_nan = step.metadata.get("missing_observations") == "nan"  # onnx_step.export_step
         self._dims = (dy, du)
         self._u_zero = np.zeros((1, du))
         self._skip_flags = (np.zeros(1, dtype=bool), np.ones(1, dtype=bool))
@@ -225,6 +227,8 @@ class OnnxEstimator(Estimator):
         else:
             u_prev = self._u_zero
         skipped = normalize_into(y, u_prev, self._in_mean, self._in_std, ort.inputs["z"])
+        if skipped and self._missing_nan:  # a hybrid reads the missing y itself: it predicts only
+            ort.inputs["z"][0, :dy] = np.nan
         ort.run()
         x, finite = denormalize(ort.outputs["mean"], self._out_std, self._out_mean)
         if n.angle_states:

@@ -136,7 +136,7 @@ def train(
     arch, window_key = _checked_arch(arch, cfg)
     device = resolve_device(cfg.device)
     sets = _training_sets(scenario, cfg, data, device, progress)
-    run = _Run(scenario, arch, window_key, sets, Path(out_dir), device)
+    run = _run_class(arch)(scenario, arch, window_key, sets, Path(out_dir), device)
     run.threads = threads
     if sets.cfg.resume and (run.out_dir / RESUME_DIR / "state.json").is_file():
         run.resume(stop_when)
@@ -164,11 +164,24 @@ def _checked_arch(arch: str, cfg: TrainConfig) -> tuple[str, str | None]:
             f"val_context={cfg.val_context} sets {arch}'s attention window {window_key}, "
             f"which the model overrides set to {cfg.model_overrides[window_key]}: give one of them"
         )
+    if cfg.supervision == "observations" and not table.has(arch, family="hybrid"):
+        raise TrainingError(
+            f"supervision 'observations' trains a hybrid through the system's h; {arch} learns from states"
+        )
     known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
     unknown = sorted(set(cfg.model_overrides) - known)
     if unknown:
         raise TrainingError(f"{arch} has no hyperparameter(s) {unknown}; valid: {sorted(known)}")
     return arch, window_key
+
+
+def _run_class(arch: str) -> type:
+    """The run of ``arch``: a network's windows (:class:`_Run`), or a hybrid's TBPTT from its prior."""
+    if table.has(arch, family="hybrid"):
+        from neural_estimator.training.hybrid import HybridRun  # it builds on _Run, below
+
+        return HybridRun
+    return _Run
 
 
 @dataclasses.dataclass
@@ -493,6 +506,7 @@ class _Run:
             "init_seed": cfg.init_seed,
             "training": {
                 "recipe": cfg.recipe(),
+                "supervision": cfg.supervision,
                 "device": str(self.device),
                 "steps_per_epoch": self.steps_per_epoch,
                 "loss": "sum w e^2 / (dx sum w): w = inverse sampling frequency x warm-up mask, "

@@ -14,6 +14,7 @@ from neural_estimator.data.protocol import TRAIN_TRAJECTORY_LENGTH, VALIDATION_T
 
 
 LOSS_UNITS = ("normalised", "state")
+SUPERVISION = ("states", "observations")  # what the loss reads: state labels, or the observations only (a hybrid)
 
 
 class TrainingError(ValueError):
@@ -39,6 +40,9 @@ class TrainConfig:
     # ballistic and the quadrotor "state" gave 2.2x and 1.5x lower RMSE (experiments/loss_units.py)
     loss_units: str = "state"
     windows_per_epoch: int | None = None  # None -> N x train_length / window (the set's steps once)
+    # "states": the paper's loss on state labels; "observations": a hybrid's loss on the next
+    # observation predicted through h (no state label read; training/hybrid.py)
+    supervision: str = "states"
     # model
     init_seed: int = 0  # initial weights, dropout and window draws
     model_overrides: dict[str, Any] = field(default_factory=dict)  # architecture config changes
@@ -96,6 +100,8 @@ class TrainConfig:
             raise TrainingError("need lr > 0, weight_decay >= 0, grad_clip > 0 and 0 < lr_factor < 1")
         if self.loss_units not in LOSS_UNITS:
             raise TrainingError(f"loss_units must be one of {', '.join(LOSS_UNITS)}, got {self.loss_units!r}")
+        if self.supervision not in SUPERVISION:
+            raise TrainingError(f"supervision must be one of {', '.join(SUPERVISION)}, got {self.supervision!r}")
         if self.val_context < 0 or self.val_context_copies < 1:
             raise TrainingError(
                 f"val_context must be >= 0 and val_context_copies >= 1, got {self.val_context}, "
@@ -112,7 +118,7 @@ class TrainConfig:
         """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
 
         Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what), and
-        ``loss_units`` when it is "normalised": every card and resume state written before the field
+        ``supervision`` when it is "states" and ``loss_units`` when it is "normalised": every card and resume state written before the field
         existed was trained so, and a recipe without it still means that; likewise ``val_context`` and
         ``val_context_copies`` when the context is unbounded (0).
         """
@@ -122,6 +128,8 @@ class TrainConfig:
             d.pop(key)
         if d["loss_units"] == "normalised":
             d.pop("loss_units")
+        if d["supervision"] == "states":
+            d.pop("supervision")  # every recipe before the field existed trained on states
         if not d["val_context"]:
             d.pop("val_context")
             d.pop("val_context_copies")

@@ -28,7 +28,7 @@ def run_from_args(args, usage_error: type[Exception]) -> int:
         settings = Settings(
             scale=get_scale(args.scale),
             scenarios=_names(args.scenarios, PAPER_SCENARIOS, _known_scenario, "--scenarios"),
-            methods=_names(args.methods, table.names(), check_method, "--methods"),
+            methods=_names(args.methods, list(table.paper_names()), check_method, "--methods"),  # the paper's ten
             gpu=_cuda(),
             cache_dir=str(args.cache_dir or default_cache_dir()),
             address=args.address,
