@@ -48,7 +48,7 @@ CLI_CASES = [
     (["metrics", "{tmp}/missing.npz"], "missing.npz: no such file"),
     (["metrics", "{tmp}/truncated.mcap"], "no /observation or /ground_truth topic"),
     (["replay", "{bag}", "--methods", "ukf", "--out", "{tmp}/o.mcap", "--threads", "-1"], "--threads must be >= 0"),
-    (["train", "--scenario", "lorenz96", "--model", "ukf", "--out", "{tmp}/m"], "--model must be a neural method"),
+    (["train", "--scenario", "lorenz96", "--model", "ukf", "--out", "{tmp}/m"], "--model must be a trainable method"),
     (["dataset", "{tmp}/missing_bag", "--spec", SPEC, "--out", "{tmp}/d.npz"], "missing_bag"),
     (["simulate", "--scenario", "lorenz96", "--out", "{tmp}/x.npz", "--trajectories", "0"], "must be >= 1"),
     (["live", "--scenario", "lorenz96", "--methods", "ukff"], "unknown method 'ukff' (did you mean 'ukf'?)"),

@@ -42,6 +42,12 @@ _TRAIN_FLAG_HELP["val_context"] = (
 )
 
 
+_TRAIN_FLAG_HELP["supervision"] = (
+    "what the loss reads: states (the paper's; default) or observations (a hybrid, kalmannet, trained through "
+    "the system's h on the next observation alone: no state label read; docs/training.md)"
+)
+
+
 _TRAIN_FLAG_HELP["val_context_copies"] = "copies for --val-context (K times the validation compute; default: 4)"
 
 
@@ -75,7 +81,9 @@ def add_train(sub) -> None:
         help="with --data and no --val-data: share of the "
         "trajectories held out for validation, split by trajectory (default 0.2)",
     )
-    p.add_argument("--model", required=True, help="gru, lstm, gpt2, filterformer, mamba or mamba2")
+    p.add_argument(
+        "--model", required=True, help="gru, lstm, gpt2, filterformer, mamba, mamba2 or kalmannet (the hybrid)"
+    )
     p.add_argument("--out", required=True, help="output directory (model.safetensors + card.json)")
     p.add_argument("--model-set", action="append", metavar="NAME=VALUE", help="override an architecture hyperparameter")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -120,7 +128,7 @@ def _cmd_train(args) -> int:
     method = check_method(args.model)
     if not table.has(method, trainable=True):
         trainable = ", ".join(table.names(trainable=True))
-        raise CliError(f"--model must be a neural method ({trainable}), got {args.model!r}")
+        raise CliError(f"--model must be a trainable method ({trainable}), got {args.model!r}")
     scenario, datasets = scenario_or_data(args)
     data = None
     if datasets is not None:
@@ -161,6 +169,10 @@ def _cmd_train(args) -> int:
         path = train(scenario, method, args.out, config, progress=not args.quiet, data=data, threads=governor)
     except TrainingError as exc:
         raise CliError(str(exc)) from None
+    except ValueError as exc:  # a model that cannot be built for this system (a hybrid on recorded data)
+        if table.has(method, family="hybrid"):
+            raise CliError(str(exc)) from None
+        raise
     if governor is not None and not args.quiet:
         print(governor.summary())
     print(f"wrote {path}")

@@ -46,6 +46,7 @@ class MethodSpec:
     exportable: bool = False  # its step exports to ONNX (models/onnx_step.py)
     members: tuple[str, str] | None = None  # (option, "module:Class.field" of its default): members a stream holds
     architecture: tuple[str, str] | None = None  # ("module:Config", "module:Model") of a network (models/)
+    training_run: str | None = None  # "module:Class" of its training run where not the networks' windows
     paper_row: int | None = None  # its row in the paper's tables (None: not one of the paper's methods)
 
     def __post_init__(self) -> None:
@@ -113,6 +114,7 @@ def _hybrid(name: str, display: str, cls: str) -> MethodSpec:
         context="recurrent",
         exportable=True,
         architecture=(f"neural_estimator.models.{name}:{cls}Config", f"neural_estimator.models.{name}:{cls}Model"),
+        training_run="neural_estimator.training.hybrid:HybridRun",  # whole trajectories from its prior (TBPTT)
     )
 
 

@@ -27,7 +27,7 @@ through time (TBPTT):
 
    An observation-trained hybrid takes its state statistics (its units and its guard's range)
    from 500 trajectories simulated from the model, not from the data's states
-   (:func:`model_state_statistics`).
+   (:func:`neural_estimator.training.observations.observation_normalizer`).
 4. Validation: every validation trajectory from the prior over its full length in eval mode, the
    same kind of loss over steps t >= warmup (so an observation-trained model also selects its
    checkpoint without a state label). Scheduler, early stopping, checkpoints, the resume state and
@@ -54,8 +54,6 @@ class HybridRun(_Run):
         super().__init__(scenario, arch, window_key, sets, out_dir, device)
         cfg = self.cfg
         self.observations = cfg.supervision == "observations"
-        if self.observations:  # no state label read, not even for the state statistics: the model's own
-            sets.norm = model_state_statistics(scenario, sets.norm, cfg)
         self.model.set_normalization(sets.norm)  # z -> physical y, u; physical x -> normalised (saved)
         self.steps_per_epoch = math.ceil(sets.n_train / cfg.batch_size)  # batches of whole trajectories
         self.chunks = math.ceil(cfg.train_length / cfg.window)
@@ -162,27 +160,6 @@ class HybridRun(_Run):
             )
         training["tbptt"] = {"chunk": self.cfg.window, "chunks_per_trajectory": self.chunks}
         return card
-
-
-MODEL_STATISTICS_TRAJECTORIES = 500  # trajectories the model simulates for its state statistics
-
-
-def model_state_statistics(scenario, norm, cfg):
-    """``norm`` with the state statistics (mean, std: the hybrid's units and its guard's range) of
-    trajectories simulated from the model (its f, process noise and prior), not of the data's
-    states: an observation-trained hybrid reads no state label, and a team that has a model can
-    simulate it. The observation statistics stay the data's."""
-    import dataclasses
-
-    import numpy as np
-
-    from neural_estimator.data.simulate import simulate
-    from neural_estimator.serving.normalization import Normalizer
-
-    seed = np.random.SeedSequence(cfg.data_seed, spawn_key=(7, cfg.data_index))
-    sim = simulate(scenario, MODEL_STATISTICS_TRAJECTORIES, cfg.train_length, seed)
-    model = Normalizer.from_data(scenario, sim)
-    return dataclasses.replace(norm, out_mean=model.out_mean, out_std=model.out_std)
 
 
 def _double(x):

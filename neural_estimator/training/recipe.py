@@ -118,9 +118,9 @@ class TrainConfig:
         """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
 
         Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what), and
-        ``supervision`` when it is "states" and ``loss_units`` when it is "normalised": every card and resume state written before the field
-        existed was trained so, and a recipe without it still means that; likewise ``val_context`` and
-        ``val_context_copies`` when the context is unbounded (0).
+        ``supervision`` when it is "states" and ``loss_units`` when it is "normalised": every card and
+        resume state written before the field existed was trained so, and a recipe without it still
+        means that; likewise ``val_context`` and ``val_context_copies`` when the context is unbounded (0).
         """
         d = dataclasses.asdict(self)
         d["model_overrides"] = dict(self.model_overrides)
