@@ -39,6 +39,17 @@ def model_set_flag(p: argparse.ArgumentParser) -> None:
     )
 
 
+def model_assignments(items: list[str] | None) -> dict[str, str]:
+    """``--model-set`` items as {name: value}; a malformed one is a one-line CliError."""
+    told: dict[str, str] = {}
+    for item in items or ():
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip() or not value.strip():
+            raise CliError(f"--model-set expects NAME=VALUE, got {item!r}")
+        told[name.strip()] = value.strip()
+    return told
+
+
 def model_scenario_from_args(args: argparse.Namespace, scenario):
     """The model scenario of ``--model-set`` (``scenario`` itself without one); bad names and values
     are the scenario's one-line errors."""
@@ -50,7 +61,7 @@ def model_scenario_from_args(args: argparse.Namespace, scenario):
     if scenario is None or getattr(args, "data", None) is not None:
         raise CliError("--model-set needs --scenario (recorded data have no model)")
     try:
-        return model_scenario(scenario, parse_assignments(items))
+        return model_scenario(scenario, model_assignments(items))
     except ScenarioError as exc:
         raise CliError(f"--model-set: {exc}") from None
 

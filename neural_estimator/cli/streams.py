@@ -12,12 +12,12 @@ from neural_estimator.cli.common import (
     bag_description,
     bag_scenario_flags,
     check_out,
+    model_assignments,
     model_set_flag,
     parse_checkpoints,
     parse_options,
     warmup_flag,
 )
-from neural_estimator.scenarios import parse_assignments
 
 
 def add_live(sub) -> None:
@@ -117,7 +117,7 @@ def _cmd_replay(args) -> int:
         order=args.order,
         threads=args.threads,
         force=args.force,
-        model_set=parse_assignments(args.model_set),
+        model_set=model_assignments(args.model_set),
     )
     if args.model_set:
         print(f"model-based methods told a wrong model on purpose (--model-set): {', '.join(args.model_set)}")
