@@ -121,7 +121,18 @@ def test_evaluate_flag_errors_are_one_line(flags, words, capsys):
 def test_evaluate_verb_records_the_model_set(tmp_path, capsys):
     out = tmp_path / "ev"
     argv = ["evaluate", "--scenario", "lorenz96", "--methods", "ekf", "--trajectories", "4", "--horizon", "40"]
-    argv += ["--sets", "1", "--no-cache", "--quiet", "--model-set", "forcing=9", "--model-set", "R=2", "--out", str(out)]
+    argv += [
+        "--sets",
+        "1",
+        "--no-cache",
+        "--quiet",
+        "--model-set",
+        "forcing=9",
+        "--model-set",
+        "R=2",
+        "--out",
+        str(out),
+    ]
     assert main(argv) == 0
     assert "forcing=9, R=2" in capsys.readouterr().out
     assert json.loads((out / "results.json").read_text())["model_set"] == {"forcing": "9", "R": "2"}

@@ -497,7 +497,9 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
         )
     if info.get("model_set"):
         told = ", ".join(f"{k}={v}" for k, v in info["model_set"].items())
-        print(f"model-based methods told a wrong model on purpose (--model-set): {told}; data and networks: the true one")
+        print(
+            f"model-based methods told a wrong model on purpose (--model-set): {told}; data and networks: the true one"
+        )
     starts = {m: r.init for m, r in results.items()}
     print(mark_rows(results_table(results, fmt="text", marked=True), scenario.name, starts), end="")
     for line in notes(scenario.name, list(results), starts):

@@ -330,10 +330,7 @@ def evaluate(
             :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
         sealed: allow a seed of the sealed family (:mod:`~neural_estimator.evaluation.families`);
             only the headline measurement passes it, every other caller gets a ValueError.
-        model_scenario: the model the model-based methods (``table.has(m, needs_model=True)``) are
-            built with (:func:`~neural_estimator.scenarios.model.model_scenario`, ``--model-set``);
-            None: ``scenario`` itself. The data are always simulated with ``scenario``, and the
-            data-trained networks never see either; the cache keys the model a run was built with.
+        model_scenario: the model-based methods' model (``--model-set``, :func:`_told`); None: ``scenario``.
 
     Returns:
         {method: MethodResult} in the order given.
@@ -346,9 +343,7 @@ def evaluate(
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
     plan = [(m, k, c) for m in methods for k, c in enumerate(_instances(scenario, m, checkpoints))]
-    results = {m: MethodResult(m, init=effective_init(scenario, m, init)) for m in methods}
-    for m in methods:
-        results[m].model_set = model_set_of(_told(scenario, model_scenario, m))
+    results = {m: _empty_result(scenario, model_scenario, m, init) for m in methods}
     n_runs = len(plan) * len(data_sets)
     run_no = 0
     for m, k, ckpt in plan:
@@ -389,9 +384,16 @@ def evaluate(
     return results
 
 
+def _empty_result(scenario: Scenario, model_scenario: Scenario | None, method: str, init: str) -> MethodResult:
+    """A method's result before its runs: how its filters start, the model set it is built with."""
+    told = model_set_of(_told(scenario, model_scenario, method))
+    return MethodResult(method, init=effective_init(scenario, method, init), model_set=told)
+
+
 def _told(scenario: Scenario, model_scenario: Scenario | None, method: str) -> Scenario:
     """The scenario ``method`` is built with: the model scenario for a model-based method (the
-    filters, the baselines, the hybrid), the data scenario for a data-trained network."""
+    filters, the baselines, the hybrid; :func:`~neural_estimator.scenarios.model.model_scenario`),
+    the data scenario for a data-trained network. The cache keys the model a run was built with."""
     if model_scenario is None or not table.has(method, needs_model=True):
         return scenario
     return model_scenario
