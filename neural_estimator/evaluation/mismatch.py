@@ -88,7 +88,8 @@ def default_methods(scenario: Scenario) -> list[str]:
     and the hybrid where the zoo ships one for this scenario."""
     from neural_estimator.serving.instances import zoo_instances
 
-    methods = ["ekf", "ukf"] + list(table.names(family="neural"))
+    # the deterministic filters (EKF, UKF): the EnKF's and PF's draws would add their own noise to the sweep
+    methods = list(table.names(family="classical", seeded=False)) + list(table.names(family="neural"))
     methods += [m for m in table.names(family="hybrid") if zoo_instances(scenario.name, m)]
     return methods
 
