@@ -104,3 +104,23 @@ def test_mismatch_verb_writes_json_csv_and_figure(tmp_path, capsys):
     assert payload["schema"] == "neural_estimator.mismatch/1" and payload["values"] == [0.9, 1.0, 1.1]
     assert (tmp_path / "lorenz96-forcing.csv").read_text().startswith("scenario,parameter,value")
     assert (tmp_path / "lorenz96-forcing.png").stat().st_size > 1000
+
+
+def test_the_results_page_table_is_generated_from_the_committed_sweeps():
+    import importlib.util
+    from pathlib import Path
+
+    from neural_estimator.evaluation.mismatch import crossover_text
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("docs_generate", root / "docs" / "hooks" / "generate.py")
+    generate = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generate)
+    table = generate.mismatch()
+    assert "<!-- generate: mismatch -->" in (root / "docs" / "results.md").read_text()
+    for scenario, parameters in EXPERIMENT.items():
+        for parameter in parameters:
+            r = json.loads((root / "docs/results/mismatch" / f"{scenario}-{parameter}.json").read_text())
+            net = r["crossover"]["network"]
+            assert f"| {scenario} | `{parameter}` (" in table
+            assert f"| {crossover_text(net['above'])} | {crossover_text(net['below'])} |" in table
