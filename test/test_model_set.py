@@ -4,6 +4,7 @@ scenario, the data and the data-trained networks are not; every output and the c
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,3 +137,18 @@ def test_evaluate_verb_records_the_model_set(tmp_path, capsys):
     assert main(argv) == 0
     assert "forcing=9, R=2" in capsys.readouterr().out
     assert json.loads((out / "results.json").read_text())["model_set"] == {"forcing": "9", "R": "2"}
+
+
+def test_replay_builds_the_filters_with_the_model_set(tmp_path, capsys):
+    pytest.importorskip("rosbags")
+    bag = str(Path(__file__).resolve().parents[1] / "bags" / "lorenz96.mcap")
+    argv = ["replay", bag, "--methods", "ekf", "--metrics", "--overwrite"]
+    assert main([*argv, "--out", str(tmp_path / "a.mcap")]) == 0
+    exact = capsys.readouterr().out
+    assert main([*argv, "--out", str(tmp_path / "b.mcap"), "--model-set", "forcing=9"]) == 0
+    wrong = capsys.readouterr().out
+    assert "told a wrong model on purpose (--model-set): forcing=9" in wrong
+    row = [line for line in exact.splitlines() if line.startswith("ekf ")]
+    assert row and row[0] not in wrong  # the EKF's row of numbers changed
+    assert main([*argv, "--out", str(tmp_path / "c.mcap"), "--model-set", "forcin=9"]) == 2
+    assert "no constant 'forcin'" in capsys.readouterr().err
