@@ -388,6 +388,7 @@ def test_same_columns_and_schema_for_every_scenario_and_method(tmp_path):
                 "paired",  # the RMSE ratio to the best filter with its 95 % interval
                 "paired_full",  # the same on the Full RMSE
                 "reference_row",  # a baseline, never ranked
+                "model_set",  # the wrong model it was told on purpose (--model-set; {} the true one)
                 "instances",  # the trained instances run (count, RMSE of each, checkpoints)
             }
             assert len(entry["rmse_components"]) == sc.dx

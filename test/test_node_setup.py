@@ -136,3 +136,32 @@ def test_the_estimator_nodes_host_the_hybrid(tmp_path, name, backend):
         got.append(r.x_hat)
     ref = load_neural_estimator("kalmannet", scenario, tmp_path, backend="torch").run(y[None], data.u[:1]).x[0]
     np.testing.assert_allclose(np.array(got), ref, rtol=1e-5, atol=1e-5 * float(np.max(norm.out_std)))
+
+
+# ---- model_set: the model a model-based method is told --------------------------------------------------
+def test_model_set_parameter_builds_the_model_based_methods_with_the_model_scenario():
+    from neural_estimator.nodes.estimator_setup import model_note, told_scenario
+    from neural_estimator.scenarios import make_scenario
+
+    scenario = make_scenario("lorenz96")
+    p = _params(model_set="forcing=9, Q=2")
+    told = told_scenario("ekf", scenario, p)
+    assert told.config.forcing == 9.0 and told.describe()["model_set"] == {"forcing": "9", "Q": "2"}
+    assert told_scenario("gru", scenario, p) is scenario  # a data-trained network never sees it
+    assert told_scenario("ekf", scenario, _params()) is scenario
+    assert "forcing=9" in model_note("ekf", p) and model_note("gru", p) == ""
+
+
+@pytest.mark.parametrize(
+    "value, words",
+    [("forcing", "expects name=value"), ("forcin=9", "no constant 'forcin'"), ("Q=-2", "Q must be a finite")],
+)
+def test_a_bad_model_set_is_one_startup_error_line(value, words):
+    from neural_estimator.nodes.estimator_setup import told_scenario
+    from neural_estimator.scenarios import make_scenario
+
+    p = _params(model_set=value)
+    with pytest.raises(StartupError, match=words) as info:
+        checked_method(p)  # its form at start-up, before anything is built
+        told_scenario("ekf", make_scenario("lorenz96"), p)  # its names and values with the scenario
+    assert str(info.value).startswith("parameter model_set: ") and "\n" not in str(info.value)

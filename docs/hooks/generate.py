@@ -13,6 +13,7 @@ reference table or result is typed by hand:
     fidelity             the classical rows against the paper, from benchmarks/results/fidelity/*.txt
                          and neural_estimator/paper/paper_results.json
     methods              the table of methods and what each can do (neural_estimator/methods/table.py)
+    mismatch             the mismatch crossovers, from docs/results/mismatch/*.json (neural-estimator mismatch)
 
 The node parameters are read from the source with ``ast`` (the node modules import rclpy; the
 site builds without it). ``test/test_docs.py`` holds the params/*.yaml files to the same dataclasses.
@@ -257,7 +258,40 @@ def methods_table() -> str:
     return "\n".join(rows)
 
 
+def mismatch() -> str:
+    """One row per committed sweep (docs/results/mismatch/SCENARIO-PARAMETER.json): the exact model's
+    best filter, the network and its paired ratio there, the crossover on each side with its interval."""
+    from neural_estimator.evaluation.mismatch import EXPERIMENT, crossover_text
+
+    rows = [
+        "| scenario | model error in | best filter (exact) | network | ratio at exact [95 %] "
+        "| crossover, too large | crossover, too small | hybrid |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for scenario, parameters in EXPERIMENT.items():
+        for parameter in parameters:
+            path = ROOT / "docs/results/mismatch" / f"{scenario}-{parameter}.json"
+            if not path.is_file():
+                continue
+            r = json.loads(path.read_text())
+            exact = next(p for p in r["points"] if p["value"] == 1.0)
+            net = r["crossover"].get("network")
+            hyb = r["crossover"].get("hybrid")
+            best = exact["best_filter"]
+            row = exact["methods"][net["method"]] if net else None
+            ratio = f"{row['ratio']:.3g} [{row['ci95'][0]:.3g}, {row['ci95'][1]:.3g}]" if row else "—"
+            true = "noise scale" if parameter in ("Q", "R") else f"true {r['true_value']:.4g}"
+            rows.append(
+                f"| {scenario} | `{parameter}` ({true}) | {best} {_num(exact['methods'][best]['rmse'])} "
+                f"| {net['method'] if net else '—'} {_num(row['rmse']) if row else ''} | {ratio} "
+                f"| {crossover_text(net['above']) if net else '—'} | {crossover_text(net['below']) if net else '—'} "
+                f"| {'—' if hyb is None else crossover_text(hyb['above']) + ' / ' + crossover_text(hyb['below'])} |"
+            )
+    return "\n".join(rows)
+
+
 GENERATORS = {
+    "mismatch": lambda _=None: mismatch(),
     "methods": lambda _=None: methods_table(),
     "node-params": params_table,
     "cli": cli_help,

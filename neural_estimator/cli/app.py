@@ -16,6 +16,7 @@ from neural_estimator.cli.train import add_train
 from neural_estimator.cli.data import add_dataset, add_scenarios, add_simulate
 from neural_estimator.cli.evaluate import add_evaluate, add_metrics
 from neural_estimator.cli.headline import add_headline
+from neural_estimator.cli.mismatch import add_mismatch
 from neural_estimator.cli.common import CliError
 from neural_estimator.core.arguments import EXIT_BAD_INPUT, OneLineParser
 
@@ -32,6 +33,7 @@ _VERBS: list[Callable] = [
     add_reproduce,
     add_dataset,
     add_headline,
+    add_mismatch,
 ]
 
 

@@ -27,6 +27,45 @@ def scenario_from_args(args: argparse.Namespace):
     return make_scenario(args.scenario, preset=getattr(args, "preset", None), **overrides)
 
 
+def model_set_flag(p: argparse.ArgumentParser) -> None:
+    """``--model-set NAME=VALUE``: the model the model-based methods are told (a wrong one, on purpose)."""
+    p.add_argument(
+        "--model-set",
+        action="append",
+        metavar="NAME=VALUE",
+        help="a constant of the model the model-based methods (filters, baselines, hybrid) are given, on top "
+        "of the data's --preset/--set; Q=S and R=S scale the process/observation noise covariance they are "
+        "told; the data and the data-trained networks are untouched (repeatable)",
+    )
+
+
+def model_assignments(items: list[str] | None) -> dict[str, str]:
+    """``--model-set`` items as {name: value}; a malformed one is a one-line CliError."""
+    told: dict[str, str] = {}
+    for item in items or ():
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip() or not value.strip():
+            raise CliError(f"--model-set expects NAME=VALUE, got {item!r}")
+        told[name.strip()] = value.strip()
+    return told
+
+
+def model_scenario_from_args(args: argparse.Namespace, scenario):
+    """The model scenario of ``--model-set`` (``scenario`` itself without one); bad names and values
+    are the scenario's one-line errors."""
+    from neural_estimator.scenarios.model import model_scenario
+
+    items = getattr(args, "model_set", None)
+    if not items:
+        return scenario
+    if scenario is None or getattr(args, "data", None) is not None:
+        raise CliError("--model-set needs --scenario (recorded data have no model)")
+    try:
+        return model_scenario(scenario, model_assignments(items))
+    except ScenarioError as exc:
+        raise CliError(f"--model-set: {exc}") from None
+
+
 def preset_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",

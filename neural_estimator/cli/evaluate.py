@@ -15,6 +15,8 @@ from neural_estimator.cli.common import (
     bag_scenario_flags,
     is_bag,
     parse_checkpoints,
+    model_scenario_from_args,
+    model_set_flag,
     parse_options,
     scenario_flags,
     scenario_or_data,
@@ -259,6 +261,7 @@ def add_evaluate(sub) -> None:
         help="a recorded dataset (neural-estimator dataset) instead of --scenario: its trajectories are the "
         "one evaluation set; neural methods need --checkpoint",
     )
+    model_set_flag(p)
     p.add_argument(
         "--estimate",
         action="append",
@@ -340,6 +343,10 @@ def _cmd_evaluate(args) -> int:
     from neural_estimator.evaluation import evaluate, recorded_result, results_json, write_evaluation
 
     scenario, datasets, methods, checkpoints, recorded, options, info = _evaluation_request(args)
+    model = model_scenario_from_args(args, scenario)
+    from neural_estimator.scenarios.model import model_set_of
+
+    info["model_set"] = model_set_of(model)  # recorded beside the preset (results.json, table.csv)
     out = Path(args.out) if args.out else None
     expected_runs = {m: info["sets"] * max(1, len(checkpoints.get(m) or ())) for m in methods}
     expected_runs.update({name: 1 for name in recorded})
@@ -365,6 +372,7 @@ def _cmd_evaluate(args) -> int:
         init=args.init,
         datasets=datasets,
         warmup=args.warmup,
+        model_scenario=model,
     )
     if recorded:
         for name, x_hat in recorded.items():
@@ -425,9 +433,9 @@ def _evaluation_request(args):
 
         for m in methods:
             if table.has(m, family="classical"):
-                make_estimator(m, scenario, **options.get(m, {}))
+                make_estimator(m, model_scenario_from_args(args, scenario), **options.get(m, {}))
             elif is_baseline(m):  # obsonly where h determines nothing fails now, in one line
-                make_baseline(m, scenario, **options.get(m, {}))
+                make_baseline(m, model_scenario_from_args(args, scenario), **options.get(m, {}))
     if datasets is not None:
         info = dict(
             trajectories=datasets[0].n,
@@ -486,6 +494,11 @@ def _print_evaluation(args, scenario, results, info: dict[str, Any], recorded_da
             f"{scenario.name}: {args.sets} sets x {args.trajectories} trajectories x {info['horizon']} steps"
             f"{_scored(args.warmup)}, "
             f"filters start from the {_START_WORDS[args.init]} (median ± IQR over runs)"
+        )
+    if info.get("model_set"):
+        told = ", ".join(f"{k}={v}" for k, v in info["model_set"].items())
+        print(
+            f"model-based methods told a wrong model on purpose (--model-set): {told}; data and networks: the true one"
         )
     starts = {m: r.init for m, r in results.items()}
     print(mark_rows(results_table(results, fmt="text", marked=True), scenario.name, starts), end="")

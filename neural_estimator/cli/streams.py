@@ -12,6 +12,8 @@ from neural_estimator.cli.common import (
     bag_description,
     bag_scenario_flags,
     check_out,
+    model_assignments,
+    model_set_flag,
     parse_checkpoints,
     parse_options,
     warmup_flag,
@@ -49,6 +51,7 @@ def add_replay(sub) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
     bag_scenario_flags(p)
+    model_set_flag(p)
     p.add_argument(
         "--threads",
         type=int,
@@ -114,7 +117,10 @@ def _cmd_replay(args) -> int:
         order=args.order,
         threads=args.threads,
         force=args.force,
+        model_set=model_assignments(args.model_set),
     )
+    if args.model_set:
+        print(f"model-based methods told a wrong model on purpose (--model-set): {', '.join(args.model_set)}")
     print(
         f"wrote {res.path}: {res.observations} observations; "
         + ", ".join(

@@ -104,6 +104,7 @@ def results_json(scenario: Scenario, results: Mapping[str, MethodResult], **info
                     "paired": pairs.get(m),
                     "paired_full": pairs_full.get(m),
                     "reference_row": r.baseline,
+                    "model_set": r.model_set,
                     "instances": {
                         "count": r.n_instances,
                         "rmse_per_instance": C.instance_spread(r) if r.reports else [],
@@ -133,7 +134,7 @@ def write_evaluation(
         + "".join(f"\n{line}" for line in legend)
         + f"\n\n{D.scored_steps(info.get('warmup', 0))}\n"
     )
-    (out / "table.csv").write_text(results_table(done, fmt="csv"))
+    (out / "table.csv").write_text(_with_model(results_table(done, fmt="csv"), scenario, done))
     from neural_estimator.evaluation.decision import decision_notes, decision_table
 
     decision = decision_table(scenario, done, fmt="markdown")
@@ -158,6 +159,21 @@ def write_evaluation(
             dt=scenario.dt,
             first_step=info.get("warmup", 0),
         )
+
+
+def _with_model(csv: str, scenario: Scenario, results: Mapping[str, MethodResult]) -> str:
+    """The table's CSV with two more columns: the data scenario's ``preset`` and the ``model_set``
+    each method was built with (``name=value`` items joined by ``;``; empty: the true model)."""
+    lines = csv.splitlines()
+    if not lines:
+        return csv
+    preset = str(scenario.describe().get("preset", "custom"))
+    out = [lines[0] + ",preset,model_set"]
+    for line in lines[1:]:
+        r = results.get(line.split(",", 1)[0])
+        told = ";".join(f"{k}={v}" for k, v in (r.model_set if r is not None else {}).items())
+        out.append(f"{line},{preset},{told}")
+    return "\n".join(out) + "\n"
 
 
 def consistency_table(results: Mapping[str, MethodResult], dx: int, fmt: str = "markdown") -> str | None:

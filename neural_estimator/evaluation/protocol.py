@@ -47,6 +47,7 @@ from neural_estimator.methods.registry import (
 from neural_estimator.filters.base import ClassicalFilter
 from neural_estimator.core.options import parse_value
 from neural_estimator.scenarios import Scenario
+from neural_estimator.scenarios.model import model_set_of
 from neural_estimator.evaluation.families import check_unsealed
 from neural_estimator.evaluation.cache import checkpoint_digest, load_run, result_path, run_key, save_run
 from neural_estimator.evaluation.starts import INIT_MODES, check_init, effective_init  # noqa: F401
@@ -74,6 +75,8 @@ class MethodResult:
     set_index: list[int] = field(default_factory=list)
     instance: list[int] = field(default_factory=list)
     instance_dirs: list[str] = field(default_factory=list)  # neural: the checkpoint of each instance
+    # the model set it was built with (--model-set; {} for the true model and for data-trained networks)
+    model_set: dict[str, str] = field(default_factory=dict)
 
     @property
     def n_instances(self) -> int:
@@ -299,6 +302,7 @@ def evaluate(
     init: str = "prior",
     warmup: int = M.EVALUATION_WARMUP,
     sealed: bool = False,
+    model_scenario: Scenario | None = None,
 ) -> dict[str, MethodResult]:
     """Run ``methods`` on the evaluation sets of ``scenario`` and compute the paper's metrics.
 
@@ -326,6 +330,7 @@ def evaluate(
             :data:`neural_estimator.metrics.EVALUATION_WARMUP`; 0 scores every step).
         sealed: allow a seed of the sealed family (:mod:`~neural_estimator.evaluation.families`);
             only the headline measurement passes it, every other caller gets a ValueError.
+        model_scenario: the model-based methods' model (``--model-set``, :func:`_told`); None: ``scenario``.
 
     Returns:
         {method: MethodResult} in the order given.
@@ -338,10 +343,11 @@ def evaluate(
     cache_root = None if cache_dir is False else Path(cache_dir or default_cache_dir())
     digests = [dataset_digest(d) for d in data_sets] if cache_root is not None else []
     plan = [(m, k, c) for m in methods for k, c in enumerate(_instances(scenario, m, checkpoints))]
-    results = {m: MethodResult(m, init=effective_init(scenario, m, init)) for m in methods}
+    results = {m: _empty_result(scenario, model_scenario, m, init) for m in methods}
     n_runs = len(plan) * len(data_sets)
     run_no = 0
     for m, k, ckpt in plan:
+        told = _told(scenario, model_scenario, m)  # the model this method is built with
         if table.has(m, trainable=True):  # resolved once: its card read and its weights hashed here, then passed down
             from neural_estimator.serving.card import resolve_checkpoint
 
@@ -357,14 +363,14 @@ def evaluate(
             label = f"{scenario.name} {m} set {j + 1}/{len(data_sets)}"
             path = None
             if cache_root is not None:
-                key = run_key(scenario, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup)
+                key = run_key(told, m, opts, ckpt_hash, seed, device, digests[j], results[m].init, warmup)
                 path = result_path(cache_root, scenario, m, key)
                 if not recompute and _reused(path, r, j, k, progress, label):
                     if on_result:
                         on_result(results)
                     continue
             if est is None:
-                est = _built(scenario, m, ckpt, device, seed, opts, results[m].init)
+                est = _built(told, m, ckpt, device, seed, opts, results[m].init)
             chunk = chunk_size(scenario, m, data.horizon, data.n, memory_budget, opts)
             bar = _progress(data.n * data.horizon, progress, f"{label} (run {run_no}/{n_runs})")
             report, errs, secs = _scored_run(est, scenario, data, chunk, bar, results[m].init, warmup)
@@ -376,6 +382,21 @@ def evaluate(
             if on_result:
                 on_result(results)
     return results
+
+
+def _empty_result(scenario: Scenario, model_scenario: Scenario | None, method: str, init: str) -> MethodResult:
+    """A method's result before its runs: how its filters start, the model set it is built with."""
+    told = model_set_of(_told(scenario, model_scenario, method))
+    return MethodResult(method, init=effective_init(scenario, method, init), model_set=told)
+
+
+def _told(scenario: Scenario, model_scenario: Scenario | None, method: str) -> Scenario:
+    """The scenario ``method`` is built with: the model scenario for a model-based method (the
+    filters, the baselines, the hybrid; :func:`~neural_estimator.scenarios.model.model_scenario`),
+    the data scenario for a data-trained network. The cache keys the model a run was built with."""
+    if model_scenario is None or not table.has(method, needs_model=True):
+        return scenario
+    return model_scenario
 
 
 def _data_sets(scenario: Scenario, datasets, seed: int, trajectories: int, horizon, sets: int, cache_dir, warmup):

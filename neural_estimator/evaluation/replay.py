@@ -19,6 +19,7 @@ from neural_estimator.stream import messages as MSG
 from neural_estimator.bags.errors import BagError, MessageError
 from neural_estimator.bags.directory import open_bag
 from neural_estimator.bags.writer import LATCHED_QOS, STREAM_QOS, BagWriter, topic_qos
+from neural_estimator.methods import table
 from neural_estimator.methods.interface import EstimatorError
 from neural_estimator.methods.registry import make_estimator, per_message_options
 
@@ -58,6 +59,7 @@ def replay(
     options: Mapping[str, Mapping[str, Any]] | None = None,
     publish_covariance: bool = True,
     overwrite: bool = False,
+    model_set: Mapping[str, Any] | None = None,
     description: Mapping[str, Any] | None = None,
     order: str = "recorded",
     threads: int = 1,
@@ -87,6 +89,9 @@ def replay(
         options: {method: {option: value}} filter hyperparameters.
         publish_covariance: also write covariance streams where methods have them.
         overwrite: replace an existing ``bag_out``.
+        model_set: {constant: value} (and ``Q``/``R`` scales) of the model the model-based methods
+            are built with (:func:`~neural_estimator.scenarios.model.model_scenario`); the bag's
+            data and the data-trained networks are untouched. None: the true model.
         description: the scenario description (``scenario.describe()``) to use instead of the
             bag's ``scenario`` message (needed for bags without one).
         order: "recorded" (default, as live) or "identity".
@@ -105,6 +110,9 @@ def replay(
     scen_topic = MSG.resolve_topic(MSG.SCENARIO, namespace)
     desc, kept_topics, passthrough = _read_input(bag_in, methods, namespace, obs_topic, scen_topic, description, force)
     scenario = scenario_from_description(desc)
+    from neural_estimator.scenarios.model import model_scenario
+
+    model = model_scenario(scenario, model_set)  # a bad name or value: the scenario's one-line error, before any work
     observations = _ordered_observations(passthrough, obs_topic, order)
 
     out_msgs: list[tuple[str, int, bytes]] = list(passthrough)
@@ -115,7 +123,8 @@ def replay(
     for method in methods:
         ckpt = (checkpoints or {}).get(method)
         options_of = per_message_options(method, dict((options or {}).get(method, {})))  # the live node's backend
-        est = _estimator(method, scenario, ckpt, device, seed, options_of, description is None)
+        told = model if table.has(method, needs_model=True) else scenario
+        est = _estimator(method, told, ckpt, device, seed, options_of, description is None)
         if sys.modules.get("torch") is not None:  # not imported where step.onnx serves the model
             set_torch_threads([method], threads)
         online = OnlineEstimator(

@@ -80,7 +80,13 @@ from neural_estimator.nodes.estimator_stats import EstimatorStats, diagnostic_va
 from neural_estimator.nodes.heap_trace import HeapTrace
 from neural_estimator.nodes.outputs import OutputParams, SetPose
 from neural_estimator.nodes.estimator_params import EstimatorParams
-from neural_estimator.nodes.estimator_setup import build_online, checked_method, publish_result, standard_outputs
+from neural_estimator.nodes.estimator_setup import (
+    build_online,
+    checked_method,
+    model_note,
+    publish_result,
+    standard_outputs,
+)
 from neural_estimator.stream.online import OnlineEstimator
 from neural_estimator.serving.card import recorded_data_checkpoint
 
@@ -187,6 +193,7 @@ class EstimatorNode(ExitStatusNode):
             + f" (history {self.depths['estimates']}"
             + (f"/{self.depths['covariance']}" if self.pub_cov else "")
             + " msgs)"
+            + model_note(self.method, p)
             + (
                 "; served by ONNX Runtime without torch"
                 if table.has(self.method, uses_torch=True) and not sys.modules.get("torch")
@@ -468,6 +475,8 @@ class EstimatorNode(ExitStatusNode):
         status.level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[level]
         status.message = "; ".join(problems) if problems else "ok"
         values = diagnostic_values(self.stats, window, self.method)
+        if model_note(self.method, self.p):  # beside the run's identity: the model it was told
+            values["model_set"] = self.p.model_set.strip()
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()

@@ -26,6 +26,12 @@ class EstimatorParams:
     scenario: str = param("", "scenario name; empty = take it (with its constants) from the 'scenario' topic")
     set: tuple[str, ...] = param((), "scenario constants as name=value (with scenario set)")
     preset: str = param("", "named constants of that scenario, applied before set (empty = the defaults; e.g. v3)")
+    model_set: str = param(
+        "",
+        "model-based methods (filters, baselines, hybrid): the model they are given, as name=value items "
+        "separated by commas on top of the scenario's constants (e.g. forcing=8.5,g=9.0; Q=2 / R=0.5 scale the "
+        "noise covariances they are told); empty = the true model; networks ignore it",
+    )
     plugins: tuple[str, ...] = param((), "Python files registering user scenarios")
     checkpoint: str = param("", "neural methods: checkpoint directory or card.json; empty = shipped default")
     device: str = param("cpu", "torch device of neural methods: cpu, cuda, cuda:N, auto")

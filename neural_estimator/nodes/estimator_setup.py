@@ -36,7 +36,21 @@ def checked_method(p: EstimatorParams) -> str:
         )
     if p.history_mb <= 0 or p.history_depth < 1:
         raise StartupError("history_depth must be >= 1 and history_mb > 0")
+    from neural_estimator.scenarios import ScenarioError
+    from neural_estimator.scenarios.model import parse_model_set
+
+    try:  # its form now; its names and values against the scenario when it is built (told_scenario)
+        parse_model_set(p.model_set)
+    except ScenarioError as exc:
+        raise StartupError(f"parameter model_set: {exc}") from None
     return method
+
+
+def model_note(method: str, p: EstimatorParams) -> str:
+    """'' or '; model told on purpose: forcing=8.5 (model_set)' for the start-up log of a model-based method."""
+    if not p.model_set.strip() or not table.has(method, needs_model=True):
+        return ""
+    return f"; model told on purpose: {p.model_set.strip()} (model_set)"
 
 
 def method_options(method: str, p: EstimatorParams) -> dict[str, str]:
@@ -52,13 +66,30 @@ def method_options(method: str, p: EstimatorParams) -> dict[str, str]:
     return per_message_options(method, options)
 
 
+def told_scenario(method: str, scenario, p: EstimatorParams):
+    """The scenario ``method`` is built with: for a model-based method the model scenario of the
+    ``model_set`` parameter (:func:`~neural_estimator.scenarios.model.model_scenario`), else
+    ``scenario``. Raises StartupError (one line) for a bad item, an unknown constant or a bad value."""
+    from neural_estimator.scenarios import ScenarioError
+    from neural_estimator.scenarios.model import model_scenario, parse_model_set
+
+    try:
+        told = parse_model_set(p.model_set)  # checked for every method: a typo is never silently ignored
+        model = model_scenario(scenario, told)
+    except ScenarioError as exc:
+        raise StartupError(f"parameter model_set: {exc}") from None
+    return model if table.has(method, needs_model=True) else scenario
+
+
 def build_online(method: str, scenario, p: EstimatorParams, horizon: int | None = None) -> tuple:
-    """(the estimator, its :class:`OnlineEstimator`) of ``method`` on ``scenario`` as the parameters
-    ask: built (torch's threads set where torch serves it), warmed up, and its objects moved out of the
+    """(the estimator, its :class:`OnlineEstimator`) of ``method`` on ``scenario`` (for a model-based
+    method, with the ``model_set`` parameter's model: :func:`told_scenario`) as the parameters ask:
+    built (torch's threads set where torch serves it), warmed up, and its objects moved out of the
     collector's reach. Raises StartupError."""
     options = method_options(method, p)
+    told = told_scenario(method, scenario, p)
     try:
-        est = make_estimator(method, scenario, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options)
+        est = make_estimator(method, told, checkpoint=p.checkpoint or None, device=p.device, seed=p.seed, **options)
     except EstimatorError as exc:
         raise StartupError(str(exc)) from None
     torch = sys.modules.get("torch")  # absent when the model is served without torch (step.onnx)

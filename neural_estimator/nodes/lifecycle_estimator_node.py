@@ -43,7 +43,13 @@ from neural_estimator.nodes.common import (
     warn_throttled,
 )
 from neural_estimator.nodes.estimator_params import EstimatorParams
-from neural_estimator.nodes.estimator_setup import build_online, checked_method, publish_result, standard_outputs
+from neural_estimator.nodes.estimator_setup import (
+    build_online,
+    checked_method,
+    model_note,
+    publish_result,
+    standard_outputs,
+)
 from neural_estimator.nodes.outputs import OutputParams, Outputs
 from neural_estimator.stream.online import OnlineEstimator
 
@@ -95,7 +101,7 @@ class LifecycleEstimatorNode(LifecycleNode):
             return TransitionCallbackReturn.FAILURE
         self.method = method
         self.online = online
-        self.get_logger().info(f"configured: {method} on {scenario.name}")
+        self.get_logger().info(f"configured: {method} on {scenario.name}{model_note(method, p)}")
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
