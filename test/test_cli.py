@@ -100,8 +100,8 @@ def test_metrics_on_truth_and_estimate_files(tmp_path, capsys):
         (["simulate", *PLUGIN, "--scenario", "oscillator", "--trajectories", "0", "--out", "x.npz"], "must be >= 1"),
         (["metrics", "missing.npz"], "missing.npz: no such file"),
         (
-            ["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,kalmannet"],
-            "unknown method 'kalmannet'; choose one of: ekf",
+            ["evaluate", *PLUGIN, "--scenario", "oscillator", "--methods", "ekf,particleflow"],
+            "unknown method 'particleflow'; choose one of: ekf",
         ),
         (["simulate", "--plugin", "nope.py", "--scenario", "x", "--out", "x.npz"], "plugin nope.py: no such file"),
     ],

@@ -159,7 +159,7 @@ TABLE: tuple[MethodSpec, ...] = (
     _neural("filterformer", "Filterformer", "Filterformer", 7, "window", window_key="window"),
     _neural("mamba", "Mamba", "Mamba", 8, "recurrent", state_space=True),
     _neural("mamba2", "Mamba-2", "Mamba2", 9, "recurrent", state_space=True),
-    _hybrid("kalmannet", "KalmanNet", "KalmanNet"),  # not one of the paper's rows (issue 45)
+    _hybrid("kalmannet", "KalmanNet", "KalmanNet"),  # not a paper row: its f and h with a learned gain
     _baseline("openloop", "OpenLoop"),
     _baseline("obsonly", "ObservationOnly"),
 )
