@@ -32,6 +32,9 @@ setup(
             "serving/zoo/*/*.onnx",
             "serving/zoo/instances/*/*/*.safetensors",
             "serving/zoo/instances/*/*/*.json",
+            "serving/zoo/variants/*/*/*.safetensors",  # e.g. variants/observations/<pair>/: trained without states
+            "serving/zoo/variants/*/*/*.json",
+            "serving/zoo/variants/*/*/*.onnx",
             "paper/paper_results.json",
             "nodes/*.xml",
             "serving/uncertainty/calibrated_filters.json",
