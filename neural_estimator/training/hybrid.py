@@ -43,7 +43,6 @@ import torch
 
 from neural_estimator.training.loop import _bar, _Run
 from neural_estimator.training.loss import weighted_loss
-from neural_estimator.training.recipe import TrainingError
 
 
 class HybridRun(_Run):
@@ -97,16 +96,7 @@ class HybridRun(_Run):
                 x = None if x_all is None else x_all[:, t0 : t0 + cfg.window]
                 lab = None if labels is None else labels[:, t0 : t0 + cfg.window]
                 loss = self.chunk_loss(x_n, y_pred_n, z, x, t0, lab)
-                value = loss.item()
-                if not math.isfinite(value):
-                    raise TrainingError(
-                        f"training loss is {value} at epoch {self.state['epoch'] + 1}, batch {b + 1}, step {t0}; "
-                        f"the run diverged (a lower --lr may help; the last good state is in {self.out_dir / 'resume'})"
-                    )
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                self.optimizer.step()
+                value = self.optimizer_step(loss, f"batch {b + 1}, step {t0}")
                 if gov is not None:
                     gov.after_step()
                 state = tuple(s.detach() for s in state)  # truncated: the next chunk continues the filter

@@ -406,16 +406,7 @@ class _Run:
                 loss = 0.0 * pred.sum()  # no information: a zero gradient, not 0 / 0
             else:
                 loss = weighted_loss(pred, x, w, self.angle_mask, self.comp_w)
-            loss_value = loss.item()
-            if not math.isfinite(loss_value):
-                raise TrainingError(
-                    f"training loss is {loss_value} at epoch {self.state['epoch'] + 1}, step {it + 1}; the run "
-                    f"diverged (a lower --lr may help; the last good state is in {self.out_dir / RESUME_DIR})"
-                )
-            self.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            self.optimizer.step()
+            loss_value = self.optimizer_step(loss, f"step {it + 1}")
             if gov is not None:
                 gov.after_step()
             train_loss += loss_value
@@ -427,6 +418,21 @@ class _Run:
                 )
         inner.close()
         return train_loss / steps
+
+    def optimizer_step(self, loss: torch.Tensor, where: str) -> float:
+        """One AdamW step on ``loss`` (gradients clipped); its value, or a TrainingError where it is
+        not finite (``where``: the step, for the message)."""
+        value = loss.item()
+        if not math.isfinite(value):
+            raise TrainingError(
+                f"training loss is {value} at epoch {self.state['epoch'] + 1}, {where}; the run diverged "
+                f"(a lower --lr may help; the last good state is in {self.out_dir / RESUME_DIR})"
+            )
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+        self.optimizer.step()
+        return value
 
     @torch.no_grad()
     def estimate_loss(self, bar) -> float:
