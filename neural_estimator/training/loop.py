@@ -76,6 +76,7 @@ from tqdm.auto import tqdm
 
 from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
 from neural_estimator.training.recipe import TrainConfig, TrainingError
+from neural_estimator.training.step import check_skipped, guarded_step
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.methods import table
 from neural_estimator.methods.interface import check_method, previous_controls
@@ -355,8 +356,9 @@ class _Run:
     def epoch(self, stop_when, progress: bool, bar) -> None:
         """Step 4-7: one epoch of training, its validation, the scheduler, the best checkpoint, the
         stopping rules and the resume state."""
-        t0 = time.perf_counter()
+        t0, self.skipped, self.attempted = time.perf_counter(), 0, 0
         train_loss = self.train_epoch(progress)
+        check_skipped(self.skipped, self.attempted, self.state["epoch"] + 1, self.out_dir / RESUME_DIR)
         inner = _bar(math.ceil(self.sets.Z_val.shape[0] / self.cfg.val_batch_size), progress)
         val_loss = self.estimate_loss(inner)
         inner.close()
@@ -371,6 +373,7 @@ class _Run:
                 "val_loss": val_loss,
                 "lr": lr,
                 "seconds": round(time.perf_counter() - t0, 3),
+                **({"skipped_steps": self.skipped} if self.skipped else {}),
             }
         )
         if val_loss < run["best"]:
@@ -420,18 +423,15 @@ class _Run:
         return train_loss / steps
 
     def optimizer_step(self, loss: torch.Tensor, where: str) -> float:
-        """One AdamW step on ``loss`` (gradients clipped); its value, or a TrainingError where it is
-        not finite (``where``: the step, for the message)."""
+        """One AdamW step on ``loss`` (training.step); its value, or a TrainingError where it is not finite."""
         value = loss.item()
         if not math.isfinite(value):
             raise TrainingError(
                 f"training loss is {value} at epoch {self.state['epoch'] + 1}, {where}; the run diverged "
                 f"(a lower --lr may help; the last good state is in {self.out_dir / RESUME_DIR})"
             )
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
-        self.optimizer.step()
+        self.attempted += 1
+        self.skipped += not guarded_step(loss, self.model, self.optimizer, self.cfg.grad_clip)
         return value
 
     @torch.no_grad()
