@@ -114,3 +114,34 @@ def test_train_command_line_supervision(tmp_path, capsys):
     assert card_of(tmp_path / "q")["training"]["supervision"] == "observations"
     assert main(args[:4] + ["gru"] + args[5:] + ["--supervision", "observations"]) == 2
     assert "trains a hybrid" in capsys.readouterr().err
+
+
+def test_a_hybrid_trains_with_the_model_set_it_is_given(tmp_path):
+    """``model_set``: the data come from the true system (forcing 8), the hybrid's f is the team's
+    wrong one (forcing 9), during training, in the card metrics and when its checkpoint is loaded."""
+    cfg = tiny(tmp_path, epochs=1, model_set={"forcing": "9"}, eval_trajectories=3)
+    out = train("lorenz96", "kalmannet", tmp_path / "wrong", cfg, progress=False)
+    card = card_of(out)
+    assert card["training"]["recipe"]["model_set"] == {"forcing": "9"}
+    assert card["scenario"]["config"]["forcing"] == 8.0  # the data's constants
+    model, _, _ = load_checkpoint(out)  # standalone: the card's model set applies
+    assert model.dynamics.config.forcing == 9.0
+    exact = train("lorenz96", "kalmannet", tmp_path / "exact", tiny(tmp_path, epochs=1), progress=False)
+    assert "model_set" not in card_of(exact)["training"]["recipe"]  # as every recipe before the field
+    assert load_checkpoint(exact)[0].dynamics.config.forcing == 8.0
+
+
+def test_a_model_set_is_for_hybrids_and_names_constants(tmp_path, capsys):
+    with pytest.raises(TrainingError, match="gru reads no model"):
+        train("lorenz96", "gru", tmp_path / "g", tiny(tmp_path, model_set={"forcing": "9"}), progress=False)
+    args = ["train", "--scenario", "lorenz96", "--model", "kalmannet", "--out", str(tmp_path / "q"), "--quiet"]
+    for flags, words in (
+        (["--model-set", "prior_gain=0"], "an architecture hyperparameter; give it as --arch-set prior_gain=VALUE"),
+        (["--model-set", "forcin=9"], "no constant 'forcin'"),
+        (["--model-set", "forcing"], "expects NAME=VALUE"),
+    ):
+        assert main(args + flags) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err
+    assert main(args[:4] + ["gru"] + args[5:] + ["--model-set", "forcing=9"]) == 2
+    assert "gru reads no model" in capsys.readouterr().err

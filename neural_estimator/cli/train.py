@@ -9,7 +9,14 @@ from typing import Any
 from neural_estimator.scenarios import (
     parse_assignments,
 )
-from neural_estimator.cli.common import CliError, scenario_flags, scenario_or_data
+from neural_estimator.cli.common import (
+    CliError,
+    model_assignments,
+    model_scenario_from_args,
+    model_set_flag,
+    scenario_flags,
+    scenario_or_data,
+)
 
 
 _TRAIN_FLAG_HELP = {
@@ -85,11 +92,17 @@ def add_train(sub) -> None:
         "--model", required=True, help="gru, lstm, gpt2, filterformer, mamba, mamba2 or kalmannet (the hybrid)"
     )
     p.add_argument("--out", required=True, help="output directory (model.safetensors + card.json)")
-    p.add_argument("--model-set", action="append", metavar="NAME=VALUE", help="override an architecture hyperparameter")
+    p.add_argument(
+        "--arch-set",
+        action="append",
+        metavar="NAME=VALUE",
+        help="override an architecture hyperparameter (a field of the model's config, e.g. prior_gain=0)",
+    )
+    model_set_flag(p)  # a hybrid trained with a model other than the data's (the team's wrong model)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     # Every TrainConfig field is a flag with the paper's default (one source of truth).
     for f in dataclasses.fields(TrainConfig):
-        if f.name in ("model_overrides", "resume", "keep_resume"):
+        if f.name in ("model_overrides", "model_set", "resume", "keep_resume"):
             continue
         default = _TRAIN_DEFAULTS.get(f.name, f.default)
         flag = "--" + f.name.replace("_", "-")
@@ -137,7 +150,10 @@ def _cmd_train(args) -> int:
         raise CliError("--val-data needs --data")
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig) if hasattr(args, f.name)}
     values.update(
-        model_overrides=_parse_model_overrides(args.model_set), resume=args.resume, keep_resume=not args.no_keep_resume
+        model_overrides=_parse_model_overrides(args.arch_set),
+        model_set=_checked_model_set(args, scenario, method),
+        resume=args.resume,
+        keep_resume=not args.no_keep_resume,
     )
     if args.threads < 1:
         raise CliError(f"--threads must be >= 1, got {args.threads}")
@@ -197,6 +213,25 @@ def _train_val_split(args: argparse.Namespace, scenario, train_data):
             f"(--val-fraction {args.val_fraction}); record more, or cut shorter ones (dataset --length)"
         )
     return train_data.subset(slice(0, train_data.n - n_val)), train_data.subset(slice(train_data.n - n_val, None))
+
+
+def _checked_model_set(args: argparse.Namespace, scenario, method: str) -> dict[str, str]:
+    """``--model-set`` as {name: value}, checked as evaluate checks it (one-line errors), for a
+    hybrid only; an architecture hyperparameter given there is pointed to ``--arch-set``."""
+    from neural_estimator.methods import table
+    from neural_estimator.models import ARCHITECTURES
+
+    told = model_assignments(args.model_set)
+    if not told:
+        return {}
+    if not table.has(method, family="hybrid"):
+        raise CliError(f"--model-set gives a hybrid its f and h; {method} reads no model, only the data")
+    hyper = set(ARCHITECTURES[method][0].__dataclass_fields__) & set(told)
+    if hyper:
+        name = sorted(hyper)[0]
+        raise CliError(f"--model-set {name}: an architecture hyperparameter; give it as --arch-set {name}=VALUE")
+    model_scenario_from_args(args, scenario)  # unknown constants, bad values, recorded data: one line
+    return told
 
 
 def _parse_model_overrides(items: list[str] | None) -> dict[str, Any]:

@@ -66,13 +66,19 @@ def system_of_card(card: dict[str, Any]) -> System:
     itself where it can be rebuilt here (a built-in, or a registered plugin, with the card's
     constants); else (recorded data, a plugin not loaded) its dimensions, read from the
     description's names (:class:`~neural_estimator.models.SystemDims`), which serve a network but
-    not a hybrid (it needs the system's f and h: :func:`build_from_config` refuses it in one line)."""
+    not a hybrid (it needs the system's f and h: :func:`build_from_config` refuses it in one line).
+    A hybrid trained with a model set (its recipe's ``model_set``: f and h other than the data's) gets
+    that model scenario, the one it was trained with."""
     from neural_estimator.scenarios import ScenarioError, scenario_from_description
+    from neural_estimator.scenarios.model import model_scenario
 
     desc = card.get("scenario")
     desc = desc if isinstance(desc, dict) else {}
+    training = card.get("training")
+    recipe = training.get("recipe") if isinstance(training, dict) else None
+    told = recipe.get("model_set") if isinstance(recipe, dict) else None
     try:
-        return scenario_from_description(desc)
+        return model_scenario(scenario_from_description(desc), told if isinstance(told, dict) else None)
     except (ScenarioError, KeyError, TypeError, ValueError, AttributeError):
         return SystemDims(*(len(desc.get(k) or ()) for k in ("state_names", "obs_names", "control_names")))
 

@@ -89,6 +89,7 @@ from neural_estimator.serving.context import bounded_forward
 from neural_estimator.serving.neural import NeuralEstimator, resolve_device
 from neural_estimator.serving.normalization import Normalizer
 from neural_estimator.scenarios import Scenario, make_scenario
+from neural_estimator.scenarios.model import model_scenario
 from neural_estimator.training.loss import component_weights, state_error, weighted_loss
 from neural_estimator.training.resume import RESUME_DIR, load_resume, save_resume
 from neural_estimator.training.stopping import converged, lr_reductions
@@ -128,8 +129,7 @@ def train(
         threads: chooses the thread count of each training step by measurement
             (:class:`~neural_estimator.training.threads.ThreadGovernor`); None: the count torch has.
 
-    Returns:
-        ``out_dir``.
+    Returns ``out_dir``.
     """
     cfg = config or TrainConfig()
     if isinstance(scenario, str):
@@ -171,6 +171,8 @@ def _checked_arch(arch: str, cfg: TrainConfig) -> tuple[str, str | None]:
         raise TrainingError(
             f"supervision 'observations' trains a hybrid through the system's h; {arch} learns from states"
         )
+    if cfg.model_set and not table.has(arch, family="hybrid"):
+        raise TrainingError(f"a model set gives a hybrid its f and h; {arch} reads no model, only the data")
     known = {f.name for f in dataclasses.fields(ARCHITECTURES[arch][0])} - {"d_in", "d_out"}
     unknown = sorted(set(cfg.model_overrides) - known)
     if unknown:
@@ -280,16 +282,8 @@ def _bar(total: int, progress: bool, desc: str | None = None, initial: int = 0, 
     extra = {} if position == 0 else {"leave": False}
     if desc is not None:
         extra["desc"] = desc
-    return tqdm(
-        total=total,
-        initial=initial,
-        disable=None if progress else True,
-        unit=unit,
-        position=position,
-        dynamic_ncols=True,
-        **extra,
-        **kw,
-    )
+    kw = {"total": total, "initial": initial, "unit": unit, "position": position, "dynamic_ncols": True, **extra, **kw}
+    return tqdm(disable=None if progress else True, **kw)
 
 
 class _Run:
@@ -310,7 +304,8 @@ class _Run:
         # step 3: the model under torch.manual_seed(init_seed) (initial weights and dropout)
         torch.manual_seed(cfg.init_seed)
         overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
-        self.model = build_model(arch, scenario, **overrides).to(device)
+        self.system = model_scenario(scenario, cfg.model_set)  # the f and h a hybrid runs (a model set: not the data's)
+        self.model = build_model(arch, self.system, **overrides).to(device)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
             self.optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
@@ -467,7 +462,7 @@ class _Run:
         cfg, out_dir = self.cfg, self.out_dir
         if self.state["best_epoch"] == 0:
             raise TrainingError(f"no epoch gave a finite validation loss; nothing to save in {out_dir}")
-        best_model, _, _ = load_checkpoint(out_dir, self.device, self.scenario)
+        best_model, _, _ = load_checkpoint(out_dir, self.device, self.system)
         metrics = None
         if cfg.eval_trajectories:
             metrics = evaluate(
@@ -485,7 +480,7 @@ class _Run:
             )
         save_checkpoint(out_dir, best_model, self.sets.norm, self.card(metrics))
         try:  # the batch-1 step beside the card: the estimator nodes serve it without torch
-            export_beside(out_dir, self.scenario)
+            export_beside(out_dir, self.system)
         except OnnxError as exc:
             raise TrainingError(f"{out_dir}: the model is saved, but not its step.onnx: {exc}") from None
         if not cfg.keep_resume:

@@ -13,6 +13,7 @@ import numpy as np
 
 from neural_estimator.data.simulate import simulate
 from neural_estimator.methods.interface import previous_controls
+from neural_estimator.scenarios.model import model_scenario
 from neural_estimator.serving.normalization import Normalizer
 
 MODEL_STATISTICS_TRAJECTORIES = 500  # trajectories the model simulates for its state statistics
@@ -21,10 +22,12 @@ MODEL_STATISTICS_TRAJECTORIES = 500  # trajectories the model simulates for its 
 def observation_normalizer(scenario, data, cfg):
     """The normalisation of an observation-trained hybrid: the inputs' statistics from the training
     observations and controls, the states' (the hybrid's units and its guard's range) from
-    trajectories simulated from the model (its f, process noise and prior), not from the data's
+    trajectories simulated from the model (its f, process noise and prior; the recipe's model set
+    where it has one), not from the data's
     states: it reads no state label, and a team that has a model can simulate it."""
     seed = np.random.SeedSequence(cfg.data_seed, spawn_key=(7, cfg.data_index))
-    model = Normalizer.from_data(scenario, simulate(scenario, MODEL_STATISTICS_TRAJECTORIES, cfg.train_length, seed))
+    system = model_scenario(scenario, cfg.model_set)  # the team's model (a model set: not the data's)
+    model = Normalizer.from_data(scenario, simulate(system, MODEL_STATISTICS_TRAJECTORIES, cfg.train_length, seed))
     inputs = Normalizer.fit(
         data.y, previous_controls(data.u), np.zeros(data.y.shape[:2] + (scenario.dx,)), scenario.angle_states
     )

@@ -46,6 +46,9 @@ class TrainConfig:
     # model
     init_seed: int = 0  # initial weights, dropout and window draws
     model_overrides: dict[str, Any] = field(default_factory=dict)  # architecture config changes
+    # a hybrid's model, other than the system that made the data (scenarios.model: {constant or Q/R:
+    # value}): the team's situation, its f and h wrong; {} = the data's own constants
+    model_set: dict[str, str] = field(default_factory=dict)
     # optimisation (appendix)
     batch_size: int = 64
     lr: float = 2e-3
@@ -118,18 +121,22 @@ class TrainConfig:
         """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
 
         Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what), and
-        ``supervision`` when it is "states" and ``loss_units`` when it is "normalised": every card and
-        resume state written before the field existed was trained so, and a recipe without it still
-        means that; likewise ``val_context`` and ``val_context_copies`` when the context is unbounded (0).
+        ``supervision`` when it is "states", ``loss_units`` when it is "normalised" and ``model_set``
+        when it is empty: every card and resume state written before the field existed was trained so,
+        and a recipe without it still means that; likewise ``val_context`` and ``val_context_copies``
+        when the context is unbounded (0).
         """
         d = dataclasses.asdict(self)
         d["model_overrides"] = dict(self.model_overrides)
+        d["model_set"] = {k: str(v) for k, v in self.model_set.items()}
         for key in ("cache_dir", "resume", "keep_resume"):
             d.pop(key)
         if d["loss_units"] == "normalised":
             d.pop("loss_units")
         if d["supervision"] == "states":
             d.pop("supervision")  # every recipe before the field existed trained on states
+        if not d["model_set"]:
+            d.pop("model_set")  # the data's own model, as every recipe before the field existed
         if not d["val_context"]:
             d.pop("val_context")
             d.pop("val_context_copies")
