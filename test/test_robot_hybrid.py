@@ -219,3 +219,15 @@ def test_filters_and_the_hybrid_are_scored_on_a_recording_with_ground_truth(reco
     assert _evaluate(other, "kalmannet", out) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "model_sha256" in err
+
+
+def test_a_plugins_scenario_is_a_model_once_the_plugin_is_loaded(tmp_path):
+    from neural_estimator.scenarios import load_plugins
+
+    root = Path(__file__).resolve().parents[1]
+    spec = {"rate": 10.0, "observation": {"/y": ["data[0]"]}, "model": {"scenario": "oscillator"}}
+    load_plugins([root / "examples" / "custom_scenario.py"])  # registers "oscillator": dx 2, dy 1, dt 0.1 s
+    s = load_spec(spec)
+    assert (s.model.name, s.names["state"], s.model.dt) == ("oscillator", s.model.state_names, 0.1)
+    with pytest.raises(SpecError, match="observation has 2 fields, but the model 'oscillator' has 1"):
+        load_spec({**spec, "observation": {"/y": fields(2)}})
