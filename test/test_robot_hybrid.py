@@ -231,3 +231,10 @@ def test_a_plugins_scenario_is_a_model_once_the_plugin_is_loaded(tmp_path):
     assert (s.model.name, s.names["state"], s.model.dt) == ("oscillator", s.model.state_names, 0.1)
     with pytest.raises(SpecError, match="observation has 2 fields, but the model 'oscillator' has 1"):
         load_spec({**spec, "observation": {"/y": fields(2)}})
+
+
+def test_a_run_is_not_scored_against_a_spec_without_ground_truth():
+    from neural_estimator.robot.score import scoring_spec
+
+    with pytest.raises(SpecError, match="no ground truth .*nothing to score against"):
+        scoring_spec(load_spec(spec_dict()), ["/estimates/gru"], "/", None)
