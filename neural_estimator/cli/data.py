@@ -85,6 +85,12 @@ def add_dataset(sub) -> None:
         help="steps per trajectory: each segment of valid ticks is cut "
         "into trajectories of this length (default 500, the paper's)",
     )
+    p.add_argument(
+        "--plugin",
+        action="append",
+        metavar="FILE",
+        help="Python file registering user scenarios (a spec's model: naming one of them)",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_dataset)
 
@@ -103,7 +109,9 @@ def _cmd_dataset(args) -> int:
         f"wrote {out}: {data.n} trajectories x {data.horizon} steps at {spec.rate:g} Hz "
         f"(dx={data.x.shape[2]}, dy={data.y.shape[2]}, du={data.u.shape[2]})"
     )
-    if data.labelled is not None:  # partial ground truth: say what training and scoring will use
+    if data.meta.get("ground_truth") is False:  # a spec with a model and no state
+        print("no ground truth (the spec reads no state): train a hybrid on it with --supervision observations")
+    elif data.labelled is not None:  # partial ground truth: say what training and scoring will use
         print(
             f"ground truth on {data.meta['labelled_steps']} of {data.x.shape[0] * data.x.shape[1]} steps "
             f"({data.meta['unlabelled_steps']} unlabelled: kept as inputs, never trained on or scored; "

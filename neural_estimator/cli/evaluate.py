@@ -407,9 +407,11 @@ def _evaluation_request(args):
         if args.methods == DEFAULT_METHODS:  # not given: the methods of the checkpoints
             methods = list(checkpoints)
         try:
-            methods = recorded_data_methods(methods, checkpoints)
+            methods = recorded_data_methods(methods, checkpoints, getattr(scenario, "system", None) is not None)
         except ValueError as exc:
             raise CliError(str(exc)) from None
+        if datasets[0].labelled is not None and not datasets[0].labelled.any():
+            raise CliError(f"{args.data}: no state labels (its spec reads no ground truth): nothing to score against")
         recorded = _recorded_estimates(args.estimate, datasets[0])
     elif args.estimate:
         raise CliError("--estimate needs --data")

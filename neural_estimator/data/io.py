@@ -7,7 +7,9 @@ A dataset file holds
     u     (N, T, du) float64   controls, u[:, k] acts from step k to k+1 (du may be 0)
     meta  0-d unicode array    JSON: scenario and every constant, seed, names, units, horizon
     labelled (N, T) bool       only where some step has no ground truth (recorded data): True where
-                               x is ground truth; x holds a placeholder elsewhere, never scored
+                               x is ground truth; x holds a placeholder elsewhere, never scored;
+                               every step False where meta "ground_truth" is false (a recording
+                               with no state topic, whose spec names a model)
 
 An estimate file adds
 
@@ -139,7 +141,7 @@ def load_trajectories(
                 f"{path}: {key!r} contains NaN or inf in {n_bad} trajectories "
                 f"(first: {int(np.argmax(bad.any(axis=(1, 2))))})"
             )
-    labelled = _checked_labelled(path, arrays, x.shape[:2])
+    labelled = _checked_labelled(path, arrays, x.shape[:2], meta.get("ground_truth") is False)
     names = meta.get("state_names")
     if names is not None and len(names) != x.shape[2]:
         raise DataError(f"{path}: x has {x.shape[2]} state components but meta names {len(names)}")
@@ -159,13 +161,20 @@ def load_trajectories(
     return Trajectories(x, y, u, meta, labelled), extras
 
 
-def _checked_labelled(path, arrays: dict[str, np.ndarray], shape: tuple[int, int]) -> np.ndarray | None:
-    """The file's ``labelled`` mask (N, T) bool, or None when absent or all True."""
+def _checked_labelled(path, arrays: dict[str, np.ndarray], shape: tuple[int, int], none: bool) -> np.ndarray | None:
+    """The file's ``labelled`` mask (N, T) bool, or None when absent or all True. ``none``: the meta
+    says the recording has no ground truth (``ground_truth: false``), so the mask must mark no step."""
     if "labelled" not in arrays:
+        if none:
+            raise DataError(f"{path}: its meta says it has no ground truth, but it has no 'labelled' mask")
         return None
     m = np.asarray(arrays["labelled"])
     if m.dtype != np.bool_ or m.shape != tuple(shape):
         raise DataError(f"{path}: 'labelled' must be a ({shape[0]}, {shape[1]}) bool array, got {m.dtype} {m.shape}")
+    if none:
+        if m.any():
+            raise DataError(f"{path}: its meta says it has no ground truth, but 'labelled' marks some steps")
+        return m
     if not m.any(axis=1).all():
         raise DataError(f"{path}: 'labelled' marks no step of trajectory {int(np.argmin(m.any(axis=1)))}")
     return None if m.all() else m

@@ -126,19 +126,22 @@ def recorded_result(
     return result
 
 
-def recorded_data_methods(methods: Sequence[str], checkpoints: Mapping[str, Sequence[str]]) -> list[str]:
-    """``methods`` if recorded data allow them all: a classical filter needs the model of a system
-    that recorded data do not have, and no model is shipped for recorded data, so each must be a
-    neural method given a checkpoint. Raises ValueError naming the first one refused."""
+def recorded_data_methods(
+    methods: Sequence[str], checkpoints: Mapping[str, Sequence[str]], has_model: bool = False
+) -> list[str]:
+    """``methods`` if recorded data allow them all: a classical filter or a baseline needs the model
+    of a system, which recorded data have only where their spec names one (``has_model``), and no
+    model is shipped for recorded data, so each neural method must be given a checkpoint. Raises
+    ValueError naming the first one refused."""
     for m in methods:
-        if is_baseline(m):
+        if is_baseline(m) and not has_model:
             raise ValueError(f"{m}: recorded data have no model to propagate; baselines need a scenario")
-        if table.has(m, needs_model=True):
+        if table.has(m, needs_model=True) and not has_model:
             raise ValueError(
                 f"{m}: recorded data have no model for a classical filter; compare the robot's own "
-                "filter with --estimate NAME=FILE"
+                "filter with --estimate NAME=FILE, or name the system's model in the spec (model:)"
             )
-        if m not in checkpoints:
+        if table.has(m, trainable=True) and m not in checkpoints:
             raise ValueError(f"{m}: recorded data have no shipped model: pass --checkpoint {m}=DIR")
     return list(methods)
 

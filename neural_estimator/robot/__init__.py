@@ -5,7 +5,8 @@
 - :mod:`~neural_estimator.robot.dataset`: bags (any tool's ``.mcap`` or rosbag2 directory) ->
   the project's dataset format, reporting what was dropped.
 - :mod:`~neural_estimator.robot.data_scenario`: the data's interface (names, units, angles, rate) as
-  a scenario without a model, so training, evaluation and the checkpoint checks apply unchanged.
+  a scenario without a model, so training, evaluation and the checkpoint checks apply unchanged; or
+  with the model a spec names (``model:``), whose equations it delegates to (filters, a hybrid).
 """
 
 from neural_estimator.robot.data_scenario import DATA_SCENARIO, DataScenario

@@ -19,7 +19,9 @@ with rosbags' type store, custom types registered from the bag's own schemas):
    trajectory at the others, a placeholder that training and scoring never read);
 5. the valid ticks form segments (runs between dropped ticks); each segment is cut into
    trajectories of ``length`` steps, the remainder dropped and counted, and a trajectory with no
-   labelled step dropped and counted.
+   labelled step dropped and counted; except where the spec reads no state (a ``model:`` and no
+   ``state:``: a recording without ground truth), whose trajectories are all kept, no step
+   labelled, x holding the model's prior mean m0 (a placeholder never read).
 
 The truth is not an input because cutting at its gaps would drop them and the pieces shorter than
 a trajectory, and live the estimator never sees it. The ticks still span the time every topic, the
@@ -194,7 +196,8 @@ def sample(
     stale = ~np.all([usable[n][0] for n in inputs], axis=0) if inputs else np.zeros(K, bool)
     finite = np.all([usable[n][1] for n in inputs], axis=0) if inputs else np.ones(K, bool)
     nonfinite = ~stale & ~finite
-    labelled = usable["state"][0] & usable["state"][1]
+    # no state read (a spec with a model and no ground truth): no step is labelled
+    labelled = usable["state"][0] & usable["state"][1] if spec.has_state else np.zeros(K, bool)
     return vectors, stale, nonfinite, labelled
 
 
@@ -248,14 +251,18 @@ def build_dataset(
             summary.remainder += (hi - lo) - n * length
             for k in range(n):
                 sl = slice(lo + k * length, lo + (k + 1) * length)
-                if not labelled[sl].any():  # no ground truth at all: nothing to train on or score
+                if spec.has_state and not labelled[sl].any():  # no ground truth at all: nothing to train on or score
                     summary.unlabelled_trajectories += 1
                     continue
                 summary.trajectories += 1
                 summary.labelled += int(labelled[sl].sum())
                 summary.unlabelled += int((~labelled[sl]).sum())
                 labels.append(labelled[sl])
-                xs.append(fill_unlabelled(vectors["state"][sl], labelled[sl]))
+                xs.append(
+                    fill_unlabelled(vectors["state"][sl], labelled[sl])
+                    if spec.has_state
+                    else np.tile(spec.model.prior()[0], (length, 1))
+                )
                 ys.append(vectors["observation"][sl])
                 us.append(vectors["control"][sl])
                 for name in est:
@@ -309,4 +316,7 @@ def dataset_meta(spec: Spec, length: int, summaries: Sequence[BagSummary]) -> di
         # steps with ground truth (the "labelled" array, saved when some step has none)
         "labelled_steps": sum(s.labelled for s in summaries),
         "unlabelled_steps": sum(s.unlabelled for s in summaries),
+        # a spec's model (the scenario DataScenario delegates the equations to); no state read: no label
+        **({"model": spec.source["model"]} if spec.model is not None else {}),
+        **({} if spec.has_state else {"ground_truth": False}),
     }

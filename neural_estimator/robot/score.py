@@ -44,6 +44,8 @@ def scoring_spec(
         raise SpecError(
             f"no {ESTIMATES_PREFIX}<method> stream recorded (topics: {', '.join(sorted(topics)) or 'none'})"
         )
+    if not spec.has_state:
+        raise SpecError("the spec reads no ground truth (a model and no state:): nothing to score against")
     state = {}
     for f in spec.vectors["state"]:
         state.setdefault(f.topic, []).append(f.expr)

@@ -22,6 +22,17 @@ It is YAML (or the same structure as a dict)::
       state: [x, y, yaw]
     units:                # optional, per vector: default ""
       state: [m, m, rad]
+    model:                # optional: the system's equations, a registered scenario (built-in or plugin)
+      scenario: quadrotor
+      preset: v4          # optional
+      set: {dt: 0.05}     # optional: constants
+
+With ``model:`` the named scenario must have the spec's dimensions (as many states, observations
+and controls as the vectors have fields), the same angle components (the fields marked as angles
+are the model's angle_states and angle_obs) and the period 1 / rate (to a relative 1e-9); the
+names and units default to the model's. ``state:`` may then be left out: a recording without
+ground truth, whose dataset has the model's state names, units and angles and no labelled step
+(a hybrid trains on it with ``--supervision observations``). The digest covers ``model:``.
 
 A field is an attribute path of the decoded message (``pose.position.x``; ``[i]`` indexes an
 array: ``position[2]``, ``covariance[35]``) or a conversion of one:
@@ -50,6 +61,8 @@ from typing import Any
 import numpy as np
 
 from neural_estimator.core.safe_yaml import YamlError, load_yaml
+from neural_estimator.robot.data_scenario import model_scenario_of
+from neural_estimator.scenarios.base import Scenario, ScenarioError
 
 VECTORS = ("observation", "control", "state")
 ESTIMATE_PREFIX = "estimate/"
@@ -97,6 +110,12 @@ class Spec:
     names: dict[str, tuple[str, ...]]
     units: dict[str, tuple[str, ...]]
     source: dict[str, Any]  # the spec as given (JSON-able), recorded in datasets and cards
+    model: Scenario | None = None  # the scenario ``model:`` names, or None
+
+    @property
+    def has_state(self) -> bool:
+        """Whether the spec reads a ground-truth state (without ``model:`` it always does)."""
+        return bool(self.vectors["state"])
 
     @property
     def dt(self) -> float:
@@ -117,6 +136,8 @@ class Spec:
         return tuple(k.split("/", 1)[1] for k in self.vectors if k.startswith(ESTIMATE_PREFIX))
 
     def angles(self, vector: str) -> tuple[int, ...]:
+        if vector == "state" and not self.has_state and self.model is not None:
+            return tuple(self.model.angle_states)
         return tuple(i for i, f in enumerate(self.vectors[vector]) if f.is_angle)
 
     def digest(self) -> str:
@@ -160,11 +181,12 @@ def load_spec(spec: str | Path | Mapping[str, Any]) -> Spec:
 
 
 def _parse(raw: dict[str, Any], where: str) -> Spec:
-    known = {"rate", "max_age", "trigger", "stamp", "names", "units", "estimates", *VECTORS}
+    known = {"rate", "max_age", "trigger", "stamp", "names", "units", "estimates", "model", *VECTORS}
     unknown = sorted(set(raw) - known)
     if unknown:
         raise SpecError(f"{where}: unknown key(s) {unknown}; known: {sorted(known)}")
     rate, max_age, trigger, stamp = _timing(raw, where)
+    model = _model(raw.get("model"), rate, where)
     vectors = {}
     estimates = raw.get("estimates") or {}
     if not isinstance(estimates, Mapping) or not all(
@@ -173,16 +195,58 @@ def _parse(raw: dict[str, Any], where: str) -> Spec:
         raise SpecError(f"{where}: estimates must map names (letters, digits, _) to topic: [fields] mappings")
     for name in (*VECTORS, *(ESTIMATE_PREFIX + k for k in estimates)):
         entry = raw.get(name) if name in VECTORS else estimates[name[len(ESTIMATE_PREFIX) :]]
-        fields = _vector_fields(name, entry, where)
+        # with a model the ground truth may be absent: a recording with no state topic
+        fields = () if name == "state" and entry is None and model is not None else _vector_fields(name, entry, where)
         vectors[name] = fields
-        if name.startswith(ESTIMATE_PREFIX) and len(fields) != len(vectors["state"]):
+        if not name.startswith(ESTIMATE_PREFIX):
+            continue
+        dx = len(vectors["state"]) or (model.dx if model is not None else 0)
+        if len(fields) != dx:
             raise SpecError(
-                f"{where}: {name} has {len(fields)} fields; an estimate needs one per state component "
-                f"({len(vectors['state'])})"
+                f"{where}: {name} has {len(fields)} fields; an estimate needs one per state component ({dx})"
             )
-    names = _labels(raw.get("names"), "names", vectors, where, default=lambda f: f.expr)
-    units = _labels(raw.get("units"), "units", vectors, where, default=lambda f: "rad" if f.is_angle else "")
-    return Spec(rate, max_age, trigger, stamp, vectors, names, units, _source(raw, estimates, where))
+    if model is not None:
+        _check_model(model, vectors, where)
+    theirs = {key: model_labels(model, key) for key in ("names", "units")} if model is not None else {}
+    names = _labels(raw.get("names"), "names", vectors, where, lambda f: f.expr, theirs.get("names"))
+    units = _labels(
+        raw.get("units"), "units", vectors, where, lambda f: "rad" if f.is_angle else "", theirs.get("units")
+    )
+    return Spec(rate, max_age, trigger, stamp, vectors, names, units, _source(raw, estimates, where), model)
+
+
+def _model(entry: Any, rate: float, where: str) -> Scenario | None:
+    """The scenario ``model:`` names (None without one), its period checked against 1 / rate."""
+    if entry is None:
+        return None
+    try:
+        model = model_scenario_of(entry)
+    except ScenarioError as exc:
+        raise SpecError(f"{where}: {exc}") from None
+    if abs(model.dt - 1.0 / rate) > 1e-9 / rate:
+        raise SpecError(
+            f"{where}: the model {entry['scenario']!r} has dt = {model.dt:.12g} s, but rate {rate:g} Hz samples "
+            f"every {1.0 / rate:.12g} s: add set: {{dt: {1.0 / rate:.12g}}} to model, or change the rate"
+        )
+    return model
+
+
+def _check_model(model: Scenario, vectors: dict[str, tuple[Field, ...]], where: str) -> None:
+    """The vectors have the model's dimensions, and their angle components are the model's."""
+    name = model.name
+    for vector, n in (("state", model.dx), ("observation", model.dy), ("control", model.du)):
+        fields = vectors[vector]
+        if vector == "state" and not fields:
+            continue
+        if len(fields) != n:
+            raise SpecError(f"{where}: {vector} has {len(fields)} fields, but the model {name!r} has {n} {vector}s")
+    for vector, theirs in (("state", model.angle_states), ("observation", model.angle_obs)):
+        ours = [i for i, f in enumerate(vectors[vector]) if f.is_angle]
+        if vectors[vector] and ours != list(theirs):
+            raise SpecError(
+                f"{where}: the {vector}'s angle components are {ours}, the model {name!r}'s are {list(theirs)} "
+                "(mark an angle with angle(...))"
+            )
 
 
 def _timing(raw: dict[str, Any], where: str) -> tuple[float, float, str | None, str]:
@@ -274,24 +338,32 @@ def _positive(value: Any, key: str, where: str) -> float:
     return v
 
 
+def model_labels(model: Scenario, key: str) -> dict[str, tuple[str, ...]]:
+    """A model's names or units of the three vectors: a spec's defaults where it names a model."""
+    return {
+        "state": tuple(getattr(model, f"state_{key}")),
+        "observation": tuple(getattr(model, f"obs_{key}")),
+        "control": tuple(getattr(model, f"control_{key}")),
+    }
+
+
 def _labels(
-    raw: Any, key: str, vectors: dict[str, tuple[Field, ...]], where: str, default
+    raw: Any, key: str, vectors: dict[str, tuple[Field, ...]], where: str, default, model: dict | None = None
 ) -> dict[str, tuple[str, ...]]:
+    """Names or units per vector, as given or by default the model's (``model``, where the spec names
+    one: as many as the vector's fields, checked) or else ``default`` of each field."""
     raw = raw or {}
     if not isinstance(raw, Mapping) or set(raw) - set(VECTORS):
         raise SpecError(f"{where}: {key} must map some of {list(VECTORS)} to lists of strings")
     out = {}
     for name in VECTORS:
         given = raw.get(name)
+        fallback = tuple(model[name]) if model else tuple(default(f) for f in vectors[name])
         if given is None:
-            out[name] = tuple(default(f) for f in vectors[name])
+            out[name] = fallback
             continue
-        if (
-            not isinstance(given, list)
-            or len(given) != len(vectors[name])
-            or not all(isinstance(s, str) for s in given)
-        ):
-            raise SpecError(f"{where}: {key}.{name} must list {len(vectors[name])} strings, one per field")
+        if not isinstance(given, list) or len(given) != len(fallback) or not all(isinstance(s, str) for s in given):
+            raise SpecError(f"{where}: {key}.{name} must list {len(fallback)} strings, one per component")
         out[name] = tuple(given)
     return out
 

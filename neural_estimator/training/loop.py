@@ -76,6 +76,7 @@ from tqdm.auto import tqdm
 
 from neural_estimator.data.protocol import ChunkSampler, dataset, training_trajectories
 from neural_estimator.training.recipe import TrainConfig, TrainingError
+from neural_estimator.training.recorded import recorded_sets
 from neural_estimator.training.step import check_skipped, guarded_step
 from neural_estimator.data.simulate import Trajectories, trajectories_digest
 from neural_estimator.methods import table
@@ -203,7 +204,7 @@ def _training_sets(
     """Step 1-2: the training and validation sets (given, or simulated and cached) and the
     normalisation statistics of the training set."""
     if data is not None:
-        cfg, train_data, val_data = _recorded_sets(scenario, cfg, data)
+        cfg, train_data, val_data = recorded_sets(scenario, cfg, data)
         recorded = {"train_sha256": trajectories_digest(train_data), "val_sha256": trajectories_digest(val_data)}
         n_train = train_data.n
     else:
@@ -247,33 +248,6 @@ def _training_sets(
     eval_data = val_data if recorded is not None else None
     L_train, L_val = label_mask(train_data), label_mask(val_data)
     return _Sets(cfg, norm, Z_train, X_train, Z_val, X_val, n_train, recorded, eval_data, L_train, L_val)
-
-
-def _recorded_sets(
-    scenario: Scenario, cfg: TrainConfig, data: tuple[Trajectories, Trajectories]
-) -> tuple[TrainConfig, Trajectories, Trajectories]:
-    """Given (training, validation) sets checked against the scenario; the recipe's counts and
-    lengths from them."""
-    train_data, val_data = data
-    for role, d in (("training", train_data), ("validation", val_data)):
-        if (d.x.shape[2], d.y.shape[2], d.u.shape[2]) != (scenario.dx, scenario.dy, scenario.du):
-            raise TrainingError(
-                f"{role} data have dx={d.x.shape[2]}, dy={d.y.shape[2]}, du={d.u.shape[2]}; "
-                f"the scenario has {scenario.dx}, {scenario.dy}, {scenario.du}"
-            )
-    if train_data.horizon < cfg.window:
-        raise TrainingError(
-            f"training trajectories have {train_data.horizon} steps, fewer than the window "
-            f"({cfg.window}); pass a smaller --window or cut longer trajectories"
-        )
-    cfg = dataclasses.replace(
-        cfg,
-        trajectories=train_data.n,
-        train_length=train_data.horizon,
-        val_trajectories=val_data.n,
-        eval_trajectories=min(cfg.eval_trajectories, val_data.n),
-    )
-    return cfg, train_data, val_data
 
 
 def _bar(total: int, progress: bool, desc: str | None = None, initial: int = 0, position: int = 1, **kw):
