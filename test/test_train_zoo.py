@@ -284,11 +284,14 @@ def test_train_zoo_finishes_a_model_on_the_plateau_rule(tmp_path, monkeypatch):
 
 
 def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
-    """The zoo's bar: every shipped model had the paper's budget (20,000 windows per epoch) and converged,
-    and its card's "converged" follows from its own history: early stopping (patience epochs after the
-    best one, none lower) or >= 3 learning-rate reductions."""
+    """The zoo's bar: every shipped model had the paper's budget (20,000 windows per epoch), its card's
+    "converged" follows from its own history (early stopping: patience epochs after the best one, none
+    lower; or >= 3 learning-rate reductions), and every network (the paper's rows) converged. A
+    hybrid, beyond the paper, ships as far as its stated budget took it: unconverged only where its
+    card says a wall budget or a hand finish stopped it (docs/methods.md lists them)."""
     from pathlib import Path
 
+    from neural_estimator.methods import table
     from neural_estimator.training.stopping import converged, lr_reductions
 
     zoo = Path(__file__).resolve().parents[1] / "neural_estimator" / "serving" / "zoo"
@@ -306,9 +309,10 @@ def test_every_shipped_model_is_full_recipe_and_converged_by_its_own_curve():
             assert len(hist) - 1 - best >= patience, f"{path}: early stopping without {patience} epochs after the best"
         assert t["converged"] == converged(t["stopped"], hist, lr0), path
         assert t["budget"]["windows_per_epoch"] >= 20000, f"{path}: not the paper's 20,000 windows per epoch"
+        if table.has(card["method"], family="hybrid") and not t["converged"]:
+            assert t["stopped"].startswith(("wall budget", "finished by hand")), f"{path}: {t['stopped']}"
+            continue
         assert t["converged"], f"{path}: shipped before it converged"
-    from neural_estimator.methods import table
-
     networks = [c for c in cards if table.has(c.parent.name.rsplit("-", 1)[1], family="neural")]
     assert len(networks) == 30  # five scenarios x six networks (the hybrids ship as they finish training)
 
