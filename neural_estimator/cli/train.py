@@ -216,16 +216,14 @@ def _train_val_split(args: argparse.Namespace, scenario, train_data):
 
 
 def _checked_model_set(args: argparse.Namespace, scenario, method: str) -> dict[str, str]:
-    """``--model-set`` as {name: value}, checked as evaluate checks it (one-line errors), for a
-    hybrid only; an architecture hyperparameter given there is pointed to ``--arch-set``."""
-    from neural_estimator.methods import table
+    """``--model-set`` as {name: value}, checked as evaluate checks it (one-line errors); an
+    architecture hyperparameter given there is pointed to ``--arch-set``. Whether the method reads
+    a model at all is the recipe's check (training.loop)."""
     from neural_estimator.models import ARCHITECTURES
 
     told = model_assignments(args.model_set)
     if not told:
         return {}
-    if not table.has(method, family="hybrid"):
-        raise CliError(f"--model-set gives a hybrid its f and h; {method} reads no model, only the data")
     hyper = set(ARCHITECTURES[method][0].__dataclass_fields__) & set(told)
     if hyper:
         name = sorted(hyper)[0]
