@@ -506,6 +506,8 @@ class EstimatorNode(ExitStatusNode):
             path.parent.mkdir(parents=True, exist_ok=True)
             summary = stats_summary(self.stats, self.get_fully_qualified_name(), self.method)
             summary["heap_growth"] = self.heap.report(self.stats.estimated)
+            trim = getattr(self, "heap_trim", None)  # set by run_node (nodes/common.py start_heap_trim)
+            summary["heap_trim"] = trim.report() if trim is not None else None
             path.write_text(json.dumps(summary, indent=1))
         return self.exit_code
 
