@@ -29,7 +29,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 
 from neural_estimator.bags.writer import Qos
 from neural_estimator.core.interfaces import InterfaceError, check_message_type, is_message_class
-from neural_estimator.nodes.heap_trace import HeapTrim, heap_trim_period
+from neural_estimator.nodes.heap_trace import HeapTrim, heap_trim_period, pin_malloc_thresholds
 from neural_estimator.nodes.realtime import RealtimeError, apply_realtime_priority, requested_priority
 from neural_estimator.core.options import OptionError, parse_value
 
@@ -340,6 +340,8 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
             raise StartupError(bad_priority)
         executor_choice()
         trim_period = checked_heap_trim_period()
+        if trim_period > 0:  # before the node's build: its large temporaries are then unmapped when freed
+            pin_malloc_thresholds()
         node = factory()
     except StartupError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
@@ -421,10 +423,10 @@ def checked_heap_trim_period() -> float:
 
 def start_heap_trim(node: Node, period: float) -> HeapTrim | None:
     """A steady-clock timer on ``node`` that trims the process's heap every ``period`` s
-    (:class:`~neural_estimator.nodes.heap_trace.HeapTrim`: without it glibc keeps the memory a
-    node freed resident, and RSS crept 0.006-0.034 MiB/s at 500 Hz with nothing in use growing);
-    kept as ``node.heap_trim`` (its counts go into the estimator's stats file). None when
-    ``period`` is 0 or the C library has no ``malloc_trim``."""
+    (:class:`~neural_estimator.nodes.heap_trace.HeapTrim`: without it glibc kept the memory a node
+    freed resident, 16 MiB of an EKF node's RSS after a drained backlog); kept as ``node.heap_trim``
+    (its counts go into the estimator's stats file). None when ``period`` is 0 or the C library has
+    no ``malloc_trim``."""
     trim = HeapTrim(period)
     if period <= 0 or not trim.available:
         return None

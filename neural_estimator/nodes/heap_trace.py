@@ -12,21 +12,24 @@ costs each allocation a stack walk: a measuring tool, not a production setting).
 No rclpy: the estimator node calls :meth:`HeapTrace.tick` from its diagnostics and writes
 :meth:`HeapTrace.report` into its stats file.
 
-:class:`HeapTrim`: glibc's ``malloc_trim(0)`` every ``NEURAL_ESTIMATOR_HEAP_TRIM`` seconds (default
-10; 0 = never), on a timer of every node (``nodes.common.run_node``). Why: glibc gives freed memory
-back to the system only from the top of a heap (``M_TRIM_THRESHOLD``); a free chunk below a live one
-stays resident. A node's allocations at 500 Hz (DDS samples, the message path's temporaries, a
-backlog taken at once) leave such holes. Measured with ``benchmarks/soak.py --minutes 4 --rate-hz
-500 --methods ekf --depth 10000`` and glibc's own counts (``mallinfo2``): the EKF node's bytes in
-use stayed at 60.7 MiB while its free bytes grew 1.4 -> 7.6 MiB, and its RSS with them (slope
-0.006-0.034 MiB/s after the warm-up, the more the busier the machine); with three estimators
-behind the stream (``--methods ekf,ukf,gru``), each held a backlog (bytes in use 61 -> 74 MiB for
-the EKF) and, once it had drained, 16 MiB of the EKF's RSS (14 of the UKF's, 11 of the GRU's) were
-free heap for the rest of the process's life. ``malloc_trim(0)`` returns every whole free page
-inside the heaps (``madvise(MADV_DONTNEED)``), so RSS follows the memory in use (the same run with
-the trim: the EKF's anonymous memory back from 144 to 129 MiB within 10 s of the drain). It walks
-the free lists under the arenas' locks: 2-3 ms on average on this machine, at most 18 ms at load
-7.5 on 2 cores, once every 10 s (counted: :meth:`HeapTrim.report`, the estimator's stats file).
+:class:`HeapTrim` and :func:`pin_malloc_thresholds`, set up for every node by ``nodes.common.run_node``
+(``NEURAL_ESTIMATOR_HEAP_TRIM``: seconds between trims, default 10; 0 = neither). Why: glibc gives
+freed memory back to the system only from the top of a heap, and raises its mmap threshold (up to
+32 MiB, the trim threshold to twice that) each time a block it had mapped on its own is freed, so a
+node that freed one large block at start-up carves every later large temporary out of the heap,
+where its hole outlives it. Measured with ``benchmarks/soak.py --minutes 4 --rate-hz 500 --methods
+ekf --depth 10000`` and glibc's own counts (``mallinfo2``): the EKF node's bytes in use stayed at
+60.6 MiB while its heap grew 62.0 -> 64.2 MiB in 200 s, all of it free, and its RSS with it (slope
+0.0059-0.0071 MiB/s after the warm-up, with the trim alone); with both thresholds pinned at glibc's
+initial 128 KiB (``mallopt``) the heap grew 0.3 MiB and the slope was 0.0011. And a backlog: with
+three estimators behind the stream (``--methods ekf,ukf,gru``) the EKF's bytes in use rose 61 ->
+74 MiB while it held the queued observations and came back once it had drained, but without the trim
+16 MiB of its RSS (14 of the UKF's, 11 of the GRU's) stayed resident as free heap for the rest of
+the process's life; ``malloc_trim(0)`` returns every whole free page inside the heaps
+(``madvise(MADV_DONTNEED)``): the same run with it took the EKF's anonymous memory from 144 back to
+129 MiB within 10 s of the drain. A trim walks the free lists under the arenas' locks: 1-3 ms on
+average on this machine, at most 18 ms at load 7.5 on 2 cores, once every 10 s (counted:
+:meth:`HeapTrim.report`, the estimator's stats file).
 """
 
 from __future__ import annotations
@@ -55,6 +58,29 @@ def heap_trim_period(environ: Mapping[str, str] | None = None) -> float:
     if not (math.isfinite(period) and period >= 0):
         raise ValueError(f"{HEAP_TRIM_ENV} must be seconds between heap trims (>= 0; 0: off), got {raw!r}")
     return period
+
+
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
+PINNED_THRESHOLD = 128 * 1024  # bytes: glibc's initial mmap and trim thresholds
+_GLIBC_OWN = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_")
+
+
+def pin_malloc_thresholds(environ: Mapping[str, str] | None = None) -> bool:
+    """Pin glibc's mmap and trim thresholds at 128 KiB (see the module docstring): a block of
+    128 KiB or more is mapped on its own and unmapped when freed, and the heap's free top beyond
+    128 KiB goes back at once, whatever the process freed before. Setting them by ``mallopt`` also
+    stops glibc's dynamic adjustment. Left to the user where one of glibc's own variables
+    (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, ``MALLOC_TOP_PAD_``) is set; False there
+    and where the C library is not glibc."""
+    env = os.environ if environ is None else environ
+    if any(v in env for v in _GLIBC_OWN):
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(M_MMAP_THRESHOLD, PINNED_THRESHOLD)) and bool(mallopt(M_TRIM_THRESHOLD, PINNED_THRESHOLD))
 
 
 def _malloc_trim():
