@@ -316,6 +316,11 @@ class EstimatorNode(ExitStatusNode):
         # timer is overdue by half a period, the diagnostics go out from here instead.
         if time.monotonic() - self._last_diagnostics >= 1.5 * self.p.diagnostics_period:
             self._on_diagnostics()
+        # the heap trim's timer starves the same way (a GRU behind for 30 minutes never ran it,
+        # 18 MiB free heap resident): overdue by half a period, it runs from here
+        trim = getattr(self, "heap_trim", None)  # set by run_node (nodes/common.py start_heap_trim)
+        if trim is not None and trim.overdue(time.monotonic()):
+            trim()
 
     def _on_diagnostics_timer(self) -> None:
         if time.monotonic() - self._last_diagnostics >= 0.5 * self.p.diagnostics_period:

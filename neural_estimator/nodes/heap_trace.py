@@ -102,10 +102,16 @@ class HeapTrim:
         self.released = 0  # calls after which glibc reported memory given back
         self.seconds = 0.0
         self.max_seconds = 0.0
+        self.last = time.monotonic()  # of the latest trim (or of the start)
 
     @property
     def available(self) -> bool:
         return self._trim is not None
+
+    def overdue(self, now: float) -> bool:
+        """True when no trim ran for 1.5 periods: its timer is starved (a node that never idles
+        gets its timers late), and the caller trims instead."""
+        return self.period > 0 and now - self.last >= 1.5 * self.period
 
     def __call__(self) -> bool:
         """One trim; True when glibc gave memory back."""
@@ -114,6 +120,7 @@ class HeapTrim:
         t0 = time.perf_counter()
         released = bool(self._trim(0))
         dt = time.perf_counter() - t0
+        self.last = time.monotonic()
         self.calls += 1
         self.released += released
         self.seconds += dt
