@@ -74,8 +74,8 @@ Covariance: none. KalmanNet tracks no error covariance (the learned gain replace
 recursion that would carry one); any matrix reported from it would be invented.
 
 Parameters (input layer 64, GRU 64, gain head 128 -> dx dy): 34,243 (ballistic), 34,500
-(bearings), 48,804 (Lorenz 96), 39,524 (N-link), 36,818 (quadrotor); test/test_kalmannet.py holds
-every scenario within the paper's budget of 100k.
+(bearings), 48,804 (Lorenz 96), 39,524 (N-link; 39,908 in the state form), 36,818 (quadrotor);
+test/test_kalmannet.py holds every scenario within the paper's budget of 100k.
 """
 
 from __future__ import annotations
