@@ -258,6 +258,33 @@ def test_nlink_has_no_onnx_step_and_says_why(tmp_path):
     assert "\n" not in str(err.value)
 
 
+def test_a_told_model_is_served_by_torch_not_by_the_trained_models_onnx_step(tmp_path):
+    """step.onnx has the f and h of the model trained with in its graph: told another model
+    (model_set), the per-message default serves torch's hybrid around the told f and h; asking
+    for the graph explicitly is refused in one line."""
+    pytest.importorskip("onnxruntime")
+    from neural_estimator.scenarios.model import model_scenario
+    from neural_estimator.serving.export import export_beside
+    from neural_estimator.serving.onnx_runtime import OnnxEstimator
+
+    scenario, model, norm, data = hybrid("lorenz96")
+    save_checkpoint(tmp_path, model, norm, {"scenario": scenario.describe()})
+    assert export_beside(tmp_path, scenario) is not None
+    told = model_scenario(scenario, {"forcing": "10"})
+    exact = load_neural_estimator("kalmannet", scenario, tmp_path, backend="auto")
+    assert isinstance(exact, OnnxEstimator)
+    served = load_neural_estimator("kalmannet", told, tmp_path, backend="auto")
+    assert not isinstance(served, OnnxEstimator) and served.backend == "torch"
+    y, u = data.y[:1], data.u[:1]  # one stream: the exported step's batch
+    ref = load_neural_estimator("kalmannet", told, tmp_path, backend="torch").run(y, u).x
+    np.testing.assert_array_equal(served.run(y, u).x, ref)
+    assert np.abs(ref - exact.run(y, u).x).max() > 1e-2  # the told model's estimates differ
+    trained = "step.onnx beside its card holds the f and h of the model it was trained with, not the model told"
+    with pytest.raises(EstimatorError, match=trained) as err:
+        load_neural_estimator("kalmannet", told, tmp_path, backend="onnxruntime")
+    assert "\n" not in str(err.value)
+
+
 @pytest.mark.parametrize("name", ["lorenz96", "nlink"])
 def test_a_non_finite_observation_only_predicts(name):
     scenario, model, norm, data = hybrid(name)

@@ -123,4 +123,5 @@ def test_the_results_page_table_is_generated_from_the_committed_sweeps():
             r = json.loads((root / "docs/results/mismatch" / f"{scenario}-{parameter}.json").read_text())
             net = r["crossover"]["network"]
             assert f"| {scenario} | `{parameter}` (" in table
-            assert f"| {crossover_text(net['above'])} | {crossover_text(net['below'])} |" in table
+            for side, words in (("above", "too large"), ("below", "too small")):
+                assert f"| {words} | {net['method']} {crossover_text(net[side])} |" in table

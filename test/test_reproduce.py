@@ -43,6 +43,7 @@ SECTIONS = (
     "## Runtime",
     "#### CPU",
     "## Data efficiency",
+    "## Model mismatch",
 )
 FIGURES = (
     "rmse_over_time_nlink.png",
@@ -143,6 +144,17 @@ def test_smoke_scale_writes_every_table_and_figure_beside_the_paper(smoke_run):
     for name in FIGURES:
         data = (out / "figures" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
+    # beyond the paper: each scenario's three mismatch sweeps (Ray jobs, two waiting for the first), their
+    # crossover tables and figures, and their files under the names of docs/results/mismatch
+    mismatch = text.split("## Model mismatch")[1]
+    for s, parameter in (("nlink", "total_length"), ("lorenz96", "forcing")):
+        section = mismatch.split(f"### {s}")[1]
+        assert f"| `{parameter}` (true " in section and "| too small | " in section
+        assert "| `R` (noise scale) | too large | " in section
+        for p in (parameter, "Q", "R"):
+            assert f"](mismatch/{s}-{p}.png)" in section
+            assert (out / "mismatch" / f"{s}-{p}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+            assert json.loads((out / "mismatch" / f"{s}-{p}.json").read_text())["parameter"] == p
     statuses = [s for _, s in _statuses(out)]
     assert statuses and set(statuses) == {"computed"}
     assert len(statuses) == len(plan_jobs(get_scale("smoke"), SCENARIOS.split(","), METHODS.split(",")))

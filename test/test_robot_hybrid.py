@@ -3,6 +3,7 @@ ground-truth topic, a hybrid (KalmanNet) trained on its observations, filters ru
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -238,3 +239,154 @@ def test_a_run_is_not_scored_against_a_spec_without_ground_truth():
 
     with pytest.raises(SpecError, match="no ground truth .*nothing to score against"):
         scoring_spec(load_spec(spec_dict()), ["/estimates/gru"], "/", None)
+
+
+# ---- served live: the robot estimator node ----------------------------------------------------------------
+def stamped_spec() -> dict:
+    """The quadrotor's observation and control as header-stamped messages (the live node and the
+    dataset tick on the same stamps, whatever the delivery's timing), no state, the model named."""
+    return {
+        "rate": 100.0,
+        "stamp": "header",
+        "observation": {"/y": ["point.x", "point.y", "point.z"]},
+        "control": {"/u": ["vector.x", "vector.y"]},
+        "model": {"scenario": SCENARIO},
+    }
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """(bag, spec file, dataset file, checkpoint): three 40-step quadrotor flights 0.2 s apart written as
+    geometry_msgs/PointStamped (y) and Vector3Stamped (u), no ground truth; their dataset; a kalmannet
+    trained on its observations for one epoch (plumbing, not accuracy)."""
+    M = TYPESTORE.types
+    d = tmp_path_factory.mktemp("served")
+    s = make_scenario(SCENARIO)
+    sim = simulate(s, 3, 40, np.random.SeedSequence(5))
+    step, t0 = int(round(s.dt * 1e9)), 1_700_000_000 * 10**9
+
+    def header(t):
+        stamp = M["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9)
+        return M["std_msgs/msg/Header"](stamp=stamp, frame_id="map")
+
+    bag = d / "flights.mcap"
+    with BagWriter(bag) as w:
+        for n in range(sim.n):
+            for k in range(sim.horizon):
+                t = t0 + (60 * n + k + 1) * step
+                y, u = sim.y[n, k].tolist(), sim.u[n, k].tolist()
+                point = M["geometry_msgs/msg/Point"](x=y[0], y=y[1], z=y[2])
+                w.write_message("/y", t, M["geometry_msgs/msg/PointStamped"](header=header(t), point=point))
+                vector = M["geometry_msgs/msg/Vector3"](x=u[0], y=u[1], z=0.0)
+                w.write_message("/u", t, M["geometry_msgs/msg/Vector3Stamped"](header=header(t), vector=vector))
+    spec = _yaml(d, stamped_spec())
+    data, model = d / "flights.npz", d / "knet"
+    assert main(["dataset", str(bag), "--spec", str(spec), "--length", "40", "--out", str(data), "--quiet"]) == 0
+    assert main(["train", "--data", str(data), "--out", str(model), *TRAIN, "--supervision", "observations"]) == 0
+    return bag, spec, data, model
+
+
+def _live_estimates(tmp_path, bag: Path, model: Path, expected: int, monkeypatch) -> list[tuple[int, list[float]]]:
+    """(stamp, position) of each estimate the robot estimator node publishes while the player plays
+    ``bag`` into it (a private domain; reliable inputs, so no message is lost to the comparison)."""
+    import signal
+
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    from neural_estimator.nodes.launch import isolated_env, node_command, start_node
+    from ros_tester import Tester, fresh_domain
+
+    domain = fresh_domain()
+    env = isolated_env(domain)
+    node = "neural_estimator.nodes.robot_estimator_node"
+    params = {"checkpoint": str(model), "input_qos": "reliable"}
+    procs = [start_node(node_command(sys.executable, node, "est", params), tmp_path / "est.log", env)]
+    tester = Tester(monkeypatch, domain, lambda: (tmp_path / "est.log").read_text(), timeout=60.0)
+    got: list[tuple[int, list[float]]] = []
+    try:
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        tester.node.create_subscription(
+            JointState,
+            "/estimates/kalmannet",
+            lambda m: got.append((m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, list(m.position))),
+            qos,
+        )
+        tester.spin_until(lambda: "recorded-data spec" in (tmp_path / "est.log").read_text())
+        player = dict(bag=str(bag), wait_for_subscribers=1, wait_topic="/y")
+        procs.append(
+            start_node(
+                node_command(sys.executable, "neural_estimator.nodes.player_node", "player", player),
+                tmp_path / "player.log",
+                env,
+            )
+        )
+        tester.spin_until(lambda: len(got) >= expected)
+    finally:
+        tester.shutdown()
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except Exception:
+                p.kill()
+    return got
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_the_robot_estimator_serves_the_hybrid_with_the_estimates_evaluate_scores(served, tmp_path, monkeypatch):
+    """The recording played by the player into `robot_estimator -p checkpoint:=DIR` (reliable
+    inputs: a lost message would change a tick's inputs): per tick, the estimates of the model run
+    on the recording's dataset, as `evaluate --data` runs it."""
+    pytest.importorskip("rclpy")
+    from neural_estimator.methods.registry import make_estimator
+
+    bag, _, data, model = served
+    recorded, _ = load_trajectories(data)
+    offline = make_estimator("kalmannet", DataScenario(recorded.meta), checkpoint=model).run(recorded.y, recorded.u).x
+    # per flight: its 40 ticks (a trajectory) and 2 more while its last message is within max_age (the
+    # dataset's remainder), but the last flight's 2: no later message settles them
+    got = _live_estimates(tmp_path, bag, model, 3 * 42 - 2, monkeypatch)
+    stamps = np.array([t for t, _ in got])
+    assert np.all(np.diff(stamps) > 0), "estimates out of tick order"
+    flights = np.split(np.arange(stamps.size), np.flatnonzero(np.diff(stamps) > 10**8) + 1)
+    assert [f.size for f in flights] == [42, 42, 40]
+    live = np.array([[got[i][1] for i in f[:40]] for f in flights])
+    assert live.shape == offline.shape
+    np.testing.assert_allclose(live, offline, rtol=1e-4, atol=1e-4)  # float32 steps vs the parallel form
+    assert np.abs(offline).max() > 1.0  # a comparison of estimates, not of zeros
+
+
+@pytest.mark.ros
+def test_the_robot_estimator_refuses_a_hybrid_whose_spec_names_no_model(served, tmp_path):
+    """A kalmannet card whose spec lost its model (edited: `train` refuses to make one) is refused at
+    start-up in one line, before its step.onnx (an f and h of its own) could serve it."""
+    pytest.importorskip("rclpy")
+    import json
+    import shutil
+    import subprocess
+
+    from neural_estimator.nodes.launch import isolated_env, node_command
+    from ros_tester import fresh_domain
+
+    _, _, _, model = served
+    edited = tmp_path / "knet"
+    shutil.copytree(model, edited)
+    card = json.loads((edited / "card.json").read_text())
+    assert (edited / "step.onnx").exists() and card["scenario"]["model"] == {"scenario": SCENARIO}
+    desc = card["scenario"]
+    del desc["model"], desc["spec"]["model"]
+    desc["spec"]["state"] = [["/truth", fields(6)]]  # a spec without a model must read the state
+    desc["config"]["model_sha256"] = ""
+    (edited / "card.json").write_text(json.dumps(card))
+    node = "neural_estimator.nodes.robot_estimator_node"
+    cmd = node_command(sys.executable, node, "est", {"checkpoint": str(edited)})
+    proc = subprocess.run(cmd, env=isolated_env(fresh_domain()), capture_output=True, text=True, timeout=60)
+    out = proc.stdout + proc.stderr
+    fatal = [ln for ln in out.splitlines() if "FATAL" in ln or "error" in ln.lower()]
+    assert proc.returncode == 1 and "Traceback" not in out, out
+    refusal = "a kalmannet model runs the system's f and h, but its card's spec names no model"
+    assert len(fatal) == 1 and refusal in fatal[0], out

@@ -259,35 +259,15 @@ def methods_table() -> str:
 
 
 def mismatch() -> str:
-    """One row per committed sweep (docs/results/mismatch/SCENARIO-PARAMETER.json): the exact model's
-    best filter, the network and its paired ratio there, the crossover on each side with its interval."""
-    from neural_estimator.evaluation.mismatch import EXPERIMENT, crossover_text
+    """The exact model's row per scenario and the crossovers, two rows per sweep, of the committed
+    sweeps (docs/results/mismatch/SCENARIO-PARAMETER.json, written by ``neural-estimator reproduce``
+    or ``mismatch --experiment``): the reproduce report's tables
+    (:func:`neural_estimator.evaluation.mismatch.exact_table`, ``crossover_table``)."""
+    from neural_estimator.evaluation.mismatch import EXPERIMENT, crossover_table, exact_table
 
-    rows = [
-        "| scenario | model error in | best filter (exact) | network | ratio at exact [95 %] "
-        "| crossover, too large | crossover, too small | hybrid |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for scenario, parameters in EXPERIMENT.items():
-        for parameter in parameters:
-            path = ROOT / "docs/results/mismatch" / f"{scenario}-{parameter}.json"
-            if not path.is_file():
-                continue
-            r = json.loads(path.read_text())
-            exact = next(p for p in r["points"] if p["value"] == 1.0)
-            net = r["crossover"].get("network")
-            hyb = r["crossover"].get("hybrid")
-            best = exact["best_filter"]
-            row = exact["methods"][net["method"]] if net else None
-            ratio = f"{row['ratio']:.3g} [{row['ci95'][0]:.3g}, {row['ci95'][1]:.3g}]" if row else "—"
-            true = "noise scale" if parameter in ("Q", "R") else f"true {r['true_value']:.4g}"
-            rows.append(
-                f"| {scenario} | `{parameter}` ({true}) | {best} {_num(exact['methods'][best]['rmse'])} "
-                f"| {net['method'] if net else '—'} {_num(row['rmse']) if row else ''} | {ratio} "
-                f"| {crossover_text(net['above']) if net else '—'} | {crossover_text(net['below']) if net else '—'} "
-                f"| {'—' if hyb is None else crossover_text(hyb['above']) + ' / ' + crossover_text(hyb['below'])} |"
-            )
-    return "\n".join(rows)
+    paths = [ROOT / "docs/results/mismatch" / f"{s}-{p}.json" for s, ps in EXPERIMENT.items() for p in ps]
+    results = [json.loads(p.read_text()) for p in paths if p.is_file()]
+    return "\n".join(["At the exact model:", "", *exact_table(results), "", *crossover_table(results)])
 
 
 GENERATORS = {

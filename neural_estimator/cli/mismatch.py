@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -94,7 +93,7 @@ def _cmd_mismatch(args) -> int:
         scenario = make_scenario(name, preset=args.preset, **parse_assignments(args.set))
         MM.true_value(scenario, parameter)  # a bad name fails now, before any data are simulated
         if values is None:
-            values = list(MM.NOISE_VALUES if parameter in MM.NOISE_SCALES else MM.DEFAULT_VALUES)
+            values = list(MM.default_values(parameter))
         MM.check_values(values)
         result = MM.mismatch(
             scenario,
@@ -109,10 +108,6 @@ def _cmd_mismatch(args) -> int:
             progress=not args.quiet,
         )
         print(MM.result_text(result), end="")
-        out.mkdir(parents=True, exist_ok=True)
-        stem = out / f"{name}-{parameter}"
-        stem.with_suffix(".json").write_text(json.dumps(result, indent=1, allow_nan=False) + "\n")
-        stem.with_suffix(".csv").write_text(MM.rows_csv(result))
-        MM.plot_mismatch(result, stem.with_suffix(".png"))
+        stem = MM.write_result(result, out)
         print(f"wrote {stem}.json, .csv, .png", file=sys.stderr)
     return 0

@@ -28,9 +28,11 @@ Between grid points the interpolation assumes rho is monotone in |e|: the grid i
 
 from __future__ import annotations
 
+import json
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -75,6 +77,11 @@ def true_value(scenario: Scenario, parameter: str) -> float:
     return float(value)
 
 
+def default_values(parameter: str) -> tuple[float, ...]:
+    """The grid of multipliers a sweep of ``parameter`` takes by default: decades for the noise scales."""
+    return NOISE_VALUES if parameter in NOISE_SCALES else DEFAULT_VALUES
+
+
 def check_values(values: Sequence[float]) -> list[float]:
     """The multipliers, sorted; each finite and > 0 (a ScenarioError otherwise)."""
     out = sorted({float(v) for v in values})
@@ -107,12 +114,15 @@ def mismatch(
     cache_dir: Any = None,
     progress: bool = False,
     warmup: int = M.EVALUATION_WARMUP,
+    options: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The mismatch sweep of ``parameter`` (see the module docstring), as a strict-JSON-ready dict.
 
     ``methods`` None: :func:`default_methods`, of which only the best network (lowest median RMSE on
     these sets; every network's is recorded under ``"networks"``) is kept as a row. Given methods
-    are all kept. Each must be a filter, a network or the hybrid (no baselines).
+    are all kept. Each must be a filter, a network or the hybrid (no baselines). ``options``:
+    {method: {option: value}} as :func:`~neural_estimator.evaluation.protocol.evaluate` takes them
+    (``reproduce`` bounds the filters' threads with it, an option that changes no result).
     """
     base = true_value(scenario, parameter)
     values = check_values(values)
@@ -125,7 +135,7 @@ def mismatch(
     data = evaluation_sets(
         scenario, seed=seed, trajectories=trajectories, horizon=horizon, sets=sets, cache_dir=cache_dir
     )
-    kw = dict(datasets=data, seed=seed, cache_dir=cache_dir, progress=progress, warmup=warmup)
+    kw = dict(datasets=data, seed=seed, cache_dir=cache_dir, progress=progress, warmup=warmup, options=options)
     nets = evaluate(scenario, networks, **kw) if networks else {}
     net_rmse = {m: r.summary["rmse"].median for m, r in nets.items()}
     if not methods and nets:  # the default: the best network on these sets
@@ -250,6 +260,76 @@ def crossover_text(c: dict[str, Any] | None) -> str:
     hi_text = f"> {c['largest_error']:.2g}" if hi is None else f"{hi:.2g}"
     lo_text = "?" if lo is None else f"{lo:.2g}"
     return f"{c['at']:.2g} [{lo_text}, {hi_text}]"
+
+
+def exact_table(results: Sequence[dict[str, Any]], scenario_column: bool = True) -> list[str]:
+    """Markdown lines, one row per scenario: at the exact model (v = 1, the same runs in every
+    sweep of a scenario, so read from its first sweep that has it) the best filter's RMSE, the
+    network's and the hybrid's, each challenger with its paired RMSE ratio to the filter [95 %]."""
+    head = ["scenario"] * scenario_column + ["best filter", "network", "network / filter [95 %]"]
+    head += ["hybrid", "hybrid / filter [95 %]"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    seen = set()
+    for r in results:
+        exact = next((p for p in r["points"] if p["value"] == 1.0), None)
+        name = r["scenario"]["scenario"]
+        if exact is None or name in seen:
+            continue
+        seen.add(name)
+        best = exact["best_filter"]
+        cells = [name] * scenario_column + [f"{best} {_rmse(exact['methods'][best]['rmse'])}"]
+        for family in ("network", "hybrid"):
+            c = r["crossover"].get(family)
+            row = exact["methods"][c["method"]] if c else None
+            cells += [f"{c['method']} {_rmse(row['rmse'])}", _ratio(row)] if row else ["—", "—"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def crossover_table(results: Sequence[dict[str, Any]], scenario_column: bool = True) -> list[str]:
+    """Markdown lines of the crossovers, two rows per sweep (the model's value too large, e > 0;
+    too small, e < 0): where the network, and the hybrid, overtake the best filter, as the relative
+    error |e*| of the model with its 95 % interval (:func:`crossover_text`). The results page
+    (``docs/hooks/generate.py``) and the reproduce report print this table and :func:`exact_table`."""
+    head = ["scenario"] * scenario_column + ["parameter", "model's value"]
+    head += ["network crossover [95 %]", "hybrid crossover [95 %]"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in results:
+        true = "noise scale" if r["parameter"] in NOISE_SCALES else f"true {r['true_value']:.4g}"
+        cells = [r["scenario"]["scenario"]] * scenario_column + [f"`{r['parameter']}` ({true})"]
+        for side, words in (("above", "too large"), ("below", "too small")):
+            crossings = []
+            for family in ("network", "hybrid"):
+                c = r["crossover"].get(family)
+                crossings.append(f"{c['method']} {crossover_text(c[side])}" if c else "—")
+            lines.append("| " + " | ".join(cells + [words] + crossings) + " |")
+    return lines
+
+
+def _ratio(row: dict[str, Any]) -> str:
+    return "—" if row["ratio"] is None else f"{row['ratio']:.3f} {_interval(row['ci95'])}".rstrip()
+
+
+def _rmse(x: float | None) -> str:
+    return "—" if x is None else f"{x:.4g}"
+
+
+def _interval(ci: Sequence[float | None]) -> str:
+    return "" if None in ci else f"[{ci[0]:.3f}, {ci[1]:.3f}]"
+
+
+def write_result(result: dict[str, Any], out: str | Path) -> Path:
+    """``out``/SCENARIO-PARAMETER.json (the sweep), .csv (:func:`rows_csv`) and .png
+    (:func:`plot_mismatch`), each written whole; returns the common stem."""
+    from neural_estimator.core.atomic import write_text_atomically
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / f"{result['scenario']['scenario']}-{result['parameter']}"
+    write_text_atomically(stem.with_suffix(".json"), json.dumps(result, indent=1, allow_nan=False) + "\n")
+    write_text_atomically(stem.with_suffix(".csv"), rows_csv(result))
+    plot_mismatch(result, stem.with_suffix(".png"))
+    return stem
 
 
 def plot_mismatch(result: dict[str, Any], path: Any) -> Any:

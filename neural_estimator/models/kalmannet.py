@@ -29,6 +29,21 @@ z_k = [y_k, u_{k-1}], normalised)::
     K_k = diag(sigma_x) K_n diag(1 / sigma_y)                (the physical gain)
     x_{k|k} = x_{k|k-1} + K_k e_k,  angular states wrapped to (-pi, pi] (N-link's angles)
 
+The state form (``gain_form="state"``, N-link's) corrects in the state space instead, through h
+linearised at each prediction, so that the learned part need not follow the configuration::
+
+    J_n = diag(1/sigma_y) dh/dx(x_{k|k-1}) diag(sigma_x)                 (per trajectory, autograd)
+    delta_n = (J_n^T J_n + eps I)^{-1} J_n^T e_n    the least-squares state correction (eps = 1e-6)
+    features: the four above and delta_n;  G_n = G0 + W_2 ReLU(W_1 h_k + b_1) + b_2   (dx x dx)
+    x_{k|k} = x_{k|k-1} + diag(sigma_x) G_n delta_n
+
+G0 carries the alpha-beta tracker's gains (alpha on the states h sees, beta = alpha^2 / (2 - alpha)
+over one period on the states that move them, through the model's linearisation at m0; see
+:meth:`KalmanNetModel._state_prior_gain`). Why: on N-link the observed positions turn with the
+angles, so the gain on the raw innovation must rotate with the configuration, which the difference
+features do not carry (1 h of training left it 11.4x the EKF); delta_n already holds the rotation,
+and what is left to learn (how much of it to take, and the rates it implies) varies far less.
+
 The gain is produced in normalised units (state and observation each divided by its training std)
 so that a unit weight means the same on a kilometre-scale ballistic altitude and a radian: the
 network's output is O(1) and well conditioned on every scenario.
@@ -59,8 +74,8 @@ Covariance: none. KalmanNet tracks no error covariance (the learned gain replace
 recursion that would carry one); any matrix reported from it would be invented.
 
 Parameters (input layer 64, GRU 64, gain head 128 -> dx dy): 34,243 (ballistic), 34,500
-(bearings), 48,804 (Lorenz 96), 39,524 (N-link), 36,818 (quadrotor); test/test_kalmannet.py holds
-every scenario within the paper's budget of 100k.
+(bearings), 48,804 (Lorenz 96), 39,524 (N-link; 39,908 in the state form), 36,818 (quadrotor);
+test/test_kalmannet.py holds every scenario within the paper's budget of 100k.
 """
 
 from __future__ import annotations
@@ -74,6 +89,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+GAIN_FORMS = ("innovation", "state")
+LEAST_SQUARES_EPS = 1e-6  # regularises J_n^T J_n in the state form (module docstring)
 CLAMP_STDS = 1e3  # |x_{k|k} - mu_x| <= CLAMP_STDS sigma_x (see the module docstring, departure 3)
 
 
@@ -103,6 +120,7 @@ class KalmanNetConfig:
     head_width: int = 128  # the hidden layer of the gain head
     gain_init_scale: float = 0.1  # the gain layer's initial weights relative to PyTorch's default
     prior_gain: float = 0.5  # alpha of the fixed model-based gain K0 = alpha pinv(H_n) (0: none)
+    gain_form: str = "innovation"  # "innovation": K e (the paper's); "state": G delta (module docstring)
 
 
 class KalmanNetModel(nn.Module):
@@ -131,6 +149,7 @@ class KalmanNetModel(nn.Module):
         self.dynamics = dyn
         self.dx, self.dy, self.du = dx, dy, du
         self.scenario_name = str(getattr(system, "name", "system"))
+        self.dt = float(getattr(system, "dt", 0.0) or 0.0)  # the state form's G0 (beta / dt)
         import numpy as np  # the prior is numpy; torch owns the model
 
         # the served scenario's prior, as f and h are (not saved); float64, cast to the state's dtype
@@ -143,15 +162,20 @@ class KalmanNetModel(nn.Module):
         self.register_buffer("out_std", torch.ones(dx))
         self.register_buffer("angle_states", _index_mask(dx, tuple(system.angle_states)), persistent=False)
         self.register_buffer("angle_obs", _index_mask(dy, tuple(getattr(system, "angle_obs", ()))), persistent=False)
-        n_feat = 2 * dy + 2 * dx
+        if cfg.gain_form not in GAIN_FORMS:
+            raise HybridSystemError(f"kalmannet: gain_form {cfg.gain_form!r} is not one of {', '.join(GAIN_FORMS)}")
+        self.state_form = cfg.gain_form == "state"
+        n_feat = 2 * dy + 2 * dx + (dx if self.state_form else 0)  # + delta_n in the state form
         self.input_layer = nn.Linear(n_feat, cfg.in_width)
         self.gru = nn.GRU(cfg.in_width, cfg.hidden, batch_first=True)
         self.head = nn.Linear(cfg.hidden, cfg.head_width)
-        self.gain = nn.Linear(cfg.head_width, dx * dy)
+        self.gain_cols = dx if self.state_form else dy  # G is dx x dx, K is dx x dy
+        self.gain = nn.Linear(cfg.head_width, dx * self.gain_cols)
         with torch.no_grad():  # the network's part starts near 0: the gain starts near K0 (departure 5)
             self.gain.weight.mul_(cfg.gain_init_scale)
             self.gain.bias.zero_()
-        self.register_buffer("gain_prior", torch.zeros(dx, dy))  # K0, normalised units (saved)
+        # K0 (dx x dy) or, in the state form, G0 = alpha I (dx x dx); normalised units (saved)
+        self.register_buffer("gain_prior", torch.zeros(dx, self.gain_cols))
         self._set_prior_gain()
 
     # ---- normalisation ---------------------------------------------------------------------------
@@ -177,6 +201,9 @@ class KalmanNetModel(nn.Module):
         velocities). Not computed on torch's meta device (the checkpoint's size probe)."""
         if self.gain_prior.is_meta:
             return
+        if self.state_form:
+            self.gain_prior.copy_(self._state_prior_gain().to(self.gain_prior.dtype))
+            return
         m0 = self.m0.detach().to("cpu", torch.float64)
         jac = torch.autograd.functional.jacobian(lambda x: self.dynamics.h(x), m0)  # (dy, dx)
         dy = self.dy
@@ -185,6 +212,35 @@ class KalmanNetModel(nn.Module):
         h_n = jac.reshape(dy, self.dx) * x_std[None, :] / y_std[:, None]
         k0 = float(self.cfg.prior_gain) * torch.linalg.pinv(h_n)  # (dx, dy)
         self.gain_prior.copy_(k0.to(self.gain_prior.dtype))
+
+    def _state_prior_gain(self) -> Tensor:
+        """G0 of the state form (normalised units, float64): the alpha-beta tracker's gains carried
+        through the model's own kinematics, no noise level read. With S the states h sees at m0 (the
+        non-zero columns of J_n), U the rest and A_n = diag(1/sigma_x) (df/dx(m0) - I) diag(sigma_x) / dt
+        the model's continuous-time linearisation::
+
+            G0[S, S] = alpha I,   G0[U, S] = (beta / dt) pinv(A_n[S, U]),   beta = alpha^2 / (2 - alpha)
+
+        (Benedict and Bordner's beta). A_n[S, U] says how fast the unseen states move the seen ones
+        (N-link: the angular rates move the angles, A[S, U] = I), so G0[U, S] gives the rates that
+        would have made the correction alpha-beta's share of delta over one period. With every state
+        seen (Lorenz 96) G0 = alpha I."""
+        x_std = self.out_std.detach().to("cpu", torch.float64)
+        y_std = self.in_std[: self.dy].detach().to("cpu", torch.float64)
+        m0 = self.m0.detach().to("cpu", torch.float64)
+        jac_h = torch.autograd.functional.jacobian(lambda x: self.dynamics.h(x), m0).reshape(self.dy, self.dx)
+        seen = (jac_h * x_std[None, :] / y_std[:, None]).abs().amax(dim=0) > 1e-9
+        alpha = float(self.cfg.prior_gain)
+        g0 = torch.zeros(self.dx, self.dx, dtype=torch.float64)
+        idx_s, idx_u = seen.nonzero()[:, 0], (~seen).nonzero()[:, 0]
+        g0[idx_s, idx_s] = alpha
+        if alpha and not bool(seen.all()):
+            u = torch.zeros(1, self.du, dtype=torch.float64) if self.du else None
+            jac_f = torch.autograd.functional.jacobian(lambda x: self.dynamics.f(x[None], u)[0], m0)
+            a_n = (jac_f - torch.eye(self.dx, dtype=torch.float64)) * x_std[None, :] / x_std[:, None] / self.dt
+            beta = alpha * alpha / (2.0 - alpha)
+            g0[idx_u[:, None], idx_s[None, :]] = beta / self.dt * torch.linalg.pinv(a_n[seen][:, ~seen])
+        return g0
 
     # ---- the recurrence --------------------------------------------------------------------------
     def init_state(self, batch: int, device=None, dtype=None) -> tuple[Tensor, ...]:
@@ -251,12 +307,15 @@ class KalmanNetModel(nn.Module):
         innov = self._obs_diff(y, y_pred)
         d_obs = torch.where(started > 0, self._obs_diff(y, y_prev), torch.zeros_like(y))
         x_std = self.out_std
+        innov_n = innov / y_std
+        delta_n = self._least_squares_correction(x_prior, innov_n) if self.state_form else None
         feats = torch.cat(
             [
                 d_obs / y_std,
-                innov / y_std,
+                innov_n,
                 self._state_diff(x_post, x_post_prev) / x_std,
                 self._state_diff(x_post, x_prior_prev) / x_std,
+                *((delta_n,) if self.state_form else ()),
             ],
             dim=-1,
         )
@@ -264,8 +323,9 @@ class KalmanNetModel(nn.Module):
         feats = torch.where(seen, feats, torch.zeros_like(feats))
         a = F.relu(F.linear(feats, self.input_layer.weight, self.input_layer.bias))
         h_new = self._gru_cell(a, h[0])
-        k_n = self.gain(F.relu(self.head(h_new))).unflatten(-1, (self.dx, dy)) + self.gain_prior  # normalised
-        dx_n = (k_n @ (innov / y_std)[..., None])[..., 0]  # K_n e_n, normalised state units
+        k_n = self.gain(F.relu(self.head(h_new))).unflatten(-1, (self.dx, self.gain_cols)) + self.gain_prior
+        # K_n e_n, or G_n delta_n in the state form; normalised state units
+        dx_n = (k_n @ (delta_n if self.state_form else innov_n)[..., None])[..., 0]
         upd = x_prior + torch.where(seen, dx_n * x_std, torch.zeros_like(dx_n))
         upd = torch.where(self.angle_states, _wrap(upd), upd)
         x_new = self._guard(upd)
@@ -279,6 +339,24 @@ class KalmanNetModel(nn.Module):
         )
         y_pred_n = (y_pred - y_mean) / y_std
         return (x_new - self.out_mean) / x_std, y_pred_n, new_state
+
+    def _least_squares_correction(self, x_prior: Tensor, innov_n: Tensor) -> Tensor:
+        """delta_n = (J_n^T J_n + eps I)^{-1} J_n^T e_n with J_n = diag(1/sigma_y) dh/dx(x_{k|k-1})
+        diag(sigma_x): the normalised state correction that explains the innovation in the least-squares
+        sense, h linearised at this step's prediction (per trajectory: torch.func's vmap of jacrev,
+        differentiable for training). Directions h does not see (N-link's rates) get 0: their rows of
+        J_n^T e_n are 0 and eps (1e-6, in normalised units where J_n is O(1)) keeps the system regular."""
+        from torch.func import jacrev, vmap  # here: the innovation form never needs them
+
+        lead = x_prior.shape[:-1]
+        x = x_prior.reshape(-1, self.dx)
+        jac = vmap(jacrev(self.dynamics.h))(x)  # (B, dy, dx)
+        jac_n = jac * self.out_std[None, None, :] / self.in_std[: self.dy][None, :, None]
+        jac_n = torch.nan_to_num(jac_n, nan=0.0, posinf=0.0, neginf=0.0)
+        eye = torch.eye(self.dx, dtype=x.dtype, device=x.device)
+        normal = jac_n.transpose(-1, -2) @ jac_n + LEAST_SQUARES_EPS * eye
+        rhs = jac_n.transpose(-1, -2) @ torch.nan_to_num(innov_n.reshape(-1, self.dy, 1))
+        return torch.linalg.solve(normal, rhs)[..., 0].reshape(*lead, self.dx)
 
     def _gru_cell(self, a: Tensor, h: Tensor) -> Tensor:
         g = self.gru
@@ -303,7 +381,13 @@ class KalmanNetModel(nn.Module):
         """Why this model's step cannot be exported to ONNX, or None: the system's f and h are probed
         once with torch's exporter (:func:`neural_estimator.models.onnx_step.unsupported_reason`;
         N-link's f solves its mass-matrix system with ``torch.linalg.solve``, which opset 17 lacks,
-        so the N-link hybrid is served by torch; the other four export)."""
+        so the N-link hybrid is served by torch; the other four export). The state form never
+        exports: its per-step Jacobian of h is a torch.func transform."""
+        if self.state_form:  # torch's exporter cannot trace torch.func's transforms
+            return (
+                "the state form's gain needs h's Jacobian at every step (torch.func.jacrev), "
+                "which ONNX export cannot trace"
+            )
         if "_onnx_blocker" not in self.__dict__:
             from neural_estimator.models.onnx_step import unsupported_reason
 

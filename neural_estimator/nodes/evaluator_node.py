@@ -440,6 +440,9 @@ class EvaluatorNode(ExitStatusNode):
         except (BagError, MetricsError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
             return 1
+        except Exception as exc:  # what the topics carried must not take the node down: the bag is written
+            self.get_logger().error(f"no metrics from {self.bag.path}: {type(exc).__name__}: {exc}")
+            return 1
         print(report.summary(), end="", flush=True)
         print(report.losses(expected=self.expected, dropped=self._dropped()), end="", flush=True)
         for line in self.identity.report():  # two publishers of one run: the table mixes them
@@ -479,6 +482,9 @@ class EvaluatorNode(ExitStatusNode):
             )
         except (BagError, SpecError, ValueError) as exc:
             self.get_logger().error(f"no metrics from {self.bag.path}: {exc}")
+            return 1
+        except Exception as exc:  # what the topics carried must not take the node down: the bag is written
+            self.get_logger().error(f"no metrics from {self.bag.path}: {type(exc).__name__}: {exc}")
             return 1
         from neural_estimator.metrics.labelled import scored_line
 

@@ -22,8 +22,12 @@ PoseWithCovarianceStamped when the state is named like a pose (x, y, yaw, ...), 
 with variance 1e6; the state vector; optional /tf); ``/diagnostics`` every ``diagnostics_period`` s
 (with each input's frequency and staleness, :mod:`neural_estimator.nodes.diagnostics`). A message
 missing a field the spec names is counted and logged
-(throttled), never fatal; a missing checkpoint, a checkpoint without a spec or an unknown method
-is one fatal line at start-up (exit status 1).
+(throttled), never fatal; a missing checkpoint, a checkpoint without a spec, an unknown method or a
+hybrid (``kalmannet``) whose spec names no model is one fatal line at start-up (exit status 1).
+
+A hybrid trained on a recording whose spec names the system's model (``model:``, docs/robot.md)
+is served as a network is: the card's scenario delegates f, h and the prior to that model
+(:class:`~neural_estimator.robot.DataScenario`), which the hybrid runs on each tick.
 """
 
 from __future__ import annotations
@@ -220,6 +224,7 @@ def _load(p: RobotEstimatorParams, read=None):
     :class:`~neural_estimator.serving.card.Checkpoint` already resolved); StartupError otherwise."""
     from pathlib import Path
 
+    from neural_estimator.methods import table
     from neural_estimator.methods.registry import EstimatorError, make_estimator, per_message_options
     from neural_estimator.serving.card import resolve_checkpoint
     from neural_estimator.robot import DataScenario, SpecError, load_spec
@@ -248,6 +253,13 @@ def _load(p: RobotEstimatorParams, read=None):
         scenario = DataScenario.from_description(desc)
         spec = load_spec(desc["spec"])
         method = str(card["method"])
+        if table.has(method, needs_model=True) and scenario.system is None:
+            # refused here, not by the model's build: a hybrid's step.onnx holds an f and h of its
+            # own, which a card naming no model would have it serve unchecked
+            raise StartupError(
+                f"checkpoint {p.checkpoint}: a {method} model runs the system's f and h, but its card's spec "
+                "names no model: retrain it on a recording whose spec names one (model: in the spec)"
+            )
         est = make_estimator(method, scenario, checkpoint=ckpt, device=p.device, **per_message_options(method, {}))
         torch = sys.modules.get("torch")  # absent when step.onnx serves the model without torch
         if p.threads > 0 and torch is not None:

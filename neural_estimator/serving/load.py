@@ -20,6 +20,7 @@ from neural_estimator.serving.card import Checkpoint, default_checkpoint, resolv
 from neural_estimator.core.options import OptionError, parse_bool, parse_value
 from neural_estimator.serving.onnx_runtime import WindowMismatch, load_onnx_estimator, onnx_beside
 from neural_estimator.scenarios import EVALUATION_CONSTANTS, Scenario
+from neural_estimator.scenarios.model import model_set_of
 
 SERVING_BACKENDS = ("auto", "torch", "onnxruntime")
 
@@ -140,7 +141,9 @@ def load_neural_estimator(
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
             ``auto`` (the per-message default of the estimator nodes and replay, see
             :func:`per_message_backend`): ``step.onnx`` without torch where the checkpoint has one
-            that serves the request, torch otherwise.
+            that serves the request, torch otherwise. A hybrid's graph holds the f and h it was
+            trained with: told another model (a model scenario, ``--model-set``) it is served by
+            torch under ``auto`` and refused under ``onnxruntime``.
         cov_scale: the reported covariance is ``cov_scale`` times the model's (see NeuralEstimator).
 
     Raises:
@@ -158,6 +161,9 @@ def load_neural_estimator(
     auto = backend == "auto"
     if auto:
         backend = per_message_backend(directory, card, device, context, compile_step)
+    onnx = backend == "onnxruntime" and onnx_beside(directory) is not None
+    if onnx and _told_another_model(m, card, scenario, auto):
+        backend = "torch"  # torch builds the hybrid around the told model's f and h
     if backend == "onnxruntime" and onnx_beside(directory) is not None:  # served without torch
         ctx, covariance, cov_scale = _onnx_options(m, card, device, context, covariance, cov_scale)
         try:
@@ -195,6 +201,25 @@ def load_neural_estimator(
         backend=backend,
         cov_scale=cov_scale,
     )
+
+
+def _told_another_model(method: str, card: dict[str, Any], scenario: Scenario, auto: bool) -> bool:
+    """Whether a model-based method (the hybrid) is asked to serve with another model than the one
+    its card was trained with (a ``--model-set``/``model_set`` other than its recipe's): its exported
+    step has the trained model's f and h in the graph, so it cannot answer for the told one. Asked
+    for that graph explicitly (not ``auto``): EstimatorError."""
+    if not table.has(method, needs_model=True):
+        return False
+    recipe = (card.get("training") or {}).get("recipe") or {}
+    trained = {k: str(v) for k, v in (recipe.get("model_set") or {}).items()}
+    if model_set_of(scenario) == trained:
+        return False
+    if not auto:
+        raise EstimatorError(
+            f"{method}: the step.onnx beside its card holds the f and h of the model it was trained with, not "
+            f"the model told now (model set {model_set_of(scenario)}): serve it with backend torch"
+        )
+    return True
 
 
 def _onnx_options(m: str, card: dict, device: str, context, covariance, cov_scale) -> tuple:

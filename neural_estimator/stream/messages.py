@@ -439,11 +439,43 @@ def encode_scenario(description: Mapping[str, Any], **run: Any) -> bytes:
 
 
 def decode_scenario(raw: bytes | memoryview) -> dict[str, Any]:
-    """The description dict (with ``"run"``) of a ``scenario`` message."""
+    """The description dict (with ``"run"``) of a ``scenario`` message, its shape checked.
+
+    Every reader sizes its streams from the name lists and indexes the angle lists, so a message
+    whose fields have other types (``{"scenario": 1, "state_names": 2}``) is refused here, as a
+    :class:`MessageError`, rather than failing wherever a field is first used."""
     obj = _decode_json(raw, "scenario")
     if "scenario" not in obj or "state_names" not in obj:
         raise MessageError("scenario message lacks 'scenario' / 'state_names': not a scenario description")
+    problem = _description_problem(obj)
+    if problem:
+        raise MessageError(f"scenario message: {problem}: not a scenario description")
     return obj
+
+
+def _description_problem(obj: Mapping[str, Any]) -> str:
+    """What is wrong with the fields of a scenario description ('' when nothing is)."""
+    if not isinstance(obj["scenario"], str) or not obj["scenario"]:
+        return f"'scenario' must be a non-empty string, got {str(obj['scenario'])[:40]!r}"
+    sizes = {}
+    for key in ("state_names", "obs_names", "control_names"):
+        if key == "obs_names" and key not in obj:
+            return "'obs_names' is missing"
+        names = obj.get(key, [])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            return f"{key!r} must be a list of strings"
+        sizes[key] = len(names)
+    if sizes["state_names"] == 0:
+        return "'state_names' is empty"
+    for key, size in (("angle_states", sizes["state_names"]), ("angle_obs", sizes["obs_names"])):
+        index = obj.get(key, [])
+        ok = isinstance(index, list) and all(type(i) is int and 0 <= i < size for i in index)
+        if not ok:
+            return f"{key!r} must be a list of indices below {size}"
+    for key in ("config", "run"):
+        if not isinstance(obj.get(key, {}), dict):
+            return f"{key!r} must be an object"
+    return ""
 
 
 def encode_run_status(status: str, **info: Any) -> bytes:

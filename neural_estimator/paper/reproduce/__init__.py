@@ -8,7 +8,9 @@ Modules, one job each:
 * :mod:`.engine` -- runs the jobs as Ray tasks with one progress bar, reusing cached results and
   reporting failed jobs while the others go on;
 * :mod:`.report` -- tables beside the paper's numbers (:mod:`neural_estimator.paper`), PNG figures
-  and the markdown report.
+  and the markdown report;
+* :mod:`.mismatch` -- the model-mismatch experiment beyond the paper (one job per sweep, its cache,
+  its report section).
 """
 
 from neural_estimator.paper.reproduce.scales import SCALES, Scale, get_scale

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from neural_estimator.data.protocol import default_cache_dir
+from neural_estimator.paper.reproduce.jobs import EXPERIMENTS
 from neural_estimator.paper.reproduce.run import reproduce
 from neural_estimator.paper.reproduce.settings import ReproduceError, Settings
 from neural_estimator.paper.reproduce.scales import get_scale
@@ -35,6 +36,9 @@ def run_from_args(args, usage_error: type[Exception]) -> int:
             num_cpus=args.num_cpus,
             plugins=tuple(str(Path(p).resolve()) for p in (args.plugin or ())),
             init=args.init,
+            experiments=tuple(
+                e for e in EXPERIMENTS if e in _names(args.experiments, EXPERIMENTS, _known_experiment, "--experiments")
+            ),
         )
         summary = reproduce(settings, args.out, resume=args.resume, progress=not args.quiet)
     except ReproduceError as exc:
@@ -51,6 +55,12 @@ def _cuda() -> bool:
     import torch
 
     return bool(torch.cuda.is_available())
+
+
+def _known_experiment(name: str) -> str:
+    if name not in EXPERIMENTS:
+        raise ReproduceError(f"--experiments: unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)}")
+    return name
 
 
 def _known_scenario(name: str) -> str:

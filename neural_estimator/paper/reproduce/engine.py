@@ -89,7 +89,8 @@ def run_jobs(
 
     ``plugins``: scenario plugin files each task loads before its job (the same paths on every node).
     Train jobs are submitted first, so that every evaluation of a trained model finds the training
-    it waits for, whatever the order of ``jobs``.
+    it waits for, whatever the order of ``jobs``; a job with ``after`` set waits for that job too
+    (submitted before it: ``plan_jobs`` orders them so).
 
     Joins the Ray instance already initialised in this process if there is one (and leaves it
     running); otherwise starts one (or joins ``address``) and shuts it down at the end when
@@ -103,16 +104,15 @@ def run_jobs(
     local_cpus = (num_cpus or default_num_cpus()) if not address else 1
     task = ray.remote(max_retries=0)(run_job)
     refs = {}
-    train_refs = {}  # train job -> its ref: an evaluation of the trained model waits for it
+    submitted = {}  # job -> its ref: an evaluation of a trained model waits for its training, a job for its `after`
     order = sorted(range(len(jobs)), key=lambda i: jobs[i].kind != "train")  # stable: trainings first
     for i in order:
         job = jobs[i]
         cpus = min(local_cpus, total_cpus) if job.kind == "runtime" else 1
-        after = [train_refs[job.train_job]] if job.train_job is not None and job.train_job in train_refs else []
+        after = [submitted[d] for d in (job.train_job, job.after) if d is not None and d in submitted]
         ref = task.options(num_cpus=cpus).remote(job, str(cache_dir), 1, tuple(plugins), *after)
         refs[ref] = i
-        if job.kind == "train":
-            train_refs[job] = ref
+        submitted[job] = ref
     outcome = Outcome()
     bar = _bar(len(refs), progress)
     pending = list(refs)

@@ -1,6 +1,6 @@
 """One job of ``reproduce``: what it is, its cache key, and the code a Ray task runs for it.
 
-Three kinds:
+Four kinds:
 
 * ``evaluate``: one method on one evaluation set of one scenario (at one observation-noise scale);
   its result is the run's :class:`~neural_estimator.metrics.MetricReport`, stored by
@@ -14,7 +14,10 @@ Three kinds:
   JSON under ``runtime/``;
 * ``train``: one instance of one architecture on one scenario at one data-to-parameter ratio
   (:func:`neural_estimator.training.loop.train`), written under ``models/`` in a directory
-  named by the recipe's hash; an ``evaluate`` job with ``train_job`` set evaluates that model.
+  named by the recipe's hash; an ``evaluate`` job with ``train_job`` set evaluates that model;
+* ``mismatch``: one model-mismatch sweep (one constant, or Q or R, of one scenario over a grid of
+  multipliers; :func:`neural_estimator.evaluation.mismatch.mismatch`, the ``mismatch`` verb's code),
+  stored as JSON under ``mismatch/`` (:mod:`.mismatch`, which runs it).
 
 Jobs are plain data (they travel to Ray workers); :func:`run_job` has no Ray in it, so it is tested
 and usable without a cluster.
@@ -32,7 +35,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-JOB_KINDS = ("evaluate", "runtime", "train")
+JOB_KINDS = ("evaluate", "runtime", "train", "mismatch")
+# the experiments (Job.experiment: the report section a job feeds); a run does the ones it is given (--experiments)
+EXPERIMENTS = ("accuracy", "noise", "data_ratio", "runtime", "mismatch")
 RUNTIME_MODES = ("step", "sequence")  # runtime: one step per call (live) or one whole trajectory per call (run)
 SEQUENCE_REPEATS = 5  # sequence mode: at least this many timed calls of run(); the median is reported
 SEQUENCE_MIN_SECONDS = 1.0  # ... and more, up to SEQUENCE_MAX_REPEATS, until the calls took this long
@@ -56,16 +61,25 @@ class Job:
     steps: int = 0  # runtime: timed steps
     warmup: int = 0  # runtime: untimed steps first
     device: str = "cpu"
-    experiment: str = "accuracy"  # accuracy | noise | runtime | data_ratio: which part of the report it feeds
+    experiment: str = "accuracy"  # one of EXPERIMENTS: which part of the report it feeds
     data_ratio: float = 0.0  # train: the data-to-parameter ratio
     instance: int = 0  # train: the instance (its init_seed)
     train: tuple[tuple[str, Any], ...] = ()  # train: TrainConfig fields changed from the paper's recipe
     train_job: "Job | None" = None  # evaluate: evaluate the model this train job writes (None: the shipped one)
     init: str = "prior"  # evaluate: how the classical filters start, "prior", "truth" or "observation" (INIT_MODES)
     mode: str = "step"  # runtime: "step" (one step per call, as live) or "sequence" (run on a whole trajectory)
+    parameter: str = ""  # mismatch: the constant the model gets wrong, or Q / R (method: "", the sweep's own)
+    values: tuple[float, ...] = ()  # mismatch: the multipliers of its true value (1.0: the exact model)
+    sets: int = 0  # mismatch: evaluation sets, ``trajectories`` each
+    # a job whose cached runs this one reuses: it starts once that one finished (mismatch: the scenario's first
+    # sweep, whose exact-model and network runs the other two read back); not part of any result's key
+    after: "Job | None" = None
 
     @property
     def label(self) -> str:
+        if self.kind == "mismatch":
+            grid = ",".join(f"{v:g}" for v in self.values)
+            return f"mismatch {self.scenario} {self.parameter} x{grid} ({self.sets} sets x {self.trajectories})"
         extra = f" noise x{self.noise_scale:g}" if self.noise_scale != 1.0 else ""
         what = {
             "evaluate": f"set {self.set_index}",
@@ -82,6 +96,9 @@ class Job:
             del out["init"]
         if out["mode"] == "step":  # likewise
             del out["mode"]
+        for name, default in (("parameter", ""), ("values", ()), ("sets", 0), ("after", None)):  # likewise
+            if out[name] == default:
+                del out[name]
         return out
 
 
@@ -171,8 +188,8 @@ def run_job(
 ) -> dict[str, Any]:
     """Do one job (or read its cached result). Returns ``{"job", "cached", "seconds", "result"}``:
     for ``evaluate`` the result is the run's report as JSON (:func:`neural_estimator.metrics.to_json`),
-    for ``runtime`` ``{"it_per_s", "steps", "seconds"}``; ``node``: the Ray node that ran it (None
-    outside Ray).
+    for ``runtime`` ``{"it_per_s", "steps", "seconds"}``, for ``mismatch`` the sweep's JSON; ``node``:
+    the Ray node that ran it (None outside Ray).
 
     ``threads`` bounds the job's own threads (classical filters' pool, torch) so that parallel jobs
     do not oversubscribe the cores they were given. ``after``: results of the jobs this one waits
@@ -194,6 +211,10 @@ def run_job(
         result, cached = _evaluate(job, cache_dir, threads)
     elif job.kind == "train":
         result, cached = _train(job, cache_dir)
+    elif job.kind == "mismatch":
+        from neural_estimator.paper.reproduce.mismatch import run_mismatch
+
+        result, cached = run_mismatch(job, cache_dir, threads)
     else:
         result, cached = _runtime(job, cache_dir, threads)
     seconds = time.perf_counter() - t0

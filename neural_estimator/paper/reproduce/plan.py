@@ -1,10 +1,14 @@
-"""The paper's experiments at one scale, expanded into independent jobs."""
+"""The paper's experiments at one scale, and the model-mismatch experiment beyond it, expanded into
+independent jobs."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
-from neural_estimator.paper.reproduce.jobs import RUNTIME_MODES, Job
+from neural_estimator.evaluation.mismatch import EXPERIMENT
+from neural_estimator.paper.reproduce.jobs import EXPERIMENTS, RUNTIME_MODES, Job
+from neural_estimator.paper.reproduce.mismatch import sweep_values
 from neural_estimator.paper.reproduce.scales import Scale
 
 
@@ -35,12 +39,20 @@ MAIN_RATIO = 20.0  # the paper's main tables: models trained at about 20:1
 
 
 def plan_jobs(
-    scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool = False, init: str = "prior"
+    scale: Scale,
+    scenarios: Sequence[str],
+    methods: Sequence[str],
+    gpu: bool = False,
+    init: str = "prior",
+    experiments: Sequence[str] = EXPERIMENTS,
 ) -> list[Job]:
-    """Accuracy (every method on every evaluation set), the noise sweep (same, per noise scale;
-    models trained at the nominal noise), data efficiency (train every neural architecture at every
-    ratio, then evaluate each trained instance on every set), runtime (batch-1 throughput on CPU, and on GPU for
-    the neural methods when ``gpu``, in both modes: step by step and whole sequences per call).
+    """The jobs of ``experiments`` (default all of :data:`~.jobs.EXPERIMENTS`): accuracy (every
+    method on every evaluation set), the noise sweep (same, per noise scale; models trained at the
+    nominal noise; its nominal point is the accuracy run's where the sizes agree and accuracy runs too),
+    data efficiency (train every neural architecture at every ratio, then evaluate each trained
+    instance on every set), runtime (batch-1 throughput on CPU, and on GPU for the neural methods
+    when ``gpu``, in both modes: step by step and whole sequences per call), model mismatch (one job
+    per declared sweep of each scenario, :mod:`.mismatch`; its methods are its own, not ``methods``).
 
     With ``scale.main_from_training`` (the paper scale) the accuracy and noise experiments evaluate
     each neural architecture's ``train_instances`` models trained at 20:1 (the same trainings as the
@@ -51,15 +63,20 @@ def plan_jobs(
     """
     from neural_estimator.methods import table
 
-    jobs = _accuracy_jobs(scale, scenarios, methods, init, table.names(trainable=True))
-    jobs += _noise_jobs(scale, scenarios, methods, init, table.names(trainable=True))
+    run = set(experiments)
+    neural = table.names(trainable=True)
+    jobs = _accuracy_jobs(scale, scenarios, methods, init, neural) if "accuracy" in run else []
+    if "noise" in run:
+        jobs += _noise_jobs(scale, scenarios, methods, init, neural, reuse_accuracy="accuracy" in run)
     trainings: dict[Job, None] = {}  # every train job once, in order
     for job in jobs:
         if job.train_job is not None:
             trainings.setdefault(job.train_job)
-    jobs += _ratio_jobs(scale, scenarios, [m for m in methods if table.has(m, trainable=True)], trainings)
+    if "data_ratio" in run:
+        jobs += _ratio_jobs(scale, scenarios, [m for m in methods if table.has(m, trainable=True)], trainings)
     jobs = list(trainings) + jobs  # trainings first (the engine submits them first anyway)
-    return jobs + _runtime_jobs(scale, scenarios, methods, gpu, table.names(trainable=True))
+    jobs += mismatch_jobs(scale, scenarios) if "mismatch" in run else []
+    return jobs + (_runtime_jobs(scale, scenarios, methods, gpu, neural) if "runtime" in run else [])
 
 
 def _models(scale: Scale, s: str, m: str, neural_methods) -> list[Job | None]:
@@ -94,13 +111,16 @@ def _accuracy_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str
     return jobs
 
 
-def _noise_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], init: str, neural_methods):
-    """The accuracy evaluation per noise scale (the nominal one left out where it is the accuracy run)."""
+def _noise_jobs(
+    scale: Scale, scenarios: Sequence[str], methods: Sequence[str], init: str, neural_methods, reuse_accuracy=True
+):
+    """The accuracy evaluation per noise scale (the nominal one left out where it is the accuracy run,
+    when ``reuse_accuracy``: the accuracy experiment runs too)."""
     jobs: list[Job] = []
     for s in scenarios:
         for m in methods:
             for ns in scale.noise_scales:
-                if ns == 1.0 and noise_reuses_accuracy(scale):
+                if ns == 1.0 and reuse_accuracy and noise_reuses_accuracy(scale):
                     continue
                 for tj in _models(scale, s, m, neural_methods):
                     for j in range(scale.noise_sets):
@@ -150,6 +170,41 @@ def _ratio_jobs(scale: Scale, scenarios: Sequence[str], neural: Sequence[str], t
                             )
                         )
     return jobs
+
+
+def mismatch_jobs(scale: Scale, scenarios: Sequence[str]) -> list[Job]:
+    """One job per declared sweep of ``scenarios``, parameter-major (every scenario's first sweep,
+    then every second one, ...). The sweeps of one scenario share its exact-model and network runs
+    through the result cache: its later sweeps wait for its first (``after``), which computes them,
+    and read them back instead of computing the same runs at the same time."""
+    per_scenario = [
+        _chain(
+            [
+                Job(
+                    "mismatch",
+                    s,
+                    "",
+                    seed=scale.seed,
+                    trajectories=scale.mismatch_trajectories,
+                    horizon=scale.horizon,
+                    experiment="mismatch",
+                    parameter=p,
+                    values=sweep_values(scale, p),
+                    sets=scale.mismatch_sets,
+                )
+                for p in EXPERIMENT[s]
+            ]
+        )
+        for s in scenarios
+        if s in EXPERIMENT
+    ]
+    depth = max((len(sweeps) for sweeps in per_scenario), default=0)
+    return [sweeps[i] for i in range(depth) for sweeps in per_scenario if i < len(sweeps)]
+
+
+def _chain(sweeps: list[Job]) -> list[Job]:
+    """The first sweep, then the others each waiting for it."""
+    return sweeps[:1] + [replace(j, after=sweeps[0]) for j in sweeps[1:]]
 
 
 def _runtime_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], gpu: bool, neural_methods):

@@ -1,5 +1,7 @@
-"""The reproduce report: report.md with every table beside the paper's (:mod:`~neural_estimator.paper.reproduce.tables`)
-and the figures, written from a run's jobs and their outcome."""
+"""The reproduce report: report.md with every table beside the paper's
+(:mod:`~neural_estimator.paper.reproduce.tables`), the model-mismatch section
+(:mod:`~neural_estimator.paper.reproduce.mismatch`) and the figures, written from a run's jobs and
+their outcome; a section for each experiment the run did."""
 
 from __future__ import annotations
 
@@ -71,15 +73,21 @@ def write_report(
     wall: float,
     before: tuple[float, int] = (0.0, 0),
 ) -> Path:
-    """report.md with every table beside the paper's and the figures (figures/*.png); ``before``:
-    (seconds, invocations) of the earlier invocations of a resumed run, added to the wall time."""
+    """report.md with every table beside the paper's and the figures (figures/*.png), then the
+    model-mismatch section (its sweeps' files in mismatch/), each for the experiments the run did;
+    ``before``: (seconds, invocations) of the earlier invocations of a resumed run, added to the wall time."""
+    from neural_estimator.paper.reproduce.mismatch import mismatch_section
+
     r = _gather(settings, jobs, outcome)
     figs = out / "figures"
+    ran = set(settings.experiments)
     L = _heading(settings, jobs, outcome, wall, before)
-    L += _accuracy(settings, r)
-    L += _rmse_and_noise_figures(settings, r, figs)
-    L += _runtime(settings, r)
-    L += _data_efficiency(settings, jobs, r, figs)
+    L += _accuracy(settings, r) + _rmse_over_time(settings, r, figs) if "accuracy" in ran else []
+    L += _noise_figures(settings, r, figs) if "noise" in ran else []
+    L += _runtime(settings, r) if "runtime" in ran else []
+    L += _data_efficiency(settings, jobs, r, figs) if "data_ratio" in ran else []
+    if "mismatch" in ran:
+        L += mismatch_section(settings.scale, settings.scenarios, jobs, outcome, out)
     path = out / "report.md"
     path.write_text("\n".join(L))
     return path
@@ -240,12 +248,12 @@ def _accuracy(settings: Settings, r: _Results) -> list[str]:
     return L + T.consistency_table(summ, scen, meth, {s: make_scenario(s).dx for s in scen}) + [""]
 
 
-def _rmse_and_noise_figures(settings: Settings, r: _Results, figs: Path) -> list[str]:
-    """The RMSE-over-time figures and the observation-noise figures."""
+def _rmse_over_time(settings: Settings, r: _Results, figs: Path) -> list[str]:
+    """The RMSE-over-time figures (of the accuracy runs)."""
     from neural_estimator.metrics.plots import plot_rmse_over_time
     from neural_estimator.scenarios import make_scenario
 
-    scen, meth, sc = settings.scenarios, settings.methods, settings.scale
+    scen, meth = settings.scenarios, settings.methods
     L = ["## RMSE over time (paper: Appendix figures rmse_time_*)", ""]
     for s in scen:
         curves = {m: [_floats(x["rmse_t"]) for x in r.acc[s][m] if x.get("rmse_t")] for m in meth}
@@ -256,7 +264,13 @@ def _rmse_and_noise_figures(settings: Settings, r: _Results, figs: Path) -> list
                 curves, figs / f"rmse_over_time_{s}.png", title=s, dt=make_scenario(s).dt, first_step=first
             )
             L += [f"![RMSE over time, {s}](figures/{p.name})", ""]
-    L += [
+    return L
+
+
+def _noise_figures(settings: Settings, r: _Results, figs: Path) -> list[str]:
+    """The observation-noise figures."""
+    scen, sc = settings.scenarios, settings.scale
+    L = [
         "## Robustness to observation noise (paper: Appendix figures noise_*)",
         "",
         f"RMSE against the observation-noise scale {list(sc.noise_scales)} (median over sets, IQR shaded); neural "

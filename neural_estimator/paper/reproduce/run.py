@@ -34,7 +34,8 @@ def check_out_dir(out: Path, settings: Settings, resume: bool) -> None:
         raise ReproduceError(f"{state} is damaged; remove it or choose another --out") from None
     if before != json.loads(json.dumps(settings.to_json())):  # compared as stored (tuples read back as lists)
         raise ReproduceError(
-            f"--resume: {out} holds a run with other settings (scale, scenarios, methods or init); choose another --out"
+            f"--resume: {out} holds a run with other settings (scale, scenarios, methods, init or experiments); "
+            "choose another --out"
         )
 
 
@@ -54,7 +55,14 @@ def reproduce(settings: Settings, out: str | Path, *, resume: bool = False, prog
     """Run every experiment of the scale and write ``out``/report.md, figures/*.png and reproduce.json."""
     out = Path(out)
     check_out_dir(out, settings, resume)
-    jobs = plan_jobs(settings.scale, settings.scenarios, settings.methods, gpu=settings.gpu, init=settings.init)
+    jobs = plan_jobs(
+        settings.scale,
+        settings.scenarios,
+        settings.methods,
+        gpu=settings.gpu,
+        init=settings.init,
+        experiments=settings.experiments,
+    )
     print(describe_settings(settings, len(jobs)), file=sys.stderr, flush=True)
     out.mkdir(parents=True, exist_ok=True)
     before_s, before_n = previous_wall(out) if resume else (0.0, 0)

@@ -4,13 +4,17 @@
 8,000 trajectories at the scenario's horizon; batch-1 throughput). ``small`` fits one 2-core
 machine with the shipped models (one instance each) and reduced sets. ``smoke`` runs every
 experiment on tiny sizes, for the test suite: its numbers say the pipeline works, nothing about
-the methods.
+the methods. The model-mismatch experiment (beyond the paper) has its own sizes: ``small`` is
+the size of the committed ``docs/results/mismatch`` (2 sets x 100 trajectories, the sweep's
+default grids), ``paper`` the paper's evaluation size.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+from neural_estimator.evaluation.mismatch import DEFAULT_VALUES, NOISE_VALUES
 
 
 class ScaleError(ValueError):
@@ -38,6 +42,12 @@ class Scale:
     main_from_training: bool = False  # accuracy and noise: neural rows from the train_instances trained at 20:1
     # (the paper's median over instances x sets) instead of the shipped models
     seed: int = 0  # of the evaluation sets' streams and the filters' draws
+    # model mismatch (not the paper's: :mod:`neural_estimator.evaluation.mismatch`): per sweep, sets x
+    # trajectories at ``horizon``, the grid of multipliers of a physical constant and of Q and R
+    mismatch_trajectories: int = 100
+    mismatch_sets: int = 2
+    mismatch_values: tuple[float, ...] = DEFAULT_VALUES
+    mismatch_noise_values: tuple[float, ...] = NOISE_VALUES
     notes: tuple[str, ...] = field(default_factory=tuple)
 
     def settings(self) -> dict[str, Any]:
@@ -62,6 +72,9 @@ SCALES: dict[str, Scale] = {
         runtime_steps=20,
         runtime_warmup=3,
         train_trajectories_at_20=8,
+        mismatch_trajectories=4,
+        mismatch_values=(0.8, 1.0, 1.25),
+        mismatch_noise_values=(0.3, 1.0, 3.0),
         train_overrides=(
             ("val_trajectories", 4),
             ("train_length", 20),
@@ -76,6 +89,7 @@ SCALES: dict[str, Scale] = {
         notes=(
             "tiny sizes: checks that every experiment runs, not what the methods achieve",
             "data efficiency: one epoch of 8 windows per model",
+            "model mismatch: three values per sweep",
         ),
     ),
     "small": Scale(
@@ -112,11 +126,14 @@ SCALES: dict[str, Scale] = {
         runtime_warmup=50,
         train_instances=15,
         main_from_training=True,
+        mismatch_trajectories=8000,
+        mismatch_sets=3,
         notes=(
             "the paper's evaluation sizes; its noise levels are not published: ours are 0.5x to 8x",
             "15 instances per (scenario, architecture, ratio) trained with the paper's recipe; the accuracy "
             "and noise experiments evaluate the 15 trained at 20:1 on every set (median over instances x sets), "
             "runtime times the shipped models",
+            "model mismatch: the shipped models on 3 sets x 8,000 trajectories per sweep",
         ),
     ),
 }

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from neural_estimator.paper.reproduce.jobs import EXPERIMENTS
 from neural_estimator.paper.reproduce.scales import Scale
 
 INIT_WORDS = {
@@ -19,7 +20,7 @@ INIT_WORDS = {
 
 
 class ReproduceError(ValueError):
-    """Bad arguments to reproduce (unknown scenario or method, an --out holding another run)."""
+    """Bad arguments to reproduce (unknown scenario, method or experiment, an --out holding another run)."""
 
 
 @dataclass
@@ -33,11 +34,14 @@ class Settings:
     num_cpus: int | None
     plugins: tuple[str, ...] = ()  # absolute paths of --plugin files: every Ray worker loads them before its job
     init: str = "prior"  # how the classical filters start in the accuracy and noise experiments (INIT_WORDS)
+    experiments: tuple[str, ...] = EXPERIMENTS  # the experiments run (--experiments), in EXPERIMENTS' order
 
     def to_json(self) -> dict[str, Any]:
         out = {"scale": self.scale.settings(), "scenarios": self.scenarios, "methods": self.methods, "gpu": self.gpu}
         if self.init != "prior":  # the default is left out, so runs from before the option still resume
             out["init"] = self.init
+        if tuple(self.experiments) != EXPERIMENTS:  # likewise: every experiment, the default, is left out
+            out["experiments"] = list(self.experiments)
         if self.plugins:  # a resumed run must use the same plugin code: its digest is part of the settings
             out["plugins"] = {p: _file_digest(p) for p in self.plugins}
         return out
@@ -59,6 +63,7 @@ def describe_settings(settings: Settings, n_jobs: int) -> str:
         f"({settings.address or 'local, ' + str(settings.num_cpus or 'default') + ' CPUs'})",
         f"  scenarios: {', '.join(settings.scenarios)}",
         f"  methods: {', '.join(settings.methods)}",
+        f"  experiments: {', '.join(settings.experiments)}",
         f"  init: {settings.init} ({INIT_WORDS[settings.init]})",
     ]
     for k, v in sc.settings().items():
