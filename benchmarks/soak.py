@@ -160,6 +160,7 @@ def losses(out: Path, methods: list[str], total: int, horizon: int) -> dict:
             "latency_p99_ms": s.get("latency_p99_ms"),
             "lost_upstream": s.get("lost_upstream"),
             "heap_growth": s.get("heap_growth"),  # --tracemalloc only
+            "heap_trim": s.get("heap_trim"),  # the periodic malloc_trim's calls and cost (nodes/heap_trace.py)
         }
     a, b = rec["publish_span_ns"]
     obs = next((v for k, v in streams.items() if k.endswith("/observation")), None)
@@ -431,6 +432,14 @@ def report(r: dict) -> str:
             f"{e['out_of_order']} | {e['unconfirmed']} | {e['gap_steps']} | {e['method_failures']} | "
             f"{e['quarantined']} | {e['restarts']} | {_ms(e['latency_p50_ms'])} | {_ms(e['latency_p99_ms'])} |"
         )
+    trims = {m: (e or {}).get("heap_trim") for m, e in r["estimators"].items()}
+    if any(trims.values()):
+        lines += ["", "| estimator | heap trims (period s) | released memory | mean ms | max ms |"]
+        lines += ["|---|---|---|---|---|"]
+        for m, t in trims.items():
+            if t:
+                cost = f"{_ms(t['mean_ms'])} | {_ms(t['max_ms'])}"
+                lines.append(f"| {m} | {t['calls']} ({t['period_s']:g}) | {t['released']} | {cost} |")
     for m, e in r["estimators"].items():
         heap = (e or {}).get("heap_growth")
         if heap:

@@ -207,6 +207,57 @@ def test_writer_reader_round_trip(tmp_path):
     assert got == written  # written in time order, read back in time order, bytes unchanged
 
 
+def _chunky_bag(path, n):
+    """n messages on 8 topics (the evaluator's streams) in chunks of about 2 KB: n / 10 chunks."""
+    with BagWriter(path, chunk_size=2048) as bag:
+        for c in range(8):
+            bag.add_topic(f"/t{c}", MSG.JOINT_STATE, qos=[STREAM_QOS])
+        for k in range(n):
+            bag.write(f"/t{k % 8}", 100 + k, MSG.encode_vector(100 + k, "s", 0, k, ["a", "b"], np.ones(2)))
+            if k == n // 10:
+                yield bag
+        yield bag
+
+
+def test_a_long_recording_keeps_its_chunk_indexes_on_disk_not_in_memory(tmp_path, monkeypatch):
+    # mcap's writer holds one ChunkIndex object (about 1 KB with 8 channels) per chunk until it
+    # writes the summary at close: the evaluator's memory grew with the recording's length
+    import tracemalloc
+
+    from mcap.reader import make_reader
+
+    from neural_estimator.bags import writer as writer_module
+
+    n = 40_000
+    tracemalloc.start()
+    try:
+        (tmp_path / "spilled").mkdir()
+        chunky = _chunky_bag(tmp_path / "spilled" / "run.mcap", n)
+        bag = next(chunky)  # a tenth of the way: every per-topic structure exists
+        early, chunks_early = tracemalloc.get_traced_memory()[0], bag._spill.count
+        next(chunky)  # all written, not yet closed
+        late, chunks_late = tracemalloc.get_traced_memory()[0], bag._spill.count
+    finally:
+        tracemalloc.stop()
+    list(chunky)  # closed
+    per_chunk = (late - early) / (chunks_late - chunks_early)
+    assert chunks_late - chunks_early > 2000
+    assert per_chunk < 150, per_chunk  # bytes a chunk (the writer's own list: 670 here, 1,000 at 8 channels a chunk)
+
+    # the same bag with the writer's own list: byte for byte the same file
+    monkeypatch.setattr(writer_module, "_spill_chunk_indexes", lambda writer, directory: None)
+    (tmp_path / "listed").mkdir()
+    list(_chunky_bag(tmp_path / "listed" / "run.mcap", n))  # the same name: the metadata holds it
+    spilled, listed = (tmp_path / "spilled" / "run.mcap").read_bytes(), (tmp_path / "listed" / "run.mcap").read_bytes()
+    assert spilled == listed
+    with open(tmp_path / "spilled" / "run.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert len(summary.chunk_indexes) == summary.statistics.chunk_count == chunks_late + 1
+        assert [m.log_time for _, _, m in reader.iter_messages(topics=["/t3"])] == list(range(103, 100 + n, 8))
+    assert [p.name for p in (tmp_path / "spilled").iterdir()] == ["run.mcap"]  # the spill file was unlinked
+
+
 def test_reader_orders_by_log_time(tmp_path):
     path = tmp_path / "shuffled.mcap"
     times = np.random.default_rng(1).permutation(200)

@@ -66,6 +66,29 @@ def test_ring_keeps_the_newest_in_order():
     assert r.since(0).tolist() == [3, 4, 5, 6, 7]
 
 
+def _rss_anon_mib() -> float:
+    for line in open("/proc/self/status"):
+        if line.startswith("RssAnon:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def test_the_ring_is_resident_from_the_start_so_filling_it_does_not_grow_the_process():
+    # a calloc'ed (np.zeros) ring has its pages mapped only when first written: the node's RSS
+    # then grew 8 bytes per sample (2 rings: 16 bytes a message) until the rings wrapped, 3 MiB
+    # over the first 400 s at 500 Hz, which a soak reads as a leak. 5,000,000 samples (38 MiB):
+    # above glibc's largest mmap threshold (32 MiB), so the ring is fresh pages whatever this
+    # process freed before (a ring carved from freed, still resident heap would show nothing)
+    from neural_estimator.nodes.estimator_stats import LatencyRing
+
+    made = _rss_anon_mib()
+    r = LatencyRing(5_000_000)
+    filled = _rss_anon_mib()
+    assert filled - made > 30  # resident when made (38 MiB; a calloc'ed ring: about 0)
+    r.extend(1e-3 for _ in range(400_000))  # 3 MiB of it written
+    assert _rss_anon_mib() - filled < 1.5  # maps nothing more (a calloc'ed ring: +3.05 MiB)
+
+
 def test_short_soak_of_the_stats_path_keeps_memory_fixed():
     """250,000 estimates through the node's stats path (record + a diagnostics window every 500, as
     at 500 Hz with a 1 s period): no exception, the latency store never grows, counts exact."""

@@ -343,3 +343,33 @@ def test_a_busy_estimator_publishes_its_diagnostics_from_the_message_path():
     node._last_diagnostics -= 0.6
     EstimatorNode._on_diagnostics_timer(node)  # an on-time timer publishes as before
     assert len(published) == 2
+
+
+def test_a_busy_estimator_trims_its_heap_from_the_message_path():
+    # the heap trim's timer starves like the diagnostics timer: a GRU node behind the stream for
+    # 30 minutes never ran it. Overdue by half a period, the observation callback trims.
+    import types
+
+    from neural_estimator.nodes.estimator_node import EstimatorNode
+    from neural_estimator.nodes.estimator_stats import EstimatorStats
+    from neural_estimator.nodes.heap_trace import HeapTrim
+
+    trim = HeapTrim(10.0)
+    node = types.SimpleNamespace(
+        p=types.SimpleNamespace(drain=False, max_delay=0.0, diagnostics_period=1.0, queue_depth=10),
+        sub_obs=None,
+        stats=EstimatorStats(),
+        _on_observation=lambda raw, info: None,
+        _last_diagnostics=time.monotonic(),
+        _on_diagnostics=lambda: None,
+        heap_trim=trim,
+    )
+    EstimatorNode._on_observations(node, b"obs", 1)
+    assert trim.calls == 0  # trimmed less than 1.5 periods ago: the timer's turn
+    trim.last -= 16.0  # 1.6 periods without a trim
+    EstimatorNode._on_observations(node, b"obs", 1)
+    assert trim.calls == (1 if trim.available else 0)
+    EstimatorNode._on_observations(node, b"obs", 1)
+    assert trim.calls == (1 if trim.available else 0)  # just trimmed: not again
+    del node.heap_trim  # started with NEURAL_ESTIMATOR_HEAP_TRIM=0: no trim, no error
+    EstimatorNode._on_observations(node, b"obs", 1)

@@ -54,3 +54,33 @@ def test_the_report_prints_the_slope_per_node(soak):
     text = soak.report(r)
     assert "| estimator_ekf | 200.0 | 200.1 | 200.2 | 0.1 | 1.0 | 0.0003 (12) |" in text
     assert "| evaluator | - | - | - | - | - | no sample after the warm-up |" in text
+
+
+def test_the_report_prints_what_the_heap_trims_cost(soak):
+    base = {k: 0 for k in ("estimates", "not_estimated", "bad", "oversize", "duplicates", "out_of_order")}
+    base.update({k: 0 for k in ("unconfirmed", "gap_steps", "method_failures", "quarantined", "restarts")})
+    trim = {"period_s": 10.0, "calls": 24, "released": 23, "mean_ms": 2.087, "max_ms": 7.984}
+    r = {
+        "command": "benchmarks/soak.py --minutes 4",
+        "scenario": "bearings",
+        "methods": ["ekf", "ukf"],
+        "observations": 100,
+        "rate_hz": 500.0,
+        "streaming_s": 240.0,
+        "run_s": 250.0,
+        "simulator": "ok",
+        "load1": {"min": 1.0, "mean": 1.0, "max": 1.0},
+        "cores": 2,
+        "returncodes": {},
+        "warmup_s": 50.0,
+        "memory": {},
+        "estimators": {
+            "ekf": {**base, "latency_p50_ms": None, "latency_p99_ms": None, "heap_trim": trim},
+            "ukf": {**base, "latency_p50_ms": None, "latency_p99_ms": None, "heap_trim": None},  # trims off
+        },
+        "streams": {},
+        "diagnostics": {},
+    }
+    text = soak.report(r)
+    assert "| ekf | 24 (10) | 23 | 2.087 | 7.984 |" in text
+    assert "| ukf | " not in text.split("heap trims")[1]  # no row for a node that did not trim

@@ -21,6 +21,7 @@ from typing import Any, TypeVar
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -28,6 +29,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProf
 
 from neural_estimator.bags.writer import Qos
 from neural_estimator.core.interfaces import InterfaceError, check_message_type, is_message_class
+from neural_estimator.nodes.heap_trace import HeapTrim, heap_trim_period, pin_malloc_thresholds
 from neural_estimator.nodes.realtime import RealtimeError, apply_realtime_priority, requested_priority
 from neural_estimator.core.options import OptionError, parse_value
 
@@ -337,6 +339,9 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         if bad_priority:
             raise StartupError(bad_priority)
         executor_choice()
+        trim_period = checked_heap_trim_period()
+        if trim_period > 0:  # before the node's build: its large temporaries are then unmapped when freed
+            pin_malloc_thresholds()
         node = factory()
     except StartupError as exc:
         rclpy.logging.get_logger(name).fatal(str(exc))
@@ -356,6 +361,7 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         if priority:
             (node.get_logger().info if applied else node.get_logger().warning)(line)
         settle_heap()
+        start_heap_trim(node, trim_period)
         spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -401,9 +407,29 @@ def settle_heap() -> None:
 
 def trim_heap() -> None:
     """Give freed heap memory back to the system (glibc), so one huge message does not stay resident."""
-    try:
-        import ctypes
+    _TRIM()
 
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
+
+_TRIM = HeapTrim()
+
+
+def checked_heap_trim_period() -> float:
+    """``NEURAL_ESTIMATOR_HEAP_TRIM`` (nodes/heap_trace.py); a StartupError for a bad value."""
+    try:
+        return heap_trim_period()
+    except ValueError as exc:
+        raise StartupError(str(exc)) from None
+
+
+def start_heap_trim(node: Node, period: float) -> HeapTrim | None:
+    """A steady-clock timer on ``node`` that trims the process's heap every ``period`` s
+    (:class:`~neural_estimator.nodes.heap_trace.HeapTrim`: without it glibc kept the memory a node
+    freed resident, 16 MiB of an EKF node's RSS after a drained backlog); kept as ``node.heap_trim``
+    (its counts go into the estimator's stats file). None when ``period`` is 0 or the C library has
+    no ``malloc_trim``."""
+    trim = HeapTrim(period)
+    if period <= 0 or not trim.available:
+        return None
+    node.heap_trim = trim
+    node.create_timer(period, trim, clock=Clock(clock_type=ClockType.STEADY_TIME))
+    return trim

@@ -316,6 +316,11 @@ class EstimatorNode(ExitStatusNode):
         # timer is overdue by half a period, the diagnostics go out from here instead.
         if time.monotonic() - self._last_diagnostics >= 1.5 * self.p.diagnostics_period:
             self._on_diagnostics()
+        # the heap trim's timer starves the same way (a GRU behind for 30 minutes never ran it,
+        # 18 MiB free heap resident): overdue by half a period, it runs from here
+        trim = getattr(self, "heap_trim", None)  # set by run_node (nodes/common.py start_heap_trim)
+        if trim is not None and trim.overdue(time.monotonic()):
+            trim()
 
     def _on_diagnostics_timer(self) -> None:
         if time.monotonic() - self._last_diagnostics >= 0.5 * self.p.diagnostics_period:
@@ -506,6 +511,8 @@ class EstimatorNode(ExitStatusNode):
             path.parent.mkdir(parents=True, exist_ok=True)
             summary = stats_summary(self.stats, self.get_fully_qualified_name(), self.method)
             summary["heap_growth"] = self.heap.report(self.stats.estimated)
+            trim = getattr(self, "heap_trim", None)  # set by run_node (nodes/common.py start_heap_trim)
+            summary["heap_trim"] = trim.report() if trim is not None else None
             path.write_text(json.dumps(summary, indent=1))
         return self.exit_code
 

@@ -23,7 +23,10 @@ class LatencyRing:
 
     def __init__(self, capacity: int = 200_000) -> None:
         self.capacity = int(capacity)
-        self._buf = np.zeros(self.capacity, dtype=np.float64)
+        # np.full writes every page now: np.zeros is calloc, whose untouched pages the kernel maps
+        # only when first written, so a zeros ring grew the node's RSS by 8 bytes per sample until
+        # it wrapped (2 rings x 1.6 MB over the first 200,000 messages: a 400 s "leak" at 500 Hz)
+        self._buf = np.full(self.capacity, 0.0, dtype=np.float64)
         self.total = 0
 
     def append(self, value: float) -> None:
