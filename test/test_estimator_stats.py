@@ -66,27 +66,42 @@ def test_ring_keeps_the_newest_in_order():
     assert r.since(0).tolist() == [3, 4, 5, 6, 7]
 
 
-def _rss_anon_mib() -> float:
-    for line in open("/proc/self/status"):
-        if line.startswith("RssAnon:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+def _resident_mib(buf) -> float:
+    """Resident MiB of ``buf``'s own pages (``mincore``, page by page): whatever other threads of the
+    process allocate or free meanwhile (the process's RssAnon moved by -12 MiB around a 38 MiB ring
+    in a loaded test worker)."""
+    import ctypes
+    import mmap
+
+    import numpy as np
+
+    page = mmap.PAGESIZE
+    start = buf.ctypes.data // page * page
+    length = buf.ctypes.data + buf.nbytes - start
+    vec = np.zeros((length + page - 1) // page, dtype=np.uint8)
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p]
+    assert libc.mincore(start, length, vec.ctypes.data) == 0, ctypes.get_errno()
+    return int(np.count_nonzero(vec & 1)) * page / 2**20
 
 
 def test_the_ring_is_resident_from_the_start_so_filling_it_does_not_grow_the_process():
     # a calloc'ed (np.zeros) ring has its pages mapped only when first written: the node's RSS
     # then grew 8 bytes per sample (2 rings: 16 bytes a message) until the rings wrapped, 3 MiB
     # over the first 400 s at 500 Hz, which a soak reads as a leak. 5,000,000 samples (38 MiB):
-    # above glibc's largest mmap threshold (32 MiB), so the ring is fresh pages whatever this
-    # process freed before (a ring carved from freed, still resident heap would show nothing)
+    # above glibc's largest mmap threshold (32 MiB), so the ring is a mapping of its own whose
+    # resident pages /proc/self/smaps counts
+    import numpy as np
+
     from neural_estimator.nodes.estimator_stats import LatencyRing
 
-    made = _rss_anon_mib()
     r = LatencyRing(5_000_000)
-    filled = _rss_anon_mib()
-    assert filled - made > 30  # resident when made (38 MiB; a calloc'ed ring: about 0)
+    size = r._buf.nbytes / 2**20
+    assert _resident_mib(r._buf) > 0.99 * size  # resident when made (a calloc'ed ring: about 0)
     r.extend(1e-3 for _ in range(400_000))  # 3 MiB of it written
-    assert _rss_anon_mib() - filled < 1.5  # maps nothing more (a calloc'ed ring: +3.05 MiB)
+    assert _resident_mib(r._buf) > 0.99 * size  # and still all of it: nothing more to map
+    calloced = np.zeros(5_000_000)  # the check itself tells the two apart
+    assert _resident_mib(calloced) < 0.1 * size
 
 
 def test_short_soak_of_the_stats_path_keeps_memory_fixed():
