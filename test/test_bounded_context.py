@@ -114,3 +114,40 @@ def test_runs_on_a_shipped_model(bc, capsys):
     assert all(0 < float(v) < 5 for v in out[4].split()[2:])
     with pytest.raises(SystemExit):
         bc.main(["--model", model, "--trajectories", "2", "--segments", "0,900"])
+
+
+def test_the_bounded_step_with_a_covariance_equals_every_copy_stepped_with_its_head():
+    """Only the copy whose estimate is served runs the covariance head; the others advance their
+    state by the model's plain step. The shipped bearings GRU (a bounded-context variant with a
+    covariance head): means, covariances and every copy's state equal, to the bit, those of stepping
+    every copy through ``step_with_cov`` (the arithmetic before)."""
+    from neural_estimator.data import simulate
+    from neural_estimator.serving.context import copy_offsets
+
+    scenario = make_scenario("bearings")
+    est = make_estimator("gru", scenario, backend="torch")
+    assert est.context_by_copies and est.has_covariance
+    data = simulate(scenario, 2, 130, seed=4)
+    est.reset(2)
+    model, L, K = est.model, est.context, est.context_copies
+    states = [None] * K
+    for t in range(130):
+        x = est.step(data.y[:, t])
+        z, _ = est._inputs(*est.check_step(data.y[:, t], None))
+        z_t = torch.as_tensor(z, dtype=est.dtype)
+        outs = {}
+        with torch.inference_mode():
+            for k, o in enumerate(copy_offsets(L, K)):
+                if t < o:
+                    continue
+                if (t - o) % L == 0:
+                    states[k] = model.init_state(2, dtype=est.dtype)
+                mean, cov, states[k] = model.step_with_cov(z_t, states[k])
+                outs[o + ((t - o) // L) * L] = (mean, cov)
+        mean, cov = outs[restart_of(t, L, K)]
+        np.testing.assert_array_equal(x, est.normalizer.denormalize_states(mean.double().numpy()))
+        np.testing.assert_array_equal(est.covariance, est._denormalize_cov(cov))
+        for mine, theirs in zip(est._state, states):
+            assert (mine is None) == (theirs is None)
+            if mine is not None:
+                torch.testing.assert_close(mine, theirs, rtol=0, atol=0)
