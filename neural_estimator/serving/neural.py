@@ -28,7 +28,7 @@ from torch import nn
 
 from neural_estimator.methods import table
 from neural_estimator.methods.interface import Estimates, Estimator, EstimatorError, previous_controls
-from neural_estimator.serving.context import bounded_forward, copy_offsets, restart_of
+from neural_estimator.serving.context import BatchedCopies, bounded_forward
 from neural_estimator.serving.normalization import Normalizer
 from neural_estimator.core.options import OptionError, parse_bool, parse_value
 from neural_estimator.scenarios import Scenario
@@ -136,7 +136,7 @@ class NeuralEstimator(Estimator):
             self.model.set_window(self.context)  # the attention models: the window is the bound
         self._state: Any = None
         self._t = 0  # steps since reset (bounded context: which copies restart)
-        self._offsets = copy_offsets(self.context, self.context_copies) if self.context_by_copies else []
+        self._copies: BatchedCopies | None = None  # the restarted copies (context by copies), made by reset
         step_fn = model.step_with_cov if self.has_covariance else model.step
         self._step_fn = torch.compile(step_fn, dynamic=False) if _as_bool(compile_step, "compile_step") else step_fn
         self.backend = str(backend)
@@ -180,8 +180,13 @@ class NeuralEstimator(Estimator):
             self._ort.reset(batch)
         with torch.inference_mode():
             self._state = self.model.init_state(batch, device=self.device, dtype=self.dtype)
-        if self.context_by_copies:  # one state per copy, None until the copy's first restart
-            self._state = [None] * self.context_copies
+        self._copies = None
+        if self.context_by_copies:  # the K copies' states, one batch of K x batch rows
+            with torch.inference_mode():
+                self._copies = BatchedCopies(
+                    self.model, self.context, self.context_copies, batch, self.device, self.dtype
+                )
+            self._state = None
         self._t = 0
         self.batch = batch
         self.covariance = None
@@ -221,22 +226,18 @@ class NeuralEstimator(Estimator):
         return x
 
     def _bounded_step(self, z_t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """One step of every started copy (a copy restarts from a zero state at o_k + j L); the mean of
-        the copy with the oldest restart, s(t) of :mod:`neural_estimator.serving.context`, and that
-        copy's covariance (None without one)."""
-        t, L = self._t, self.context
-        chosen = restart_of(t, L, self.context_copies)
-        out = None
-        for k, o in enumerate(self._offsets):
-            if t < o:
-                continue
-            if (t - o) % L == 0:
-                self._state[k] = self.model.init_state(z_t.shape[0], device=self.device, dtype=self.dtype)
-            if o + ((t - o) // L) * L == chosen:
-                *out, self._state[k] = self._step_fn(z_t, self._state[k])  # (mean,) or (mean, cov)
-            else:  # only its state is needed: no covariance head (3 of 4 heads: 45 % of a bounded GRU step)
-                _, self._state[k] = self.model.step(z_t, self._state[k])
-        return out[0], (out[1] if len(out) > 1 else None)
+        """One step of the K copies as one batch (:class:`~neural_estimator.serving.context.BatchedCopies`:
+        a copy restarts from a fresh state at o_k + j L); the mean of the copy with the oldest
+        restart, s(t) of :mod:`neural_estimator.serving.context`, and that copy's covariance (None
+        without one). A covariance head runs on the served copy's rows only."""
+        copies = self._copies
+        if self.has_covariance and hasattr(self.model, "cov_head"):
+            k, (h,) = copies.step(z_t, self._t, self.model.trunk.step_features)
+            h = h[copies.rows(k)]
+            return self.model.mean_of(h), self.model.cov_head(h)
+        k, outs = copies.step(z_t, self._t, self._step_fn)  # (mean,) or (mean, cov) of every row
+        rows = copies.rows(k)
+        return outs[0][rows], (outs[1][rows] if len(outs) > 1 else None)
 
     # ---- whole sequences -------------------------------------------------------------------------
     def run(self, Y: np.ndarray, U: np.ndarray | None = None) -> Estimates:
