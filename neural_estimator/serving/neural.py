@@ -269,7 +269,7 @@ class NeuralEstimator(Estimator):
         diverged = ~np.all(np.isfinite(xs), axis=(1, 2))
         if covs is not None:
             diverged |= ~np.all(np.isfinite(covs), axis=(1, 2, 3))
-        self._state, self.batch = None, 0
+        self._state, self._copies, self.batch = None, None, 0
         self.diverged = diverged.copy()
         self.skipped = skipped[:, -1] if T else np.zeros(B, dtype=bool)
         self.covariance = covs[:, -1] if covs is not None and T else None
