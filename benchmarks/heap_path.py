@@ -44,7 +44,7 @@ def rss_mib() -> float:
 def main(argv: list[str] | None = None) -> int:
     from neural_estimator.stream import messages as MSG
     from neural_estimator.data import simulate
-    from neural_estimator.nodes.estimator_stats import EstimatorStats, health
+    from neural_estimator.nodes.estimator_stats import EstimatorStats
     from neural_estimator.nodes.heap_trace import HeapTrace
     from neural_estimator.nodes.outputs import StateEncoder
     from neural_estimator.stream.online import OnlineEstimator
@@ -76,17 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     heap = HeapTrace(after=a.warmup)
     rss_warm = None
     t0 = time.perf_counter()
-    for g in range(a.messages):
-        n, k = divmod(g, a.horizon)
-        raw = codec.encode(MSG.step_stamp_ns(10**18, g, MSG.dt_ns(scen.dt)), n, k, data.y[n % 4, k])
-        for res in online.feed(raw, 0.0):
-            if res.status == "estimated":
-                state.encode(res.x_hat, res.P)
-                stats.estimated += 1
-                stats.missed += res.missed
-        stats.record(1e-4)
-        if g % 500 == 0:
-            health(stats, stats.window(time.monotonic()), waiting=False, foreign=set())
+    for _ in node_path(a, scen, data, codec, online, state, stats):
         heap.tick(stats.estimated)
         if rss_warm is None and heap.baseline is not None:
             rss_warm = rss_mib()
@@ -101,28 +91,38 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def node_path(a, scen, data, codec, online, state, stats):
+    """The node's per-message path over ``a.messages`` observations; yields each message's index
+    once its estimate is encoded and counted (a diagnostics window and its health every 500)."""
+    from neural_estimator.nodes.estimator_stats import health
+    from neural_estimator.stream import messages as MSG
+
+    period_ns = MSG.dt_ns(scen.dt)
+    for g in range(a.messages):
+        n, k = divmod(g, a.horizon)
+        raw = codec.encode(MSG.step_stamp_ns(10**18, g, period_ns), n, k, data.y[n % 4, k])
+        for res in online.feed(raw, 0.0):
+            if res.status == "estimated":
+                state.encode(res.x_hat, res.P)
+                stats.estimated += 1
+                stats.missed += res.missed
+        stats.record(1e-4)
+        if g % 500 == 0:
+            health(stats, stats.window(time.monotonic()), waiting=False, foreign=set())
+        yield g
+
+
 def rss_slope(a, scen, data, codec, online, state, stats) -> int:
     """The ``--rss-only`` run: the node's heap settings, RSS every 5,000 messages, its slope after the warm-up."""
     import numpy as np
 
     from neural_estimator.nodes.heap_trace import HeapTrim, pin_malloc_thresholds
-    from neural_estimator.nodes.estimator_stats import health
-    from neural_estimator.stream import messages as MSG
 
     pin_malloc_thresholds()
     trim = HeapTrim()
     samples = []
     t0 = time.perf_counter()
-    for g in range(a.messages):
-        n, k = divmod(g, a.horizon)
-        raw = codec.encode(MSG.step_stamp_ns(10**18, g, MSG.dt_ns(scen.dt)), n, k, data.y[n % 4, k])
-        for res in online.feed(raw, 0.0):
-            if res.status == "estimated":
-                state.encode(res.x_hat, res.P)
-                stats.estimated += 1
-        stats.record(1e-4)
-        if g % 500 == 0:
-            health(stats, stats.window(time.monotonic()), waiting=False, foreign=set())
+    for g in node_path(a, scen, data, codec, online, state, stats):
         if g % a.trim_every == 0:
             trim()
         if g % 5000 == 0 and g >= a.warmup:

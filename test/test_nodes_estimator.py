@@ -311,22 +311,29 @@ def test_settle_heap_freezes_what_is_alive_out_of_the_collectors_walk():
         gc.unfreeze()
 
 
-def test_a_busy_estimator_publishes_its_diagnostics_from_the_message_path():
-    # the events executor serves queued messages before a due timer: a node that never idles
-    # must still report, so the observation callback publishes when the timer is overdue
+def _message_path_node(**extra):
+    """A stand-in for an estimator node with what ``EstimatorNode._on_observations`` reads."""
     import types
 
-    from neural_estimator.nodes.estimator_node import EstimatorNode
     from neural_estimator.nodes.estimator_stats import EstimatorStats
 
-    published = []
-    node = types.SimpleNamespace(
+    return types.SimpleNamespace(
         p=types.SimpleNamespace(drain=False, max_delay=0.0, diagnostics_period=1.0, queue_depth=10),
         sub_obs=None,
         stats=EstimatorStats(),
         _on_observation=lambda raw, info: None,
         _last_diagnostics=time.monotonic(),
+        **extra,
     )
+
+
+def test_a_busy_estimator_publishes_its_diagnostics_from_the_message_path():
+    # the events executor serves queued messages before a due timer: a node that never idles
+    # must still report, so the observation callback publishes when the timer is overdue
+    from neural_estimator.nodes.estimator_node import EstimatorNode
+
+    published = []
+    node = _message_path_node()
 
     def on_diagnostics():
         published.append(time.monotonic())
@@ -348,22 +355,11 @@ def test_a_busy_estimator_publishes_its_diagnostics_from_the_message_path():
 def test_a_busy_estimator_trims_its_heap_from_the_message_path():
     # the heap trim's timer starves like the diagnostics timer: a GRU node behind the stream for
     # 30 minutes never ran it. Overdue by half a period, the observation callback trims.
-    import types
-
     from neural_estimator.nodes.estimator_node import EstimatorNode
-    from neural_estimator.nodes.estimator_stats import EstimatorStats
     from neural_estimator.nodes.heap_trace import HeapTrim
 
     trim = HeapTrim(10.0)
-    node = types.SimpleNamespace(
-        p=types.SimpleNamespace(drain=False, max_delay=0.0, diagnostics_period=1.0, queue_depth=10),
-        sub_obs=None,
-        stats=EstimatorStats(),
-        _on_observation=lambda raw, info: None,
-        _last_diagnostics=time.monotonic(),
-        _on_diagnostics=lambda: None,
-        heap_trim=trim,
-    )
+    node = _message_path_node(_on_diagnostics=lambda: None, heap_trim=trim)
     EstimatorNode._on_observations(node, b"obs", 1)
     assert trim.calls == 0  # trimmed less than 1.5 periods ago: the timer's turn
     trim.last -= 16.0  # 1.6 periods without a trim
