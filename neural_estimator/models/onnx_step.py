@@ -98,14 +98,15 @@ def export_step(
 
     model = model.eval()
     p = next(model.parameters())
-    state0 = model.init_state(1, device=p.device, dtype=torch.float32)
-    flat = _flatten(state0)
-    structured = isinstance(state0, (tuple, list))
     d_in = model.input_proj.in_features if hasattr(model, "input_proj") else int(model.cfg.d_in)
     blocker = getattr(model, "onnx_blocker", None)  # a hybrid whose system's f or h has no ONNX form
     if blocker:
         raise OnnxError(f"{method}: {blocker}")
     missing_nan = bool(getattr(model, "reads_missing_observations", False))
+    model = _step_form(model)
+    state0 = model.init_state(1, device=p.device, dtype=torch.float32)
+    flat = _flatten(state0)
+    structured = isinstance(state0, (tuple, list))
     with_cov = bool(covariance) and hasattr(model, "step_with_cov")
     fills = _starting_fills(method, flat)
 
@@ -139,6 +140,17 @@ def export_step(
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+def _step_form(model: Any) -> Any:
+    """What is traced: the model's ``onnx_form()`` where its class has one (Mamba, Mamba-2, GPT-2,
+    and a covariance head's wrapper around them: :mod:`neural_estimator.models.onnx_forms`, the
+    same step in fewer ONNX Runtime operators, with its own state layout), else the model itself.
+    Looked up on the class: a wrapper that forwards unknown attributes to its trunk must define
+    its own."""
+    if getattr(type(model), "onnx_form", None) is None:
+        return model
+    return model.onnx_form().eval()
 
 
 # Operations a trace records that the exporter's own passes fold away before it looks for ONNX forms

@@ -147,6 +147,13 @@ class GaussianModel(nn.Module):
         h, state = self.trunk.step_features(z_t, state)
         return self.mean_of(h), self.cov_head(h), state
 
+    def onnx_form(self) -> GaussianModel:
+        """The same head on the trunk's ONNX step form where the trunk has one
+        (``models/onnx_forms.py``; defined here so that the trunk's is never taken without the head)."""
+        if getattr(type(self.trunk), "onnx_form", None) is None:
+            return self
+        return GaussianModel(self.trunk.onnx_form(), self.cov_head)
+
 
 # ---- storage ----------------------------------------------------------------------------------------
 def save_head(directory: str | Path, head: CholeskyHead, info: dict[str, Any]) -> dict[str, Any]:

@@ -1,0 +1,261 @@
+"""The batch-1 steps of Mamba, Mamba-2 and GPT-2 as ONNX Runtime runs them fastest: what
+:func:`~neural_estimator.models.onnx_step.export_step` traces for these three models.
+
+At batch 1 an ONNX Runtime step costs a fixed ~0.3-1 us per operator, whatever its size, so the
+graph's cost is its number of operators (and, for the attention caches, the bytes it copies), not
+its FLOPs. The models' own ``step`` is written for a batch of B streams in mamba_ssm's state layout;
+traced as it is, it leaves reshapes, unsqueezes and splits between the arithmetic. The forms here
+compute the same step for one stream (the same products and sums, in float32; the tests hold them
+equal to ``step``) with these changes, none of which touches a trained weight's value:
+
+- **Row vectors and transposed states.** Every activation is a (1, n) row; the state of each SSM
+  layer is held without the batch axis and transposed: the conv window as (K, C) (newest row last)
+  and the SSM state as (N, E). Then the discretised update and the read-out are products of rows
+  and the state with no reshape: with u, delta rows (1, E), b, c rows (1, N),
+
+      S' = S * exp(delta * A^T) + b^T (delta * u)      (N, E): b^T (delta u) is a (N,1)(1,E) product
+      y  = c S' + D * u                                  (1, E)
+
+  mamba_ssm's S (E, N) is this S' transposed; the graph's state is its own (``OrtStep`` owns it).
+- **Weight-only expressions precomputed** at export: A = -exp(A_log) (transposed); Mamba-2's
+  per-head delta and decay repeated over each head's P channels, by repeating its dt rows of
+  in_proj (and the bias dt_bias) P times, so the one in_proj Gemm also adds dt_bias and the step
+  never expands heads to channels.
+- **Fusable patterns.** RMSNorm as x / sqrt(mean(x^2) + eps) * w (Pow, ReduceMean, Add, Sqrt, Div,
+  Mul: ONNX Runtime fuses it to one SimplifiedLayerNormalization), GPT-2's tanh GELU as
+  0.5 x (1 + tanh(sqrt(2/pi) (x + 0.044715 x^3))) with Pow (fused to one FastGelu), SiLU as
+  x * sigmoid(x) (fused to QuickGelu), a linear layer plus the residual (fused to one Gemm).
+- **GPT-2's window cache as a ring buffer.** The model's cache is a shift register (every step
+  copies the whole (2, nh, W, hs) cache one slot down); here each layer's keys and values are
+  written into slot t mod W of a (1, nh, hs, W) cache (one Where over the cache), and the ALiBi
+  bias follows each slot's age, kept as state: age' = 0 on the slot written, age + 1 elsewhere
+  (+inf on slots never written), bias = -m_h * age (so -inf there), the very products the model
+  computes (``layers.window_alibi`` plus the mask). The softmax sums the same W terms in slot
+  order instead of age order.
+
+The states start at one constant per tensor (zeros; GPT-2's ages +inf), as ``export_step`` records.
+Each form keeps the trunk's ``head`` (so a covariance head's wrapper reads the same features) and
+serves batch 1 only.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+_GELU_C = math.sqrt(2.0 / math.pi)
+
+
+def _const(t: Tensor) -> Tensor:
+    return t.detach().clone().float().contiguous()
+
+
+def rms_norm_fusable(x: Tensor, weight: Tensor, eps: float) -> Tensor:
+    """x / sqrt(mean(x^2) + eps) * weight over the last axis, as ONNX Runtime's
+    SimplifiedLayerNormalization fusion expects it (its exported pattern: Pow, ReduceMean, Add,
+    Sqrt, Div, Mul)."""
+    return x / torch.sqrt(x.pow(2).mean(-1, keepdim=True) + eps) * weight
+
+
+def gelu_tanh_fusable(x: Tensor) -> Tensor:
+    """GELU's tanh form 0.5 x (1 + tanh(sqrt(2/pi) (x + 0.044715 x^3))) (``F.gelu(x,
+    approximate="tanh")``), in the operator order ONNX Runtime's FastGelu fusion matches."""
+    return (x * 0.5) * (torch.tanh((x + x.pow(3) * 0.044715) * _GELU_C) + 1.0)
+
+
+class _StepForm(nn.Module):
+    """What a form shares: batch 1 only, the trunk's ``head``, no parallel form."""
+
+    head: nn.Module
+
+    def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        h, new = self.step_features(z_t, state)
+        return self.head(h), new
+
+    def features(self, z: Tensor) -> Tensor:
+        raise NotImplementedError("an ONNX step form has the batch-1 step only (the model's forward is the parallel form)")
+
+    @staticmethod
+    def _one_stream(batch: int) -> None:
+        if int(batch) != 1:
+            raise ValueError(f"an ONNX step form steps one stream (batch 1), got {batch}")
+
+
+class _SSMForm(_StepForm):
+    """The SSM stack around a mixer (``ssm_stack.SSMEstimator``): input_proj, n_layer x [h +
+    mixer(RMSNorm(h))], RMSNorm, head, with the per-layer constants in ``self.layers``."""
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        self.d, self.eps = int(model.cfg.d_model), float(model.cfg.norm_eps)
+        self._dims(model.backbone.layers[0].mixer)
+        self.input_proj = model.input_proj
+        self.register_buffer("norm_f", _const(model.backbone.norm_f.weight))
+        self.head = model.head
+        self.layers = nn.ModuleList(self._layer(block) for block in model.backbone.layers)
+
+    def _dims(self, mixer: nn.Module) -> None:
+        raise NotImplementedError
+
+    def _layer(self, block: nn.Module) -> nn.Module:
+        raise NotImplementedError
+
+    def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        raise NotImplementedError
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        h = self.input_proj(z_t)  # (1, d)
+        new: list[Tensor] = []
+        for i, p in enumerate(self.layers):
+            h, conv, ssm = self._mixer(p, h, state[2 * i], state[2 * i + 1])
+            new += [conv, ssm]
+        return rms_norm_fusable(h, self.norm_f, self.eps), tuple(new)
+
+
+def _params(**tensors: Tensor) -> nn.Module:
+    """A module holding ``tensors`` as buffers (the graph's initializers, named after them)."""
+    m = nn.Module()
+    for name, t in tensors.items():
+        m.register_buffer(name, _const(t))
+    return m
+
+
+class MambaStepForm(_SSMForm):
+    """Mamba's step (``MambaMixer.step`` in each layer) in the graph's form; state per layer: the
+    conv window (K, E) and the SSM state (N, E), zeros."""
+
+    def _dims(self, mixer: nn.Module) -> None:
+        self.E, self.N, self.R, self.K = mixer.d_inner, mixer.d_state, mixer.dt_rank, mixer.d_conv
+
+    def _layer(self, block: nn.Module) -> nn.Module:
+        m = block.mixer
+        return _params(
+            norm=block.norm.weight,
+            in_proj=m.in_proj.weight,  # (2E, d): x, then the gate g
+            conv_w=m.conv1d.weight[:, 0].t(),  # (K, E): tap k on row k, the newest input last
+            conv_b=m.conv1d.bias.view(1, -1),
+            x_proj=m.x_proj.weight,  # (R + 2N, E)
+            dt_w=m.dt_proj.weight,
+            dt_b=m.dt_proj.bias,
+            A_t=-torch.exp(m.A_log.detach()).t(),  # (N, E)
+            D=m.D.view(1, -1),
+            out_proj=m.out_proj.weight,
+        )
+
+    def init_state(self, batch: int = 1, device=None, dtype=None) -> tuple[Tensor, ...]:
+        self._one_stream(batch)
+        dev, dt = device or self.norm_f.device, dtype or torch.float32
+        state: list[Tensor] = []
+        for _ in self.layers:
+            state += [torch.zeros(self.K, self.E, device=dev, dtype=dt), torch.zeros(self.N, self.E, device=dev, dtype=dt)]
+        return tuple(state)
+
+    def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        x, g = F.linear(rms_norm_fusable(h, p.norm, self.eps), p.in_proj).split(self.E, dim=-1)  # (1, E) each
+        conv = torch.cat((conv[1:], x), dim=0)  # (K, E), newest last
+        u = F.silu((conv * p.conv_w).sum(0, keepdim=True) + p.conv_b)  # (1, E)
+        dt, b, c = F.linear(u, p.x_proj).split([self.R, self.N, self.N], dim=-1)
+        delta = F.softplus(F.linear(dt, p.dt_w, p.dt_b))  # (1, E)
+        ssm = ssm * torch.exp(delta * p.A_t) + b.t() @ (delta * u)  # (N, E)
+        y = c @ ssm + p.D * u  # (1, E)
+        return h + F.linear(y * F.silu(g), p.out_proj), conv, ssm
+
+
+class Mamba2StepForm(_SSMForm):
+    """Mamba-2's step (``Mamba2Mixer.step`` in each layer) in the graph's form; state per layer: the
+    conv window (K, E + 2N) and the SSM state (N, E) (mamba_ssm's (H, P, N) as (E, N), transposed),
+    zeros. The heads' delta, decay and skip are repeated over their P channels."""
+
+    def _dims(self, mixer: nn.Module) -> None:
+        self.E, self.N, self.K, self.P = mixer.d_inner, mixer.d_state, mixer.d_conv, mixer.headdim
+
+    def _layer(self, block: nn.Module) -> nn.Module:
+        m = block.mixer
+        E, N, P = self.E, self.N, self.P
+        w = m.in_proj.weight.detach()  # (2E + 2N + H, d): [g, x, b, c, dt]
+        per_channel = lambda t: t.detach().repeat_interleave(P, dim=0)  # noqa: E731 - head h -> its P channels
+        return _params(
+            norm=block.norm.weight,
+            in_proj=torch.cat((w[: 2 * E + 2 * N], per_channel(w[2 * E + 2 * N :]))),  # (3E + 2N, d)
+            in_bias=torch.cat((w.new_zeros(2 * E + 2 * N), per_channel(m.dt_bias))),  # dt_bias on the dt rows
+            conv_w=m.conv1d.weight[:, 0].t(),  # (K, E + 2N)
+            conv_b=m.conv1d.bias.view(1, -1),
+            A=per_channel(-torch.exp(m.A_log.detach())).view(1, -1),  # (1, E)
+            D=per_channel(m.D).view(1, -1),
+            gate_norm=m.norm.weight,
+            out_proj=m.out_proj.weight,
+        )
+
+    def init_state(self, batch: int = 1, device=None, dtype=None) -> tuple[Tensor, ...]:
+        self._one_stream(batch)
+        dev, dt = device or self.norm_f.device, dtype or torch.float32
+        C = self.E + 2 * self.N
+        state: list[Tensor] = []
+        for _ in self.layers:
+            state += [torch.zeros(self.K, C, device=dev, dtype=dt), torch.zeros(self.N, self.E, device=dev, dtype=dt)]
+        return tuple(state)
+
+    def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        E, N = self.E, self.N
+        g, xbc, dt = F.linear(rms_norm_fusable(h, p.norm, self.eps), p.in_proj, p.in_bias).split(
+            [E, E + 2 * N, E], dim=-1
+        )  # (1, E), (1, E + 2N), (1, E): dt + dt_bias, per channel
+        conv = torch.cat((conv[1:], xbc), dim=0)  # (K, E + 2N), newest last
+        x, b, c = F.silu((conv * p.conv_w).sum(0, keepdim=True) + p.conv_b).split([E, N, N], dim=-1)
+        delta = F.softplus(dt)  # (1, E)
+        ssm = ssm * torch.exp(delta * p.A) + b.t() @ (delta * x)  # (N, E)
+        y = c @ ssm + p.D * x  # (1, E)
+        y = rms_norm_fusable(y * F.silu(g), p.gate_norm, self.eps)  # the gated RMSNorm, norm after gate
+        return h + F.linear(y, p.out_proj), conv, ssm
+
+
+class GPT2StepForm(_StepForm):
+    """GPT-2's step (``GPT2Model.step``) in the graph's form, over a ring buffer of the last W keys
+    and values. State: the slots' ages (W,) (+inf: never written), the next slot t (1,) (0..W-1),
+    then per layer the keys and the values, (1, nh, hs, W) each (zeros)."""
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        cfg = model.cfg
+        self.W, self.nh, self.D = int(cfg.decode_chunk), int(cfg.n_head), int(cfg.n_embd)
+        self.hs = self.D // self.nh
+        self.input_proj, self.head, self.ln_f = model.input_proj, model.head, model.ln_f
+        self.blocks = model.blocks
+        self.register_buffer("slots", torch.arange(self.W, dtype=torch.float32))  # (W,)
+        self.register_buffer("neg_slopes", -_const(model.slopes).view(-1, 1, 1))  # (nh, 1, 1): -m_h
+
+    def init_state(self, batch: int = 1, device=None, dtype=None) -> tuple[Tensor, ...]:
+        self._one_stream(batch)
+        dev, dt = device or self.slots.device, dtype or torch.float32
+        cache = (1, self.nh, self.hs, self.W)
+        state = [torch.full((self.W,), float("inf"), device=dev, dtype=dt), torch.zeros(1, device=dev, dtype=dt)]
+        for _ in self.blocks:
+            state += [torch.zeros(cache, device=dev, dtype=dt), torch.zeros(cache, device=dev, dtype=dt)]
+        return tuple(state)
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        age, t = state[0], state[1]
+        slot = self.slots == t  # (W,): the slot this step's key and value go to
+        age = torch.where(slot, 0.0, age + 1.0)  # steps since each slot was written
+        bias = self.neg_slopes * age  # (nh, 1, W): -m_h * age, -inf on slots never written
+        new: list[Tensor] = [age, torch.fmod(t + 1.0, float(self.W))]
+        h = self.input_proj(z_t)  # (1, D)
+        for i, block in enumerate(self.blocks):
+            h, k_cache, v_cache = self._block(block, h, state[2 + 2 * i], state[3 + 2 * i], slot, bias)
+            new += [k_cache, v_cache]
+        return self.ln_f(h), tuple(new)
+
+    def _block(self, block: nn.Module, h: Tensor, k_cache: Tensor, v_cache: Tensor, slot: Tensor, bias: Tensor):
+        attn, mlp = block.attn, block.mlp
+        q, k, v = attn.c_attn(block.ln_1(h)).view(3, self.nh, self.hs, 1).split(1, dim=0)  # (1, nh, hs, 1) each
+        k_cache = torch.where(slot, k, k_cache)  # (1, nh, hs, W)
+        v_cache = torch.where(slot, v, v_cache)
+        scores = (q.transpose(-1, -2) @ k_cache) * (1.0 / math.sqrt(self.hs)) + bias  # (1, nh, 1, W)
+        y = torch.softmax(scores, dim=-1) @ v_cache.transpose(-1, -2)  # (1, nh, 1, hs)
+        h = h + attn.c_proj(y.reshape(1, self.D))
+        h = h + mlp.c_proj(gelu_tanh_fusable(mlp.c_fc(block.ln_2(h))))
+        return h, k_cache, v_cache
