@@ -10,13 +10,19 @@ For every shipped model of the scenario (the paper's sizes), in one process, in 
 - ``node step (torch)``: ``Estimator.step`` with numpy in and out, the live node's call, torch backend;
 - ``ORT step``: the same step exported to ONNX (``models/onnx_step.py``) run by ONNX Runtime, one thread,
   through preallocated bound buffers (``run_with_iobinding``: the fastest call ONNX Runtime offers);
+- ``ORT own step``: the model's own ``step`` traced as it is (what the export traced before Mamba,
+  Mamba-2 and GPT-2 got their step forms, ``models/onnx_forms.py``), bound buffers too: the "before"
+  of those three; for the other models it is the same graph as ``ORT step``;
 - ``ORT run()``: the same graph through the plain ``session.run(None, feed)`` call (numpy in and out);
 - ``node step (ORT)``: ``Estimator.step`` with ``backend=onnxruntime`` (its graph also normalises and
   denormalises, in float64);
 - ``wrapper``: node step (ORT) minus ORT step, p50 (normalise, checks, denormalise, copies: everything
   the node's call adds to the network's step);
 - ``GEMV limit``: 2 x parameters / the single-core float32 GEMV rate measured here (the time a step
-  would take if it only streamed its weights once through the fastest matrix-vector product).
+  would take if it only streamed its weights once through the fastest matrix-vector product);
+  ``ORT / limit`` is the ORT step over it;
+- ``nodes``: the operators ONNX Runtime runs per step, after its graph optimisations (the graph it
+  serves, then the model's own step traced), read back from the optimised model it writes.
 
 p50 and p99 of the wall clock, microseconds. ``--core N`` pins the process to one core. The load
 average is printed before and after: on a shared machine, compare the columns of one run only.
@@ -53,6 +59,41 @@ def gemv_rate(bursts: int = 200) -> float:
                 torch.mv(a, x)
             best = max(best, 2 * n * n * 5 / (time.perf_counter() - t0))
     return best
+
+
+def optimized_nodes(graph: bytes) -> int:
+    """How many operators ONNX Runtime runs for ``graph`` at the serving optimisation level."""
+    import tempfile
+
+    import onnx
+    import onnxruntime as ort
+
+    with tempfile.TemporaryDirectory() as tmp:
+        opts = ort.SessionOptions()
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.optimized_model_filepath = str(Path(tmp) / "optimized.onnx")
+        opts.log_severity_level = 3  # its note that an optimised file is machine specific
+        ort.InferenceSession(graph, opts, providers=["CPUExecutionProvider"])
+        return len(onnx.load(opts.optimized_model_filepath).graph.node)
+
+
+def own_step(model):
+    """``model`` without its ``onnx_form``: ``export_step`` then traces the model's own ``step``."""
+    import torch
+
+    class OwnStep(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+            self.input_proj = model.input_proj
+
+        def init_state(self, *args, **kwargs):
+            return model.init_state(*args, **kwargs)
+
+        def step(self, z, state):
+            return model.step(z, state)
+
+    return OwnStep()
 
 
 def pct(samples: list[float]) -> tuple[float, float]:
@@ -92,13 +133,13 @@ def main(argv: list[str] | None = None) -> int:
         + f"; single-core GEMV {rate / 1e9:.1f} GFLOP/s; load average {load0:.1f} at start"
     )
     print()
-    heads = ["torch step", "node (torch)", "ORT step", "ORT run()", "node (ORT)"]
+    heads = ["torch step", "node (torch)", "ORT step", "ORT own step", "ORT run()", "node (ORT)"]
     print(
-        "| model | params | GEMV limit | "
+        "| model | params | GEMV limit | nodes (own step) | "
         + " | ".join(f"{h} p50 / p99" for h in heads)
-        + " | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step |"
+        + " | ORT / limit | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step |"
     )
-    print("|---|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|")
     per_round = max(1, a.steps // a.rounds)
     for m in a.methods:
         est_t = load_neural_estimator(m, scen, context=0)
@@ -107,7 +148,10 @@ def main(argv: list[str] | None = None) -> int:
         from neural_estimator.serving.onnx_runtime import OrtStep
 
         graph = export_step(est_t.model, m)  # the network alone, as the torch step column
+        own_graph = export_step(own_step(est_t.model), m)
+        nodes = f"{optimized_nodes(graph)} ({optimized_nodes(own_graph)})"
         ort = OrtStep(graph)
+        ort_own = OrtStep(own_graph)
         plain = OrtStep(graph).session
         names_out = [o.name for o in plain.get_outputs()]
         feed = {i.name: np.zeros([int(d) for d in i.shape], dtype=np.float32) for i in plain.get_inputs()}
@@ -133,9 +177,10 @@ def main(argv: list[str] | None = None) -> int:
                         with torch.inference_mode():
                             _, state = model.step(zt, state)
                         dt = time.perf_counter() - t0
-                    elif h == "ORT step":
+                    elif h in ("ORT step", "ORT own step"):
+                        step = ort if h == "ORT step" else ort_own
                         t0 = time.perf_counter()
-                        ort.step(z32[j])
+                        step.step(z32[j])
                         dt = time.perf_counter() - t0
                     elif h == "ORT run()":
                         t0 = time.perf_counter()
@@ -157,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         wrapper = p["node (ORT)"][0] - p["ORT step"][0]
         cells = " | ".join(f"{p[h][0]:.1f} / {p[h][1]:.1f}" for h in heads)
         print(
-            f"| {m} | {params:,} | {limit:.1f} | {cells} | {wrapper:.1f} | "
+            f"| {m} | {params:,} | {limit:.1f} | {nodes} | {cells} | {p['ORT step'][0] / limit:.1f}x | {wrapper:.1f} | "
             f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (ORT)'][0] / p['ORT run()'][0]:.2f}x | "
             f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x |",
             flush=True,

@@ -77,7 +77,9 @@ class _StepForm(nn.Module):
         return self.head(h), new
 
     def features(self, z: Tensor) -> Tensor:
-        raise NotImplementedError("an ONNX step form has the batch-1 step only (the model's forward is the parallel form)")
+        raise NotImplementedError(
+            "an ONNX step form has the batch-1 step only (the model's forward is the parallel form)"
+        )
 
     @staticmethod
     def _one_stream(batch: int) -> None:
@@ -151,7 +153,10 @@ class MambaStepForm(_SSMForm):
         dev, dt = device or self.norm_f.device, dtype or torch.float32
         state: list[Tensor] = []
         for _ in self.layers:
-            state += [torch.zeros(self.K, self.E, device=dev, dtype=dt), torch.zeros(self.N, self.E, device=dev, dtype=dt)]
+            state += [
+                torch.zeros(self.K, self.E, device=dev, dtype=dt),
+                torch.zeros(self.N, self.E, device=dev, dtype=dt),
+            ]
         return tuple(state)
 
     def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:

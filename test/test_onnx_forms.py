@@ -1,0 +1,124 @@
+"""The batch-1 step forms that Mamba, Mamba-2 and GPT-2 export (models/onnx_forms.py): equal to the
+models' own step, deterministic, and the operator fusions they are written for fire in ONNX Runtime."""
+
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+
+from neural_estimator.models.onnx_step import export_step  # noqa: E402
+from neural_estimator.scenarios import make_scenario  # noqa: E402
+from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
+
+FORMS = ["mamba", "mamba2", "gpt2"]
+
+
+@pytest.fixture(scope="module")
+def l96():
+    return make_scenario("lorenz96")
+
+
+def _model(l96, method: str, window: int = 0):
+    """The shipped Lorenz 96 model with its covariance head (a ``GaussianModel``), GPT-2 with a
+    short window when asked (so that the ring buffer wraps many times)."""
+    model = load_neural_estimator(method, l96, context=window).model
+    assert type(model).__name__ == "GaussianModel"
+    return model
+
+
+@pytest.mark.parametrize("method", FORMS)
+def test_step_form_equals_the_models_step(method, l96):
+    """300 steps of inputs of unit size (GPT-2 with a window of 7: the cache wraps 42 times), through
+    the model's ``step_with_cov`` and its form's: estimates and covariances within 1e-5 relative."""
+    model = _model(l96, method, window=7 if method == "gpt2" else 0)
+    form = model.onnx_form().eval()
+    assert type(form.trunk).__name__.endswith("StepForm") and form.cov_head is model.cov_head
+    gen = torch.Generator().manual_seed(3)
+    a_state, b_state = model.init_state(1), form.init_state(1)
+    worst = 0.0
+    with torch.no_grad():
+        for _ in range(300):
+            z = torch.randn(1, model.input_proj.in_features, generator=gen)
+            mean_a, cov_a, a_state = model.step_with_cov(z, a_state)
+            mean_b, cov_b, b_state = form.step_with_cov(z, b_state)
+            worst = max(worst, float((mean_a - mean_b).abs().max() / (1.0 + mean_a.abs().max())))
+            worst = max(worst, float((cov_a - cov_b).abs().max() / (1.0 + cov_a.abs().max())))
+    assert worst < 1e-5, worst
+
+
+def test_a_form_steps_one_stream_and_a_model_without_one_is_traced_itself(l96):
+    form = _model(l96, "mamba").trunk.onnx_form()
+    with pytest.raises(ValueError, match="batch 1"):
+        form.init_state(2)
+    with pytest.raises(NotImplementedError):
+        form.features(torch.zeros(1, 3, form.input_proj.in_features))
+    gru = _model(l96, "gru")
+    assert gru.onnx_form() is gru  # no form of its own: the GRU's graph is its step
+
+
+def test_step_form_export_is_reproducible(l96):
+    """The same checkpoint gives the same bytes through a form too (its constants are computed from
+    the weights at export)."""
+    for method in ("mamba2", "gpt2"):
+        a = export_step(_model(l96, method), method, covariance=True)
+        b = export_step(_model(l96, method), method, covariance=True)
+        assert a == b, method
+
+
+def _optimized_ops(data: bytes, tmp_path) -> collections.Counter:
+    """Operator counts of the graph as ONNX Runtime runs it (the serving session's optimisation
+    level), read back from the optimised model it writes."""
+    import onnx
+    import onnxruntime as ort
+
+    path = tmp_path / "optimized.onnx"
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.optimized_model_filepath = str(path)
+    opts.log_severity_level = 3  # its note that an optimised file is machine specific
+    ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    return collections.Counter(n.op_type for n in onnx.load(str(path)).graph.node)
+
+
+@pytest.mark.parametrize("method", FORMS)
+def test_the_fusions_the_forms_are_written_for_fire(method, l96, tmp_path):
+    """Each RMSNorm is one SimplifiedLayerNormalization, each tanh GELU one FastGelu, each SiLU one
+    QuickGelu; no reshaping operator is left in the SSM graphs, and GPT-2's cache is written with
+    one Where per layer and tensor (no Slice or Concat copies it)."""
+    model = _model(l96, method).trunk
+    ops = _optimized_ops(export_step(model, method), tmp_path)
+    assert not ops["ReduceMean"] and not ops["Tanh"] and not ops["Sigmoid"], ops
+    if method == "gpt2":
+        L = model.cfg.n_layer
+        assert ops["LayerNormalization"] == 2 * L + 1 and ops["FastGelu"] == L, ops
+        assert ops["Where"] == 2 * L + 1 and not ops["Concat"] and not ops["Slice"], ops  # + the slots' ages
+        return
+    L = model.cfg.n_layer
+    norms = (2 if method == "mamba2" else 1) * L + 1  # Mamba-2's gated RMSNorm in every mixer too
+    assert ops["SimplifiedLayerNormalization"] == norms and ops["QuickGelu"] == 2 * L, ops
+    assert not any(ops[op] for op in ("Reshape", "Unsqueeze", "Squeeze", "Transpose", "Gather")), ops
+    assert ops["Concat"] == L and ops["Slice"] == L, ops  # the conv window's shift, once a layer
+
+
+def test_the_shipped_graphs_serve_the_forms_state():
+    """A shipped step.onnx of each form's model has the form's state: GPT-2's first state is the
+    slots' ages (+inf at reset), the SSMs' states carry no batch axis."""
+    import json
+
+    from neural_estimator.serving.card import default_checkpoint
+    from neural_estimator.serving.onnx_runtime import ONNX_FILE, OrtStep
+
+    for method in FORMS:
+        step = OrtStep(default_checkpoint("lorenz96", method) / ONNX_FILE)
+        fills = json.loads(step.metadata["initial_fill"])
+        if method == "gpt2":
+            assert fills[0] == float("inf") and step.state[0].shape == (int(step.metadata["window"]),)
+        else:
+            assert all(f == 0.0 for f in fills) and all(s.ndim == 2 for s in step.state), method
+        assert np.all(np.isfinite(step.step(np.zeros((1, step.d_in), dtype=np.float32))))
