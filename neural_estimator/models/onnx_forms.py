@@ -99,6 +99,14 @@ class _SSMForm(_StepForm):
         self.register_buffer("norm_f", _const(model.backbone.norm_f.weight))
         self.head = model.head
         self.layers = nn.ModuleList(self._layer(block) for block in model.backbone.layers)
+        self.register_buffer("taps", torch.ones(1, self.K))  # sums the conv window's K weighted rows
+
+    def _conv(self, p: nn.Module, conv: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The causal depthwise conv's step: the window (K, C) shifted one row with x (1, C) as the
+        newest, and silu(sum_k w_k * row_k + bias) (1, C); the sum and the bias as one Gemm
+        ([1 ... 1] (w * window) + bias) instead of a ReduceSum and an Add."""
+        conv = torch.cat((conv[1:], x), dim=0)
+        return conv, F.silu(torch.addmm(p.conv_b, self.taps, conv * p.conv_w))
 
     def _dims(self, mixer: nn.Module) -> None:
         raise NotImplementedError
@@ -161,8 +169,7 @@ class MambaStepForm(_SSMForm):
 
     def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         x, g = F.linear(rms_norm_fusable(h, p.norm, self.eps), p.in_proj).split(self.E, dim=-1)  # (1, E) each
-        conv = torch.cat((conv[1:], x), dim=0)  # (K, E), newest last
-        u = F.silu((conv * p.conv_w).sum(0, keepdim=True) + p.conv_b)  # (1, E)
+        conv, u = self._conv(p, conv, x)  # (K, E), (1, E)
         dt, b, c = F.linear(u, p.x_proj).split([self.R, self.N, self.N], dim=-1)
         delta = F.softplus(F.linear(dt, p.dt_w, p.dt_b))  # (1, E)
         ssm = ssm * torch.exp(delta * p.A_t) + b.t() @ (delta * u)  # (N, E)
@@ -209,8 +216,8 @@ class Mamba2StepForm(_SSMForm):
         g, xbc, dt = F.linear(rms_norm_fusable(h, p.norm, self.eps), p.in_proj, p.in_bias).split(
             [E, E + 2 * N, E], dim=-1
         )  # (1, E), (1, E + 2N), (1, E): dt + dt_bias, per channel
-        conv = torch.cat((conv[1:], xbc), dim=0)  # (K, E + 2N), newest last
-        x, b, c = F.silu((conv * p.conv_w).sum(0, keepdim=True) + p.conv_b).split([E, N, N], dim=-1)
+        conv, xbc = self._conv(p, conv, xbc)  # (K, E + 2N), (1, E + 2N)
+        x, b, c = xbc.split([E, N, N], dim=-1)
         delta = F.softplus(dt)  # (1, E)
         ssm = ssm * torch.exp(delta * p.A) + b.t() @ (delta * x)  # (N, E)
         y = c @ ssm + p.D * x  # (1, E)
