@@ -1,5 +1,6 @@
-"""The batch-1 step forms that Mamba, Mamba-2 and GPT-2 export (models/onnx_forms.py): equal to the
-models' own step, deterministic, and the operator fusions they are written for fire in ONNX Runtime."""
+"""The batch-1 step forms that Mamba, Mamba-2, GPT-2 and Filterformer export (models/onnx_forms.py):
+equal to the models' own step, deterministic, and the operator fusions they are written for fire in
+ONNX Runtime."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ from neural_estimator.models.onnx_step import export_step  # noqa: E402
 from neural_estimator.scenarios import make_scenario  # noqa: E402
 from neural_estimator.serving.load import load_neural_estimator  # noqa: E402
 
-FORMS = ["mamba", "mamba2", "gpt2"]
+FORMS = ["mamba", "mamba2", "gpt2", "filterformer"]
+ATTENTION = ("gpt2", "filterformer")
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +27,8 @@ def l96():
 
 
 def _model(l96, method: str, window: int = 0):
-    """The shipped Lorenz 96 model with its covariance head (a ``GaussianModel``), GPT-2 with a
-    short window when asked (so that the ring buffer wraps many times)."""
+    """The shipped Lorenz 96 model with its covariance head (a ``GaussianModel``), an attention model
+    with a short window when asked (so that the ring buffer wraps many times)."""
     model = load_neural_estimator(method, l96, context=window).model
     assert type(model).__name__ == "GaussianModel"
     return model
@@ -34,9 +36,10 @@ def _model(l96, method: str, window: int = 0):
 
 @pytest.mark.parametrize("method", FORMS)
 def test_step_form_equals_the_models_step(method, l96):
-    """300 steps of inputs of unit size (GPT-2 with a window of 7: the cache wraps 42 times), through
-    the model's ``step_with_cov`` and its form's: estimates and covariances within 1e-5 relative."""
-    model = _model(l96, method, window=7 if method == "gpt2" else 0)
+    """300 steps of inputs of unit size (the attention models with a window of 7: the cache wraps 42
+    times), through the model's ``step_with_cov`` and its form's: estimates and covariances within
+    1e-5 relative."""
+    model = _model(l96, method, window=7 if method in ATTENTION else 0)
     form = model.onnx_form().eval()
     assert type(form.trunk).__name__.endswith("StepForm") and form.cov_head is model.cov_head
     gen = torch.Generator().manual_seed(3)
@@ -88,15 +91,15 @@ def _optimized_ops(data: bytes, tmp_path) -> collections.Counter:
 
 @pytest.mark.parametrize("method", FORMS)
 def test_the_fusions_the_forms_are_written_for_fire(method, l96, tmp_path):
-    """Each RMSNorm is one SimplifiedLayerNormalization, each tanh GELU one FastGelu, each SiLU one
-    QuickGelu; no reshaping operator is left in the SSM graphs, and GPT-2's cache is written with
-    one Where per layer and tensor (no Slice or Concat copies it)."""
+    """Each (RMS)LayerNorm is one operator, each GELU one (Gelu, GPT-2's tanh form FastGelu), each
+    SiLU one QuickGelu; no reshaping operator is left in the SSM graphs, and the attention caches
+    are written with one Where per layer and tensor (no Slice or Concat copies them)."""
     model = _model(l96, method).trunk
     ops = _optimized_ops(export_step(model, method), tmp_path)
-    assert not ops["ReduceMean"] and not ops["Tanh"] and not ops["Sigmoid"], ops
-    if method == "gpt2":
-        L = model.cfg.n_layer
-        assert ops["LayerNormalization"] == 2 * L + 1 and ops["FastGelu"] == L, ops
+    assert not ops["ReduceMean"] and not ops["Tanh"] and not ops["Erf"] and not ops["Sigmoid"], ops
+    if method in ATTENTION:
+        L = model.cfg.n_layer if method == "gpt2" else 1
+        assert ops["LayerNormalization"] == 2 * L + 1 and ops["FastGelu" if method == "gpt2" else "Gelu"] == L, ops
         assert ops["Where"] == 2 * L + 1 and not ops["Concat"] and not ops["Slice"], ops  # + the slots' ages
         return
     L = model.cfg.n_layer
@@ -107,8 +110,8 @@ def test_the_fusions_the_forms_are_written_for_fire(method, l96, tmp_path):
 
 
 def test_the_shipped_graphs_serve_the_forms_state():
-    """A shipped step.onnx of each form's model has the form's state: GPT-2's first state is the
-    slots' ages (+inf at reset), the SSMs' states carry no batch axis."""
+    """A shipped step.onnx of each form's model has the form's state: the attention models' first
+    state is the slots' ages (+inf at reset), the SSMs' states carry no batch axis."""
     import json
 
     from neural_estimator.serving.card import default_checkpoint
@@ -117,7 +120,7 @@ def test_the_shipped_graphs_serve_the_forms_state():
     for method in FORMS:
         step = OrtStep(default_checkpoint("lorenz96", method) / ONNX_FILE)
         fills = json.loads(step.metadata["initial_fill"])
-        if method == "gpt2":
+        if method in ATTENTION:
             assert fills[0] == float("inf") and step.state[0].shape == (int(step.metadata["window"]),)
         else:
             assert all(f == 0.0 for f in fills) and all(s.ndim == 2 for s in step.state), method

@@ -1,5 +1,5 @@
-"""The batch-1 steps of Mamba, Mamba-2 and GPT-2 as ONNX Runtime runs them fastest: what
-:func:`~neural_estimator.models.onnx_step.export_step` traces for these three models.
+"""The batch-1 steps of Mamba, Mamba-2, GPT-2 and Filterformer as ONNX Runtime runs them fastest:
+what :func:`~neural_estimator.models.onnx_step.export_step` traces for these four models.
 
 At batch 1 an ONNX Runtime step costs a fixed ~0.3-1 us per operator, whatever its size, so the
 graph's cost is its number of operators (and, for the attention caches, the bytes it copies), not
@@ -16,7 +16,8 @@ equal to ``step``) with these changes, none of which touches a trained weight's 
       S' = S * exp(delta * A^T) + b^T (delta * u)      (N, E): b^T (delta u) is a (N,1)(1,E) product
       y  = c S' + D * u                                  (1, E)
 
-  mamba_ssm's S (E, N) is this S' transposed; the graph's state is its own (``OrtStep`` owns it).
+  S is mamba_ssm's (E, N) state transposed; the graph's state is its own (``OrtStep`` owns it). The
+  conv's weighted sum of its window and its bias are one Gemm: [1 ... 1] (w * window) + bias.
 - **Weight-only expressions precomputed** at export: A = -exp(A_log) (transposed); Mamba-2's
   per-head delta and decay repeated over each head's P channels, by repeating its dt rows of
   in_proj (and the bias dt_bias) P times, so the one in_proj Gemm also adds dt_bias and the step
@@ -25,15 +26,16 @@ equal to ``step``) with these changes, none of which touches a trained weight's 
   Mul: ONNX Runtime fuses it to one SimplifiedLayerNormalization), GPT-2's tanh GELU as
   0.5 x (1 + tanh(sqrt(2/pi) (x + 0.044715 x^3))) with Pow (fused to one FastGelu), SiLU as
   x * sigmoid(x) (fused to QuickGelu), a linear layer plus the residual (fused to one Gemm).
-- **GPT-2's window cache as a ring buffer.** The model's cache is a shift register (every step
-  copies the whole (2, nh, W, hs) cache one slot down); here each layer's keys and values are
+- **The attention window's cache as a ring buffer** (GPT-2, Filterformer). The model's cache is a
+  shift register (every step copies the whole (2, nh, W, hs) cache one slot down, and the graph
+  copied it twice more to slice and split it); here each layer's keys and values are
   written into slot t mod W of a (1, nh, hs, W) cache (one Where over the cache), and the ALiBi
   bias follows each slot's age, kept as state: age' = 0 on the slot written, age + 1 elsewhere
   (+inf on slots never written), bias = -m_h * age (so -inf there), the very products the model
   computes (``layers.window_alibi`` plus the mask). The softmax sums the same W terms in slot
   order instead of age order.
 
-The states start at one constant per tensor (zeros; GPT-2's ages +inf), as ``export_step`` records.
+The states start at one constant per tensor (zeros; the ages +inf), as ``export_step`` records.
 Each form keeps the trunk's ``head`` (so a covariance head's wrapper reads the same features) and
 serves batch 1 only.
 """
@@ -225,18 +227,15 @@ class Mamba2StepForm(_SSMForm):
         return h + F.linear(y, p.out_proj), conv, ssm
 
 
-class GPT2StepForm(_StepForm):
-    """GPT-2's step (``GPT2Model.step``) in the graph's form, over a ring buffer of the last W keys
-    and values. State: the slots' ages (W,) (+inf: never written), the next slot t (1,) (0..W-1),
-    then per layer the keys and the values, (1, nh, hs, W) each (zeros)."""
+class _RingForm(_StepForm):
+    """An attention model's step over a ring buffer of the last W keys and values. State: the slots'
+    ages (W,) (+inf: never written), the next slot t (1,) (0..W-1), then per attention layer its
+    keys and its values, (1, nh, hs, W) each (zeros)."""
 
-    def __init__(self, model: nn.Module) -> None:
+    def __init__(self, model: nn.Module, window: int, n_head: int, d_model: int, n_layers: int) -> None:
         super().__init__()
-        cfg = model.cfg
-        self.W, self.nh, self.D = int(cfg.decode_chunk), int(cfg.n_head), int(cfg.n_embd)
+        self.W, self.nh, self.D, self.n_layers = int(window), int(n_head), int(d_model), int(n_layers)
         self.hs = self.D // self.nh
-        self.input_proj, self.head, self.ln_f = model.input_proj, model.head, model.ln_f
-        self.blocks = model.blocks
         self.register_buffer("slots", torch.arange(self.W, dtype=torch.float32))  # (W,)
         self.register_buffer("neg_slopes", -_const(model.slopes).view(-1, 1, 1))  # (nh, 1, 1): -m_h
 
@@ -245,29 +244,81 @@ class GPT2StepForm(_StepForm):
         dev, dt = device or self.slots.device, dtype or torch.float32
         cache = (1, self.nh, self.hs, self.W)
         state = [torch.full((self.W,), float("inf"), device=dev, dtype=dt), torch.zeros(1, device=dev, dtype=dt)]
-        for _ in self.blocks:
+        for _ in range(self.n_layers):
             state += [torch.zeros(cache, device=dev, dtype=dt), torch.zeros(cache, device=dev, dtype=dt)]
         return tuple(state)
 
-    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+    def _advance(self, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, list[Tensor]]:
+        """This step's slot (W,) bool, the ALiBi bias of the slots once it is written (nh, 1, W), and
+        the new ages and next slot."""
         age, t = state[0], state[1]
         slot = self.slots == t  # (W,): the slot this step's key and value go to
         age = torch.where(slot, 0.0, age + 1.0)  # steps since each slot was written
         bias = self.neg_slopes * age  # (nh, 1, W): -m_h * age, -inf on slots never written
-        new: list[Tensor] = [age, torch.fmod(t + 1.0, float(self.W))]
-        h = self.input_proj(z_t)  # (1, D)
-        for i, block in enumerate(self.blocks):
-            h, k_cache, v_cache = self._block(block, h, state[2 + 2 * i], state[3 + 2 * i], slot, bias)
-            new += [k_cache, v_cache]
-        return self.ln_f(h), tuple(new)
+        return slot, bias, [age, torch.fmod(t + 1.0, float(self.W))]
 
-    def _block(self, block: nn.Module, h: Tensor, k_cache: Tensor, v_cache: Tensor, slot: Tensor, bias: Tensor):
-        attn, mlp = block.attn, block.mlp
-        q, k, v = attn.c_attn(block.ln_1(h)).view(3, self.nh, self.hs, 1).split(1, dim=0)  # (1, nh, hs, 1) each
+    def _attend(self, qkv: Tensor, k_cache: Tensor, v_cache: Tensor, slot: Tensor, bias: Tensor):
+        """``layers.window_attention_step`` over the ring: qkv (1, 3D) -> the heads' outputs (1, D)
+        and the new keys and values."""
+        q, k, v = qkv.view(3, self.nh, self.hs, 1).split(1, dim=0)  # (1, nh, hs, 1) each
         k_cache = torch.where(slot, k, k_cache)  # (1, nh, hs, W)
         v_cache = torch.where(slot, v, v_cache)
         scores = (q.transpose(-1, -2) @ k_cache) * (1.0 / math.sqrt(self.hs)) + bias  # (1, nh, 1, W)
         y = torch.softmax(scores, dim=-1) @ v_cache.transpose(-1, -2)  # (1, nh, 1, hs)
-        h = h + attn.c_proj(y.reshape(1, self.D))
-        h = h + mlp.c_proj(gelu_tanh_fusable(mlp.c_fc(block.ln_2(h))))
-        return h, k_cache, v_cache
+        return y.reshape(1, self.D), k_cache, v_cache
+
+
+class GPT2StepForm(_RingForm):
+    """GPT-2's step (``GPT2Model.step``) in the graph's form (the ring buffer of :class:`_RingForm`)."""
+
+    def __init__(self, model: nn.Module) -> None:
+        cfg = model.cfg
+        super().__init__(model, cfg.decode_chunk, cfg.n_head, cfg.n_embd, cfg.n_layer)
+        self.input_proj, self.head, self.ln_f = model.input_proj, model.head, model.ln_f
+        self.blocks = model.blocks
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        slot, bias, new = self._advance(state)
+        h = self.input_proj(z_t)  # (1, D)
+        for i, block in enumerate(self.blocks):
+            attn, mlp = block.attn, block.mlp
+            y, k_cache, v_cache = self._attend(
+                attn.c_attn(block.ln_1(h)), state[2 + 2 * i], state[3 + 2 * i], slot, bias
+            )
+            h = h + attn.c_proj(y)
+            h = h + mlp.c_proj(gelu_tanh_fusable(mlp.c_fc(block.ln_2(h))))
+            new += [k_cache, v_cache]
+        return self.ln_f(h), tuple(new)
+
+
+class FilterformerStepForm(_RingForm):
+    """Filterformer's step (``FilterformerModel.step`` / ``step_with_cov``) in the graph's form (the
+    ring buffer of :class:`_RingForm`, its one attention layer); the geometric-attention head as the
+    model's."""
+
+    def __init__(self, model: nn.Module) -> None:
+        cfg = model.cfg
+        super().__init__(model, cfg.window, cfg.n_head, cfg.d_model, 1)
+        self.input_proj, self.ln_1, self.attn = model.input_proj, model.ln_1, model.attn
+        self.ln_2, self.mlp, self.ln_f, self.head = model.ln_2, model.mlp, model.ln_f, model.head
+
+    def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        slot, bias, new = self._advance(state)
+        e = self.input_proj(z_t)  # (1, D)
+        y, k_cache, v_cache = self._attend(self.attn.qkv(self.ln_1(e)), state[2], state[3], slot, bias)
+        e = e + self.attn.proj(y)
+        fc1, fc2 = self.mlp[0], self.mlp[2]
+        e = e + fc2(F.gelu(fc1(self.ln_2(e))))
+        return self.ln_f(e), (*new, k_cache, v_cache)
+
+    def step(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
+        h, new = self.step_features(z_t, state)
+        return self.head.mean(h), new
+
+    def step_with_cov(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:
+        h, new = self.step_features(z_t, state)
+        mean, cov = self.head.moments(h)
+        return mean, cov, new
+
+    def mean_of(self, h: Tensor) -> Tensor:
+        return self.head.mean(h)

@@ -2,24 +2,23 @@
 
 At batch 1 a torch step costs the dispatch of every aten op (1.3-1.7 us each, 40-120 ops a step)
 on top of the arithmetic; ONNX Runtime runs the same graph with one call from Python. The graph is
-the model's own ``step`` traced at batch 1, or for Mamba, Mamba-2 and GPT-2 the same step in the
-form ONNX Runtime runs in fewer operators (their ``onnx_form()``,
+the model's own ``step`` traced at batch 1, or for Mamba, Mamba-2, GPT-2 and Filterformer the same
+step in the form ONNX Runtime runs in fewer operators (their ``onnx_form()``,
 :mod:`neural_estimator.models.onnx_forms`)::
 
     inputs:  z (1, d_in) float32 (normalised [y_k, u_{k-1}]), state_0 ... state_{S-1}
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
 with the state flattened in the traced step's order (GRU: h; LSTM: h, c; KalmanNet: its filter's
-memory, then the GRU's h; Filterformer: the (W,) slot mask and its one attention's (2, 1, nh, W, hs)
-keys and values; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state (N, E), no batch
-axis; GPT-2: the slots' ages (W,), the next slot (1,), then per layer the keys and the values of
-its ring buffer, (1, nh, hs, W) each). The graph owns its state: ``OrtStep`` keeps it between
-steps and nothing else reads it. The attention models serve a bounded key/value cache of the last W
-steps (their attention window, the ``context`` option), so their step graph has fixed shapes too;
-Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's covariance (normalised
-units), when exported with ``covariance``. A state that does not start at zeros (Filterformer's mask
-starts at -inf: no slot filled; GPT-2's ages at +inf) is recorded in the graph's metadata
-(``initial_fill``), which ``OrtStep`` resets to.
+memory, then the GRU's h; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state (N, E),
+no batch axis; GPT-2, Filterformer: the slots' ages (W,), the next slot (1,), then per attention
+layer the keys and the values of its ring buffer, (1, nh, hs, W) each). The graph owns its state:
+``OrtStep`` keeps it between steps and nothing else reads it. The attention models serve a bounded
+key/value cache of the last W steps (their attention window, the ``context`` option), so their step
+graph has fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's
+covariance (normalised units), when exported with ``covariance``. A state that does not start at
+zeros (the attention models' ages start at +inf: no slot written) is recorded in the graph's
+metadata (``initial_fill``), which ``OrtStep`` resets to.
 :func:`export_step` makes it from the loaded checkpoint (card + safetensors weights), so the export
 is reproducible from the card: the same weights give the same graph. ``OrtStep`` serves it; a test
 holds it equal to the torch step over hundreds of steps.
@@ -149,7 +148,7 @@ def export_step(
 
 def _step_form(model: Any) -> Any:
     """What is traced: the model's ``onnx_form()`` where its class has one (Mamba, Mamba-2, GPT-2,
-    and a covariance head's wrapper around them: :mod:`neural_estimator.models.onnx_forms`, the
+    Filterformer, and a covariance head's wrapper around them: :mod:`neural_estimator.models.onnx_forms`, the
     same step in fewer ONNX Runtime operators, with its own state layout), else the model itself.
     Looked up on the class: a wrapper that forwards unknown attributes to its trunk must define
     its own."""
