@@ -41,7 +41,7 @@ def test_step_form_equals_the_models_step(method, l96):
     1e-5 relative."""
     model = _model(l96, method, window=7 if method in ATTENTION else 0)
     form = model.onnx_form().eval()
-    assert type(form.trunk).__name__.endswith("StepForm") and form.cov_head is model.cov_head
+    assert type(form.trunk).__name__.endswith("StepForm") and type(form.cov_head).__name__ == "_CholeskyStepForm"
     gen = torch.Generator().manual_seed(3)
     a_state, b_state = model.init_state(1), form.init_state(1)
     worst = 0.0
@@ -62,7 +62,29 @@ def test_a_form_steps_one_stream_and_a_model_without_one_is_traced_itself(l96):
     with pytest.raises(NotImplementedError):
         form.features(torch.zeros(1, 3, form.input_proj.in_features))
     gru = _model(l96, "gru")
-    assert gru.onnx_form() is gru  # no form of its own: the GRU's graph is its step
+    assert gru.onnx_form().trunk is gru.trunk  # no form of its own: the GRU's graph is its step (and the head's form)
+
+
+def test_the_covariance_heads_step_form_equals_the_head():
+    """The head's form gives the head's covariance, the calibration scale and a correlation
+    shrinkage included, for read-outs that reach the clamp of the log-diagonal: 1e-6 relative."""
+    from neural_estimator.serving.uncertainty.heads import CholeskyHead
+
+    gen = torch.Generator().manual_seed(5)
+    head = CholeskyHead(12, 5)
+    with torch.no_grad():
+        head.linear.weight.copy_(torch.randn(head.linear.weight.shape, generator=gen) * 3.0)
+        head.linear.bias.copy_(torch.randn(head.linear.bias.shape, generator=gen))
+        head.unit.copy_(torch.rand(5, generator=gen) + 0.1)
+        head.scale.copy_(torch.rand(5, generator=gen) + 0.5)
+    for shrink in (0.0, 0.3):
+        head.shrink = shrink
+        form = head.onnx_form()
+        for _ in range(50):
+            h = torch.randn(1, 12, generator=gen) * 4.0
+            want, got = head(h), form(h)
+            assert got.dtype == want.dtype == torch.float64 and got.shape == want.shape == (1, 5, 5)
+            assert float((got - want).abs().max() / want.abs().max()) < 1e-6
 
 
 def test_step_form_export_is_reproducible(l96):
