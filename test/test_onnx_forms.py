@@ -115,14 +115,15 @@ def _optimized_ops(data: bytes, tmp_path) -> collections.Counter:
 def test_the_fusions_the_forms_are_written_for_fire(method, l96, tmp_path):
     """Each (RMS)LayerNorm is one operator, each GELU one (Gelu, GPT-2's tanh form FastGelu), each
     SiLU one QuickGelu; no reshaping operator is left in the SSM graphs, and the attention caches
-    are written with one Where per layer and tensor (no Slice or Concat copies them)."""
+    are written with one ScatterND per layer and tensor (no Slice, Concat or Where copies them)."""
     model = _model(l96, method).trunk
     ops = _optimized_ops(export_step(model, method), tmp_path)
     assert not ops["ReduceMean"] and not ops["Tanh"] and not ops["Erf"] and not ops["Sigmoid"], ops
     if method in ATTENTION:
         L = model.cfg.n_layer if method == "gpt2" else 1
         assert ops["LayerNormalization"] == 2 * L + 1 and ops["FastGelu" if method == "gpt2" else "Gelu"] == L, ops
-        assert ops["Where"] == 2 * L + 1 and not ops["Concat"] and not ops["Slice"], ops  # + the slots' ages
+        assert ops["ScatterND"] == 2 * L + 1, ops  # + the slots' ages
+        assert not ops["Concat"] and not ops["Slice"] and not ops["Where"], ops
         return
     L = model.cfg.n_layer
     norms = (2 if method == "mamba2" else 1) * L + 1  # Mamba-2's gated RMSNorm in every mixer too

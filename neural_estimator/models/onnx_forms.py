@@ -28,8 +28,9 @@ equal to ``step``) with these changes, none of which touches a trained weight's 
   x * sigmoid(x) (fused to QuickGelu), a linear layer plus the residual (fused to one Gemm).
 - **The attention window's cache as a ring buffer** (GPT-2, Filterformer). The model's cache is a
   shift register (every step copies the whole (2, nh, W, hs) cache one slot down, and the graph
-  copied it twice more to slice and split it); here each layer's keys and values are
-  written into slot t mod W of a (1, nh, hs, W) cache (one Where over the cache), and the ALiBi
+  copied it twice more to slice and split it); here each layer's keys and values are written into
+  slot t mod W of an (nh, W, hs) cache by one ScatterND (a copy of the cache and the write of the
+  new entries; a Where over the cache measured as slow as the copies it replaced), and the ALiBi
   bias follows each slot's age, kept as state: age' = 0 on the slot written, age + 1 elsewhere
   (+inf on slots never written), bias = -m_h * age (so -inf there), the very products the model
   computes (``layers.window_alibi`` plus the mask). The softmax sums the same W terms in slot
@@ -227,44 +228,64 @@ class Mamba2StepForm(_SSMForm):
         return h + F.linear(y, p.out_proj), conv, ssm
 
 
+class _ScatterND(torch.autograd.Function):
+    """``data`` with ``updates`` written at ``indices`` (ONNX ScatterND: indices (..., k) int64 index
+    data's first k axes; updates (..., *data.shape[k:])). Exported as the one ScatterND operator (a
+    copy of ``data`` and the write of the updates), which torch's indexed writes export as several."""
+
+    @staticmethod
+    def forward(ctx, data: Tensor, indices: Tensor, updates: Tensor) -> Tensor:  # noqa: ARG004 - autograd's signature
+        out = data.clone()
+        out[tuple(indices.unbind(-1))] = updates
+        return out
+
+    @staticmethod
+    def symbolic(g, data, indices, updates):
+        return g.op("ScatterND", data, indices, updates)
+
+
 class _RingForm(_StepForm):
     """An attention model's step over a ring buffer of the last W keys and values. State: the slots'
-    ages (W,) (+inf: never written), the next slot t (1,) (0..W-1), then per attention layer its
-    keys and its values, (1, nh, hs, W) each (zeros)."""
+    ages (W,) (+inf: never written), the next slot t (1, 1) (0..W-1), then per attention layer its
+    keys and its values, (nh, W, hs) each (zeros)."""
 
     def __init__(self, model: nn.Module, window: int, n_head: int, d_model: int, n_layers: int) -> None:
         super().__init__()
         self.W, self.nh, self.D, self.n_layers = int(window), int(n_head), int(d_model), int(n_layers)
         self.hs = self.D // self.nh
-        self.register_buffer("slots", torch.arange(self.W, dtype=torch.float32))  # (W,)
         self.register_buffer("neg_slopes", -_const(model.slopes).view(-1, 1, 1))  # (nh, 1, 1): -m_h
+        heads = torch.zeros(self.nh, 1, 2, dtype=torch.long)
+        heads[:, 0, 0] = torch.arange(self.nh)
+        self.register_buffer("heads", heads)  # (nh, 1, 2): [h, 0]
+        self.register_buffer("slot_axis", torch.tensor([0, 1], dtype=torch.long))  # t goes to [.., t]
 
     def init_state(self, batch: int = 1, device=None, dtype=None) -> tuple[Tensor, ...]:
         self._one_stream(batch)
-        dev, dt = device or self.slots.device, dtype or torch.float32
-        cache = (1, self.nh, self.hs, self.W)
-        state = [torch.full((self.W,), float("inf"), device=dev, dtype=dt), torch.zeros(1, device=dev, dtype=dt)]
+        dev, dt = device or self.heads.device, dtype or torch.float32
+        cache = (self.nh, self.W, self.hs)
+        state = [torch.full((self.W,), float("inf"), device=dev, dtype=dt), torch.zeros(1, 1, device=dev, dtype=dt)]
         for _ in range(self.n_layers):
             state += [torch.zeros(cache, device=dev, dtype=dt), torch.zeros(cache, device=dev, dtype=dt)]
         return tuple(state)
 
     def _advance(self, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, list[Tensor]]:
-        """This step's slot (W,) bool, the ALiBi bias of the slots once it is written (nh, 1, W), and
-        the new ages and next slot."""
+        """This step's [head, slot] write indices (nh, 1, 2), the ALiBi bias of the slots once the
+        slot is written (nh, 1, W), and the new ages and next slot."""
         age, t = state[0], state[1]
-        slot = self.slots == t  # (W,): the slot this step's key and value go to
-        age = torch.where(slot, 0.0, age + 1.0)  # steps since each slot was written
+        slot = t.long()  # (1, 1)
+        age = _ScatterND.apply(age + 1.0, slot, torch.zeros_like(age[:1]))  # steps since each slot was written
         bias = self.neg_slopes * age  # (nh, 1, W): -m_h * age, -inf on slots never written
-        return slot, bias, [age, torch.fmod(t + 1.0, float(self.W))]
+        where = self.heads + slot * self.slot_axis  # (nh, 1, 2)
+        return where, bias, [age, torch.fmod(t + 1.0, float(self.W))]
 
-    def _attend(self, qkv: Tensor, k_cache: Tensor, v_cache: Tensor, slot: Tensor, bias: Tensor):
+    def _attend(self, qkv: Tensor, k_cache: Tensor, v_cache: Tensor, where: Tensor, bias: Tensor):
         """``layers.window_attention_step`` over the ring: qkv (1, 3D) -> the heads' outputs (1, D)
         and the new keys and values."""
-        q, k, v = qkv.view(3, self.nh, self.hs, 1).split(1, dim=0)  # (1, nh, hs, 1) each
-        k_cache = torch.where(slot, k, k_cache)  # (1, nh, hs, W)
-        v_cache = torch.where(slot, v, v_cache)
-        scores = (q.transpose(-1, -2) @ k_cache) * (1.0 / math.sqrt(self.hs)) + bias  # (1, nh, 1, W)
-        y = torch.softmax(scores, dim=-1) @ v_cache.transpose(-1, -2)  # (1, nh, 1, hs)
+        q, k, v = qkv.view(3 * self.nh, 1, self.hs).split(self.nh, dim=0)  # (nh, 1, hs) each
+        k_cache = _ScatterND.apply(k_cache, where, k)  # (nh, W, hs)
+        v_cache = _ScatterND.apply(v_cache, where, v)
+        scores = (q @ k_cache.transpose(-1, -2)) * (1.0 / math.sqrt(self.hs)) + bias  # (nh, 1, W)
+        y = torch.softmax(scores, dim=-1) @ v_cache  # (nh, 1, hs)
         return y.reshape(1, self.D), k_cache, v_cache
 
 
@@ -278,12 +299,12 @@ class GPT2StepForm(_RingForm):
         self.blocks = model.blocks
 
     def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
-        slot, bias, new = self._advance(state)
+        where, bias, new = self._advance(state)
         h = self.input_proj(z_t)  # (1, D)
         for i, block in enumerate(self.blocks):
             attn, mlp = block.attn, block.mlp
             y, k_cache, v_cache = self._attend(
-                attn.c_attn(block.ln_1(h)), state[2 + 2 * i], state[3 + 2 * i], slot, bias
+                attn.c_attn(block.ln_1(h)), state[2 + 2 * i], state[3 + 2 * i], where, bias
             )
             h = h + attn.c_proj(y)
             h = h + mlp.c_proj(gelu_tanh_fusable(mlp.c_fc(block.ln_2(h))))
@@ -303,9 +324,9 @@ class FilterformerStepForm(_RingForm):
         self.ln_2, self.mlp, self.ln_f, self.head = model.ln_2, model.mlp, model.ln_f, model.head
 
     def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
-        slot, bias, new = self._advance(state)
+        where, bias, new = self._advance(state)
         e = self.input_proj(z_t)  # (1, D)
-        y, k_cache, v_cache = self._attend(self.attn.qkv(self.ln_1(e)), state[2], state[3], slot, bias)
+        y, k_cache, v_cache = self._attend(self.attn.qkv(self.ln_1(e)), state[2], state[3], where, bias)
         e = e + self.attn.proj(y)
         fc1, fc2 = self.mlp[0], self.mlp[2]
         e = e + fc2(F.gelu(fc1(self.ln_2(e))))

@@ -11,8 +11,8 @@ step in the form ONNX Runtime runs in fewer operators (their ``onnx_form()``,
 
 with the state flattened in the traced step's order (GRU: h; LSTM: h, c; KalmanNet: its filter's
 memory, then the GRU's h; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state (N, E),
-no batch axis; GPT-2, Filterformer: the slots' ages (W,), the next slot (1,), then per attention
-layer the keys and the values of its ring buffer, (1, nh, hs, W) each). The graph owns its state:
+no batch axis; GPT-2, Filterformer: the slots' ages (W,), the next slot (1, 1), then per attention
+layer the keys and the values of its ring buffer, (nh, W, hs) each). The graph owns its state:
 ``OrtStep`` keeps it between steps and nothing else reads it. The attention models serve a bounded
 key/value cache of the last W steps (their attention window, the ``context`` option), so their step
 graph has fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's
