@@ -82,7 +82,8 @@ def test_the_covariance_heads_step_form_equals_the_head():
         form = head.onnx_form()
         for _ in range(50):
             h = torch.randn(1, 12, generator=gen) * 4.0
-            want, got = head(h), form(h)
+            with torch.no_grad():
+                want, got = head(h), form(h)
             assert got.dtype == want.dtype == torch.float64 and got.shape == want.shape == (1, 5, 5)
             assert float((got - want).abs().max() / want.abs().max()) < 1e-6
 
@@ -114,8 +115,9 @@ def _optimized_ops(data: bytes, tmp_path) -> collections.Counter:
 @pytest.mark.parametrize("method", FORMS)
 def test_the_fusions_the_forms_are_written_for_fire(method, l96, tmp_path):
     """Each (RMS)LayerNorm is one operator, each GELU one (Gelu, GPT-2's tanh form FastGelu), each
-    SiLU one QuickGelu; no reshaping operator is left in the SSM graphs, and the attention caches
-    are written with one ScatterND per layer and tensor (no Slice, Concat or Where copies them)."""
+    SiLU one QuickGelu; no transposing or gathering operator is left in the SSM graphs, and the
+    attention caches are written with one ScatterND per layer and tensor (no Slice, Concat or Where
+    copies them)."""
     model = _model(l96, method).trunk
     ops = _optimized_ops(export_step(model, method), tmp_path)
     assert not ops["ReduceMean"] and not ops["Tanh"] and not ops["Erf"] and not ops["Sigmoid"], ops
@@ -128,7 +130,9 @@ def test_the_fusions_the_forms_are_written_for_fire(method, l96, tmp_path):
     L = model.cfg.n_layer
     norms = (2 if method == "mamba2" else 1) * L + 1  # Mamba-2's gated RMSNorm in every mixer too
     assert ops["SimplifiedLayerNormalization"] == norms and ops["QuickGelu"] == 2 * L, ops
-    assert not any(ops[op] for op in ("Reshape", "Unsqueeze", "Squeeze", "Transpose", "Gather")), ops
+    assert not any(ops[op] for op in ("Unsqueeze", "Squeeze", "Transpose", "Gather")), ops
+    if method == "mamba":  # (Mamba-2 views its state as (H, P N) and (E, N): Reshapes that copy nothing)
+        assert not ops["Reshape"], ops
     assert ops["Concat"] == L and ops["Slice"] == L, ops  # the conv window's shift, once a layer
 
 

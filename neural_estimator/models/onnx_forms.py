@@ -182,25 +182,31 @@ class MambaStepForm(_SSMForm):
 
 class Mamba2StepForm(_SSMForm):
     """Mamba-2's step (``Mamba2Mixer.step`` in each layer) in the graph's form; state per layer: the
-    conv window (K, E + 2N) and the SSM state (N, E) (mamba_ssm's (H, P, N) as (E, N), transposed),
-    zeros. The heads' delta, decay and skip are repeated over their P channels."""
+    conv window (K, E + 2N) and the SSM state as (H, P N) (mamba_ssm's (H, P, N), zeros). A head's
+    scalar decay exp(delta_h A_h) scales its row of (H, P N) (a broadcast over whole rows, twice as
+    fast in ONNX Runtime as one over the columns of (N, E)); the same state viewed as (E, N) takes
+    the input's outer product and gives the read-out, as two Gemms:
+
+        S' = dA_h * S + (delta_h x)^T b,     y = c S'^T + D * x     (1, E)
+
+    softplus (slow in ONNX Runtime) runs on the H heads only."""
 
     def _dims(self, mixer: nn.Module) -> None:
-        self.E, self.N, self.K, self.P = mixer.d_inner, mixer.d_state, mixer.d_conv, mixer.headdim
+        self.E, self.N, self.K = mixer.d_inner, mixer.d_state, mixer.d_conv
+        self.H, self.P = mixer.nheads, mixer.headdim
 
     def _layer(self, block: nn.Module) -> nn.Module:
         m = block.mixer
         E, N, P = self.E, self.N, self.P
-        w = m.in_proj.weight.detach()  # (2E + 2N + H, d): [g, x, b, c, dt]
-        per_channel = lambda t: t.detach().repeat_interleave(P, dim=0)  # noqa: E731 - head h -> its P channels
+        w = m.in_proj.weight  # (2E + 2N + H, d): [g, x, b, c, dt]
         return _params(
             norm=block.norm.weight,
-            in_proj=torch.cat((w[: 2 * E + 2 * N], per_channel(w[2 * E + 2 * N :]))),  # (3E + 2N, d)
-            in_bias=torch.cat((w.new_zeros(2 * E + 2 * N), per_channel(m.dt_bias))),  # dt_bias on the dt rows
+            in_proj=w,
+            in_bias=torch.cat((w.new_zeros(2 * E + 2 * N), m.dt_bias.detach())),  # dt_bias on the dt rows
             conv_w=m.conv1d.weight[:, 0].t(),  # (K, E + 2N)
             conv_b=m.conv1d.bias.view(1, -1),
-            A=per_channel(-torch.exp(m.A_log.detach())).view(1, -1),  # (1, E)
-            D=per_channel(m.D).view(1, -1),
+            A=-torch.exp(m.A_log.detach()).view(1, -1),  # (1, H)
+            D=m.D.detach().repeat_interleave(P).view(1, -1),  # (1, E): each head's D on its P channels
             gate_norm=m.norm.weight,
             out_proj=m.out_proj.weight,
         )
@@ -211,21 +217,26 @@ class Mamba2StepForm(_SSMForm):
         C = self.E + 2 * self.N
         state: list[Tensor] = []
         for _ in self.layers:
-            state += [torch.zeros(self.K, C, device=dev, dtype=dt), torch.zeros(self.N, self.E, device=dev, dtype=dt)]
+            state += [
+                torch.zeros(self.K, C, device=dev, dtype=dt),
+                torch.zeros(self.H, self.P * self.N, device=dev, dtype=dt),
+            ]
         return tuple(state)
 
     def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        E, N = self.E, self.N
+        E, N, H, P = self.E, self.N, self.H, self.P
         g, xbc, dt = F.linear(rms_norm_fusable(h, p.norm, self.eps), p.in_proj, p.in_bias).split(
-            [E, E + 2 * N, E], dim=-1
-        )  # (1, E), (1, E + 2N), (1, E): dt + dt_bias, per channel
+            [E, E + 2 * N, H], dim=-1
+        )  # (1, E), (1, E + 2N), (1, H): dt + dt_bias
         conv, xbc = self._conv(p, conv, xbc)  # (K, E + 2N), (1, E + 2N)
         x, b, c = xbc.split([E, N, N], dim=-1)
-        delta = F.softplus(dt)  # (1, E)
-        ssm = ssm * torch.exp(delta * p.A) + b.t() @ (delta * x)  # (N, E)
-        y = c @ ssm + p.D * x  # (1, E)
+        delta = F.softplus(dt)  # (1, H)
+        decay = torch.exp(delta * p.A).view(H, 1)  # (H, 1)
+        dx = (x.view(H, P) * delta.view(H, 1)).view(1, E)  # delta_h x, (1, E)
+        ssm = torch.addmm((ssm * decay).view(E, N), dx.t(), b)  # (E, N)
+        y = torch.addmm(p.D * x, c, ssm.t())  # (1, E)
         y = rms_norm_fusable(y * F.silu(g), p.gate_norm, self.eps)  # the gated RMSNorm, norm after gate
-        return h + F.linear(y, p.out_proj), conv, ssm
+        return h + F.linear(y, p.out_proj), conv, ssm.view(H, P * N)
 
 
 class _ScatterND(torch.autograd.Function):
@@ -246,8 +257,9 @@ class _ScatterND(torch.autograd.Function):
 
 class _RingForm(_StepForm):
     """An attention model's step over a ring buffer of the last W keys and values. State: the slots'
-    ages (W,) (+inf: never written), the next slot t (1, 1) (0..W-1), then per attention layer its
-    keys and its values, (nh, W, hs) each (zeros)."""
+    ages (W,) (+inf: never written), then per attention layer its keys and its values, (nh, W, hs)
+    each (zeros). The slot written is the oldest, the first of the largest age (ArgMax): slot
+    t mod W at step t, as the model's shift register drops its oldest entry."""
 
     def __init__(self, model: nn.Module, window: int, n_head: int, d_model: int, n_layers: int) -> None:
         super().__init__()
@@ -263,20 +275,20 @@ class _RingForm(_StepForm):
         self._one_stream(batch)
         dev, dt = device or self.heads.device, dtype or torch.float32
         cache = (self.nh, self.W, self.hs)
-        state = [torch.full((self.W,), float("inf"), device=dev, dtype=dt), torch.zeros(1, 1, device=dev, dtype=dt)]
+        state = [torch.full((self.W,), float("inf"), device=dev, dtype=dt)]
         for _ in range(self.n_layers):
             state += [torch.zeros(cache, device=dev, dtype=dt), torch.zeros(cache, device=dev, dtype=dt)]
         return tuple(state)
 
     def _advance(self, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, list[Tensor]]:
         """This step's [head, slot] write indices (nh, 1, 2), the ALiBi bias of the slots once the
-        slot is written (nh, 1, W), and the new ages and next slot."""
-        age, t = state[0], state[1]
-        slot = t.long()  # (1, 1)
+        slot is written (nh, 1, W), and the new ages."""
+        age = state[0]
+        slot = age.argmax(0, keepdim=True).view(1, 1)  # the oldest slot (the first never written at first)
         age = _ScatterND.apply(age + 1.0, slot, torch.zeros_like(age[:1]))  # steps since each slot was written
         bias = self.neg_slopes * age  # (nh, 1, W): -m_h * age, -inf on slots never written
         where = self.heads + slot * self.slot_axis  # (nh, 1, 2)
-        return where, bias, [age, torch.fmod(t + 1.0, float(self.W))]
+        return where, bias, [age]
 
     def _attend(self, qkv: Tensor, k_cache: Tensor, v_cache: Tensor, where: Tensor, bias: Tensor):
         """``layers.window_attention_step`` over the ring: qkv (1, 3D) -> the heads' outputs (1, D)
@@ -304,7 +316,7 @@ class GPT2StepForm(_RingForm):
         for i, block in enumerate(self.blocks):
             attn, mlp = block.attn, block.mlp
             y, k_cache, v_cache = self._attend(
-                attn.c_attn(block.ln_1(h)), state[2 + 2 * i], state[3 + 2 * i], where, bias
+                attn.c_attn(block.ln_1(h)), state[1 + 2 * i], state[2 + 2 * i], where, bias
             )
             h = h + attn.c_proj(y)
             h = h + mlp.c_proj(gelu_tanh_fusable(mlp.c_fc(block.ln_2(h))))
@@ -326,7 +338,7 @@ class FilterformerStepForm(_RingForm):
     def step_features(self, z_t: Tensor, state: tuple[Tensor, ...]) -> tuple[Tensor, tuple[Tensor, ...]]:
         where, bias, new = self._advance(state)
         e = self.input_proj(z_t)  # (1, D)
-        y, k_cache, v_cache = self._attend(self.attn.qkv(self.ln_1(e)), state[2], state[3], where, bias)
+        y, k_cache, v_cache = self._attend(self.attn.qkv(self.ln_1(e)), state[1], state[2], where, bias)
         e = e + self.attn.proj(y)
         fc1, fc2 = self.mlp[0], self.mlp[2]
         e = e + fc2(F.gelu(fc1(self.ln_2(e))))
