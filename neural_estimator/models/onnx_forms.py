@@ -9,9 +9,10 @@ compute the same step for one stream (the same products and sums, in float32; th
 equal to ``step``) with these changes, none of which touches a trained weight's value:
 
 - **Row vectors and transposed states.** Every activation is a (1, n) row; the state of each SSM
-  layer is held without the batch axis and transposed: the conv window as (K, C) (newest row last)
-  and the SSM state as (N, E). Then the discretised update and the read-out are products of rows
-  and the state with no reshape: with u, delta rows (1, E), b, c rows (1, N),
+  layer is held without the batch axis: the conv window as (K, C) (newest row last) and Mamba's SSM
+  state as (N, E) (Mamba-2's: :class:`Mamba2StepForm`). Then the discretised update and the
+  read-out are products of rows and the state with no reshape: with u, delta rows (1, E), b, c rows
+  (1, N),
 
       S' = S * exp(delta * A^T) + b^T (delta * u)      (N, E): b^T (delta u) is a (N,1)(1,E) product
       y  = c S' + D * u                                  (1, E)
@@ -183,9 +184,9 @@ class MambaStepForm(_SSMForm):
 class Mamba2StepForm(_SSMForm):
     """Mamba-2's step (``Mamba2Mixer.step`` in each layer) in the graph's form; state per layer: the
     conv window (K, E + 2N) and the SSM state as (H, P N) (mamba_ssm's (H, P, N), zeros). A head's
-    scalar decay exp(delta_h A_h) scales its row of (H, P N) (a broadcast over whole rows, twice as
-    fast in ONNX Runtime as one over the columns of (N, E)); the same state viewed as (E, N) takes
-    the input's outer product and gives the read-out, as two Gemms:
+    scalar decay exp(delta_h A_h) scales its row of (H, P N) (one value over each contiguous row:
+    1.2 us in ONNX Runtime against 2.1 us for the per-channel decay over (N, E) measured alike); the
+    same state viewed as (E, N) takes the input's outer product and gives the read-out, as two Gemms:
 
         S' = dA_h * S + (delta_h x)^T b,     y = c S'^T + D * x     (1, E)
 
