@@ -15,6 +15,9 @@ the ``context`` option), so their step graph has fixed shapes too; Filterformer'
 ``cov`` (1, d_out, d_out), its head's covariance (normalised units), when exported with
 ``covariance``. A state that does not start at zeros (the attention models' mask starts at -inf: no
 slot filled) is recorded in the graph's metadata (``initial_fill``), which ``OrtStep`` resets to.
+A recurrent model served with a bounded context (K restarted copies, :mod:`neural_estimator.serving.context`)
+exports the step of its K copies as one batch of K rows, with the served copy's index as an input
+(``export_step(copies=(L, K))``); ``OrtStep`` restarts the copies' rows between steps.
 :func:`export_step` makes it from the loaded checkpoint (card + safetensors weights), so the export
 is reproducible from the card: the same weights give the same graph. ``OrtStep`` serves it; a test
 holds it equal to the torch step over hundreds of steps.
