@@ -159,9 +159,8 @@ def load_neural_estimator(
             when only ``context`` is given.
         backend: ``torch`` or ``onnxruntime``: ``step`` runs the model's step exported to ONNX
             (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 unbounded or with
-            their restarted copies as one batch, GPT-2 and Filterformer with their window). Where
-            the checkpoint directory holds
-            ``step.onnx`` (written by ``train``, shipped beside the zoo models, or
+            their restarted copies as one batch, GPT-2 and Filterformer with their window). Where the
+            checkpoint directory holds ``step.onnx`` (written by ``train``, shipped beside the zoo models, or
             ``scripts/export_onnx.py --beside``) that graph is served without torch
             (:class:`~neural_estimator.serving.onnx_runtime.OnnxEstimator`, batch 1, ``run`` a loop of
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
