@@ -54,6 +54,15 @@ def _flatten(state: Any) -> list:
     return list(state) if isinstance(state, (tuple, list)) else [state]
 
 
+def state_batch_dims(model: Any, device: Any = None, dtype: Any = None) -> list[int]:
+    """Each tensor of the model's step state (one tensor or a tuple), its batch axis: the axis where
+    ``init_state(1)`` and ``init_state(2)`` differ (the models keep the batch on different axes).
+    The exported copies' graph records them (``copy_dims``); torch's restarted copies use them too."""
+    one = _flatten(model.init_state(1, device=device, dtype=dtype))
+    two = _flatten(model.init_state(2, device=device, dtype=dtype))
+    return [next(d for d in range(a.dim()) if a.shape[d] != b.shape[d]) for a, b in zip(one, two)]
+
+
 def _starting_fills(method: str, flat: list) -> list[float]:
     """The state's starting values: one constant per tensor (zeros, or the mask's -inf)."""
     fills = []
@@ -137,7 +146,7 @@ def export_step(
         bounded = {
             "context": str(int(copies[0])),
             "context_copies": str(int(copies[1])),
-            "copy_dims": json.dumps(_batch_dims(model, p.device)),
+            "copy_dims": json.dumps(state_batch_dims(model, p.device, torch.float32)),
         }
     elif normalizer is None:
         step, args, names_in, names_out = _network_module(model, network, flat, with_cov, d_in)
@@ -213,16 +222,6 @@ def _network_module(model: Any, network, flat: list, with_cov: bool, d_in: int) 
 
     args: tuple = (torch.zeros(1, d_in), *flat)
     return Step(), args, ["z"], ["mean"] + (["cov"] if with_cov else [])
-
-
-def _batch_dims(model: Any, device: Any) -> list[int]:
-    """Each state tensor's batch axis: the one where ``init_state(1)`` and ``init_state(2)`` differ
-    (as :class:`~neural_estimator.serving.context.BatchedCopies` finds it)."""
-    import torch
-
-    one = _flatten(model.init_state(1, device=device, dtype=torch.float32))
-    two = _flatten(model.init_state(2, device=device, dtype=torch.float32))
-    return [next(d for d in range(a.dim()) if a.shape[d] != b.shape[d]) for a, b in zip(one, two)]
 
 
 def _bounded_module(model: Any, flat: list, structured: bool, with_cov: bool, d_in: int, copies: int) -> tuple:

@@ -86,12 +86,10 @@ class BatchedCopies:
 
     def __init__(self, model: nn.Module, length: int, copies: int, batch: int, device, dtype) -> None:
         self.model, self.length, self.copies, self.batch = model, int(length), int(copies), int(batch)
+        from neural_estimator.models.onnx_step import state_batch_dims
+
         self.offsets = copy_offsets(self.length, self.copies)
-        one, two = (
-            _tensors(model.init_state(1, device=device, dtype=dtype)),
-            _tensors(model.init_state(2, device=device, dtype=dtype)),
-        )
-        self.dims = [next(d for d in range(a.dim()) if a.shape[d] != b.shape[d]) for a, b in zip(one, two)]
+        self.dims = state_batch_dims(model, device, dtype)
         self.fresh = _tensors(model.init_state(self.batch, device=device, dtype=dtype))
         self.state = model.init_state(self.copies * self.batch, device=device, dtype=dtype)
 
