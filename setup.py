@@ -32,6 +32,7 @@ setup(
             "serving/zoo/*/*.onnx",
             "serving/zoo/instances/*/*/*.safetensors",
             "serving/zoo/instances/*/*/*.json",
+            "serving/zoo/instances/*/*/*.onnx",
             "serving/zoo/variants/*/*/*.safetensors",  # e.g. variants/observations/<pair>/: trained without states
             "serving/zoo/variants/*/*/*.json",
             "serving/zoo/variants/*/*/*.onnx",

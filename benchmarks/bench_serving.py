@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_serving.py                        # lorenz96 zoo, all six models
     .venv/bin/python benchmarks/bench_serving.py --scenario bearings --methods gru mamba --core 0
+    .venv/bin/python benchmarks/bench_serving.py --scenario bearings --methods gru lstm --context card
 
 For every shipped model of the scenario (the paper's sizes), in one process, in interleaved rounds
 (so that a busy machine slows every column alike):
@@ -23,6 +24,14 @@ For every shipped model of the scenario (the paper's sizes), in one process, in 
   ``ORT / limit`` is the ORT step over it;
 - ``nodes``: the operators ONNX Runtime runs per step, after its graph optimisations (the graph it
   serves, then the model's own step traced), read back from the optimised model it writes.
+
+``--context 0`` (the default) serves every model with an unbounded context (attention models: the
+paper's window); ``--context card`` serves each as its card validated it, as the nodes do: a GRU
+validated with a bounded context (the ballistic and bearings zoo GRUs: L = 100, K = 4 restarted
+copies) steps its K copies as one batch of K rows, torch's ``BatchedCopies`` in the torch columns
+(``torch step``: the copies' step with their restarts, no covariance head) and the copies' graph
+in the ORT columns (``ORT step`` restarts the copies' rows in numpy, ``ORT run()`` leaves the
+restarts out); its GEMV limit is then K times the model's.
 
 p50 and p99 of the wall clock, microseconds. ``--core N`` pins the process to one core. The load
 average is printed before and after: on a shared machine, compare the columns of one run only.
@@ -108,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=2000, help="measured steps per column")
     ap.add_argument("--rounds", type=int, default=10, help="interleaved rounds (steps split among them)")
     ap.add_argument("--core", type=int, default=-1, help="pin to this core (-1: no pinning)")
+    ap.add_argument(
+        "--context", choices=["0", "card"], default="0", help="0: unbounded; card: as each card validated it"
+    )
     a = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
     if a.core >= 0:
@@ -137,78 +149,107 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "| model | params | GEMV limit | nodes (own step) | "
         + " | ".join(f"{h} p50 / p99" for h in heads)
-        + " | ORT / limit | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step |"
+        + " | ORT / limit | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step"
+        + " | node (torch) / node (ORT) |"
     )
-    print("|---|---:|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|")
-    per_round = max(1, a.steps // a.rounds)
+    print("|---|---:|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|---:|")
+    context = {"context": 0} if a.context == "0" else {}  # {}: the card's
     for m in a.methods:
-        est_t = load_neural_estimator(m, scen, context=0)
-        est_o = load_neural_estimator(m, scen, context=0, backend="onnxruntime")
-        from neural_estimator.models.onnx_step import export_step
-        from neural_estimator.serving.onnx_runtime import OrtStep
-
-        graph = export_step(est_t.model, m)  # the network alone, as the torch step column
-        own_graph = export_step(own_step(est_t.model), m)
-        nodes = f"{optimized_nodes(graph)} ({optimized_nodes(own_graph)})"
-        ort = OrtStep(graph)
-        ort_own = OrtStep(own_graph)
-        plain = OrtStep(graph).session
-        names_out = [o.name for o in plain.get_outputs()]
-        feed = {i.name: np.zeros([int(d) for d in i.shape], dtype=np.float32) for i in plain.get_inputs()}
-        model = est_t.model
-        params = count_parameters(model)
-        limit = 2 * params / rate * 1e6
-        times: dict[str, list[float]] = {h: [] for h in heads}
-        z32 = [est_t.normalizer.normalize_inputs(Y[k : k + 1], U[k : k + 1])[0].astype(np.float32) for k in range(1000)]
-        with torch.inference_mode():
-            state = model.init_state(1)
-        est_t.reset(1)
-        est_o.reset(1)
-        k = 0
-        for r in range(a.rounds + 1):  # round 0 warms up
-            keep = r > 0
-            for h in heads:
-                out = times[h]
-                for i in range(per_round):
-                    j = (k + i) % 1000
-                    if h == "torch step":
-                        zt = torch.from_numpy(z32[j])
-                        t0 = time.perf_counter()
-                        with torch.inference_mode():
-                            _, state = model.step(zt, state)
-                        dt = time.perf_counter() - t0
-                    elif h in ("ORT step", "ORT own step"):
-                        step = ort if h == "ORT step" else ort_own
-                        t0 = time.perf_counter()
-                        step.step(z32[j])
-                        dt = time.perf_counter() - t0
-                    elif h == "ORT run()":
-                        t0 = time.perf_counter()
-                        feed["z"] = z32[j]
-                        res = plain.run(names_out, feed)
-                        for i, name in enumerate(names_out[1:], 1):
-                            feed[name.replace("new_", "")] = res[i]
-                        dt = time.perf_counter() - t0
-                    else:
-                        est = est_t if h == "node (torch)" else est_o
-                        y, u = Y[j : j + 1], U[j : j + 1]
-                        t0 = time.perf_counter()
-                        est.step(y, u)
-                        dt = time.perf_counter() - t0
-                    if keep:
-                        out.append(dt)
-            k += per_round
+        est_t = load_neural_estimator(m, scen, **context)
+        est_o = load_neural_estimator(m, scen, backend="onnxruntime", **context)
+        steps, copies, nodes = _columns(m, est_t, est_o, Y, U)
+        params = count_parameters(est_t.model)
+        limit = 2 * params * (copies[1] if copies else 1) / rate * 1e6
+        if copies:
+            print(f"{m}: context bounded to {copies[0]} steps, {copies[1]} copies as one batch", flush=True)
+        times = _interleaved(steps, heads, a.rounds, max(1, a.steps // a.rounds))
         p = {h: pct(v) for h, v in times.items()}
         wrapper = p["node (ORT)"][0] - p["ORT step"][0]
         cells = " | ".join(f"{p[h][0]:.1f} / {p[h][1]:.1f}" for h in heads)
         print(
             f"| {m} | {params:,} | {limit:.1f} | {nodes} | {cells} | {p['ORT step'][0] / limit:.1f}x | {wrapper:.1f} | "
             f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (ORT)'][0] / p['ORT run()'][0]:.2f}x | "
-            f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x |",
+            f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x | {p['node (torch)'][0] / p['node (ORT)'][0]:.2f}x |",
             flush=True,
         )
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end (microseconds, wall clock)")
     return 0
+
+
+def _columns(m: str, est_t, est_o, Y: np.ndarray, U: np.ndarray) -> tuple[dict, tuple[int, int] | None, str]:
+    """The timed call of every column, each a function of the step index j (numpy inputs Y, U), the
+    bounded context (L, K) where the card's is one (else None), and the optimised operator counts
+    (the served graph's, then the model's own step traced)."""
+    import torch
+
+    from neural_estimator.models.onnx_step import export_step
+    from neural_estimator.serving.context import BatchedCopies
+    from neural_estimator.serving.onnx_runtime import OrtStep
+
+    model = est_t.model
+    copies = (est_t.context, est_t.context_copies) if est_t.context_by_copies else None
+    graph = export_step(model, m, copies=copies)  # the network alone, as the torch step column
+    has_form = getattr(type(model), "onnx_form", None) is not None
+    own_graph = export_step(own_step(model), m, copies=copies) if has_form else graph
+    nodes = f"{optimized_nodes(graph)} ({optimized_nodes(own_graph)})"
+    ort = OrtStep(graph)
+    ort_own = OrtStep(own_graph)
+    plain = OrtStep(graph).session
+    names_out = [o.name for o in plain.get_outputs()]
+    dtypes = {"tensor(int64)": np.int64}
+    feed = {
+        i.name: np.zeros([int(d) for d in i.shape], dtype=dtypes.get(i.type, np.float32)) for i in plain.get_inputs()
+    }
+    z32 = [est_t.normalizer.normalize_inputs(Y[k : k + 1], U[k : k + 1])[0].astype(np.float32) for k in range(len(Y))]
+    with torch.inference_mode():
+        state = [model.init_state(1)]
+        batched = BatchedCopies(model, copies[0], copies[1], 1, "cpu", torch.float32) if copies else None
+    est_t.reset(1)
+    est_o.reset(1)
+    clock = [0]  # the copies' step count
+
+    def torch_step(j: int) -> None:
+        zt = torch.from_numpy(z32[j])
+        with torch.inference_mode():
+            if batched is None:
+                _, state[0] = model.step(zt, state[0])
+            else:
+                batched.step(zt, clock[0], model.step)
+                clock[0] += 1
+
+    def ort_run(j: int) -> None:
+        feed["z"] = z32[j]
+        res = plain.run(names_out, feed)
+        for i, name in enumerate(names_out[1:], 1):
+            feed[name.replace("new_", "")] = res[i]
+
+    steps = {
+        "torch step": torch_step,
+        "node (torch)": lambda j: est_t.step(Y[j : j + 1], U[j : j + 1]),
+        "ORT step": lambda j: ort.step(z32[j]),
+        "ORT own step": lambda j: ort_own.step(z32[j]),
+        "ORT run()": ort_run,
+        "node (ORT)": lambda j: est_o.step(Y[j : j + 1], U[j : j + 1]),
+    }
+    return steps, copies, nodes
+
+
+def _interleaved(steps: dict, heads: list[str], rounds: int, per_round: int) -> dict[str, list[float]]:
+    """Wall-clock seconds of every column's calls, in interleaved rounds (round 0 warms up)."""
+    times: dict[str, list[float]] = {h: [] for h in heads}
+    k, n = 0, 1000
+    for r in range(rounds + 1):
+        for h in heads:
+            call, out = steps[h], times[h]
+            for i in range(per_round):
+                j = (k + i) % n
+                t0 = time.perf_counter()
+                call(j)
+                dt = time.perf_counter() - t0
+                if r > 0:
+                    out.append(dt)
+        k += per_round
+    return times
 
 
 if __name__ == "__main__":

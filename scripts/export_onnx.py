@@ -10,8 +10,11 @@ this itself when it saves a model, and the zoo ships them): there the per-messag
 estimator nodes and replay, backend ``auto``) serve it with numpy and onnxruntime only, without
 importing torch (docs/performance.md, "Serving without torch"). GPT-2 and Filterformer are
 exported with the attention window they serve with (the card's validation context, or ``--context``):
-their key/value cache of the last W steps is the graph's state. The covariance head's covariance
-(or Filterformer's own) is a graph output.
+their key/value cache of the last W steps is the graph's state. A recurrent model validated with a
+bounded context (the card's ``val_context``: L steps, K restarted copies) is exported ``--beside``
+as the step of its K copies as one batch (the server restarts the copies' rows); ``--out``
+exports its unbounded step. The covariance head's covariance (or Filterformer's own) is a graph
+output.
 
 The graph is made from the checkpoint (card + safetensors weights) by
 :func:`neural_estimator.models.onnx_step.export_step`: the same checkpoint gives the same bytes. By
@@ -92,13 +95,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _why_torch(directory: Path) -> str:
-    """Why ``export_beside`` wrote no graph for ``directory`` (a bounded context, or a hybrid's system
-    without an ONNX form), with the way out where there is one."""
+    """Why ``export_beside`` wrote no graph for ``directory`` (a hybrid's system without an ONNX form)."""
     _, card = read_card(directory)
     est = load_neural_estimator(card["method"], scenario_from_description(card["scenario"]), directory)
-    reason = torch_only_reason(est) or "its step is not exported"
-    hint = "; --context 0 --out FILE exports the unbounded step" if est.context_by_copies else ""
-    return reason + hint
+    return torch_only_reason(est) or "its step is not exported"
 
 
 if __name__ == "__main__":

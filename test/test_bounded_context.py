@@ -30,6 +30,41 @@ def test_every_step_sees_at_most_length_steps_and_nearly_that_many(length, copie
             assert t - s + 1 >= length - -(-length // copies) + 1  # at least L - ceil(L / K) + 1 steps
 
 
+@pytest.mark.parametrize("length,copies", [(10, 1), (10, 3), (7, 7), (100, 4)])
+def test_the_torch_free_copies_follow_the_schedule_of_the_torch_copies(length, copies):
+    """ONNX Runtime's copies (serving.onnx_runtime.BoundedCopies, a table of steps 0 .. 2L - 1 looked
+    up at t >= L as L + (t - L) mod L) restart the rows and serve the copy that copy_schedule names
+    at every step, and copy_schedule is the rule of s(t): one copy served, restarted at s(t), and
+    every copy restarting at o_k + j L."""
+    from neural_estimator.serving.context import copy_offsets, copy_schedule
+    from neural_estimator.serving.onnx_runtime import BoundedCopies
+
+    state = [np.zeros((2, copies, 3), dtype=np.float32), np.zeros((copies, 5), dtype=np.float32)]
+    ours = BoundedCopies(length, copies, [1, 0], state, [0.0, -1.0])
+    offsets = copy_offsets(length, copies)
+    copy = np.zeros(1, dtype=np.int64)
+    for t in range(6 * length + 3):
+        restarts, served = copy_schedule(t, length, copies)
+        assert list(restarts) == [k for k, o in enumerate(offsets) if t >= o and (t - o) % length == 0]
+        assert offsets[served] + (t - offsets[served]) // length * length == restart_of(t, length, copies)
+        state[0][...], state[1][...] = 7.0, 7.0
+        ours.before_step(t, state, copy)
+        assert copy[0] == served
+        for k in range(copies):  # a restarted copy's rows hold the starting values, the others are untouched
+            assert (state[0][:, k] == (0.0 if k in restarts else 7.0)).all()
+            assert (state[1][k] == (-1.0 if k in restarts else 7.0)).all()
+
+
+def test_the_torch_free_copies_refuse_a_malformed_graph():
+    from neural_estimator.serving.onnx_runtime import BoundedCopies
+
+    state = [np.zeros((2, 4, 3), dtype=np.float32)]
+    with pytest.raises(EstimatorError, match="no axis 0 of 4 copies"):
+        BoundedCopies(10, 4, [0], state, [0.0])
+    with pytest.raises(EstimatorError, match="bounded context is malformed: context 3, 4 copies"):
+        BoundedCopies(3, 4, [1], state, [0.0])
+
+
 @pytest.mark.slow
 def test_bounded_forward_is_the_model_on_each_steps_window():
     torch.manual_seed(0)

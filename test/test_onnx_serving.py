@@ -62,9 +62,56 @@ def test_onnx_step_equals_torch_step(method, l96, tmp_path):
     np.testing.assert_allclose(ort_est.step(y[:1]), torch_est.step(y[:1]), rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["gru", "lstm", "mamba", "mamba2", "kalmannet"])
+def test_bounded_context_onnx_step_equals_the_batched_copies(method, l96, tmp_path):
+    """A recurrent model with its context bounded (L = 30 steps, K = 4 restarted copies), exported
+    at load as its copies' step at batch K: 150 steps, so every copy restarts four or five times and
+    the served copy changes at every restart past step L, a missing observation included (the
+    hybrid's reaches it as NaN); the estimates and covariances equal those of torch's BatchedCopies
+    within 1e-5 relative at every step."""
+    import shutil
+
+    from neural_estimator.serving.card import default_checkpoint
+    from neural_estimator.serving.context import copy_offsets, restart_of
+
+    scen, data = l96
+    directory = tmp_path / method
+    shutil.copytree(default_checkpoint("lorenz96", method), directory, ignore=shutil.ignore_patterns("step.onnx"))
+    bounded = {"context": 30, "context_copies": 4}
+    torch_est = load_neural_estimator(method, scen, directory, **bounded)
+    ort_est = load_neural_estimator(method, scen, directory, backend="onnxruntime", **bounded)
+    assert torch_est.context_by_copies and ort_est._ort.context_by_copies and ort_est._ort.context_copies == 4
+    assert ort_est.has_covariance == torch_est.has_covariance
+    graph = ort_est._ort.ort
+    y = data.y[0, :150].copy()
+    y[50] = np.nan
+    torch_est.reset(1)
+    ort_est.reset(1)
+    served, worst = [], 0.0
+    for k in range(y.shape[0]):
+        a = torch_est.step(y[k : k + 1])
+        b = ort_est.step(y[k : k + 1])
+        served.append(int(graph.inputs["copy"][0]))
+        assert ort_est.skipped[0] == torch_est.skipped[0] == (k == 50)
+        worst = max(worst, float(np.abs(a - b).max() / (1.0 + np.abs(a).max())))
+        if torch_est.has_covariance:
+            P, Q = torch_est.covariance, ort_est.covariance
+            worst = max(worst, float(np.abs(P - Q).max() / (1.0 + np.abs(P).max())))
+    assert worst < 1e-5, worst
+    # the served copy is the one whose last restart is s(t), the oldest: copy 0 until step L, then each in turn
+    offsets = copy_offsets(30, 4)
+    assert served[:30] == [0] * 30 and set(served) == {0, 1, 2, 3}
+    for t, k in enumerate(served):
+        assert offsets[k] <= t and offsets[k] + (t - offsets[k]) // 30 * 30 == restart_of(t, 30, 4), t
+    ort_est.reset(1)  # a reset starts over: the first estimate repeats
+    torch_est.reset(1)
+    np.testing.assert_allclose(ort_est.step(y[:1]), torch_est.step(y[:1]), rtol=1e-5, atol=1e-5)
+
+
 def test_onnx_backend_refuses_what_it_cannot_serve(l96):
     scen, data = l96
-    with pytest.raises(EstimatorError, match="serves the unbounded context"):  # restarted copies
+    with pytest.raises(EstimatorError, match="serves the unbounded context"):  # the graph beside it is unbounded
         load_neural_estimator("gru", scen, context=50, backend="onnxruntime")
     with pytest.raises(EstimatorError, match="backend must be one of"):
         load_neural_estimator("gru", scen, backend="tensorrt")
@@ -90,6 +137,9 @@ def test_export_is_reproducible_from_the_checkpoint(tmp_path, l96):
     out2 = step.step(np.ones((1, step.d_in), dtype=np.float32)).copy()
     np.testing.assert_array_equal(out1, out2)
     assert not np.array_equal(out1, step.step(np.ones((1, step.d_in), dtype=np.float32)))  # the state moved
+    # the K restarted copies' step too, and it is not the unbounded one
+    bounded = [export_step(load_neural_estimator("gru", scen, context=0).model, "gru", copies=(20, 4)) for _ in "ab"]
+    assert bounded[0] == bounded[1] != a
 
 
 def test_normalised_graph_is_the_whole_estimator_step(l96):

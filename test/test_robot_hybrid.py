@@ -306,13 +306,15 @@ def _live_estimates(tmp_path, bag: Path, model: Path, expected: int, monkeypatch
     got: list[tuple[int, list[float]]] = []
     try:
         qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-        tester.node.create_subscription(
+        sub = tester.node.create_subscription(
             JointState,
             "/estimates/kalmannet",
             lambda m: got.append((m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, list(m.position))),
             qos,
         )
         tester.spin_until(lambda: "recorded-data spec" in (tmp_path / "est.log").read_text())
+        # this subscription is volatile (no history): play only once it is matched to the node's publisher
+        tester.spin_until(lambda: sub.get_publisher_count() >= 1)
         player = dict(bag=str(bag), wait_for_subscribers=1, wait_topic="/y")
         procs.append(
             start_node(

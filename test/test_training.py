@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from neural_estimator.data import simulate
+from neural_estimator.methods.interface import previous_controls
 from neural_estimator.methods.registry import EstimatorError
 from neural_estimator.models import build_model
 from neural_estimator.serving.load import load_neural_estimator
@@ -217,6 +218,16 @@ def test_val_context_validates_bounded_and_the_model_serves_bounded(tmp_path, sp
     assert "bounded to 10 steps" in b["training"]["validation"]
     est = load_neural_estimator("gru", spinner, checkpoint=bounded)
     assert (est.context, est.context_copies) == (10, 2)  # as it was validated
+    # train wrote its step.onnx (the two copies at batch 2): the per-message default serves it as torch does
+    served = load_neural_estimator("gru", spinner, checkpoint=bounded, backend="auto")
+    assert type(served).__name__ == "OnnxEstimator" and (served.context, served.context_copies) == (10, 2)
+    data = simulate(spinner, 1, 35, 3)
+    y, u = data.y[0], previous_controls(data.u)[0]
+    served.reset(1)
+    est.reset(1)
+    for k in range(35):  # every copy restarts three or four times
+        a, b = est.step(y[k : k + 1], u[k : k + 1]), served.step(y[k : k + 1], u[k : k + 1])
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5 * (1.0 + np.abs(a).max()))
     assert load_neural_estimator("gru", spinner, checkpoint=bounded, context=0).context == 0
     assert load_neural_estimator("gru", spinner, checkpoint=plain).context == 0
     assert load_neural_estimator("gru", spinner, checkpoint=plain, context=10).context_copies == 10

@@ -18,20 +18,19 @@ SHIPPED = sorted(p.name for p in ZOO.glob("*-*") if "." not in p.name and (p / "
 
 def test_zoo_holds_only_weights_cards_and_step_graphs():
     """Weights and card, the covariance head exactly where the card names one, and the exported
-    batch-1 step (step.onnx) beside every model but those validated with a bounded context (restarted
-    copies of the model, which torch serves) and a hybrid whose system's f or h has no ONNX form (the
+    batch-1 step (step.onnx) beside every model (those validated with a bounded context: their
+    restarted copies' step at batch K) but a hybrid whose system's f or h has no ONNX form (the
     model says why: N-link's linear solve)."""
     from neural_estimator.methods import table
     from neural_estimator.serving.checkpoint import load_checkpoint
 
     for d in (ZOO / n for n in SHIPPED):
         card = json.loads((d / "card.json").read_text())
-        recipe = card["training"]["recipe"]
-        bounded = bool(recipe.get("val_context")) and card["method"] not in ("gpt2", "filterformer")
+        torch_only = False
         if table.has(card["method"], family="hybrid"):
-            bounded = load_checkpoint(d)[0].onnx_blocker is not None
+            torch_only = load_checkpoint(d)[0].onnx_blocker is not None
         expected = ["card.json"] + (["covariance_head.safetensors"] if card.get("covariance_head") else [])
-        expected += ["model.safetensors"] + ([] if bounded else ["step.onnx"])
+        expected += ["model.safetensors"] + ([] if torch_only else ["step.onnx"])
         assert sorted(f.name for f in d.iterdir()) == expected, d
 
 

@@ -19,6 +19,9 @@ graph has fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out,
 covariance (normalised units), when exported with ``covariance``. A state that does not start at
 zeros (the attention models' ages start at +inf: no slot written) is recorded in the graph's
 metadata (``initial_fill``), which ``OrtStep`` resets to.
+A recurrent model served with a bounded context (K restarted copies, :mod:`neural_estimator.serving.context`)
+exports the step of its K copies as one batch of K rows, with the served copy's index as an input
+(``export_step(copies=(L, K))``); ``OrtStep`` restarts the copies' rows between steps.
 :func:`export_step` makes it from the loaded checkpoint (card + safetensors weights), so the export
 is reproducible from the card: the same weights give the same graph. ``OrtStep`` serves it; a test
 holds it equal to the torch step over hundreds of steps.
@@ -55,6 +58,15 @@ def _flatten(state: Any) -> list:
     return list(state) if isinstance(state, (tuple, list)) else [state]
 
 
+def state_batch_dims(model: Any, device: Any = None, dtype: Any = None) -> list[int]:
+    """Each tensor of the model's step state (one tensor or a tuple), its batch axis: the axis where
+    ``init_state(1)`` and ``init_state(2)`` differ (the models keep the batch on different axes).
+    The exported copies' graph records them (``copy_dims``); torch's restarted copies use them too."""
+    one = _flatten(model.init_state(1, device=device, dtype=dtype))
+    two = _flatten(model.init_state(2, device=device, dtype=dtype))
+    return [next(d for d in range(a.dim()) if a.shape[d] != b.shape[d]) for a, b in zip(one, two)]
+
+
 def _starting_fills(method: str, flat: list) -> list[float]:
     """The state's starting values: one constant per tensor (zeros, or the mask's -inf)."""
     fills = []
@@ -73,6 +85,7 @@ def export_step(
     normalizer: Any = None,
     covariance: bool = False,
     metadata: dict[str, str] | None = None,
+    copies: tuple[int, int] | None = None,
 ) -> bytes:
     """The ONNX graph of ``model.step`` at batch 1, written to ``path`` when given.
 
@@ -92,6 +105,11 @@ def export_step(
     so a robot serves it with numpy and onnxruntime only
     (:class:`~neural_estimator.serving.onnx_runtime.OrtStep`), without torch.
 
+    ``copies`` = (L, K): a recurrent model served with its context bounded to L steps by K restarted
+    copies (:mod:`neural_estimator.serving.context`), network-only, one stream: see
+    :func:`_bounded_module` for the graph, whose metadata adds ``context`` (L), ``context_copies``
+    (K) and ``copy_dims`` (each state tensor's batch axis, where copy k holds row k).
+
     Raises:
         OnnxError: ``method`` is not exportable (its spec in the table of methods), or torch's exporter
             is missing.
@@ -102,13 +120,18 @@ def export_step(
 
     model = model.eval()
     p = next(model.parameters())
+    if copies is not None and (normalizer is not None or not table.has(method, context="recurrent")):
+        raise OnnxError(
+            f"{method}: a bounded context by restarted copies exports for "
+            f"{', '.join(table.names(context='recurrent'))}, network-only"
+        )
     d_in = model.input_proj.in_features if hasattr(model, "input_proj") else int(model.cfg.d_in)
     blocker = getattr(model, "onnx_blocker", None)  # a hybrid whose system's f or h has no ONNX form
     if blocker:
         raise OnnxError(f"{method}: {blocker}")
     missing_nan = bool(getattr(model, "reads_missing_observations", False))
     model = _step_form(model)
-    state0 = model.init_state(1, device=p.device, dtype=torch.float32)
+    state0 = model.init_state(1 if copies is None else int(copies[1]), device=p.device, dtype=torch.float32)
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
     with_cov = bool(covariance) and hasattr(model, "step_with_cov")
@@ -122,7 +145,15 @@ def export_step(
         mean, new = model.step(z, state)
         return (mean,), _flatten(new)
 
-    if normalizer is None:
+    bounded: dict[str, str] = {}
+    if copies is not None:
+        step, args, names_in, names_out = _bounded_module(model, flat, structured, with_cov, d_in, int(copies[1]))
+        bounded = {
+            "context": str(int(copies[0])),
+            "context_copies": str(int(copies[1])),
+            "copy_dims": json.dumps(state_batch_dims(model, p.device, torch.float32)),
+        }
+    elif normalizer is None:
         step, args, names_in, names_out = _network_module(model, network, flat, with_cov, d_in)
     else:
         step, args, names_in, names_out = _estimator_module(model, network, flat, with_cov, normalizer, missing_nan)
@@ -138,6 +169,7 @@ def export_step(
                 {"window": str(int(flat[0].shape[0]))} if table.has(method, context="window") else {}
             ),  # a KV cache over W
             **({"missing_observations": "nan"} if missing_nan else {}),  # see OnnxEstimator.step
+            **bounded,
             **(metadata or {}),
         },
     )
@@ -206,6 +238,47 @@ def _network_module(model: Any, network, flat: list, with_cov: bool, d_in: int) 
 
     args: tuple = (torch.zeros(1, d_in), *flat)
     return Step(), args, ["z"], ["mean"] + (["cov"] if with_cov else [])
+
+
+def _bounded_module(model: Any, flat: list, structured: bool, with_cov: bool, d_in: int, copies: int) -> tuple:
+    """The step of K restarted copies of a recurrent model for one stream, as a module: (module,
+    example inputs, input names, output names), the state's names not yet appended::
+
+        inputs:  z (1, d_in) float32, copy (1,) int64 (the served copy k), state_i (K rows: copy k's is row k)
+        outputs: mean (1, d_out), [cov (1, d_out, d_out)], new_state_i
+
+    The arithmetic of :class:`~neural_estimator.serving.neural.NeuralEstimator`'s bounded step: z
+    repeated on the K rows, one batched step, the served copy's row read (a covariance head runs on
+    that row's features only). The restarts are not in the graph: the numpy wrapper
+    (:class:`~neural_estimator.serving.onnx_runtime.OrtStep`) writes a copy's starting values
+    into its rows of the bound state buffer before the steps it restarts at. That is K of every L
+    steps (4 in 100 on the zoo's GRUs), a slice assignment each, where a restart mask in the graph
+    would cost a Where per state tensor at every step, and it keeps the graph the model's own step
+    at batch K. The served copy is a graph input because the covariance head must see one row."""
+    import torch
+
+    head = with_cov and hasattr(model, "cov_head")  # a fitted covariance head: on the served row only
+
+    class Step(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, z, copy, *state):
+            rows = z.expand(copies, -1)  # the input of every copy (BatchedCopies repeats it)
+            st = tuple(state) if structured else state[0]
+            if head:
+                h, new = model.trunk.step_features(rows, st)
+                h = h.index_select(0, copy)
+                return (model.mean_of(h), model.cov_head(h), *_flatten(new))
+            if with_cov:
+                mean, cov, new = model.step_with_cov(rows, st)
+                return (mean.index_select(0, copy), cov.index_select(0, copy), *_flatten(new))
+            mean, new = model.step(rows, st)
+            return (mean.index_select(0, copy), *_flatten(new))
+
+    args: tuple = (torch.zeros(1, d_in), torch.zeros(1, dtype=torch.long), *flat)
+    return Step(), args, ["z", "copy"], ["mean"] + (["cov"] if with_cov else [])
 
 
 def _estimator_module(

@@ -14,14 +14,20 @@ so every estimate after step L sees between L - ceil(L / K) + 1 and L steps, nev
 training windows. K times the compute. (The paper's GPT-2 has a bounded context by construction: its
 attention window.) This departs from the paper's continuous evaluation, so it is an option, off by
 default: ``context`` and ``context_copies`` of :class:`~neural_estimator.serving.neural.NeuralEstimator`.
+
+The schedule (:func:`copy_offsets`, :func:`restart_of`, :func:`copy_schedule`) is plain integers,
+and this module imports torch only inside the functions that step a model, so the torch-free
+ONNX Runtime serving of a bounded-context graph (:mod:`neural_estimator.serving.onnx_runtime`)
+follows the very same rule.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-from torch import nn
+if TYPE_CHECKING:  # annotations only: torch is imported where a model is stepped
+    import torch
+    from torch import nn
 
 
 def copy_offsets(length: int, copies: int) -> list[int]:
@@ -34,6 +40,21 @@ def restart_of(t: int, length: int, copies: int) -> int:
     if t < length:
         return 0
     return min(o + ((t - o) // length) * length for o in copy_offsets(length, copies) if o <= t)
+
+
+def copy_schedule(t: int, length: int, copies: int) -> tuple[tuple[int, ...], int]:
+    """(the copies that restart at step t, the copy served at t): copy k restarts at o_k + j L
+    (j >= 0), and the served copy is the one whose last restart is s(t) (:func:`restart_of`).
+    The offsets are distinct (K <= L), so exactly one copy is served."""
+    chosen, restarts, served = restart_of(t, length, copies), [], 0
+    for k, o in enumerate(copy_offsets(length, copies)):
+        if t < o:
+            continue
+        if (t - o) % length == 0:
+            restarts.append(k)
+        if o + ((t - o) // length) * length == chosen:
+            served = k
+    return tuple(restarts), served
 
 
 def bounded_forward(model: nn.Module, z: torch.Tensor, length: int, copies: int) -> torch.Tensor:
@@ -65,12 +86,10 @@ class BatchedCopies:
 
     def __init__(self, model: nn.Module, length: int, copies: int, batch: int, device, dtype) -> None:
         self.model, self.length, self.copies, self.batch = model, int(length), int(copies), int(batch)
+        from neural_estimator.models.onnx_step import state_batch_dims
+
         self.offsets = copy_offsets(self.length, self.copies)
-        one, two = (
-            _tensors(model.init_state(1, device=device, dtype=dtype)),
-            _tensors(model.init_state(2, device=device, dtype=dtype)),
-        )
-        self.dims = [next(d for d in range(a.dim()) if a.shape[d] != b.shape[d]) for a, b in zip(one, two)]
+        self.dims = state_batch_dims(model, device, dtype)
         self.fresh = _tensors(model.init_state(self.batch, device=device, dtype=dtype))
         self.state = model.init_state(self.copies * self.batch, device=device, dtype=dtype)
 
@@ -78,15 +97,9 @@ class BatchedCopies:
         """Restart the copies due at step t, run ``step_fn(z, state) -> (*outputs, state)`` on all
         K x B rows, and return (k, outputs): the copy whose estimate is served at t (restarted at
         s(t)) and the outputs of every row (the caller takes copy k's rows, :meth:`rows`)."""
-        L = self.length
-        chosen, served = restart_of(t, L, self.copies), 0
-        for k, o in enumerate(self.offsets):
-            if t < o:
-                continue
-            if (t - o) % L == 0:
-                self._restart(k)
-            if o + ((t - o) // L) * L == chosen:
-                served = k
+        restarts, served = copy_schedule(t, self.length, self.copies)
+        for k in restarts:
+            self._restart(k)
         *outs, self.state = step_fn(z_t.repeat(self.copies, 1), self.state)
         return served, outs
 
@@ -94,6 +107,8 @@ class BatchedCopies:
         return slice(k * self.batch, (k + 1) * self.batch)
 
     def _restart(self, k: int) -> None:
+        import torch
+
         states = []
         for s, fresh, d in zip(_tensors(self.state), self.fresh, self.dims):
             s = s.clone()
@@ -104,4 +119,6 @@ class BatchedCopies:
 
 def _tensors(state: Any) -> list[torch.Tensor]:
     """A model state (one tensor or a tuple of tensors) as a list."""
+    import torch
+
     return [state] if torch.is_tensor(state) else list(state)

@@ -27,10 +27,13 @@ def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
     checkpoint serves by default, the covariance head included where the card has one, with the
     digests of the files it was made from (:func:`~neural_estimator.serving.onnx_runtime.served_files`).
 
+    A recurrent model validated with a bounded context (the card's ``val_context``, L steps by K
+    restarted copies) gets the step of its K copies as one batch (``export_step(copies=(L, K))``),
+    which the torch-free estimator restarts and reads as torch's copies do.
+
     Returns its path, or None (a stale ``step.onnx`` removed) where that configuration is not one
-    exported step (:func:`torch_only_reason` says why): a recurrent model validated with a bounded
-    context (the card's ``val_context``) serves through restarted copies of the model, which stay
-    torch's; a hybrid whose system's f or h has no ONNX form (N-link's linear solve).
+    exported step (:func:`torch_only_reason` says why): a hybrid whose system's f or h has no ONNX
+    form (N-link's linear solve).
 
     Args:
         directory: the checkpoint directory.
@@ -52,7 +55,8 @@ def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
         out.unlink(missing_ok=True)
         return None
     tmp = directory / (ONNX_FILE + ".tmp")
-    export_step(est.model, est.method, tmp, covariance=est.has_covariance, metadata=served_files(card))
+    copies = (est.context, est.context_copies) if est.context_by_copies else None
+    export_step(est.model, est.method, tmp, covariance=est.has_covariance, metadata=served_files(card), copies=copies)
     tmp.replace(out)
     return out
 
@@ -60,6 +64,4 @@ def export_beside(directory: str | Path, scenario: Any = None) -> Path | None:
 def torch_only_reason(est: Any) -> str | None:
     """Why a loaded estimator's default serving configuration has no exported step (so its
     per-message backend is torch), or None where it has one."""
-    if est.context_by_copies:
-        return "validated with a bounded context (restarted copies), which torch serves"
     return getattr(est.model, "onnx_blocker", None)  # a hybrid's system without an ONNX form

@@ -74,22 +74,47 @@ def check_scenario(desc: dict[str, Any], scenario: Scenario, where: str) -> None
 
 
 def per_message_backend(
-    directory: Path, card: dict[str, Any], device: Any = "cpu", context: Any = None, compile_step: Any = False
+    directory: Path,
+    card: dict[str, Any],
+    device: Any = "cpu",
+    context: Any = None,
+    compile_step: Any = False,
+    context_copies: Any = None,
 ) -> str:
     """The ``auto`` backend's choice for a per-message (batch-1) estimator: ``onnxruntime`` where the
     checkpoint directory holds ``step.onnx`` and the request is what that graph serves (the cpu, no
-    ``compile_step``, a recurrent model's unbounded context: neither the option ``context`` nor a
-    card validated with a bounded one, whose restarted copies are torch's); ``torch`` otherwise.
-    An attention model's ``context`` other than the exported window falls back to torch at load."""
+    ``compile_step``, a recurrent model's context as the card validated it, the graph ``train``
+    writes: unbounded, or L steps by K restarted copies); ``torch`` otherwise. An attention model's
+    ``context`` other than the exported window, or a graph exported with another context than
+    its card's, falls back to torch at load."""
     if onnx_beside(directory) is None or str(device).strip().lower() != "cpu":
         return "torch"
     try:
         if parse_bool(compile_step, "compile_step"):
             return "torch"
-        bounded = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
+        asked = requested_context(card, context, context_copies)
     except OptionError as exc:
         raise EstimatorError(str(exc)) from None
-    return "torch" if bounded and not table.has(card["method"], context="window") else "onnxruntime"
+    if table.has(card["method"], context="window"):
+        return "onnxruntime"
+    return "onnxruntime" if asked == requested_context(card, None, None) else "torch"
+
+
+def requested_context(card: dict[str, Any], context: Any = None, context_copies: Any = None) -> tuple[int, int]:
+    """(L, K): the bounded context a request asks of a checkpoint, as the torch load resolves it
+    (None: the card's validated one; K 10 when only ``context`` is given), (0, 0) unbounded.
+
+    Raises:
+        OptionError: a malformed ``context`` or ``context_copies``.
+    """
+    if context is None:
+        validated = validated_context(card)
+        context = validated.get("context", 0)
+        context_copies = validated.get("context_copies") if context_copies is None else context_copies
+    length = parse_value(context, 0, "context")
+    if not length:
+        return 0, 0
+    return length, 10 if context_copies is None else parse_value(context_copies, 10, "context_copies")
 
 
 def validated_context(card: dict[str, Any]) -> dict[str, int]:
@@ -133,9 +158,9 @@ def load_neural_estimator(
             ``val_context_copies``; unbounded for a model validated the paper's way), copies 10
             when only ``context`` is given.
         backend: ``torch`` or ``onnxruntime``: ``step`` runs the model's step exported to ONNX
-            (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 with an unbounded
-            context, GPT-2 and Filterformer with their window). Where the checkpoint directory holds
-            ``step.onnx`` (written by ``train``, shipped beside the zoo models, or
+            (:mod:`neural_estimator.models.onnx_step`; GRU, LSTM, Mamba, Mamba-2 unbounded or with
+            their restarted copies as one batch, GPT-2 and Filterformer with their window). Where the
+            checkpoint directory holds ``step.onnx`` (written by ``train``, shipped beside the zoo models, or
             ``scripts/export_onnx.py --beside``) that graph is served without torch
             (:class:`~neural_estimator.serving.onnx_runtime.OnnxEstimator`, batch 1, ``run`` a loop of
             ``step``); otherwise the step is exported at load and ``run`` keeps torch's parallel form.
@@ -160,14 +185,15 @@ def load_neural_estimator(
         raise EstimatorError(f"{m}: backend must be one of {', '.join(SERVING_BACKENDS)}, got {backend!r}")
     auto = backend == "auto"
     if auto:
-        backend = per_message_backend(directory, card, device, context, compile_step)
+        backend = per_message_backend(directory, card, device, context, compile_step, context_copies)
     onnx = backend == "onnxruntime" and onnx_beside(directory) is not None
     if onnx and _told_another_model(m, card, scenario, auto):
         backend = "torch"  # torch builds the hybrid around the told model's f and h
     if backend == "onnxruntime" and onnx_beside(directory) is not None:  # served without torch
-        ctx, covariance, cov_scale = _onnx_options(m, card, device, context, covariance, cov_scale)
+        options = _onnx_options(m, card, device, context, context_copies, covariance, cov_scale)
+        (ctx, copies), covariance, cov_scale = options
         try:
-            return load_onnx_estimator(directory, card, scenario, ctx, covariance, cov_scale)
+            return load_onnx_estimator(directory, card, scenario, ctx, covariance, cov_scale, copies)
         except WindowMismatch:
             if not auto:
                 raise
@@ -222,19 +248,20 @@ def _told_another_model(method: str, card: dict[str, Any], scenario: Scenario, a
     return True
 
 
-def _onnx_options(m: str, card: dict, device: str, context, covariance, cov_scale) -> tuple:
-    """(context, covariance, cov_scale) parsed for the exported step beside the card, which serves on
-    the cpu; an attention model without a ``context`` asked keeps the window it was exported with."""
+def _onnx_options(m: str, card: dict, device: str, context, context_copies, covariance, cov_scale) -> tuple:
+    """((context, copies), covariance, cov_scale) parsed for the exported step beside the card, which
+    serves on the cpu; an attention model without a ``context`` asked keeps the window it was
+    exported with."""
     if str(device).lower() not in ("cpu", "auto"):
         raise EstimatorError(f"{m}: the exported step beside the card serves on the cpu, not {device!r}")
     try:
-        ctx = validated_context(card).get("context", 0) if context is None else parse_value(context, 0, "context")
+        ctx = requested_context(card, context, context_copies)
         covariance, cov_scale = (
             parse_bool(covariance, "covariance"),
             float(parse_value(cov_scale, 1.0, "cov_scale")),
         )
     except OptionError as exc:
         raise EstimatorError(str(exc)) from None
-    if table.has(m, context="window") and context is None:
-        ctx = 0  # the window it was exported with
+    if table.has(m, context="window"):
+        ctx = (0 if context is None else ctx[0], 0)  # None: the window it was exported with
     return ctx, covariance, cov_scale

@@ -145,18 +145,18 @@ class NeuralEstimator(Estimator):
         self._ort = self._onnx_step() if self.backend == "onnxruntime" else None
 
     def _onnx_step(self):
-        """The batch-1 step exported from this model and served by ONNX Runtime (models/onnx_step.py)."""
+        """The batch-1 step exported from this model and served by ONNX Runtime (models/onnx_step.py);
+        with a bounded context by restarted copies, the K copies' step as one batch."""
         from neural_estimator.models.onnx_step import OnnxError, export_step
         from neural_estimator.serving.onnx_runtime import OnnxEstimator, OrtStep
 
-        if not table.has(self.method, exportable=True) or self.context_by_copies or self.dtype != torch.float32:
+        if not table.has(self.method, exportable=True) or self.dtype != torch.float32:
             raise EstimatorError(
-                f"{self.method}: backend onnxruntime serves {', '.join(table.names(exportable=True))} in float32, "
-                "the recurrent "
-                "models with an unbounded context (option context=0), the attention models with their window"
+                f"{self.method}: backend onnxruntime serves {', '.join(table.names(exportable=True))} in float32"
             )
+        copies = (self.context, self.context_copies) if self.context_by_copies else None
         try:
-            graph = OrtStep(export_step(self.model, self.method, covariance=self.has_covariance))
+            graph = OrtStep(export_step(self.model, self.method, covariance=self.has_covariance, copies=copies))
         except OnnxError as exc:
             raise EstimatorError(str(exc)) from None
         return OnnxEstimator(self.scenario, graph, self.normalizer, self.method, self.card, cov_scale=self.cov_scale)

@@ -25,7 +25,8 @@ ONNX_FILE = "step.onnx"  # the network-only graph beside a checkpoint's card (sc
 
 
 class WindowMismatch(EstimatorError):
-    """The exported attention window is not the one asked for (the ``auto`` backend then uses torch)."""
+    """The exported context is not the one asked for: another attention window, or another bounded
+    context (steps, copies) of a recurrent model (the ``auto`` backend then uses torch)."""
 
 
 def graph_metadata(session: Any) -> dict[str, str]:
@@ -74,7 +75,12 @@ class OrtStep:
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # never spin on a busy core
         model = graph if isinstance(graph, bytes) else Path(graph).read_bytes()
         self.session = ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
-        dtypes = {"tensor(float)": np.float32, "tensor(double)": np.float64, "tensor(bool)": np.bool_}
+        dtypes = {
+            "tensor(float)": np.float32,
+            "tensor(double)": np.float64,
+            "tensor(bool)": np.bool_,
+            "tensor(int64)": np.int64,
+        }
 
         def buffer(arg) -> np.ndarray:
             return np.zeros(tuple(int(d) for d in arg.shape), dtype=dtypes[arg.type])
@@ -93,6 +99,8 @@ class OrtStep:
         if len(fills) != len(state_in):
             raise EstimatorError(f"the graph's initial_fill names {len(fills)} states, its inputs {len(state_in)}")
         self._fills = [float(f) for f in fills]
+        bounded = "context_copies" in self.metadata  # K restarted copies in the graph's batch
+        self.copies = _copies_of(self.metadata, self._sets[0], self._fills) if bounded else None
         value = ort.OrtValue.ortvalue_from_numpy
         self._bindings = []
         for src, dst in ((0, 1), (1, 0)):
@@ -118,9 +126,14 @@ class OrtStep:
             for a, fill in zip(buffers, self._fills):
                 a.fill(fill)
         self._current = 0
+        self._t = 0  # steps since reset: which copies restart (a bounded-context graph)
 
     def run(self) -> None:
-        """One step on what :attr:`inputs` hold; the state advances."""
+        """One step on what :attr:`inputs` hold; the state advances. A bounded-context graph's
+        copies due at this step restart first, and the copy served is set (:class:`BoundedCopies`)."""
+        if self.copies is not None:
+            self.copies.before_step(self._t, self._sets[self._current], self.inputs["copy"])
+            self._t += 1
         self._run(self._bindings[self._current])
         self._current ^= 1
 
@@ -130,6 +143,57 @@ class OrtStep:
         np.copyto(self.inputs["z"], z, casting="same_kind")
         self.run()
         return self.outputs["mean"]
+
+
+class BoundedCopies:
+    """The restarts and the served copy of a bounded-context graph (``export_step(copies=(L, K))``):
+    the K copies of :class:`~neural_estimator.serving.context.BatchedCopies` on one stream, copy k
+    in row k of every state buffer (along the graph's ``copy_dims``).
+
+    Before step t, each copy that restarts at t has its rows set to the state's starting values
+    (``initial_fill``), and the graph's ``copy`` input is set to the copy served at t
+    (:func:`~neural_estimator.serving.context.copy_schedule`, the rule the torch copies follow).
+    Past step L every copy has started and the schedule repeats every L steps, so it is looked up
+    in a table of steps 0 .. 2L - 1 (step t >= L as L + (t - L) mod L): no Python loop per step.
+    """
+
+    def __init__(self, length: int, copies: int, dims: list[int], state: list[np.ndarray], fills: list[float]):
+        from neural_estimator.serving.context import copy_schedule
+
+        self.length, self.copies = int(length), int(copies)
+        if not 1 <= self.copies <= self.length or len(dims) != len(state):
+            raise EstimatorError(
+                f"the graph's bounded context is malformed: context {length}, {copies} copies, "
+                f"copy_dims {dims} for {len(state)} states"
+            )
+        for a, d in zip(state, dims):
+            if not 0 <= d < a.ndim or a.shape[d] != self.copies:
+                raise EstimatorError(f"the graph's state of shape {a.shape} has no axis {d} of {self.copies} copies")
+        self.table = [copy_schedule(t, self.length, self.copies) for t in range(2 * self.length)]
+        # rows[k]: for every state tensor, the index of copy k's rows and that tensor's starting value
+        self.rows = [
+            [(tuple(k if ax == d else slice(None) for ax in range(a.ndim)), f) for a, d, f in zip(state, dims, fills)]
+            for k in range(self.copies)
+        ]
+
+    def before_step(self, t: int, state: list[np.ndarray], copy: np.ndarray) -> None:
+        """Restart the copies due at step t in the state buffers the step reads; set the served copy."""
+        L = self.length
+        restarts, served = self.table[t if t < 2 * L else L + (t - L) % L]
+        for k in restarts:
+            for a, (index, fill) in zip(state, self.rows[k]):
+                a[index] = fill
+        copy[0] = served
+
+
+def _copies_of(meta: dict[str, str], state: list[np.ndarray], fills: list[float]) -> BoundedCopies:
+    """The graph's bounded context from its metadata (``context``, ``context_copies``, ``copy_dims``)."""
+    try:
+        length, copies = int(meta["context"]), int(meta["context_copies"])
+        dims = [int(d) for d in json.loads(meta.get("copy_dims", "null"))]
+    except (KeyError, ValueError, TypeError) as exc:
+        raise EstimatorError(f"the graph's bounded-context metadata is malformed ({exc})") from None
+    return BoundedCopies(length, copies, dims, state, fills)
 
 
 class OnnxEstimator(Estimator):
@@ -174,8 +238,10 @@ class OnnxEstimator(Estimator):
         self.ort, self.normalizer, self.card = step, normalizer, dict(card or {})
         self.has_covariance = "cov" in step.outputs
         self.backend = "onnxruntime"
-        self.context = int(step.metadata.get("window", 0))  # the attention window the graph serves (0: recurrent)
-        self.context_by_copies = False
+        copies = step.copies  # a recurrent model's bounded context: K restarted copies in the graph's batch
+        self.context = copies.length if copies else int(step.metadata.get("window", 0))  # or the attention window
+        self.context_by_copies = copies is not None
+        self.context_copies = copies.copies if copies else 0
         self._missing_nan = step.metadata.get("missing_observations") == "nan"  # onnx_step.export_step
         self._dims = (dy, du)
         self._u_zero = np.zeros((1, du))
@@ -258,18 +324,21 @@ def load_onnx_estimator(
     context: int | None = None,
     covariance: bool = True,
     cov_scale: float = 1.0,
+    context_copies: int = 0,
 ) -> OnnxEstimator:
     """The torch-free estimator of a checkpoint whose directory holds ``step.onnx``.
 
     The caller has read the card and checked it against ``scenario``. The graph must be the
     network-only step of this card's weights and covariance head (:func:`served_files`: a graph left
     from other weights or another head is refused, re-export it) and of the method the card names; an attention model
-    serves with the window it was exported with (``context``, when given, must equal it).
+    serves with the window it was exported with (``context``, when given, must equal it); a
+    recurrent model with the context it was exported with: ``context`` steps and ``context_copies``
+    restarted copies (0 and 0: unbounded).
     ``covariance`` False ignores the graph's covariance output (the head's, or Filterformer's own).
 
     Raises:
         EstimatorError: missing onnxruntime, a graph of other weights, head or method;
-            :class:`WindowMismatch`: another attention window.
+            :class:`WindowMismatch`: another attention window or bounded context.
     """
     from neural_estimator.serving.normalization import NormalizationError, Normalizer
 
@@ -294,8 +363,8 @@ def load_onnx_estimator(
             f"{path} serves attention window {meta.get('window')}, not context={context}: "
             f"export it with --context {context}"
         )
-    if context and not table.has(method, context="window"):  # the window is in an attention graph
-        raise EstimatorError(f"{method}: the exported step serves the unbounded context (context=0), not {context}")
+    if not table.has(method, context="window"):  # a recurrent graph: unbounded, or K copies of L steps
+        _check_copies(step, method, int(context or 0), int(context_copies or 0) if context else 0)
     if not covariance and "cov" in step.outputs:
         step.outputs.pop("cov")  # still computed by the graph, no longer read
     try:
@@ -303,6 +372,16 @@ def load_onnx_estimator(
     except NormalizationError as exc:
         raise EstimatorError(f"{directory}: {exc}") from None
     return OnnxEstimator(scenario, step, normalizer, method, card, cov_scale=cov_scale)
+
+
+def _check_copies(step: OrtStep, method: str, context: int, copies: int) -> None:
+    """Refuse a recurrent model's graph exported with another context than (``context``, ``copies``)."""
+    served = (step.copies.length, step.copies.copies) if step.copies else (0, 0)
+    if served == (context, copies):
+        return
+    what = f"a context bounded to {served[0]} steps ({served[1]} copies)" if served[0] else "the unbounded context"
+    asked = f"context={context}, context_copies={copies}" if context else "context=0"
+    raise WindowMismatch(f"{method}: the exported step serves {what}, not {asked}; backend torch serves that")
 
 
 def _interrupted(exc: BaseException) -> bool:
