@@ -130,7 +130,8 @@ def export_step(
     if blocker:
         raise OnnxError(f"{method}: {blocker}")
     missing_nan = bool(getattr(model, "reads_missing_observations", False))
-    model = _step_form(model)
+    if copies is None:  # the step forms serve one stream; K copies step as a batch of K rows
+        model = _step_form(model)
     state0 = model.init_state(1 if copies is None else int(copies[1]), device=p.device, dtype=torch.float32)
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
