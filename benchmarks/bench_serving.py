@@ -11,13 +11,19 @@ For every shipped model of the scenario (the paper's sizes), in one process, in 
 - ``node step (torch)``: ``Estimator.step`` with numpy in and out, the live node's call, torch backend;
 - ``ORT step``: the same step exported to ONNX (``models/onnx_step.py``) run by ONNX Runtime, one thread,
   through preallocated bound buffers (``run_with_iobinding``: the fastest call ONNX Runtime offers);
+- ``ORT own step``: the model's own ``step`` traced as it is (what the export traced before Mamba,
+  Mamba-2 and GPT-2 got their step forms, ``models/onnx_forms.py``), bound buffers too: the "before"
+  of those three; for the other models it is the same graph as ``ORT step``;
 - ``ORT run()``: the same graph through the plain ``session.run(None, feed)`` call (numpy in and out);
 - ``node step (ORT)``: ``Estimator.step`` with ``backend=onnxruntime`` (its graph also normalises and
   denormalises, in float64);
 - ``wrapper``: node step (ORT) minus ORT step, p50 (normalise, checks, denormalise, copies: everything
   the node's call adds to the network's step);
 - ``GEMV limit``: 2 x parameters / the single-core float32 GEMV rate measured here (the time a step
-  would take if it only streamed its weights once through the fastest matrix-vector product).
+  would take if it only streamed its weights once through the fastest matrix-vector product);
+  ``ORT / limit`` is the ORT step over it;
+- ``nodes``: the operators ONNX Runtime runs per step, after its graph optimisations (the graph it
+  serves, then the model's own step traced), read back from the optimised model it writes.
 
 ``--context 0`` (the default) serves every model with an unbounded context (attention models: the
 paper's window); ``--context card`` serves each as its card validated it, as the nodes do: a GRU
@@ -64,6 +70,41 @@ def gemv_rate(bursts: int = 200) -> float:
     return best
 
 
+def optimized_nodes(graph: bytes) -> int:
+    """How many operators ONNX Runtime runs for ``graph`` at the serving optimisation level."""
+    import tempfile
+
+    import onnx
+    import onnxruntime as ort
+
+    with tempfile.TemporaryDirectory() as tmp:
+        opts = ort.SessionOptions()
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.optimized_model_filepath = str(Path(tmp) / "optimized.onnx")
+        opts.log_severity_level = 3  # its note that an optimised file is machine specific
+        ort.InferenceSession(graph, opts, providers=["CPUExecutionProvider"])
+        return len(onnx.load(opts.optimized_model_filepath).graph.node)
+
+
+def own_step(model):
+    """``model`` without its ``onnx_form``: ``export_step`` then traces the model's own ``step``."""
+    import torch
+
+    class OwnStep(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+            self.input_proj = model.input_proj
+
+        def init_state(self, *args, **kwargs):
+            return model.init_state(*args, **kwargs)
+
+        def step(self, z, state):
+            return model.step(z, state)
+
+    return OwnStep()
+
+
 def pct(samples: list[float]) -> tuple[float, float]:
     a = np.asarray(samples) * 1e6
     return float(np.percentile(a, 50)), float(np.percentile(a, 99))
@@ -104,19 +145,19 @@ def main(argv: list[str] | None = None) -> int:
         + f"; single-core GEMV {rate / 1e9:.1f} GFLOP/s; load average {load0:.1f} at start"
     )
     print()
-    heads = ["torch step", "node (torch)", "ORT step", "ORT run()", "node (ORT)"]
+    heads = ["torch step", "node (torch)", "ORT step", "ORT own step", "ORT run()", "node (ORT)"]
     print(
-        "| model | params | GEMV limit | "
+        "| model | params | GEMV limit | nodes (own step) | "
         + " | ".join(f"{h} p50 / p99" for h in heads)
-        + " | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step"
+        + " | ORT / limit | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step"
         + " | node (torch) / node (ORT) |"
     )
-    print("|---|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|---:|")
     context = {"context": 0} if a.context == "0" else {}  # {}: the card's
     for m in a.methods:
         est_t = load_neural_estimator(m, scen, **context)
         est_o = load_neural_estimator(m, scen, backend="onnxruntime", **context)
-        steps, copies = _columns(m, est_t, est_o, Y, U)
+        steps, copies, nodes = _columns(m, est_t, est_o, Y, U)
         params = count_parameters(est_t.model)
         limit = 2 * params * (copies[1] if copies else 1) / rate * 1e6
         if copies:
@@ -126,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         wrapper = p["node (ORT)"][0] - p["ORT step"][0]
         cells = " | ".join(f"{p[h][0]:.1f} / {p[h][1]:.1f}" for h in heads)
         print(
-            f"| {m} | {params:,} | {limit:.1f} | {cells} | {wrapper:.1f} | "
+            f"| {m} | {params:,} | {limit:.1f} | {nodes} | {cells} | {p['ORT step'][0] / limit:.1f}x | {wrapper:.1f} | "
             f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (ORT)'][0] / p['ORT run()'][0]:.2f}x | "
             f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x | {p['node (torch)'][0] / p['node (ORT)'][0]:.2f}x |",
             flush=True,
@@ -135,9 +176,10 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _columns(m: str, est_t, est_o, Y: np.ndarray, U: np.ndarray) -> tuple[dict, tuple[int, int] | None]:
-    """The timed call of every column, each a function of the step index j (numpy inputs Y, U), and
-    the bounded context (L, K) where the card's is one (else None)."""
+def _columns(m: str, est_t, est_o, Y: np.ndarray, U: np.ndarray) -> tuple[dict, tuple[int, int] | None, str]:
+    """The timed call of every column, each a function of the step index j (numpy inputs Y, U), the
+    bounded context (L, K) where the card's is one (else None), and the optimised operator counts
+    (the served graph's, then the model's own step traced)."""
     import torch
 
     from neural_estimator.models.onnx_step import export_step
@@ -147,7 +189,11 @@ def _columns(m: str, est_t, est_o, Y: np.ndarray, U: np.ndarray) -> tuple[dict, 
     model = est_t.model
     copies = (est_t.context, est_t.context_copies) if est_t.context_by_copies else None
     graph = export_step(model, m, copies=copies)  # the network alone, as the torch step column
+    has_form = getattr(type(model), "onnx_form", None) is not None
+    own_graph = export_step(own_step(model), m, copies=copies) if has_form else graph
+    nodes = f"{optimized_nodes(graph)} ({optimized_nodes(own_graph)})"
     ort = OrtStep(graph)
+    ort_own = OrtStep(own_graph)
     plain = OrtStep(graph).session
     names_out = [o.name for o in plain.get_outputs()]
     dtypes = {"tensor(int64)": np.int64}
@@ -181,10 +227,11 @@ def _columns(m: str, est_t, est_o, Y: np.ndarray, U: np.ndarray) -> tuple[dict, 
         "torch step": torch_step,
         "node (torch)": lambda j: est_t.step(Y[j : j + 1], U[j : j + 1]),
         "ORT step": lambda j: ort.step(z32[j]),
+        "ORT own step": lambda j: ort_own.step(z32[j]),
         "ORT run()": ort_run,
         "node (ORT)": lambda j: est_o.step(Y[j : j + 1], U[j : j + 1]),
     }
-    return steps, copies
+    return steps, copies, nodes
 
 
 def _interleaved(steps: dict, heads: list[str], rounds: int, per_round: int) -> dict[str, list[float]]:

@@ -193,6 +193,13 @@ class FilterformerModel(nn.Module):
         e = e + F.linear(F.gelu(F.linear(m, fc1.weight, fc1.bias)), fc2.weight, fc2.bias)
         return F.layer_norm(e, ln_f.normalized_shape, ln_f.weight, ln_f.bias, ln_f.eps), (mask, kv)
 
+    def onnx_form(self) -> nn.Module:
+        """This model's batch-1 step in the form its ONNX graph is traced from (same arithmetic over
+        a ring buffer of the window: :class:`~neural_estimator.models.onnx_forms.FilterformerStepForm`)."""
+        from neural_estimator.models.onnx_forms import FilterformerStepForm
+
+        return FilterformerStepForm(self)
+
     def step(self, z_t: Tensor, state: tuple[Tensor, Tensor]) -> tuple[Tensor, tuple[Tensor, Tensor]]:
         h, state = self._encode_step(z_t, state)
         return self.head.mean(h), state  # (B, d_out)

@@ -176,6 +176,13 @@ class GPT2Model(nn.Module):
         h, new = self.step_features(z_t, state)
         return F.linear(h, self.head.weight, self.head.bias), new  # (B, d_out)
 
+    def onnx_form(self) -> nn.Module:
+        """This model's batch-1 step in the form its ONNX graph is traced from (same arithmetic over
+        a ring buffer of the window: :class:`~neural_estimator.models.onnx_forms.GPT2StepForm`)."""
+        from neural_estimator.models.onnx_forms import GPT2StepForm
+
+        return GPT2StepForm(self)
+
     # ---- the trunk's last hidden features (the covariance head's input, neural_estimator.serving.uncertainty) --
     def features(self, z: Tensor) -> Tensor:
         """(B, T, D): what ``head`` maps to the estimate, ``forward(z) == head(features(z))``."""

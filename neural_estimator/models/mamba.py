@@ -302,3 +302,10 @@ class MambaModel(SSMEstimator):
 
     def __init__(self, cfg: MambaConfig) -> None:
         super().__init__(cfg, MambaMixer)
+
+    def onnx_form(self) -> nn.Module:
+        """This model's batch-1 step in the form its ONNX graph is traced from (same arithmetic, its
+        own state layout: :class:`~neural_estimator.models.onnx_forms.MambaStepForm`)."""
+        from neural_estimator.models.onnx_forms import MambaStepForm
+
+        return MambaStepForm(self)

@@ -316,3 +316,10 @@ class Mamba2Model(SSMEstimator):
 
     def __init__(self, cfg: Mamba2Config) -> None:
         super().__init__(cfg, Mamba2Mixer)
+
+    def onnx_form(self) -> nn.Module:
+        """This model's batch-1 step in the form its ONNX graph is traced from (same arithmetic, its
+        own state layout: :class:`~neural_estimator.models.onnx_forms.Mamba2StepForm`)."""
+        from neural_estimator.models.onnx_forms import Mamba2StepForm
+
+        return Mamba2StepForm(self)

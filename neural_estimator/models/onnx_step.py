@@ -2,19 +2,23 @@
 
 At batch 1 a torch step costs the dispatch of every aten op (1.3-1.7 us each, 40-120 ops a step)
 on top of the arithmetic; ONNX Runtime runs the same graph with one call from Python. The graph is
-the model's own ``step`` traced at batch 1::
+the model's own ``step`` traced at batch 1, or for Mamba, Mamba-2, GPT-2 and Filterformer the same
+step in the form ONNX Runtime runs in fewer operators (their ``onnx_form()``,
+:mod:`neural_estimator.models.onnx_forms`)::
 
     inputs:  z (1, d_in) float32 (normalised [y_k, u_{k-1}]), state_0 ... state_{S-1}
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
-with the state flattened in the model's order (GRU: h; LSTM: h, c; Mamba/Mamba-2: conv and SSM state
-per layer; KalmanNet: its filter's memory, then the GRU's h; GPT-2: the (W,) slot mask, then each
-layer's (2, 1, nh, W, hs) keys and values; Filterformer: the mask and its one attention's cache).
-The attention models serve a bounded key/value cache of the last W steps (their attention window,
-the ``context`` option), so their step graph has fixed shapes too; Filterformer's graph also outputs
-``cov`` (1, d_out, d_out), its head's covariance (normalised units), when exported with
-``covariance``. A state that does not start at zeros (the attention models' mask starts at -inf: no
-slot filled) is recorded in the graph's metadata (``initial_fill``), which ``OrtStep`` resets to.
+with the state flattened in the traced step's order (GRU: h; LSTM: h, c; KalmanNet: its filter's
+memory, then the GRU's h; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state (N, E),
+no batch axis; GPT-2, Filterformer: the slots' ages (W,), the next slot (1, 1), then per attention
+layer the keys and the values of its ring buffer, (nh, W, hs) each). The graph owns its state:
+``OrtStep`` keeps it between steps and nothing else reads it. The attention models serve a bounded
+key/value cache of the last W steps (their attention window, the ``context`` option), so their step
+graph has fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's
+covariance (normalised units), when exported with ``covariance``. A state that does not start at
+zeros (the attention models' ages start at +inf: no slot written) is recorded in the graph's
+metadata (``initial_fill``), which ``OrtStep`` resets to.
 A recurrent model served with a bounded context (K restarted copies, :mod:`neural_estimator.serving.context`)
 exports the step of its K copies as one batch of K rows, with the served copy's index as an input
 (``export_step(copies=(L, K))``); ``OrtStep`` restarts the copies' rows between steps.
@@ -121,14 +125,16 @@ def export_step(
             f"{method}: a bounded context by restarted copies exports for "
             f"{', '.join(table.names(context='recurrent'))}, network-only"
         )
-    state0 = model.init_state(1 if copies is None else int(copies[1]), device=p.device, dtype=torch.float32)
-    flat = _flatten(state0)
-    structured = isinstance(state0, (tuple, list))
     d_in = model.input_proj.in_features if hasattr(model, "input_proj") else int(model.cfg.d_in)
     blocker = getattr(model, "onnx_blocker", None)  # a hybrid whose system's f or h has no ONNX form
     if blocker:
         raise OnnxError(f"{method}: {blocker}")
     missing_nan = bool(getattr(model, "reads_missing_observations", False))
+    if copies is None:  # the step forms serve one stream; K copies step as a batch of K rows
+        model = _step_form(model)
+    state0 = model.init_state(1 if copies is None else int(copies[1]), device=p.device, dtype=torch.float32)
+    flat = _flatten(state0)
+    structured = isinstance(state0, (tuple, list))
     with_cov = bool(covariance) and hasattr(model, "step_with_cov")
     fills = _starting_fills(method, flat)
 
@@ -171,6 +177,17 @@ def export_step(
     if path is not None:
         Path(path).write_bytes(data)
     return data
+
+
+def _step_form(model: Any) -> Any:
+    """What is traced: the model's ``onnx_form()`` where its class has one (Mamba, Mamba-2, GPT-2,
+    Filterformer, and a covariance head's wrapper around them: :mod:`neural_estimator.models.onnx_forms`, the
+    same step in fewer ONNX Runtime operators, with its own state layout), else the model itself.
+    Looked up on the class: a wrapper that forwards unknown attributes to its trunk must define
+    its own."""
+    if getattr(type(model), "onnx_form", None) is None:
+        return model
+    return model.onnx_form().eval()
 
 
 # Operations a trace records that the exporter's own passes fold away before it looks for ONNX forms
@@ -346,7 +363,8 @@ _REGISTERED = False
 def _register_symbolics() -> None:
     """ONNX forms of the aten ops the steps use that opset 17 lacks: ``rms_norm`` (as
     x / sqrt(mean(x^2) + eps) * w) and ``linalg_vecdot`` (as sum(a * b) over the last axis) of the SSM
-    steps, ``diag_embed`` (as x[..., None] * I) of Filterformer's covariance."""
+    models' own ``step`` (their batch-1 forms export without them), ``diag_embed`` (as
+    x[..., None] * I) of Filterformer's covariance."""
     global _REGISTERED
     if _REGISTERED:
         return

@@ -100,11 +100,48 @@ class CholeskyHead(nn.Module):
             C = C * ((1.0 - self.shrink) * (1.0 - eye) + eye)
         return C
 
+    def onnx_form(self) -> nn.Module:
+        """This head's covariance for one step in fewer ONNX Runtime operators (:class:`_CholeskyStepForm`)."""
+        return _CholeskyStepForm(self)
+
     def nll(self, h: Tensor, e: Tensor) -> Tensor:
         """Mean Gaussian negative log-likelihood (without the constant) of errors e (K, n) at features h (K, H)."""
         L = self.factor(h)
         w = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)  # L^-1 e
         return (0.5 * (w * w).sum(-1) + torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)).mean()
+
+
+class _CholeskyStepForm(nn.Module):
+    """:meth:`CholeskyHead.forward` for one step, h (1, H) -> C (1, n, n) float64, as few operators:
+    exp(clamp) over the whole read-out a with a Where that keeps it on the diagonal entries only
+    (instead of slicing a into its parts and concatenating them with a zero), one Gather of the
+    n x n entries of L (those above the diagonal read any entry), and one product with a constant
+    that is the row scale u_i sqrt(s_i) below and on the diagonal and 0 above it (instead of two
+    row scalings and the gathered zero). Same L and C as the head's, to float32 rounding of the
+    row scales."""
+
+    def __init__(self, head: CholeskyHead) -> None:
+        super().__init__()
+        n, m = head.n, head.linear.out_features
+        self.linear = head.linear
+        diag = torch.zeros(m, dtype=torch.bool)
+        diag[:n] = True  # a's first n entries are the log-diagonal
+        place = head.place.view(n, n).clone()
+        place[place >= m] = 0  # the trailing zero of v: read any entry, the mask zeroes it
+        rows = (head.unit * head.scale.sqrt()).view(n, 1) * torch.ones(n, n).tril()  # u_i sqrt(s_i), i >= j
+        self.register_buffer("diag", diag)
+        self.register_buffer("place", place)
+        self.register_buffer("rows", rows.detach().clone().float())
+        eye = torch.eye(n, dtype=torch.float64)
+        self.shrink = float(head.shrink)
+        self.register_buffer("keep", (1.0 - self.shrink) * (1.0 - eye) + eye)  # C's entries kept under shrink
+
+    def forward(self, h: Tensor) -> Tensor:
+        a = self.linear(h)  # (1, m)
+        v = torch.where(self.diag, torch.exp(a.clamp(*LOG_DIAG_RANGE)), a)
+        L = (v[:, self.place] * self.rows).double()  # (1, n, n): D diag(u) A
+        C = L @ L.transpose(-1, -2)
+        return C * self.keep if self.shrink else C
 
 
 class GaussianModel(nn.Module):
@@ -146,6 +183,13 @@ class GaussianModel(nn.Module):
     def step_with_cov(self, z_t: Tensor, state: Any) -> tuple[Tensor, Tensor, Any]:
         h, state = self.trunk.step_features(z_t, state)
         return self.mean_of(h), self.cov_head(h), state
+
+    def onnx_form(self) -> GaussianModel:
+        """What the batch-1 ONNX graph is traced from: the head's step form (:class:`_CholeskyStepForm`)
+        on the trunk's step form where the trunk has one (``models/onnx_forms.py``), the trunk itself
+        elsewhere. Defined here so that the trunk's form is never taken without the head."""
+        trunk = self.trunk.onnx_form() if getattr(type(self.trunk), "onnx_form", None) is not None else self.trunk
+        return GaussianModel(trunk, self.cov_head.onnx_form())
 
 
 # ---- storage ----------------------------------------------------------------------------------------
