@@ -182,15 +182,14 @@ def _columns(m: str, est_t, est_o, Y: np.ndarray, U: np.ndarray) -> tuple[dict, 
     (the served graph's, then the model's own step traced)."""
     import torch
 
-    from neural_estimator.models.onnx_step import export_step
+    from neural_estimator.models.onnx_step import export_step, has_step_form
     from neural_estimator.serving.context import BatchedCopies
     from neural_estimator.serving.onnx_runtime import OrtStep
 
     model = est_t.model
     copies = (est_t.context, est_t.context_copies) if est_t.context_by_copies else None
     graph = export_step(model, m, copies=copies)  # the network alone, as the torch step column
-    has_form = getattr(type(model), "onnx_form", None) is not None
-    own_graph = export_step(own_step(model), m, copies=copies) if has_form else graph
+    own_graph = export_step(own_step(model), m, copies=copies) if has_step_form(model) else graph
     nodes = f"{optimized_nodes(graph)} ({optimized_nodes(own_graph)})"
     ort = OrtStep(graph)
     ort_own = OrtStep(own_graph)

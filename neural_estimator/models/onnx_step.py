@@ -10,9 +10,9 @@ step in the form ONNX Runtime runs in fewer operators (their ``onnx_form()``,
     outputs: mean (1, d_out) float32 (normalised), new_state_0 ... new_state_{S-1}
 
 with the state flattened in the traced step's order (GRU: h; LSTM: h, c; KalmanNet: its filter's
-memory, then the GRU's h; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state (N, E),
-no batch axis; GPT-2, Filterformer: the slots' ages (W,), the next slot (1, 1), then per attention
-layer the keys and the values of its ring buffer, (nh, W, hs) each). The graph owns its state:
+memory, then the GRU's h; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state, (N, E)
+and (H, P N), no batch axis; GPT-2, Filterformer: the slots' ages (W,), then per attention layer
+the keys and the values of its ring buffer, (nh, W, hs) each). The graph owns its state:
 ``OrtStep`` keeps it between steps and nothing else reads it. The attention models serve a bounded
 key/value cache of the last W steps (their attention window, the ``context`` option), so their step
 graph has fixed shapes too; Filterformer's graph also outputs ``cov`` (1, d_out, d_out), its head's
@@ -131,7 +131,7 @@ def export_step(
         raise OnnxError(f"{method}: {blocker}")
     missing_nan = bool(getattr(model, "reads_missing_observations", False))
     if copies is None:  # the step forms serve one stream; K copies step as a batch of K rows
-        model = _step_form(model)
+        model = step_form(model)
     state0 = model.init_state(1 if copies is None else int(copies[1]), device=p.device, dtype=torch.float32)
     flat = _flatten(state0)
     structured = isinstance(state0, (tuple, list))
@@ -179,15 +179,18 @@ def export_step(
     return data
 
 
-def _step_form(model: Any) -> Any:
-    """What is traced: the model's ``onnx_form()`` where its class has one (Mamba, Mamba-2, GPT-2,
-    Filterformer, and a covariance head's wrapper around them: :mod:`neural_estimator.models.onnx_forms`, the
-    same step in fewer ONNX Runtime operators, with its own state layout), else the model itself.
-    Looked up on the class: a wrapper that forwards unknown attributes to its trunk must define
-    its own."""
-    if getattr(type(model), "onnx_form", None) is None:
-        return model
-    return model.onnx_form().eval()
+def has_step_form(model: Any) -> bool:
+    """Whether ``model``'s class has an ``onnx_form()`` (Mamba, Mamba-2, GPT-2, Filterformer, and a
+    covariance head's wrapper: :mod:`neural_estimator.models.onnx_forms`, the same step in fewer ONNX
+    Runtime operators, with its own state layout). Looked up on the class: a wrapper that forwards
+    unknown attributes to its trunk must define its own."""
+    return getattr(type(model), "onnx_form", None) is not None
+
+
+def step_form(model: Any) -> Any:
+    """What is traced: the model's ``onnx_form()`` where it has one (:func:`has_step_form`), else the
+    model itself."""
+    return model.onnx_form().eval() if has_step_form(model) else model
 
 
 # Operations a trace records that the exporter's own passes fold away before it looks for ONNX forms

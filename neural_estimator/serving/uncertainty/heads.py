@@ -188,8 +188,9 @@ class GaussianModel(nn.Module):
         """What the batch-1 ONNX graph is traced from: the head's step form (:class:`_CholeskyStepForm`)
         on the trunk's step form where the trunk has one (``models/onnx_forms.py``), the trunk itself
         elsewhere. Defined here so that the trunk's form is never taken without the head."""
-        trunk = self.trunk.onnx_form() if getattr(type(self.trunk), "onnx_form", None) is not None else self.trunk
-        return GaussianModel(trunk, self.cov_head.onnx_form())
+        from neural_estimator.models.onnx_step import step_form
+
+        return GaussianModel(step_form(self.trunk), self.cov_head.onnx_form())
 
 
 # ---- storage ----------------------------------------------------------------------------------------
