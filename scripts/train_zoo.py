@@ -138,6 +138,7 @@ MODEL_OVERRIDES[("nlink", "kalmannet")] = {"gain_form": "state", "prior_gain": 0
 RECIPE_OVERRIDES = {(s, "kalmannet"): {"lr": 5e-4} for s in ("ballistic", "bearings", "quadrotor")}
 RECIPE_OVERRIDES[("nlink", "kalmannet")] = {"lr": 1e-4, "loss_units": "normalised"}
 OBSERVATIONS = "observations"  # --supervision observations: trained and installed apart (variants/observations/)
+FINE_TUNE = "finetune"  # --fine-tune: trained in STATE/finetune/, from the shipped weights
 
 
 def recorded_scenario(work: Path) -> dict | None:
@@ -465,6 +466,14 @@ def run_pair(a: argparse.Namespace, scenario, method: str, work: Path, zoo: Path
             **instance_seeds(a.instance),
         )
         recipe.update(RECIPE_OVERRIDES.get((scenario.name, method), {}))
+        if a.lr is not None:
+            recipe["lr"] = a.lr
+        if a.fine_tune:
+            start = comparable_shipped(work, zoo, scenario) if zoo is not None else None
+            if start is None:
+                print(f"{work.name}: not started: the zoo ships no model of these constants to fine-tune", flush=True)
+                return
+            recipe["init_from"] = str(start)
         cfg = TrainConfig(epochs=a.max_epochs, **recipe)
         t0 = time.time()
         if not a.finish:
@@ -652,8 +661,21 @@ def main(argv=None) -> int:
         "STATE/observations/, installed into neural_estimator/serving/zoo/variants/observations/, never "
         "replacing the state-trained model; evaluate reaches it with --checkpoint kalmannet=DIR)",
     )
+    p.add_argument(
+        "--fine-tune",
+        action="store_true",
+        help="start each selected pair from the zoo's shipped model of the pair (its weights, a fresh optimiser; "
+        "the card's training.init_from) in STATE/finetune/; installed only where it beats the shipped model",
+    )
+    p.add_argument("--lr", type=float, default=None, help="learning rate instead of the pair's (e.g. a fine-tune's)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
+    if a.fine_tune and (a.instance or a.val_context or a.supervision == OBSERVATIONS):
+        p.error(
+            "--fine-tune starts from the shipped model; it does not go with --instance, --val-context or --supervision"
+        )
+    if a.lr is not None and not a.lr > 0:
+        p.error(f"--lr must be positive, got {a.lr}")
     if a.supervision == OBSERVATIONS:
         bad = [m for m in a.methods.split(",") if m.strip() and not table.has(m.strip(), family="hybrid")]
         if bad:
@@ -675,6 +697,9 @@ def main(argv=None) -> int:
         state = Path(a.state) if a.state else STATE / OBSERVATIONS
         zoo = Path(a.zoo) if a.zoo else ZOO / "variants" / OBSERVATIONS
         a.no_compare = True
+    if a.fine_tune:  # its own state; the shipped model is retrained from its own weights
+        state = Path(a.state) if a.state else STATE / FINE_TUNE
+        a.retrain = True
     if a.instance:  # its own state and zoo folder; every instance is kept, none compared
         state, zoo = instance_paths(a.instance, Path(a.state) if a.state else None, Path(a.zoo) if a.zoo else None)
         a.no_compare = True

@@ -55,6 +55,13 @@ _TRAIN_FLAG_HELP["supervision"] = (
 )
 
 
+_TRAIN_FLAG_HELP["init_from"] = (
+    "a checkpoint directory whose weights start the training instead of a fresh initialisation "
+    "(fine-tuning: same architecture and configuration; a fresh optimiser at --lr; recorded in the card "
+    "as training.init_from)"
+)
+
+
 _TRAIN_FLAG_HELP["val_context_copies"] = "copies for --val-context (K times the validation compute; default: 4)"
 
 
@@ -107,7 +114,7 @@ def add_train(sub) -> None:
         default = _TRAIN_DEFAULTS.get(f.name, f.default)
         flag = "--" + f.name.replace("_", "-")
         kind = type(f.default) if f.default is not None else int
-        if f.name == "cache_dir":
+        if f.name in ("cache_dir", "init_from"):
             kind = str
         p.add_argument(flag, type=kind, default=default, help=_TRAIN_FLAG_HELP.get(f.name, f"default: {default}"))
     p.add_argument("--resume", action="store_true", help="continue from OUT/resume if it exists")

@@ -18,7 +18,8 @@ What :func:`train` does, in order:
    ``data_seed`` (length-500 trajectories holding ratio x 100k steps: 20:1 -> 4,000 x 500) and its
    validation set (8,000 x 500).
 2. Normalisation statistics from the training set (:mod:`~neural_estimator.serving.normalization`).
-3. The model, initialised under ``torch.manual_seed(init_seed)``.
+3. The model, initialised under ``torch.manual_seed(init_seed)``, or from a trained checkpoint's
+   weights with ``init_from`` (fine-tuning; :mod:`~neural_estimator.training.warm_start`).
 4. Each epoch: ``windows_per_epoch`` random length-100 windows (default: as many as make the
    training set's timesteps once, 20,000 at 20:1) in batches of 64. Loss, with e = x_hat_n - x_n the
    error in normalised units (angular components wrapped to (-pi, pi], as the metrics wrap them)
@@ -94,6 +95,7 @@ from neural_estimator.scenarios.model import model_scenario
 from neural_estimator.training.loss import component_weights, state_error, weighted_loss
 from neural_estimator.training.resume import RESUME_DIR, load_resume, save_resume
 from neural_estimator.training.stopping import converged, lr_reductions
+from neural_estimator.training.warm_start import warm_start
 from neural_estimator.training.threads import ThreadGovernor
 
 
@@ -280,6 +282,8 @@ class _Run:
         overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
         self.system = model_scenario(scenario, cfg.model_set)  # the f and h a hybrid runs (a model set: not the data's)
         self.model = build_model(arch, self.system, **overrides).to(device)
+        # a warm start (fine-tuning): a trained checkpoint's weights instead of the fresh ones
+        self.init_from = warm_start(self.model, cfg.init_from, self.system, sets.norm) if cfg.init_from else None
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
             self.optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
@@ -511,6 +515,7 @@ class _Run:
                 "converged": converged(run["stopped"], run["history"], cfg.lr),
                 "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
                 "history": run["history"],
+                **({"init_from": self.init_from} if self.init_from else {}),
             },
             "validation_loss": run["best"],
             "metrics": metrics,

@@ -45,6 +45,9 @@ class TrainConfig:
     supervision: str = "states"
     # model
     init_seed: int = 0  # initial weights, dropout and window draws
+    # a checkpoint directory whose weights start the run instead of fresh ones (fine-tuning; the same
+    # architecture and configuration; training.warm_start); None: the fresh initialisation of init_seed
+    init_from: str | None = None
     model_overrides: dict[str, Any] = field(default_factory=dict)  # architecture config changes
     # a hybrid's model, other than the system that made the data (scenarios.model: {constant or Q/R:
     # value}): the team's situation, its f and h wrong; {} = the data's own constants
@@ -121,10 +124,10 @@ class TrainConfig:
         """The settings that define the result, as a JSON-ready dict (recorded in cards and resume states).
 
         Left out: ``cache_dir``, ``resume`` and ``keep_resume`` (where and how, not what), and
-        ``supervision`` when it is "states", ``loss_units`` when it is "normalised" and ``model_set``
-        when it is empty: every card and resume state written before the field existed was trained so,
-        and a recipe without it still means that; likewise ``val_context`` and ``val_context_copies``
-        when the context is unbounded (0).
+        ``init_from`` when it is None, ``supervision`` when it is "states", ``loss_units`` when it is
+        "normalised" and ``model_set`` when it is empty: every card and resume state written before
+        the field existed was trained so, and a recipe without it still means that; likewise
+        ``val_context`` and ``val_context_copies`` when the context is unbounded (0).
         """
         d = dataclasses.asdict(self)
         d["model_overrides"] = dict(self.model_overrides)
@@ -135,6 +138,8 @@ class TrainConfig:
             d.pop("loss_units")
         if d["supervision"] == "states":
             d.pop("supervision")  # every recipe before the field existed trained on states
+        if d["init_from"] is None:
+            d.pop("init_from")  # a fresh initialisation, as every recipe before the field existed
         if not d["model_set"]:
             d.pop("model_set")  # the data's own model, as every recipe before the field existed
         if not d["val_context"]:
