@@ -5,6 +5,7 @@ ONNX Runtime."""
 from __future__ import annotations
 
 import collections
+import json
 
 import numpy as np
 import pytest
@@ -149,6 +150,61 @@ def test_the_shipped_graphs_serve_the_forms_state():
         fills = json.loads(step.metadata["initial_fill"])
         if method in ATTENTION:
             assert fills[0] == float("inf") and step.state[0].shape == (int(step.metadata["window"]),)
+            assert step.inplace and 0 not in step.inplace  # the caches in place, the ages double-buffered
         else:
             assert all(f == 0.0 for f in fills) and all(s.ndim == 2 for s in step.state), method
         assert np.all(np.isfinite(step.step(np.zeros((1, step.d_in), dtype=np.float32))))
+
+
+@pytest.mark.parametrize("method", FORMS)
+def test_the_attention_caches_are_updated_in_place_and_nothing_else(method, l96):
+    """An attention graph lists its KV caches in ``inplace_states`` (each read by its ScatterND
+    alone), and ``OrtStep`` keeps one buffer for each; 300 steps over a window of 7 (the caches wrap)
+    equal, to the bit, the same graph served double-buffered (the list removed). The SSM graphs list
+    nothing: their states have other readers."""
+    import onnx
+
+    from neural_estimator.serving.onnx_runtime import OrtStep
+
+    model = _model(l96, method, window=7 if method in ATTENTION else 0).trunk
+    data = export_step(model, method)
+    graph = onnx.load_from_string(data)
+    meta = {p.key: p.value for p in graph.metadata_props}
+    if method not in ATTENTION:
+        assert "inplace_states" not in meta and OrtStep(data).inplace == ()
+        return
+    L = model.cfg.n_layer if method == "gpt2" else 1
+    assert json.loads(meta["inplace_states"]) == list(range(1, 2 * L + 1))  # not the ages: other readers
+    shared = OrtStep(data)
+    assert shared.inplace == tuple(range(1, 2 * L + 1))
+    assert all(shared._sets[0][k] is shared._sets[1][k] for k in shared.inplace)
+    kept = [p for p in graph.metadata_props if p.key != "inplace_states"]
+    del graph.metadata_props[:]
+    graph.metadata_props.extend(kept)
+    double = OrtStep(graph.SerializeToString())
+    assert double.inplace == ()
+    gen = np.random.default_rng(5)
+    for _ in range(300):
+        z = gen.standard_normal((1, shared.d_in)).astype(np.float32)
+        np.testing.assert_array_equal(shared.step(z), double.step(z))
+
+
+def test_inplace_states_needs_a_scatter_that_is_the_states_only_reader():
+    import onnx
+    from onnx import TensorProto, helper
+
+    from neural_estimator.models.onnx_step import inplace_states
+
+    def graph(extra_reader: bool):
+        s = helper.make_tensor_value_info("state_0", TensorProto.FLOAT, [4, 2])
+        idx = helper.make_tensor_value_info("idx", TensorProto.INT64, [1, 1])
+        upd = helper.make_tensor_value_info("upd", TensorProto.FLOAT, [1, 2])
+        out = [helper.make_tensor_value_info("new_state_0", TensorProto.FLOAT, [4, 2])]
+        nodes = [helper.make_node("ScatterND", ["state_0", "idx", "upd"], ["new_state_0"])]
+        if extra_reader:
+            out.append(helper.make_tensor_value_info("total", TensorProto.FLOAT, []))
+            nodes.append(helper.make_node("ReduceSum", ["state_0"], ["total"], keepdims=0))
+        return onnx.helper.make_graph(nodes, "g", [s, idx, upd], out)
+
+    assert inplace_states(graph(False)) == [0]
+    assert inplace_states(graph(True)) == []  # the sum could read rows the scatter already wrote

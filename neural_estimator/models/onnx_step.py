@@ -349,11 +349,45 @@ def _exported(step: Any, args: tuple, names_in: list[str], names_out: list[str])
     return buf.getvalue()
 
 
+def inplace_states(graph: Any) -> list[int]:
+    """The states i that a step may update in place (an ``onnx.ModelProto``'s graph): ``state_i``'s
+    one reader is a ScatterND that takes it as its data and writes ``new_state_i``. Such a node copies
+    its data into its output and then writes a few rows; bound to the same buffer as its input (ONNX
+    Runtime skips the copy when the two are one), it writes only the rows: the attention models' KV
+    caches, 2 x (nh, W, hs) floats a layer, are no longer copied every step. Any other reader could
+    see the rows already written, so a state with one is never listed."""
+    readers: dict[str, list[tuple[Any, int]]] = {}
+    for node in graph.node:
+        for k, name in enumerate(node.input):
+            readers.setdefault(name, []).append((node, k))
+    outputs = {o.name for o in graph.output}
+    found = []
+    for inp in graph.input:
+        if not inp.name.startswith("state_"):
+            continue
+        users = readers.get(inp.name, [])
+        new = "new_" + inp.name
+        if (
+            len(users) == 1
+            and users[0][0].op_type == "ScatterND"
+            and users[0][1] == 0
+            and users[0][0].output[0] == new
+            and new in outputs
+            and inp.name not in outputs  # a state passed through unchanged is its own output
+        ):
+            found.append(int(inp.name[len("state_") :]))
+    return sorted(found)
+
+
 def _with_metadata(data: bytes, props: dict[str, str]) -> bytes:
-    """The graph ``data`` with ``props`` as its metadata (key/value strings)."""
+    """The graph ``data`` with ``props`` as its metadata (key/value strings), and ``inplace_states``
+    (:func:`inplace_states`) where a state may be updated in place."""
     import onnx
 
     graph = onnx.load_from_string(data)
+    inplace = inplace_states(graph.graph)
+    if inplace:
+        props = {**props, "inplace_states": json.dumps(inplace)}
     for key, value in props.items():
         entry = graph.metadata_props.add()
         entry.key, entry.value = str(key), str(value)

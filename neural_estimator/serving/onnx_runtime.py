@@ -53,7 +53,9 @@ class OrtStep:
     Every input and output is a preallocated numpy buffer bound once (no allocation, no dict per step):
     write the inputs into :attr:`inputs` (by name: ``z``, or ``y`` and ``u``), call :meth:`run`, read
     :attr:`outputs` (``mean``, or ``x`` and ``skipped``); the next run overwrites them. The state
-    lives in two sets of buffers that swap roles every step (a run reads one and writes the other).
+    lives in two sets of buffers that swap roles every step (a run reads one and writes the other),
+    except the states the graph updates in place (``inplace_states`` in its metadata: the attention
+    models' KV caches), which keep one buffer, read and written by the same run.
 
     Args:
         graph: the ``.onnx`` bytes or a path to them (:func:`export_step`).
@@ -99,6 +101,13 @@ class OrtStep:
         if len(fills) != len(state_in):
             raise EstimatorError(f"the graph's initial_fill names {len(fills)} states, its inputs {len(state_in)}")
         self._fills = [float(f) for f in fills]
+        # states the graph updates in place (models.onnx_step.inplace_states: a KV cache written by
+        # one ScatterND): one buffer serves as the step's input and output, so that ONNX Runtime
+        # writes only the new rows instead of copying the cache into the other set first
+        inplace = self._inplace(len(state_in))
+        for k in inplace:
+            self._sets[1][k] = self._sets[0][k]
+        self.inplace = tuple(inplace)
         bounded = "context_copies" in self.metadata  # K restarted copies in the graph's batch
         self.copies = _copies_of(self.metadata, self._sets[0], self._fills) if bounded else None
         value = ort.OrtValue.ortvalue_from_numpy
@@ -115,6 +124,19 @@ class OrtStep:
             self._bindings.append(b)
         self._run = self.session.run_with_iobinding
         self.reset()
+
+    def _inplace(self, n_states: int) -> list[int]:
+        """The graph's ``inplace_states`` (none in a graph exported before they were recorded)."""
+        try:
+            found = json.loads(self.metadata.get("inplace_states", "[]"))
+            if not (isinstance(found, list) and all(isinstance(k, int) and 0 <= k < n_states for k in found)):
+                raise ValueError(found)
+        except ValueError:
+            raise EstimatorError(
+                f"the graph's inplace_states {self.metadata['inplace_states']!r} are not indices of its "
+                f"{n_states} states"
+            ) from None
+        return sorted(set(found))
 
     @property
     def state(self) -> list[np.ndarray]:
