@@ -116,6 +116,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(ROOT / "runs" / "bench_pipeline"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--domain-id",
+        type=int,
+        default=None,
+        help="the chain's ROS domain (0-232; default: a free one, never ROS_DOMAIN_ID's)",
+    )
+    ap.add_argument(
         "--estimator-param",
         action="append",
         default=[],
@@ -143,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
         "rclpy's single-threaded executor with its EventsExecutor in one invocation",
     )
     a = ap.parse_args(argv)
+    if a.domain_id is not None and not 0 <= a.domain_id <= 232:
+        ap.error(f"--domain-id must be in 0-232, got {a.domain_id}")
     executors = [e.strip() for e in a.executors.split(",") if e.strip()]
     print(f"command: python benchmarks/bench_pipeline.py {' '.join(argv if argv is not None else sys.argv[1:])}")
     summary = {}
@@ -189,6 +197,7 @@ def _run(a, out: Path) -> dict:
         estimator_params=tuple(a.estimator_param),
         realtime_priority=a.realtime_priority,
         options=tuple(a.option),
+        domain_id=a.domain_id,
     )
     print(
         f"{a.scenario}: {methods} at {a.rate_hz:g} Hz, {a.trajectories} x {horizon} steps "
