@@ -183,14 +183,15 @@ class MambaStepForm(_SSMForm):
 
 class Mamba2StepForm(_SSMForm):
     """Mamba-2's step (``Mamba2Mixer.step`` in each layer) in the graph's form; state per layer: the
-    conv window (K, E + 2N) and the SSM state as (H, P N) (mamba_ssm's (H, P, N), zeros). A head's
-    scalar decay exp(delta_h A_h) scales its row of (H, P N) (one value over each contiguous row:
-    1.2 us in ONNX Runtime against 2.1 us for the per-channel decay over (N, E) measured alike); the
-    same state viewed as (E, N) takes the input's outer product and gives the read-out, as two Gemms:
+    conv window (K, E + 2N) and the SSM state transposed, (N, E) (mamba_ssm's (H, P, N) as its E = H P
+    channels by N, then transposed; zeros). Each head's step size is spread over its P channels by
+    one product with a 0/1 matrix (softplus, slow in ONNX Runtime, runs on the H heads only), so
+    that the decay, the input's outer product and the read-out are row-vector broadcasts and two
+    Gemms, with no reshape between them:
 
-        S' = dA_h * S + (delta_h x)^T b,     y = c S'^T + D * x     (1, E)
-
-    softplus (slow in ONNX Runtime) runs on the H heads only."""
+        delta = softplus(dt) R  (1, E),   R[h, e] = 1 where channel e is in head h
+        S' = exp(delta * A) * S + b^T (delta * x)     (N, E)
+        y  = c S' + D * x                              (1, E)"""
 
     def _dims(self, mixer: nn.Module) -> None:
         self.E, self.N, self.K = mixer.d_inner, mixer.d_state, mixer.d_conv
@@ -200,13 +201,15 @@ class Mamba2StepForm(_SSMForm):
         m = block.mixer
         E, N, P = self.E, self.N, self.P
         w = m.in_proj.weight  # (2E + 2N + H, d): [g, x, b, c, dt]
+        spread = torch.repeat_interleave(torch.eye(self.H, dtype=w.dtype), P, dim=1)  # (H, E)
         return _params(
             norm=block.norm.weight,
             in_proj=w,
             in_bias=torch.cat((w.new_zeros(2 * E + 2 * N), m.dt_bias.detach())),  # dt_bias on the dt rows
             conv_w=m.conv1d.weight[:, 0].t(),  # (K, E + 2N)
             conv_b=m.conv1d.bias.view(1, -1),
-            A=-torch.exp(m.A_log.detach()).view(1, -1),  # (1, H)
+            spread=spread,
+            A=(-torch.exp(m.A_log.detach())).repeat_interleave(P).view(1, -1),  # (1, E): each head's A
             D=m.D.detach().repeat_interleave(P).view(1, -1),  # (1, E): each head's D on its P channels
             gate_norm=m.norm.weight,
             out_proj=m.out_proj.weight,
@@ -220,24 +223,22 @@ class Mamba2StepForm(_SSMForm):
         for _ in self.layers:
             state += [
                 torch.zeros(self.K, C, device=dev, dtype=dt),
-                torch.zeros(self.H, self.P * self.N, device=dev, dtype=dt),
+                torch.zeros(self.N, self.E, device=dev, dtype=dt),
             ]
         return tuple(state)
 
     def _mixer(self, p: nn.Module, h: Tensor, conv: Tensor, ssm: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        E, N, H, P = self.E, self.N, self.H, self.P
+        E, N, H = self.E, self.N, self.H
         g, xbc, dt = F.linear(rms_norm_fusable(h, p.norm, self.eps), p.in_proj, p.in_bias).split(
             [E, E + 2 * N, H], dim=-1
         )  # (1, E), (1, E + 2N), (1, H): dt + dt_bias
         conv, xbc = self._conv(p, conv, xbc)  # (K, E + 2N), (1, E + 2N)
         x, b, c = xbc.split([E, N, N], dim=-1)
-        delta = F.softplus(dt)  # (1, H)
-        decay = torch.exp(delta * p.A).view(H, 1)  # (H, 1)
-        dx = (x.view(H, P) * delta.view(H, 1)).view(1, E)  # delta_h x, (1, E)
-        ssm = torch.addmm((ssm * decay).view(E, N), dx.t(), b)  # (E, N)
-        y = torch.addmm(p.D * x, c, ssm.t())  # (1, E)
+        delta = F.softplus(dt) @ p.spread  # (1, E): each head's step size on its channels
+        ssm = torch.addmm(ssm * torch.exp(delta * p.A), b.t(), delta * x)  # (N, E)
+        y = torch.addmm(p.D * x, c, ssm)  # (1, E)
         y = rms_norm_fusable(y * F.silu(g), p.gate_norm, self.eps)  # the gated RMSNorm, norm after gate
-        return h + F.linear(y, p.out_proj), conv, ssm.view(H, P * N)
+        return h + F.linear(y, p.out_proj), conv, ssm
 
 
 class _ScatterND(torch.autograd.Function):

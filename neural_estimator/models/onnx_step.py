@@ -11,7 +11,7 @@ step in the form ONNX Runtime runs in fewer operators (their ``onnx_form()``,
 
 with the state flattened in the traced step's order (GRU: h; LSTM: h, c; KalmanNet: its filter's
 memory, then the GRU's h; Mamba/Mamba-2: per layer the conv window (K, C) and the SSM state, (N, E)
-and (H, P N), no batch axis; GPT-2, Filterformer: the slots' ages (W,), then per attention layer
+for both, no batch axis; GPT-2, Filterformer: the slots' ages (W,), then per attention layer
 the keys and the values of its ring buffer, (nh, W, hs) each). The graph owns its state:
 ``OrtStep`` keeps it between steps and nothing else reads it. The attention models serve a bounded
 key/value cache of the last W steps (their attention window, the ``context`` option), so their step
