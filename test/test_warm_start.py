@@ -79,3 +79,21 @@ def test_train_zoo_fine_tune_starts_from_the_shipped_weights_and_installs_only_a
         zoo_script.main([*fine, "--instance", "1"])
     with pytest.raises(SystemExit):
         zoo_script.main([*fine, "--lr", "0"])
+
+
+def test_train_command_line_init_from(tmp_path, capsys):
+    """``train --init-from DIR``: the run starts from DIR's weights (its card says so); a directory
+    that holds no checkpoint is one line on stderr and exit status 2."""
+    from neural_estimator.cli import main
+
+    args = ["train", "--scenario", "lorenz96", "--model", "gru", "--quiet", "--arch-set", "hidden=8"]
+    args += ["--trajectories", "8", "--val-trajectories", "4", "--train-length", "20", "--window", "10"]
+    args += ["--warmup", "2", "--batch-size", "4", "--epochs", "1", "--eval-trajectories", "0"]
+    args += ["--cache-dir", str(tmp_path / "cache")]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert main([*args, "--out", str(tmp_path / "b"), "--init-from", str(tmp_path / "a")]) == 0
+    assert _card(tmp_path / "b")["training"]["init_from"]["sha256"] == _card(tmp_path / "a")["weights"]["sha256"]
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "c"), "--init-from", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "init_from" in err[0], err
