@@ -144,7 +144,7 @@ def train(
     run_class = table.resolve(table.spec(arch).training_run) if table.spec(arch).training_run else _Run
     run = run_class(scenario, arch, window_key, sets, Path(out_dir), device)
     run.threads = threads
-    if sets.cfg.resume and (run.out_dir / RESUME_DIR / "state.json").is_file():
+    if _resuming(sets.cfg, run.out_dir):
         run.resume(stop_when)
     bar = _bar(sets.cfg.epochs, progress, f"{scenario.name}/{arch}", initial=run.state["epoch"], position=0)
     while run.state["epoch"] < sets.cfg.epochs and run.state["stopped"] is None:
@@ -158,6 +158,11 @@ def train(
 
 
 # ---- what train() does, in order ----------------------------------------------------------------------
+def _resuming(cfg: TrainConfig, out_dir: Path) -> bool:
+    """Whether the run continues from ``out_dir/resume`` (``resume`` set and a resume state there)."""
+    return cfg.resume and (Path(out_dir) / RESUME_DIR / "state.json").is_file()
+
+
 def _checked_arch(arch: str, cfg: TrainConfig) -> tuple[str, str | None]:
     """(architecture, its attention-window hyperparameter or None); the recipe's one-line errors
     before any data are simulated."""
@@ -282,8 +287,6 @@ class _Run:
         overrides = {**cfg.model_overrides, **({window_key: cfg.val_context} if cfg.val_context and window_key else {})}
         self.system = model_scenario(scenario, cfg.model_set)  # the f and h a hybrid runs (a model set: not the data's)
         self.model = build_model(arch, self.system, **overrides).to(device)
-        # a warm start (fine-tuning): a trained checkpoint's weights instead of the fresh ones
-        self.init_from = warm_start(self.model, cfg.init_from, self.system, sets.norm) if cfg.init_from else None
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
             self.optimizer, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience
@@ -298,6 +301,11 @@ class _Run:
             "stopped": None,
             "history": [],
         }
+        # a warm start (fine-tuning): a trained checkpoint's weights instead of the fresh ones, before a
+        # hybrid's run sets its normalisation; its record travels in the run record (and so the resume
+        # state), and a run that resumes takes it from there: the checkpoint may have changed since
+        if cfg.init_from and not _resuming(cfg, out_dir):
+            self.state["init_from"] = warm_start(self.model, cfg.init_from, self.system, sets.norm)
         self.identity = {
             "scenario": scenario.describe(),
             "arch": arch,
@@ -515,7 +523,7 @@ class _Run:
                 "converged": converged(run["stopped"], run["history"], cfg.lr),
                 "convergence_rule": "early stopping triggered, or the learning rate reduced at least 3 times",
                 "history": run["history"],
-                **({"init_from": self.init_from} if self.init_from else {}),
+                **({"init_from": run["init_from"]} if run.get("init_from") else {}),
             },
             "validation_loss": run["best"],
             "metrics": metrics,
