@@ -22,6 +22,9 @@ For every shipped model of the scenario (the paper's sizes), in one process, in 
 - ``GEMV limit``: 2 x parameters / the single-core float32 GEMV rate measured here (the time a step
   would take if it only streamed its weights once through the fastest matrix-vector product);
   ``ORT / limit`` is the ORT step over it;
+- ``step limit``: the same, counting also the step's arithmetic that no weight does (:func:`state_flops`:
+  the attention over the window's keys and values, the SSM state's decay, update and read-out, the
+  conv's window), which the GEMV limit leaves out; ``ORT / step limit`` the ORT step over it;
 - ``nodes``: the operators ONNX Runtime runs per step, after its graph optimisations (the graph it
   serves, then the model's own step traced), read back from the optimised model it writes.
 
@@ -68,6 +71,28 @@ def gemv_rate(bursts: int = 200) -> float:
                 torch.mv(a, x)
             best = max(best, 2 * n * n * 5 / (time.perf_counter() - t0))
     return best
+
+
+def state_flops(model) -> int:
+    """Floating-point operations of one batch-1 step that act on the state, not on a weight (those are
+    the 2 x parameters of the GEMV limit), read from the model's step form (``models/onnx_forms.py``):
+
+    - attention over a window of W slots, per layer: q k_j and the sum of p_j v_j over the W slots, for
+      every one of the D channels: 4 D W;
+    - an SSM layer with state (N, E): the decay of every element, its product with the state, the
+      input's outer product added, the read-out's multiply-adds: 5 N E (Mamba's decay exp(delta A) is
+      per element: 6 N E); the causal conv's K-tap window over its C channels: 2 K C;
+    - the GRU and LSTM: 0 (their gates act on products that the weights make)."""
+    from neural_estimator.models.onnx_step import step_form
+
+    form = step_form(model)
+    trunk = getattr(form, "trunk", form)
+    if hasattr(trunk, "W") and hasattr(trunk, "n_layers"):  # a ring form: GPT-2, Filterformer
+        return 4 * trunk.D * trunk.W * trunk.n_layers
+    if hasattr(trunk, "N") and hasattr(trunk, "layers"):  # an SSM form: Mamba (no heads), Mamba-2
+        per_element, channels = (5, trunk.E + 2 * trunk.N) if hasattr(trunk, "H") else (6, trunk.E)
+        return len(trunk.layers) * (per_element * trunk.N * trunk.E + 2 * trunk.K * channels)
+    return 0
 
 
 def optimized_nodes(graph: bytes) -> int:
@@ -147,12 +172,13 @@ def main(argv: list[str] | None = None) -> int:
     print()
     heads = ["torch step", "node (torch)", "ORT step", "ORT own step", "ORT run()", "node (ORT)"]
     print(
-        "| model | params | GEMV limit | nodes (own step) | "
+        "| model | params | GEMV limit | step limit | nodes (own step) | "
         + " | ".join(f"{h} p50 / p99" for h in heads)
-        + " | ORT / limit | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run() | node (torch) / ORT step"
+        + " | ORT / limit | ORT / step limit | wrapper p50 | node (ORT) / ORT step | node (ORT) / ORT run()"
+        + " | node (torch) / ORT step"
         + " | node (torch) / node (ORT) |"
     )
-    print("|---|---:|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|" + "---:|" * len(heads) + "---:|---:|---:|---:|---:|---:|---:|")
     context = {"context": 0} if a.context == "0" else {}  # {}: the card's
     for m in a.methods:
         est_t = load_neural_estimator(m, scen, **context)
@@ -160,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         steps, copies, nodes = _columns(m, est_t, est_o, Y, U)
         params = count_parameters(est_t.model)
         limit = 2 * params * (copies[1] if copies else 1) / rate * 1e6
+        step_limit = limit + state_flops(est_t.model) * (copies[1] if copies else 1) / rate * 1e6
         if copies:
             print(f"{m}: context bounded to {copies[0]} steps, {copies[1]} copies as one batch", flush=True)
         times = _interleaved(steps, heads, a.rounds, max(1, a.steps // a.rounds))
@@ -167,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
         wrapper = p["node (ORT)"][0] - p["ORT step"][0]
         cells = " | ".join(f"{p[h][0]:.1f} / {p[h][1]:.1f}" for h in heads)
         print(
-            f"| {m} | {params:,} | {limit:.1f} | {nodes} | {cells} | {p['ORT step'][0] / limit:.1f}x | {wrapper:.1f} | "
+            f"| {m} | {params:,} | {limit:.1f} | {step_limit:.1f} | {nodes} | {cells} | "
+            f"{p['ORT step'][0] / limit:.1f}x | "
+            f"{p['ORT step'][0] / step_limit:.1f}x | {wrapper:.1f} | "
             f"{p['node (ORT)'][0] / p['ORT step'][0]:.2f}x | {p['node (ORT)'][0] / p['ORT run()'][0]:.2f}x | "
             f"{p['node (torch)'][0] / p['ORT step'][0]:.2f}x | {p['node (torch)'][0] / p['node (ORT)'][0]:.2f}x |",
             flush=True,
