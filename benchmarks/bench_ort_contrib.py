@@ -112,14 +112,13 @@ def residual_pair(D: int, chain: int, rng: np.random.Generator):
         w = (rng.standard_normal((D, D)) / np.sqrt(D)).astype(np.float32)
         inits += [
             numpy_helper.from_array(w, f"w{i}"),
-            numpy_helper.from_array(w.T.copy(), f"wt{i}"),
             numpy_helper.from_array(rng.standard_normal(D).astype(np.float32), f"b{i}"),
             numpy_helper.from_array((1.0 + 0.1 * rng.standard_normal(D)).astype(np.float32), f"g{i}"),
             numpy_helper.from_array((0.1 * rng.standard_normal(D)).astype(np.float32), f"beta{i}"),
         ]
         x, h = ("x", "h") if i == 0 else (f"x{i - 1}", f"h{i - 1}")
         std_nodes += [
-            helper.make_node("Gemm", [x, f"wt{i}", f"b{i}"], [f"p{i}"], transB=1),
+            helper.make_node("Gemm", [x, f"w{i}", f"b{i}"], [f"p{i}"]),
             helper.make_node("Add", [h, f"p{i}"], [f"h{i}"]),
             helper.make_node("LayerNormalization", [f"h{i}", f"g{i}", f"beta{i}"], [f"x{i}"], axis=-1),
         ]
