@@ -13,6 +13,7 @@ from neural_estimator.evaluation import checkpoint_digest, evaluate
 from neural_estimator.methods.registry import EstimatorError
 from neural_estimator.scenarios import make_scenario
 from neural_estimator.serving import card as C
+from neural_estimator.serving.instances import zoo_instances
 from neural_estimator.serving.uncertainty import heads as _heads  # noqa: F401  bound to the real sha256_file before any patch
 
 
@@ -29,17 +30,20 @@ def _counting(monkeypatch):
     return calls
 
 
-def test_an_evaluation_reads_the_card_once_and_hashes_the_weights_once(tmp_path, monkeypatch):
+def test_an_evaluation_reads_each_card_once_and_hashes_the_weights_once(tmp_path, monkeypatch):
+    """Once per checkpoint: the evaluation runs every trained instance the zoo ships of the pair."""
+    k = len(zoo_instances("lorenz96", "gru"))
+    assert k >= 1
     calls = _counting(monkeypatch)
     scenario = make_scenario("lorenz96")
     kw = dict(trajectories=2, horizon=12, sets=2, cache_dir=tmp_path, progress=False)
     first = evaluate(scenario, ["gru"], **kw)
-    assert calls == {"check_card": 1, "hash": 1, "sha256_file": 0}, calls
-    assert len(first["gru"].reports) == 2
-    for k in calls:
-        calls[k] = 0
-    second = evaluate(scenario, ["gru"], **kw)  # every run cached: still one resolution, no loading
-    assert second["gru"].cached == 2 and calls == {"check_card": 1, "hash": 1, "sha256_file": 0}, calls
+    assert calls == {"check_card": k, "hash": k, "sha256_file": 0}, calls
+    assert len(first["gru"].reports) == 2 * k and first["gru"].n_instances == k
+    for name in calls:
+        calls[name] = 0
+    second = evaluate(scenario, ["gru"], **kw)  # every run cached: still one resolution each, no loading
+    assert second["gru"].cached == 2 * k and calls == {"check_card": k, "hash": k, "sha256_file": 0}, calls
 
 
 def test_the_resolved_digest_is_the_result_cache_key_of_the_files():
