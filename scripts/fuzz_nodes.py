@@ -468,12 +468,11 @@ def run(seconds: float, seed: int, only: set[str] | None, domain: int, workdir: 
     rows, deaths = [], 0
     try:
         for t in chosen:  # each node up and answering (the lifecycle one configured and active)
-            up_by = time.monotonic() + 60.0
+            up_by, answer = time.monotonic() + 60.0, None
             # asked again every 5 s: a response the middleware fails to deliver under load ("failed to send
             # response (timeout)" in the node's log) is lost, not late
-            while (answer := call(ListParameters, fq(t, "list_parameters"), ListParameters.Request(), 5.0)) is None:
-                if time.monotonic() > up_by:
-                    break
+            while answer is None and time.monotonic() < up_by:
+                answer = call(ListParameters, fq(t, "list_parameters"), ListParameters.Request(), 5.0)
             if answer is None:
                 raise SystemExit(f"{t.name} did not come up; its log:\n{logs[t.name].read_text(errors='replace')}")
             if t.module == LIFECYCLE:

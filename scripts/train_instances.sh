@@ -37,7 +37,8 @@ for instance in 1 2; do
 done
 
 walk() {  # worker $1 of $workers: the queue from entry $1 * len / workers on, wrapping round
-    local n=${#queue[@]} start=$(($1 * ${#queue[@]} / workers)) i entry instance scenario method
+    local n=${#queue[@]} i entry instance scenario method
+    local start=$(($1 * n / workers))
     for ((i = 0; i < n; i++)); do
         entry="${queue[$(((start + i) % n))]}"
         IFS=: read -r instance scenario method <<<"$entry"
