@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -17,7 +18,7 @@ pytest.importorskip("ray")
 
 from neural_estimator.cli import main
 from neural_estimator.paper.reproduce import tables as R
-from neural_estimator.paper.reproduce.jobs import Job, run_job, train_dir
+from neural_estimator.paper.reproduce.jobs import Job, job_data, run_job, train_dir
 from neural_estimator.paper.reproduce.plan import plan_jobs
 from neural_estimator.paper.reproduce.scales import SCALES, ScaleError, get_scale
 
@@ -296,6 +297,41 @@ def test_plan_has_one_job_per_method_set_noise_level_and_runtime():
     # both timing modes (step by step, whole sequences); filters: CPU only
     assert kinds.count(("runtime", "cpu")) == 4 and kinds.count(("runtime", "cuda")) == 2
     assert len(set(jobs)) == len(jobs)
+
+
+def test_the_small_scales_evaluate_every_instance_the_zoo_ships(tmp_path):
+    """Accuracy and noise evaluate each zoo instance of a network on every set (the report's cells are
+    medians over instances x sets, as the paper's); each job serves its own instance's weights."""
+    from neural_estimator.evaluation import evaluate
+    from neural_estimator.paper.reproduce.jobs import shipped_instance
+    from neural_estimator.scenarios import make_scenario
+    from neural_estimator.serving.instances import instance_number, zoo_instances
+
+    shipped = [instance_number(p) for p in zoo_instances("nlink", "gru")]
+    assert shipped[0] == 0 and len(shipped) >= 2  # the zoo ships several N-link GRUs
+    sc = get_scale("smoke")
+    jobs = plan_jobs(sc, ["nlink"], ["ekf", "gru"], experiments=("accuracy", "noise"))
+    for experiment, sets in (("accuracy", sc.sets), ("noise", (len(sc.noise_scales) - 1) * sc.noise_sets)):
+        gru = [j for j in jobs if j.experiment == experiment and j.method == "gru"]
+        assert sorted(j.instance for j in gru) == sorted(shipped * sets) and not any(j.train_job for j in gru)
+        assert [j.instance for j in jobs if j.experiment == experiment and j.method == "ekf"] == [0] * sets
+    assert len(set(jobs)) == len(jobs)
+    # a job of instance K scores what evaluate scores with that instance's checkpoint, not the shipped model's
+    k = shipped[1]
+    job = Job("evaluate", "nlink", "gru", trajectories=4, horizon=20, instance=k)
+    got = run_job(job, tmp_path)["result"]["rmse"]
+    assert got != run_job(replace(job, instance=0), tmp_path)["result"]["rmse"]
+    data = job_data(job, tmp_path)
+    direct = evaluate(
+        make_scenario("nlink"),
+        ["gru"],
+        datasets=[data],
+        progress=False,
+        checkpoints={"gru": [str(shipped_instance("nlink", "gru", k))]},
+    )
+    assert got == pytest.approx(float(direct["gru"].reports[0].rmse), rel=1e-12)
+    with pytest.raises(FileNotFoundError, match="the zoo ships no instance 99 of nlink-gru"):
+        run_job(replace(job, instance=99), tmp_path)
 
 
 def test_init_truth_starts_the_filters_at_the_true_state(tmp_path):

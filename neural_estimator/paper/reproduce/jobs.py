@@ -63,7 +63,7 @@ class Job:
     device: str = "cpu"
     experiment: str = "accuracy"  # one of EXPERIMENTS: which part of the report it feeds
     data_ratio: float = 0.0  # train: the data-to-parameter ratio
-    instance: int = 0  # train: the instance (its init_seed)
+    instance: int = 0  # train: the instance (its init_seed); evaluate: the instance of the model it evaluates
     train: tuple[tuple[str, Any], ...] = ()  # train: TrainConfig fields changed from the paper's recipe
     train_job: "Job | None" = None  # evaluate: evaluate the model this train job writes (None: the shipped one)
     init: str = "prior"  # evaluate: how the classical filters start, "prior", "truth" or "observation" (INIT_MODES)
@@ -251,11 +251,9 @@ def _evaluate(job: Job, cache_dir: Path, threads: int) -> tuple[dict[str, Any], 
             raise RuntimeError(f"{ckpt}: the model of {job.train_job.label} is not trained")
         checkpoints = {job.method: [str(ckpt)]}
     elif table.has(job.method, trainable=True):
-        # one job, one model: the shipped model itself (instance 0), not every instance the zoo also
-        # ships (evaluate's default), whose report this job would drop and whose runs it would redo
-        from neural_estimator.serving.card import default_checkpoint
-
-        checkpoints = {job.method: [str(default_checkpoint(scenario.name, job.method))]}
+        # one job, one model: the zoo's instance ``job.instance``, not every instance the zoo ships
+        # (evaluate's default), whose reports this job would drop and whose runs it would redo
+        checkpoints = {job.method: [str(shipped_instance(scenario.name, job.method, job.instance))]}
     result = evaluate(
         scenario,
         [job.method],
@@ -361,3 +359,19 @@ def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:
     tmp.write_text(json.dumps(result))
     tmp.replace(done)
     return result, False
+
+
+def shipped_instance(scenario_name: str, method: str, instance: int) -> Path:
+    """The checkpoint directory of the zoo's instance ``instance`` of (scenario, method): 0 the shipped
+    model, K >= 1 ``zoo/instances/i<K>/``. A missing one is a one-line error naming what the zoo has."""
+    from neural_estimator.serving.card import default_checkpoint
+    from neural_estimator.serving.instances import instance_number, zoo_instances
+
+    if instance == 0:
+        return Path(default_checkpoint(scenario_name, method))
+    found = {instance_number(path): path for path in zoo_instances(scenario_name, method)}
+    if instance not in found:
+        raise FileNotFoundError(
+            f"the zoo ships no instance {instance} of {scenario_name}-{method} (it has {sorted(found) or 'none'})"
+        )
+    return found[instance]

@@ -79,11 +79,21 @@ def plan_jobs(
     return jobs + (_runtime_jobs(scale, scenarios, methods, gpu, neural) if "runtime" in run else [])
 
 
-def _models(scale: Scale, s: str, m: str, neural_methods) -> list[Job | None]:
-    """What an accuracy or noise evaluation of ``m`` evaluates: the shipped model (None) or trainings."""
+def _models(scale: Scale, s: str, m: str, neural_methods) -> list[tuple[Job | None, int]]:
+    """What an accuracy or noise evaluation of ``m`` evaluates, as (train job, instance) pairs: the
+    scale's trainings at 20:1 (``main_from_training``), else every instance of the zoo's model (train
+    job None, the instance number K of ``zoo/instances/i<K>/``; 0 the shipped model), as the paper
+    takes the median over instances. A filter, or a pair the zoo lacks, is one evaluation (None, 0)."""
     if m in neural_methods and scale.main_from_training:
-        return [train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances)]
-    return [None]
+        return [
+            (job, job.instance) for job in (train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances))
+        ]
+    if m in neural_methods:
+        from neural_estimator.serving.instances import instance_number, zoo_instances
+
+        shipped = [instance_number(path) for path in zoo_instances(s, m)]
+        return [(None, k) for k in shipped] or [(None, 0)]
+    return [(None, 0)]
 
 
 def _accuracy_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str], init: str, neural_methods):
@@ -91,7 +101,7 @@ def _accuracy_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str
     jobs: list[Job] = []
     for s in scenarios:
         for m in methods:
-            for tj in _models(scale, s, m, neural_methods):
+            for tj, instance in _models(scale, s, m, neural_methods):
                 for j in range(scale.sets):
                     jobs.append(
                         Job(
@@ -105,7 +115,7 @@ def _accuracy_jobs(scale: Scale, scenarios: Sequence[str], methods: Sequence[str
                             experiment="accuracy",
                             train_job=tj,
                             init=init,
-                            instance=tj.instance if tj else 0,
+                            instance=instance,
                         )
                     )
     return jobs
@@ -122,7 +132,7 @@ def _noise_jobs(
             for ns in scale.noise_scales:
                 if ns == 1.0 and reuse_accuracy and noise_reuses_accuracy(scale):
                     continue
-                for tj in _models(scale, s, m, neural_methods):
+                for tj, instance in _models(scale, s, m, neural_methods):
                     for j in range(scale.noise_sets):
                         jobs.append(
                             Job(
@@ -137,7 +147,7 @@ def _noise_jobs(
                                 experiment="noise",
                                 train_job=tj,
                                 init=init,
-                                instance=tj.instance if tj else 0,
+                                instance=instance,
                             )
                         )
     return jobs

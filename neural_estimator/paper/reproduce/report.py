@@ -387,7 +387,10 @@ def _neural_models(sc) -> str:
             f"{sc.train_instances} instances per architecture trained at 20:1 (init seeds 0-{sc.train_instances - 1}, "
             f"data seed {sc.seed}) for the accuracy and noise tables; the shipped checkpoints for runtime"
         )
-    return "the shipped checkpoints (one instance each) for accuracy, noise and runtime"
+    return (
+        "every instance the zoo ships for the accuracy and noise tables (median over instances x sets; each "
+        "network's count in the components table), the shipped model (instance 0) for runtime"
+    )
 
 
 def _floats(values) -> list[float]:

@@ -2,7 +2,7 @@
 
 ``paper`` is the paper's protocol ("Evaluation Protocol": three independent evaluation sets of
 8,000 trajectories at the scenario's horizon; batch-1 throughput). ``small`` fits one 2-core
-machine with the shipped models (one instance each) and reduced sets. ``smoke`` runs every
+machine with the zoo's models (every instance it ships) and reduced sets. ``smoke`` runs every
 experiment on tiny sizes, for the test suite: its numbers say the pipeline works, nothing about
 the methods. The model-mismatch experiment (beyond the paper) has its own sizes: ``small`` is
 the size of the committed ``docs/results/mismatch`` (2 sets x 100 trajectories, the sweep's
@@ -108,7 +108,7 @@ SCALES: dict[str, Scale] = {
         train_overrides=(("epochs", 10), ("windows_per_epoch", 500), ("val_trajectories", 100)),
         ratio_trajectories=100,
         notes=(
-            "shipped models, one instance per architecture",
+            "the zoo's models: every instance it ships of each pair (median over instances x sets)",
             "reduced evaluation sets",
             "data efficiency: one instance per ratio with 10 epochs of 500 windows (about 1 % of the paper's "
             "budget, to fit one machine): compare the ratios with each other, not with the paper",
