@@ -76,7 +76,10 @@ def test_headline_measures_and_renders_on_the_development_family(tmp_path, capsy
     assert row["verdict"] in ("network better", "tied", "filter better")
     assert row["not_estimated"] == ["drag_coefficient"]  # no method beats the open loop on the drag
     assert [c["name"] for c in row["components"]] == ["altitude", "velocity"]
-    assert table == (out / "headline.md").read_text() and "| ballistic | " in table
+    assert table == (out / "headline.md").read_text()
+    # each side by its display name and median figure, the network with its count of instances
+    best = {"ekf": "EKF", "ukf": "UKF"}[row["best_filter"]]
+    assert f"| ballistic | {best} {row['filter_value']:.3g} | GRU {row['network_value']:.3g} (1 instance) | " in table
     results = json.loads((out / "ballistic" / "results.json").read_text())
     assert "openloop" in results["methods"] and results["methods"]["openloop"]["reference_row"]
 

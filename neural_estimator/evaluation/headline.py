@@ -134,9 +134,12 @@ def render_headline(headline: dict[str, Any]) -> str:
         if row.get("not_estimated"):
             comps += ("; " if comps else "") + "not estimated: " + ", ".join(row["not_estimated"])
         inst = row.get("network_instances", 1)
-        network = f"{row['best_network']} ({inst} instance{'s' if inst != 1 else ''})" if row["best_network"] else "—"
+        best_filter = _named(row["best_filter"], row.get("filter_value"))
+        network = _named(row["best_network"], row.get("network_value"))
+        if row["best_network"]:
+            network += f" ({inst} instance{'s' if inst != 1 else ''})"
         lines.append(
-            f"| {row['scenario']} | {row['best_filter'] or '—'} | {network} | "
+            f"| {row['scenario']} | {best_filter} | {network} | "
             f"{_ratio(row['ratio'], row['ci95'])}{fig} | {comps or '—'} | {row['verdict']} |"
         )
     lines.append("")
@@ -144,9 +147,17 @@ def render_headline(headline: dict[str, Any]) -> str:
         f"Measured on the {headline['family']} evaluation family (seed {headline['seed']}): "
         f"{headline['sets']} sets x {headline['trajectories']} trajectories per system; ratio: median RMSE of the "
         "best network over that of the best filter, 95% paired bootstrap interval over trajectories and trained "
-        "instances."
+        "instances; beside each name its median RMSE (the Full RMSE where marked)."
     )
     return "\n".join(lines) + "\n"
+
+
+def _named(method: str | None, value: float | None) -> str:
+    """A method's display name and its median figure ("UKF 0.52"), "—" where there is none."""
+    if not method:
+        return "—"
+    shown = f" {value:.3g}" if value is not None and math.isfinite(value) else ""
+    return table.label(method) + shown
 
 
 def _components(items: list[dict[str, Any]], listed: int = 6) -> str:
