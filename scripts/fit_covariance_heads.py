@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Fit a covariance head (and its calibration scale) for every shipped model, resumably.
 
-For each (scenario, method) of the shipped zoo (neural_estimator/serving/zoo/<scenario>-<method>/) whose card
+For each (scenario, method) of the shipped zoo (neural_estimator/serving/zoo/<scenario>-<method>/, or with
+--instance K its trained instance K, zoo/instances/i<K>/<scenario>-<method>/) whose card
 has no ``covariance_head`` yet (or every one with --force), fit a Gaussian head on the model's frozen
 trunk on validation data (neural_estimator.serving.uncertainty.fit), write ``covariance_head.safetensors``
 beside the weights and add the card's ``covariance_head`` entry. The weights and the estimate are
@@ -9,6 +10,7 @@ untouched. One pair at a time; a pair already done is skipped, so an interrupted
 
     OMP_NUM_THREADS=1 python scripts/fit_covariance_heads.py --scenarios bearings lorenz96 nlink
     python scripts/fit_covariance_heads.py --scenarios ballistic --methods gru --force
+    python scripts/fit_covariance_heads.py --scenarios nlink lorenz96 --instance 1   # the zoo's instance 1
     python scripts/fit_covariance_heads.py --checkpoint my_gru --data held_out_a.npz --calibration-data held_out_b.npz
 """
 
@@ -24,7 +26,8 @@ import torch
 from neural_estimator.methods.interface import NEURAL_METHODS
 from neural_estimator.paper import PAPER_SCENARIOS
 from neural_estimator.serving.export import export_beside
-from neural_estimator.serving.card import CARD_FILE, default_checkpoint, read_card, write_json
+from neural_estimator.serving.card import CARD_FILE, read_card, write_json
+from neural_estimator.serving.instances import instance_checkpoint
 from neural_estimator.serving.load import load_neural_estimator
 from neural_estimator.scenarios import scenario_from_description
 from neural_estimator.serving.uncertainty.fit import FitSettings, calibrate_head, choose_shrink, fit_covariance_head
@@ -35,6 +38,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenarios", nargs="+", default=["bearings", "lorenz96", "nlink"], choices=PAPER_SCENARIOS)
     ap.add_argument("--methods", nargs="+", default=list(NEURAL_METHODS), choices=NEURAL_METHODS)
+    ap.add_argument(
+        "--instance",
+        type=int,
+        default=0,
+        help="the trained instance whose heads to fit (default 0, the shipped model; K >= 1: zoo/instances/i<K>/)",
+    )
     ap.add_argument("--force", action="store_true", help="refit pairs that already have a head")
     ap.add_argument("--head-trajectories", type=int, default=FitSettings.head_trajectories)
     ap.add_argument("--calibration-trajectories", type=int, default=FitSettings.calibration_trajectories)
@@ -63,11 +72,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.checkpoint is not None:
         return fit_recorded(args, settings)
+    if args.instance < 0:
+        print(f"--instance must be >= 0 (0: the shipped model), got {args.instance}", file=sys.stderr)
+        return 2
     for scenario_name in args.scenarios:
         for method in args.methods:
-            directory = default_checkpoint(scenario_name, method)
+            directory = instance_checkpoint(scenario_name, method, args.instance)
             if not (directory / CARD_FILE).is_file():
-                print(f"{scenario_name}-{method}: no shipped model, skipped", flush=True)
+                what = "no shipped model" if args.instance == 0 else f"no instance {args.instance} in the zoo"
+                print(f"{scenario_name}-{method}: {what}, skipped", flush=True)
                 continue
             _, card = read_card(directory)
             if args.choose_shrink:

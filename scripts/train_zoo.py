@@ -94,6 +94,7 @@ import torch
 from neural_estimator.data.protocol import SELECTION_INDEX, dataset
 from neural_estimator.methods import table
 from neural_estimator.serving.checkpoint import load_checkpoint
+from neural_estimator.serving.instances import instance_checkpoint, instance_number
 from neural_estimator.serving.load import validated_context
 from neural_estimator.training.loop import evaluate, train
 from neural_estimator.training.recipe import TrainConfig
@@ -364,8 +365,9 @@ def install_if_better(
 
 
 def fit_head(dest: Path, zoo: Path) -> None:
-    """Give a model installed in the package's zoo its covariance head (scripts/fit_covariance_heads.py,
-    a fresh process: the weights are untouched); a failure is reported, never fatal to the training."""
+    """Give a model installed in the package's zoo (the shipped model or a trained instance,
+    zoo/instances/i<K>/) its covariance head (scripts/fit_covariance_heads.py, a fresh process: the
+    weights are untouched); a failure is reported, never fatal to the training."""
     scenario, method = dest.name.rsplit("-", 1)
     if not table.has(method, family="neural"):
         print(f"{dest.name}: no covariance head (a {table.spec(method).family} method reports none)", flush=True)
@@ -378,7 +380,10 @@ def fit_head(dest: Path, zoo: Path) -> None:
         "--methods",
         method,
     ]
-    if zoo.resolve() != ZOO.resolve():
+    instance = instance_number(dest)
+    if instance:  # a trained instance, zoo/instances/i<K>/: its own head, on the same validation sets
+        cmd += ["--instance", str(instance)]
+    if instance_checkpoint(scenario, method, instance, ZOO).resolve() != dest.resolve():
         print(
             f"{dest.name}: no covariance head fitted outside the package's zoo (run: {' '.join(cmd[1:])})", flush=True
         )

@@ -157,3 +157,12 @@ def test_an_installed_model_gets_its_covariance_head_fitted_in_the_packages_zoo_
     zoo_script.fit_head(dest, tmp_path / "zoo")
     assert calls[0][-4:] == ["--scenarios", "ballistic", "--methods", "mamba"]
     assert calls[0][1].endswith("fit_covariance_heads.py") and "covariance head fitted" in capsys.readouterr().out
+    # a trained instance installed in the package's zoo/instances/i<K>/ gets its own head: --instance K
+    instance = tmp_path / "zoo" / "instances" / "i2" / "nlink-gru"
+    zoo_script.fit_head(instance, instance.parent)
+    assert calls[1][-6:] == ["--scenarios", "nlink", "--methods", "gru", "--instance", "2"]
+    assert "covariance head fitted" in capsys.readouterr().out
+    # the same layout under another root is another zoo: nothing runs
+    elsewhere = tmp_path / "other" / "instances" / "i2" / "nlink-gru"
+    zoo_script.fit_head(elsewhere, elsewhere.parent)
+    assert len(calls) == 2 and "no covariance head fitted outside" in capsys.readouterr().out

@@ -50,6 +50,32 @@ def test_a_shipped_covariance_head_is_served_and_recorded_its_calibration(name):
     assert np.linalg.eigvalsh(with_head.cov).min() > 0
 
 
+def test_every_trained_instance_has_its_own_covariance_head_where_the_shipped_model_has_one():
+    """The tables give coverage and NEES as medians over instances, as RMSE: an instance without a head
+    would leave them the shipped model's alone. Each instance's head was fitted on the shipped head's
+    validation sets and is served from its own folder."""
+    from neural_estimator.serving.instances import instance_number, zoo_instances
+
+    checked = 0
+    for name in SHIPPED:
+        scenario_name, method = name.split("-")
+        if "covariance_head" not in json.loads((ZOO / name / "card.json").read_text()):
+            continue
+        head = json.loads((ZOO / name / "card.json").read_text())["covariance_head"]
+        for path in zoo_instances(scenario_name, method)[1:]:
+            card = json.loads((path / "card.json").read_text())
+            fix = f"scripts/fit_covariance_heads.py --scenarios {scenario_name} --instance {instance_number(path)}"
+            assert "covariance_head" in card, f"{path}: no covariance head ({fix})"
+            entry = card["covariance_head"]
+            for part in ("head", "calibration"):  # the same validation sets (a recalibration adds its count)
+                sets = [{k: f["fitted_on"][part][k] for k in ("role", "index", "seed")} for f in (entry, head)]
+                assert sets[0] == sets[1], (path, part)
+            assert (path / entry["file"]).is_file(), path
+            assert 0.9 <= entry["calibration"]["after"]["coverage95"] <= 0.98, path
+            checked += 1
+    assert checked >= 9  # the N-link and Lorenz 96 networks' instances (docs/training.md)
+
+
 def _changed_constants(card: dict, scenario) -> list[str]:
     """Constants (evaluation-only ones aside) whose default differs from the card's (the
     calibration changed some scenarios after the zoo was trained)."""

@@ -26,6 +26,17 @@ def instance_number(directory: str | Path) -> int | None:
     return int(match.group(1)) if match and path.parent.parent.name == INSTANCES_DIR else 0
 
 
+def instance_checkpoint(scenario_name: str, method: str, instance: int, zoo: str | Path | None = None) -> Path:
+    """Where instance ``instance`` of (scenario, method) lives in the zoo, whether or not it is there:
+    ``zoo/<scenario>-<method>/`` for 0 (the shipped model), ``zoo/instances/i<K>/<scenario>-<method>/``
+    for K >= 1. A negative ``instance`` is a ValueError."""
+    if instance < 0:
+        raise ValueError(f"an instance is >= 0 (0: the shipped model), got {instance}")
+    root = Path(zoo) if zoo is not None else ZOO_DIR
+    pair = f"{scenario_name}-{method}"
+    return root / pair if instance == 0 else root / INSTANCES_DIR / f"i{instance}" / pair
+
+
 def zoo_instances(scenario_name: str, method: str, zoo: str | Path | None = None) -> list[Path]:
     """The checkpoint directories of every instance of (scenario, method), instance 0 (the shipped
     model) first, then ``instances/i<K>/`` by K; only complete ones (card and weights present).

@@ -364,11 +364,10 @@ def _train(job: Job, cache_dir: Path) -> tuple[dict[str, Any], bool]:
 def shipped_instance(scenario_name: str, method: str, instance: int) -> Path:
     """The checkpoint directory of the zoo's instance ``instance`` of (scenario, method): 0 the shipped
     model, K >= 1 ``zoo/instances/i<K>/``. A missing one is a one-line error naming what the zoo has."""
-    from neural_estimator.serving.card import default_checkpoint
-    from neural_estimator.serving.instances import instance_number, zoo_instances
+    from neural_estimator.serving.instances import instance_checkpoint, instance_number, zoo_instances
 
-    if instance == 0:
-        return Path(default_checkpoint(scenario_name, method))
+    if instance == 0:  # the shipped model; a pair the zoo lacks fails at loading, with the command that trains it
+        return instance_checkpoint(scenario_name, method, 0)
     found = {instance_number(path): path for path in zoo_instances(scenario_name, method)}
     if instance not in found:
         raise FileNotFoundError(

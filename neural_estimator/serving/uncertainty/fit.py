@@ -149,6 +149,7 @@ def _set(
     dx = est.scenario.dx
     seed = int((est.card.get("data") or {}).get("seed", 0))
     warmup = est.untrained_steps
+    where = f"val index {index}" if data is None else "recorded data"
     if data is None:
         data = protocol.dataset(est.scenario, "val", index, n, seed=seed)
     h, x_hat = served_features(est, data.y, data.u)
@@ -156,7 +157,6 @@ def _set(
     lab = getattr(data, "labelled", None)  # partial ground truth: no error where there is no truth
     keep = kept_trajectories(e, lab)
     if log:
-        where = f"val index {index}" if data is None else "recorded data"
         log(f"  {name} set: {where}, {keep.sum()}/{len(keep)} trajectories kept, {time.time() - t0:.0f} s")
     if lab is None:
         return h[keep, warmup:].reshape(-1, h.shape[-1]), e[keep, warmup:].reshape(-1, dx), int(keep.sum())
