@@ -189,7 +189,7 @@ def test_resume_redoes_only_the_missing_jobs(smoke_run, capsys):
         ("runtime", "nlink", "ekf"),
     ]
     assert sum(s == "cached" for s in after.values()) == len(after) - len(gru_jobs) - 1
-    # each redone job wrote its result again, one file (it evaluates the shipped model alone); the files the
+    # each redone job wrote its result again, one file (it evaluates its one instance); the files the
     # mismatch sweep's job wrote on its way (one per trained instance) stay gone, that job being cached
     assert sum(f.is_file() for f in results) == len(gru_jobs) and timing[0].is_file()
     # the report's wall time is the whole run's: the first invocation's plus the resumed one's
@@ -327,6 +327,7 @@ def test_the_small_scales_evaluate_every_instance_the_zoo_ships(tmp_path):
         ["gru"],
         datasets=[data],
         progress=False,
+        cache_dir=False,  # computed afresh here, not read back from the job's run
         checkpoints={"gru": [str(shipped_instance("nlink", "gru", k))]},
     )
     assert got == pytest.approx(float(direct["gru"].reports[0].rmse), rel=1e-12)

@@ -85,9 +85,7 @@ def _models(scale: Scale, s: str, m: str, neural_methods) -> list[tuple[Job | No
     job None, the instance number K of ``zoo/instances/i<K>/``; 0 the shipped model), as the paper
     takes the median over instances. A filter, or a pair the zoo lacks, is one evaluation (None, 0)."""
     if m in neural_methods and scale.main_from_training:
-        return [
-            (job, job.instance) for job in (train_job(scale, s, m, MAIN_RATIO, i) for i in range(scale.train_instances))
-        ]
+        return [(train_job(scale, s, m, MAIN_RATIO, i), i) for i in range(scale.train_instances)]
     if m in neural_methods:
         from neural_estimator.serving.instances import instance_number, zoo_instances
 
