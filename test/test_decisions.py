@@ -125,6 +125,50 @@ def test_a_diverged_method_is_worse_on_the_full_rmse():
     assert math.isfinite(ratio) and ci[0] <= ratio <= ci[1]
 
 
+def test_the_geometric_ratio_weighs_each_component_alike_on_aligned_replicates():
+    """Two components in very different units: the RMSE over both follows the large one, the
+    geometric mean of the two ratios does not; its replicates are the components' own, aligned."""
+    rng = np.random.default_rng(5)
+    n = 300
+
+    def run(scale_a, scale_b):
+        mse = np.stack([rng.standard_normal(n) ** 2 * scale_a + 1e-3, rng.standard_normal(n) ** 2 * scale_b], axis=1)
+        return M.TrajectoryErrors(mse * np.array([1e6, 1.0]), np.ones(n, dtype=bool))  # metres beside km
+
+    ref = [[run(1.0, 1.0)] for _ in range(2)]
+    # the network: 1.21x the squared error on the large component (1.1x RMSE), 16x on the small (4x)
+    net = [[M.TrajectoryErrors(r[0].mse * np.array([1.21, 16.0]), r[0].kept)] for r in ref]
+    aggregate, _ = M.paired_ratio(net, ref)
+    g, (lo, hi) = M.paired_geometric_ratio(net, ref, [0, 1])
+    ratios = [M.paired_ratio(net, ref, components=[d])[0] for d in (0, 1)]
+    assert ratios == [pytest.approx(1.1), pytest.approx(4.0)]
+    assert aggregate == pytest.approx(1.1, rel=1e-3)  # the small component is invisible in the sum
+    assert g == pytest.approx(math.sqrt(1.1 * 4.0)) and lo == pytest.approx(g) and hi == pytest.approx(g)
+    # one component: exactly the paired ratio and its interval
+    other = [[run(1.0, 1.0)] for _ in range(2)]
+    assert M.paired_geometric_ratio(other, ref, [1]) == M.paired_ratio(other, ref, components=[1])
+    # the same component twice: the replicates align, so the interval is the component's, not narrower
+    one = M.paired_ratio(other, ref, components=[1])[1]
+    assert M.paired_geometric_ratio(other, ref, [1, 1])[1] == pytest.approx(one)
+    g, (lo, hi) = M.paired_geometric_ratio(other, ref, [0, 1])
+    assert lo <= g <= hi and lo < 1.0 < hi
+    with pytest.raises(M.MetricsError, match="at least one component"):
+        M.paired_geometric_ratio(other, ref, [])
+
+
+def test_the_geometric_ratio_of_a_diverged_component_is_infinite():
+    rng = np.random.default_rng(9)
+    ref = [[_run(rng, 20, 1.0)]]
+    mse = ref[0][0].mse.copy()
+    mse[3, 1] = np.inf
+    diverged = [[M.TrajectoryErrors(mse, np.ones(20, dtype=bool))]]
+    g, ci = M.paired_geometric_ratio(diverged, ref, [0, 1])
+    assert g == math.inf and ci == (math.inf, math.inf) and M.verdict(ci) == "worse"
+    exact = [[M.TrajectoryErrors(np.zeros((20, 2)), np.ones(20, dtype=bool))]]
+    g, ci = M.paired_geometric_ratio(ref[0:1], exact, [0, 1])
+    assert math.isnan(g) and M.verdict(ci) == "unknown"
+
+
 def test_paired_ratio_refuses_unpaired_sets():
     rng = np.random.default_rng(2)
     with pytest.raises(M.MetricsError, match="same sets"):

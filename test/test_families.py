@@ -2,6 +2,7 @@
 renders the headline table (tiny scale, development family)."""
 
 import json
+import math
 import subprocess
 from pathlib import Path
 
@@ -106,3 +107,34 @@ def test_the_headline_ranks_on_the_full_rmse_where_the_outlier_rule_changes_the_
     row = headline_row(make_scenario("ballistic"), results)
     assert row["figure"] == "full_rmse" and row["best_filter"] == "ekf" and row["best_network"] == "gru"
     assert row["verdict"] == "filter better" and row["ci95"][0] > 1.0
+
+
+def test_the_verdict_rests_on_the_estimated_components_not_on_the_aggregate():
+    """Ballistic-like: a drag error that no method reduces (the open loop's own) swamps the aggregate,
+    which ties; the network's altitude and velocity errors are 3x and 1.5x the filter's, so the
+    verdict is "filter better", the aggregate's "tied" is kept beside it and both are printed."""
+    from neural_estimator import metrics as M
+    from neural_estimator.evaluation.headline import headline_row, render_headline
+    from neural_estimator.evaluation.protocol import MethodResult
+
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal((80, 20, 3))
+    scales = {"ekf": (1.0, 1.0, 100.0), "gru": (3.0, 1.5, 100.0), "openloop": (10.0, 10.0, 100.0)}
+    results = {}
+    for m, scale in scales.items():
+        e = rng.standard_normal(x.shape) * np.asarray(scale)
+        rep = M.compute_metrics(x, x + e)
+        results[m] = MethodResult(m)
+        results[m].add(rep, M.trajectory_errors(x, x + e, (), rep.outlier_idx))
+    row = headline_row(make_scenario("ballistic"), results)
+    assert row["best_filter"] == "ekf" and row["best_network"] == "gru"
+    assert row["not_estimated"] == ["drag_coefficient"]
+    assert row["verdict_aggregate"] == "tied" and row["ci95"][0] < 1.0 < row["ci95"][1]
+    altitude, velocity = row["components"]
+    assert altitude["ratio"] == pytest.approx(3.0, rel=0.1) and velocity["ratio"] == pytest.approx(1.5, rel=0.1)
+    g = row["estimated"]
+    assert g["ratio"] == pytest.approx(math.sqrt(altitude["ratio"] * velocity["ratio"]))
+    assert 1.0 < g["ci95"][0] <= g["ratio"] <= g["ci95"][1]
+    assert row["verdict"] == g["verdict"] == "filter better"
+    table = render_headline(dict(family="development", seed=0, sets=1, trajectories=80, rows=[row]))
+    assert f"together {g['ratio']:.2f} [" in table and "| filter better (aggregate: tied) |" in table

@@ -45,6 +45,7 @@ from neural_estimator.metrics.outliers import (
 from neural_estimator.metrics.paired import (
     TrajectoryErrors,
     estimated_components,
+    paired_geometric_ratio,
     paired_ratio,
     run_rmse,
     trajectory_errors,
@@ -85,6 +86,7 @@ __all__ = [
     "median_iqr",
     "nees",
     "outlier_mask",
+    "paired_geometric_ratio",
     "paired_ratio",
     "rmse_over_time",
     "robust_zscores",
