@@ -441,6 +441,50 @@ def test_the_findings_are_judged_on_their_intervals():
     assert "nlink: mamba2 / gru [1.04, 1.04] behind" in rows[2]["compared"]
     assert rows[4]["compared"].startswith("filterformer / mamba2") and rows[4]["ratio"] == pytest.approx(2.4)
     assert "| on the interval |" in I.render(rows)
+    # from the JSON the headline writes (NaN as null) the table is the same
+    assert I.render(json.loads(json.dumps(M.to_json(rows)))) == I.render(rows)
+    assert I.covers(by) and not I.covers({s: r for s, r in by.items() if s != "bearings"})
+    assert not I.covers({**by, "quadrotor": {m: r for m, r in by["quadrotor"].items() if m != "pf"}})
+
+
+def _findings_by_scenario():
+    nets = {"gru": 1.2, "lstm": 1.3, "gpt2": 1.4, "filterformer": 3.0, "mamba": 1.1, "mamba2": 1.0}
+    return {
+        "lorenz96": _scaled_results({"ekf": 1.0, "ukf": 1.0, "enkf": 1.05, **nets}),
+        "quadrotor": _scaled_results({"ekf": 1.0, "pf": 30.0, **nets}),
+        "nlink": _scaled_results(nets),
+        "bearings": _scaled_results({"ekf": 1.0, "enkf": 1.2, **nets}),
+        "ballistic": _scaled_results({"ekf": 1.0, "ukf": 1.0, **nets}),
+    }
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_the_headline_judges_the_findings_on_its_own_measurement(tmp_path, monkeypatch, capsys, complete):
+    """The headline command judges the paper's findings on the results it measured (here stood in
+    for by results of known ratios), and says in one line when they lack a system or a method."""
+    import neural_estimator.evaluation.headline as H
+
+    measured = _findings_by_scenario()
+    if not complete:
+        del measured["bearings"]
+
+    def measure(family, scenarios, methods, results_out=None, **kw):
+        results_out.update(measured)
+        return dict(family=family, seed=0, trajectories=40, sets=1, horizon=None, rows=[])
+
+    monkeypatch.setattr(H, "measure_headline", measure)
+    out = tmp_path / "headline"
+    out.mkdir()
+    assert main(["headline", "--family", "development", "--out", str(out), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    if not complete:
+        assert not (out / "findings.md").exists()
+        assert "the paper's findings: not judged" in captured.err
+        return
+    judged = json.loads((out / "findings.json").read_text())
+    assert [j["status"] for j in judged][:2] == ["reproduced", "reproduced"]  # mamba2 ~ ekf; pf 30x ekf
+    assert (out / "findings.md").read_text() in captured.out
+    assert "| the PF fails on the planar quadrotor | pf / ekf | 30.00 [30.00, 30.00] | reproduced |" in captured.out
 
 
 def test_the_fidelity_page_shows_the_committed_findings_on_intervals():

@@ -46,6 +46,7 @@ def _cmd_headline(args) -> int:
     methods = [check_evaluated_method(m) for m in (args.methods or default).split(",") if m.strip()]
     if args.trajectories < 2 or args.sets < 1:
         raise CliError(f"--trajectories must be >= 2 and --sets >= 1, got {args.trajectories} and {args.sets}")
+    by_scenario: dict = {}
     headline = measure_headline(
         args.family,
         scenarios,
@@ -56,9 +57,35 @@ def _cmd_headline(args) -> int:
         out=Path(args.out),
         progress=not args.quiet,
         note=lambda line: print(line, file=sys.stderr),
+        results_out=by_scenario,
     )
     from neural_estimator.evaluation.headline import render_headline
 
     print(render_headline(headline), end="")
     print(f"wrote {args.out}/headline.md, headline.json and one folder per system", file=sys.stderr)
+    _findings(args, by_scenario)
     return 0
+
+
+def _findings(args, by_scenario: dict) -> None:
+    """The paper's seven findings judged on the same measurement's paired intervals
+    (:mod:`neural_estimator.paper.reproduce.intervals`), written as findings.md and findings.json
+    when every method they compare was measured."""
+    import json
+
+    from neural_estimator import metrics as M
+    from neural_estimator.paper.reproduce.intervals import covers, judge, render
+
+    if not covers(by_scenario):
+        print(
+            "the paper's findings: not judged (they need the five systems and the methods they compare)",
+            file=sys.stderr,
+        )
+        return
+    judged = judge(by_scenario)
+    out = Path(args.out)
+    text = render(judged)
+    (out / "findings.md").write_text(text)
+    (out / "findings.json").write_text(json.dumps(M.to_json(judged), indent=1, allow_nan=False))
+    print("\nThe paper's findings on the same measurement's paired intervals:\n\n" + text, end="")
+    print(f"wrote {args.out}/findings.md and findings.json", file=sys.stderr)

@@ -52,11 +52,14 @@ def measure_headline(
     progress: bool = True,
     cache_dir: Any = None,
     note: Callable[[str], None] | None = None,
+    results_out: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``methods`` (and ``openloop``) on every scenario on ``family``'s seed and return the
     headline {family, seed, command sizes, rows: [per scenario]} (``methods``: default every filter
     and network of the table, :data:`HEADLINE_FAMILIES`); with ``out``, each scenario's
-    results (``out/<scenario>/``), headline.json and headline.md are written there."""
+    results (``out/<scenario>/``), headline.json and headline.md are written there; with
+    ``results_out``, each scenario's results are put there too (for other judgements of the same
+    measurement, such as the paper's findings)."""
     from neural_estimator.evaluation.output import write_evaluation
     from neural_estimator.evaluation.protocol import evaluate
     from neural_estimator.scenarios import make_scenario
@@ -83,6 +86,8 @@ def measure_headline(
         if out is not None:
             done = {m: len(r.reports) for m, r in results.items()}
             write_evaluation(Path(out) / name, scenario, results, info, done, plot=False)
+        if results_out is not None:
+            results_out[name] = results
         rows.append(headline_row(scenario, results))
         if note:
             note(f"{name}: {rows[-1]['verdict']}")

@@ -59,6 +59,11 @@ NEEDED = {
 }
 
 
+def covers(by_scenario: Mapping[str, Mapping[str, Any]]) -> bool:
+    """Whether ``by_scenario`` holds every method :func:`judge` compares (:data:`NEEDED`)."""
+    return all(s in by_scenario and all(m in by_scenario[s] for m in ms) for s, ms in NEEDED.items())
+
+
 def pair(results: Mapping[str, Any], a: str, b: str) -> tuple[float, tuple[float, float]]:
     """Paired ratio RMSE(a) / RMSE(b) and its interval, from two MethodResults of one evaluation."""
     return M.paired_ratio(results[a].runs_by_set(), results[b].runs_by_set())
@@ -180,9 +185,11 @@ def judge(by_scenario: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
 
 
 def render(judged: list[dict[str, Any]]) -> str:
+    """The findings' table, from :func:`judge` or its JSON (where NaN and inf were written as null)."""
     lines = ["| finding | compared | ratio [95% CI] | on the interval |", "|---|---|---|---|"]
     for j in judged:
-        lo, hi = j["ci95"]
-        cell = "—" if not math.isfinite(j["ratio"]) else f"{j['ratio']:.2f} [{lo:.2f}, {hi:.2f}]"
+        ratio = math.nan if j["ratio"] is None else j["ratio"]
+        lo, hi = (math.nan if v is None else v for v in j["ci95"])
+        cell = "—" if not math.isfinite(ratio) else f"{ratio:.2f} [{lo:.2f}, {hi:.2f}]"
         lines.append(f"| {j['finding']} | {j['compared']} | {cell} | {j['status']} |")
     return "\n".join(lines) + "\n"
