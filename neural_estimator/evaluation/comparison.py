@@ -62,16 +62,23 @@ def paired(
     results: Mapping[str, MethodResult], full: bool = False, components: list[int] | None = None
 ) -> dict[str, dict[str, Any] | None]:
     """{method: {reference, ratio, ci95: [lo, hi], verdict, instances}} for every method (baselines
-    included, as reference rows); None for a method without per-trajectory errors or on other
-    sets than the reference."""
+    included, as reference rows); None for a method without per-trajectory errors, on other
+    sets than the reference, or whose sets do not yet hold the same instances (a partial result,
+    written while an evaluation runs)."""
     ref = reference_method(results, full=full)
     out: dict[str, dict[str, Any] | None] = {}
     if ref is None or not results[ref].errors:
         return {m: None for m in results}
     ref_runs = results[ref].runs_by_set()
+    if len({len(instances) for instances in ref_runs}) != 1:
+        return {m: None for m in results}
     for m, r in results.items():
         runs = r.runs_by_set() if r.errors else []
-        if len(runs) != len(ref_runs) or any(a[0].mse.shape != b[0].mse.shape for a, b in zip(runs, ref_runs)):
+        if (
+            len(runs) != len(ref_runs)
+            or any(a[0].mse.shape != b[0].mse.shape for a, b in zip(runs, ref_runs))
+            or len({len(instances) for instances in runs}) != 1
+        ):
             out[m] = None
             continue
         ratio, ci = M.paired_ratio(runs, ref_runs, components=components, full=full)

@@ -166,6 +166,11 @@ def _paired(method, reference, components, full: bool, replicates: int, seed: in
     for a, b in zip(method, reference):
         if not a or not b or a[0].mse.shape[0] != b[0].mse.shape[0]:
             raise MetricsError("paired runs need at least one run per set, on the same trajectories")
+    for side in (method, reference):
+        # a replicate draws its instances once for every set, so each set must hold the same ones
+        if len({len(instances) for instances in side}) != 1:
+            counts = [len(instances) for instances in side]
+            raise MetricsError(f"paired runs need the same trained instances in every set, got {counts} per set")
     num, den = _median_rmse(method, components, full, None, None), _median_rmse(reference, components, full, None, None)
     point = num / den if den > 0 else math.nan  # a perfect reference (RMSE 0) has no ratio
     if point == math.inf and math.isfinite(den):  # the method diverged where the reference did not
