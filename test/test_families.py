@@ -138,3 +138,27 @@ def test_the_verdict_rests_on_the_estimated_components_not_on_the_aggregate():
     assert row["verdict"] == g["verdict"] == "filter better"
     table = render_headline(dict(family="development", seed=0, sets=1, trajectories=80, rows=[row]))
     assert f"together {g['ratio']:.2f} [" in table and "| filter better (aggregate: tied) |" in table
+
+
+def test_the_headline_ranks_on_the_full_rmse_where_the_outlier_rule_puts_the_filter_ahead():
+    """The only filter and the only network: on its kept trajectories the EKF is ahead, but its
+    dropped failures put it behind over every trajectory; the headline ranks on the Full RMSE."""
+    from neural_estimator import metrics as M
+    from neural_estimator.evaluation.headline import headline_row
+    from neural_estimator.evaluation.protocol import MethodResult
+
+    rng = np.random.default_rng(2)
+    x = rng.standard_normal((60, 20, 3))
+    results = {}
+    for m, scale in {"ekf": 0.8, "gru": 1.0}.items():
+        e = rng.standard_normal(x.shape) * scale
+        if m == "ekf":
+            e[:4] *= 1e3  # four failures the outlier rule drops
+        rep = M.compute_metrics(x, x + e)
+        results[m] = MethodResult(m)
+        results[m].add(rep, M.trajectory_errors(x, x + e, (), rep.outlier_idx))
+    ekf, gru = results["ekf"].summary, results["gru"].summary
+    assert ekf["rmse"].median < gru["rmse"].median and ekf["full_rmse"].median > gru["full_rmse"].median
+    row = headline_row(make_scenario("ballistic"), results)
+    assert row["figure"] == "full_rmse" and (row["best_filter"], row["best_network"]) == ("ekf", "gru")
+    assert row["verdict_aggregate"] == "network better" and row["ci95"][1] < 1.0
