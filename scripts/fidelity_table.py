@@ -12,8 +12,9 @@ gets its own, smaller, run (it costs 100-300x the other filters). Each run write
 ``DIR/<scenario>[-pf]/results.json`` and is cached, so an interrupted measurement resumes where it
 stopped. `render` prints the fidelity section (`neural_estimator/paper/reproduce/fidelity.py`: the 49
 cells within 1.5x, the spread of the states, the paper's seven findings) and writes
-``DIR/fidelity.md``; docs/fidelity.md shows it (`<!-- generate: fidelity-measured -->`), and the
-README's headline table (between its fidelity-headline markers) is rewritten from the same cells.
+``DIR/fidelity.md``; docs/fidelity.md shows it (`<!-- generate: fidelity-measured -->`), the site's
+front page shows the cells (`defaults-table`), and `python scripts/update_readme.py` then rewrites
+the README's count of them (its `fidelity-summary` block).
 """
 
 from __future__ import annotations
@@ -61,19 +62,8 @@ def render(a: argparse.Namespace) -> int:
     (out / "fidelity.md").write_text(text)
     print(text)
     if Path(a.out).resolve() == DEFAULT_OUT.resolve():
-        update_readme(got)
+        print("the README's count of these cells: python scripts/update_readme.py", file=sys.stderr)
     return 0
-
-
-def update_readme(got) -> None:
-    """Put the headline table (``fidelity.headline``) between the README's fidelity-headline markers."""
-    from neural_estimator.paper.reproduce.fidelity import headline
-
-    readme = ROOT / "README.md"
-    text = readme.read_text()
-    begin, end = "<!-- fidelity-headline: scripts/fidelity_table.py render -->\n", "\n<!-- /fidelity-headline -->"
-    a, b = text.index(begin) + len(begin), text.index(end)
-    readme.write_text(text[:a] + "\n".join(headline(got)) + text[b:])
 
 
 def main(argv=None) -> int:

@@ -75,9 +75,45 @@ def test_readme_is_a_front_page():
     assert "[ros]" in README and "colcon build" in README  # the extra the nodes need, and the workspace
 
 
-def test_readme_headline_table_comes_from_the_committed_measurement():
-    """The headline table equals the one generated from benchmarks/results/fidelity_measured (the defaults)."""
-    assert GENERATE.defaults_table() in README
+def test_readme_generated_blocks_come_from_the_committed_measurements():
+    """The README's first table is the sealed headline (docs/results/headline), followed by the count of
+    the paper's cells it matches (benchmarks/results/fidelity_measured); each block equals what its
+    generator makes of the committed results now (else: python scripts/update_readme.py)."""
+    blocks = GENERATE.readme_blocks(README)
+    assert list(blocks)[:2] == ["headline", "fidelity-summary"], list(blocks)
+    assert README.index("<!-- generated: headline -->") < README.index("| ")  # the first table
+    for name, text in blocks.items():
+        assert text == GENERATE.GENERATORS[name](), f"README block {name!r} is stale: python scripts/update_readme.py"
+    assert "sealed evaluation family" in blocks["headline"]
+    assert "of the 49 measured cells are within 1.5x" in blocks["fidelity-summary"]
+
+
+def test_update_readme_rewrites_a_stale_block_and_check_names_it(tmp_path, capsys):
+    import runpy
+
+    script = runpy.run_path(str(ROOT / "scripts" / "update_readme.py"))
+    readme = tmp_path / "README.md"
+    stale = README.replace(GENERATE.fidelity_summary(), "**0 of the 49 measured cells** (stale)")
+    assert stale != README
+    readme.write_text(stale)
+    assert script["main"](["--check", "--readme", str(readme)]) == 1
+    assert "stale in README.md: fidelity-summary" in capsys.readouterr().out
+    assert readme.read_text() == stale  # --check writes nothing
+    assert script["main"](["--readme", str(readme)]) == 0
+    assert readme.read_text() == README
+    assert script["main"](["--check", "--readme", str(readme)]) == 0
+    # empty blocks are filled, and the text between two blocks stays
+    end = "<!-- /generated -->\n"
+    readme.write_text(f"<!-- generated: headline -->\n{end}prose\n<!-- generated: fidelity-summary -->\n{end}")
+    assert script["main"](["--readme", str(readme)]) == 0
+    assert GENERATE.readme_blocks(readme.read_text()) == {
+        "headline": GENERATE.headline_table(),
+        "fidelity-summary": GENERATE.fidelity_summary(),
+    }
+    assert "\n<!-- /generated -->\nprose\n<!-- generated: fidelity-summary -->\n" in readme.read_text()
+    readme.write_text("<!-- generated: nosuch -->\nx\n<!-- /generated -->\n")
+    assert script["main"](["--readme", str(readme)]) == 2
+    assert "unknown generator 'nosuch'" in capsys.readouterr().err
 
 
 def test_readme_and_docs_name_every_cli_verb():

@@ -7,13 +7,25 @@ reference table or result is typed by hand:
     node-params NODE     the parameter table of a ROS 2 node, from its parameter dataclass
     cli VERB             ``neural-estimator VERB --help``
     scoreboard           the neural scoreboard, from docs/results/neural_scoreboard.json
-    headline             the README's headline table (RMSE, ours · the paper's), from the small report
+    headline             the headline answer (per system: best filter, best network, paired ratio, verdict),
+                         measured once on the sealed family, from docs/results/headline/headline.json
+    headline-findings    the paper's seven findings judged on that measurement's paired intervals
+    defaults-table       the paper's main table at the defaults, ours · the paper's, cell by cell, from
+                         benchmarks/results/fidelity_measured (scripts/fidelity_table.py)
+    fidelity-summary     how many of those cells are within 1.5x of the paper's, the NRMSE accounting and
+                         the findings' count, from the same measurement
+    fidelity-measured    the whole fidelity section of that measurement
     report-section TITLE a section of the committed small-scale report (docs/results/small/report.md)
     zoo                  the shipped models, from their cards (neural_estimator/serving/zoo/*/card.json)
+    zoo-instances        the trained instances of the pairs that have several, from their cards
     fidelity             the classical rows against the paper, from benchmarks/results/fidelity/*.txt
                          and neural_estimator/paper/paper_results.json
     methods              the table of methods and what each can do (neural_estimator/methods/table.py)
     mismatch             the mismatch crossovers, from docs/results/mismatch/*.json (neural-estimator mismatch)
+
+The README cannot run a hook, so its generated parts sit between ``<!-- generated: NAME -->`` and
+``<!-- /generated -->`` lines, rewritten by ``python scripts/update_readme.py`` (:func:`update_readme`);
+``test/test_docs.py`` fails when one differs from its generator.
 
 The node parameters are read from the source with ``ast`` (the node modules import rclpy; the
 site builds without it). ``test/test_docs.py`` holds the params/*.yaml files to the same dataclasses.
@@ -171,13 +183,31 @@ def report_section(title: str) -> str:
     return re.sub(r"\]\((figures/[^)]+)\)", r"](results/small/\1)", body)
 
 
+ZOO = ROOT / "neural_estimator" / "serving" / "zoo"
+
+
 def zoo() -> str:
     """The shipped models, one row per card of neural_estimator/serving/zoo: budget, stop, card metrics."""
+    return _zoo_table(sorted(ZOO.glob("*/card.json")), "model")
+
+
+def zoo_instances() -> str:
+    """The further trained instances (neural_estimator/serving/zoo/instances/i<K>/), pair by pair,
+    instance 0 (the shipped model) first: the spread that the tables' medians summarise."""
+    pairs = sorted({p.parent.name for p in ZOO.glob("instances/i*/*/card.json")})
+    paths = []
+    for pair in pairs:
+        paths.append(ZOO / pair / "card.json")
+        paths += sorted(ZOO.glob(f"instances/i*/{pair}/card.json"), key=lambda p: int(p.parent.parent.name[1:]))
+    return _zoo_table(paths, "model (instance)")
+
+
+def _zoo_table(card_paths, first: str) -> str:
     rows = [
-        "| model | loss units | epochs (best) | CPU hours | lr reductions | stopped | RMSE (NRMSE), card |",
+        f"| {first} | loss units | epochs (best) | CPU hours | lr reductions | stopped | RMSE (NRMSE), card |",
         "|---|---|---:|---:|---:|---|---:|",
     ]
-    for card_path in sorted((ROOT / "neural_estimator" / "serving" / "zoo").glob("*/card.json")):
+    for card_path in card_paths:
         card = json.loads(card_path.read_text())
         t = card["training"]
         recipe = t.get("recipe", {})
@@ -187,8 +217,11 @@ def zoo() -> str:
         rmse = metrics.get("rmse")
         score = f"{rmse:.4g} ({metrics.get('nrmse', float('nan')):.3f})" if isinstance(rmse, (int, float)) else "—"
         stopped = str(t.get("stopped", "")).split(":")[0].replace("|", "/")
+        name = card_path.parent.name
+        if first != "model":
+            name += f" ({card_path.parent.parent.name[1:] if card_path.parent.parent != ZOO else 0})"
         rows.append(
-            f"| {card_path.parent.name}{ctx} | {recipe.get('loss_units', 'normalised')} | "
+            f"| {name}{ctx} | {recipe.get('loss_units', 'normalised')} | "
             f"{t.get('epochs_run')} ({t.get('best_epoch')}) | {hours:.2f} | {t.get('lr_reductions')} | "
             f"{stopped} | {score} |"
         )
@@ -228,6 +261,32 @@ def defaults_table() -> str:
     from neural_estimator.paper.reproduce.fidelity import headline, load_measured
 
     return "\n".join(headline(load_measured(ROOT / "benchmarks/results/fidelity_measured")))
+
+
+def fidelity_summary() -> str:
+    """The count of the defaults' cells within 1.5x of the paper's, with the NRMSE accounting and the
+    findings' count (README, under the headline)."""
+    from neural_estimator.paper.reproduce.fidelity import load_measured, summary
+
+    return summary(load_measured(ROOT / "benchmarks/results/fidelity_measured"))
+
+
+HEADLINE = ROOT / "docs/results/headline/headline.json"
+
+
+def headline_table() -> str:
+    """The sealed headline (``neural-estimator headline --family sealed --out docs/results/headline``)."""
+    from neural_estimator.evaluation.headline import render_headline
+
+    return render_headline(json.loads(HEADLINE.read_text())).strip()
+
+
+def headline_findings() -> str:
+    """The paper's seven findings judged on the sealed headline's paired intervals
+    (docs/results/headline/findings.json, written by the same command)."""
+    from neural_estimator.paper.reproduce.intervals import render
+
+    return render(json.loads((HEADLINE.parent / "findings.json").read_text())).strip()
 
 
 def fidelity_measured() -> str:
@@ -280,7 +339,11 @@ GENERATORS = {
     "fidelity": lambda _=None: fidelity(),
     "fidelity-measured": lambda _=None: fidelity_measured(),
     "defaults-table": lambda _=None: defaults_table(),
+    "fidelity-summary": lambda _=None: fidelity_summary(),
+    "headline": lambda _=None: headline_table(),
+    "headline-findings": lambda _=None: headline_findings(),
     "zoo": lambda _=None: zoo(),
+    "zoo-instances": lambda _=None: zoo_instances(),
 }
 
 
@@ -294,6 +357,28 @@ def expand(markdown: str) -> str:
         return GENERATORS[name](arg) if arg is not None else GENERATORS[name]()
 
     return MARKER.sub(one, markdown)
+
+
+# ---- the README ---------------------------------------------------------------------------------
+# the start line, the text (may be empty), the first end line after it
+README_BLOCK = re.compile(r"^(<!-- generated: ([a-z-]+) -->)\n(.*?)\n?(<!-- /generated -->)$", re.M | re.S)
+
+
+def readme_blocks(markdown: str) -> dict[str, str]:
+    """The README's generated blocks: name -> the text between its markers."""
+    return {m.group(2): m.group(3) for m in README_BLOCK.finditer(markdown)}
+
+
+def update_readme(markdown: str) -> str:
+    """``markdown`` with every generated block rewritten by its generator."""
+
+    def one(m: re.Match) -> str:
+        name = m.group(2)
+        if name not in GENERATORS:
+            raise ValueError(f"unknown generator {name!r} (known: {', '.join(GENERATORS)})")
+        return f"{m.group(1)}\n{GENERATORS[name]()}\n{m.group(4)}"
+
+    return README_BLOCK.sub(one, markdown)
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 - MkDocs' hook signature

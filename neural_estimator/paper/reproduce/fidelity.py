@@ -383,19 +383,24 @@ def headline(measured: Measured) -> list[str]:
             shown = "…" if ours is None else _num(ours) + measured.mark(s, m)
             cells.append(f"{shown} · {_num(paper[s][m])}")
         L.append(f"| {LABELS[m]} | " + " | ".join(cells) + " |")
+    L += ["", summary(measured)]
+    used = measured.used_marks()
+    short = [f"`{k}` {SHORT_LEGEND[k]}" for k in SHORT_LEGEND if k in used]
+    return L + (["", "; ".join(short) + " (each cell's reason: docs/fidelity.md)."] if short else [])
+
+
+def summary(measured: Measured) -> str:
+    """One paragraph: how many of the measured cells are within :data:`FACTOR` of the paper's, the
+    NRMSE accounting both ways, and how many of the paper's findings reproduce."""
     hit, n_measured, total = match_counts(rmse_cells(measured.rmse))
     missed, by_spread = spread_misses(measured.rmse, measured.nrmse)
-    L += [
-        "",
+    return (
         f"**{hit} of the {n_measured} measured cells are within {FACTOR:g}x of the paper's** ({total} finite cells; "
         f"{total - n_measured} not measured). {len(by_spread)} of the {len(missed)} misses are within {FACTOR:g}x in "
         f"NRMSE, and {len(spread_matches(measured.rmse, measured.nrmse)[1])} of the {hit} matches miss in NRMSE: "
         "the scenario's spread differs there, not the method, both ways. "
-        + _findings_count(findings(measured.rmse, set(measured.contexts))),
-    ]
-    used = measured.used_marks()
-    short = [f"`{k}` {SHORT_LEGEND[k]}" for k in SHORT_LEGEND if k in used]
-    return L + (["", "; ".join(short) + " (each cell's reason: docs/fidelity.md)."] if short else [])
+        + _findings_count(findings(measured.rmse, set(measured.contexts)))
+    )
 
 
 SHORT_LEGEND = {
