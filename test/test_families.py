@@ -85,24 +85,30 @@ def test_headline_measures_and_renders_on_the_development_family(tmp_path, capsy
     assert "openloop" in results["methods"] and results["methods"]["openloop"]["reference_row"]
 
 
-def test_the_headline_ranks_on_the_full_rmse_where_the_outlier_rule_changes_the_best():
-    """The EnKF is best on its kept trajectories, but the outlier rule dropped its failures: over
-    every trajectory the EKF is best, and the headline says so and ranks on the Full RMSE."""
+def _synthetic_results(rng, x, scales, failures=None):
+    """MethodResults of errors N(0, scale^2) per method (one scale, or one per component), the first
+    ``failures[m]`` trajectories of method m multiplied by 1e3: failures the outlier rule drops."""
     from neural_estimator import metrics as M
-    from neural_estimator.evaluation.headline import headline_row
     from neural_estimator.evaluation.protocol import MethodResult
 
-    rng = np.random.default_rng(0)
-    x = rng.standard_normal((60, 20, 3))
-    errors = {"ekf": 1.0, "enkf": 0.8, "gru": 1.2}
     results = {}
-    for m, scale in errors.items():
-        e = rng.standard_normal(x.shape) * scale
-        if m == "enkf":
-            e[:3] *= 1e3  # three failures the outlier rule drops
+    for m, scale in scales.items():
+        e = rng.standard_normal(x.shape) * np.asarray(scale)
+        e[: (failures or {}).get(m, 0)] *= 1e3
         rep = M.compute_metrics(x, x + e)
         results[m] = MethodResult(m)
         results[m].add(rep, M.trajectory_errors(x, x + e, (), rep.outlier_idx))
+    return results
+
+
+def test_the_headline_ranks_on_the_full_rmse_where_the_outlier_rule_changes_the_best():
+    """The EnKF is best on its kept trajectories, but the outlier rule dropped its failures: over
+    every trajectory the EKF is best, and the headline says so and ranks on the Full RMSE."""
+    from neural_estimator.evaluation.headline import headline_row
+
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((60, 20, 3))
+    results = _synthetic_results(rng, x, {"ekf": 1.0, "enkf": 0.8, "gru": 1.2}, failures={"enkf": 3})
     assert results["enkf"].summary["rmse"].median < results["ekf"].summary["rmse"].median
     row = headline_row(make_scenario("ballistic"), results)
     assert row["figure"] == "full_rmse" and row["best_filter"] == "ekf" and row["best_network"] == "gru"
@@ -113,19 +119,12 @@ def test_the_verdict_rests_on_the_estimated_components_not_on_the_aggregate():
     """Ballistic-like: a drag error that no method reduces (the open loop's own) swamps the aggregate,
     which ties; the network's altitude and velocity errors are 3x and 1.5x the filter's, so the
     verdict is "filter better", the aggregate's "tied" is kept beside it and both are printed."""
-    from neural_estimator import metrics as M
     from neural_estimator.evaluation.headline import headline_row, render_headline
-    from neural_estimator.evaluation.protocol import MethodResult
 
     rng = np.random.default_rng(4)
     x = rng.standard_normal((80, 20, 3))
     scales = {"ekf": (1.0, 1.0, 100.0), "gru": (3.0, 1.5, 100.0), "openloop": (10.0, 10.0, 100.0)}
-    results = {}
-    for m, scale in scales.items():
-        e = rng.standard_normal(x.shape) * np.asarray(scale)
-        rep = M.compute_metrics(x, x + e)
-        results[m] = MethodResult(m)
-        results[m].add(rep, M.trajectory_errors(x, x + e, (), rep.outlier_idx))
+    results = _synthetic_results(rng, x, scales)
     row = headline_row(make_scenario("ballistic"), results)
     assert row["best_filter"] == "ekf" and row["best_network"] == "gru"
     assert row["not_estimated"] == ["drag_coefficient"]
@@ -143,20 +142,11 @@ def test_the_verdict_rests_on_the_estimated_components_not_on_the_aggregate():
 def test_the_headline_ranks_on_the_full_rmse_where_the_outlier_rule_puts_the_filter_ahead():
     """The only filter and the only network: on its kept trajectories the EKF is ahead, but its
     dropped failures put it behind over every trajectory; the headline ranks on the Full RMSE."""
-    from neural_estimator import metrics as M
     from neural_estimator.evaluation.headline import headline_row
-    from neural_estimator.evaluation.protocol import MethodResult
 
     rng = np.random.default_rng(2)
     x = rng.standard_normal((60, 20, 3))
-    results = {}
-    for m, scale in {"ekf": 0.8, "gru": 1.0}.items():
-        e = rng.standard_normal(x.shape) * scale
-        if m == "ekf":
-            e[:4] *= 1e3  # four failures the outlier rule drops
-        rep = M.compute_metrics(x, x + e)
-        results[m] = MethodResult(m)
-        results[m].add(rep, M.trajectory_errors(x, x + e, (), rep.outlier_idx))
+    results = _synthetic_results(rng, x, {"ekf": 0.8, "gru": 1.0}, failures={"ekf": 4})
     ekf, gru = results["ekf"].summary, results["gru"].summary
     assert ekf["rmse"].median < gru["rmse"].median and ekf["full_rmse"].median > gru["full_rmse"].median
     row = headline_row(make_scenario("ballistic"), results)
