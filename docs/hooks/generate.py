@@ -188,26 +188,28 @@ ZOO = ROOT / "neural_estimator" / "serving" / "zoo"
 
 def zoo() -> str:
     """The shipped models, one row per card of neural_estimator/serving/zoo: budget, stop, card metrics."""
-    return _zoo_table(sorted(ZOO.glob("*/card.json")), "model")
+    return _zoo_table([(p.parent.name, p) for p in sorted(ZOO.glob("*/card.json"))], "model")
 
 
 def zoo_instances() -> str:
     """The further trained instances (neural_estimator/serving/zoo/instances/i<K>/), pair by pair,
     instance 0 (the shipped model) first: the spread that the tables' medians summarise."""
     pairs = sorted({p.parent.name for p in ZOO.glob("instances/i*/*/card.json")})
-    paths = []
+    named = []
     for pair in pairs:
-        paths.append(ZOO / pair / "card.json")
-        paths += sorted(ZOO.glob(f"instances/i*/{pair}/card.json"), key=lambda p: int(p.parent.parent.name[1:]))
-    return _zoo_table(paths, "model (instance)")
+        named.append((f"{pair} (0)", ZOO / pair / "card.json"))
+        found = {int(p.parent.parent.name[1:]): p for p in ZOO.glob(f"instances/i*/{pair}/card.json")}
+        named += [(f"{pair} ({k})", found[k]) for k in sorted(found)]
+    return _zoo_table(named, "model (instance)")
 
 
-def _zoo_table(card_paths, first: str) -> str:
+def _zoo_table(named_cards: list[tuple[str, Path]], first: str) -> str:
+    """One row per (name, card path)."""
     rows = [
         f"| {first} | loss units | epochs (best) | CPU hours | lr reductions | stopped | RMSE (NRMSE), card |",
         "|---|---|---:|---:|---:|---|---:|",
     ]
-    for card_path in card_paths:
+    for name, card_path in named_cards:
         card = json.loads(card_path.read_text())
         t = card["training"]
         recipe = t.get("recipe", {})
@@ -217,9 +219,6 @@ def _zoo_table(card_paths, first: str) -> str:
         rmse = metrics.get("rmse")
         score = f"{rmse:.4g} ({metrics.get('nrmse', float('nan')):.3f})" if isinstance(rmse, (int, float)) else "—"
         stopped = str(t.get("stopped", "")).split(":")[0].replace("|", "/")
-        name = card_path.parent.name
-        if first != "model":
-            name += f" ({card_path.parent.parent.name[1:] if card_path.parent.parent != ZOO else 0})"
         rows.append(
             f"| {name}{ctx} | {recipe.get('loss_units', 'normalised')} | "
             f"{t.get('epochs_run')} ({t.get('best_epoch')}) | {hours:.2f} | {t.get('lr_reductions')} | "
@@ -350,13 +349,14 @@ GENERATORS = {
 def expand(markdown: str) -> str:
     """Every marker of ``markdown`` replaced by its generated text."""
 
-    def one(m: re.Match) -> str:
-        name, arg = m.group(1), m.group(2)
-        if name not in GENERATORS:
-            raise ValueError(f"unknown generator {name!r} (known: {', '.join(GENERATORS)})")
-        return GENERATORS[name](arg) if arg is not None else GENERATORS[name]()
+    return MARKER.sub(lambda m: generate(m.group(1), m.group(2)), markdown)
 
-    return MARKER.sub(one, markdown)
+
+def generate(name: str, arg: str | None = None) -> str:
+    """The text of generator ``name`` (with its argument where it takes one)."""
+    if name not in GENERATORS:
+        raise ValueError(f"unknown generator {name!r} (known: {', '.join(GENERATORS)})")
+    return GENERATORS[name](arg) if arg is not None else GENERATORS[name]()
 
 
 # ---- the README ---------------------------------------------------------------------------------
@@ -372,13 +372,7 @@ def readme_blocks(markdown: str) -> dict[str, str]:
 def update_readme(markdown: str) -> str:
     """``markdown`` with every generated block rewritten by its generator."""
 
-    def one(m: re.Match) -> str:
-        name = m.group(2)
-        if name not in GENERATORS:
-            raise ValueError(f"unknown generator {name!r} (known: {', '.join(GENERATORS)})")
-        return f"{m.group(1)}\n{GENERATORS[name]()}\n{m.group(4)}"
-
-    return README_BLOCK.sub(one, markdown)
+    return README_BLOCK.sub(lambda m: f"{m.group(1)}\n{generate(m.group(2))}\n{m.group(4)}", markdown)
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 - MkDocs' hook signature

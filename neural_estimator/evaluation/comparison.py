@@ -70,18 +70,16 @@ def paired(
     if ref is None or not results[ref].errors:
         return {m: None for m in results}
     ref_runs = results[ref].runs_by_set()
-    if len({len(instances) for instances in ref_runs}) != 1:
-        return {m: None for m in results}
     for m, r in results.items():
         runs = r.runs_by_set() if r.errors else []
-        if (
-            len(runs) != len(ref_runs)
-            or any(a[0].mse.shape != b[0].mse.shape for a, b in zip(runs, ref_runs))
-            or len({len(instances) for instances in runs}) != 1
-        ):
+        if len(runs) != len(ref_runs) or any(a[0].mse.shape != b[0].mse.shape for a, b in zip(runs, ref_runs)):
             out[m] = None
             continue
-        ratio, ci = M.paired_ratio(runs, ref_runs, components=components, full=full)
+        try:
+            ratio, ci = M.paired_ratio(runs, ref_runs, components=components, full=full)
+        except M.MetricsError:  # uneven instances: a partial result, paired once it is complete
+            out[m] = None
+            continue
         out[m] = {
             "reference": ref,
             "ratio": ratio,

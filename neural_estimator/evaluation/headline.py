@@ -106,11 +106,10 @@ def headline_row(scenario, results) -> dict[str, Any]:
     networks = {m: r for m, r in C.ranked(results).items() if table.has(m, family="neural")}
     # the outlier rule decides the ranking when it changes the best filter, the best network, or
     # which of the two is ahead (a filter whose failures were dropped can look better than it is)
-    full = any(_best(group, "rmse") != _best(group, "full_rmse") for group in (filters, networks))
-    full = full or _ahead(filters, networks, "rmse") != _ahead(filters, networks, "full_rmse")
+    ranking = {k: _ranking(filters, networks, k) for k in ("rmse", "full_rmse")}
+    full = ranking["rmse"] != ranking["full_rmse"]
     key = "full_rmse" if full else "rmse"
-    best_filter = _best(filters, key)
-    best_network = _best(networks, key)
+    best_filter, best_network, _ = ranking[key]
     row: dict[str, Any] = dict(
         scenario=scenario.name, figure=key, best_filter=best_filter, best_network=best_network, components=[]
     )
@@ -187,7 +186,7 @@ def _named(method: str | None, value: float | None) -> str:
 
 
 def _components(items: list[dict[str, Any]], listed: int = 6) -> str:
-    """Each estimated component's ratio; beyond ``listed`` of them (Lorenz 96 has 40), their range and
+    """Each estimated component's ratio; beyond ``listed`` of them (Lorenz 96 has 10), their range and
     the count of each verdict."""
     if len(items) <= listed:
         return "; ".join(f"{c['name']} {_ratio(c['ratio'], c['ci95'])}" for c in items)
@@ -197,12 +196,12 @@ def _components(items: list[dict[str, Any]], listed: int = 6) -> str:
     return f"{len(items)} components, {span} (" + ", ".join(f"{n} {v}" for v, n in counts.items() if n) + ")"
 
 
-def _ahead(filters, networks, key: str) -> bool | None:
-    """Whether the best network's median ``key`` is below the best filter's (None without both)."""
+def _ranking(filters, networks, key: str) -> tuple[str | None, str | None, bool | None]:
+    """(best filter, best network, whether the network's median ``key`` is below the filter's;
+    None without both)."""
     f, n = _best(filters, key), _best(networks, key)
-    if f is None or n is None:
-        return None
-    return networks[n].summary[key].median < filters[f].summary[key].median
+    ahead = None if f is None or n is None else networks[n].summary[key].median < filters[f].summary[key].median
+    return f, n, ahead
 
 
 def _best(results, key: str) -> str | None:
